@@ -1,0 +1,35 @@
+# qradar: `make run` (the main job) and `make test` create .venv and install on first use.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+OUT    ?= out
+
+.PHONY: run test test-fast bench montecarlo-paper clean
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
+	@touch $(STAMP)
+
+# Until the streaming parts exist: a short Monte Carlo of the paper's four schemes.
+run: $(STAMP)
+	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
+
+# The whole suite, slow tests included (CI runs this).
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_pbp.py
+
+# The paper's full run: 320 000 x K runs per scheme, K = 1 and 2, all four schemes.
+montecarlo-paper: $(STAMP)
+	$(VENV)/bin/qradar montecarlo --K 1 2 --out $(OUT)/montecarlo-paper
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info

@@ -1,0 +1,1 @@
+"""MCAP recording, replay and offline re-processing (see the MCAP issue)."""
