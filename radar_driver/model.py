@@ -1,0 +1,328 @@
+"""The radar's physics: configuration, measured frequencies, range grid, and the
+paper's signal model (eq. 2), batched over scenes.
+
+Conventions held here and nowhere else:
+
+* **Angle sign** (DESIGN.md): antenna 2 sees ``G = exp(+i 2 pi f0 d sin(theta) / c)``
+  relative to antenna 1, so a positive angle means the phase on antenna 2 *leads*
+  antenna 1, and ``theta_hat = arcsin(c * angle(x2 * conj(x1)) / (2 pi f0 d))``.
+  See :func:`antenna_phase_rad` and :func:`angle_from_antennas_rad`.
+* **Cartesian axes**: ``x_m = R cos(theta)`` along boresight, ``y_m = R sin(theta)``
+  across it (positive towards antenna 2's side); ``R e^{i theta} = x + i y``.
+  See :func:`polar_to_xy`.
+* **Frequencies**: measurement ``m`` of a frame of whole ramps is at
+  ``f_m = f0 + B (m mod N) / N``; a subset is given as frequency indices in ``[0, N)``.
+
+Arrays put the batch axis first: a scene batch has shape ``(B, K)``, a frame batch
+``(B, M, 2)`` (measurement, antenna).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError, InputError
+
+SPEED_OF_LIGHT_M_S = 3e8
+
+
+@dataclass(frozen=True)
+class RadarConfig:
+    """FMCW radar configuration; defaults are the paper's (Sec. 5) and the K-MD2's.
+
+    Attributes
+    ----------
+    f0_hz : start (carrier) frequency f0, Hz.
+    bandwidth_hz : sweep bandwidth B, Hz.
+    samples_per_ramp : N, samples per saw-tooth ramp (= number of range bins).
+    ramps_per_frame : whole ramps in a frame; M = ramps_per_frame * N.
+    c_m_s : propagation speed c, m/s.
+    antenna_spacing_m : d, m; ``None`` means half a wavelength, c / (2 f0).
+    """
+
+    f0_hz: float = 24e9
+    bandwidth_hz: float = 250e6
+    samples_per_ramp: int = 256
+    ramps_per_frame: int = 2
+    c_m_s: float = SPEED_OF_LIGHT_M_S
+    antenna_spacing_m: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("f0_hz", "bandwidth_hz", "c_m_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ConfigError(f"RadarConfig.{name}={value!r} must be a finite number > 0")
+        for name in ("samples_per_ramp", "ramps_per_frame"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"RadarConfig.{name}={value!r} must be an integer >= 1")
+        if self.bandwidth_hz >= self.f0_hz:
+            raise ConfigError(
+                f"RadarConfig.bandwidth_hz={self.bandwidth_hz!r} must be below "
+                f"f0_hz={self.f0_hz!r} (the model assumes B << f0)"
+            )
+        d = self.antenna_spacing_m
+        if d is not None and not (isinstance(d, (int, float)) and np.isfinite(d) and d > 0):
+            raise ConfigError(f"RadarConfig.antenna_spacing_m={d!r} must be a finite number > 0 or None")
+
+    # -- derived quantities -------------------------------------------------------
+    @property
+    def d_m(self) -> float:
+        """Antenna spacing d, m (half a wavelength unless set)."""
+        if self.antenna_spacing_m is None:
+            return self.c_m_s / (2.0 * self.f0_hz)
+        return float(self.antenna_spacing_m)
+
+    @property
+    def n_measurements(self) -> int:
+        """M for a frame of whole ramps."""
+        return self.samples_per_ramp * self.ramps_per_frame
+
+    @property
+    def range_resolution_m(self) -> float:
+        """Range bin width dR = c / (2 B), m."""
+        return self.c_m_s / (2.0 * self.bandwidth_hz)
+
+    @property
+    def max_range_m(self) -> float:
+        """R_max = N dR, m."""
+        return self.samples_per_ramp * self.range_resolution_m
+
+    def range_grid_m(self) -> np.ndarray:
+        """Range bins R_n = n dR, shape (N,), m."""
+        return np.arange(self.samples_per_ramp) * self.range_resolution_m
+
+    def frequencies_hz(self, indices: np.ndarray | None = None) -> np.ndarray:
+        """Measured frequencies, Hz.
+
+        ``indices=None``: the whole-ramp frame, shape (M,), ``f_m = f0 + B (m mod N) / N``.
+        ``indices``: frequency indices in ``[0, N)`` of an explicit subset, any shape
+        (e.g. ``(B, M)`` for one subset per scene); the result has the same shape.
+        """
+        n = self.samples_per_ramp
+        if indices is None:
+            k = np.arange(self.n_measurements) % n
+        else:
+            k = np.asarray(indices)
+            if not np.issubdtype(k.dtype, np.integer):
+                raise InputError(f"frequency indices must be integers, got dtype {k.dtype}")
+            if k.size and (k.min() < 0 or k.max() >= n):
+                raise InputError(
+                    f"frequency indices must lie in [0, {n}), got min {k.min()} max {k.max()}"
+                )
+        return self.f0_hz + self.bandwidth_hz * k / n
+
+    def config_id(self) -> str:
+        """Short stable identifier of this configuration (hex), for messages."""
+        import hashlib
+        import json
+
+        blob = json.dumps(self.to_dict(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RadarConfig":
+        """Build from a mapping, rejecting unknown keys by name."""
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"RadarConfig: unknown keys {unknown}; known keys are {sorted(known)}")
+        return cls(**data)
+
+
+# -- the angle convention -----------------------------------------------------------
+def antenna_phase_rad(angle_rad: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """Phase of antenna 2 relative to antenna 1 for a target at ``angle_rad``:
+    ``2 pi f0 d sin(theta) / c``, rad. Same shape as ``angle_rad``."""
+    return 2.0 * np.pi * config.f0_hz * config.d_m * np.sin(angle_rad) / config.c_m_s
+
+
+def angle_from_antennas_rad(x1: np.ndarray, x2: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """Angle estimate ``arcsin(c angle(x2 conj(x1)) / (2 pi f0 d))``, rad.
+
+    ``x1``, ``x2``: complex range-profile values on antennas 1 and 2, same shape.
+    The arcsin argument is clipped to [-1, 1] (with d = lambda/2 it always is).
+    """
+    phase = np.angle(x2 * np.conj(x1))
+    s = config.c_m_s * phase / (2.0 * np.pi * config.f0_hz * config.d_m)
+    return np.arcsin(np.clip(s, -1.0, 1.0))
+
+
+def polar_to_xy(range_m: np.ndarray, angle_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x_m, y_m) = (R cos theta, R sin theta): x along boresight, y across."""
+    return range_m * np.cos(angle_rad), range_m * np.sin(angle_rad)
+
+
+# -- the signal model (eq. 2) ---------------------------------------------------------
+def range_phase(freqs_hz: np.ndarray, range_m: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """Range term ``exp(-i 4 pi f R / c)``; broadcasts ``freqs_hz`` against ``range_m``."""
+    return np.exp(-1j * (4.0 * np.pi / config.c_m_s) * freqs_hz * range_m)
+
+
+def sensing_matrix(config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
+    """Range measurement matrix Phi, ``Phi_mn = exp(-i 4 pi f_m R_n / c)``.
+
+    Shape (M, N) for ``indices=None`` or 1-D indices; (B, M, N) for (B, M) indices.
+    """
+    f = config.frequencies_hz(indices)
+    return range_phase(f[..., :, None], config.range_grid_m(), config)
+
+
+def simulate_frames(
+    range_m: np.ndarray,
+    angle_deg: np.ndarray,
+    amplitude: np.ndarray,
+    config: RadarConfig,
+    indices: np.ndarray | None = None,
+    ramps: int | None = None,
+) -> np.ndarray:
+    """Noiseless measurements Gamma = Phi [x, G x] of a batch of scenes (eq. 2).
+
+    Parameters
+    ----------
+    range_m, angle_deg : (B, K) target ranges (m, on or off the range grid) and
+        angles (deg, positive = antenna 2 leads).
+    amplitude : (B, K) complex amplitudes x; 0 marks an absent target.
+    indices : None for whole ramps, or (M,) / (B, M) frequency indices of a subset.
+    ramps : whole ramps when ``indices`` is None (default ``config.ramps_per_frame``).
+
+    Returns
+    -------
+    (B, M, 2) complex128: Gamma, measurement x antenna.
+    """
+    range_m, angle_deg, amplitude = _check_scene(range_m, angle_deg, amplitude)
+    gain2 = np.exp(1j * antenna_phase_rad(np.deg2rad(angle_deg), config))  # (B, K)
+    per_target = np.stack([amplitude, amplitude * gain2], axis=-1)  # (B, K, 2)
+    if indices is None:
+        # one ramp, then tiled: every ramp sees the same N frequencies
+        f = config.frequencies_hz(np.arange(config.samples_per_ramp))
+        ramp = _project(f, range_m, per_target, config)  # (B, N, 2)
+        reps = config.ramps_per_frame if ramps is None else ramps
+        if isinstance(reps, bool) or not isinstance(reps, (int, np.integer)) or reps < 1:
+            raise InputError(f"ramps={ramps!r} must be an integer >= 1")
+        return np.tile(ramp, (1, reps, 1))
+    f = config.frequencies_hz(indices)
+    if f.ndim == 2 and f.shape[0] != range_m.shape[0]:
+        raise InputError(f"indices batch {f.shape[0]} does not match scene batch {range_m.shape[0]}")
+    return _project(f, range_m, per_target, config)
+
+
+def _project(f: np.ndarray, range_m: np.ndarray, per_target: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """sum_k exp(-i 4 pi f_m R_k / c) * per_target[k, p] -> (B, M, 2)."""
+    fm = f[None, :, None] if f.ndim == 1 else f[:, :, None]  # (B|1, M, 1)
+    steer = range_phase(fm, range_m[:, None, :], config)  # (B, M, K)
+    return np.einsum("bmk,bkp->bmp", steer, per_target)
+
+
+def add_noise(
+    frames: np.ndarray,
+    snr_db: float,
+    rng: np.random.Generator,
+    reference_power: float | np.ndarray | None = None,
+) -> np.ndarray:
+    """Add circular complex white Gaussian noise at ``snr_db``.
+
+    ``frames``: (B, M, 2). The signal power is ``reference_power`` if given (scalar or
+    (B,)), else the mean |Gamma|^2 of each frame. Returns a new array.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 3 or frames.shape[-1] != 2:
+        raise InputError(f"frames must have shape (B, M, 2), got {frames.shape}")
+    if not np.isfinite(snr_db):
+        raise InputError(f"snr_db={snr_db!r} must be finite")
+    if reference_power is None:
+        power = np.mean(np.abs(frames) ** 2, axis=(1, 2))
+    else:
+        power = np.broadcast_to(np.asarray(reference_power, dtype=float), frames.shape[:1])
+    sigma = np.sqrt(power / 10 ** (snr_db / 10) / 2.0)[:, None, None]
+    noise = rng.standard_normal(frames.shape) + 1j * rng.standard_normal(frames.shape)
+    return frames + sigma * noise
+
+
+def _check_scene(range_m, angle_deg, amplitude):
+    range_m = np.asarray(range_m, dtype=float)
+    angle_deg = np.asarray(angle_deg, dtype=float)
+    amplitude = np.asarray(amplitude, dtype=complex)
+    if range_m.ndim == 1:
+        range_m, angle_deg, amplitude = range_m[None], np.atleast_2d(angle_deg), np.atleast_2d(amplitude)
+    if not (range_m.shape == angle_deg.shape == amplitude.shape) or range_m.ndim != 2:
+        raise InputError(
+            "scene arrays must share one (B, K) shape: "
+            f"range_m {range_m.shape}, angle_deg {angle_deg.shape}, amplitude {amplitude.shape}"
+        )
+    if np.any(range_m < 0) or not np.all(np.isfinite(range_m)):
+        raise InputError("range_m must be finite and >= 0")
+    if np.any(np.abs(angle_deg) > 90) or not np.all(np.isfinite(angle_deg)):
+        raise InputError("angle_deg must be finite and within [-90, 90]")
+    return range_m, angle_deg, amplitude
+
+
+def snap_to_range_grid(range_m: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """Nearest range bin centre n dR (n in [0, N)) of each range, m; same shape."""
+    dr = config.range_resolution_m
+    n = np.clip(np.rint(np.asarray(range_m, dtype=float) / dr), 0, config.samples_per_ramp - 1)
+    return n * dr
+
+
+@dataclass(frozen=True)
+class Target:
+    """One point target: range (m), angle (deg, positive = antenna 2 leads) and
+    complex amplitude at the receiver."""
+
+    range_m: float
+    angle_deg: float
+    amplitude: complex = 1.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.range_m) and self.range_m >= 0):
+            raise ConfigError(f"Target.range_m={self.range_m!r} must be finite and >= 0")
+        if not (np.isfinite(self.angle_deg) and -90 <= self.angle_deg <= 90):
+            raise ConfigError(f"Target.angle_deg={self.angle_deg!r} must lie in [-90, 90]")
+        if not np.isfinite(complex(self.amplitude)):
+            raise ConfigError(f"Target.amplitude={self.amplitude!r} must be finite")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A set of point targets, turned into measurements by :meth:`frames`."""
+
+    targets: tuple[Target, ...]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(range_m, angle_deg, amplitude), each of shape (1, K)."""
+        t = self.targets
+        return (
+            np.array([[x.range_m for x in t]], dtype=float),
+            np.array([[x.angle_deg for x in t]], dtype=float),
+            np.array([[x.amplitude for x in t]], dtype=complex),
+        )
+
+    def frames(
+        self,
+        config: RadarConfig,
+        *,
+        on_grid: bool = False,
+        snr_db: float | None = None,
+        rng: np.random.Generator | None = None,
+        indices: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """One frame Gamma of this scene, shape (1, M, 2).
+
+        ``on_grid`` snaps ranges to the nearest bin; ``snr_db`` adds white noise
+        (needs ``rng``), the signal power being the frame's mean |Gamma|^2.
+        """
+        r, a, x = self.arrays()
+        if on_grid:
+            r = snap_to_range_grid(r, config)
+        gamma = simulate_frames(r, a, x, config, indices)
+        if snr_db is not None:
+            if rng is None:
+                raise InputError("Scene.frames: snr_db given without rng")
+            gamma = add_noise(gamma, snr_db, rng)
+        return gamma
