@@ -1,0 +1,263 @@
+"""Dithered uniform quantization of radar frames (paper Sec. 3, Sec. 6) and code packing.
+
+``Q(lambda) = delta * floor(lambda / delta) + delta / 2`` applied to the real and the
+imaginary part separately, after adding a dither ``xi = alpha * delta * u`` with
+``u ~ U[-1/2, 1/2) + i U[-1/2, 1/2)`` i.i.d. per measurement, antenna and I/Q.
+
+A b-bit quantizer keeps the 2**b levels ``delta * (q + 1/2)``, ``q`` in
+``[-2**(b-1), 2**(b-1) - 1]``, saturating outside; b = 1 gives +-delta/2. Codes are the
+unsigned level numbers ``q + 2**(b-1)`` in ``[0, 2**b)``.
+
+Shapes: frames are (B, M, 2) complex (batch, measurement, antenna); codes are
+(B, M, 2, 2) unsigned integers (batch, measurement, antenna, I/Q); ``delta`` is a
+scalar or (B,). The dither of a frame is reproducible from ``(dither_seed, seq)``:
+:func:`unit_dither` draws ``u`` from ``numpy.random.SeedSequence(dither_seed,
+spawn_key=(seq,))``, independent of delta and alpha, so a decoder that knows the
+seed, the sequence number, delta and alpha regenerates xi exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from .errors import ParameterError
+
+MAX_BITS = 16
+
+
+# -- parameter checks ---------------------------------------------------------------
+def check_bits(bits: int) -> int:
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not 1 <= bits <= MAX_BITS:
+        raise ParameterError(f"bits={bits!r} must be an integer in [1, {MAX_BITS}]")
+    return int(bits)
+
+
+def check_alpha(alpha: float) -> float:
+    if not (isinstance(alpha, (int, float, np.floating)) and 0.0 <= float(alpha) <= 1.0):
+        raise ParameterError(f"alpha={alpha!r} must be a number in [0, 1]")
+    return float(alpha)
+
+
+def check_delta(delta, batch: int | None = None) -> np.ndarray:
+    """delta as a float array of shape () or (B,); every value finite and > 0."""
+    d = np.asarray(delta, dtype=float)
+    if d.ndim > 1 or (d.ndim == 1 and batch is not None and d.shape[0] != batch):
+        raise ParameterError(f"delta must be a scalar or of shape ({batch},), got shape {d.shape}")
+    if not np.all(np.isfinite(d)) or np.any(d <= 0):
+        bad = d[~(np.isfinite(d) & (d > 0))] if d.ndim else d
+        raise ParameterError(f"delta must be finite and > 0, got {np.ravel(bad)[:4].tolist()}")
+    return d
+
+
+def check_frames(frames: np.ndarray, name: str = "frames") -> np.ndarray:
+    """frames as a complex (B, M, 2) array; a single (M, 2) frame is not accepted here."""
+    f = np.asarray(frames)
+    if f.ndim != 3 or f.shape[-1] != 2:
+        raise ParameterError(f"{name} must have shape (B, M, 2), got {f.shape}")
+    if not np.iscomplexobj(f):
+        f = f.astype(complex)
+    return f
+
+
+def _per_frame(delta: np.ndarray, ndim: int) -> np.ndarray:
+    """Reshape a () or (B,) delta to broadcast against an array of ``ndim`` dims."""
+    return delta.reshape(delta.shape + (1,) * (ndim - delta.ndim)) if delta.ndim else delta
+
+
+# -- the quantizer --------------------------------------------------------------------
+def quantize_real(lam: np.ndarray, delta) -> np.ndarray:
+    """The paper's Q(lambda) = delta floor(lambda / delta) + delta / 2 (unbounded), real."""
+    d = np.asarray(delta, dtype=float)
+    return d * np.floor(lam / d) + d / 2.0
+
+
+def auto_delta(frames: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """Smallest 1-bit step per frame, ``2 max(|Re Gamma|, |Im Gamma|) (1 + margin)``.
+
+    ``frames``: (B, M, 2). Returns (B,). An all-zero frame gets the smallest positive
+    float (its codes then carry only the dither).
+    """
+    f = check_frames(frames)
+    if not (np.isfinite(margin) and margin >= 0):
+        raise ParameterError(f"margin={margin!r} must be finite and >= 0")
+    peak = np.maximum(np.abs(f.real).max(axis=(1, 2)), np.abs(f.imag).max(axis=(1, 2)))
+    return np.maximum(2.0 * peak * (1.0 + margin), np.finfo(float).tiny)
+
+
+def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = None) -> np.ndarray:
+    """b-bit codes of ``frames + dither``.
+
+    frames, dither : (B, M, 2) complex (dither in the same units as frames, or None).
+    delta : scalar or (B,). Returns (B, M, 2, 2) codes, uint8 (uint16 for bits > 8).
+    """
+    bits = check_bits(bits)
+    f = check_frames(frames)
+    d = check_delta(delta, f.shape[0])
+    if dither is not None:
+        dither = np.asarray(dither)
+        if dither.shape != f.shape:
+            raise ParameterError(f"dither shape {dither.shape} does not match frames shape {f.shape}")
+        f = f + dither
+    lam = np.stack([f.real, f.imag], axis=-1)  # (B, M, 2, 2)
+    half = 1 << (bits - 1)
+    q = np.floor(lam / _per_frame(d, 4))
+    np.clip(q, -half, half - 1, out=q)
+    return (q + half).astype(np.uint8 if bits <= 8 else np.uint16)
+
+
+def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
+    """Complex quantized values Z from (B, M, 2, 2) codes: ``delta (code - 2**(b-1) + 1/2)``.
+
+    Returns (B, M, 2) complex128.
+    """
+    bits = check_bits(bits)
+    c = np.asarray(codes)
+    if c.ndim != 4 or c.shape[-2:] != (2, 2):
+        raise ParameterError(f"codes must have shape (B, M, 2, 2), got {c.shape}")
+    if c.size and int(c.max()) >= (1 << bits):
+        raise ParameterError(f"codes hold {int(c.max())}, beyond the {1 << bits} levels of {bits} bits")
+    d = check_delta(delta, c.shape[0])
+    v = (c.astype(float) - ((1 << (bits - 1)) - 0.5)) * _per_frame(d, 4)
+    return v[..., 0] + 1j * v[..., 1]
+
+
+# -- the dither -------------------------------------------------------------------------
+def unit_dither(dither_seed: int, seq, n_measurements: int) -> np.ndarray:
+    """Unit dither ``u`` of frames ``seq`` (int or (B,) ints): (B, M, 2) complex, Re and Im
+    i.i.d. U[-1/2, 1/2). Frame ``s`` draws from ``SeedSequence(dither_seed, spawn_key=(s,))``
+    (real parts of all M x 2 entries first, then imaginary parts)."""
+    if isinstance(dither_seed, bool) or not isinstance(dither_seed, (int, np.integer)) or dither_seed < 0:
+        raise ParameterError(f"dither_seed={dither_seed!r} must be an integer >= 0")
+    seqs = np.atleast_1d(np.asarray(seq))
+    if seqs.ndim != 1 or not np.issubdtype(seqs.dtype, np.integer) or (seqs.size and seqs.min() < 0):
+        raise ParameterError(f"seq must be an integer >= 0 or a 1-D array of them, got {seq!r}")
+    out = np.empty((seqs.size, n_measurements, 2), dtype=complex)
+    for i, s in enumerate(seqs.tolist()):  # one generator per frame: frames are independent
+        rng = np.random.default_rng(np.random.SeedSequence(int(dither_seed), spawn_key=(s,)))
+        u = rng.random((2, n_measurements, 2)) - 0.5
+        out[i] = u[0] + 1j * u[1]
+    return out
+
+
+def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+    """Unit dither for a Monte Carlo batch from one generator: complex array of ``shape``."""
+    u = rng.random((2,) + tuple(shape)) - 0.5
+    return u[0] + 1j * u[1]
+
+
+# -- packing ----------------------------------------------------------------------------
+def packed_size(n_codes: int, bits: int) -> int:
+    """Bytes holding ``n_codes`` codes of ``bits`` bits: ceil(n_codes * bits / 8)."""
+    return (n_codes * check_bits(bits) + 7) // 8
+
+
+def pack_codes(codes: np.ndarray, bits: int) -> np.ndarray:
+    """Pack codes of ``bits`` bits, most significant bit first, into bytes.
+
+    ``codes``: (B, ...) unsigned; each frame's codes are taken in C order.
+    Returns (B, ceil(L * bits / 8)) uint8 with L codes per frame; trailing pad bits are 0.
+    """
+    bits = check_bits(bits)
+    c = np.asarray(codes)
+    if c.ndim < 1:
+        raise ParameterError("codes must have a batch axis")
+    if not np.issubdtype(c.dtype, np.integer):
+        raise ParameterError(f"codes must be integers, got dtype {c.dtype}")
+    flat = c.reshape(c.shape[0], -1)
+    if flat.size and (flat.min() < 0 or int(flat.max()) >= (1 << bits)):
+        raise ParameterError(f"codes must lie in [0, {1 << bits}) for bits={bits}")
+    if bits == 1:
+        return np.packbits(flat.astype(np.uint8), axis=1)
+    shifts = np.arange(bits - 1, -1, -1, dtype=np.uint32)
+    bitplanes = ((flat.astype(np.uint32)[..., None] >> shifts) & 1).astype(np.uint8)
+    return np.packbits(bitplanes.reshape(flat.shape[0], -1), axis=1)
+
+
+def unpack_codes(packed: np.ndarray, bits: int, n_codes: int) -> np.ndarray:
+    """Inverse of :func:`pack_codes`: (B, nbytes) uint8 -> (B, n_codes) codes."""
+    bits = check_bits(bits)
+    p = np.asarray(packed)
+    if p.ndim != 2 or p.dtype != np.uint8:
+        raise ParameterError(f"packed must be a (B, nbytes) uint8 array, got {p.shape} {p.dtype}")
+    need = packed_size(n_codes, bits)
+    if p.shape[1] != need:
+        raise ParameterError(f"{n_codes} codes of {bits} bits need {need} bytes, got {p.shape[1]}")
+    planes = np.unpackbits(p, axis=1, count=n_codes * bits)
+    if bits == 1:
+        return planes
+    weights = (1 << np.arange(bits - 1, -1, -1)).astype(np.uint32)
+    codes = planes.reshape(p.shape[0], n_codes, bits).astype(np.uint32) @ weights
+    return codes.astype(np.uint8 if bits <= 8 else np.uint16)
+
+
+# -- the configured quantizer -------------------------------------------------------------
+@dataclass(frozen=True)
+class QuantizerConfig:
+    """A dithered b-bit quantizer.
+
+    bits : bits per real value (1 = the paper's 1-bit scheme).
+    alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither).
+    delta : quantizer step (same units as the frames) or ``"auto"`` = the smallest 1-bit
+        step of each frame times ``1 + delta_margin``.
+    dither_seed : seed from which, with the frame sequence number, the dither is drawn.
+    """
+
+    bits: int = 1
+    alpha: float = 1.0
+    delta: float | Literal["auto"] = "auto"
+    delta_margin: float = 0.0
+    dither_seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_bits(self.bits)
+        check_alpha(self.alpha)
+        if self.delta != "auto":
+            if isinstance(self.delta, str):
+                raise ParameterError(f"delta={self.delta!r} must be 'auto' or a number > 0")
+            check_delta(self.delta)
+        if not (np.isfinite(self.delta_margin) and self.delta_margin >= 0):
+            raise ParameterError(f"delta_margin={self.delta_margin!r} must be finite and >= 0")
+        if isinstance(self.dither_seed, bool) or not isinstance(self.dither_seed, int) or self.dither_seed < 0:
+            raise ParameterError(f"dither_seed={self.dither_seed!r} must be an integer >= 0")
+
+
+@dataclass(frozen=True)
+class QuantizedFrames:
+    """Quantizer output for a batch: codes (B, M, 2, 2), delta (B,), and what a decoder
+    needs to regenerate the dither (alpha, dither_seed, seq (B,))."""
+
+    codes: np.ndarray
+    delta: np.ndarray
+    bits: int
+    alpha: float
+    dither_seed: int
+    seq: np.ndarray
+
+    def values(self) -> np.ndarray:
+        """Z, the quantized complex values, (B, M, 2)."""
+        return dequantize(self.codes, self.delta, self.bits)
+
+    def dither(self) -> np.ndarray:
+        """The dither xi added before quantization, regenerated from the seed: (B, M, 2)."""
+        u = unit_dither(self.dither_seed, self.seq, self.codes.shape[1])
+        return self.alpha * self.delta[:, None, None] * u
+
+
+def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq) -> QuantizedFrames:
+    """Dither and quantize frames (B, M, 2) with sequence numbers ``seq`` ((B,) or int)."""
+    f = check_frames(frames)
+    seqs = np.atleast_1d(np.asarray(seq, dtype=np.int64))
+    if seqs.shape != (f.shape[0],):
+        raise ParameterError(f"seq has shape {seqs.shape}, expected ({f.shape[0]},) for {f.shape[0]} frames")
+    if config.delta == "auto":
+        delta = auto_delta(f, config.delta_margin)
+    else:
+        delta = np.full(f.shape[0], float(config.delta))
+    dither = None
+    if config.alpha > 0:
+        dither = config.alpha * delta[:, None, None] * unit_dither(config.dither_seed, seqs, f.shape[1])
+    codes = quantize(f, delta, config.bits, dither)
+    return QuantizedFrames(codes, delta, config.bits, config.alpha, config.dither_seed, seqs)
