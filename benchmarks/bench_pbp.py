@@ -1,0 +1,78 @@
+#!/usr/bin/env python3
+"""PBP throughput: the FFT (fold + inverse FFT) path against the dense Phi^H Z path on
+the same 1-bit dithered frames (M = 512, K = 2), in batch and frame by frame, in one
+process. Prints one JSON object; the ratios are what to compare across machines.
+
+    .venv/bin/python benchmarks/bench_pbp.py [--batch 4096] [--single 300] [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.localize import localize, localize_frame  # noqa: E402
+from pipeline.montecarlo import draw_scenes  # noqa: E402
+from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
+from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
+
+
+def best_rate(fn, frames: int, repeat: int) -> float:
+    """Frames per second of the fastest of ``repeat`` calls of ``fn``."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return frames / best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", type=int, default=4096, help="frames in the batch")
+    ap.add_argument("--single", type=int, default=300, help="frames localized one by one")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--K", type=int, default=2)
+    args = ap.parse_args()
+
+    cfg = RadarConfig()
+    rng = np.random.default_rng(0)
+    _, _, r, a, x = draw_scenes(args.batch, args.K, rng, cfg)
+    z = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(), np.arange(args.batch)).values()
+    ramp_indices = np.arange(cfg.n_measurements) % cfg.samples_per_ramp  # same frequencies, dense path
+
+    fft_det = localize(z, cfg, args.K)
+    dense_det = localize(z, cfg, args.K, indices=ramp_indices)
+    assert np.array_equal(fft_det.bin, dense_det.bin), "paths disagree on the support"
+
+    single = z[: args.single]
+    results = {
+        "fft_batch_fps": best_rate(lambda: localize(z, cfg, args.K), args.batch, args.repeat),
+        "dense_batch_fps": best_rate(lambda: localize(z, cfg, args.K, indices=ramp_indices), args.batch, args.repeat),
+        "fft_single_fps": best_rate(lambda: [localize_frame(f, cfg, args.K) for f in single], len(single), args.repeat),
+        "dense_single_fps": best_rate(
+            lambda: [localize_frame(f, cfg, args.K, indices=ramp_indices) for f in single], len(single), args.repeat
+        ),
+    }
+    results["fft_over_dense_batch"] = results["fft_batch_fps"] / results["dense_batch_fps"]
+    results["fft_over_dense_single"] = results["fft_single_fps"] / results["dense_single_fps"]
+    results["batch_over_single_fft"] = results["fft_batch_fps"] / results["fft_single_fps"]
+    results = {k: round(v, 1) for k, v in results.items()}
+    results.update(
+        M=cfg.n_measurements, N=cfg.samples_per_ramp, K=args.K, batch=args.batch, single=len(single),
+        numpy=np.__version__, python=platform.python_version(), cpus=os.cpu_count(),
+    )
+    print(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,291 @@
+"""The paper's Monte Carlo (Sec. 5) with the protocol of DESIGN.md.
+
+Every run draws K targets in a 40 x 40 polar grid of cells (distinct range cells,
+range centres snapped to the range grid unless ``off_grid``), uniform phases, the
+strongest amplitude 1 and the others U[0, 1]; a scheme measures them, PBP localizes,
+and each true target's error is ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``.
+
+Schemes are named ``<kind>_m<M>``: ``dither`` / ``nodither`` (1-bit, delta per run the
+smallest 1-bit step, alpha 1 / 0) and ``32bit`` (unquantized complex64 values).
+M a multiple of N means whole ramps (FFT path); M < N means a random subset of the N
+frequencies drawn per run (dense path).
+
+Determinism: runs are cut into chunks of ``CHUNK_RUNS``; the scenes of chunk c for
+sparsity K come from ``SeedSequence(seed, spawn_key=(K, c))`` -- every scheme sees the
+same scenes -- and a scheme's own randomness (dither, subsets) from
+``SeedSequence(seed, spawn_key=(K, c, crc32(scheme)))``. The result depends on the seed
+and the number of runs, not on the number of worker processes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
+
+from .errors import ParameterError
+from .localize import detections_from_support, back_project, joint_support, position_error_m
+from .progress import Progress
+from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
+
+GRID_CELLS = 40
+ANGLE_CELL_DEG = 180.0 / GRID_CELLS
+DEFAULT_SCHEMES = ("nodither_m512", "dither_m512", "32bit_m16", "32bit_m256")
+CHUNK_RUNS = 4096
+WITHIN_DEG = 60.0
+OVER_M = 5.0
+
+_SCHEME_RE = re.compile(r"^(nodither|dither|32bit)_m([1-9][0-9]*)$")
+
+
+@dataclass(frozen=True)
+class Scheme:
+    """A measurement scheme: ``bits`` 1 (quantized, ``alpha`` dither) or None (32-bit)."""
+
+    name: str
+    n_measurements: int
+    bits: int | None
+    alpha: float
+
+    @classmethod
+    def parse(cls, name: str, config: RadarConfig) -> "Scheme":
+        m = _SCHEME_RE.match(name)
+        if not m:
+            raise ParameterError(
+                f"scheme {name!r} is not of the form dither_m<M>, nodither_m<M> or 32bit_m<M>"
+            )
+        kind, n_meas = m.group(1), int(m.group(2))
+        n = config.samples_per_ramp
+        if n_meas % n and n_meas > n:
+            raise ParameterError(
+                f"scheme {name!r}: M={n_meas} must be a multiple of N={n} (whole ramps) or below N (a subset)"
+            )
+        if kind == "32bit":
+            return cls(name, n_meas, None, 0.0)
+        return cls(name, n_meas, 1, 1.0 if kind == "dither" else 0.0)
+
+    def ramps(self, config: RadarConfig) -> int:
+        n = config.samples_per_ramp
+        return self.n_measurements // n if self.n_measurements % n == 0 else 0
+
+
+@dataclass(frozen=True)
+class MonteCarloConfig:
+    """What to run: sparsities, runs per (scheme, K) (None = the paper's 320 000 x K),
+    schemes, seed, off-grid ranges, worker processes (None = all cores)."""
+
+    ks: tuple[int, ...] = (1, 2)
+    runs: int | None = None
+    schemes: tuple[str, ...] = DEFAULT_SCHEMES
+    seed: int = 0
+    off_grid: bool = False
+    workers: int | None = None
+    radar: RadarConfig = field(default_factory=RadarConfig)
+
+    def __post_init__(self) -> None:
+        if not self.ks or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= GRID_CELLS for k in self.ks):
+            raise ParameterError(f"K values {self.ks!r} must be integers in [1, {GRID_CELLS}]")
+        if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
+            raise ParameterError(f"runs={self.runs!r} must be an integer >= 1")
+        if not self.schemes:
+            raise ParameterError("at least one scheme is needed")
+        for s in self.schemes:
+            Scheme.parse(s, self.radar)
+        if len(set(self.schemes)) != len(self.schemes):
+            raise ParameterError(f"schemes {self.schemes!r} repeat a name")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ParameterError(f"seed={self.seed!r} must be an integer >= 0")
+        if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
+            raise ParameterError(f"workers={self.workers!r} must be an integer >= 1")
+
+    def runs_for(self, k: int) -> int:
+        return self.runs if self.runs is not None else 320_000 * k
+
+
+# -- scenes -------------------------------------------------------------------------------
+def cell_centres(config: RadarConfig, off_grid: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Range centres (40,) in m (snapped to the range grid unless ``off_grid``) and angle
+    centres (40,) in deg."""
+    r = (np.arange(GRID_CELLS) + 0.5) * config.max_range_m / GRID_CELLS
+    if not off_grid:
+        r = snap_to_range_grid(r, config)
+    a = -90.0 + (np.arange(GRID_CELLS) + 0.5) * ANGLE_CELL_DEG
+    return r, a
+
+
+def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConfig, off_grid: bool = False):
+    """K targets per run in distinct range cells. Returns (range_cell, angle_cell) ints
+    and (range_m, angle_deg, amplitude complex), all (n_runs, K); target 0 is the strongest
+    (amplitude 1), the others U[0, 1]; phases uniform."""
+    r_centres, a_centres = cell_centres(config, off_grid)
+    range_cell = np.argpartition(rng.random((n_runs, GRID_CELLS)), k - 1, axis=1)[:, :k]
+    angle_cell = rng.integers(0, GRID_CELLS, (n_runs, k))
+    mag = np.ones((n_runs, k))
+    mag[:, 1:] = rng.random((n_runs, k - 1))
+    amplitude = mag * np.exp(2j * np.pi * rng.random((n_runs, k)))
+    return range_cell, angle_cell, r_centres[range_cell], a_centres[angle_cell], amplitude
+
+
+def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig):
+    """Measurements Z (n_runs, M, 2) and the frequency indices (None or (n_runs, M))."""
+    n = config.samples_per_ramp
+    if scheme.ramps(config):
+        indices = None
+        gamma = gamma_fn(None)
+    else:
+        indices = np.sort(np.argsort(rng.random((n_runs, n)), axis=1)[:, : scheme.n_measurements], axis=1)
+        gamma = gamma_fn(indices)
+    if scheme.bits is None:
+        return gamma.astype(np.complex64), indices
+    delta = auto_delta(gamma)
+    dither = None
+    if scheme.alpha > 0:
+        dither = scheme.alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
+    return dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices
+
+
+@dataclass
+class ChunkResult:
+    range_cell: np.ndarray  # (n, K)
+    angle_cell: np.ndarray  # (n, K)
+    angle_deg: np.ndarray  # (n, K) true angles
+    error_m: np.ndarray  # (n, K)
+
+
+def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_grid: bool, radar: RadarConfig) -> ChunkResult:
+    """One chunk of runs of one scheme; pure given its arguments."""
+    scheme = Scheme.parse(scheme_name, radar)
+    scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
+    scheme_rng = np.random.default_rng(
+        np.random.SeedSequence(seed, spawn_key=(k, chunk, zlib.crc32(scheme_name.encode())))
+    )
+    rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, off_grid)
+    z, indices = measure(scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs, scheme_rng, radar)
+    u = back_project(z, radar, indices)
+    det = detections_from_support(u, joint_support(u, k), radar)
+    err = position_error_m(r, a, det.range_m, det.angle_deg)
+    return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+
+
+# -- aggregation ----------------------------------------------------------------------------
+def cell_mean_map(range_cell: np.ndarray, angle_cell: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` per (range cell, angle cell): (40, 40) means (NaN where empty)
+    and (40, 40) counts."""
+    flat = range_cell.astype(np.int64) * GRID_CELLS + angle_cell
+    counts = np.bincount(flat, minlength=GRID_CELLS**2).reshape(GRID_CELLS, GRID_CELLS)
+    sums = np.bincount(flat, weights=values, minlength=GRID_CELLS**2).reshape(GRID_CELLS, GRID_CELLS)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    return means, counts
+
+
+def within_60_columns() -> np.ndarray:
+    """Boolean (40,) mask of the angle cells whose centre has |theta| < 60 deg."""
+    _, a = cell_centres(RadarConfig())
+    return np.abs(a) < WITHIN_DEG
+
+
+def summarize(result: ChunkResult) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Figures and maps of all runs of one (scheme, K).
+
+    Target 0 is the strongest; the weakest is the one of smallest amplitude, which the
+    scene draw puts last (for K = 1 the only target is both)."""
+    err, a = result.error_m, result.angle_deg
+    within = np.abs(a) < WITHIN_DEG
+    maps: dict[str, np.ndarray] = {}
+    strong_map, strong_n = cell_mean_map(result.range_cell[:, 0], result.angle_cell[:, 0], err[:, 0])
+    weak_map, weak_n = cell_mean_map(result.range_cell[:, -1], result.angle_cell[:, -1], err[:, -1])
+    all_map, all_n = cell_mean_map(result.range_cell.ravel(), result.angle_cell.ravel(), err.ravel())
+    maps.update(all=all_map, all_count=all_n, strong=strong_map, strong_count=strong_n,
+                weak=weak_map, weak_count=weak_n)
+    cols = within_60_columns()
+    sub = strong_map[:, cols]
+    sub = sub[np.isfinite(sub)]
+    stats = {
+        "mean_m": float(err.mean()),
+        "median_m": float(np.median(err)),
+        "p90_m": float(np.percentile(err, 90)),
+        "median_within_60deg_m": float(np.median(err[within])) if within.any() else float("nan"),
+        "cells_over_5m_within_60deg": float(np.mean(sub > OVER_M)) if sub.size else float("nan"),
+        "strong_mean_m": float(err[:, 0].mean()),
+        "weak_mean_m": float(err[:, -1].mean()),
+    }
+    return stats, maps
+
+
+def _concat(parts: list[ChunkResult]) -> ChunkResult:
+    return ChunkResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in ChunkResult.__dataclass_fields__))
+
+
+@dataclass
+class MonteCarloResult:
+    summary: dict
+    maps: dict[str, np.ndarray]  # key "K{K}_{scheme}_{all|strong|weak}[_count]"
+    run_config: dict
+
+
+def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloResult:
+    """Run every (K, scheme) of ``cfg``; returns the summary dict and the cell maps."""
+    t0 = time.perf_counter()
+    jobs = []
+    for k in cfg.ks:
+        total = cfg.runs_for(k)
+        for s in cfg.schemes:
+            for c, start in enumerate(range(0, total, CHUNK_RUNS)):
+                jobs.append((k, s, c, min(CHUNK_RUNS, total - start)))
+    total_runs = sum(j[3] for j in jobs)
+    workers = cfg.workers or os.cpu_count() or 1
+    parts: dict[tuple[int, str], list] = {(k, s): [] for k in cfg.ks for s in cfg.schemes}
+    with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
+        if workers == 1:
+            for job in jobs:
+                parts[(job[0], job[1])].append(run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar))
+                bar.update(job[3])
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar)) for job in jobs]
+                for job, fut in futures:  # in submission order: deterministic assembly
+                    parts[(job[0], job[1])].append(fut.result())
+                    bar.update(job[3])
+    summary: dict = {}
+    maps: dict[str, np.ndarray] = {}
+    for k in cfg.ks:
+        block = summary.setdefault(f"K{k}", {})
+        for s in cfg.schemes:
+            stats, m = summarize(_concat(parts[(k, s)]))
+            block[s] = stats
+            for name, arr in m.items():
+                maps[f"K{k}_{s}_{name}"] = arr
+    runs_per_k = {f"K{k}": cfg.runs_for(k) for k in cfg.ks}
+    summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    run_config = {
+        "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
+        "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
+    }
+    return MonteCarloResult(summary, maps, run_config)
+
+
+def format_table(summary: dict) -> str:
+    """The summary as a fixed-width text table (one row per K and scheme)."""
+    cols = ["mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
+            "strong_mean_m", "weak_mean_m"]
+    heads = ["mean", "median", "p90", "med|θ|<60", "cells>5m", "strong", "weak"]
+    lines = [f"{'K':<3} {'scheme':<16}" + "".join(f"{h:>11}" for h in heads)]
+    for key, block in summary.items():
+        if not (key.startswith("K") and isinstance(block, dict)):
+            continue
+        for scheme, st in block.items():
+            vals = []
+            for c in cols:
+                v = st[c]
+                vals.append(f"{v:>10.1%} " if c == "cells_over_5m_within_60deg" else f"{v:>9.3f}m ")
+            lines.append(f"{key[1:]:<3} {scheme:<16}" + "".join(vals))
+    return "\n".join(lines)

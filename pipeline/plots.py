@@ -1,0 +1,96 @@
+"""PNG figures: polar error maps like the paper's Figs. 2-4."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+ERROR_SCALE_MIN_M = 0.01
+
+
+def shared_error_scale_m(maps: list[np.ndarray]) -> tuple[float, float]:
+    """One logarithmic colour scale (vmin, vmax) in m for a set of error maps: from
+    1 cm to the largest finite cell rounded up to a power of ten (at least 1 m).
+
+    Logarithmic because the maps span four decades: centimetres (32-bit, full ramp),
+    metres (dithered noise, non-dithered artifacts) and hundreds of metres (arcsin
+    wraps near +-90 deg)."""
+    vals = [m[np.isfinite(m)] for m in maps]
+    top = max((float(v.max()) for v in vals if v.size), default=1.0)
+    top = max(top, 1.0)
+    return ERROR_SCALE_MIN_M, float(10 ** np.ceil(np.log10(top)))
+
+
+def polar_error_map(
+    path: Path,
+    error_map_m: np.ndarray,
+    max_range_m: float,
+    title: str,
+    scale_m: tuple[float, float],
+) -> Path:
+    """Write a polar heat map of a (n_range, n_angle) mean-error map (m) to ``path``.
+
+    Cells span ranges [0, max_range_m] and angles [-90, 90] deg; boresight points up,
+    positive angles to the right (antenna 2's side). ``scale_m`` = (vmin, vmax) of the
+    logarithmic colour scale; smaller errors get the lowest colour. Empty cells stay white.
+    """
+    plt = _pyplot()
+    from matplotlib.colors import LogNorm
+
+    n_r, n_a = error_map_m.shape
+    theta_edges = np.deg2rad(np.linspace(-90.0, 90.0, n_a + 1))
+    r_edges = np.linspace(0.0, max_range_m, n_r + 1)
+    fig = plt.figure(figsize=(6.4, 3.9), dpi=110)
+    ax = fig.add_subplot(projection="polar")
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)  # positive angles clockwise from boresight: to the right
+    ax.set_thetamin(-90)
+    ax.set_thetamax(90)
+    vmin, vmax = scale_m
+    data = np.ma.masked_invalid(np.clip(error_map_m, vmin, None))
+    mesh = ax.pcolormesh(theta_edges, r_edges, data, cmap="viridis", norm=LogNorm(vmin, vmax), shading="flat")
+    ax.set_title(f"{title}\nangle θ (deg) around, range R (m) outwards", fontsize=9, pad=14)
+    ax.set_thetagrids(np.arange(-90, 91, 30), [f"{a}°" for a in range(-90, 91, 30)])
+    ax.set_rlabel_position(-90)
+    ax.text(np.deg2rad(-90), max_range_m * 1.02, "range R (m)", ha="center", va="top", fontsize=8)
+    ax.tick_params(labelsize=7)
+    cbar = fig.colorbar(mesh, ax=ax, shrink=0.75, pad=0.08, extend="both")
+    cbar.set_label("mean position error (m, log scale)")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray], max_range_m: float) -> list[Path]:
+    """Polar maps for every scheme and K (all targets), and for K >= 2 the strongest and
+    the weakest target separately, on one shared colour scale. Returns the PNG paths."""
+    wanted: list[tuple[str, str]] = []  # (map key, title)
+    for kkey, block in summary.items():
+        if not (kkey.startswith("K") and isinstance(block, dict)):
+            continue
+        k = int(kkey[1:])
+        for scheme in block:
+            base = f"{kkey}_{scheme}"
+            wanted.append((f"{base}_all", f"{scheme}, K = {k}" + (": all targets" if k > 1 else "")))
+            if k > 1:
+                wanted.append((f"{base}_strong", f"{scheme}, K = {k}: strongest target"))
+                wanted.append((f"{base}_weak", f"{scheme}, K = {k}: weakest target"))
+    scale = shared_error_scale_m([maps[key] for key, _ in wanted])
+    paths = []
+    for key, title in wanted:
+        name = key[: -len("_all")] if key.endswith("_all") else key
+        paths.append(polar_error_map(Path(out_dir) / f"{name}.png", maps[key], max_range_m, title, scale))
+    return paths

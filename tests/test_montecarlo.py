@@ -1,0 +1,148 @@
+"""The paper's claims (Sec. 5) on Monte Carlo runs of the DESIGN.md protocol."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.errors import ParameterError
+from pipeline.montecarlo import (
+    GRID_CELLS,
+    MonteCarloConfig,
+    Scheme,
+    cell_centres,
+    draw_scenes,
+    run_montecarlo,
+    within_60_columns,
+)
+from radar_driver.model import RadarConfig
+
+SUMMARY_KEYS = {"mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
+                "strong_mean_m", "weak_mean_m"}
+
+
+@pytest.fixture(scope="module")
+def k1_paper():
+    """K = 1, both 1-bit schemes, the paper's 320 000 runs (about 200 per cell): a cell
+    mean of a few runs is noise (the dithered far cells have a true mean of about 4 m with
+    a spread of the same size), so the cell claims need the paper's count."""
+    return run_montecarlo(MonteCarloConfig(ks=(1,), runs=320_000, schemes=("nodither_m512", "dither_m512"),
+                                           seed=1), progress=False)
+
+
+@pytest.fixture(scope="module")
+def k2_small():
+    return run_montecarlo(MonteCarloConfig(ks=(2,), runs=4000, seed=2), progress=False)
+
+
+def test_cell_centres_follow_the_protocol(cfg):
+    r, a = cell_centres(cfg)
+    assert r.shape == a.shape == (GRID_CELLS,)
+    assert r[0] == pytest.approx(1.8)  # 1.92 m snapped to bin 3
+    assert np.allclose(r / 0.6, np.round(r / 0.6))
+    assert cell_centres(cfg, off_grid=True)[0][0] == pytest.approx(1.92)
+    assert a[0] == pytest.approx(-87.75) and a[-1] == pytest.approx(87.75)
+    assert within_60_columns().sum() == 26
+
+
+def test_scenes_have_distinct_range_cells_and_a_unit_strongest_target(cfg):
+    rc, ac, r, a, x = draw_scenes(5000, 3, np.random.default_rng(0), cfg)
+    assert rc.shape == (5000, 3)
+    assert all(len(set(row)) == 3 for row in rc.tolist())
+    assert np.allclose(np.abs(x[:, 0]), 1.0)
+    assert np.all(np.abs(x[:, 1:]) <= 1.0)
+    assert np.bincount(ac.ravel(), minlength=40).min() > 250  # all angle cells drawn
+
+
+@pytest.mark.slow
+def test_k1_non_dithered_has_artifacts_dithered_has_none(k1_paper):
+    k1 = k1_paper.summary["K1"]
+    assert k1["nodither_m512"]["cells_over_5m_within_60deg"] > 0.02
+    assert k1["dither_m512"]["cells_over_5m_within_60deg"] == 0.0
+    # the artifacts are at small angles: |theta| = 2.25 deg, far ranges, where the two
+    # antennas quantize alike and the angle comes out as 0
+    nd = k1_paper.maps["K1_nodither_m512_strong"]
+    assert np.nanmax(nd[-5:, 19:21]) > 5.0 > np.nanmax(k1_paper.maps["K1_dither_m512_strong"][-5:, 19:21])
+
+
+def test_k2_dithered_weakest_target_beats_non_dithered_and_32bit_m16(k2_small):
+    k2 = k2_small.summary["K2"]
+    weak = {s: k2[s]["weak_mean_m"] for s in k2}
+    assert weak["dither_m512"] < weak["nodither_m512"]
+    assert weak["dither_m512"] < weak["32bit_m16"]
+    assert k2["dither_m512"]["mean_m"] < min(k2["nodither_m512"]["mean_m"], k2["32bit_m16"]["mean_m"])
+
+
+def test_32bit_full_ramp_on_grid_has_zero_error(k2_small):
+    st = k2_small.summary["K2"]["32bit_m256"]
+    # complex64 values: zero up to float32 rounding (micrometres)
+    assert st["mean_m"] < 1e-4 and st["p90_m"] < 1e-4
+
+
+def test_summary_shape(k2_small):
+    s = k2_small.summary
+    assert set(s) == {"K2", "runs", "seconds"}
+    assert set(s["K2"]) == {"nodither_m512", "dither_m512", "32bit_m16", "32bit_m256"}
+    for st in s["K2"].values():
+        assert set(st) == SUMMARY_KEYS
+    assert s["runs"] == 4000
+    assert k2_small.maps["K2_dither_m512_weak"].shape == (40, 40)
+    assert k2_small.maps["K2_dither_m512_all_count"].sum() == 8000
+
+
+def test_deterministic_for_a_seed_whatever_the_workers():
+    cfg = dict(ks=(1, 2), runs=700, schemes=("dither_m512", "32bit_m16"), seed=5)
+    a = run_montecarlo(MonteCarloConfig(workers=1, **cfg), progress=False)
+    b = run_montecarlo(MonteCarloConfig(workers=2, **cfg), progress=False)
+    a.summary.pop("seconds"), b.summary.pop("seconds")
+    assert a.summary == b.summary
+    c = run_montecarlo(MonteCarloConfig(workers=1, **{**cfg, "seed": 6}), progress=False)
+    assert c.summary["K1"] != a.summary["K1"]
+    # a scheme's result does not depend on which other schemes ran
+    d = run_montecarlo(MonteCarloConfig(workers=1, **{**cfg, "schemes": ("dither_m512",)}), progress=False)
+    assert d.summary["K2"]["dither_m512"] == a.summary["K2"]["dither_m512"]
+
+
+def test_scheme_names(cfg):
+    assert Scheme.parse("dither_m1024", cfg).ramps(cfg) == 4
+    assert Scheme.parse("32bit_m16", cfg).ramps(cfg) == 0
+    assert Scheme.parse("nodither_m512", cfg).alpha == 0.0
+    for bad in ("dither512", "fourbit_m512", "dither_m300", "32bit_m0"):
+        with pytest.raises(ParameterError, match="scheme"):
+            Scheme.parse(bad, cfg)
+    with pytest.raises(ParameterError, match="runs=0"):
+        MonteCarloConfig(runs=0)
+    with pytest.raises(ParameterError, match="repeat"):
+        MonteCarloConfig(schemes=("dither_m512", "dither_m512"))
+
+
+def test_cli_writes_summary_maps_and_pngs(tmp_path):
+    out = tmp_path / "mc"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "montecarlo", "--K", "1", "2", "--runs", "300",
+         "--schemes", "dither_m512", "nodither_m512", "--out", str(out), "--seed", "3"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "dither_m512" in proc.stdout and "montecarlo [" in proc.stderr  # table and progress bar
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == {"K1", "K2", "runs", "seconds"}
+    assert set(summary["K1"]["dither_m512"]) == SUMMARY_KEYS
+    maps = np.load(out / "maps.npz")
+    assert maps["K2_dither_m512_strong"].shape == (40, 40)
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert pngs == sorted(["K1_dither_m512.png", "K1_nodither_m512.png", "K2_dither_m512.png",
+                           "K2_dither_m512_strong.png", "K2_dither_m512_weak.png", "K2_nodither_m512.png",
+                           "K2_nodither_m512_strong.png", "K2_nodither_m512_weak.png"])
+    assert all((out / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+
+
+def test_cli_rejects_a_bad_scheme(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "montecarlo", "--schemes", "fourbit_m512", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "scheme 'fourbit_m512' is not of the form" in proc.stderr
