@@ -1,0 +1,373 @@
+"""RFbeam K-MD2 serial protocol: bytes <-> messages, with no I/O.
+
+A message is a 4-character ASCII header, a uint32 little-endian payload length, then
+the payload; multi-byte fields are little-endian. The K-MD2 pads payloads to a
+multiple of 4 bytes: the decoder tolerates both a length that counts the padding and
+zero padding after an unpadded length.
+
+What the public documents do not say is assumed, and every assumption sits in the
+tables of this module (:data:`RADC_LAYOUT`, :data:`FRAME_BITS`, :data:`BAUD_CODES`,
+:data:`PLAUSIBLE_LENGTH`), so that a capture from a real sensor can correct them in
+one place.
+
+:class:`StreamDecoder` takes arbitrary chunks of bytes and yields messages. On garbage
+it resynchronizes by scanning for a known header whose length is plausible for that
+header and whose payload is valid (a RADC payload holds 12-bit words only), and counts
+the bytes it skipped; it never raises on input.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Iterator, Union
+
+import numpy as np
+
+from .errors import RadarError
+
+HEADER_LEN = 4
+PREFIX_LEN = 8  # header + uint32 length
+
+
+class ProtocolError(RadarError):
+    """A byte string is not a valid message, or a message cannot be encoded."""
+
+
+class RespCode(IntEnum):
+    """Codes of the ``RESP`` answer (K-LD7 datasheet)."""
+
+    OK = 0
+    UNKNOWN_COMMAND = 1
+    INVALID_PARAMETER = 2
+    INVALID_PARAMETER_VERSION = 3
+    UART_ERROR = 4
+    SENSOR_BUSY = 5
+    TIMEOUT = 6
+
+
+#: ``INIT`` baud code -> baud rate. The sensor answers ``INIT`` at 115200, then switches.
+BAUD_CODES: dict[int, int] = {0: 115_200, 1: 460_800, 2: 921_600, 3: 2_000_000, 4: 3_000_000}
+DEFAULT_BAUD = 115_200
+#: Seconds the host waits after ``RESP`` to ``INIT`` before switching its own rate.
+BAUD_SWITCH_SETTLE_S = 0.075
+
+#: ``GNFD`` bit mask of the frames a host can ask for (assumed, as on the K-LD7).
+FRAME_BITS: dict[str, int] = {"RADC": 0x01, "RMRD": 0x02, "PDAT": 0x04, "TDAT": 0x08}
+
+
+@dataclass(frozen=True)
+class RadcLayout:
+    """Assumed K-MD2 ``RADC`` payload: for each azimuth receiver, ``samples`` I words then
+    ``samples`` Q words, uint16 little-endian, ``adc_bits``-bit ADC centred on ``offset``.
+    One ramp per ``RADC``. Complex samples are in units of full scale:
+    ``((I - offset) + i (Q - offset)) / offset``, so +-1 is the ADC's range."""
+
+    receivers: int = 2
+    samples: int = 256
+    adc_bits: int = 12
+    offset: int = 2048
+
+    @property
+    def payload_len(self) -> int:
+        return self.receivers * 2 * self.samples * 2
+
+    @property
+    def max_word(self) -> int:
+        return (1 << self.adc_bits) - 1
+
+
+RADC_LAYOUT = RadcLayout()
+
+#: Inclusive (min, max) payload length accepted for each known header; a header with
+#: another length is taken for garbage. Lengths may include up to 3 padding bytes.
+PLAUSIBLE_LENGTH: dict[bytes, tuple[int, int]] = {
+    b"INIT": (4, 4),
+    b"GNFD": (4, 4),
+    b"GBYE": (0, 4),
+    b"RESP": (1, 4),
+    b"DONE": (4, 4),
+    b"RADC": (RADC_LAYOUT.payload_len, RADC_LAYOUT.payload_len + 3),
+    # frames the K-MD2 names whose layout we do not use: passed on as OtherMessage
+    b"RMRD": (4, 16384),
+    b"PDAT": (0, 4096),
+    b"TDAT": (0, 4096),
+}
+KNOWN_HEADERS = tuple(PLAUSIBLE_LENGTH)
+
+
+# -- messages ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Init:
+    """Host -> sensor: start a session and switch to ``BAUD_CODES[baud_code]``."""
+
+    baud_code: int = 0
+    header = b"INIT"
+
+    def payload(self) -> bytes:
+        return struct.pack("<I", self.baud_code)
+
+
+@dataclass(frozen=True)
+class Gnfd:
+    """Host -> sensor: send the next frame(s) selected by ``mask`` (FRAME_BITS), then DONE."""
+
+    mask: int = FRAME_BITS["RADC"]
+    header = b"GNFD"
+
+    def payload(self) -> bytes:
+        return struct.pack("<I", self.mask)
+
+
+@dataclass(frozen=True)
+class Gbye:
+    """Host -> sensor: end the session; the sensor returns to 115200 baud."""
+
+    header = b"GBYE"
+
+    def payload(self) -> bytes:
+        return b""
+
+
+@dataclass(frozen=True)
+class Resp:
+    """Sensor -> host: answer to every command (``code``: RespCode value)."""
+
+    code: int = RespCode.OK
+    header = b"RESP"
+
+    def payload(self) -> bytes:
+        return struct.pack("<B", self.code)
+
+
+@dataclass(frozen=True)
+class Done:
+    """Sensor -> host: end of a GNFD answer, with the sensor's frame counter."""
+
+    frame_counter: int
+    header = b"DONE"
+
+    def payload(self) -> bytes:
+        return struct.pack("<I", self.frame_counter)
+
+
+@dataclass(frozen=True, eq=False)
+class Radc:
+    """Sensor -> host: one ramp of raw ADC words, shape (receivers, 2 (I, Q), samples) uint16."""
+
+    words: np.ndarray
+    header = b"RADC"
+
+    def payload(self) -> bytes:
+        w = np.asarray(self.words)
+        lay = RADC_LAYOUT
+        if w.shape != (lay.receivers, 2, lay.samples):
+            raise ProtocolError(f"RADC words must have shape {(lay.receivers, 2, lay.samples)}, got {w.shape}")
+        if w.size and (w.min() < 0 or w.max() > lay.max_word):
+            raise ProtocolError(f"RADC words must lie in [0, {lay.max_word}]")
+        return w.astype("<u2").tobytes()
+
+    def samples(self) -> np.ndarray:
+        """Complex samples in units of full scale, shape (samples, receivers)."""
+        return adc_to_complex(self.words[None])[0]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Radc) and np.array_equal(self.words, other.words)
+
+
+@dataclass(frozen=True)
+class OtherMessage:
+    """A known header whose payload this driver does not interpret (RMRD, PDAT, TDAT)."""
+
+    header: bytes
+    data: bytes = b""
+
+    def payload(self) -> bytes:
+        return self.data
+
+
+Message = Union[Init, Gnfd, Gbye, Resp, Done, Radc, OtherMessage]
+
+
+# -- ADC conversion ----------------------------------------------------------------------------
+def adc_to_complex(words: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
+    """ADC words (B, receivers, 2, samples) -> complex (B, samples, receivers), unit full scale."""
+    w = np.asarray(words, dtype=np.float64) - layout.offset
+    return np.transpose(w[:, :, 0] + 1j * w[:, :, 1], (0, 2, 1)) / layout.offset
+
+
+def complex_to_adc(samples: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
+    """Complex (B, samples, receivers) in full-scale units -> ADC words (B, receivers, 2,
+    samples) uint16: rounded to the nearest code and clipped to the ADC range."""
+    s = np.transpose(np.asarray(samples), (0, 2, 1))
+    iq = np.stack([s.real, s.imag], axis=2) * layout.offset + layout.offset
+    return np.clip(np.rint(iq), 0, layout.max_word).astype(np.uint16)
+
+
+# -- encoding ---------------------------------------------------------------------------------
+def encode(message: Message, pad: bool = True) -> bytes:
+    """Bytes of one message: header, uint32 LE payload length (unpadded), payload, and
+    with ``pad`` zero bytes up to a multiple of 4 (as the K-MD2 sends)."""
+    payload = message.payload()
+    header = message.header
+    if len(header) != HEADER_LEN:
+        raise ProtocolError(f"header {header!r} is not 4 bytes")
+    out = header + struct.pack("<I", len(payload)) + payload
+    if pad and len(payload) % 4:
+        out += bytes(4 - len(payload) % 4)
+    return out
+
+
+def decode_payload(header: bytes, payload: bytes) -> Message:
+    """The message of a header and its payload (padding allowed after the fields).
+
+    Raises ProtocolError naming the header and what is wrong."""
+    lo, hi = PLAUSIBLE_LENGTH.get(header, (None, None))
+    if lo is None:
+        raise ProtocolError(f"unknown header {header!r}")
+    if not lo <= len(payload) <= hi:
+        raise ProtocolError(f"{header.decode('ascii')} payload of {len(payload)} bytes; expected {lo}..{hi}")
+    if header == b"INIT":
+        return Init(struct.unpack_from("<I", payload)[0])
+    if header == b"GNFD":
+        return Gnfd(struct.unpack_from("<I", payload)[0])
+    if header == b"GBYE":
+        return Gbye()
+    if header == b"RESP":
+        if any(payload[1:]):
+            raise ProtocolError(f"RESP padding is not zero: {payload.hex()}")
+        return Resp(payload[0])
+    if header == b"DONE":
+        return Done(struct.unpack_from("<I", payload)[0])
+    if header == b"RADC":
+        lay = RADC_LAYOUT
+        words = np.frombuffer(payload, dtype="<u2", count=lay.payload_len // 2)
+        if words.max(initial=0) > lay.max_word:
+            bad = int(np.argmax(words > lay.max_word))
+            raise ProtocolError(
+                f"RADC word {bad} is {int(words[bad])}, beyond the {lay.adc_bits}-bit ADC range"
+            )
+        return Radc(words.reshape(lay.receivers, 2, lay.samples).copy())
+    return OtherMessage(header, bytes(payload))
+
+
+def decode(data: bytes) -> Message:
+    """Decode exactly one message (with optional trailing zero padding)."""
+    if len(data) < PREFIX_LEN:
+        raise ProtocolError(f"message of {len(data)} bytes is shorter than the 8-byte header and length")
+    header = bytes(data[:4])
+    (length,) = struct.unpack_from("<I", data, 4)
+    body = data[PREFIX_LEN:]
+    if len(body) < length:
+        raise ProtocolError(f"{header!r} declares {length} payload bytes, {len(body)} present")
+    if any(body[length:]) or len(body) - length > 3:
+        raise ProtocolError(f"{header!r}: {len(body) - length} bytes after the payload are not padding")
+    return decode_payload(header, bytes(body[:length]))
+
+
+# -- streaming decoder -----------------------------------------------------------------------
+@dataclass
+class DecoderStats:
+    messages: int = 0
+    bytes_in: int = 0
+    skipped_bytes: int = 0
+    resyncs: int = 0
+    invalid: int = 0  # plausible header whose payload failed validation
+    last_error: str = ""
+
+
+@dataclass
+class StreamDecoder:
+    """Incremental decoder: ``feed(chunk)`` returns the messages completed by ``chunk``.
+
+    Garbage is skipped up to the next known header with a plausible length; each run of
+    skipped bytes counts one resync. Memory is bounded by the largest plausible message.
+    """
+
+    stats: DecoderStats = field(default_factory=DecoderStats)
+    _buf: bytearray = field(default_factory=bytearray)
+    _pad: int = 0  # zero padding that may follow the last message
+    _skipping: bool = False
+
+    def feed(self, chunk: bytes) -> list[Message]:
+        self._buf += chunk
+        self.stats.bytes_in += len(chunk)
+        return list(self._drain())
+
+    def wanted(self) -> int:
+        """Fewest further bytes that can complete the next message (at least 1): what a
+        reader may block for without stalling the stream."""
+        buf = self._buf
+        if len(buf) < PREFIX_LEN:
+            return PREFIX_LEN - len(buf)
+        lo, hi = PLAUSIBLE_LENGTH.get(bytes(buf[:4]), (1, 0))
+        (length,) = struct.unpack_from("<I", buf, 4)
+        if lo <= length <= hi:
+            return max(1, PREFIX_LEN + length - len(buf))
+        return 1
+
+    def pending(self) -> int:
+        """Bytes held, waiting for the rest of a message."""
+        return len(self._buf)
+
+    def reset(self) -> None:
+        """Forget buffered bytes (after a reconnect); the counters stay."""
+        self._buf.clear()
+        self._pad = 0
+        self._skipping = False
+
+    def _drain(self) -> Iterator[Message]:
+        buf = self._buf
+        while True:
+            if self._pad:
+                n = 0
+                while n < self._pad and n < len(buf) and buf[n] == 0:
+                    n += 1
+                if n < self._pad and n == len(buf):
+                    return  # maybe more padding to come
+                del buf[:n]
+                self._pad = 0
+            if len(buf) < PREFIX_LEN:
+                head = bytes(buf[:HEADER_LEN])
+                if buf and not any(h.startswith(head) for h in KNOWN_HEADERS):
+                    self._skip(1)
+                    continue
+                return  # wait for the length
+            header = bytes(buf[:4])
+            (length,) = struct.unpack_from("<I", buf, 4)
+            lo, hi = PLAUSIBLE_LENGTH.get(header, (1, 0))
+            if not lo <= length <= hi:
+                self._skip(1)
+                continue
+            if len(buf) < PREFIX_LEN + length:
+                return  # wait for the payload
+            try:
+                msg = decode_payload(header, bytes(buf[PREFIX_LEN : PREFIX_LEN + length]))
+            except ProtocolError as exc:
+                self.stats.invalid += 1
+                self.stats.last_error = str(exc)
+                self._skip(1)
+                continue
+            del buf[: PREFIX_LEN + length]
+            self._pad = (-length) % 4
+            self._skipping = False
+            self.stats.messages += 1
+            yield msg
+
+    def _skip(self, n: int) -> None:
+        """Drop ``n`` bytes and then everything up to the next possible header start."""
+        buf = self._buf
+        if not self._skipping:
+            self.stats.resyncs += 1
+            self._skipping = True
+        starts = [i for i in (buf.find(h, n) for h in KNOWN_HEADERS) if i >= 0]
+        if starts:
+            cut = min(starts)
+        else:
+            # keep a tail that could be the start of a header split across chunks
+            cut = max(n, len(buf) - (HEADER_LEN - 1))
+            while cut < len(buf) and not any(h.startswith(bytes(buf[cut:])) for h in KNOWN_HEADERS):
+                cut += 1
+        self.stats.skipped_bytes += cut
+        del buf[:cut]

@@ -1,0 +1,185 @@
+import time
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose, assert_array_equal
+
+from radar_driver.errors import RadarError
+from radar_driver.protocol import (
+    RADC_LAYOUT,
+    Done,
+    Gbye,
+    Gnfd,
+    Init,
+    OtherMessage,
+    ProtocolError,
+    Radc,
+    Resp,
+    StreamDecoder,
+    adc_to_complex,
+    complex_to_adc,
+    decode,
+    encode,
+)
+
+
+def _words(seed=0):
+    return np.random.default_rng(seed).integers(0, 4096, (2, 2, 256)).astype(np.uint16)
+
+
+def test_exact_bytes_of_commands_and_answers():
+    assert encode(Init(3)) == b"INIT\x04\x00\x00\x00\x03\x00\x00\x00"
+    assert encode(Gnfd(0x01)) == b"GNFD\x04\x00\x00\x00\x01\x00\x00\x00"
+    assert encode(Gbye()) == b"GBYE\x00\x00\x00\x00"
+    # RESP: 1-byte payload, length 1, padded to 4 with zeros as the K-MD2 does
+    assert encode(Resp(2)) == b"RESP\x01\x00\x00\x00\x02\x00\x00\x00"
+    assert encode(Resp(2), pad=False) == b"RESP\x01\x00\x00\x00\x02"
+    assert encode(Done(0x01020304)) == b"DONE\x04\x00\x00\x00\x04\x03\x02\x01"
+
+
+def test_radc_layout_table():
+    # for each receiver 256 I words then 256 Q words, uint16 little-endian
+    w = np.zeros((2, 2, 256), np.uint16)
+    w[0, 0, 0], w[0, 1, 0], w[1, 0, 255], w[1, 1, 1] = 1, 2, 3, 4095
+    b = encode(Radc(w))
+    assert b[:8] == b"RADC\x00\x08\x00\x00" and len(b) == 8 + 2048
+    p = b[8:]
+    assert p[0:2] == b"\x01\x00"  # rx1 I[0]
+    assert p[512:514] == b"\x02\x00"  # rx1 Q[0]
+    assert p[1024 + 510 : 1024 + 512] == b"\x03\x00"  # rx2 I[255]
+    assert p[1536 + 2 : 1536 + 4] == b"\xff\x0f"  # rx2 Q[1]
+    assert RADC_LAYOUT.payload_len == 2048
+
+
+def test_adc_conversion_is_unit_full_scale():
+    w = np.full((1, 2, 2, 256), 2048, np.uint16)
+    w[0, 0, 0, 5] = 4095  # rx1 I[5]
+    w[0, 1, 1, 7] = 0  # rx2 Q[7]
+    s = adc_to_complex(w)
+    assert s.shape == (1, 256, 2)
+    assert s[0, 5, 0] == pytest.approx(2047 / 2048)
+    assert s[0, 7, 1] == pytest.approx(-1j)
+    assert_array_equal(complex_to_adc(s), w)
+    x = np.random.default_rng(1).uniform(-0.9, 0.9, (3, 256, 2)) * np.exp(1j)
+    assert_allclose(adc_to_complex(complex_to_adc(x)), x, atol=np.sqrt(2) * 0.5 / 2048 * 1.0001)  # half an LSB on I and on Q
+    assert complex_to_adc(np.full((1, 256, 2), 5 + 5j)).max() == 4095  # clipped
+
+
+@pytest.mark.parametrize("msg", [Init(4), Gnfd(5), Gbye(), Resp(6), Done(2**32 - 1), Radc(_words()),
+                                 OtherMessage(b"PDAT", b"\x01\x02\x03\x04\x05")])
+def test_round_trip(msg):
+    assert decode(encode(msg)) == msg
+    assert decode(encode(msg, pad=False)) == msg
+    d = StreamDecoder()
+    assert d.feed(encode(msg)) == [msg]
+
+
+def test_length_counting_the_padding_is_tolerated():
+    assert decode(b"RESP\x04\x00\x00\x00\x05\x00\x00\x00") == Resp(5)
+    d = StreamDecoder()
+    assert d.feed(b"RESP\x04\x00\x00\x00\x05\x00\x00\x00" + encode(Done(9))) == [Resp(5), Done(9)]
+    assert d.stats.skipped_bytes == 0
+
+
+@pytest.mark.parametrize(
+    "data, fragment",
+    [
+        (b"RESP\x01", "shorter than the 8-byte header"),
+        (b"ABCD\x00\x00\x00\x00", "unknown header"),
+        (b"DONE\x04\x00\x00\x00\x01", "declares 4 payload bytes, 1 present"),
+        (b"DONE\x08\x00\x00\x00" + bytes(8), "payload of 8 bytes; expected 4..4"),
+        (b"RADC\x00\x08\x00\x00" + b"\xff" * 2048, "RADC word 0 is 65535, beyond the 12-bit ADC range"),
+        (b"RESP\x01\x00\x00\x00\x00\x07", "not padding"),
+    ],
+)
+def test_decode_errors_say_what_and_where(data, fragment):
+    with pytest.raises(ProtocolError, match=fragment) as info:
+        decode(data)
+    assert isinstance(info.value, RadarError)
+
+
+def test_stream_decoder_any_chunking():
+    msgs = [Resp(0), Radc(_words(1)), Done(1), Resp(0), Radc(_words(2)), Done(2)]
+    stream = b"".join(encode(m) for m in msgs)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        d = StreamDecoder()
+        out, i = [], 0
+        while i < len(stream):
+            n = int(rng.integers(1, 300))
+            out += d.feed(stream[i : i + n])
+            i += n
+        assert out == msgs and d.stats.skipped_bytes == 0 and d.pending() == 0
+
+
+def test_garbage_is_skipped_counted_and_the_next_message_is_intact():
+    d = StreamDecoder()
+    garbage = b"\x13\x37noise RAD\x00\xffDON"
+    out = d.feed(garbage + encode(Radc(_words(3))) + b"xyz" + encode(Done(4)))
+    assert out == [Radc(_words(3)), Done(4)]
+    assert d.stats.skipped_bytes == len(garbage) + 3
+    assert d.stats.resyncs == 2
+
+
+def test_truncated_message_is_dropped_and_the_next_one_decoded():
+    whole = encode(Radc(_words(4)))
+    d = StreamDecoder()
+    out = d.feed(whole[:700] + encode(Done(5)) + encode(Resp(0)) + whole + encode(Done(6)))
+    # the cut RADC swallows what follows until its length is reached, fails the 12-bit
+    # check, and the decoder resyncs on the headers inside it
+    assert out == [Done(5), Resp(0), Radc(_words(4)), Done(6)]
+    assert d.stats.invalid == 1 and d.stats.skipped_bytes == 700
+
+
+def test_implausible_lengths_are_garbage():
+    d = StreamDecoder()
+    assert d.feed(b"RADC\x10\x00\x00\x00" + encode(Done(1))) == [Done(1)]
+    assert d.stats.skipped_bytes == 8
+
+
+def test_memory_is_bounded_on_endless_garbage():
+    d = StreamDecoder()
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        d.feed(rng.integers(0, 256, 5000, dtype=np.uint8).tobytes())
+        assert d.pending() <= 8 + 2048 + 3
+    assert d.feed(b"\x00" * 16 + encode(Done(3)))[-1] == Done(3)
+
+
+def test_fuzz_random_and_mutated_streams():
+    """Thousands of random and mutated streams in random chunks: the streaming decoder
+    never raises and never stalls, decode() raises nothing but ProtocolError."""
+    rng = np.random.default_rng(2026)
+    valid = [encode(m) for m in (Resp(0), Radc(_words(7)), Done(11), Init(1), Gnfd(1), Gbye(), Resp(3))]
+    t0 = time.monotonic()
+    cases = 0
+    while cases < 3000 and time.monotonic() - t0 < 60:
+        kind = cases % 3
+        if kind == 0:
+            stream = rng.integers(0, 256, int(rng.integers(0, 3000)), dtype=np.uint8).tobytes()
+        else:
+            parts = [valid[i] for i in rng.integers(0, len(valid), int(rng.integers(1, 6)))]
+            stream = bytearray(b"".join(parts))
+            for _ in range(int(rng.integers(1, 8))):  # flips, inserts, deletes
+                op, pos = int(rng.integers(0, 3)), int(rng.integers(0, max(1, len(stream))))
+                if op == 0 and stream:
+                    stream[pos] ^= 1 << int(rng.integers(0, 8))
+                elif op == 1:
+                    stream[pos:pos] = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
+                else:
+                    del stream[pos : pos + int(rng.integers(1, 32))]
+            stream = bytes(stream)
+        d = StreamDecoder()
+        i = 0
+        while i < len(stream):
+            n = int(rng.integers(1, 512))
+            for m in d.feed(stream[i : i + n]):
+                assert type(m) in (Resp, Radc, Done, Init, Gnfd, Gbye, OtherMessage)
+            i += n
+        assert d.pending() <= 8 + 2048 + 3
+        try:
+            decode(stream)
+        except ProtocolError:
+            pass
+        cases += 1
+    assert cases >= 1000, f"only {cases} fuzz cases ran in 60 s"
