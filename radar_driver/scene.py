@@ -1,0 +1,176 @@
+"""Scenes for the simulated K-MD2, loaded from TOML.
+
+```toml
+name = "chamber"
+noise_std = 0.02          # complex white noise, std of each of I and Q, full-scale units
+
+[radar]                   # optional RadarConfig overrides
+ramps_per_frame = 2
+
+[[target]]
+range_m = 4.8
+angle_deg = -25.0         # positive = antenna 2 leads
+amplitude = 0.06          # full-scale units at the ADC
+phase_deg = 0.0           # optional
+velocity_m_s = 0.0        # optional radial velocity, + = moving away
+```
+
+Amplitudes are in units of the ADC's full scale (see ``protocol.RadcLayout``); the
+sum of the amplitudes plus a few noise stds should stay below 1 to avoid clipping.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+from .model import RadarConfig, simulate_frames
+
+
+@dataclass(frozen=True)
+class SimTarget:
+    range_m: float
+    angle_deg: float
+    amplitude: float
+    phase_deg: float = 0.0
+    velocity_m_s: float = 0.0
+
+    def range_at(self, t_s: np.ndarray | float) -> np.ndarray:
+        """Range (m) at time ``t_s`` (s) since the start, never below 0."""
+        return np.maximum(self.range_m + self.velocity_m_s * np.asarray(t_s, dtype=float), 0.0)
+
+
+@dataclass(frozen=True)
+class SimScene:
+    """Targets, sensor noise and radar configuration of a simulated K-MD2."""
+
+    targets: tuple[SimTarget, ...]
+    noise_std: float = 0.0
+    radar: RadarConfig = field(default_factory=RadarConfig)
+    name: str = "scene"
+
+    def ramp(self, t_s: float, rng: np.random.Generator | None = None) -> np.ndarray:
+        """One ramp (N, 2) of complex samples in full-scale units at time ``t_s``: the
+        paper's model (eq. 2) for the targets where they are at ``t_s``, plus noise."""
+        r = np.array([[tg.range_at(t_s) for tg in self.targets]], dtype=float)
+        a = np.array([[tg.angle_deg for tg in self.targets]], dtype=float)
+        x = np.array([[tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets]])
+        if not self.targets:
+            ramp = np.zeros((self.radar.samples_per_ramp, 2), complex)
+        else:
+            ramp = simulate_frames(r, a, x, self.radar, ramps=1)[0]
+        if self.noise_std > 0:
+            if rng is None:
+                raise ConfigError("SimScene.ramp: noise_std > 0 needs an rng")
+            ramp = ramp + self.noise_std * (rng.standard_normal(ramp.shape) + 1j * rng.standard_normal(ramp.shape))
+        return ramp
+
+    def truth(self, t_s: float = 0.0) -> list[dict[str, float]]:
+        """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude per target."""
+        out = []
+        for tg in self.targets:
+            r = float(tg.range_at(t_s))
+            th = math.radians(tg.angle_deg)
+            out.append({"range_m": r, "angle_deg": tg.angle_deg, "x_m": r * math.cos(th),
+                        "y_m": r * math.sin(th), "amplitude": tg.amplitude})
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "noise_std": self.noise_std,
+            "radar": self.radar.to_dict(),
+            "target": [vars(t).copy() for t in self.targets],
+        }
+
+
+_TARGET_KEYS = {"range_m", "angle_deg", "amplitude", "phase_deg", "velocity_m_s"}
+_TOP_KEYS = {"name", "noise_std", "radar", "target"}
+
+
+def _number(value: Any, where: str, lo: float | None = None, hi: float | None = None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {value!r} is not a finite number")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise ConfigError(f"{where}: {value!r} is outside [{lo}, {hi}]")
+    return float(value)
+
+
+def scene_from_dict(data: dict[str, Any], source: str = "<scene>") -> SimScene:
+    """Validate a parsed scene; errors name ``source`` and the offending key."""
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"{source}: unknown keys {unknown}; known: {sorted(_TOP_KEYS)}")
+    radar_data = data.get("radar", {})
+    if not isinstance(radar_data, dict):
+        raise ConfigError(f"{source}: [radar] must be a table")
+    try:
+        radar = RadarConfig.from_dict(radar_data)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: [radar]: {exc}") from None
+    noise = _number(data.get("noise_std", 0.0), f"{source}: noise_std", 0.0, 1.0)
+    raw_targets = data.get("target", [])
+    if not isinstance(raw_targets, list):
+        raise ConfigError(f"{source}: targets must be given as [[target]] tables")
+    targets = []
+    for i, t in enumerate(raw_targets):
+        where = f"{source}: target {i + 1}"
+        if not isinstance(t, dict):
+            raise ConfigError(f"{where}: must be a table")
+        extra = sorted(set(t) - _TARGET_KEYS)
+        if extra:
+            raise ConfigError(f"{where}: unknown keys {extra}; known: {sorted(_TARGET_KEYS)}")
+        for key in ("range_m", "angle_deg", "amplitude"):
+            if key not in t:
+                raise ConfigError(f"{where}: missing {key}")
+        targets.append(SimTarget(
+            range_m=_number(t["range_m"], f"{where}: range_m", 0.0, radar.max_range_m),
+            angle_deg=_number(t["angle_deg"], f"{where}: angle_deg", -90.0, 90.0),
+            amplitude=_number(t["amplitude"], f"{where}: amplitude", 0.0, 1.0),
+            phase_deg=_number(t.get("phase_deg", 0.0), f"{where}: phase_deg"),
+            velocity_m_s=_number(t.get("velocity_m_s", 0.0), f"{where}: velocity_m_s", -1000.0, 1000.0),
+        ))
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str):
+        raise ConfigError(f"{source}: name must be a string")
+    return SimScene(tuple(targets), noise, radar, name)
+
+
+def load_scene(path: str | Path) -> SimScene:
+    """Load and validate a TOML scene file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read scene file {path}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return scene_from_dict(data, str(path))
+
+
+SCENES_DIR = Path(__file__).with_name("scenes")
+
+
+def packaged_scenes() -> list[str]:
+    """Names of the scenes shipped in radar_driver/scenes/."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def resolve_scene(name_or_path: str | Path) -> SimScene:
+    """Load a scene file, or a packaged scene by name (``chamber``, ``single``, ...)."""
+    path = Path(name_or_path)
+    if not path.exists() and path.suffix == "" and len(path.parts) == 1:
+        packaged = SCENES_DIR / f"{path.name}.toml"
+        if not packaged.exists():
+            raise ConfigError(f"no scene file {str(path)!r} and no packaged scene of that name; "
+                              f"packaged: {packaged_scenes()}")
+        path = packaged
+    return load_scene(path)

@@ -1,0 +1,73 @@
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from radar_driver.errors import ConfigError
+from radar_driver.scene import load_scene, packaged_scenes, resolve_scene
+from radar_driver.simulator import SimFaults
+
+
+def test_packaged_scenes_load():
+    assert {"chamber", "single"} <= set(packaged_scenes())
+    chamber = resolve_scene("chamber")
+    ranges = sorted(t.range_m for t in chamber.targets)
+    assert len(chamber.targets) == 2 and 4.8 in ranges
+    close = next(t for t in chamber.targets if t.range_m == 4.8)
+    far = next(t for t in chamber.targets if t.range_m != 4.8)
+    assert far.range_m > close.range_m and close.amplitude / far.amplitude == pytest.approx(0.15)
+    assert chamber.noise_std > 0
+
+
+def test_moving_target_and_ramp(rng):
+    walker = resolve_scene("walker")
+    mover = next(t for t in walker.targets if t.velocity_m_s)
+    assert mover.range_at(2.0) == pytest.approx(mover.range_m + 2.0 * mover.velocity_m_s)
+    ramp = walker.ramp(0.0, rng)
+    assert ramp.shape == (256, 2)
+    assert walker.truth(2.0)[0]["range_m"] == pytest.approx(6.0)
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("noise_std = 0.1\n[[target]]\nrange_m = 3\nangle_deg = 0\n", "target 1: missing amplitude"),
+        ("[[target]]\nrange_m = 3\nangle_deg = 120\namplitude = 0.2\n", "target 1: angle_deg: 120 is outside"),
+        ("[[target]]\nrange_m = 'far'\nangle_deg = 0\namplitude = 0.2\n", "range_m: 'far' is not a finite number"),
+        ("[[target]]\nrange_m = 3\nangle_deg = 0\namplitude = 0.2\ncolour = 'red'\n", "unknown keys \\['colour'\\]"),
+        ("noise = 0.1\n", "unknown keys \\['noise'\\]"),
+        ("[radar]\nramps_per_frame = 0\n", "\\[radar\\]: RadarConfig.ramps_per_frame=0"),
+        ("[[target]\nrange_m = 3\n", "not valid TOML"),
+        ("noise_std = -1\n", "noise_std: -1 is outside"),
+    ],
+)
+def test_bad_scene_file_gives_a_clear_error(tmp_path, text, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=fragment) as info:
+        load_scene(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_scene(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read scene file"):
+        load_scene(tmp_path / "none.toml")
+    with pytest.raises(ConfigError, match="no packaged scene of that name"):
+        resolve_scene("atlantis")
+
+
+def test_bad_faults():
+    with pytest.raises(ConfigError, match="garbage_prob"):
+        SimFaults(garbage_prob=2.0)
+    with pytest.raises(ConfigError, match="disconnect_after_frames"):
+        SimFaults(disconnect_after_frames=0)
+
+
+def test_cli_sim_rejects_a_bad_scene(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("[[target]]\nrange_m = -3\nangle_deg = 0\namplitude = 1\n")
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "sim", "--scene", str(path), "--link",
+                           str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "qradar sim: error:" in proc.stderr and "range_m: -3 is outside" in proc.stderr
