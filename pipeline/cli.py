@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from radar_driver.errors import RadarError
+
 from .errors import PipelineError
 
 log = logging.getLogger("qradar")
@@ -75,6 +77,126 @@ def _cmd_montecarlo(args) -> int:
     return 0
 
 
+def _prob(text: str) -> float:
+    v = float(text)
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a probability in [0, 1]")
+    return v
+
+
+def _nonneg_float(text: str) -> float:
+    v = float(text)
+    if not v >= 0.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return v
+
+
+def _install_sigterm() -> None:
+    """Turn SIGTERM and SIGINT into KeyboardInterrupt so that every command ends
+    cleanly, also when started in the background (where a shell ignores SIGINT)."""
+    import signal
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def _add_sim(sub) -> None:
+    p = sub.add_parser("sim", help="serve a simulated K-MD2 on a pty and/or TCP until interrupted",
+                       description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
+                       "the paper's model of a TOML scene, with noise, 12-bit ADC and optional faults.")
+    p.add_argument("--scene", default="chamber",
+                   help="TOML scene file, or the name of a packaged scene (chamber, single, walker)")
+    p.add_argument("--link", type=Path, default=None, help="stable symlink path to the pty (e.g. /tmp/kmd2)")
+    p.add_argument("--tcp", type=int, default=None, metavar="PORT", help="also serve socket://127.0.0.1:PORT")
+    p.add_argument("--rate", type=_nonneg_float, default=20.0, help="frames per second (0 = as fast as polled)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="noise and fault seed")
+    p.add_argument("--garbage", type=_prob, default=0.0, metavar="P", help="garbage burst before a message")
+    p.add_argument("--truncate", type=_prob, default=0.0, metavar="P", help="RADC cut short")
+    p.add_argument("--skip-done", type=_prob, default=0.0, metavar="P", help="DONE counter jumps")
+    p.add_argument("--disconnect-after", type=_pos_int, default=None, metavar="N", help="drop the link after N frames")
+    p.add_argument("--reconnect-after", type=_nonneg_float, default=1.0, metavar="T", help="link back after T s")
+    p.set_defaults(func=_cmd_sim)
+
+
+def _cmd_sim(args) -> int:
+    from radar_driver.scene import resolve_scene
+    from radar_driver.simulator import SimFaults, SimulatorServer
+
+    if args.link is None and args.tcp is None:
+        raise ValueError("give --link PATH and/or --tcp PORT")
+    scene = resolve_scene(args.scene)
+    faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
+                       disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
+    _install_sigterm()
+    server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
+                             faults=faults, seed=args.seed)
+    with server:
+        where = [str(args.link)] if args.link else []
+        if args.tcp is not None:
+            where.append(f"socket://127.0.0.1:{server.tcp_port}")
+        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {args.rate:g} frames/s) on "
+              f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
+        try:
+            while not server.wait(0.5):
+                if server.errors:
+                    raise server.errors[0]
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def _add_drive(sub) -> None:
+    p = sub.add_parser("drive", help="read frames from a K-MD2 (real or simulated)",
+                       description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, "
+                       "socket://host:port, rfc2217://host:port), 8E1, reconnecting on errors.")
+    p.add_argument("--port", required=True, help="pyserial URL or device path")
+    p.add_argument("--frames", type=_pos_int, default=None, help="stop after N frames (default: until Ctrl-C)")
+    p.add_argument("--baud", type=int, default=2_000_000, help="rate after INIT (115200, 460800, 921600, 2000000, 3000000)")
+    p.add_argument("--ramps", type=_pos_int, default=2, help="ramps per frame (M = 256 x ramps)")
+    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for a GNFD answer")
+    p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
+    p.add_argument("--json", action="store_true", help="end with one JSON object of counters on stdout")
+    p.set_defaults(func=_cmd_drive)
+
+
+def _cmd_drive(args) -> int:
+    from radar_driver.session import SensorSession, SessionConfig
+
+    cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout)
+    lines = sys.stderr if args.json else sys.stdout
+    frames = []
+    _install_sigterm()
+    session = SensorSession(cfg)
+    try:
+        with session:
+            for frame in session.frames(args.frames):
+                if args.out is not None:
+                    frames.append(frame)
+                peak = np.abs(frame.data).max()
+                print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
+                      f"peak {peak:.3f} FS", file=lines, flush=True)
+    except KeyboardInterrupt:
+        pass
+    if args.out is not None:
+        np.savez_compressed(
+            args.out,
+            frames=np.stack([f.data for f in frames]) if frames else np.zeros((0, cfg.radar().n_measurements, 2), np.complex64),
+            seq=np.array([f.seq for f in frames], dtype=np.int64),
+            timestamp_ns=np.array([f.timestamp_ns for f in frames], dtype=np.int64),
+            counters=np.array([f.counters for f in frames], dtype=np.int64).reshape(len(frames), cfg.ramps_per_frame),
+            radar_config=json.dumps(cfg.radar().to_dict()),
+        )
+    c = session.counters.as_dict()
+    if args.json:
+        print(json.dumps(c))
+    else:
+        print("counters: " + ", ".join(f"{k}={v}" for k, v in c.items()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="qradar", description="1-bit dithered FMCW radar localization: simulation, streaming, replay."
@@ -82,6 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_montecarlo(sub)
+    _add_sim(sub)
+    _add_drive(sub)
     return parser
 
 
@@ -92,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (PipelineError, ValueError) as exc:
+    except (PipelineError, RadarError, ValueError, OSError) as exc:
         print(f"qradar {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,437 @@
+"""A simulated K-MD2: the device's protocol logic (bytes in, bytes out, no I/O) and the
+links that serve it on a pseudo-terminal or a TCP port.
+
+The device answers ``INIT`` / ``GNFD`` / ``GBYE`` like the sensor: ``RESP`` first (with
+an error code for an unknown command or a bad parameter), then for ``GNFD`` the
+selected ``RADC`` ramp and ``DONE`` with its frame counter. Ramps come from the scene
+through the paper's model (``SimScene.ramp``), with noise and 12-bit ADC quantization,
+at ``rate_hz`` frames per second (``ramps_per_frame`` ramps each; 0 = as fast as
+polled). The device measures on its own clock: a host that polls late finds the
+counter advanced, and the gap is what a real sensor shows for dropped frames.
+
+On a pty the device reads the host's line speed from the terminal settings and, like
+a real UART, does not understand bytes sent at another speed than its own.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import os
+import select
+import socket
+import termios
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError, RadarError
+from .protocol import (
+    BAUD_CODES,
+    DEFAULT_BAUD,
+    FRAME_BITS,
+    Done,
+    Gbye,
+    Gnfd,
+    Init,
+    OtherMessage,
+    Radc,
+    Resp,
+    RespCode,
+    StreamDecoder,
+    complex_to_adc,
+    encode,
+)
+from .scene import SimScene
+
+log = logging.getLogger("qradar.sim")
+
+NOMINAL_RAMP_RATE_HZ = 40.0  # time base for moving targets when free-running
+
+
+@dataclass(frozen=True)
+class SimFaults:
+    """Fault injection. Probabilities are per message (garbage: a burst of 1 to
+    ``garbage_max_bytes`` random bytes before a message; truncate: a RADC cut short;
+    skip_done: the DONE counter jumps by 1 to 3). ``disconnect_after_frames``: drop the
+    link once after that many frames and bring it back after ``reconnect_after_s``."""
+
+    garbage_prob: float = 0.0
+    garbage_max_bytes: int = 64
+    truncate_prob: float = 0.0
+    skip_done_prob: float = 0.0
+    disconnect_after_frames: int | None = None
+    reconnect_after_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("garbage_prob", "truncate_prob", "skip_done_prob"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ConfigError(f"SimFaults.{name}={v!r} must be a probability in [0, 1]")
+        if not (isinstance(self.garbage_max_bytes, int) and self.garbage_max_bytes >= 1):
+            raise ConfigError(f"SimFaults.garbage_max_bytes={self.garbage_max_bytes!r} must be an integer >= 1")
+        n = self.disconnect_after_frames
+        if n is not None and not (isinstance(n, int) and n >= 1):
+            raise ConfigError(f"SimFaults.disconnect_after_frames={n!r} must be an integer >= 1")
+        if not (math.isfinite(self.reconnect_after_s) and self.reconnect_after_s >= 0):
+            raise ConfigError(f"SimFaults.reconnect_after_s={self.reconnect_after_s!r} must be >= 0")
+
+
+@dataclass
+class Reply:
+    """Bytes to write at monotonic time ``due_s`` (None = now); ``disconnect`` asks the
+    link to go down after writing."""
+
+    data: bytes
+    due_s: float | None = None
+    disconnect: bool = False
+
+
+@dataclass
+class SimulatedKMD2:
+    """The K-MD2's protocol logic. ``receive(bytes, host_baud)`` -> replies."""
+
+    scene: SimScene
+    rate_hz: float = 20.0
+    faults: SimFaults = field(default_factory=SimFaults)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and self.rate_hz >= 0):
+            raise ConfigError(f"rate_hz={self.rate_hz!r} must be >= 0 (0 = as fast as polled)")
+        self.decoder = StreamDecoder()
+        self.baud = DEFAULT_BAUD
+        self.counter = -1  # frame counter of the last ramp sent
+        self.ramps_sent = 0
+        self.events: list[tuple[str, int | None]] = []
+        self._noise_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(0,)))
+        self._fault_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(1,)))
+        self._t0: float | None = None
+        self._disconnected_once = False
+        rpf = self.scene.radar.ramps_per_frame
+        self.ramp_rate_hz = self.rate_hz * rpf
+
+    # -- link events --------------------------------------------------------------------
+    def link_reset(self, power_cycle: bool) -> None:
+        """The link went down. ``power_cycle``: the sensor restarts at 115200 baud."""
+        self.decoder.reset()
+        if power_cycle:
+            self.baud = DEFAULT_BAUD
+        self.events.append(("LINK_RESET", self.baud))
+
+    # -- bytes in, bytes out ---------------------------------------------------------------
+    def receive(self, data: bytes, host_baud: int | None = None, now_s: float | None = None) -> list[Reply]:
+        if host_baud is not None and host_baud != self.baud:
+            self.events.append(("BAUD_MISMATCH", host_baud))
+            return []  # a UART at another speed sees noise, not bytes
+        now = time.monotonic() if now_s is None else now_s
+        replies: list[Reply] = []
+        for msg in self.decoder.feed(data):
+            replies.extend(self._handle(msg, host_baud, now))
+        return replies
+
+    def _handle(self, msg, host_baud: int | None, now: float) -> list[Reply]:
+        if isinstance(msg, Init):
+            self.events.append(("INIT", host_baud))
+            if msg.baud_code not in BAUD_CODES:
+                return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
+            reply = self._reply(Resp(RespCode.OK))
+            self.baud = BAUD_CODES[msg.baud_code]
+            self.events.append(("SWITCH", self.baud))
+            return [reply]
+        if isinstance(msg, Gbye):
+            self.events.append(("GBYE", host_baud))
+            reply = self._reply(Resp(RespCode.OK))
+            self.baud = DEFAULT_BAUD
+            return [reply]
+        if isinstance(msg, Gnfd):
+            self.events.append(("GNFD", host_baud))
+            if msg.mask & ~sum(FRAME_BITS.values()) or msg.mask == 0:
+                return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
+            return [self._reply(Resp(RespCode.OK))] + self._ramp_replies(msg.mask, now)
+        # a sensor-to-host message or an unknown frame sent to the sensor
+        self.events.append(("UNKNOWN", None))
+        return [self._reply(Resp(RespCode.UNKNOWN_COMMAND))]
+
+    def _ramp_replies(self, mask: int, now: float) -> list[Reply]:
+        rng = self._fault_rng
+        if self.ramp_rate_hz > 0:
+            if self._t0 is None:
+                self._t0 = now
+            measured = math.ceil((now - self._t0) * self.ramp_rate_hz - 1e-9)
+            index = max(self.counter + 1, measured)
+            due = self._t0 + index / self.ramp_rate_hz
+            t_s = index / self.ramp_rate_hz
+        else:
+            index, due, t_s = self.counter + 1, None, (self.counter + 1) / NOMINAL_RAMP_RATE_HZ
+        if self.faults.skip_done_prob and rng.random() < self.faults.skip_done_prob:
+            skip = int(rng.integers(1, 4))
+            index += skip
+            self.events.append(("SKIP_DONE", skip))
+        self.counter = index
+        out = []
+        if mask & FRAME_BITS["RADC"]:
+            ramp = self.scene.ramp(t_s, self._noise_rng)
+            words = complex_to_adc(ramp[None])[0]
+            radc = self._reply(Radc(words), due)
+            if self.faults.truncate_prob and rng.random() < self.faults.truncate_prob:
+                radc.data = radc.data[: int(rng.integers(1, len(radc.data)))]
+                self.events.append(("TRUNCATED", index))
+            out.append(radc)
+        for name in ("RMRD", "PDAT", "TDAT"):
+            if mask & FRAME_BITS[name]:
+                out.append(self._reply(OtherMessage(name.encode()), due))
+        out.append(self._reply(Done(index & 0xFFFFFFFF), due))
+        self.ramps_sent += 1
+        n = self.faults.disconnect_after_frames
+        if n is not None and not self._disconnected_once and self.ramps_sent >= n * self.scene.radar.ramps_per_frame:
+            self._disconnected_once = True
+            out[-1].disconnect = True
+            self.events.append(("DISCONNECT", index))
+        return out
+
+    def _reply(self, msg, due: float | None = None) -> Reply:
+        data = encode(msg)
+        f = self.faults
+        if f.garbage_prob and self._fault_rng.random() < f.garbage_prob:
+            n = int(self._fault_rng.integers(1, f.garbage_max_bytes + 1))
+            data = self._fault_rng.integers(0, 256, n, dtype=np.uint8).tobytes() + data
+        return Reply(data, due)
+
+
+# -- links --------------------------------------------------------------------------------
+_SPEED_TO_BAUD = {getattr(termios, f"B{b}"): b for b in (9600, 19200, 38400, 57600, 115200, 230400, 460800,
+                                                        921600, 1000000, 1500000, 2000000, 3000000)
+                  if hasattr(termios, f"B{b}")}
+
+
+class LinkDown(RadarError):
+    """The simulated link has no peer or was closed."""
+
+
+class PtyLink:
+    """A pseudo-terminal whose slave end is reachable at a stable symlink ``link_path``."""
+
+    def __init__(self, link_path: str | Path):
+        self.link_path = Path(link_path)
+        self.master: int | None = None
+        self.slave: int | None = None
+
+    def open(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no line editing, before any host opens it
+        os.set_blocking(master, False)
+        self.master, self.slave = master, slave
+        tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
+        tmp.unlink(missing_ok=True)
+        os.symlink(os.ttyname(slave), tmp)
+        os.replace(tmp, self.link_path)
+        log.info("simulated K-MD2 on %s -> %s", self.link_path, os.ttyname(slave))
+
+    def close(self) -> None:
+        if self.link_path.is_symlink():
+            self.link_path.unlink(missing_ok=True)
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = None
+
+    def host_baud(self) -> int | None:
+        if self.slave is None:
+            return None
+        speed = termios.tcgetattr(self.slave)[4]
+        return _SPEED_TO_BAUD.get(speed)
+
+    def read(self, timeout_s: float) -> bytes:
+        if self.master is None:
+            raise LinkDown("pty closed")
+        ready, _, _ = select.select([self.master], [], [], timeout_s)
+        if not ready:
+            return b""
+        try:
+            return os.read(self.master, 65536)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                return b""
+            raise
+
+    def write(self, data: bytes, timeout_s: float = 1.0) -> bool:
+        """Write all of ``data``; False (and the host's unread input flushed) if the host
+        has not read it within ``timeout_s``."""
+        view = memoryview(data)
+        deadline = time.monotonic() + timeout_s
+        while view:
+            if self.master is None:
+                raise LinkDown("pty closed")
+            _, ready, _ = select.select([], [self.master], [], max(0.0, deadline - time.monotonic()))
+            if not ready:
+                termios.tcflush(self.slave, termios.TCIFLUSH)
+                return False
+            try:
+                n = os.write(self.master, view)
+            except BlockingIOError:
+                continue
+            view = view[n:]
+        return True
+
+
+class TcpLink:
+    """A TCP server on ``host:port`` for ``socket://host:port``; one client at a time."""
+
+    def __init__(self, port: int, host: str = "127.0.0.1"):
+        self.host, self.port = host, port
+        self.server: socket.socket | None = None
+        self.client: socket.socket | None = None
+
+    def open(self) -> None:
+        srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        srv.bind((self.host, self.port))
+        srv.listen(1)
+        self.port = srv.getsockname()[1]
+        self.server = srv
+        log.info("simulated K-MD2 on socket://%s:%d", self.host, self.port)
+
+    def close(self) -> None:
+        for s in (self.client, self.server):
+            if s is not None:
+                try:
+                    s.close()
+                except OSError:
+                    pass
+        self.client = self.server = None
+
+    def host_baud(self) -> int | None:
+        return None
+
+    def read(self, timeout_s: float) -> bytes:
+        if self.server is None:
+            raise LinkDown("tcp link closed")
+        if self.client is None:
+            ready, _, _ = select.select([self.server], [], [], timeout_s)
+            if ready:
+                self.client, _ = self.server.accept()
+                self.client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            return b""
+        ready, _, _ = select.select([self.client], [], [], timeout_s)
+        if not ready:
+            return b""
+        try:
+            data = self.client.recv(65536)
+        except OSError:
+            data = b""
+        if not data:
+            self.client.close()
+            self.client = None
+            raise LinkDown("tcp client left")
+        return data
+
+    def write(self, data: bytes, timeout_s: float = 1.0) -> bool:
+        if self.client is None:
+            return False
+        try:
+            self.client.settimeout(timeout_s)
+            self.client.sendall(data)
+            return True
+        except OSError:
+            return False
+
+
+class SimulatorServer:
+    """Serves a simulated K-MD2 on a pty (``link_path``) and/or TCP (``tcp_port``, 0 =
+    any free port) until :meth:`stop`. Each link has its own device state."""
+
+    def __init__(
+        self,
+        scene: SimScene,
+        link_path: str | Path | None = None,
+        tcp_port: int | None = None,
+        rate_hz: float = 20.0,
+        faults: SimFaults | None = None,
+        seed: int = 0,
+    ):
+        if link_path is None and tcp_port is None:
+            raise ConfigError("SimulatorServer needs a pty link path or a TCP port")
+        self.links: list[PtyLink | TcpLink] = []
+        if link_path is not None:
+            self.links.append(PtyLink(link_path))
+        if tcp_port is not None:
+            self.links.append(TcpLink(tcp_port))
+        self.devices = [SimulatedKMD2(scene, rate_hz, faults or SimFaults(), seed) for _ in self.links]
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.errors: list[BaseException] = []
+
+    @property
+    def tcp_port(self) -> int | None:
+        return next((lk.port for lk in self.links if isinstance(lk, TcpLink)), None)
+
+    def start(self) -> "SimulatorServer":
+        for link, dev in zip(self.links, self.devices):
+            link.open()
+            t = threading.Thread(target=self._serve, args=(link, dev), name=f"sim-{type(link).__name__}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout_s)
+        for link in self.links:
+            link.close()
+
+    def __enter__(self) -> "SimulatorServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until stopped (True) or ``timeout_s`` passed (False)."""
+        return self._stop.wait(timeout_s)
+
+    def _serve(self, link, dev: SimulatedKMD2) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    data = link.read(0.05)
+                except LinkDown:
+                    if isinstance(link, TcpLink) and link.server is not None:
+                        dev.link_reset(power_cycle=False)
+                        continue
+                    raise
+                if not data:
+                    continue
+                for reply in dev.receive(data, link.host_baud()):
+                    if reply.due_s is not None:
+                        delay = reply.due_s - time.monotonic()
+                        if delay > 0 and self._stop.wait(delay):
+                            return
+                    if not link.write(reply.data):
+                        log.warning("host is not reading: dropped %d bytes", len(reply.data))
+                    if reply.disconnect:
+                        self._disconnect(link, dev)
+                        break
+        except BaseException as exc:  # surfaced through .errors, never silent
+            if not self._stop.is_set():
+                log.exception("simulator link %s failed", link)
+                self.errors.append(exc)
+
+    def _disconnect(self, link, dev: SimulatedKMD2) -> None:
+        log.info("fault: link down for %.2f s", dev.faults.reconnect_after_s)
+        link.close()
+        if self._stop.wait(dev.faults.reconnect_after_s):
+            return
+        link.open()
+        dev.link_reset(power_cycle=True)

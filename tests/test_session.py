@@ -1,0 +1,205 @@
+"""The driver against the simulated K-MD2 through a real pseudo-terminal (and TCP)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from radar_driver.model import simulate_frames
+from radar_driver.protocol import Gnfd, Init, OtherMessage, Resp, RespCode, StreamDecoder, encode
+from radar_driver.scene import SimScene, SimTarget, resolve_scene
+from radar_driver.session import (
+    LinkError,
+    SensorResponseError,
+    SensorSession,
+    SensorTimeout,
+    SessionConfig,
+)
+from radar_driver.simulator import SimFaults, SimulatedKMD2, SimulatorServer
+
+LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
+SCENE = SimScene((SimTarget(12.0, 20.0, 0.5), SimTarget(4.8, -35.0, 0.1, phase_deg=40.0)))
+
+
+def expected_frame(scene: SimScene) -> np.ndarray:
+    r = np.array([[t.range_m for t in scene.targets]])
+    a = np.array([[t.angle_deg for t in scene.targets]])
+    x = np.array([[t.amplitude * np.exp(1j * np.deg2rad(t.phase_deg)) for t in scene.targets]])
+    return simulate_frames(r, a, x, scene.radar)[0]
+
+
+@pytest.fixture
+def link(tmp_path) -> Path:
+    return tmp_path / "kmd2"
+
+
+def session(url, **kw) -> SensorSession:
+    kw.setdefault("reconnect_timeout_s", 5.0)
+    return SensorSession(SessionConfig(str(url), **kw))
+
+
+def test_frames_equal_the_model_within_adc_quantization(link):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, session(link) as s:
+        frames = list(s.frames(10))
+    gamma = expected_frame(SCENE)
+    assert len(frames) == 10
+    for i, f in enumerate(frames):
+        assert f.seq == i and f.data.shape == (512, 2) and f.data.dtype == np.complex64
+        assert np.abs(f.data - gamma).max() <= LSB
+        assert f.counters == (2 * i, 2 * i + 1)
+    assert s.counters.frames == 10 and s.counters.dropped == 0 and s.counters.resyncs == 0
+    assert s.counters.bytes == 20 * (12 + 2056 + 12) + 2 * 12  # RESP, RADC, DONE per ramp; INIT, GBYE RESPs
+    assert not sim.errors
+
+
+def test_init_baud_switch_gnfd_and_gbye_happen_in_order(link):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim:
+        with session(link, baud=921_600) as s:
+            list(s.frames(2))
+        s.close()  # idempotent
+        s.close()
+        events = [e for e in sim.devices[0].events]
+    assert events[0] == ("INIT", 115_200)  # INIT at 115200 (the host's line speed)
+    assert events[1] == ("SWITCH", 921_600)
+    assert events[2:6] == [("GNFD", 921_600)] * 4  # the host switched too
+    assert events[-1] == ("GBYE", 921_600)
+    assert sim.devices[0].baud == 115_200  # GBYE returned the sensor to 115200
+
+
+def test_a_sensor_left_at_high_speed_is_recovered(link):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim:
+        crashed = session(link, baud=3_000_000)
+        crashed.open()
+        list(crashed.frames(1))
+        crashed._drop_port()  # a host that died without GBYE
+        assert sim.devices[0].baud == 3_000_000
+        with session(link) as s:
+            assert len(list(s.frames(3))) == 3
+    assert ("BAUD_MISMATCH", 115_200) in sim.devices[0].events
+
+
+def test_garbage_and_truncated_messages_are_skipped_and_counted(link):
+    faults = SimFaults(garbage_prob=0.3, truncate_prob=0.05)
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults, seed=4) as sim, session(link) as s:
+        frames = list(s.frames(40))
+    c = s.counters
+    assert c.resyncs > 5 and c.skipped_bytes > 50
+    assert c.incomplete >= 1  # truncated RADCs
+    assert any(e[0] == "TRUNCATED" for e in sim.devices[0].events)
+    gamma = expected_frame(SCENE)
+    assert all(np.abs(f.data - gamma).max() <= LSB for f in frames)  # every frame intact
+    for f in frames:
+        assert f.counters[1] == f.counters[0] + 1  # consecutive ramps only
+
+
+def test_done_counter_gaps_count_as_drops(link):
+    faults = SimFaults(skip_done_prob=0.2)
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults, seed=1) as sim, session(link) as s:
+        frames = list(s.frames(30))
+    skipped = sum(n for e, n in sim.devices[0].events if e == "SKIP_DONE")
+    assert skipped > 0
+    assert s.counters.dropped == skipped
+    assert s.counters.discarded_ramps > 0
+    assert all(f.counters[1] == f.counters[0] + 1 for f in frames)
+
+
+@pytest.mark.parametrize("transport", ["pty", "tcp"])
+def test_device_disconnects_and_returns_and_the_driver_reconnects(link, transport):
+    faults = SimFaults(disconnect_after_frames=5, reconnect_after_s=0.3)
+    kw = {"link_path": link} if transport == "pty" else {"tcp_port": 0}
+    with SimulatorServer(SCENE, rate_hz=0, faults=faults, **kw) as sim:
+        url = link if transport == "pty" else f"socket://127.0.0.1:{sim.tcp_port}"
+        t0 = time.monotonic()
+        with session(url) as s:
+            frames = list(s.frames(12))
+        assert time.monotonic() - t0 < 20
+    assert s.counters.reconnects == 1
+    assert len(frames) == 12 and [f.seq for f in frames] == list(range(12))
+    gamma = expected_frame(SCENE)
+    assert all(np.abs(f.data - gamma).max() <= LSB for f in frames)
+    events = [e[0] for e in sim.devices[0].events]
+    assert events.count("INIT") == 2 and "DISCONNECT" in events
+
+
+def test_paced_at_the_frame_rate(link):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim, session(link) as s:
+        t0 = time.monotonic()
+        list(s.frames(6))
+        elapsed = time.monotonic() - t0
+    assert 0.2 < elapsed < 10  # about 0.3 s at 20 frames/s; no hard timing on a shared machine
+
+
+def test_typed_errors(tmp_path):
+    with pytest.raises(LinkError, match="cannot open .*nowhere"):
+        session(tmp_path / "nowhere").open()
+    master, slave = os.openpty()  # a port where nothing answers
+    try:
+        with pytest.raises(SensorTimeout, match="no RESP to INIT .* within 0.10 s; saw no message"):
+            session(os.ttyname(slave), timeout_s=0.1).open()
+    finally:
+        os.close(master)
+        os.close(slave)
+    s = session(tmp_path / "nowhere", reconnect_timeout_s=0.3)
+    with pytest.raises(LinkError, match="could not reconnect .* within 0.3 s"):
+        list(s.frames(1))
+
+
+def test_device_answers_errors_like_the_sensor():
+    dev = SimulatedKMD2(SCENE, rate_hz=0)
+    d = StreamDecoder()
+    assert d.feed(b"".join(r.data for r in dev.receive(encode(Init(9))))) == [Resp(RespCode.INVALID_PARAMETER)]
+    assert d.feed(b"".join(r.data for r in dev.receive(encode(OtherMessage(b"PDAT"))))) == [
+        Resp(RespCode.UNKNOWN_COMMAND)]
+    assert d.feed(b"".join(r.data for r in dev.receive(encode(Gnfd(0x100))))) == [Resp(RespCode.INVALID_PARAMETER)]
+    err = SensorResponseError("INIT", 2)
+    assert "RESP 2 (INVALID_PARAMETER)" in str(err)
+
+
+def _wait_for(path: Path, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not path.exists():
+        assert time.monotonic() < deadline, f"{path} did not appear within {timeout_s} s"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("garbage", [False, True])
+def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
+    sim_cmd = [sys.executable, "-m", "pipeline.cli", "sim", "--scene", "chamber", "--link", str(link)]
+    if garbage:
+        sim_cmd += ["--garbage", "0.2"]
+    sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(link)
+        out = tmp_path / "frames.npz"
+        drive = subprocess.run(
+            [sys.executable, "-m", "pipeline.cli", "drive", "--port", str(link), "--frames", "40", "--json",
+             "--out", str(out)], capture_output=True, text=True, timeout=120)
+        assert drive.returncode == 0, drive.stderr
+        counters = json.loads(drive.stdout.strip().splitlines()[-1])
+        assert counters["frames"] == 40 and counters["reconnects"] == 0
+        assert set(counters) >= {"frames", "bytes", "resyncs", "skipped_bytes", "dropped", "reconnects"}
+        if garbage:
+            assert counters["resyncs"] > 0 and counters["skipped_bytes"] > 0
+        else:
+            assert counters["resyncs"] == 0
+        saved = np.load(out)
+        assert saved["frames"].shape == (40, 512, 2)
+        # the chamber scene's strong reflector dominates every frame
+        chamber = resolve_scene("chamber")
+        assert np.abs(saved["frames"]).max() < 1.0
+        assert saved["seq"].tolist() == list(range(40))
+        assert json.loads(str(saved["radar_config"]))["ramps_per_frame"] == chamber.radar.ramps_per_frame
+    finally:
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(10)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+    assert sim.returncode == 0, sim.stderr.read()
+    assert not link.exists()  # the symlink is removed on exit
