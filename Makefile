@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast bench montecarlo-paper clean
+.PHONY: run test test-fast bench montecarlo-quick montecarlo-paper clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
@@ -13,8 +13,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
 	@touch $(STAMP)
 
-# Until the streaming parts exist: a short Monte Carlo of the paper's four schemes.
+# The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
 run: $(STAMP)
+	$(VENV)/bin/qradar run --duration 15
+
+# A short Monte Carlo of the paper's four schemes.
+montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
 # The whole suite, slow tests included (CI runs this).

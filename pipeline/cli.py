@@ -12,6 +12,7 @@ import numpy as np
 
 from radar_driver.errors import RadarError
 
+from .bus import bus_from_args, bus_options
 from .errors import PipelineError
 
 log = logging.getLogger("qradar")
@@ -159,27 +160,52 @@ def _add_drive(sub) -> None:
     p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for a GNFD answer")
     p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
     p.add_argument("--json", action="store_true", help="end with one JSON object of counters on stdout")
+    p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys (default kmd2)")
+    p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
+    bus_options(p)
     p.set_defaults(func=_cmd_drive)
 
 
 def _cmd_drive(args) -> int:
     from radar_driver.session import SensorSession, SessionConfig
 
+    from .nodes import DriverNode
+
     cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout)
     lines = sys.stderr if args.json else sys.stdout
     frames = []
+
+    def show(frame) -> None:
+        if args.out is not None:
+            frames.append(frame)
+        peak = np.abs(frame.data).max()
+        print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
+              f"peak {peak:.3f} FS", file=lines, flush=True)
+
     _install_sigterm()
-    session = SensorSession(cfg)
-    try:
-        with session:
-            for frame in session.frames(args.frames):
-                if args.out is not None:
-                    frames.append(frame)
-                peak = np.abs(frame.data).max()
-                print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
-                      f"peak {peak:.3f} FS", file=lines, flush=True)
-    except KeyboardInterrupt:
-        pass
+    if args.no_publish:
+        node = None
+        session = SensorSession(cfg)
+        try:
+            with session:
+                for frame in session.frames(args.frames):
+                    show(frame)
+        except KeyboardInterrupt:
+            pass
+    else:
+        node = DriverNode(bus_from_args(args), args.sensor_id, cfg, frames=args.frames, on_frame=show)
+        session = node.sensor
+        try:
+            node.start()
+            while not node.done.wait(0.2):
+                if node.errors:
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            node.stop()
+        if node.errors:
+            raise node.errors[0]
     if args.out is not None:
         np.savez_compressed(
             args.out,
@@ -197,6 +223,138 @@ def _cmd_drive(args) -> int:
     return 0
 
 
+def _add_quantize(sub) -> None:
+    p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
+    p.add_argument("--bits", type=_pos_int, default=1)
+    p.add_argument("--alpha", type=float, default=1.0, help="dither scale in [0, 1] (default 1)")
+    p.add_argument("--delta", default="auto", help="'auto' (smallest 1-bit step per frame) or a step in full-scale units")
+    p.add_argument("--delta-margin", type=_nonneg_float, default=0.0, help="auto delta x (1 + margin)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="dither seed (per sensor: seed * 2^32 + crc32(id))")
+    p.add_argument("--queue", type=_pos_int, default=512, help="bounded input queue (frames)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    bus_options(p)
+    p.set_defaults(func=_cmd_quantize)
+
+
+def _quantizer_config(args):
+    from .quantize import QuantizerConfig
+
+    delta = args.delta if args.delta == "auto" else float(args.delta)
+    return QuantizerConfig(bits=args.bits, alpha=args.alpha, delta=delta, delta_margin=args.delta_margin,
+                           dither_seed=args.seed)
+
+
+def _serve(node, duration) -> int:
+    from .nodes import run_nodes
+
+    _install_sigterm()
+    try:
+        run_nodes([node], duration)
+    except KeyboardInterrupt:
+        pass
+    t = node.totals()
+    print(json.dumps({"node": node.name, **t}), flush=True)
+    return 0
+
+
+def _cmd_quantize(args) -> int:
+    from .nodes import QuantizeNode
+
+    return _serve(QuantizeNode(bus_from_args(args), _quantizer_config(args), queue_size=args.queue), args.duration)
+
+
+def _add_localize(sub) -> None:
+    p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> PBP -> radar/<sensor>/targets")
+    p.add_argument("--K", dest="k", type=_pos_int, default=2, help="targets per frame")
+    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
+                   help="raw = the full-resolution baseline")
+    p.add_argument("--queue", type=_pos_int, default=512, help="bounded input queue (frames)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    bus_options(p)
+    p.set_defaults(func=_cmd_localize)
+
+
+def _cmd_localize(args) -> int:
+    from .nodes import LocalizeNode, LocalizerConfig
+
+    cfg = LocalizerConfig(k=args.k, algo=args.algo, source=args.source)
+    return _serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
+
+
+def _add_router(sub) -> None:
+    p = sub.add_parser("router", help="a zenoh router for multi-host set-ups")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="e.g. tcp/0.0.0.0:7447 (default)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", type=Path, default=None)
+    p.add_argument("--duration", type=float, default=None)
+    p.set_defaults(func=_cmd_router)
+
+
+def _cmd_router(args) -> int:
+    import time
+
+    from .bus import BusConfig
+
+    bus = BusConfig(mode="router", listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]), connect=tuple(args.connect),
+                    config_file=args.zenoh_config)
+    _install_sigterm()
+    session = bus.open()
+    print(f"zenoh router {session.zid()} listening on {list(bus.listen)}; Ctrl-C to stop", flush=True)
+    try:
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+    return 0
+
+
+def _add_run(sub) -> None:
+    p = sub.add_parser("run", help="the main job: simulated K-MD2 -> driver -> quantize -> localize over zenoh",
+                       description="Simulated K-MD2(s) on ptys, the serial driver, the 1-bit dithered quantizer "
+                       "and the PBP localizer over an embedded zenoh peer; live targets beside the truth, "
+                       "then a summary.")
+    p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
+    p.add_argument("--sensors", type=_pos_int, default=1, help="simulated sensors at once")
+    p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
+    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    p.add_argument("--bits", type=_pos_int, default=1)
+    p.add_argument("--alpha", type=float, default=1.0)
+    p.add_argument("--delta", default="auto")
+    p.add_argument("--delta-margin", type=_nonneg_float, default=0.0)
+    p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--K", dest="k", type=_pos_int, default=None, help="targets per frame (default: the scene's count)")
+    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
+    bus_options(p)
+    p.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(args) -> int:
+    import threading
+
+    from .run import RunConfig, format_summary, print_json, run
+
+    cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
+                    quantizer=_quantizer_config(args), k=args.k, algo=args.algo, bus=bus_from_args(args))
+    stop = threading.Event()
+    _install_sigterm()
+    live = sys.stderr if args.json else sys.stdout
+    try:
+        summary = run(cfg, live=live, stop=stop)
+    except KeyboardInterrupt:
+        raise
+    if args.json:
+        print_json(summary)
+    else:
+        print(format_summary(summary))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="qradar", description="1-bit dithered FMCW radar localization: simulation, streaming, replay."
@@ -206,6 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_montecarlo(sub)
     _add_sim(sub)
     _add_drive(sub)
+    _add_quantize(sub)
+    _add_localize(sub)
+    _add_router(sub)
+    _add_run(sub)
     return parser
 
 

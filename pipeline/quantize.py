@@ -246,8 +246,12 @@ class QuantizedFrames:
         return self.alpha * self.delta[:, None, None] * u
 
 
-def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq) -> QuantizedFrames:
-    """Dither and quantize frames (B, M, 2) with sequence numbers ``seq`` ((B,) or int)."""
+def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed: int | None = None) -> QuantizedFrames:
+    """Dither and quantize frames (B, M, 2) with sequence numbers ``seq`` ((B,) or int).
+
+    delta and alpha are rounded to float32 first, as the wire format carries them, so a
+    decoder regenerates exactly the dither used here. ``dither_seed`` overrides the
+    config's (a node derives one per sensor)."""
     f = check_frames(frames)
     seqs = np.atleast_1d(np.asarray(seq, dtype=np.int64))
     if seqs.shape != (f.shape[0],):
@@ -256,8 +260,11 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq) -> Quantiz
         delta = auto_delta(f, config.delta_margin)
     else:
         delta = np.full(f.shape[0], float(config.delta))
+    delta = np.maximum(delta.astype(np.float32), np.finfo(np.float32).tiny).astype(float)
+    alpha = float(np.float32(config.alpha))
+    seed = config.dither_seed if dither_seed is None else dither_seed
     dither = None
-    if config.alpha > 0:
-        dither = config.alpha * delta[:, None, None] * unit_dither(config.dither_seed, seqs, f.shape[1])
+    if alpha > 0:
+        dither = alpha * delta[:, None, None] * unit_dither(seed, seqs, f.shape[1])
     codes = quantize(f, delta, config.bits, dither)
-    return QuantizedFrames(codes, delta, config.bits, config.alpha, config.dither_seed, seqs)
+    return QuantizedFrames(codes, delta, config.bits, alpha, seed, seqs)

@@ -115,13 +115,14 @@ class RadarConfig:
                 )
         return self.f0_hz + self.bandwidth_hz * k / n
 
-    def config_id(self) -> str:
-        """Short stable identifier of this configuration (hex), for messages."""
+    def config_id(self) -> int:
+        """Stable 32-bit identifier of this configuration (first 4 bytes of the SHA-256
+        of its sorted JSON), carried by every message made with it."""
         import hashlib
         import json
 
         blob = json.dumps(self.to_dict(), sort_keys=True).encode()
-        return hashlib.sha256(blob).hexdigest()[:16]
+        return int.from_bytes(hashlib.sha256(blob).digest()[:4], "little")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

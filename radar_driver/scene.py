@@ -55,16 +55,19 @@ class SimScene:
     radar: RadarConfig = field(default_factory=RadarConfig)
     name: str = "scene"
 
-    def ramp(self, t_s: float, rng: np.random.Generator | None = None) -> np.ndarray:
-        """One ramp (N, 2) of complex samples in full-scale units at time ``t_s``: the
-        paper's model (eq. 2) for the targets where they are at ``t_s``, plus noise."""
+    def clean_ramp(self, t_s: float) -> np.ndarray:
+        """One noiseless ramp (N, 2), full-scale units, at time ``t_s``: the paper's
+        model (eq. 2) for the targets where they are at ``t_s``."""
+        if not self.targets:
+            return np.zeros((self.radar.samples_per_ramp, 2), complex)
         r = np.array([[tg.range_at(t_s) for tg in self.targets]], dtype=float)
         a = np.array([[tg.angle_deg for tg in self.targets]], dtype=float)
         x = np.array([[tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets]])
-        if not self.targets:
-            ramp = np.zeros((self.radar.samples_per_ramp, 2), complex)
-        else:
-            ramp = simulate_frames(r, a, x, self.radar, ramps=1)[0]
+        return simulate_frames(r, a, x, self.radar, ramps=1)[0]
+
+    def ramp(self, t_s: float, rng: np.random.Generator | None = None) -> np.ndarray:
+        """:meth:`clean_ramp` plus complex white noise of ``noise_std`` per I and Q."""
+        ramp = self.clean_ramp(t_s)
         if self.noise_std > 0:
             if rng is None:
                 raise ConfigError("SimScene.ramp: noise_std > 0 needs an rng")

@@ -179,6 +179,11 @@ class SensorSession:
         self._closed = False
         self._connect()
 
+    def request_stop(self) -> None:
+        """Ask :meth:`frames` to end at the next frame, without touching the port (safe
+        from another thread); the owner then closes."""
+        self._closed = True
+
     def close(self) -> None:
         """GBYE (best effort) and close the port. Safe to call any number of times."""
         self._closed = True

@@ -1,0 +1,281 @@
+"""Nodes exchanging real messages over zenoh: in one process, and across processes over
+127.0.0.1. Every wait is bounded in count and time."""
+
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from pipeline.bus import BusConfig
+from pipeline.localize import position_error_m
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SimSourceNode, run_nodes
+from pipeline.quantize import QuantizerConfig, unit_dither
+from pipeline.wire import (
+    RawFrameMsg,
+    decode_health,
+    decode_quantized,
+    decode_targets,
+    encode_raw,
+)
+from radar_driver.scene import resolve_scene
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(pred, timeout_s=20.0, what="condition"):
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
+        time.sleep(0.05)
+
+
+class Collector:
+    def __init__(self, session, key):
+        self.items, self.lock = [], threading.Lock()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample):
+        with self.lock:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def of(self, suffix):
+        with self.lock:
+            return [p for k, p in self.items if k.endswith(suffix)]
+
+
+def truth_error(scene, targets_msgs):
+    truth = scene.truth()
+    tr = np.array([[t["range_m"] for t in truth]])
+    ta = np.array([[t["angle_deg"] for t in truth]])
+    errs = []
+    for m in targets_msgs:
+        er = np.array([[t["range_m"] for t in m.targets]])
+        ea = np.array([[t["angle_deg"] for t in m.targets]])
+        errs.append(position_error_m(tr, ta, er, ea)[0])
+    return np.array(errs)  # (frames, targets)
+
+
+def test_in_process_pipeline_localizes_the_scenes():
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        col = Collector(session, "radar/**")
+        single, chamber = resolve_scene("single"), resolve_scene("chamber")
+        nodes = [LocalizeNode(bus, LocalizerConfig(k=2, radar=chamber.radar), session=session),
+                 QuantizeNode(bus, QuantizerConfig(alpha=0.55, dither_seed=1), session=session),
+                 SimSourceNode(bus, chamber, n_sensors=3, rate_hz=100, id_prefix="ch", session=session, frames=60),
+                 SimSourceNode(bus, single, n_sensors=1, rate_hz=100, id_prefix="one", session=session, frames=60)]
+        threading.Thread(target=lambda: (nodes[2].done.wait(30), nodes[3].done.wait(30), time.sleep(0.5)),
+                         daemon=True).start()
+        run_nodes(nodes, duration_s=3.0)
+        targets = [decode_targets(p) for p in col.of("/targets")]
+        by_sensor = {}
+        for t in targets:
+            by_sensor.setdefault(t.sensor_id, []).append(t)
+        assert set(by_sensor) == {"ch0", "ch1", "ch2", "one0"}  # one node, many sensors
+        assert all(len(v) == 60 for v in by_sensor.values())
+        # single noiseless target, 1-bit dithered, on grid (12 m = bin 20): within 0.5 m in 95 % of frames
+        e1 = truth_error(single, by_sensor["one0"])
+        assert np.percentile(e1, 95) < 0.5, e1.ravel()
+        # the chamber (weak target at 4.8 m, noise): median error under 1 m for each target
+        ec = truth_error(chamber, by_sensor["ch0"] + by_sensor["ch1"] + by_sensor["ch2"])
+        assert np.all(np.median(ec, axis=0) < 1.0), np.median(ec, axis=0)
+        q = decode_quantized(col.of("/quantized")[0])
+        assert q.bits == 1 and q.alpha == pytest.approx(0.55) and len(col.of("/quantized")[0]) == 320
+        # the dither of each sensor is distinct (per-sensor seeds)
+        seeds = {decode_quantized(p).dither_seed for p in col.of("/quantized")}
+        assert len(seeds) == 4
+        health = [decode_health(p) for p in col.of("/health")]
+        assert {h.node for h in health} >= {"quantize", "localize", "simsource"}
+        last_loc = [h for h in health if h.node == "localize" and h.sensor_id == "ch0"][-1]
+        assert last_loc.frames_out == 60 and last_loc.drops == 0 and last_loc.latency_ms["p50"] > 0
+        col.sub.undeclare()
+    finally:
+        session.close()
+
+
+def test_quantized_frames_carry_a_reproducible_dither():
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        col = Collector(session, "radar/*/quantized")
+        scene = resolve_scene("single")
+        q = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=5), session=session)
+        src = SimSourceNode(bus, scene, n_sensors=1, rate_hz=200, session=session, frames=5)
+        raw = Collector(session, "radar/*/raw")
+        run_nodes([q, src], duration_s=1.5)
+        from pipeline.quantize import quantize
+        from pipeline.wire import decode_raw
+
+        raws = {m.seq: m for m in map(decode_raw, raw.of("/raw"))}
+        for p in col.of("/quantized"):
+            m = decode_quantized(p)
+            u = unit_dither(m.dither_seed, m.seq, 512)
+            again = quantize(raws[m.seq].data[None].astype(complex), m.delta, 1, m.alpha * m.delta * u)
+            assert np.array_equal(again[0], m.codes)  # a decoder regenerates xi exactly
+    finally:
+        session.close()
+
+
+def test_a_node_survives_garbage_and_reports_it_in_health():
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        col = Collector(session, "radar/**")
+        q = QuantizeNode(bus, QuantizerConfig(), session=session, health_period_s=0.2).start()
+        loc = LocalizeNode(bus, LocalizerConfig(k=1), session=session, health_period_s=0.2).start()
+        time.sleep(0.2)
+        session.put("radar/bad1/raw", b"\x00garbage")
+        session.put("radar/bad1/quantized", b"QRDR\x01\x02\x01\x01" + bytes(10))
+        session.put("radar/bad1/raw", encode_raw(RawFrameMsg("other", 0, 0, 0, np.zeros((512, 2), np.complex64))))
+        scene = resolve_scene("single")
+        frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+        for i in range(3):
+            session.put("radar/bad1/raw", encode_raw(RawFrameMsg("bad1", i, time.time_ns(), scene.radar.config_id(), frame)))
+        wait_until(lambda: len(col.of("bad1/targets")) == 3, 10, "targets after garbage")
+
+        def errors(node):
+            hs = [decode_health(p) for p in col.of("bad1/health")]
+            hs = [h for h in hs if h.node == node]
+            return hs[-1].decode_errors if hs else -1
+
+        wait_until(lambda: errors("quantize") == 2 and errors("localize") == 1, 10, "health with decode errors")
+        assert q.totals()["decode_errors"] == 2 and not q.errors and not loc.errors
+        q.stop()
+        loc.stop()
+    finally:
+        session.close()
+
+
+def test_a_full_queue_drops_are_counted_never_silent():
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        class SlowQuantize(QuantizeNode):
+            def process(self, batch):
+                time.sleep(0.01)
+                super().process(batch)
+
+        q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1).start()
+        frame = np.zeros((512, 2), np.complex64)
+        pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+        for i in range(100):
+            pub.put(encode_raw(RawFrameMsg("fl", i, 0, 0, frame)))
+        q.stop()
+        t = q.totals()
+        assert t["frames_in"] == 100
+        assert t["drops"] > 0
+        assert t["frames_out"] + t["drops"] == 100  # every frame is either processed or counted
+    finally:
+        session.close()
+
+
+def _spawn(args):
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_nodes_in_separate_processes_over_loopback():
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    procs = [_spawn(["quantize", "--listen", ep, "--alpha", "0.5", "--duration", "40"]),
+             _spawn(["localize", "--connect", ep, "--K", "1", "--duration", "40"])]
+    bus = BusConfig(connect=(ep,))
+    try:
+        session = None
+        deadline = time.monotonic() + 20
+        while session is None:
+            try:
+                session = bus.open()
+            except Exception:
+                assert time.monotonic() < deadline, "quantize node never listened"
+                time.sleep(0.2)
+        col = Collector(session, "radar/**")
+
+        def alive():
+            return {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
+                    if r.ok is not None}
+
+        wait_until(lambda: {"quantize", "localize"} <= alive(), 30, "both nodes alive")
+        scene = resolve_scene("single")
+        frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+        pub = session.declare_publisher("radar/lo0/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+        for i in range(20):
+            pub.put(encode_raw(RawFrameMsg("lo0", i, time.time_ns(), scene.radar.config_id(), frame)))
+            time.sleep(0.02)
+        wait_until(lambda: len(col.of("lo0/targets")) == 20, 30, "20 targets from the other processes")
+        targets = [decode_targets(p) for p in col.of("lo0/targets")]
+        assert sorted(t.seq for t in targets) == list(range(20))
+        assert np.percentile(truth_error(scene, targets), 90) < 0.5
+        session.close()
+    finally:
+        for p in procs:
+            p.terminate()
+        outs = [p.communicate(timeout=20) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+        summary = json.loads(out.strip().splitlines()[-1])
+        assert summary["frames_out"] == 20 and summary["drops"] == 0
+
+
+def test_router_joins_clients():
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router = _spawn(["router", "--listen", ep, "--duration", "30"])
+    try:
+        wait_until(lambda: router.stdout.readline().startswith("zenoh router"), 20, "router start")
+        a = BusConfig(mode="client", connect=(ep,)).open()
+        b = BusConfig(mode="client", connect=(ep,)).open()
+        col = Collector(b, "radar/**")
+        time.sleep(0.5)
+        for i in range(5):
+            a.put("radar/r0/health", b"{}")
+            time.sleep(0.05)
+        wait_until(lambda: len(col.of("r0/health")) == 5, 10, "messages through the router")
+        a.close()
+        b.close()
+    finally:
+        router.terminate()
+        router.communicate(timeout=20)
+    assert router.returncode == 0
+
+
+def test_qradar_run_end_to_end_json():
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--duration", "5", "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 1  # exactly one JSON object
+    s = json.loads(lines[0])
+    for key in ("frames_raw", "frames_quantized", "frames_targets", "drops", "latency_ms", "position_error_m",
+                "bytes_per_raw_frame", "bytes_per_quantized_frame"):
+        assert key in s
+    assert s["frames_raw"] >= 50  # 20 frames/s for 5 s, minus start-up
+    assert s["frames_raw"] == s["frames_quantized"] == s["frames_targets"]
+    assert s["bytes_per_quantized_frame"] == 320 and s["bytes_per_raw_frame"] == 8240
+    assert 0 < s["latency_ms"]["p50"] <= s["latency_ms"]["p99"]
+    assert s["position_error_m"]["median"] < 1.0
+    assert "targets (" in proc.stderr  # live lines beside the truth
+
+
+def test_bus_config_errors():
+    from pipeline.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="mode"):
+        BusConfig(mode="satellite")
+    with pytest.raises(ParameterError, match="prefix"):
+        BusConfig(prefix="radar/*")
+    with pytest.raises(ParameterError, match="client needs"):
+        BusConfig(mode="client")
+    assert BusConfig(prefix="lab/radar").key("s1", "raw") == "lab/radar/s1/raw"
+    assert BusConfig().sensor_of("radar/s1/targets") == "s1" and BusConfig().sensor_of("radar/s1/x") is None
