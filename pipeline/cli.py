@@ -282,6 +282,42 @@ def _cmd_localize(args) -> int:
     return _serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
 
 
+def _add_source(sub) -> None:
+    p = sub.add_parser("source", help="node: in-process simulated sensors -> radar/<id>/raw (no serial link)",
+                       description="Simulated sensors that publish raw frames of a scene directly, bypassing "
+                       "the serial protocol: for benchmarks and many-sensor set-ups.")
+    p.add_argument("--scene", default="chamber")
+    p.add_argument("--sensors", type=_pos_int, default=1)
+    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    p.add_argument("--id-prefix", default="sim", help="sensor ids are <prefix>0, <prefix>1, ...")
+    p.add_argument("--frames", type=_pos_int, default=None, help="frames per sensor, then stop")
+    p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--duration", type=float, default=None)
+    bus_options(p)
+    p.set_defaults(func=_cmd_source)
+
+
+def _cmd_source(args) -> int:
+    import threading
+
+    from radar_driver.scene import resolve_scene
+
+    from .nodes import SimSourceNode, run_nodes
+
+    node = SimSourceNode(bus_from_args(args), resolve_scene(args.scene), n_sensors=args.sensors, rate_hz=args.rate,
+                         id_prefix=args.id_prefix, seed=args.seed, frames=args.frames)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
+    _install_sigterm()
+    try:
+        run_nodes([node], args.duration, stop)
+    except KeyboardInterrupt:
+        pass
+    print(json.dumps({"node": node.name, "late_ticks": node.late_ticks, "elapsed_s": round(node.elapsed_s, 3),
+                      **node.totals()}), flush=True)
+    return 0
+
+
 def _add_router(sub) -> None:
     p = sub.add_parser("router", help="a zenoh router for multi-host set-ups")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
@@ -366,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_drive(sub)
     _add_quantize(sub)
     _add_localize(sub)
+    _add_source(sub)
     _add_router(sub)
     _add_run(sub)
     return parser

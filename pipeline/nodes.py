@@ -466,6 +466,7 @@ class SimSourceNode(Node):
         self.frames_limit = frames
         self.done = threading.Event()
         self.late_ticks = 0
+        self.elapsed_s = 0.0
 
     def _start(self) -> None:
         self._spawn(self._loop, "source")
@@ -500,6 +501,7 @@ class SimSourceNode(Node):
                                  "application/octet-stream")
                 k += 1
         finally:
+            self.elapsed_s = time.monotonic() - t0
             self.done.set()
 
 
