@@ -1,0 +1,230 @@
+"""MCAP files of qradar traffic: schemas, channels, tolerant reading and recovery.
+
+One channel per zenoh key (``radar/<sensor>/<topic>``) with one schema per message type;
+binary frames use the message encoding ``qradar/wire-v1`` (schema data: the byte layout,
+docs/wire-formats.md), targets and health are ``json`` with a JSON schema. Targets also
+go to ``<prefix>/<sensor>/pointcloud`` as ``foxglove.PointCloud`` (JSON), so Foxglove
+shows them without plugins.
+
+Reading goes record by record, so a file cut short (no footer, a chunk half written)
+yields every message of its complete chunks and reports that it was truncated.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from pipeline.wire import TARGET_FIELDS, TargetsMsg
+
+from .errors import NotMcapError, ReplayError
+
+WIRE_ENCODING = "qradar/wire-v1"
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
+TOPICS = ("raw", "quantized", "targets", "health")
+
+_TARGETS_SCHEMA = {
+    "type": "object", "title": "qradar.Targets",
+    "properties": {"version": {"type": "integer"}, "type": {"const": "targets"}, "sensor_id": {"type": "string"},
+                   "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
+                   "config_id": {"type": "integer"}, "algo": {"type": "string"}, "K": {"type": "integer"},
+                   "source": {"type": "string"}, "published_ns": {"type": "integer"},
+                   "targets": {"type": "array", "items": {"type": "object", "properties": {
+                       f: {"type": "number"} for f in TARGET_FIELDS}, "required": list(TARGET_FIELDS)}}},
+    "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "targets"],
+}
+_HEALTH_SCHEMA = {
+    "type": "object", "title": "qradar.Health",
+    "properties": {"version": {"type": "integer"}, "type": {"const": "health"}, "node": {"type": "string"},
+                   "sensor_id": {"type": "string"}, "timestamp_ns": {"type": "integer"},
+                   "frames_in": {"type": "integer"}, "frames_out": {"type": "integer"}, "drops": {"type": "integer"},
+                   "decode_errors": {"type": "integer"}, "latency_ms": {"type": "object"},
+                   "bytes_in_per_s": {"type": "number"}, "bytes_out_per_s": {"type": "number"},
+                   "extra": {"type": "object"}},
+    "required": ["version", "type", "node", "sensor_id", "timestamp_ns"],
+}
+# foxglove.PointCloud, JSON flavour (https://docs.foxglove.dev/docs/visualization/message-schemas/point-cloud)
+FOXGLOVE_POINTCLOUD_SCHEMA = {
+    "title": "foxglove.PointCloud", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0},
+                                                        "nsec": {"type": "integer", "minimum": 0}}},
+        "frame_id": {"type": "string"},
+        "pose": {"type": "object", "properties": {
+            "position": {"type": "object", "properties": {a: {"type": "number"} for a in "xyz"}},
+            "orientation": {"type": "object", "properties": {a: {"type": "number"} for a in "xyzw"}}}},
+        "point_stride": {"type": "integer", "minimum": 0},
+        "fields": {"type": "array", "items": {"type": "object", "properties": {
+            "name": {"type": "string"}, "offset": {"type": "integer", "minimum": 0},
+            "type": {"type": "integer", "description": "foxglove.NumericType; 7 = FLOAT32"}}}},
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
+FLOAT32 = 7  # foxglove.NumericType.FLOAT32
+
+
+def pointcloud_json(msg: TargetsMsg, frame_id: str = "radar") -> bytes:
+    """foxglove.PointCloud of the targets: fields x, y (m) and amplitude, float32 each."""
+    pts = np.array([[t["x_m"], t["y_m"], t["amplitude"]] for t in msg.targets], dtype="<f4").reshape(-1, 3)
+    obj = {
+        "timestamp": {"sec": msg.timestamp_ns // 1_000_000_000, "nsec": msg.timestamp_ns % 1_000_000_000},
+        "frame_id": frame_id,
+        "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+        "point_stride": 12,
+        "fields": [{"name": "x", "offset": 0, "type": FLOAT32}, {"name": "y", "offset": 4, "type": FLOAT32},
+                   {"name": "amplitude", "offset": 8, "type": FLOAT32}],
+        "data": base64.b64encode(pts.tobytes()).decode("ascii"),
+    }
+    return json.dumps(obj, separators=(",", ":")).encode()
+
+
+def topic_of(key: str) -> str | None:
+    """``raw`` / ``quantized`` / ``targets`` / ``health`` / ``pointcloud`` of a qradar key, else None."""
+    last = key.rsplit("/", 1)[-1]
+    return last if last in TOPICS + ("pointcloud",) else None
+
+
+class McapSink:
+    """A Writer with one schema per message type and one channel per key."""
+
+    def __init__(self, path: Path, chunk_size: int = 1 << 20):
+        self.path = Path(path)
+        self._fh = open(self.path, "wb")
+        self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self.writer.start(profile="", library="qradar")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.messages = 0
+        self.closed = False
+
+    def _schema(self, topic: str) -> int:
+        if topic not in self._schemas:
+            if topic in ("raw", "quantized"):
+                name = "qradar.RawFrame" if topic == "raw" else "qradar.QuantizedFrame"
+                data = DOCS.read_bytes() if DOCS.exists() else b"qradar wire format v1"
+                sid = self.writer.register_schema(name, WIRE_ENCODING, data)
+            elif topic == "pointcloud":
+                sid = self.writer.register_schema("foxglove.PointCloud", "jsonschema",
+                                                  json.dumps(FOXGLOVE_POINTCLOUD_SCHEMA).encode())
+            else:
+                schema = _TARGETS_SCHEMA if topic == "targets" else _HEALTH_SCHEMA
+                sid = self.writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+            self._schemas[topic] = sid
+        return self._schemas[topic]
+
+    def channel(self, key: str) -> int:
+        cid = self._channels.get(key)
+        if cid is None:
+            topic = topic_of(key) or "raw"
+            encoding = WIRE_ENCODING if topic in ("raw", "quantized") else "json"
+            cid = self.writer.register_channel(key, encoding, self._schema(topic))
+            self._channels[key] = cid
+        return cid
+
+    def write(self, key: str, data: bytes, log_time_ns: int, publish_time_ns: int, sequence: int) -> None:
+        self.writer.add_message(self.channel(key), log_time=log_time_ns, data=data,
+                                publish_time=publish_time_ns, sequence=sequence & 0xFFFFFFFF)
+        self.messages += 1
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        self.writer.add_metadata(name, {k: str(v) for k, v in data.items()})
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push it to the file (readable after a kill)."""
+        self.writer.flush()
+        self._fh.flush()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.writer.finish()
+        self._fh.close()
+
+
+class McapFile:
+    """Tolerant sequential reader. :meth:`messages` yields (channel, message) for every
+    message of the file's complete chunks, in file order; schemas, channels and metadata
+    fill in as they are met. When the file was cut short, iteration ends quietly and
+    ``truncated`` / ``truncation_reason`` say so. Not MCAP: NotMcapError."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.metadata: list[Metadata] = []
+        self.truncated = False
+        self.truncation_reason = ""
+
+    def messages(self) -> Iterator[tuple[Channel, Message]]:
+        self.schemas, self.channels, self.metadata = {}, {}, []
+        self.truncated, self.truncation_reason = False, ""
+        try:
+            fh = open(self.path, "rb")
+        except OSError as exc:
+            raise ReplayError(f"cannot open {self.path}: {exc.strerror or exc}") from None
+        with fh:
+            magic = fh.read(8)
+            if magic != b"\x89MCAP0\r\n":
+                raise NotMcapError(f"{self.path} is not an MCAP file (it starts with {magic!r})")
+            fh.seek(0)
+            records = StreamReader(fh, record_size_limit=1 << 30).records
+            while True:
+                try:
+                    rec = next(records)
+                except StopIteration:
+                    return
+                except Exception as exc:  # noqa: BLE001 - any failure here is a record cut short
+                    self.truncated = True
+                    self.truncation_reason = f"{type(exc).__name__}: {exc}".rstrip(": ")
+                    return
+                if isinstance(rec, Schema):
+                    self.schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    self.channels[rec.id] = rec
+                elif isinstance(rec, Metadata):
+                    self.metadata.append(rec)
+                elif isinstance(rec, Message):
+                    ch = self.channels.get(rec.channel_id)
+                    if ch is not None:
+                        yield ch, rec
+                elif isinstance(rec, Footer):
+                    return
+
+    def scan(self) -> int:
+        """Read the whole file (filling channels and metadata); returns the message count."""
+        return sum(1 for _ in self.messages())
+
+    def metadata_dict(self) -> dict[str, dict[str, str]]:
+        return {md.name: dict(md.metadata) for md in self.metadata}
+
+
+def qradar_channels(channels: dict[int, Channel]) -> dict[int, Channel]:
+    """Channels whose topic is a qradar key (``.../<sensor>/raw|quantized|targets|health``)."""
+    return {cid: ch for cid, ch in channels.items() if topic_of(ch.topic) in TOPICS}
+
+
+def recover(src: str | Path, dst: str | Path) -> dict:
+    """Write a complete, indexed MCAP from whatever ``src`` holds (e.g. after SIGKILL).
+    Returns {"messages", "truncated", "reason"}."""
+    f = McapFile(src)
+    sink = McapSink(Path(dst))
+    n = 0
+    try:
+        for ch, msg in f.messages():
+            sink.write(ch.topic, msg.data, msg.log_time, msg.publish_time, msg.sequence)
+            n += 1
+        for md in f.metadata:
+            sink.metadata(md.name, dict(md.metadata))
+    finally:
+        sink.close()
+    return {"messages": n, "truncated": f.truncated, "reason": f.truncation_reason}
