@@ -230,8 +230,12 @@ class ProcessingNode(Node):
         self.batch_max = batch_max
         self._subscriber = None
 
+    def subscription(self) -> str:
+        """The key expression this node listens to."""
+        return self.bus.wildcard(self.in_topic)
+
     def _start(self) -> None:
-        self._subscriber = self.session.declare_subscriber(self.bus.wildcard(self.in_topic), self._on_sample)
+        self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
         self._spawn(self._work_loop, "worker")
 
     def _stopping(self) -> None:
@@ -263,6 +267,7 @@ class ProcessingNode(Node):
             try:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
+                self.on_idle()
                 continue
             batch = [first]
             while len(batch) < self.batch_max:
@@ -274,6 +279,9 @@ class ProcessingNode(Node):
 
     def pending(self) -> int:
         return self._queue.qsize()
+
+    def on_idle(self) -> None:
+        """Called by the worker when no sample came for 0.1 s."""
 
     def process(self, batch: list[tuple[str, str, bytes, int]]) -> None:
         raise NotImplementedError

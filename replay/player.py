@@ -1,0 +1,119 @@
+"""The player: an MCAP recording back onto zenoh, with its original timing scaled by
+``rate`` or as fast as the subscribers take it (``fast``: publishers block rather than
+drop). ``prefix`` remaps the first key chunk(s), so replayed data cannot be mistaken
+for live data."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+
+from pipeline.bus import BusConfig
+
+from .errors import NoQradarChannelsError, ReplayError
+from .mcapio import McapFile, qradar_channels
+
+log = logging.getLogger("qradar.replay")
+
+
+@dataclass(frozen=True)
+class PlayConfig:
+    rate: float = 1.0
+    fast: bool = False
+    loop: bool = False
+    start_s: float | None = None
+    end_s: float | None = None
+    topics: str | None = None
+    prefix: str | None = None  # None: keep the recorded prefix
+
+    def __post_init__(self) -> None:
+        if not self.rate > 0:
+            raise ReplayError(f"--rate {self.rate!r} must be > 0")
+        if self.start_s is not None and self.end_s is not None and self.end_s <= self.start_s:
+            raise ReplayError(f"--end {self.end_s} must come after --start {self.start_s}")
+
+
+@dataclass
+class PlayResult:
+    published: int = 0
+    loops: int = 0
+    truncated: bool = False
+    seconds: float = 0.0
+
+
+def remap(key: str, recorded_prefix: str, prefix: str | None) -> str:
+    if prefix is None or not key.startswith(recorded_prefix + "/"):
+        return key
+    return prefix + key[len(recorded_prefix):]
+
+
+def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = None,
+         stop: threading.Event | None = None) -> PlayResult:
+    """Publish the qradar channels of ``path``; returns what was done."""
+    f = McapFile(path)
+    own = session is None
+    session = session or bus.open()
+    stop = stop or threading.Event()
+    result = PlayResult()
+    t_wall0 = time.monotonic()
+    selector = zenoh.KeyExpr(cfg.topics) if cfg.topics else None
+    publishers: dict[str, zenoh.Publisher] = {}
+    try:
+        while not stop.is_set():
+            first_log = None
+            t0 = None
+            seen_qradar = False
+            recorded_prefix = None
+            for ch, msg in f.messages():
+                if ch.id not in qradar_channels({ch.id: ch}):
+                    continue
+                seen_qradar = True
+                if first_log is None:
+                    first_log = msg.log_time
+                rel_s = (msg.log_time - first_log) / 1e9
+                if cfg.start_s is not None and rel_s < cfg.start_s:
+                    continue
+                if cfg.end_s is not None and rel_s > cfg.end_s:
+                    break
+                if selector is not None and not selector.intersects(ch.topic):
+                    continue
+                if recorded_prefix is None:
+                    recorded_prefix = ch.topic.rsplit("/", 2)[0]
+                if not cfg.fast:
+                    base = cfg.start_s or 0.0
+                    if t0 is None:
+                        t0 = time.monotonic()
+                    delay = t0 + (rel_s - base) / cfg.rate - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
+                        break
+                key = remap(ch.topic, recorded_prefix, cfg.prefix)
+                pub = publishers.get(key)
+                if pub is None:
+                    encoding = zenoh.Encoding.APPLICATION_JSON if ch.message_encoding == "json" \
+                        else zenoh.Encoding.APPLICATION_OCTET_STREAM
+                    pub = session.declare_publisher(key, encoding=encoding,
+                                                    congestion_control=zenoh.CongestionControl.BLOCK)
+                    publishers[key] = pub
+                pub.put(msg.data)
+                result.published += 1
+            if f.truncated and not result.truncated:
+                result.truncated = True
+                log.warning("%s is cut short (%s); played up to its last complete chunk", path, f.truncation_reason)
+            if not seen_qradar:
+                raise NoQradarChannelsError(
+                    f"{path} has no qradar channels (<prefix>/<sensor>/raw|quantized|targets|health); "
+                    f"its topics: {sorted({c.topic for c in f.channels.values()}) or 'none'}")
+            result.loops += 1
+            if not cfg.loop:
+                break
+    finally:
+        for pub in publishers.values():
+            pub.undeclare()
+        if own:
+            session.close()
+    result.seconds = time.monotonic() - t_wall0
+    return result
