@@ -1,0 +1,275 @@
+"""Offline re-processing of a recording: its raw frames quantized and localized again
+with other parameters, without zenoh; the dither-scale sweep of the paper's Sec. 6
+(Fig. 5a: mean position error against alpha; Fig. 5b: reconstructions over consecutive
+frames, alpha = 0 against the best alpha)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.localize import Detections, localize
+from pipeline.nodes import sensor_dither_seed
+from pipeline.progress import Progress
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.wire import WireError, decode_raw, TargetsMsg
+from radar_driver.model import RadarConfig
+from radar_driver.scene import SimScene, load_scene, scene_from_dict
+
+from .errors import NoQradarChannelsError, ReplayError
+from .mcapio import McapFile, McapSink, pointcloud_json
+
+log = logging.getLogger("qradar.reprocess")
+
+
+def parse_alphas(text: str) -> np.ndarray:
+    """``0:1:0.05`` (start:stop:step, stop included), ``0,0.5,1`` or ``0.55``."""
+    try:
+        if ":" in text:
+            start, stop, step = (float(x) for x in text.split(":"))
+            if not step > 0:
+                raise ValueError("step must be > 0")
+            vals = np.arange(start, stop + step / 2, step)
+        else:
+            vals = np.array([float(x) for x in text.split(",")])
+    except ValueError as exc:
+        raise ReplayError(f"--alpha {text!r}: expected start:stop:step, a list a,b,c or one value ({exc})") from None
+    vals = np.round(vals, 10)
+    if vals.size == 0 or np.any(vals < 0) or np.any(vals > 1):
+        raise ReplayError(f"--alpha {text!r}: every alpha must lie in [0, 1]")
+    return vals
+
+
+@dataclass
+class RawRecording:
+    sensor_id: str
+    frames: np.ndarray  # (F, M, 2) complex128
+    seq: np.ndarray  # (F,)
+    timestamp_ns: np.ndarray  # (F,)
+    config_id: int
+    metadata: dict[str, dict[str, str]]
+    sensors: list[str]
+    truncated: bool
+
+
+def load_raw(path, sensor: str | None = None) -> RawRecording:
+    """The raw frames of one sensor of a recording (the first sensor by name if None)."""
+    f = McapFile(path)
+    by_sensor: dict[str, list] = {}
+    bad = 0
+    for ch, msg in f.messages():
+        if not ch.topic.endswith("/raw"):
+            continue
+        try:
+            m = decode_raw(msg.data, ch.topic)
+        except WireError as exc:
+            bad += 1
+            log.warning("skipping a bad raw frame: %s", exc)
+            continue
+        by_sensor.setdefault(m.sensor_id, []).append(m)
+    if not by_sensor:
+        topics = sorted({c.topic for c in f.channels.values()})
+        raise NoQradarChannelsError(f"{path} holds no raw frames (<prefix>/<sensor>/raw) to re-process; "
+                                    f"its topics: {topics or 'none'}")
+    sensors = sorted(by_sensor)
+    if sensor is None:
+        sensor = sensors[0]
+    elif sensor not in by_sensor:
+        raise ReplayError(f"{path} has no raw frames of sensor {sensor!r}; it has {sensors}")
+    msgs = sorted(by_sensor[sensor], key=lambda m: m.seq)
+    ms = {m.data.shape[0] for m in msgs}
+    if len(ms) != 1 or len({m.config_id for m in msgs}) != 1:
+        raise ReplayError(f"{path}: frames of {sensor} change M or radar config mid-recording; split the file")
+    return RawRecording(sensor, np.stack([m.data for m in msgs]).astype(np.complex128),
+                        np.array([m.seq for m in msgs]), np.array([m.timestamp_ns for m in msgs]),
+                        msgs[0].config_id, f.metadata_dict(), sensors, f.truncated)
+
+
+def truth_scene(rec: RawRecording, truth_file: str | Path | None) -> SimScene:
+    if truth_file is not None:
+        return load_scene(truth_file)
+    md = rec.metadata.get("qradar.scene")
+    if md is None or "scene" not in md:
+        raise ReplayError("the recording holds no ground truth (no qradar.scene metadata: not simulated?); "
+                          "give --truth SCENE.toml with the reflectors' positions")
+    return scene_from_dict(json.loads(md["scene"]), "qradar.scene metadata")
+
+
+def radar_for(rec: RawRecording, base: RadarConfig) -> RadarConfig:
+    from dataclasses import replace
+
+    n = base.samples_per_ramp
+    m = rec.frames.shape[1]
+    if m % n:
+        raise ReplayError(f"frames of M={m} are not whole ramps of {n}")
+    radar = replace(base, ramps_per_frame=m // n)
+    if radar.config_id() != rec.config_id:
+        log.warning("frames carry radar config id %#010x, the scene's config has %#010x", rec.config_id,
+                    radar.config_id())
+    return radar
+
+
+@dataclass
+class AlphaResult:
+    alpha: float
+    errors_m: np.ndarray  # (F, T): error of each true target per frame
+    nearest_xy: np.ndarray  # (F, T, 2): the estimate nearest each true target (x_m, y_m)
+    detections: Detections
+
+
+def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
+              seed: int) -> AlphaResult:
+    q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
+                        dither_seed=sensor_dither_seed(seed, rec.sensor_id))
+    det = localize(q.values(), radar, k)
+    tr = np.array([t["range_m"] for t in truth])[None, :, None]
+    ta = np.deg2rad(np.array([t["angle_deg"] for t in truth]))[None, :, None]
+    true_c = tr * np.exp(1j * ta)  # (1, T, 1)
+    est_c = det.range_m[:, None, :] * np.exp(1j * np.deg2rad(det.angle_deg))[:, None, :]  # (F, 1, K)
+    dist = np.abs(true_c - est_c)  # (F, T, K)
+    nearest = np.argmin(dist, axis=2)
+    pick = np.take_along_axis(np.broadcast_to(est_c, dist.shape), nearest[:, :, None], axis=2)[..., 0]
+    return AlphaResult(float(alpha), dist.min(axis=2), np.stack([pick.real, pick.imag], axis=-1), det)
+
+
+@dataclass
+class SweepResult:
+    alphas: np.ndarray
+    results: list[AlphaResult]
+    truth: list[dict]
+    rec: RawRecording
+    params: dict = field(default_factory=dict)
+
+    @property
+    def mean_error_m(self) -> np.ndarray:
+        """(A, T) mean error of each true target for each alpha."""
+        return np.array([r.errors_m.mean(axis=0) for r in self.results])
+
+    @property
+    def best_index(self) -> int:
+        return int(np.argmin(self.mean_error_m.mean(axis=1)))
+
+    def summary(self) -> dict:
+        me = self.mean_error_m
+        labels = [f"target {i + 1} ({t['range_m']:.1f} m, {t['angle_deg']:+.1f} deg)" for i, t in enumerate(self.truth)]
+        best = self.best_index
+        zero = int(np.argmin(np.abs(self.alphas))) if np.any(self.alphas == 0) else None
+        return {
+            "sensor_id": self.rec.sensor_id, "frames": int(self.rec.frames.shape[0]),
+            "alphas": [float(a) for a in self.alphas],
+            "mean_error_m": {lab: [round(float(v), 4) for v in me[:, i]] for i, lab in enumerate(labels)},
+            "mean_error_all_m": [round(float(v), 4) for v in me.mean(axis=1)],
+            "best_alpha": float(self.alphas[best]),
+            "error_at_best_m": round(float(me[best].mean()), 4),
+            "error_at_alpha0_m": None if zero is None else round(float(me[zero].mean()), 4),
+            "truth": self.truth, **self.params,
+        }
+
+
+def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
+          k: int | None = None, seed: int = 0, progress: bool = True) -> SweepResult:
+    k = k or len(truth)
+    out = []
+    with Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress) as bar:
+        for a in alphas:
+            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed))
+            bar.update(rec.frames.shape[0])
+    return SweepResult(np.asarray(alphas, float), out, truth, rec,
+                       {"bits": bits, "K": k, "algo": "pbp", "seed": seed})
+
+
+# -- figures ---------------------------------------------------------------------------------
+def plot_alpha_sweep(result: SweepResult, path: Path) -> Path:
+    from pipeline.plots import _pyplot
+
+    plt = _pyplot()
+    me = result.mean_error_m
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
+    for i, t in enumerate(result.truth):
+        ax.plot(result.alphas, me[:, i], marker="o", ms=3,
+                label=f"target {i + 1}: {t['range_m']:.1f} m, {t['angle_deg']:+.0f}°")
+    ax.plot(result.alphas, me.mean(axis=1), "k--", lw=1, label="mean of targets")
+    best = result.best_index
+    ax.axvline(result.alphas[best], color="grey", lw=0.8, ls=":")
+    ax.annotate(f"best α = {result.alphas[best]:.2f}", (result.alphas[best], me.mean(axis=1)[best]),
+                textcoords="offset points", xytext=(8, 12), fontsize=8)
+    ax.set_xlabel("dither scale α")
+    ax.set_ylabel("mean position error (m)")
+    ax.set_title(f"{result.rec.sensor_id}: {result.rec.frames.shape[0]} frames, "
+                 f"{result.params['bits']}-bit, PBP K = {result.params['K']}", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _ellipse(ax, mean_xy, cov, color, ls):
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.maximum(vals, 0)
+    t = np.linspace(0, 2 * np.pi, 100)
+    circle = np.stack([np.cos(t), np.sin(t)])
+    pts = (vecs @ (2 * np.sqrt(vals)[:, None] * circle)).T + mean_xy  # 2 sigma
+    ax.plot(pts[:, 1], pts[:, 0], color=color, ls=ls, lw=1)
+
+
+def plot_reconstructions(result: SweepResult, path: Path) -> Path:
+    """Mean estimated position of each target with its 2-sigma ellipse over the frames,
+    alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. Lateral
+    y (m) across, boresight x (m) up; the radar at (0, 0)."""
+    from pipeline.plots import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
+    first = int(np.argmin(result.alphas))
+    cases = [(result.best_index, "tab:blue", "-", "o"), (first, "tab:red", "--", "s")]
+    for idx, color, ls, marker in cases:
+        r = result.results[idx]
+        for i in range(len(result.truth)):
+            xy = r.nearest_xy[:, i]
+            mean = xy.mean(axis=0)
+            cov = np.cov(xy.T) if xy.shape[0] > 1 else np.zeros((2, 2))
+            ax.scatter(xy[:, 1], xy[:, 0], s=4, color=color, alpha=0.25)
+            ax.plot(mean[1], mean[0], marker, color=color, ms=6, mfc="none" if marker == "s" else color,
+                    label=f"α = {r.alpha:.2f}" if i == 0 else None)
+            _ellipse(ax, mean, cov, color, ls)
+    for i, t in enumerate(result.truth):
+        th = np.deg2rad(t["angle_deg"])
+        ax.plot(t["range_m"] * np.sin(th), t["range_m"] * np.cos(th), "kx", ms=9, mew=2,
+                label="truth" if i == 0 else None)
+    ax.plot(0, 0, "k^", ms=8, label="radar")
+    ax.set_xlabel("y (m), across boresight (+ = antenna 2 side)")
+    ax.set_ylabel("x (m), along boresight")
+    ax.set_title(f"{result.rec.frames.shape[0]} frames: mean of the estimate nearest each target, 2σ ellipses",
+                 fontsize=9)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path: Path) -> int:
+    """The re-processed targets of one alpha as an MCAP (targets + foxglove.PointCloud)."""
+    r = result.results[index]
+    rec = result.rec
+    sink = McapSink(path)
+    try:
+        sink.metadata("qradar.reprocess", {"alpha": str(r.alpha), **{k: str(v) for k, v in result.params.items()}})
+        for i in range(rec.frames.shape[0]):
+            msg = TargetsMsg(rec.sensor_id, int(rec.seq[i]), int(rec.timestamp_ns[i]), radar.config_id(),
+                             "pbp", result.params["K"], "quantized", r.detections.frame(i), 0)
+            key = f"reprocess/{rec.sensor_id}/targets"
+            ts = int(rec.timestamp_ns[i])
+            sink.write(key, msg.to_json(), ts, ts, int(rec.seq[i]))
+            sink.write(f"reprocess/{rec.sensor_id}/pointcloud", pointcloud_json(msg), ts, ts, int(rec.seq[i]))
+        return rec.frames.shape[0]
+    finally:
+        sink.close()
