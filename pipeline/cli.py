@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from radar_driver.errors import RadarError
+from replay.errors import ReplayError
 
 from .bus import bus_from_args, bus_options
 from .errors import PipelineError
@@ -318,6 +319,127 @@ def _cmd_source(args) -> int:
     return 0
 
 
+def _add_record(sub) -> None:
+    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP")
+    p.add_argument("-o", "--output", type=Path, required=True, help="FILE.mcap")
+    p.add_argument("--topics", default=None, help="key expression (default <prefix>/**)")
+    p.add_argument("--split-size", type=float, default=None, metavar="MB", help="new file every MB megabytes")
+    p.add_argument("--split-duration", type=float, default=None, metavar="S", help="new file every S seconds")
+    p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    bus_options(p)
+    p.set_defaults(func=_cmd_record)
+
+
+def _cmd_record(args) -> int:
+    from radar_driver.scene import resolve_scene
+    from replay.recorder import RecorderNode
+
+    meta = {}
+    if args.scene:
+        meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
+    node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
+                        split_duration_s=args.split_duration, metadata=meta)
+    print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
+    _serve(node, args.duration)
+    print(json.dumps({"files": [str(p) for p in node.paths], "written": node.written}), flush=True)
+    return 0
+
+
+def _add_recover(sub) -> None:
+    p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
+    p.add_argument("file", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.set_defaults(func=_cmd_recover)
+
+
+def _cmd_recover(args) -> int:
+    from replay.mcapio import recover
+
+    r = recover(args.file, args.output)
+    print(json.dumps({"file": str(args.output), **r}))
+    return 0
+
+
+def _add_replay(sub) -> None:
+    p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
+    p.add_argument("file", type=Path)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--rate", type=float, default=1.0, help="speed factor of the original timing (default 1)")
+    g.add_argument("--fast", action="store_true", help="as fast as subscribers take it (publishers block, no drops)")
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("--start", type=float, default=None, help="seconds from the start of the file")
+    p.add_argument("--end", type=float, default=None, help="seconds from the start of the file")
+    p.add_argument("--topics", default=None, help="key expression of the channels to play")
+    p.add_argument("--replay-prefix", dest="replay_prefix", default=None,
+                   help="publish under this key prefix instead of the recorded one (e.g. replay)")
+    bus_options(p)
+    p.set_defaults(func=_cmd_replay)
+
+
+def _cmd_replay(args) -> int:
+    from replay.player import PlayConfig, play
+
+    cfg = PlayConfig(rate=args.rate, fast=args.fast, loop=args.loop, start_s=args.start, end_s=args.end,
+                     topics=args.topics, prefix=args.replay_prefix)
+    _install_sigterm()
+    import threading
+
+    stop = threading.Event()
+    try:
+        result = play(args.file, bus_from_args(args), cfg, stop=stop)
+    except KeyboardInterrupt:
+        return 0
+    print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
+                      "seconds": round(result.seconds, 3)}))
+    return 0
+
+
+def _add_reprocess(sub) -> None:
+    p = sub.add_parser("reprocess", help="re-quantize and re-localize a recording's raw frames offline (alpha sweep)")
+    p.add_argument("file", type=Path)
+    p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
+    p.add_argument("--bits", type=_pos_int, default=1)
+    p.add_argument("--K", dest="k", type=_pos_int, default=None, help="targets (default: the truth's count)")
+    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
+    p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
+    p.add_argument("--out", type=Path, default=Path("out/reprocess"), help="folder for results.json and the plots")
+    p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_reprocess)
+
+
+def _cmd_reprocess(args) -> int:
+    from radar_driver.model import RadarConfig
+    from replay.reprocess import (
+        load_raw, parse_alphas, plot_alpha_sweep, plot_reconstructions, radar_for, sweep, truth_scene,
+        write_targets_mcap)
+
+    alphas = parse_alphas(args.alpha)
+    rec = load_raw(args.file, args.sensor)
+    scene = truth_scene(rec, args.truth)
+    radar = radar_for(rec, scene.radar if scene else RadarConfig())
+    t0_ns = int(rec.timestamp_ns[0])
+    truth = scene.truth(0.0)
+    if any(t.velocity_m_s for t in scene.targets):
+        print("note: moving targets; the truth is taken at the first frame", file=sys.stderr)
+    result = sweep(rec, radar, truth, alphas, bits=args.bits, k=args.k, seed=args.seed, progress=not args.quiet)
+    args.out.mkdir(parents=True, exist_ok=True)
+    summary = result.summary() | {"file": str(args.file), "first_timestamp_ns": t0_ns, "truncated": rec.truncated}
+    (args.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figs = [plot_alpha_sweep(result, args.out / "alpha_sweep.png"),
+            plot_reconstructions(result, args.out / "reconstructions.png")]
+    if args.mcap is not None:
+        write_targets_mcap(result, result.best_index, radar, args.mcap)
+    print(f"{rec.sensor_id}: {rec.frames.shape[0]} frames; best alpha {summary['best_alpha']:.2f} "
+          f"(mean error {summary['error_at_best_m']} m; at alpha 0: {summary['error_at_alpha0_m']} m)")
+    print(f"wrote {args.out / 'results.json'}, " + ", ".join(str(f) for f in figs)
+          + (f", {args.mcap}" if args.mcap else ""))
+    return 0
+
+
 def _add_router(sub) -> None:
     p = sub.add_parser("router", help="a zenoh router for multi-host set-ups")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
@@ -359,13 +481,18 @@ def _add_run(sub) -> None:
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
     p.add_argument("--bits", type=_pos_int, default=1)
-    p.add_argument("--alpha", type=float, default=1.0)
+    p.add_argument("--alpha", type=float, default=0.55,
+                   help="dither scale (default 0.55, the paper's best for its noisy chamber; 1 = full dither)")
     p.add_argument("--delta", default="auto")
     p.add_argument("--delta-margin", type=_nonneg_float, default=0.0)
     p.add_argument("--seed", type=_nonneg_int, default=0)
     p.add_argument("--K", dest="k", type=_pos_int, default=None, help="targets per frame (default: the scene's count)")
     p.add_argument("--algo", choices=["pbp"], default="pbp")
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
+    p.add_argument("--record", type=Path, default=None,
+                   help="MCAP file to record to (default recordings/run-<time>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="do not record")
+    p.add_argument("--frames", type=_pos_int, default=None, help="stop after N frames per sensor")
     bus_options(p)
     p.set_defaults(func=_cmd_run)
 
@@ -375,8 +502,14 @@ def _cmd_run(args) -> int:
 
     from .run import RunConfig, format_summary, print_json, run
 
+    import time as _time
+
+    record = None
+    if not args.no_record:
+        record = args.record or Path("recordings") / _time.strftime("run-%Y%m%d-%H%M%S.mcap")
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
-                    quantizer=_quantizer_config(args), k=args.k, algo=args.algo, bus=bus_from_args(args))
+                    quantizer=_quantizer_config(args), k=args.k, algo=args.algo, bus=bus_from_args(args),
+                    record=record, frames=args.frames)
     stop = threading.Event()
     _install_sigterm()
     live = sys.stderr if args.json else sys.stdout
@@ -405,6 +538,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_source(sub)
     _add_router(sub)
     _add_run(sub)
+    _add_record(sub)
+    _add_recover(sub)
+    _add_replay(sub)
+    _add_reprocess(sub)
     return parser
 
 
@@ -415,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (PipelineError, RadarError, ValueError, OSError) as exc:
+    except (PipelineError, RadarError, ReplayError, ValueError, OSError) as exc:
         print(f"qradar {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

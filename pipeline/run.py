@@ -101,6 +101,8 @@ class RunConfig:
     algo: str = "pbp"
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000
+    record: Path | None = None  # MCAP path, or None for no recording
+    frames: int | None = None  # stop after this many frames per sensor
 
     def __post_init__(self) -> None:
         if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 256):
@@ -128,16 +130,41 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
             drivers = [DriverNode(cfg.bus, f"kmd2-{i}", SessionConfig(str(sim.links[0].link_path), baud=cfg.baud,
                                                                        ramps_per_frame=scene.radar.ramps_per_frame),
-                                  session=session) for i, sim in enumerate(sims)]
+                                  session=session, frames=cfg.frames) for i, sim in enumerate(sims)]
+            if cfg.frames is not None:
+                stop = stop or threading.Event()
+                threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
+            recorder = []
+            if cfg.record is not None:
+                from replay.recorder import RecorderNode
+
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k))]
             try:
-                run_nodes([localizer, quantizer, *drivers], cfg.duration_s, stop)
+                run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
                 monitor.stop()
         finally:
             session.close()
             for sim in sims:
                 sim.stop()
-    return summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start)
+    summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start)
+    if recorder:
+        summary["recording"] = {"files": [str(p) for p in recorder[0].paths], "written": recorder[0].written,
+                                "dropped": recorder[0].totals()["drops"]}
+    return summary
+
+
+def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
+    """MCAP metadata of a run: radar config, node configs and the ground-truth scene."""
+    from dataclasses import asdict
+
+    return {
+        "qradar.radar": scene.radar.to_dict() | {"config_id": scene.radar.config_id()},
+        "qradar.quantizer": asdict(cfg.quantizer),
+        "qradar.localizer": {"algo": cfg.algo, "K": k, "source": "quantized"},
+        "qradar.scene": {"scene": json.dumps(scene.to_dict()), "simulated": "true", "sensors": str(cfg.sensors),
+                         "rate_hz": str(cfg.rate_hz)},
+    }
 
 
 def _stat(values, fn) -> float | None:

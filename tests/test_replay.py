@@ -1,0 +1,306 @@
+"""MCAP recording, replay and re-processing on real files and real zenoh sessions."""
+
+import base64
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+
+from pipeline.bus import BusConfig
+from pipeline.wire import RawFrameMsg, TargetsMsg, encode_raw
+from replay.errors import NoQradarChannelsError, NotMcapError, ReplayError
+from replay.mcapio import McapFile, recover
+from replay.player import PlayConfig, play
+from replay.recorder import RecorderNode
+from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+CHAMBER = ROOT / "recordings" / "chamber.mcap"
+
+
+def wait_until(pred, timeout_s=20.0, what="condition"):
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
+        time.sleep(0.05)
+
+
+def traffic(n=30, sensors=("a0", "b1")):
+    """(key, payload) of raw, targets and health messages for a few sensors."""
+    rng = np.random.default_rng(0)
+    out = []
+    for i in range(n):
+        for s in sensors:
+            data = (rng.standard_normal((512, 2)) + 1j * rng.standard_normal((512, 2))).astype(np.complex64)
+            out.append((f"radar/{s}/raw", encode_raw(RawFrameMsg(s, i, 1_000 + i, 7, data))))
+            t = TargetsMsg(s, i, 1_000 + i, 7, "pbp", 1, "quantized",
+                           [{"range_m": 4.8, "angle_deg": -20.0, "x_m": 4.5, "y_m": -1.6, "amplitude": 0.1}], 2_000 + i)
+            out.append((f"radar/{s}/targets", t.to_json()))
+    return out
+
+
+def per_topic(pairs):
+    d = {}
+    for k, p in pairs:
+        d.setdefault(k, []).append(p)
+    return d
+
+
+class Collector:
+    def __init__(self, session, key):
+        self.items, self.lock = [], threading.Lock()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample):
+        with self.lock:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+
+def test_record_then_replay_round_trip(tmp_path):
+    bus = BusConfig()
+    session = bus.open()
+    path = tmp_path / "rt.mcap"
+    try:
+        rec = RecorderNode(bus, path, session=session, topics="radar/*/raw", health_period_s=60).start()
+        rec2 = RecorderNode(bus, tmp_path / "all.mcap", session=session, health_period_s=60).start()
+        sent = traffic()
+        for key, payload in sent:
+            session.put(key, payload)
+        wait_until(lambda: rec2.written >= len(sent), 10, "recorder to write everything")
+        rec.stop()
+        rec2.stop()
+        f = McapFile(tmp_path / "all.mcap")
+        msgs = list(f.messages())
+        assert not f.truncated
+        topics = {ch.topic for ch, _ in msgs}
+        assert {"radar/a0/raw", "radar/a0/targets", "radar/a0/pointcloud", "radar/b1/targets"} <= topics
+        assert {ch.topic for ch, _ in McapFile(path).messages()} == {"radar/a0/raw", "radar/b1/raw"}  # --topics
+        raw = [(ch, m) for ch, m in msgs if ch.topic == "radar/a0/raw"]
+        assert [m.sequence for _, m in raw] == list(range(30))  # the frames' seq
+        assert [m.publish_time for _, m in raw] == [1_000 + i for i in range(30)]  # the sensor timestamps
+        assert all(m.log_time > 1e18 for _, m in raw)  # arrival at the recorder, ns since the epoch
+        counters = f.metadata_dict()["qradar.recorder_counters"]
+        assert int(counters["dropped"]) == 0 and int(counters["written"]) == int(counters["received"])
+
+        col = Collector(session, "replay/**")
+        result = play(tmp_path / "all.mcap", bus, PlayConfig(fast=True, prefix="replay", topics="radar/*/raw"),
+                      session=session)
+        wait_until(lambda: len(col.items) == 60, 10, "replayed raw frames")
+        got = per_topic((k.replace("replay/", "radar/", 1), p) for k, p in col.items)
+        want = per_topic((k, p) for k, p in sent if k.endswith("/raw"))
+        assert got == want  # same messages, bytes and order per topic
+        assert result.published == 60 and not result.truncated
+        col.sub.undeclare()
+    finally:
+        session.close()
+
+
+def test_player_keeps_the_original_timing_scaled(tmp_path):
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        rec = RecorderNode(bus, tmp_path / "t.mcap", session=session, health_period_s=60).start()
+        for i in range(6):
+            session.put("radar/tm/health", json.dumps({"version": 1, "type": "health", "node": "x", "sensor_id": "tm",
+                                                        "timestamp_ns": i}).encode())
+            time.sleep(0.1)
+        wait_until(lambda: rec.written == 6, 10)
+        rec.stop()
+        t0 = time.monotonic()
+        r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=2.0), session=session)
+        elapsed = time.monotonic() - t0
+        assert r.published == 6 and 0.2 <= elapsed < 5  # 0.5 s of traffic at twice the speed
+        r = play(tmp_path / "t.mcap", bus, PlayConfig(fast=True, start_s=0.25), session=session)
+        assert 2 <= r.published <= 4
+        stop = threading.Event()
+        threading.Timer(1.2, stop.set).start()
+        r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=4.0, loop=True), session=session, stop=stop)
+        assert r.loops >= 2 and r.published >= 12
+    finally:
+        session.close()
+
+
+def test_split_by_duration(tmp_path):
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        rec = RecorderNode(bus, tmp_path / "s.mcap", session=session, split_duration_s=0.3, health_period_s=60).start()
+        for i in range(10):
+            session.put("radar/sp/raw", encode_raw(RawFrameMsg("sp", i, i, 7, np.zeros((4, 2), np.complex64))))
+            time.sleep(0.1)
+        wait_until(lambda: rec.written == 10, 10)
+        rec.stop()
+        assert len(rec.paths) >= 2
+        total = sum(McapFile(p).scan() for p in rec.paths)
+        assert total == 10
+    finally:
+        session.close()
+
+
+def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tcp/127.0.0.1:{port}"
+    path = tmp_path / "killed.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "record", "-o", str(path), "--listen", ep],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    session = None
+    try:
+        deadline = time.monotonic() + 20
+        while session is None:
+            try:
+                session = BusConfig(connect=(ep,)).open()
+            except Exception:
+                assert time.monotonic() < deadline, "recorder never listened"
+                time.sleep(0.2)
+        wait_until(lambda: any(r.ok is not None for r in session.liveliness().get("radar/alive/record/**",
+                                                                                  timeout=1.0)), 20, "recorder alive")
+        sent_at = []
+        pub = session.declare_publisher("radar/k1/raw")
+        for i in range(40):
+            pub.put(encode_raw(RawFrameMsg("k1", i, i, 7, np.zeros((64, 2), np.complex64))))
+            sent_at.append(time.monotonic())
+            time.sleep(0.05)
+        time.sleep(1.6)  # more than one flush period after the last message
+        kill_at = time.monotonic()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if session is not None:
+            session.close()
+        if proc.poll() is None:
+            proc.kill()
+    f = McapFile(path)
+    seqs = [m.sequence for ch, m in f.messages() if ch.topic == "radar/k1/raw"]
+    flushed_before = [i for i, t in enumerate(sent_at) if kill_at - t > 1.5]
+    assert set(flushed_before) <= set(seqs)  # the player's reader gets everything flushed
+    out = tmp_path / "recovered.mcap"
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "recover", str(path), "-o", str(out)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    g = McapFile(out)
+    assert [m.sequence for ch, m in g.messages() if ch.topic == "radar/k1/raw"] == seqs
+    assert not g.truncated and "qradar.versions" in g.metadata_dict()
+    from mcap.reader import make_reader
+
+    with open(out, "rb") as fh:  # complete and indexed: the seeking reader uses the summary
+        summary = make_reader(fh).get_summary()
+        assert summary is not None and summary.statistics.message_count >= len(seqs)
+
+
+def test_truncated_file_plays_up_to_its_last_complete_chunk(tmp_path):
+    data = CHAMBER.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    full = McapFile(CHAMBER)
+    n_full = full.scan()
+    f = McapFile(cut)
+    n_cut = f.scan()
+    assert f.truncated and 0 < n_cut < n_full
+    bus = BusConfig()
+    r = play(cut, bus, PlayConfig(fast=True, prefix="cutplay"))
+    assert r.truncated and r.published > 0
+
+
+def test_bad_files_give_clear_errors(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not mcap at all")
+    with pytest.raises(NotMcapError, match="is not an MCAP file"):
+        McapFile(junk).scan()
+    other = tmp_path / "other.mcap"
+    with open(other, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("foo", "jsonschema", b"{}")
+        cid = w.register_channel("/camera/image", "json", sid)
+        w.add_message(cid, log_time=1, data=b"{}", publish_time=1)
+        w.finish()
+    with pytest.raises(NoQradarChannelsError, match="no qradar channels.*camera/image"):
+        play(other, BusConfig(), PlayConfig(fast=True))
+    with pytest.raises(NoQradarChannelsError, match="no raw frames"):
+        load_raw(other)
+    with pytest.raises(ReplayError, match="cannot open"):
+        McapFile(tmp_path / "missing.mcap").scan()
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "replay", str(junk), "--fast"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "is not an MCAP file" in proc.stderr
+    for bad in ("2:1", "0:1:0", "-0.5", "a,b"):
+        with pytest.raises(ReplayError, match="--alpha"):
+            parse_alphas(bad)
+
+
+def test_committed_recording_and_foxglove_channel():
+    assert CHAMBER.stat().st_size <= 5 * 1024 * 1024
+    f = McapFile(CHAMBER)
+    msgs = list(f.messages())
+    by_topic = per_topic((ch.topic, m) for ch, m in msgs)
+    assert len(by_topic["radar/kmd2-0/raw"]) == 106
+    assert {"radar/kmd2-0/quantized", "radar/kmd2-0/targets", "radar/kmd2-0/pointcloud"} <= set(by_topic)
+    md = f.metadata_dict()
+    assert {"qradar.radar", "qradar.quantizer", "qradar.scene", "qradar.versions"} <= set(md)
+    ch = next(c for c in f.channels.values() if c.topic.endswith("/pointcloud"))
+    schema = f.schemas[ch.schema_id]
+    assert schema.name == "foxglove.PointCloud" and schema.encoding == "jsonschema"
+    js = json.loads(schema.data)
+    assert {"timestamp", "frame_id", "pose", "point_stride", "fields", "data"} <= set(js["properties"])
+    pc = json.loads(by_topic["radar/kmd2-0/pointcloud"][0].data)
+    assert [fl["name"] for fl in pc["fields"]] == ["x", "y", "amplitude"] and pc["point_stride"] == 12
+    assert len(base64.b64decode(pc["data"])) == 12 * 2  # two targets, three float32 each
+
+
+def test_reprocess_is_deterministic_and_dither_beats_no_dither_on_the_recording():
+    rec = load_raw(CHAMBER)
+    scene = truth_scene(rec, None)
+    radar = radar_for(rec, scene.radar)
+    alphas = parse_alphas("0:1:0.05")
+    assert alphas.size == 21 and alphas[-1] == 1.0
+    a = sweep(rec, radar, scene.truth(), alphas, seed=3, progress=False)
+    b = sweep(rec, radar, scene.truth(), alphas, seed=3, progress=False)
+    c = sweep(rec, radar, scene.truth(), alphas, seed=4, progress=False)
+    assert a.summary() == b.summary()
+    assert a.summary()["mean_error_all_m"] != c.summary()["mean_error_all_m"]
+    s = a.summary()
+    assert s["error_at_alpha0_m"] > 2 * s["error_at_best_m"]
+    assert 0 < s["best_alpha"] < 1  # with sensor noise, full dither is not the optimum (paper Fig. 5a)
+
+
+def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
+    out = tmp_path / "rp"
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "reprocess", str(CHAMBER), "--alpha", "0:1:0.25",
+                           "--out", str(out), "--mcap", str(tmp_path / "re.mcap")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "reprocess [" in proc.stderr  # progress bar
+    res = json.loads((out / "results.json").read_text())
+    assert res["alphas"] == [0.0, 0.25, 0.5, 0.75, 1.0] and res["frames"] == 106
+    for png in ("alpha_sweep.png", "reconstructions.png"):
+        assert (out / png).read_bytes()[:4] == b"\x89PNG"
+    assert McapFile(tmp_path / "re.mcap").scan() == 2 * 106
+    truthless = subprocess.run([sys.executable, "-m", "pipeline.cli", "reprocess", str(tmp_path / "re.mcap")],
+                               capture_output=True, text=True, timeout=60)
+    assert truthless.returncode == 2 and "no raw frames" in truthless.stderr
+
+
+def test_qradar_run_leaves_a_recording_that_replays(tmp_path):
+    path = tmp_path / "run.mcap"
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--duration", "3", "--json", "--record",
+                           str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads(proc.stdout)
+    assert s["recording"]["files"] == [str(path)] and s["recording"]["dropped"] == 0
+    rp = subprocess.run([sys.executable, "-m", "pipeline.cli", "replay", str(path), "--fast", "--replay-prefix",
+                         "replay"], capture_output=True, text=True, timeout=120)
+    assert rp.returncode == 0, rp.stderr
+    out = json.loads(rp.stdout.strip().splitlines()[-1])
+    assert out["published"] >= 3 * s["frames_raw"] and not out["truncated"]
