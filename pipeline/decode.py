@@ -1,0 +1,230 @@
+"""Dither-aware decoders: beyond PBP, using the dither to reach estimates consistent
+with the codes (the paper's closing remark).
+
+A quantized frame carries its dither seed, so the decoder regenerates xi and delta and
+knows, for every real measurement, the quantizer cell that ``Re/Im (Phi X + xi)`` fell
+in. Two stages, both batched and on the FFT path for frames of whole ramps:
+
+1. **QIHT** (quantized iterative hard thresholding, joint support):
+   ``X <- P_Theta_K(X + mu Phi^* (Z - Q(Phi X + xi)) / M)``, starting from PBP. Forward
+   ``Phi X``: one FFT of length N per antenna (times the carrier term), tiled over the
+   ramps; adjoint: fold + inverse FFT. Stopping rule: at most ``iters`` iterations; it
+   stops earlier once, for 3 iterations in a row, no frame of the batch changed its
+   support or its number of consistent codes.
+2. **Maximum likelihood on the support** (1-bit): per antenna, the K complex amplitudes
+   maximize a logistic likelihood of the codes, ``P(code | x) = sigmoid(s (a^T x + xi) /
+   T)``, by Newton steps while the temperature T falls from delta/8 to delta/(2M). As T
+   shrinks the estimate moves into the set of amplitudes consistent with every code, whose
+   size shrinks like 1/M, where PBP's error shrinks like 1/sqrt(M).
+
+What was measured and kept is in the README (Monte Carlo of DESIGN.md): QIHT alone
+brings the K = 1 median error from 1.2 m to about 0.1 m; the ML stage brings it to 0.08 m
+and matters most for the weakest of two targets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from radar_driver.model import RadarConfig, range_phase
+
+from .errors import ParameterError
+from .localize import Detections, back_project_ramps, detections_from_support, joint_support, project_theta_k
+
+ALGOS = ("pbp", "qiht")
+
+
+def ml_temperatures(m: int, steps: int = 8) -> np.ndarray:
+    """Temperature schedule of the likelihood stage, in units of delta: ``steps`` values
+    falling geometrically from 1/8 to 1/(2M) (the size of a consistent cell), then the
+    last one twice more."""
+    t = np.geomspace(1 / 8, 1 / (2 * m), max(steps, 1))
+    return np.concatenate([t, t[-1:], t[-1:]])
+
+
+class DitherUnavailable(ParameterError):
+    """A dither-aware decoder was given a frame whose dither is unknown or absent."""
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    """algo: "pbp" or "qiht". iters / mu: QIHT iterations and step. ml: run the
+    likelihood stage (1-bit only). fallback_pbp: decode frames without a usable dither
+    with PBP instead of raising DitherUnavailable."""
+
+    algo: str = "qiht"
+    iters: int = 10
+    mu: float = 1.0
+    ml: bool = True
+    fallback_pbp: bool = False
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGOS:
+            raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
+        if not (isinstance(self.iters, int) and 0 <= self.iters <= 1000):
+            raise ParameterError(f"iters={self.iters!r} must be an integer in [0, 1000]")
+        if not 0 < self.mu <= 4:
+            raise ParameterError(f"mu={self.mu!r} must be in (0, 4]")
+
+
+def _carrier(config: RadarConfig) -> np.ndarray:
+    """exp(-i 4 pi f0 R_n / c), (N,)."""
+    return range_phase(config.f0_hz, config.range_grid_m(), config)
+
+
+def forward_ramps(x: np.ndarray, config: RadarConfig, ramps: int) -> np.ndarray:
+    """``Phi X`` for frames of ``ramps`` whole ramps: (B, N, 2) -> (B, ramps N, 2)."""
+    g = np.fft.fft(x * _carrier(config)[None, :, None], axis=1)
+    return np.tile(g, (1, ramps, 1))
+
+
+def _requantize(lam: np.ndarray, delta: np.ndarray, bits: int) -> np.ndarray:
+    """Q_b of complex ``lam`` (B, M, 2) with per-frame delta (B,): complex values."""
+    d = delta[:, None, None]
+    half = 1 << (bits - 1)
+    re = np.clip(np.floor(lam.real / d), -half, half - 1) + 0.5
+    im = np.clip(np.floor(lam.imag / d), -half, half - 1) + 0.5
+    return (re + 1j * im) * d
+
+
+def _check(z, xi, delta, bits, config):
+    z = np.asarray(z)
+    if z.ndim != 3 or z.shape[-1] != 2:
+        raise ParameterError(f"Z must have shape (B, M, 2), got {z.shape}")
+    if xi is None:
+        raise DitherUnavailable("the dither is needed (non-dithered frame or unknown seed)")
+    xi = np.asarray(xi)
+    if xi.shape != z.shape:
+        raise ParameterError(f"dither shape {xi.shape} does not match Z {z.shape}")
+    delta = np.asarray(delta, dtype=float).reshape(-1)
+    if delta.shape != (z.shape[0],) or np.any(~np.isfinite(delta)) or np.any(delta <= 0):
+        raise ParameterError(f"delta must be ({z.shape[0]},) finite values > 0, got shape {delta.shape}")
+    if not (isinstance(bits, (int, np.integer)) and 1 <= bits <= 16):
+        raise ParameterError(f"bits={bits!r} must be an integer in [1, 16]")
+    n = config.samples_per_ramp
+    if z.shape[1] % n:
+        raise ParameterError(f"M={z.shape[1]} is not a whole number of ramps of {n}: the dither-aware "
+                             "decoder runs on the FFT path only")
+    return z, xi, delta
+
+
+def consistency(x: np.ndarray, z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig) -> np.ndarray:
+    """Fraction of the real codes of each frame that ``Q(Phi X + xi)`` reproduces: (B,).
+
+    x: (B, N, 2) estimate; z: the quantized values (B, M, 2); xi: the dither."""
+    z, xi, delta = _check(z, xi, delta, bits, config)
+    ramps = z.shape[1] // config.samples_per_ramp
+    zz = _requantize(forward_ramps(x, config, ramps) + xi, delta, bits)
+    tol = 1e-9 * delta[:, None, None]
+    same = (np.abs(zz.real - z.real) < tol).sum(axis=(1, 2)) + (np.abs(zz.imag - z.imag) < tol).sum(axis=(1, 2))
+    return same / (2 * z.shape[1] * 2)
+
+
+def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, iters: int = 20,
+         mu: float = 1.0) -> tuple[np.ndarray, np.ndarray, int]:
+    """QIHT from PBP. z: quantized values Z (B, M, 2); xi: the dither (B, M, 2); delta (B,).
+
+    Returns (X (B, N, 2), support (B, K) strongest first, iterations run). Z is
+    ``Q(Gamma + xi)``: the dither is added before quantization and not removed."""
+    z, xi, delta = _check(z, xi, delta, bits, config)
+    n = config.samples_per_ramp
+    b, m, _ = z.shape
+    ramps = m // n
+    carrier = _carrier(config)[None, :, None]
+    # real views (B, R, N, 2 antennas, 2 re/im) of Z and xi, ramp by ramp
+    zr = np.ascontiguousarray(z).view(float).reshape(b, ramps, n, 2, 2)
+    xr = np.ascontiguousarray(xi).view(float).reshape(b, ramps, n, 2, 2)
+    d = delta[:, None, None, None, None]
+    half = 1 << (bits - 1)
+    scale = mu * (n / m)
+    x, support = project_theta_k(back_project_ramps(z, config), k)
+    prev_sup, prev_bad, stable, done = np.sort(support, axis=1), None, 0, 0
+    z_pos, z_twice = zr > 0, 2 * zr  # 1 bit: a code that disagrees leaves a residual of 2 Z
+    for it in range(iters):
+        g = np.fft.fft(x * carrier, axis=1).view(float).reshape(b, 1, n, 2, 2)  # Phi X, one ramp
+        lam = g + xr
+        if bits == 1:
+            wrong = (lam >= 0) != z_pos
+            resid = np.where(wrong, z_twice, 0.0)
+            bad = np.count_nonzero(wrong.reshape(b, -1), axis=1)
+        else:
+            resid = zr - (np.clip(np.floor(lam / d), -half, half - 1) + 0.5) * d
+            bad = np.count_nonzero(resid.reshape(b, -1), axis=1)
+        folded = resid.sum(axis=1).reshape(b, n, 4).view(complex)  # (B, N, 2)
+        step = np.fft.ifft(folded, axis=1) * np.conj(carrier) * scale
+        x, support = project_theta_k(x + step, k)
+        sup_sorted = np.sort(support, axis=1)
+        same = prev_bad is not None and np.array_equal(sup_sorted, prev_sup) and np.array_equal(bad, prev_bad)
+        stable = stable + 1 if same else 0
+        prev_sup, prev_bad, done = sup_sorted, bad, it + 1
+        if stable >= 3:
+            break
+    return x, support, done
+
+
+def ml_refine(z: np.ndarray, xi: np.ndarray, delta, support: np.ndarray, x0: np.ndarray, config: RadarConfig,
+              temperatures=None) -> np.ndarray:
+    """1-bit maximum likelihood of the support amplitudes, per antenna.
+
+    z, xi: (B, M, 2); support: (B, K); x0: starting amplitudes (B, K, 2). Returns (B, K, 2)."""
+    z, xi, delta = _check(z, xi, delta, 1, config)
+    b, m, _ = z.shape
+    n = config.samples_per_ramp
+    k = support.shape[1]
+    if temperatures is None:
+        temperatures = ml_temperatures(m)
+    # Phi restricted to the support, from a DFT table: Phi_mn = carrier_n exp(-2 pi i (m mod N) n / N)
+    kk = np.arange(n)
+    table = np.exp(-2j * np.pi * np.outer(kk, kk) / n)  # (N freq, N bin)
+    phi = table[:, support] * _carrier(config)[support][None]  # (N, B, K)
+    phi = np.transpose(phi, (1, 0, 2))  # (B, N, K): one ramp; the others repeat it
+    ramps = m // n
+    a_re = np.concatenate([phi.real, -phi.imag], axis=2)  # Re(Phi x) = a_re . [Re x, Im x]
+    a_im = np.concatenate([phi.imag, phi.real], axis=2)
+    a = np.tile(np.concatenate([a_re, a_im], axis=1), (1, ramps, 1))  # (B, 2M, 2K), rows: ramp-major
+    out = np.empty((b, k, 2), dtype=complex)
+    for p in range(2):
+        zp = z[:, :, p].reshape(b, ramps, n)
+        xp = xi[:, :, p].reshape(b, ramps, n)
+        s = np.sign(np.concatenate([zp.real, zp.imag], axis=2)).reshape(b, -1)  # (B, 2M), ramp-major like a
+        o = np.concatenate([xp.real, xp.imag], axis=2).reshape(b, -1)
+        th = np.concatenate([x0[:, :, p].real, x0[:, :, p].imag], axis=1)  # (B, 2K)
+        for t in temperatures:
+            sig = (t * delta)[:, None]
+            u = s * (np.einsum("bmj,bj->bm", a, th) + o) / sig
+            q = 0.5 * (1.0 - np.tanh(0.5 * u))  # 1 - sigmoid(u), stable
+            grad = np.einsum("bmj,bm->bj", a, s * q / sig)
+            w = q * (1.0 - q) / sig**2
+            hess = np.matmul(np.transpose(a * w[:, :, None], (0, 2, 1)), a)
+            hess += np.eye(2 * k)[None] * (1e-9 * np.trace(hess, axis1=1, axis2=2)[:, None, None] + 1e-300)
+            step = np.linalg.solve(hess, grad[..., None])[..., 0]
+            norm = np.linalg.norm(step, axis=1, keepdims=True)
+            th = th + step * np.minimum(1.0, delta[:, None] / np.maximum(norm, 1e-300))  # at most delta
+        out[:, :, p] = th[:, :k] + 1j * th[:, k:]
+    return out
+
+
+def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int, config: RadarConfig, k: int,
+           decoder: DecoderConfig = DecoderConfig()) -> Detections:
+    """Targets of a batch of quantized frames with the configured decoder.
+
+    ``xi=None`` (no usable dither): PBP if ``decoder.fallback_pbp``, else DitherUnavailable."""
+    z = np.asarray(z)
+    if decoder.algo == "pbp":
+        u = back_project_ramps(z, config)
+        return detections_from_support(u, joint_support(u, k), config)
+    if xi is None:
+        if decoder.fallback_pbp:
+            return decode(z, None, delta, bits, config, k, DecoderConfig(algo="pbp"))
+        raise DitherUnavailable(
+            f"{decoder.algo} needs the dither of every frame (a dithered frame with a known seed); "
+            "this one is not dithered. Use PBP, or ask for the PBP fallback")
+    x, support, _ = qiht(z, xi, delta, bits, config, k, decoder.iters, decoder.mu)
+    if decoder.ml and bits == 1:
+        x0 = np.take_along_axis(x, support[:, :, None], axis=1)
+        amp = ml_refine(z, xi, delta, support, x0, config)
+        x = np.zeros_like(x)
+        np.put_along_axis(x, support[:, :, None], amp, axis=1)
+    return detections_from_support(x, support, config)
