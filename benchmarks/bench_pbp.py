@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
-"""PBP throughput: the FFT (fold + inverse FFT) path against the dense Phi^H Z path on
-the same 1-bit dithered frames (M = 512, K = 2), in batch and frame by frame, in one
-process. Prints one JSON object; the ratios are what to compare across machines.
+"""Decoder throughput on the same 1-bit dithered frames (M = 512, K = 2), in batch and
+frame by frame, in one process: PBP on the FFT path (fold + inverse FFT), PBP on the
+dense Phi^H Z path, and the dither-aware decoder (QIHT + likelihood on the support).
+Prints one JSON object; the ratios are what to compare across machines.
 
     .venv/bin/python benchmarks/bench_pbp.py [--batch 4096] [--single 300] [--repeat 5]
 """
@@ -20,6 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.decode import decode  # noqa: E402
 from pipeline.localize import localize, localize_frame  # noqa: E402
 from pipeline.montecarlo import draw_scenes  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
@@ -47,7 +49,8 @@ def main() -> None:
     cfg = RadarConfig()
     rng = np.random.default_rng(0)
     _, _, r, a, x = draw_scenes(args.batch, args.K, rng, cfg)
-    z = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(), np.arange(args.batch)).values()
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(), np.arange(args.batch))
+    z, xi = q.values(), q.dither()
     ramp_indices = np.arange(cfg.n_measurements) % cfg.samples_per_ramp  # same frequencies, dense path
 
     fft_det = localize(z, cfg, args.K)
@@ -63,10 +66,20 @@ def main() -> None:
             lambda: [localize_frame(f, cfg, args.K, indices=ramp_indices) for f in single], len(single), args.repeat
         ),
     }
+    qb = min(args.batch, 1024)
+    results["qiht_batch_fps"] = best_rate(lambda: decode(z[:qb], xi[:qb], q.delta[:qb], 1, cfg, args.K), qb,
+                                          max(1, args.repeat // 2))
+    ns = min(len(single), 100)
+    results["qiht_single_fps"] = best_rate(
+        lambda: [decode(z[i:i + 1], xi[i:i + 1], q.delta[i:i + 1], 1, cfg, args.K) for i in range(ns)], ns,
+        max(1, args.repeat // 2))
+    results["qiht_batch_ms_per_frame"] = 1e3 / results["qiht_batch_fps"]
+    results["qiht_single_ms_per_frame"] = 1e3 / results["qiht_single_fps"]
+    results["pbp_over_qiht_batch"] = results["fft_batch_fps"] / results["qiht_batch_fps"]
     results["fft_over_dense_batch"] = results["fft_batch_fps"] / results["dense_batch_fps"]
     results["fft_over_dense_single"] = results["fft_single_fps"] / results["dense_single_fps"]
     results["batch_over_single_fft"] = results["fft_batch_fps"] / results["fft_single_fps"]
-    results = {k: round(v, 1) for k, v in results.items()}
+    results = {k: round(v, 3) for k, v in results.items()}
     results.update(
         M=cfg.n_measurements, N=cfg.samples_per_ramp, K=args.K, batch=args.batch, single=len(single),
         numpy=np.__version__, python=platform.python_version(), cpus=os.cpu_count(),

@@ -48,6 +48,10 @@ def _add_montecarlo(sub) -> None:
     p.add_argument("--schemes", nargs="+", default=list(DEFAULT_SCHEMES),
                    help="dither_m<M>, nodither_m<M>, 32bit_m<M> (default: the paper's four)")
     p.add_argument("--seed", type=_nonneg_int, default=0)
+    p.add_argument("--algos", nargs="+", default=["pbp"], help="decoders: pbp, qiht (default pbp); non-PBP "
+                   "results appear as <scheme>@<algo>")
+    p.add_argument("--fallback-pbp", action="store_true", help="decode schemes without dither with PBP "
+                   "when a dither-aware algo is asked for")
     p.add_argument("--off-grid", action="store_true", help="keep range cell centres off the range grid")
     p.add_argument("--workers", type=_pos_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--out", type=Path, default=Path("montecarlo_out"), help="output folder")
@@ -64,7 +68,8 @@ def _cmd_montecarlo(args) -> int:
 
     cfg = MonteCarloConfig(
         ks=tuple(args.ks), runs=args.runs, schemes=tuple(args.schemes), seed=args.seed,
-        off_grid=args.off_grid, workers=args.workers, radar=RadarConfig(),
+        off_grid=args.off_grid, workers=args.workers, radar=RadarConfig(), algos=tuple(args.algos),
+        fallback_pbp=args.fallback_pbp,
     )
     args.out.mkdir(parents=True, exist_ok=True)
     result = run_montecarlo(cfg, progress=not args.quiet)
@@ -72,8 +77,18 @@ def _cmd_montecarlo(args) -> int:
     (args.out / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
     np.savez_compressed(args.out / "maps.npz", **result.maps)
     pngs = [] if args.no_plots else montecarlo_figures(args.out, result.summary, result.maps, cfg.radar.max_range_m)
+    from .plots import error_vs_m, error_vs_m_figure
+
+    slopes = error_vs_m(result.summary)
+    if slopes:
+        (args.out / "error_vs_m.json").write_text(json.dumps(slopes, indent=2) + "\n")
+        if not args.no_plots:
+            pngs.append(error_vs_m_figure(args.out / "error_vs_m.png", slopes))
+        for label, s in slopes.items():
+            print(f"{label}: median error {s['error_m']} m at M = {s['M']}: slope {s['slope']:+.2f}")
     print(format_table(result.summary))
-    print(f"\n{sum(result.run_config['runs_per_k'].values()) * len(cfg.schemes)} runs in "
+    print(f"\n{sum(result.run_config['runs_per_k'].values()) * len(cfg.schemes)} runs "
+          f"(x {len(cfg.algos)} decoders) in "
           f"{result.summary['seconds']:.1f} s; wrote {args.out}/summary.json, maps.npz"
           + (f" and {len(pngs)} PNG maps" if pngs else ""))
     return 0
@@ -267,7 +282,9 @@ def _cmd_quantize(args) -> int:
 def _add_localize(sub) -> None:
     p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> PBP -> radar/<sensor>/targets")
     p.add_argument("--K", dest="k", type=_pos_int, default=2, help="targets per frame")
-    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--algo", choices=["pbp", "qiht"], default="pbp",
+                   help="pbp, or qiht: the dither-aware decoder (needs dithered frames)")
+    p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
     p.add_argument("--queue", type=_pos_int, default=512, help="bounded input queue (frames)")
@@ -279,7 +296,7 @@ def _add_localize(sub) -> None:
 def _cmd_localize(args) -> int:
     from .nodes import LocalizeNode, LocalizerConfig
 
-    cfg = LocalizerConfig(k=args.k, algo=args.algo, source=args.source)
+    cfg = LocalizerConfig(k=args.k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp)
     return _serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
 
 
@@ -401,7 +418,8 @@ def _add_reprocess(sub) -> None:
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
     p.add_argument("--bits", type=_pos_int, default=1)
     p.add_argument("--K", dest="k", type=_pos_int, default=None, help="targets (default: the truth's count)")
-    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--algo", choices=["pbp", "qiht"], default="pbp",
+                   help="decoder; qiht decodes alpha = 0 with PBP (there is no dither to use)")
     p.add_argument("--seed", type=_nonneg_int, default=0)
     p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
     p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
@@ -425,7 +443,8 @@ def _cmd_reprocess(args) -> int:
     truth = scene.truth(0.0)
     if any(t.velocity_m_s for t in scene.targets):
         print("note: moving targets; the truth is taken at the first frame", file=sys.stderr)
-    result = sweep(rec, radar, truth, alphas, bits=args.bits, k=args.k, seed=args.seed, progress=not args.quiet)
+    result = sweep(rec, radar, truth, alphas, bits=args.bits, k=args.k, seed=args.seed, progress=not args.quiet,
+                   algo=args.algo)
     args.out.mkdir(parents=True, exist_ok=True)
     summary = result.summary() | {"file": str(args.file), "first_timestamp_ns": t0_ns, "truncated": rec.truncated}
     (args.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -481,13 +500,14 @@ def _add_run(sub) -> None:
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
     p.add_argument("--bits", type=_pos_int, default=1)
-    p.add_argument("--alpha", type=float, default=0.55,
-                   help="dither scale (default 0.55, the paper's best for its noisy chamber; 1 = full dither)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help="dither scale (default: 0.55 with pbp, the paper's best for its noisy chamber; "
+                   "1 with qiht, which wants the full dither)")
     p.add_argument("--delta", default="auto")
     p.add_argument("--delta-margin", type=_nonneg_float, default=0.0)
     p.add_argument("--seed", type=_nonneg_int, default=0)
     p.add_argument("--K", dest="k", type=_pos_int, default=None, help="targets per frame (default: the scene's count)")
-    p.add_argument("--algo", choices=["pbp"], default="pbp")
+    p.add_argument("--algo", choices=["pbp", "qiht"], default="pbp", help="decoder of the localizer")
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
@@ -507,6 +527,8 @@ def _cmd_run(args) -> int:
     record = None
     if not args.no_record:
         record = args.record or Path("recordings") / _time.strftime("run-%Y%m%d-%H%M%S.mcap")
+    if args.alpha is None:
+        args.alpha = 1.0 if args.algo == "qiht" else 0.55
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=_quantizer_config(args), k=args.k, algo=args.algo, bus=bus_from_args(args),
                     record=record, frames=args.frames)

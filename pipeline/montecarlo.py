@@ -31,6 +31,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
 from .errors import ParameterError
+from .decode import ALGOS, DecoderConfig, decode
 from .localize import detections_from_support, back_project, joint_support, position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
@@ -88,6 +89,8 @@ class MonteCarloConfig:
     off_grid: bool = False
     workers: int | None = None
     radar: RadarConfig = field(default_factory=RadarConfig)
+    algos: tuple[str, ...] = ("pbp",)
+    fallback_pbp: bool = False
 
     def __post_init__(self) -> None:
         if not self.ks or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= GRID_CELLS for k in self.ks):
@@ -104,6 +107,19 @@ class MonteCarloConfig:
             raise ParameterError(f"seed={self.seed!r} must be an integer >= 0")
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
             raise ParameterError(f"workers={self.workers!r} must be an integer >= 1")
+        if not self.algos or len(set(self.algos)) != len(self.algos):
+            raise ParameterError(f"algos {self.algos!r} must be distinct and at least one")
+        for a in self.algos:
+            if a not in ALGOS:
+                raise ParameterError(f"algo {a!r} is not known; available: {', '.join(ALGOS)}")
+            if a == "pbp" or self.fallback_pbp:
+                continue
+            for s in self.schemes:
+                sch = Scheme.parse(s, self.radar)
+                if sch.bits is None or sch.alpha == 0 or not sch.ramps(self.radar):
+                    raise ParameterError(
+                        f"algo {a!r} decodes dithered 1-bit frames of whole ramps (dither_m<256 k>); scheme {s!r} "
+                        "has no dither to regenerate. Drop it, or pass --fallback-pbp to decode it with PBP")
 
     def runs_for(self, k: int) -> int:
         return self.runs if self.runs is not None else 320_000 * k
@@ -134,7 +150,8 @@ def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConf
 
 
 def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig):
-    """Measurements Z (n_runs, M, 2) and the frequency indices (None or (n_runs, M))."""
+    """Measurements Z (n_runs, M, 2), the frequency indices (None or (n_runs, M)), the
+    dither xi (None when there is none) and delta ((n_runs,) or None)."""
     n = config.samples_per_ramp
     if scheme.ramps(config):
         indices = None
@@ -143,12 +160,12 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
         indices = np.sort(np.argsort(rng.random((n_runs, n)), axis=1)[:, : scheme.n_measurements], axis=1)
         gamma = gamma_fn(indices)
     if scheme.bits is None:
-        return gamma.astype(np.complex64), indices
+        return gamma.astype(np.complex64), indices, None, None
     delta = auto_delta(gamma)
     dither = None
     if scheme.alpha > 0:
         dither = scheme.alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
-    return dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices
+    return dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices, dither, delta
 
 
 @dataclass
@@ -159,19 +176,29 @@ class ChunkResult:
     error_m: np.ndarray  # (n, K)
 
 
-def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_grid: bool, radar: RadarConfig) -> ChunkResult:
-    """One chunk of runs of one scheme; pure given its arguments."""
+def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_grid: bool, radar: RadarConfig,
+              algos: tuple[str, ...] = ("pbp",)) -> dict[str, ChunkResult]:
+    """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
+    given its arguments. Returns {algo: ChunkResult}."""
     scheme = Scheme.parse(scheme_name, radar)
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
     scheme_rng = np.random.default_rng(
         np.random.SeedSequence(seed, spawn_key=(k, chunk, zlib.crc32(scheme_name.encode())))
     )
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, off_grid)
-    z, indices = measure(scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs, scheme_rng, radar)
-    u = back_project(z, radar, indices)
-    det = detections_from_support(u, joint_support(u, k), radar)
-    err = position_error_m(r, a, det.range_m, det.angle_deg)
-    return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+    z, indices, xi, delta = measure(
+        scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs,
+        scheme_rng, radar)
+    out = {}
+    for algo in algos:
+        if algo == "pbp" or xi is None or indices is not None:
+            u = back_project(z, radar, indices)
+            det = detections_from_support(u, joint_support(u, k), radar)
+        else:
+            det = decode(z, xi, delta, scheme.bits, radar, k, DecoderConfig(algo=algo))
+        err = position_error_m(r, a, det.range_m, det.angle_deg)
+        out[algo] = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+    return out
 
 
 # -- aggregation ----------------------------------------------------------------------------
@@ -242,33 +269,44 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                 jobs.append((k, s, c, min(CHUNK_RUNS, total - start)))
     total_runs = sum(j[3] for j in jobs)
     workers = cfg.workers or os.cpu_count() or 1
-    parts: dict[tuple[int, str], list] = {(k, s): [] for k in cfg.ks for s in cfg.schemes}
+    parts: dict[tuple[int, str, str], list] = {(k, s, a): [] for k in cfg.ks for s in cfg.schemes
+                                               for a in cfg.algos}
+    algos = tuple(cfg.algos)
+
+    def collect(job, result: dict[str, ChunkResult]) -> None:
+        for a, res in result.items():
+            parts[(job[0], job[1], a)].append(res)
+
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
-                parts[(job[0], job[1])].append(run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar))
+                collect(job, run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar, algos))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar)) for job in jobs]
+                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar, algos))
+                           for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
-                    parts[(job[0], job[1])].append(fut.result())
+                    collect(job, fut.result())
                     bar.update(job[3])
     summary: dict = {}
     maps: dict[str, np.ndarray] = {}
     for k in cfg.ks:
         block = summary.setdefault(f"K{k}", {})
         for s in cfg.schemes:
-            stats, m = summarize(_concat(parts[(k, s)]))
-            block[s] = stats
-            for name, arr in m.items():
-                maps[f"K{k}_{s}_{name}"] = arr
+            for a in cfg.algos:
+                name_sa = s if a == "pbp" else f"{s}@{a}"
+                stats, m = summarize(_concat(parts[(k, s, a)]))
+                block[name_sa] = stats
+                for name, arr in m.items():
+                    maps[f"K{k}_{name_sa}_{name}"] = arr
     runs_per_k = {f"K{k}": cfg.runs_for(k) for k in cfg.ks}
     summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     run_config = {
         "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
+        "algos": list(cfg.algos), "fallback_pbp": cfg.fallback_pbp,
     }
     return MonteCarloResult(summary, maps, run_config)
 
@@ -278,7 +316,7 @@ def format_table(summary: dict) -> str:
     cols = ["mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
             "strong_mean_m", "weak_mean_m"]
     heads = ["mean", "median", "p90", "med|θ|<60", "cells>5m", "strong", "weak"]
-    lines = [f"{'K':<3} {'scheme':<16}" + "".join(f"{h:>11}" for h in heads)]
+    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads)]
     for key, block in summary.items():
         if not (key.startswith("K") and isinstance(block, dict)):
             continue
@@ -287,5 +325,5 @@ def format_table(summary: dict) -> str:
             for c in cols:
                 v = st[c]
                 vals.append(f"{v:>10.1%} " if c == "cells_over_5m_within_60deg" else f"{v:>9.3f}m ")
-            lines.append(f"{key[1:]:<3} {scheme:<16}" + "".join(vals))
+            lines.append(f"{key[1:]:<3} {scheme:<22}" + "".join(vals))
     return "\n".join(lines)

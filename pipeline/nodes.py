@@ -33,8 +33,9 @@ from radar_driver.model import RadarConfig
 
 from .bus import BusConfig
 from .errors import ParameterError, PipelineError
+from .decode import DecoderConfig, DitherUnavailable, decode
 from .localize import localize
-from .quantize import QuantizerConfig, dequantize, quantize_frames
+from .quantize import QuantizerConfig, dequantize, quantize_frames, unit_dither
 from .wire import (
     HealthMsg,
     QuantizedFrameMsg,
@@ -343,14 +344,19 @@ class LocalizerConfig:
     source: str = "quantized"
     radar: RadarConfig = field(default_factory=RadarConfig)
     max_ramps: int = 16
+    fallback_pbp: bool = False
 
     def __post_init__(self) -> None:
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
             raise ParameterError(f"K={self.k!r} must be an integer in [1, {self.radar.samples_per_ramp}]")
-        if self.algo not in ("pbp",):
-            raise ParameterError(f"algo={self.algo!r} is not known; available: pbp")
+        DecoderConfig(algo=self.algo)  # validates the name
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
+        if self.source == "raw" and self.algo != "pbp":
+            raise ParameterError(f"algo={self.algo!r} decodes quantized frames; the raw baseline uses pbp")
+
+    def decoder(self) -> DecoderConfig:
+        return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp)
 
     def known_configs(self) -> dict[int, RadarConfig]:
         from dataclasses import replace
@@ -394,15 +400,28 @@ class LocalizeNode(ProcessingNode):
                 self.count_error(sensor, exc)
                 continue
             bits = msg.bits if isinstance(msg, QuantizedFrameMsg) else 0
-            groups[(msg.config_id, bits)].append(msg)
-        for (config_id, bits), msgs in groups.items():
+            dithered = bits > 0 and msg.dithered
+            if bits and self.config.algo != "pbp" and not dithered and not self.config.fallback_pbp:
+                self.count_error(sensor, DitherUnavailable(
+                    f"frame {msg.seq} from {key} is not dithered (alpha 0): {self.config.algo} needs the dither; "
+                    "run the localizer with --fallback-pbp to decode such frames with PBP"))
+                continue
+            groups[(msg.config_id, bits, dithered)].append(msg)
+        for (config_id, bits, dithered), msgs in groups.items():
             radar = self._configs[config_id]
             if bits:
                 codes = np.stack([m.codes for m in msgs])
-                z = dequantize(codes, np.array([m.delta for m in msgs]), bits)
+                delta = np.array([m.delta for m in msgs])
+                z = dequantize(codes, delta, bits)
+                xi = None
+                if dithered and self.config.algo != "pbp":
+                    # regenerate the dither exactly as the quantizer drew it (pipeline.quantize)
+                    xi = np.stack([m.alpha * m.delta * unit_dither(m.dither_seed, m.seq, z.shape[1])[0]
+                                   for m in msgs])
+                det = decode(z, xi, delta, bits, radar, self.config.k, self.config.decoder())
             else:
                 z = np.stack([m.data for m in msgs]).astype(np.complex128)
-            det = localize(z, radar, self.config.k)
+                det = localize(z, radar, self.config.k)
             for i, m in enumerate(msgs):
                 now = time.time_ns()
                 out = TargetsMsg(m.sensor_id, m.seq, m.timestamp_ns, config_id, self.config.algo, self.config.k,

@@ -94,3 +94,54 @@ def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray]
         name = key[: -len("_all")] if key.endswith("_all") else key
         paths.append(polar_error_map(Path(out_dir) / f"{name}.png", maps[key], max_range_m, title, scale))
     return paths
+
+
+def error_vs_m(summary: dict, stat: str = "median_m") -> dict[str, dict]:
+    """For every K and decoder with dithered 1-bit schemes at two or more M: the error
+    ``stat`` against M and the least-squares slope of log(error) on log(M).
+
+    Returns {"K1 pbp": {"M": [...], "error_m": [...], "slope": s}, ...}."""
+    import re
+
+    pat = re.compile(r"^dither_m(\d+)(?:@(\w+))?$")
+    series: dict[str, dict[int, float]] = {}
+    for kkey, block in summary.items():
+        if not (kkey.startswith("K") and isinstance(block, dict)):
+            continue
+        for name, st in block.items():
+            m = pat.match(name)
+            if m:
+                series.setdefault(f"{kkey} {m.group(2) or 'pbp'}", {})[int(m.group(1))] = st[stat]
+    out = {}
+    for label, pts in sorted(series.items()):
+        if len(pts) < 2:
+            continue
+        ms = np.array(sorted(pts))
+        errs = np.array([pts[m] for m in ms])
+        slope = float(np.polyfit(np.log(ms), np.log(errs), 1)[0]) if np.all(errs > 0) else float("nan")
+        out[label] = {"M": ms.tolist(), "error_m": errs.tolist(), "slope": round(slope, 3)}
+    return out
+
+
+def error_vs_m_figure(path: Path, series: dict[str, dict], stat: str = "median") -> Path:
+    """Log-log plot of the error against M with the fitted slopes in the legend."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=110)
+    for label, s in series.items():
+        ls = "-" if label.endswith("pbp") else "--"
+        ax.loglog(s["M"], s["error_m"], ls, marker="o", label=f"{label}: slope {s['slope']:+.2f}")
+    ax.set_xlabel("measurements M (whole ramps of 256)")
+    ax.set_ylabel(f"{stat} position error (m)")
+    ax.set_title("1-bit dithered: error against M", fontsize=10)
+    ms = sorted({m for s in series.values() for m in s["M"]})
+    from matplotlib.ticker import NullFormatter
+
+    ax.set_xticks(ms)
+    ax.set_xticklabels([str(m) for m in ms])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

@@ -126,7 +126,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         session = cfg.bus.open()
         try:
             monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
-            localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar), session=session)
+            localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar,
+                                                              fallback_pbp=cfg.quantizer.alpha == 0),
+                                     session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
             drivers = [DriverNode(cfg.bus, f"kmd2-{i}", SessionConfig(str(sim.links[0].link_path), baud=cfg.baud,
                                                                        ramps_per_frame=scene.radar.ramps_per_frame),

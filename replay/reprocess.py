@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.decode import DecoderConfig, decode
 from pipeline.localize import Detections, localize
 from pipeline.nodes import sensor_dither_seed
 from pipeline.progress import Progress
@@ -122,10 +123,14 @@ class AlphaResult:
 
 
 def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
-              seed: int) -> AlphaResult:
+              seed: int, algo: str = "pbp") -> AlphaResult:
     q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
                         dither_seed=sensor_dither_seed(seed, rec.sensor_id))
-    det = localize(q.values(), radar, k)
+    if algo == "pbp":
+        det = localize(q.values(), radar, k)
+    else:  # alpha = 0 has no dither to use: PBP, as the fallback says
+        xi = q.dither() if q.alpha > 0 else None
+        det = decode(q.values(), xi, q.delta, bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=True))
     tr = np.array([t["range_m"] for t in truth])[None, :, None]
     ta = np.deg2rad(np.array([t["angle_deg"] for t in truth]))[None, :, None]
     true_c = tr * np.exp(1j * ta)  # (1, T, 1)
@@ -171,15 +176,15 @@ class SweepResult:
 
 
 def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
-          k: int | None = None, seed: int = 0, progress: bool = True) -> SweepResult:
+          k: int | None = None, seed: int = 0, progress: bool = True, algo: str = "pbp") -> SweepResult:
     k = k or len(truth)
     out = []
     with Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress) as bar:
         for a in alphas:
-            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed))
+            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo))
             bar.update(rec.frames.shape[0])
     return SweepResult(np.asarray(alphas, float), out, truth, rec,
-                       {"bits": bits, "K": k, "algo": "pbp", "seed": seed})
+                       {"bits": bits, "K": k, "algo": algo, "seed": seed})
 
 
 # -- figures ---------------------------------------------------------------------------------
@@ -200,7 +205,7 @@ def plot_alpha_sweep(result: SweepResult, path: Path) -> Path:
     ax.set_xlabel("dither scale α")
     ax.set_ylabel("mean position error (m)")
     ax.set_title(f"{result.rec.sensor_id}: {result.rec.frames.shape[0]} frames, "
-                 f"{result.params['bits']}-bit, PBP K = {result.params['K']}", fontsize=10)
+                 f"{result.params['bits']}-bit, {result.params['algo'].upper()} K = {result.params['K']}", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -265,7 +270,7 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
         sink.metadata("qradar.reprocess", {"alpha": str(r.alpha), **{k: str(v) for k, v in result.params.items()}})
         for i in range(rec.frames.shape[0]):
             msg = TargetsMsg(rec.sensor_id, int(rec.seq[i]), int(rec.timestamp_ns[i]), radar.config_id(),
-                             "pbp", result.params["K"], "quantized", r.detections.frame(i), 0)
+                             result.params["algo"], result.params["K"], "quantized", r.detections.frame(i), 0)
             key = f"reprocess/{rec.sensor_id}/targets"
             ts = int(rec.timestamp_ns[i])
             sink.write(key, msg.to_json(), ts, ts, int(rec.seq[i]))

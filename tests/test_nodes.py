@@ -279,3 +279,30 @@ def test_bus_config_errors():
         BusConfig(mode="client")
     assert BusConfig(prefix="lab/radar").key("s1", "raw") == "lab/radar/s1/raw"
     assert BusConfig().sensor_of("radar/s1/targets") == "s1" and BusConfig().sensor_of("radar/s1/x") is None
+
+
+def test_localizer_node_with_the_dither_aware_decoder():
+    bus = BusConfig()
+    session = bus.open()
+    try:
+        col = Collector(session, "radar/**")
+        scene = resolve_scene("single")
+        loc = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2)
+        nodes = [loc,
+                 QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=2), session=session),
+                 SimSourceNode(bus, scene, n_sensors=1, rate_hz=100, id_prefix="qd", session=session, frames=30)]
+        run_nodes(nodes, duration_s=1.5)
+        targets = [decode_targets(p) for p in col.of("qd0/targets")]
+        assert len(targets) == 30 and all(t.algo == "qiht" for t in targets)
+        assert np.percentile(truth_error(scene, targets), 90) < 0.3
+        # a non-dithered frame: counted and logged, the node keeps running
+        loc2 = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2).start()
+        q0 = QuantizeNode(bus, QuantizerConfig(alpha=0.0), session=session).start()
+        frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+        session.put("radar/nd0/raw", encode_raw(RawFrameMsg("nd0", 0, time.time_ns(), scene.radar.config_id(), frame)))
+        wait_until(lambda: loc2.totals()["decode_errors"] == 1, 10, "the non-dithered frame to be refused")
+        assert not loc2.errors
+        q0.stop()
+        loc2.stop()
+    finally:
+        session.close()
