@@ -126,7 +126,7 @@ def main() -> None:
             p.terminate()
             p.wait(20)
     table = []
-    for n, r in best.items():
+    for r in best.values():
         table.append({**r, "raw_mbit_s": round(r["aggregate_fps"] * r["bytes_raw"] * 8 / 1e6, 3),
                       "quantized_mbit_s": round(r["aggregate_fps"] * r["bytes_quantized"] * 8 / 1e6, 3)})
     print(json.dumps({"best": table, "trials": rows}, indent=1))

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import base64
 import json
-import struct
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 

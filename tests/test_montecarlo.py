@@ -17,7 +17,6 @@ from pipeline.montecarlo import (
     run_montecarlo,
     within_60_columns,
 )
-from radar_driver.model import RadarConfig
 
 SUMMARY_KEYS = {"mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
                 "strong_mean_m", "weak_mean_m"}

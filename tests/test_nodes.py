@@ -238,7 +238,7 @@ def test_router_joins_clients():
         b = BusConfig(mode="client", connect=(ep,)).open()
         col = Collector(b, "radar/**")
         time.sleep(0.5)
-        for i in range(5):
+        for _ in range(5):
             a.put("radar/r0/health", b"{}")
             time.sleep(0.05)
         wait_until(lambda: len(col.of("r0/health")) == 5, 10, "messages through the router")

@@ -17,7 +17,7 @@ from mcap.writer import Writer
 from pipeline.bus import BusConfig
 from pipeline.wire import RawFrameMsg, TargetsMsg, encode_raw
 from replay.errors import NoQradarChannelsError, NotMcapError, ReplayError
-from replay.mcapio import McapFile, recover
+from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene

@@ -128,7 +128,7 @@ def test_device_disconnects_and_returns_and_the_driver_reconnects(link, transpor
 
 
 def test_paced_at_the_frame_rate(link):
-    with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim, session(link) as s:
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20), session(link) as s:
         t0 = time.monotonic()
         list(s.frames(6))
         elapsed = time.monotonic() - t0
