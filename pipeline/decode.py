@@ -122,7 +122,7 @@ def consistency(x: np.ndarray, z: np.ndarray, xi: np.ndarray, delta, bits: int, 
     return same / (2 * z.shape[1] * 2)
 
 
-def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, iters: int = 20,
+def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, iters: int = 10,
          mu: float = 1.0) -> tuple[np.ndarray, np.ndarray, int]:
     """QIHT from PBP. z: quantized values Z (B, M, 2); xi: the dither (B, M, 2); delta (B,).
 
