@@ -21,16 +21,12 @@ from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
+from zenoh_helpers import Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
 
 
-def wait_until(pred, timeout_s=20.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
-        time.sleep(0.05)
 
 
 def traffic(n=30, sensors=("a0", "b1")):
@@ -54,14 +50,6 @@ def per_topic(pairs):
     return d
 
 
-class Collector:
-    def __init__(self, session, key):
-        self.items, self.lock = [], threading.Lock()
-        self.sub = session.declare_subscriber(key, self._on)
-
-    def _on(self, sample):
-        with self.lock:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
 
 
 def test_record_then_replay_round_trip(tmp_path):
