@@ -107,5 +107,3 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
     return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                      config_file=args.zenoh_config, prefix=args.prefix)
 
-
-DEFAULT_BUS = BusConfig()

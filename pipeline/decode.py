@@ -28,7 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from radar_driver.model import RadarConfig, range_phase
+from functools import lru_cache
+
+from radar_driver.model import RadarConfig, carrier
 
 from .errors import ParameterError
 from .localize import Detections, back_project_ramps, detections_from_support, joint_support, project_theta_k
@@ -69,24 +71,25 @@ class DecoderConfig:
             raise ParameterError(f"mu={self.mu!r} must be in (0, 4]")
 
 
-def _carrier(config: RadarConfig) -> np.ndarray:
-    """exp(-i 4 pi f0 R_n / c), (N,)."""
-    return range_phase(config.f0_hz, config.range_grid_m(), config)
-
-
 def forward_ramps(x: np.ndarray, config: RadarConfig, ramps: int) -> np.ndarray:
     """``Phi X`` for frames of ``ramps`` whole ramps: (B, N, 2) -> (B, ramps N, 2)."""
-    g = np.fft.fft(x * _carrier(config)[None, :, None], axis=1)
+    g = np.fft.fft(x * carrier(config)[None, :, None], axis=1)
     return np.tile(g, (1, ramps, 1))
 
 
-def _requantize(lam: np.ndarray, delta: np.ndarray, bits: int) -> np.ndarray:
-    """Q_b of complex ``lam`` (B, M, 2) with per-frame delta (B,): complex values."""
-    d = delta[:, None, None]
+def _requantize(lam: np.ndarray, d: np.ndarray, bits: int) -> np.ndarray:
+    """Q_b of the real array ``lam``, ``d`` = delta broadcast against it: real values."""
     half = 1 << (bits - 1)
-    re = np.clip(np.floor(lam.real / d), -half, half - 1) + 0.5
-    im = np.clip(np.floor(lam.imag / d), -half, half - 1) + 0.5
-    return (re + 1j * im) * d
+    return (np.clip(np.floor(lam / d), -half, half - 1) + 0.5) * d
+
+
+@lru_cache(maxsize=4)
+def _dft_table(n: int) -> np.ndarray:
+    """exp(-2 pi i k n / N), (N frequencies, N bins); read-only."""
+    kk = np.arange(n)
+    t = np.exp(-2j * np.pi * np.outer(kk, kk) / n)
+    t.flags.writeable = False
+    return t
 
 
 def _check(z, xi, delta, bits, config):
@@ -116,9 +119,10 @@ def consistency(x: np.ndarray, z: np.ndarray, xi: np.ndarray, delta, bits: int, 
     x: (B, N, 2) estimate; z: the quantized values (B, M, 2); xi: the dither."""
     z, xi, delta = _check(z, xi, delta, bits, config)
     ramps = z.shape[1] // config.samples_per_ramp
-    zz = _requantize(forward_ramps(x, config, ramps) + xi, delta, bits)
-    tol = 1e-9 * delta[:, None, None]
-    same = (np.abs(zz.real - z.real) < tol).sum(axis=(1, 2)) + (np.abs(zz.imag - z.imag) < tol).sum(axis=(1, 2))
+    lam = forward_ramps(x, config, ramps) + xi
+    d = delta[:, None, None]
+    same = sum((np.abs(_requantize(part(lam), d, bits) - part(z)) < 1e-9 * d).sum(axis=(1, 2))
+               for part in (np.real, np.imag))
     return same / (2 * z.shape[1] * 2)
 
 
@@ -132,28 +136,27 @@ def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k
     n = config.samples_per_ramp
     b, m, _ = z.shape
     ramps = m // n
-    carrier = _carrier(config)[None, :, None]
+    car = carrier(config)[None, :, None]
     # real views (B, R, N, 2 antennas, 2 re/im) of Z and xi, ramp by ramp
     zr = np.ascontiguousarray(z).view(float).reshape(b, ramps, n, 2, 2)
     xr = np.ascontiguousarray(xi).view(float).reshape(b, ramps, n, 2, 2)
     d = delta[:, None, None, None, None]
-    half = 1 << (bits - 1)
     scale = mu * (n / m)
     x, support = project_theta_k(back_project_ramps(z, config), k)
     prev_sup, prev_bad, stable, done = np.sort(support, axis=1), None, 0, 0
     z_pos, z_twice = zr > 0, 2 * zr  # 1 bit: a code that disagrees leaves a residual of 2 Z
     for it in range(iters):
-        g = np.fft.fft(x * carrier, axis=1).view(float).reshape(b, 1, n, 2, 2)  # Phi X, one ramp
+        g = np.fft.fft(x * car, axis=1).view(float).reshape(b, 1, n, 2, 2)  # Phi X, one ramp
         lam = g + xr
         if bits == 1:
             wrong = (lam >= 0) != z_pos
             resid = np.where(wrong, z_twice, 0.0)
             bad = np.count_nonzero(wrong.reshape(b, -1), axis=1)
         else:
-            resid = zr - (np.clip(np.floor(lam / d), -half, half - 1) + 0.5) * d
+            resid = zr - _requantize(lam, d, bits)
             bad = np.count_nonzero(resid.reshape(b, -1), axis=1)
         folded = resid.sum(axis=1).reshape(b, n, 4).view(complex)  # (B, N, 2)
-        step = np.fft.ifft(folded, axis=1) * np.conj(carrier) * scale
+        step = np.fft.ifft(folded, axis=1) * np.conj(car) * scale
         x, support = project_theta_k(x + step, k)
         sup_sorted = np.sort(support, axis=1)
         same = prev_bad is not None and np.array_equal(sup_sorted, prev_sup) and np.array_equal(bad, prev_bad)
@@ -176,9 +179,7 @@ def ml_refine(z: np.ndarray, xi: np.ndarray, delta, support: np.ndarray, x0: np.
     if temperatures is None:
         temperatures = ml_temperatures(m)
     # Phi restricted to the support, from a DFT table: Phi_mn = carrier_n exp(-2 pi i (m mod N) n / N)
-    kk = np.arange(n)
-    table = np.exp(-2j * np.pi * np.outer(kk, kk) / n)  # (N freq, N bin)
-    phi = table[:, support] * _carrier(config)[support][None]  # (N, B, K)
+    phi = _dft_table(n)[:, support] * carrier(config)[support][None]  # (N, B, K)
     phi = np.transpose(phi, (1, 0, 2))  # (B, N, K): one ramp; the others repeat it
     ramps = m // n
     a_re = np.concatenate([phi.real, -phi.imag], axis=2)  # Re(Phi x) = a_re . [Re x, Im x]

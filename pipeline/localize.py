@@ -22,7 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase, sensing_matrix
+from radar_driver.model import RadarConfig, angle_from_antennas_rad, carrier, polar_to_xy, sensing_matrix
 
 from .errors import ParameterError
 
@@ -48,8 +48,7 @@ def back_project_ramps(z: np.ndarray, config: RadarConfig) -> np.ndarray:
     folded = z.reshape(b, m // n, n, 2).sum(axis=1)  # (B, N, 2)
     # sum_k folded_k exp(+i 2 pi k n / N) = N * ifft; the f0 term exp(+i 4 pi f0 R_n / c)
     spectrum = np.fft.ifft(folded, axis=1) * (n / m)
-    carrier = np.conj(range_phase(config.f0_hz, config.range_grid_m(), config))  # (N,)
-    return spectrum * carrier[None, :, None].astype(spectrum.dtype)
+    return spectrum * np.conj(carrier(config))[None, :, None].astype(spectrum.dtype)
 
 
 def back_project_dense(z: np.ndarray, config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
@@ -174,6 +173,22 @@ def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarr
     return localize(z[None], config, k, idx).frame(0)
 
 
+def nearest_estimates(
+    true_range_m: np.ndarray, true_angle_deg: np.ndarray, est_range_m: np.ndarray, est_angle_deg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each true target, the closest estimate in the plane: (error m (B, K),
+    position x + i y of that estimate (B, K) complex, m).
+
+    true_* : (B, K); est_* : (B, L); errors are ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``.
+    """
+    t = np.asarray(true_range_m) * np.exp(1j * np.deg2rad(true_angle_deg))
+    e = np.asarray(est_range_m) * np.exp(1j * np.deg2rad(est_angle_deg))
+    dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, K, L)
+    nearest = np.argmin(dist, axis=2)
+    pos = np.take_along_axis(np.broadcast_to(e[:, None, :], dist.shape), nearest[:, :, None], axis=2)[..., 0]
+    return np.take_along_axis(dist, nearest[:, :, None], axis=2)[..., 0], pos
+
+
 def position_error_m(
     true_range_m: np.ndarray, true_angle_deg: np.ndarray, est_range_m: np.ndarray, est_angle_deg: np.ndarray
 ) -> np.ndarray:
@@ -181,6 +196,4 @@ def position_error_m(
 
     true_* : (B, K); est_* : (B, L). Returns (B, K).
     """
-    t = np.asarray(true_range_m) * np.exp(1j * np.deg2rad(true_angle_deg))
-    e = np.asarray(est_range_m) * np.exp(1j * np.deg2rad(est_angle_deg))
-    return np.abs(t[:, :, None] - e[:, None, :]).min(axis=2)
+    return nearest_estimates(true_range_m, true_angle_deg, est_range_m, est_angle_deg)[0]

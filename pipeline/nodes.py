@@ -212,10 +212,6 @@ class Node:
                     out[k] += getattr(st, k)
             return out
 
-    def latencies_ms(self) -> np.ndarray:
-        with self._lock:
-            return np.array([v for st in self.stats.values() for v in st.latency_ms], dtype=float)
-
 
 class ProcessingNode(Node):
     """Subscribes ``<prefix>/*/<in_topic>``; callback -> bounded queue -> batches -> :meth:`process`."""
@@ -277,9 +273,6 @@ class ProcessingNode(Node):
                 except queue.Empty:
                     break
             self.process(batch)
-
-    def pending(self) -> int:
-        return self._queue.qsize()
 
     def on_idle(self) -> None:
         """Called by the worker when no sample came for 0.1 s."""

@@ -166,6 +166,12 @@ def range_phase(freqs_hz: np.ndarray, range_m: np.ndarray, config: RadarConfig) 
     return np.exp(-1j * (4.0 * np.pi / config.c_m_s) * freqs_hz * range_m)
 
 
+def carrier(config: RadarConfig) -> np.ndarray:
+    """The f0 term of Phi on the range grid, ``exp(-i 4 pi f0 R_n / c)``, (N,); 1 for the
+    paper's numbers (f0 / B integer), not in general."""
+    return range_phase(config.f0_hz, config.range_grid_m(), config)
+
+
 def sensing_matrix(config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
     """Range measurement matrix Phi, ``Phi_mn = exp(-i 4 pi f_m R_n / c)``.
 

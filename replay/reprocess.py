@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.decode import DecoderConfig, decode
-from pipeline.localize import Detections, localize
+from pipeline.localize import Detections, localize, nearest_estimates
 from pipeline.nodes import sensor_dither_seed
 from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames
@@ -131,14 +131,11 @@ def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: f
     else:  # alpha = 0 has no dither to use: PBP, as the fallback says
         xi = q.dither() if q.alpha > 0 else None
         det = decode(q.values(), xi, q.delta, bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=True))
-    tr = np.array([t["range_m"] for t in truth])[None, :, None]
-    ta = np.deg2rad(np.array([t["angle_deg"] for t in truth]))[None, :, None]
-    true_c = tr * np.exp(1j * ta)  # (1, T, 1)
-    est_c = det.range_m[:, None, :] * np.exp(1j * np.deg2rad(det.angle_deg))[:, None, :]  # (F, 1, K)
-    dist = np.abs(true_c - est_c)  # (F, T, K)
-    nearest = np.argmin(dist, axis=2)
-    pick = np.take_along_axis(np.broadcast_to(est_c, dist.shape), nearest[:, :, None], axis=2)[..., 0]
-    return AlphaResult(float(alpha), dist.min(axis=2), np.stack([pick.real, pick.imag], axis=-1), det)
+    f = rec.frames.shape[0]
+    tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
+    ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
+    err, pos = nearest_estimates(tr, ta, det.range_m, det.angle_deg)
+    return AlphaResult(float(alpha), err, np.stack([pos.real, pos.imag], axis=-1), det)
 
 
 @dataclass
