@@ -19,8 +19,7 @@ from pathlib import Path
 import zenoh
 
 from .errors import ParameterError
-
-TOPICS = ("raw", "quantized", "targets", "health")
+from .wire import TOPICS
 
 
 @dataclass(frozen=True)

@@ -25,17 +25,36 @@ and matters most for the weakest of two targets.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
+from functools import lru_cache
 
 import numpy as np
-
-from functools import lru_cache
 
 from radar_driver.model import RadarConfig, carrier
 
 from .errors import ParameterError
-from .localize import Detections, back_project_ramps, detections_from_support, joint_support, project_theta_k
+from .localize import Detections, back_project_ramps, detections_from_support, localize, project_theta_k
+from .quantize import QuantizedFrames
 
-ALGOS = ("pbp", "qiht")
+
+class Algo(StrEnum):
+    """The decoders: ``pbp`` (the paper's eq. 5, any frames) and ``qiht`` (dither-aware:
+    QIHT then 1-bit likelihood; dithered frames of whole ramps)."""
+
+    PBP = "pbp"
+    QIHT = "qiht"
+
+
+ALGOS = tuple(a.value for a in Algo)
+
+#: dither scale used when none is given: PBP at the paper's best alpha for its noisy
+#: chamber (Fig. 5a); the dither-aware decoders want the full dither
+DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0}
+
+
+def default_alpha(algo: str) -> float:
+    """The dither scale alpha in [0, 1] to quantize with for decoder ``algo``."""
+    return DEFAULT_ALPHA[Algo(algo)]
 
 
 def ml_temperatures(m: int, steps: int = 8) -> np.ndarray:
@@ -52,11 +71,11 @@ class DitherUnavailable(ParameterError):
 
 @dataclass(frozen=True)
 class DecoderConfig:
-    """algo: "pbp" or "qiht". iters / mu: QIHT iterations and step. ml: run the
-    likelihood stage (1-bit only). fallback_pbp: decode frames without a usable dither
-    with PBP instead of raising DitherUnavailable."""
+    """algo: an :class:`Algo` (or its name). iters / mu: QIHT iterations and step. ml:
+    run the likelihood stage (1-bit only). fallback_pbp: decode frames without a usable
+    dither (or unquantized frames) with PBP instead of raising DitherUnavailable."""
 
-    algo: str = "qiht"
+    algo: Algo = Algo.QIHT
     iters: int = 10
     mu: float = 1.0
     ml: bool = True
@@ -65,6 +84,7 @@ class DecoderConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
+        object.__setattr__(self, "algo", Algo(self.algo))
         if not (isinstance(self.iters, int) and 0 <= self.iters <= 1000):
             raise ParameterError(f"iters={self.iters!r} must be an integer in [0, 1000]")
         if not 0 < self.mu <= 4:
@@ -207,21 +227,27 @@ def ml_refine(z: np.ndarray, xi: np.ndarray, delta, support: np.ndarray, x0: np.
     return out
 
 
-def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int, config: RadarConfig, k: int,
-           decoder: DecoderConfig = DecoderConfig()) -> Detections:
-    """Targets of a batch of quantized frames with the configured decoder.
+def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int,
+           decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None) -> Detections:
+    """Targets of a batch of frames with the configured decoder: the one place where a
+    decoder is chosen.
 
-    ``xi=None`` (no usable dither): PBP if ``decoder.fallback_pbp``, else DitherUnavailable."""
+    z: (B, M, 2) quantized values Z (``bits`` >= 1, step ``delta`` (B,), dither ``xi``
+    (B, M, 2) or None) or full-resolution frames (``bits=None``); ``indices``: the
+    frequency subset of the dense path (None = whole ramps). PBP decodes anything. A
+    dither-aware decoder needs quantized frames of whole ramps with their dither; other
+    frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable."""
     z = np.asarray(z)
-    if decoder.algo == "pbp":
-        u = back_project_ramps(z, config)
-        return detections_from_support(u, joint_support(u, k), config)
-    if xi is None:
+    if decoder.algo == Algo.PBP:
+        return localize(z, config, k, indices)
+    if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
-            return decode(z, None, delta, bits, config, k, DecoderConfig(algo="pbp"))
+            return localize(z, config, k, indices)
+        what = ("frames are not quantized" if bits is None else "frames are a frequency subset"
+                if indices is not None else "frame is not dithered")
         raise DitherUnavailable(
-            f"{decoder.algo} needs the dither of every frame (a dithered frame with a known seed); "
-            "this one is not dithered. Use PBP, or ask for the PBP fallback")
+            f"{decoder.algo} needs the dither of every frame (a dithered frame of whole ramps with a known seed); "
+            f"this {what}. Use PBP, or ask for the PBP fallback")
     x, support, _ = qiht(z, xi, delta, bits, config, k, decoder.iters, decoder.mu)
     if decoder.ml and bits == 1:
         x0 = np.take_along_axis(x, support[:, :, None], axis=1)
@@ -229,3 +255,13 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int, config: Radar
         x = np.zeros_like(x)
         np.put_along_axis(x, support[:, :, None], amp, axis=1)
     return detections_from_support(x, support, config)
+
+
+def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,
+                 decoder: DecoderConfig = DecoderConfig()) -> Detections:
+    """Targets of a batch: quantized frames (their dither regenerated from their seeds)
+    or full-resolution frames (B, M, 2) complex. What the localizer node and offline
+    re-processing call; see :func:`decode` for the rules."""
+    if isinstance(frames, QuantizedFrames):
+        return decode(frames.values(), frames.dither(), frames.delta, frames.bits, config, k, decoder)
+    return decode(np.asarray(frames).astype(np.complex128), None, None, None, config, k, decoder)

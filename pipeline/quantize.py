@@ -18,6 +18,7 @@ seed, the sequence number, delta and alpha regenerates xi exactly.
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 from typing import Literal
 
@@ -125,21 +126,34 @@ def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
 
 
 # -- the dither -------------------------------------------------------------------------
-def unit_dither(dither_seed: int, seq, n_measurements: int) -> np.ndarray:
+def unit_dither(dither_seed, seq, n_measurements: int) -> np.ndarray:
     """Unit dither ``u`` of frames ``seq`` (int or (B,) ints): (B, M, 2) complex, Re and Im
     i.i.d. U[-1/2, 1/2). Frame ``s`` draws from ``SeedSequence(dither_seed, spawn_key=(s,))``
-    (real parts of all M x 2 entries first, then imaginary parts)."""
-    if isinstance(dither_seed, bool) or not isinstance(dither_seed, (int, np.integer)) or dither_seed < 0:
-        raise ParameterError(f"dither_seed={dither_seed!r} must be an integer >= 0")
+    (real parts of all M x 2 entries first, then imaginary parts). ``dither_seed`` is one
+    seed, or one per frame ((B,) ints, for a batch of several sensors)."""
     seqs = np.atleast_1d(np.asarray(seq))
     if seqs.ndim != 1 or not np.issubdtype(seqs.dtype, np.integer) or (seqs.size and seqs.min() < 0):
         raise ParameterError(f"seq must be an integer >= 0 or a 1-D array of them, got {seq!r}")
+    if isinstance(dither_seed, bool) or not (isinstance(dither_seed, (int, np.integer)) or (
+            isinstance(dither_seed, np.ndarray) and np.issubdtype(dither_seed.dtype, np.integer))):
+        raise ParameterError(f"dither_seed={dither_seed!r} must be an integer >= 0 or one per frame")
+    seeds = np.broadcast_to(np.asarray(dither_seed), seqs.shape) if np.ndim(dither_seed) else \
+        np.full(seqs.shape, int(dither_seed), dtype=object)
+    if seeds.shape != seqs.shape or any(int(x) < 0 for x in seeds.tolist()):
+        raise ParameterError(f"dither_seed must be integers >= 0, one or one per frame ({seqs.size})")
     out = np.empty((seqs.size, n_measurements, 2), dtype=complex)
-    for i, s in enumerate(seqs.tolist()):  # one generator per frame: frames are independent
-        rng = np.random.default_rng(np.random.SeedSequence(int(dither_seed), spawn_key=(s,)))
+    for i, (seed, s) in enumerate(zip(seeds.tolist(), seqs.tolist())):  # one generator per frame
+        rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(s),)))
         u = rng.random((2, n_measurements, 2)) - 0.5
         out[i] = u[0] + 1j * u[1]
     return out
+
+
+def sensor_dither_seed(seed: int, sensor_id: str) -> int:
+    """Dither seed of one sensor: ``seed * 2**32 + crc32(sensor_id)`` (mod 2**64), so that
+    sensors with the same frame numbers get independent dithers. Every quantizer of a
+    sensor's frames (the quantize node, offline re-processing) uses this rule."""
+    return (int(seed) * 2**32 + zlib.crc32(sensor_id.encode())) % 2**64
 
 
 def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
@@ -227,23 +241,33 @@ class QuantizerConfig:
 @dataclass(frozen=True)
 class QuantizedFrames:
     """Quantizer output for a batch: codes (B, M, 2, 2), delta (B,), and what a decoder
-    needs to regenerate the dither (alpha, dither_seed, seq (B,))."""
+    needs to regenerate the dither (alpha, dither_seed, seq (B,)). ``alpha`` and
+    ``dither_seed`` are one value for the batch or one per frame (B,)."""
 
     codes: np.ndarray
     delta: np.ndarray
     bits: int
-    alpha: float
-    dither_seed: int
+    alpha: float | np.ndarray
+    dither_seed: int | np.ndarray
     seq: np.ndarray
 
     def values(self) -> np.ndarray:
         """Z, the quantized complex values, (B, M, 2)."""
         return dequantize(self.codes, self.delta, self.bits)
 
-    def dither(self) -> np.ndarray:
-        """The dither xi added before quantization, regenerated from the seed: (B, M, 2)."""
+    @property
+    def dithered(self) -> bool:
+        """True when every frame is dithered (alpha > 0); a decoder can then regenerate xi."""
+        return bool(np.all(np.asarray(self.alpha) > 0))
+
+    def dither(self) -> np.ndarray | None:
+        """The dither xi added before quantization, regenerated from the seeds: (B, M, 2);
+        None when the frames are not all dithered (there is no dither to use)."""
+        if not self.dithered:
+            return None
         u = unit_dither(self.dither_seed, self.seq, self.codes.shape[1])
-        return self.alpha * self.delta[:, None, None] * u
+        alpha = np.broadcast_to(np.asarray(self.alpha, dtype=float), self.delta.shape)
+        return (alpha * self.delta)[:, None, None] * u
 
 
 def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed: int | None = None) -> QuantizedFrames:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .errors import PipelineError
-from .quantize import check_alpha, check_bits, pack_codes, packed_size, unpack_codes
+from .quantize import QuantizedFrames, check_alpha, check_bits, pack_codes, packed_size, unit_dither, unpack_codes
 
 MAGIC = b"QRDR"
 VERSION = 1
@@ -34,6 +34,8 @@ QUANT_HEADER_LEN = COMMON.size + QUANT_EXT.size  # 64
 MAX_M = 1 << 20
 SENSOR_ID_MAX = 16
 JSON_VERSION = 1
+#: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``; this is the one list of them
+TOPICS = ("raw", "quantized", "targets", "health")
 
 
 class WireError(PipelineError, ValueError):
@@ -86,6 +88,13 @@ class QuantizedFrameMsg:
     @property
     def dithered(self) -> bool:
         return self.alpha > 0
+
+    def dither(self) -> np.ndarray | None:
+        """The dither xi = alpha delta u this frame was quantized with, regenerated from
+        (dither_seed, seq): (M, 2) complex; None when the frame is not dithered."""
+        if not self.dithered:
+            return None
+        return self.alpha * self.delta * unit_dither(self.dither_seed, self.seq, self.codes.shape[0])[0]
 
     def __eq__(self, other: object) -> bool:
         return (isinstance(other, QuantizedFrameMsg) and self.header() == other.header()
@@ -184,6 +193,17 @@ def decode_quantized(payload: bytes, source: str = "<bytes>") -> QuantizedFrameM
     packed = np.frombuffer(payload, dtype=np.uint8, offset=QUANT_HEADER_LEN)[None]
     codes = unpack_codes(packed, bits, n_codes)[0].reshape(m, 2, 2)
     return QuantizedFrameMsg(sensor_id, seq, ts, config_id, bits, float(alpha), float(delta), seed, codes)
+
+
+def quantized_batch(msgs: list[QuantizedFrameMsg]) -> QuantizedFrames:
+    """Frames of one M and one bit depth as one batch (B = len(msgs)) for the decoders;
+    alpha and dither_seed may differ per frame (frames of several sensors)."""
+    if not msgs or len({(m.codes.shape, m.bits) for m in msgs}) != 1:
+        raise WireError("a batch needs at least one frame, all of one M and one bit depth")
+    return QuantizedFrames(
+        codes=np.stack([m.codes for m in msgs]), delta=np.array([m.delta for m in msgs]), bits=msgs[0].bits,
+        alpha=np.array([m.alpha for m in msgs]), dither_seed=np.array([m.dither_seed for m in msgs], dtype=np.uint64),
+        seq=np.array([m.seq for m in msgs], dtype=np.uint64))
 
 
 # -- JSON messages ---------------------------------------------------------------------------

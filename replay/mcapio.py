@@ -22,13 +22,12 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from pipeline.wire import TARGET_FIELDS, TargetsMsg
+from pipeline.wire import TARGET_FIELDS, TOPICS, TargetsMsg
 
 from .errors import NotMcapError, ReplayError
 
 WIRE_ENCODING = "qradar/wire-v1"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
-TOPICS = ("raw", "quantized", "targets", "health")
 
 _TARGETS_SCHEMA = {
     "type": "object", "title": "qradar.Targets",
@@ -96,7 +95,11 @@ class McapSink:
 
     def __init__(self, path: Path, chunk_size: int = 1 << 20):
         self.path = Path(path)
-        self._fh = open(self.path, "wb")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fh = open(self.path, "wb")
+        except OSError as exc:
+            raise ReplayError(f"cannot write {self.path}: {exc.strerror or exc}") from None
         self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library="qradar")
         self._schemas: dict[str, int] = {}
