@@ -205,6 +205,12 @@ def complex_to_adc(samples: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.
     return np.clip(np.rint(iq), 0, layout.max_word).astype(np.uint16)
 
 
+def adc_round_trip(samples: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
+    """What complex samples (B, samples, receivers) become through the ADC and back:
+    rounded to the nearest code and clipped, full-scale units, same shape."""
+    return adc_to_complex(complex_to_adc(samples, layout), layout)
+
+
 # -- encoding ---------------------------------------------------------------------------------
 def encode(message: Message, pad: bool = True) -> bytes:
     """Bytes of one message: header, uint32 LE payload length (unpadded), payload, and

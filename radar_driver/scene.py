@@ -30,16 +30,26 @@ from typing import Any
 import numpy as np
 
 from .errors import ConfigError
-from .model import RadarConfig, simulate_frames
+from .model import RadarConfig, polar_to_xy, simulate_frames
 
 
 @dataclass(frozen=True)
 class SimTarget:
+    """One point reflector: range (m), angle (deg, positive = antenna 2 leads),
+    amplitude at the ADC (full-scale units), phase (deg), radial velocity (m/s, + = away)."""
+
     range_m: float
     angle_deg: float
     amplitude: float
     phase_deg: float = 0.0
     velocity_m_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        _number(self.range_m, "SimTarget.range_m", 0.0)
+        _number(self.angle_deg, "SimTarget.angle_deg", -90.0, 90.0)
+        _number(self.amplitude, "SimTarget.amplitude", 0.0)
+        _number(self.phase_deg, "SimTarget.phase_deg")
+        _number(self.velocity_m_s, "SimTarget.velocity_m_s")
 
     def range_at(self, t_s: np.ndarray | float) -> np.ndarray:
         """Range (m) at time ``t_s`` (s) since the start, never below 0."""
@@ -55,34 +65,59 @@ class SimScene:
     radar: RadarConfig = field(default_factory=RadarConfig)
     name: str = "scene"
 
-    def clean_ramp(self, t_s: float) -> np.ndarray:
-        """One noiseless ramp (N, 2), full-scale units, at time ``t_s``: the paper's
-        model (eq. 2) for the targets where they are at ``t_s``."""
+    def clean_ramps(self, t_s) -> np.ndarray:
+        """Noiseless ramps (R, N, 2), full-scale units, at times ``t_s`` (R,) s: the
+        paper's model (eq. 2) for the targets where they are at each time."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if not self.targets:
-            return np.zeros((self.radar.samples_per_ramp, 2), complex)
-        r = np.array([[tg.range_at(t_s) for tg in self.targets]], dtype=float)
-        a = np.array([[tg.angle_deg for tg in self.targets]], dtype=float)
-        x = np.array([[tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets]])
-        return simulate_frames(r, a, x, self.radar, ramps=1)[0]
+            return np.zeros((t.size, self.radar.samples_per_ramp, 2), complex)
+        r = np.stack([tg.range_at(t) for tg in self.targets], axis=1)  # (R, K)
+        a = np.broadcast_to(np.array([tg.angle_deg for tg in self.targets], dtype=float), r.shape)
+        x = np.broadcast_to(np.array([tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg))
+                                      for tg in self.targets]), r.shape)
+        return simulate_frames(r, a, x, self.radar, ramps=1)
+
+    def clean_ramp(self, t_s: float) -> np.ndarray:
+        """One noiseless ramp (N, 2) at time ``t_s`` (s)."""
+        return self.clean_ramps([t_s])[0]
+
+    def noise(self, n_ramps: int, rng: np.random.Generator | None) -> np.ndarray:
+        """Complex white noise of ``noise_std`` per I and Q for ``n_ramps`` ramps: (R, N, 2).
+        Ramp by ramp, the real parts are drawn before the imaginary ones, so R ramps at
+        once draw the same numbers as R calls for one. Nothing is drawn without noise."""
+        shape = (n_ramps, self.radar.samples_per_ramp, 2)
+        if self.noise_std == 0:
+            return np.zeros(shape, complex)
+        if rng is None:
+            raise ConfigError("SimScene.noise: noise_std > 0 needs an rng")
+        g = rng.standard_normal((n_ramps, 2) + shape[1:])
+        return self.noise_std * (g[:, 0] + 1j * g[:, 1])
+
+    def ramps(self, t_s, rng: np.random.Generator | None = None) -> np.ndarray:
+        """:meth:`clean_ramps` plus :meth:`noise`: what the sensor's receivers see, (R, N, 2)."""
+        clean = self.clean_ramps(t_s)
+        return clean + self.noise(clean.shape[0], rng)
 
     def ramp(self, t_s: float, rng: np.random.Generator | None = None) -> np.ndarray:
-        """:meth:`clean_ramp` plus complex white noise of ``noise_std`` per I and Q."""
-        ramp = self.clean_ramp(t_s)
-        if self.noise_std > 0:
-            if rng is None:
-                raise ConfigError("SimScene.ramp: noise_std > 0 needs an rng")
-            ramp = ramp + self.noise_std * (rng.standard_normal(ramp.shape) + 1j * rng.standard_normal(ramp.shape))
-        return ramp
+        """One noisy ramp (N, 2) at time ``t_s`` (s)."""
+        return self.ramps([t_s], rng)[0]
 
     def truth(self, t_s: float = 0.0) -> list[dict[str, float]]:
         """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude per target."""
         out = []
         for tg in self.targets:
             r = float(tg.range_at(t_s))
-            th = math.radians(tg.angle_deg)
-            out.append({"range_m": r, "angle_deg": tg.angle_deg, "x_m": r * math.cos(th),
-                        "y_m": r * math.sin(th), "amplitude": tg.amplitude})
+            x, y = polar_to_xy(r, math.radians(tg.angle_deg))
+            out.append({"range_m": r, "angle_deg": tg.angle_deg, "x_m": float(x), "y_m": float(y),
+                        "amplitude": tg.amplitude})
         return out
+
+    def arrays(self, t_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(range_m, angle_deg, complex amplitude), each (1, K), at ``t_s``: the scene as
+        the batch-of-one arrays :func:`~.model.simulate_frames` takes."""
+        return (np.array([[float(tg.range_at(t_s)) for tg in self.targets]]),
+                np.array([[tg.angle_deg for tg in self.targets]], dtype=float),
+                np.array([[tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets]]))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -157,6 +192,16 @@ def load_scene(path: str | Path) -> SimScene:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     return scene_from_dict(data, str(path))
+
+
+#: time base of the ramps (ramps/s) of a sensor that is polled as fast as it answers
+NOMINAL_RAMP_RATE_HZ = 40.0
+
+
+def ramp_time_s(ramp_index, ramp_rate_hz: float) -> np.ndarray:
+    """Time (s) of ramp ``ramp_index`` (int or array) of a sensor measuring ``ramp_rate_hz``
+    ramps a second (0: free-running, on the nominal time base)."""
+    return np.asarray(ramp_index, dtype=float) / (ramp_rate_hz or NOMINAL_RAMP_RATE_HZ)
 
 
 SCENES_DIR = Path(__file__).with_name("scenes")

@@ -32,6 +32,7 @@ import serial
 
 from .errors import ConfigError, RadarError
 from .model import RadarConfig
+from .source import RawFrame
 from .protocol import (
     BAUD_CODES,
     BAUD_SWITCH_SETTLE_S,
@@ -96,24 +97,13 @@ class DriverCounters:
         return asdict(self)
 
 
-@dataclass(frozen=True, eq=False)
-class RawFrame:
-    """One frame: ``data`` (M, 2) complex64 in full-scale units (measurement m = ramp r x
-    256 + sample k, antenna), host sequence number ``seq``, ``timestamp_ns`` and the
-    sensor counters of its ramps."""
-
-    seq: int
-    timestamp_ns: int
-    data: np.ndarray
-    counters: tuple[int, ...]
-
-
 @dataclass(frozen=True)
 class SessionConfig:
     """url: any pyserial URL. baud: rate after INIT (one of BAUD_CODES). timeout_s: wait
     for a GNFD answer before one retry (then SensorTimeout). reconnect: in
     :meth:`SensorSession.frames`, reconnect on errors with backoff from
-    ``backoff_s`` to ``max_backoff_s``; give up after ``reconnect_timeout_s`` (None = never)."""
+    ``backoff_s`` to ``max_backoff_s``; give up after ``reconnect_timeout_s`` (None = never).
+    sensor_id: the id its frames carry (the sensor's chunk of the zenoh keys)."""
 
     url: str
     baud: int = 2_000_000
@@ -123,10 +113,13 @@ class SessionConfig:
     backoff_s: float = 0.05
     max_backoff_s: float = 2.0
     reconnect_timeout_s: float | None = None
+    sensor_id: str = "kmd2"
 
     def __post_init__(self) -> None:
         if not isinstance(self.url, str) or not self.url:
             raise ConfigError(f"url={self.url!r} must be a non-empty string")
+        if not isinstance(self.sensor_id, str) or not self.sensor_id:
+            raise ConfigError(f"sensor_id={self.sensor_id!r} must be a non-empty string")
         if self.baud not in BAUD_CODES.values():
             raise ConfigError(f"baud={self.baud!r} must be one of {sorted(BAUD_CODES.values())}")
         if not (isinstance(self.ramps_per_frame, int) and self.ramps_per_frame >= 1):
@@ -144,7 +137,10 @@ class SessionConfig:
 
 
 class SensorSession:
-    """``with SensorSession(SessionConfig(url)) as s: for frame in s.frames(): ...``"""
+    """``with SensorSession(SessionConfig(url)) as s: for frame in s.frames(): ...``
+
+    A :class:`~radar_driver.source.FrameSource`: a K-MD2 (real or simulated) on a
+    serial link."""
 
     READ_TIMEOUT_S = 0.02  # port read granularity; bounds how late a deadline is noticed
 
@@ -161,6 +157,7 @@ class SensorSession:
         self._seq = 0
         self._closed = False
         self._ever_connected = False
+        self._config_id = config.radar().config_id()
 
     # -- life cycle -----------------------------------------------------------------------
     def __enter__(self) -> "SensorSession":
@@ -373,10 +370,12 @@ class SensorSession:
             ramps, self._ramps = self._ramps, []
             data = adc_to_complex(np.stack([w for _, _, w in ramps]))  # (R, 256, 2)
             frame = RawFrame(
+                sensor_id=self.config.sensor_id,
                 seq=self._seq,
                 timestamp_ns=ramps[0][1],
                 data=data.reshape(rpf * RADC_LAYOUT.samples, RADC_LAYOUT.receivers).astype(np.complex64),
                 counters=tuple(c for c, _, _ in ramps),
+                config_id=self._config_id,
             )
             self._seq += 1
             self.counters.frames += 1
@@ -403,6 +402,13 @@ class SensorSession:
             yield frame
             n += 1
 
+    def __iter__(self) -> Iterator[RawFrame]:
+        return self.frames()
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """The driver counters of this sensor, keyed by its id."""
+        return {self.config.sensor_id: self.counters.as_dict()}
+
     def _reconnect(self) -> None:
         cfg = self.config
         delay = cfg.backoff_s
@@ -417,3 +423,22 @@ class SensorSession:
                 log.debug("reconnect to %s failed (%s); next try in %.2f s", cfg.url, exc, delay)
                 time.sleep(delay)
                 delay = min(delay * 2, cfg.max_backoff_s)
+
+
+def save_frames_npz(path, frames: list[RawFrame], config: SessionConfig) -> None:
+    """Save frames to an ``.npz``: frames (F, M, 2) complex64, seq (F,), timestamp_ns (F,),
+    counters (F, ramps_per_frame) and the radar configuration as JSON."""
+    import json
+
+    radar = config.radar()
+    try:
+        np.savez_compressed(
+            path,
+            frames=np.stack([f.data for f in frames]) if frames else np.zeros((0, radar.n_measurements, 2), np.complex64),
+            seq=np.array([f.seq for f in frames], dtype=np.int64),
+            timestamp_ns=np.array([f.timestamp_ns for f in frames], dtype=np.int64),
+            counters=np.array([f.counters for f in frames], dtype=np.int64).reshape(len(frames), config.ramps_per_frame),
+            radar_config=json.dumps(radar.to_dict()),
+        )
+    except OSError as exc:
+        raise RadarError(f"cannot write frames to {path}: {exc.strerror or exc}") from None

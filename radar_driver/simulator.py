@@ -47,11 +47,9 @@ from .protocol import (
     complex_to_adc,
     encode,
 )
-from .scene import SimScene
+from .scene import SimScene, ramp_time_s
 
 log = logging.getLogger("qradar.sim")
-
-NOMINAL_RAMP_RATE_HZ = 40.0  # time base for moving targets when free-running
 
 
 @dataclass(frozen=True)
@@ -166,9 +164,9 @@ class SimulatedKMD2:
             measured = math.ceil((now - self._t0) * self.ramp_rate_hz - 1e-9)
             index = max(self.counter + 1, measured)
             due = self._t0 + index / self.ramp_rate_hz
-            t_s = index / self.ramp_rate_hz
         else:
-            index, due, t_s = self.counter + 1, None, (self.counter + 1) / NOMINAL_RAMP_RATE_HZ
+            index, due = self.counter + 1, None
+        t_s = float(ramp_time_s(index, self.ramp_rate_hz))
         if self.faults.skip_done_prob and rng.random() < self.faults.skip_done_prob:
             skip = int(rng.integers(1, 4))
             index += skip
@@ -228,9 +226,13 @@ class PtyLink:
         os.set_blocking(master, False)
         self.master, self.slave = master, slave
         tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
-        tmp.unlink(missing_ok=True)
-        os.symlink(os.ttyname(slave), tmp)
-        os.replace(tmp, self.link_path)
+        try:
+            tmp.unlink(missing_ok=True)
+            os.symlink(os.ttyname(slave), tmp)
+            os.replace(tmp, self.link_path)
+        except OSError as exc:
+            self.close()
+            raise ConfigError(f"cannot make the pty link {self.link_path}: {exc.strerror or exc}") from None
         log.info("simulated K-MD2 on %s -> %s", self.link_path, os.ttyname(slave))
 
     def close(self) -> None:

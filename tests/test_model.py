@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from radar_driver import ConfigError, InputError, RadarConfig, RadarError, Scene, Target
+from radar_driver import ConfigError, InputError, RadarConfig, RadarError, SimScene, SimTarget
 from radar_driver.model import (
     add_noise,
     angle_from_antennas_rad,
@@ -96,16 +96,17 @@ def test_subset_and_off_grid(cfg, rng):
 
 
 def test_scene_and_noise(cfg, rng):
-    scene = Scene((Target(4.8, 20.0, 0.15), Target(9.1, -10.0, 1.0)))
-    g = scene.frames(cfg)
+    scene = SimScene((SimTarget(4.8, 20.0, 0.15), SimTarget(9.1, -10.0, 1.0)), radar=cfg)
+    g = simulate_frames(*scene.arrays(), cfg)
     assert g.shape == (1, 512, 2)
-    noisy = scene.frames(cfg, snr_db=10.0, rng=rng)
+    assert_allclose(g[0], np.tile(scene.clean_ramp(0.0), (2, 1)))  # the scene's ramps are the model's
+    noisy = add_noise(g, 10.0, rng)
     noise_power = np.mean(np.abs(noisy - g) ** 2)
     assert noise_power == pytest.approx(np.mean(np.abs(g) ** 2) / 10.0, rel=0.1)
-    with pytest.raises(InputError, match="rng"):
-        scene.frames(cfg, snr_db=10.0)
+    with pytest.raises(ConfigError, match="rng"):
+        SimScene(scene.targets, noise_std=0.1).ramp(0.0)
     with pytest.raises(ConfigError, match="angle_deg"):
-        Target(3.0, 95.0)
+        SimTarget(3.0, 95.0, 1.0)
     with pytest.raises(InputError, match="shape"):
         add_noise(np.zeros((4, 2)), 10.0, rng)
 
