@@ -71,7 +71,7 @@ def baseline_sink(msgs, repeats: int) -> float:
 def trial(msgs, rate: float, seconds: float, tmp: Path) -> dict:
     ep = f"tcp/127.0.0.1:{free_port()}"
     path = tmp / f"rec_{rate:g}.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "record", "-o", str(path), "--listen", ep,
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "record", "-o", str(path), "--listen", ep,
                              "--topics", "radar/*/*"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     session = None
     deadline = time.monotonic() + 20

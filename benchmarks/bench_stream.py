@@ -43,7 +43,7 @@ def free_port() -> int:
 
 
 def cli(*args) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True)
 
 

@@ -19,20 +19,22 @@ and the number of runs, not on the number of worker processes.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
-from .errors import ParameterError
-from .decode import ALGOS, DecoderConfig, decode
-from .localize import detections_from_support, back_project, joint_support, position_error_m
+from .errors import ParameterError, PipelineError
+from .decode import ALGOS, Algo, DecoderConfig, decode
+from .localize import position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -89,7 +91,7 @@ class MonteCarloConfig:
     off_grid: bool = False
     workers: int | None = None
     radar: RadarConfig = field(default_factory=RadarConfig)
-    algos: tuple[str, ...] = ("pbp",)
+    algos: tuple[Algo, ...] = (Algo.PBP,)
     fallback_pbp: bool = False
 
     def __post_init__(self) -> None:
@@ -101,6 +103,7 @@ class MonteCarloConfig:
             raise ParameterError("at least one scheme is needed")
         for s in self.schemes:
             Scheme.parse(s, self.radar)
+        object.__setattr__(self, "algos", tuple(Algo(a) if a in ALGOS else a for a in self.algos))
         if len(set(self.schemes)) != len(self.schemes):
             raise ParameterError(f"schemes {self.schemes!r} repeat a name")
         if not isinstance(self.seed, int) or self.seed < 0:
@@ -112,7 +115,7 @@ class MonteCarloConfig:
         for a in self.algos:
             if a not in ALGOS:
                 raise ParameterError(f"algo {a!r} is not known; available: {', '.join(ALGOS)}")
-            if a == "pbp" or self.fallback_pbp:
+            if a == Algo.PBP or self.fallback_pbp:
                 continue
             for s in self.schemes:
                 sch = Scheme.parse(s, self.radar)
@@ -177,7 +180,7 @@ class ChunkResult:
 
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_grid: bool, radar: RadarConfig,
-              algos: tuple[str, ...] = ("pbp",)) -> dict[str, ChunkResult]:
+              algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True) -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
     given its arguments. Returns {algo: ChunkResult}."""
     scheme = Scheme.parse(scheme_name, radar)
@@ -191,11 +194,7 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_
         scheme_rng, radar)
     out = {}
     for algo in algos:
-        if algo == "pbp" or xi is None or indices is not None:
-            u = back_project(z, radar, indices)
-            det = detections_from_support(u, joint_support(u, k), radar)
-        else:
-            det = decode(z, xi, delta, scheme.bits, radar, k, DecoderConfig(algo=algo))
+        det = decode(z, xi, delta, scheme.bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=fallback_pbp), indices)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
         out[algo] = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
     return out
@@ -280,11 +279,12 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
-                collect(job, run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar, algos))
+                collect(job, run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar, algos, cfg.fallback_pbp))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar, algos))
+                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar, algos,
+                                             cfg.fallback_pbp))
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
                     collect(job, fut.result())
@@ -295,7 +295,7 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
         block = summary.setdefault(f"K{k}", {})
         for s in cfg.schemes:
             for a in cfg.algos:
-                name_sa = s if a == "pbp" else f"{s}@{a}"
+                name_sa = s if a == Algo.PBP else f"{s}@{a}"
                 stats, m = summarize(_concat(parts[(k, s, a)]))
                 block[name_sa] = stats
                 for name, arr in m.items():
@@ -306,9 +306,48 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     run_config = {
         "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
-        "algos": list(cfg.algos), "fallback_pbp": cfg.fallback_pbp,
+        "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp,
     }
     return MonteCarloResult(summary, maps, run_config)
+
+
+def prepare_out_dir(out_dir: Path) -> Path:
+    """Create the output folder before a long run, so that a bad path fails at once."""
+    try:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(f"cannot create the output folder {out_dir}: {exc.strerror or exc}") from None
+    return Path(out_dir)
+
+
+def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, plots: bool = True) -> list[str]:
+    """Write summary.json, config.json, maps.npz, the polar error maps (PNG, unless
+    ``plots`` is False) and, when the schemes span several M, error_vs_m.json/.png to
+    ``out_dir``. Returns the report lines (the table, the slopes, what was written)."""
+    from .plots import error_vs_m, error_vs_m_figure, montecarlo_figures
+
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
+        (out_dir / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
+        np.savez_compressed(out_dir / "maps.npz", **result.maps)
+        pngs = montecarlo_figures(out_dir, result.summary, result.maps, max_range_m) if plots else []
+        slopes = error_vs_m(result.summary)
+        if slopes:
+            (out_dir / "error_vs_m.json").write_text(json.dumps(slopes, indent=2) + "\n")
+            if plots:
+                pngs.append(error_vs_m_figure(out_dir / "error_vs_m.png", slopes))
+    except OSError as exc:
+        raise PipelineError(f"cannot write the Monte Carlo results to {out_dir}: {exc.strerror or exc}") from None
+    lines = [f"{label}: median error {s['error_m']} m at M = {s['M']}: slope {s['slope']:+.2f}"
+             for label, s in slopes.items()]
+    rc = result.run_config
+    lines += [format_table(result.summary), "",
+              f"{sum(rc['runs_per_k'].values()) * len(rc['schemes'])} runs (x {len(rc['algos'])} decoders) in "
+              f"{result.summary['seconds']:.1f} s; wrote {out_dir}/summary.json, maps.npz"
+              + (f" and {len(pngs)} PNG maps" if pngs else "")]
+    return lines
 
 
 def format_table(summary: dict) -> str:

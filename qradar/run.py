@@ -1,6 +1,7 @@
-"""``qradar run``: the main job. Simulated K-MD2(s) on pseudo-terminals, the serial driver,
-the quantize-with-dither node and the PBP localizer, wired through one embedded zenoh
-session; live targets beside the ground truth, and a summary at the end."""
+"""``qradar run``: the main job. Simulated K-MD2(s) on pseudo-terminals, the serial driver
+(a source node per sensor), the quantize-with-dither node, the localizer and the
+recorder, wired through one embedded zenoh session; live targets beside the ground
+truth, and a summary at the end. It composes all three libraries, so it lives here."""
 
 from __future__ import annotations
 
@@ -17,16 +18,17 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
+from pipeline.bus import BusConfig
+from pipeline.decode import Algo, DecoderConfig
+from pipeline.errors import ParameterError
+from pipeline.localize import position_error_m
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.quantize import QuantizerConfig
+from pipeline.wire import WireError, decode_targets
 from radar_driver.scene import SimScene, resolve_scene
-from radar_driver.session import SessionConfig
+from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
-
-from .bus import BusConfig
-from .errors import ParameterError
-from .localize import position_error_m
-from .nodes import DriverNode, LocalizeNode, LocalizerConfig, QuantizeNode, run_nodes
-from .quantize import QuantizerConfig
-from .wire import WireError, decode_targets
+from replay.recorder import RecorderNode
 
 
 class Monitor:
@@ -98,13 +100,14 @@ class RunConfig:
     rate_hz: float = 20.0
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
     k: int | None = None  # None = as many as the scene has targets
-    algo: str = "pbp"
+    algo: Algo = Algo.PBP
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000
     record: Path | None = None  # MCAP path, or None for no recording
     frames: int | None = None  # stop after this many frames per sensor
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "algo", DecoderConfig(algo=self.algo).algo)  # validates the name
         if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 256):
             raise ParameterError(f"sensors={self.sensors!r} must be an integer in [1, 256]")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -130,16 +133,14 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                                               fallback_pbp=cfg.quantizer.alpha == 0),
                                      session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
-            drivers = [DriverNode(cfg.bus, f"kmd2-{i}", SessionConfig(str(sim.links[0].link_path), baud=cfg.baud,
-                                                                       ramps_per_frame=scene.radar.ramps_per_frame),
-                                  session=session, frames=cfg.frames) for i, sim in enumerate(sims)]
+            drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
+                str(sim.links[0].link_path), baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame,
+                sensor_id=f"kmd2-{i}")), session=session, frames=cfg.frames) for i, sim in enumerate(sims)]
             if cfg.frames is not None:
                 stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                from replay.recorder import RecorderNode
-
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k))]
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
@@ -163,7 +164,7 @@ def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
     return {
         "qradar.radar": scene.radar.to_dict() | {"config_id": scene.radar.config_id()},
         "qradar.quantizer": asdict(cfg.quantizer),
-        "qradar.localizer": {"algo": cfg.algo, "K": k, "source": "quantized"},
+        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "source": "quantized"},
         "qradar.scene": {"scene": json.dumps(scene.to_dict()), "simulated": "true", "sensors": str(cfg.sensors),
                          "rate_hz": str(cfg.rate_hz)},
     }
@@ -175,7 +176,7 @@ def _stat(values, fn) -> float | None:
 
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float) -> dict:
-    driver_drops = sum(d.sensor.counters.dropped for d in drivers)
+    driver_drops = sum(d.source.counters.dropped for d in drivers)
     queue_drops = localizer.totals()["drops"] + quantizer.totals()["drops"]
     cnt, size = monitor.count, monitor.bytes
     return {
@@ -197,8 +198,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
                       "dither_seed": cfg.quantizer.dither_seed},
-        "localizer": {"algo": cfg.algo, "K": localizer.config.k},
-        "driver": {d.sensor_id: d.sensor.counters.as_dict() for d in drivers},
+        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k},
+        "driver": {sid: c for d in drivers for sid, c in d.source.stats().items()},
     }
 
 

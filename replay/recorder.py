@@ -22,7 +22,7 @@ from pathlib import Path
 import zenoh
 
 from pipeline.bus import BusConfig
-from pipeline.nodes import ProcessingNode
+from pipeline.node import ProcessingNode
 from pipeline.wire import COMMON, MAGIC, WireError, decode_targets
 
 from .errors import ReplayError
@@ -105,8 +105,7 @@ class RecorderNode(ProcessingNode):
 
     def _open(self) -> None:
         path = self._next_path()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._sink = McapSink(path)
+        self._sink = McapSink(path)  # creates the folder; ReplayError naming the path if it cannot
         self.paths.append(path)
         self._opened_at = self._last_flush = time.monotonic()
         self._sink.metadata("qradar.versions", versions())

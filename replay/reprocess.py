@@ -1,28 +1,30 @@
-"""Offline re-processing of a recording: its raw frames quantized and localized again
-with other parameters, without zenoh; the dither-scale sweep of the paper's Sec. 6
-(Fig. 5a: mean position error against alpha; Fig. 5b: reconstructions over consecutive
-frames, alpha = 0 against the best alpha)."""
+"""Offline re-processing of a recording: its raw frames (read through
+:class:`~replay.source.RecordingSource`) quantized and localized again with other
+parameters, without zenoh; the dither-scale sweep of the paper's Sec. 6 (Fig. 5a: mean
+position error against alpha; Fig. 5b: reconstructions over consecutive frames,
+alpha = 0 against the best alpha). :func:`run` does the whole job of ``qradar
+reprocess`` from a :class:`ReprocessConfig`."""
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.decode import DecoderConfig, decode
-from pipeline.localize import Detections, localize, nearest_estimates
-from pipeline.nodes import sensor_dither_seed
+from pipeline.decode import Algo, DecoderConfig, decode_batch
+from pipeline.localize import Detections, nearest_estimates
 from pipeline.progress import Progress
-from pipeline.quantize import QuantizerConfig, quantize_frames
-from pipeline.wire import WireError, decode_raw, TargetsMsg
-from radar_driver.model import RadarConfig
+from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
+from pipeline.wire import TargetsMsg
+from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
-from .mcapio import McapFile, McapSink, pointcloud_json
+from .mcapio import McapSink, pointcloud_json
+from .source import RecordingSource
 
 log = logging.getLogger("qradar.reprocess")
 
@@ -59,21 +61,14 @@ class RawRecording:
 
 def load_raw(path, sensor: str | None = None) -> RawRecording:
     """The raw frames of one sensor of a recording (the first sensor by name if None)."""
-    f = McapFile(path)
+    src = RecordingSource(path)
+    with src:
+        frames = list(src.frames())
     by_sensor: dict[str, list] = {}
-    bad = 0
-    for ch, msg in f.messages():
-        if not ch.topic.endswith("/raw"):
-            continue
-        try:
-            m = decode_raw(msg.data, ch.topic)
-        except WireError as exc:
-            bad += 1
-            log.warning("skipping a bad raw frame: %s", exc)
-            continue
-        by_sensor.setdefault(m.sensor_id, []).append(m)
+    for fr in frames:
+        by_sensor.setdefault(fr.sensor_id, []).append(fr)
     if not by_sensor:
-        topics = sorted({c.topic for c in f.channels.values()})
+        topics = sorted({c.topic for c in src.file.channels.values()})
         raise NoQradarChannelsError(f"{path} holds no raw frames (<prefix>/<sensor>/raw) to re-process; "
                                     f"its topics: {topics or 'none'}")
     sensors = sorted(by_sensor)
@@ -81,13 +76,12 @@ def load_raw(path, sensor: str | None = None) -> RawRecording:
         sensor = sensors[0]
     elif sensor not in by_sensor:
         raise ReplayError(f"{path} has no raw frames of sensor {sensor!r}; it has {sensors}")
-    msgs = sorted(by_sensor[sensor], key=lambda m: m.seq)
-    ms = {m.data.shape[0] for m in msgs}
-    if len(ms) != 1 or len({m.config_id for m in msgs}) != 1:
+    got = sorted(by_sensor[sensor], key=lambda f: f.seq)
+    if len({f.data.shape[0] for f in got}) != 1 or len({f.config_id for f in got}) != 1:
         raise ReplayError(f"{path}: frames of {sensor} change M or radar config mid-recording; split the file")
-    return RawRecording(sensor, np.stack([m.data for m in msgs]).astype(np.complex128),
-                        np.array([m.seq for m in msgs]), np.array([m.timestamp_ns for m in msgs]),
-                        msgs[0].config_id, f.metadata_dict(), sensors, f.truncated)
+    return RawRecording(sensor, np.stack([f.data for f in got]).astype(np.complex128),
+                        np.array([f.seq for f in got]), np.array([f.timestamp_ns for f in got]),
+                        got[0].config_id, src.metadata, sensors, src.truncated)
 
 
 def truth_scene(rec: RawRecording, truth_file: str | Path | None) -> SimScene:
@@ -101,8 +95,6 @@ def truth_scene(rec: RawRecording, truth_file: str | Path | None) -> SimScene:
 
 
 def radar_for(rec: RawRecording, base: RadarConfig) -> RadarConfig:
-    from dataclasses import replace
-
     n = base.samples_per_ramp
     m = rec.frames.shape[1]
     if m % n:
@@ -123,14 +115,11 @@ class AlphaResult:
 
 
 def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
-              seed: int, algo: str = "pbp") -> AlphaResult:
+              seed: int, algo: Algo = Algo.PBP) -> AlphaResult:
     q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
                         dither_seed=sensor_dither_seed(seed, rec.sensor_id))
-    if algo == "pbp":
-        det = localize(q.values(), radar, k)
-    else:  # alpha = 0 has no dither to use: PBP, as the fallback says
-        xi = q.dither() if q.alpha > 0 else None
-        det = decode(q.values(), xi, q.delta, bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=True))
+    # alpha = 0 has no dither to use: a dither-aware decoder falls back to PBP there
+    det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True))
     f = rec.frames.shape[0]
     tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
     ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
@@ -173,7 +162,7 @@ class SweepResult:
 
 
 def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
-          k: int | None = None, seed: int = 0, progress: bool = True, algo: str = "pbp") -> SweepResult:
+          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = Algo.PBP) -> SweepResult:
     k = k or len(truth)
     out = []
     with Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress) as bar:
@@ -181,7 +170,7 @@ def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.n
             out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo))
             bar.update(rec.frames.shape[0])
     return SweepResult(np.asarray(alphas, float), out, truth, rec,
-                       {"bits": bits, "K": k, "algo": algo, "seed": seed})
+                       {"bits": bits, "K": k, "algo": str(algo), "seed": seed})
 
 
 # -- figures ---------------------------------------------------------------------------------
@@ -241,9 +230,8 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
                     label=f"α = {r.alpha:.2f}" if i == 0 else None)
             _ellipse(ax, mean, cov, color, ls)
     for i, t in enumerate(result.truth):
-        th = np.deg2rad(t["angle_deg"])
-        ax.plot(t["range_m"] * np.sin(th), t["range_m"] * np.cos(th), "kx", ms=9, mew=2,
-                label="truth" if i == 0 else None)
+        x, y = polar_to_xy(t["range_m"], np.deg2rad(t["angle_deg"]))
+        ax.plot(y, x, "kx", ms=9, mew=2, label="truth" if i == 0 else None)
     ax.plot(0, 0, "k^", ms=8, label="radar")
     ax.set_xlabel("y (m), across boresight (+ = antenna 2 side)")
     ax.set_ylabel("x (m), along boresight")
@@ -275,3 +263,69 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
         return rec.frames.shape[0]
     finally:
         sink.close()
+
+
+# -- the whole job -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReprocessConfig:
+    """What ``qradar reprocess`` does. file: the recording. alphas: dither scales to sweep
+    (see :func:`parse_alphas`). k: targets (None = the truth's count). sensor: sensor id
+    (None = the first). truth: a scene TOML with the true positions (None = the
+    recording's ``qradar.scene`` metadata). out: folder for results.json and the plots.
+    mcap: also write the best alpha's targets there."""
+
+    file: Path
+    alphas: tuple[float, ...] = tuple(parse_alphas("0:1:0.05"))
+    bits: int = 1
+    k: int | None = None
+    algo: Algo = Algo.PBP
+    seed: int = 0
+    sensor: str | None = None
+    truth: Path | None = None
+    out: Path = Path("out/reprocess")
+    mcap: Path | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):
+            raise ReplayError(f"alphas {self.alphas!r} must be at least one value in [0, 1]")
+        object.__setattr__(self, "algo", Algo(self.algo))
+
+
+@dataclass
+class ReprocessResult:
+    summary: dict
+    written: list[Path]
+    notes: list[str]
+    lines: list[str]
+
+
+def run(cfg: ReprocessConfig) -> ReprocessResult:
+    """Load, sweep alpha, write results.json, the two figures and (optionally) an MCAP of
+    the best alpha's targets. Returns the summary, the files written, notes for the
+    user (warnings) and the report lines."""
+    rec = load_raw(cfg.file, cfg.sensor)
+    scene = truth_scene(rec, cfg.truth)
+    radar = radar_for(rec, scene.radar)
+    notes = []
+    if any(t.velocity_m_s for t in scene.targets):
+        notes.append("note: moving targets; the truth is taken at the first frame")
+    result = sweep(rec, radar, scene.truth(0.0), np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k, seed=cfg.seed,
+                   progress=cfg.progress, algo=cfg.algo)
+    summary = result.summary() | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
+                                  "truncated": rec.truncated}
+    try:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        (cfg.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
+        written = [cfg.out / "results.json", plot_alpha_sweep(result, cfg.out / "alpha_sweep.png"),
+                   plot_reconstructions(result, cfg.out / "reconstructions.png")]
+        if cfg.mcap is not None:
+            write_targets_mcap(result, result.best_index, radar, cfg.mcap)
+            written.append(cfg.mcap)
+    except OSError as exc:
+        raise ReplayError(f"cannot write the re-processing results ({exc.filename or cfg.out}): "
+                          f"{exc.strerror or exc}") from None
+    lines = [f"{rec.sensor_id}: {rec.frames.shape[0]} frames; best alpha {summary['best_alpha']:.2f} "
+             f"(mean error {summary['error_at_best_m']} m; at alpha 0: {summary['error_at_alpha0_m']} m)",
+             f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:])]
+    return ReprocessResult(summary, written, notes, lines)

@@ -1,0 +1,97 @@
+"""Argument types and options shared by the command groups."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+from pathlib import Path
+
+from pipeline.bus import BusConfig
+from pipeline.decode import ALGOS
+from pipeline.quantize import QuantizerConfig
+
+
+def nonneg_int(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return v
+
+
+def pos_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return v
+
+
+def prob(text: str) -> float:
+    v = float(text)
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a probability in [0, 1]")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    v = float(text)
+    if not v >= 0.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return v
+
+
+def delta_arg(text: str) -> str | float:
+    """``auto`` or a quantizer step > 0 (full-scale units)."""
+    if text == "auto":
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 'auto' or a number > 0") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 'auto' or a number > 0")
+    return v
+
+
+def algo_option(p: argparse.ArgumentParser, help: str) -> None:
+    """``--algo``, one of the decoders (pipeline.decode.Algo), default pbp."""
+    p.add_argument("--algo", choices=list(ALGOS), default="pbp", help=help)
+
+
+def install_sigterm() -> None:
+    """Turn SIGTERM and SIGINT into KeyboardInterrupt so that every command ends
+    cleanly, also when started in the background (where a shell ignores SIGINT)."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def bus_options(parser: argparse.ArgumentParser) -> None:
+    """Add --zenoh-config, --connect, --listen, --mode, --prefix."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh JSON5 config file")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--mode", choices=["peer", "client"], default="peer")
+    g.add_argument("--prefix", default="radar", help="key prefix (default radar)")
+
+
+def bus_from_args(args, mode: str | None = None) -> BusConfig:
+    return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+                     config_file=args.zenoh_config, prefix=args.prefix)
+
+
+def quantizer_options(p: argparse.ArgumentParser, alpha_default: float | None, alpha_help: str) -> None:
+    """--bits, --alpha, --delta, --delta-margin, --seed."""
+    p.add_argument("--bits", type=pos_int, default=1)
+    p.add_argument("--alpha", type=float, default=alpha_default, help=alpha_help)
+    p.add_argument("--delta", type=delta_arg, default="auto", help="'auto' (smallest 1-bit step per frame) or a step in full-scale units")
+    p.add_argument("--delta-margin", type=nonneg_float, default=0.0, help="auto delta x (1 + margin)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="dither seed (per sensor: seed * 2^32 + crc32(id))")
+
+
+def quantizer_config(args, alpha: float | None = None) -> QuantizerConfig:
+    return QuantizerConfig(bits=args.bits, alpha=args.alpha if alpha is None else alpha, delta=args.delta,
+                           delta_margin=args.delta_margin, dither_seed=args.seed)

@@ -1,0 +1,120 @@
+"""Sensor commands: ``sim`` (a simulated K-MD2 on a pty and/or TCP) and ``drive`` (read
+a K-MD2, real or simulated, and publish its frames)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.nodes import SourceNode
+from radar_driver.scene import resolve_scene
+from radar_driver.session import SensorSession, SessionConfig, save_frames_npz
+from radar_driver.simulator import SimFaults, SimulatorServer
+
+from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, nonneg_int, pos_int, prob
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("sim", help="serve a simulated K-MD2 on a pty and/or TCP until interrupted",
+                       description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
+                       "the paper's model of a TOML scene, with noise, 12-bit ADC and optional faults.")
+    p.add_argument("--scene", default="chamber",
+                   help="TOML scene file, or the name of a packaged scene (chamber, single, walker)")
+    p.add_argument("--link", type=Path, default=None, help="stable symlink path to the pty (e.g. /tmp/kmd2)")
+    p.add_argument("--tcp", type=int, default=None, metavar="PORT", help="also serve socket://127.0.0.1:PORT")
+    p.add_argument("--rate", type=nonneg_float, default=20.0, help="frames per second (0 = as fast as polled)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="noise and fault seed")
+    p.add_argument("--garbage", type=prob, default=0.0, metavar="P", help="garbage burst before a message")
+    p.add_argument("--truncate", type=prob, default=0.0, metavar="P", help="RADC cut short")
+    p.add_argument("--skip-done", type=prob, default=0.0, metavar="P", help="DONE counter jumps")
+    p.add_argument("--disconnect-after", type=pos_int, default=None, metavar="N", help="drop the link after N frames")
+    p.add_argument("--reconnect-after", type=nonneg_float, default=1.0, metavar="T", help="link back after T s")
+    p.set_defaults(func=cmd_sim, parser=p)
+
+    p = sub.add_parser("drive", help="read frames from a K-MD2 (real or simulated)",
+                       description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, "
+                       "socket://host:port, rfc2217://host:port), 8E1, reconnecting on errors.")
+    p.add_argument("--port", required=True, help="pyserial URL or device path")
+    p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames (default: until Ctrl-C)")
+    p.add_argument("--baud", type=int, default=2_000_000, help="rate after INIT (115200, 460800, 921600, 2000000, 3000000)")
+    p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (M = 256 x ramps)")
+    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for a GNFD answer")
+    p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
+    p.add_argument("--json", action="store_true", help="end with one JSON object of counters on stdout")
+    p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys (default kmd2)")
+    p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
+    bus_options(p)
+    p.set_defaults(func=cmd_drive)
+
+
+def cmd_sim(args) -> int:
+    if args.link is None and args.tcp is None:
+        args.parser.error("give --link PATH and/or --tcp PORT")
+    scene = resolve_scene(args.scene)
+    faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
+                       disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
+    install_sigterm()
+    server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
+                             faults=faults, seed=args.seed)
+    with server:
+        where = [str(args.link)] if args.link else []
+        if args.tcp is not None:
+            where.append(f"socket://127.0.0.1:{server.tcp_port}")
+        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {args.rate:g} frames/s) on "
+              f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
+        try:
+            while not server.wait(0.5):
+                if server.errors:
+                    raise server.errors[0]
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def cmd_drive(args) -> int:
+    cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
+                        sensor_id=args.sensor_id)
+    lines = sys.stderr if args.json else sys.stdout
+    frames = []
+
+    def show(frame) -> None:
+        if args.out is not None:
+            frames.append(frame)
+        peak = np.abs(frame.data).max()
+        print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
+              f"peak {peak:.3f} FS", file=lines, flush=True)
+
+    install_sigterm()
+    session = SensorSession(cfg)
+    if args.no_publish:
+        try:
+            with session:
+                for frame in session.frames(args.frames):
+                    show(frame)
+        except KeyboardInterrupt:
+            pass
+    else:
+        node = SourceNode(bus_from_args(args), session, frames=args.frames, on_frame=show)
+        try:
+            node.start()
+            while not node.done.wait(0.2):
+                if node.errors:
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            node.stop()
+        if node.errors:
+            raise node.errors[0]
+    if args.out is not None:
+        save_frames_npz(args.out, frames, cfg)
+    c = session.counters.as_dict()
+    if args.json:
+        print(json.dumps(c))
+    else:
+        print("counters: " + ", ".join(f"{k}={v}" for k, v in c.items()))
+    return 0
+

@@ -1,0 +1,169 @@
+"""Stream commands: the nodes (``source``, ``quantize``, ``localize``), a zenoh
+``router``, and ``run``, the main job."""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+from pipeline.bus import BusConfig
+from pipeline.decode import default_alpha
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from radar_driver.scene import resolve_scene
+from radar_driver.source import SimSourceConfig, SimulatedSource
+from replay.source import RecordingSource
+
+from ..run import RunConfig, format_summary, print_json, run
+from .common import (
+    algo_option,
+    bus_from_args,
+    bus_options,
+    install_sigterm,
+    nonneg_int,
+    pos_int,
+    quantizer_config,
+    quantizer_options,
+)
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
+    quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
+    p.add_argument("--queue", type=pos_int, default=512, help="bounded input queue (frames)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    bus_options(p)
+    p.set_defaults(func=cmd_quantize)
+
+    p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> PBP -> radar/<sensor>/targets")
+    p.add_argument("--K", dest="k", type=pos_int, default=2, help="targets per frame")
+    algo_option(p, "pbp, or qiht: the dither-aware decoder (needs dithered frames)")
+    p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
+    p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
+                   help="raw = the full-resolution baseline")
+    p.add_argument("--queue", type=pos_int, default=512, help="bounded input queue (frames)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    bus_options(p)
+    p.set_defaults(func=cmd_localize)
+
+    p = sub.add_parser("source", help="node: in-process simulated sensors (or a recording) -> radar/<id>/raw",
+                       description="Simulated sensors that publish raw frames of a scene directly, bypassing "
+                       "the serial protocol: for benchmarks and many-sensor set-ups. With --recording, the raw "
+                       "frames of an MCAP file instead.")
+    p.add_argument("--scene", default="chamber")
+    p.add_argument("--sensors", type=pos_int, default=1)
+    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    p.add_argument("--id-prefix", default="sim", help="sensor ids are <prefix>0, <prefix>1, ...")
+    p.add_argument("--frames", type=pos_int, default=None, help="frames per sensor, then stop")
+    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--recording", type=Path, default=None,
+                   help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
+    p.add_argument("--duration", type=float, default=None)
+    bus_options(p)
+    p.set_defaults(func=cmd_source)
+
+    p = sub.add_parser("router", help="a zenoh router for multi-host set-ups")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="e.g. tcp/0.0.0.0:7447 (default)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", type=Path, default=None)
+    p.add_argument("--duration", type=float, default=None)
+    p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("run", help="the main job: simulated K-MD2 -> driver -> quantize -> localize over zenoh",
+                       description="Simulated K-MD2(s) on ptys, the serial driver, the 1-bit dithered quantizer "
+                       "and the PBP localizer over an embedded zenoh peer; live targets beside the truth, "
+                       "then a summary.")
+    p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
+    p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
+    p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
+    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    quantizer_options(p, None, "dither scale (default: 0.55 with pbp, the paper's best for its noisy chamber; "
+                      "1 with qiht, which wants the full dither)")
+    p.add_argument("--K", dest="k", type=pos_int, default=None, help="targets per frame (default: the scene's count)")
+    algo_option(p, "decoder of the localizer")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
+    p.add_argument("--record", type=Path, default=None,
+                   help="MCAP file to record to (default recordings/run-<time>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="do not record")
+    p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
+    bus_options(p)
+    p.set_defaults(func=cmd_run)
+
+
+def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
+    """Run one node until ``duration``, ``stop`` or Ctrl-C; print its totals as JSON."""
+    install_sigterm()
+    try:
+        run_nodes([node], duration, stop)
+    except KeyboardInterrupt:
+        pass
+    print(json.dumps({"node": node.name, **node.totals()}), flush=True)
+    return 0
+
+
+def cmd_quantize(args) -> int:
+    return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), queue_size=args.queue), args.duration)
+
+
+def cmd_localize(args) -> int:
+    cfg = LocalizerConfig(k=args.k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp)
+    return serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
+
+
+def cmd_source(args) -> int:
+    if args.recording is not None:
+        source = RecordingSource(args.recording, rate=args.rate if args.rate > 0 else None)
+        limit = args.frames
+    else:
+        source = SimulatedSource(SimSourceConfig(resolve_scene(args.scene), sensors=args.sensors, id_prefix=args.id_prefix,
+                                                 rate_hz=args.rate, seed=args.seed, frames=args.frames))
+        limit = None
+    node = SourceNode(bus_from_args(args), source, frames=limit)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
+    install_sigterm()
+    try:
+        run_nodes([node], args.duration, stop)
+    except KeyboardInterrupt:
+        pass
+    extra = {"late_ticks": source.late_ticks, "elapsed_s": round(source.elapsed_s, 3)} \
+        if isinstance(source, SimulatedSource) else {"source": source.stats()}
+    print(json.dumps({"node": node.name, **extra, **node.totals()}), flush=True)
+    return 0
+
+
+def cmd_router(args) -> int:
+    bus = BusConfig(mode="router", listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]), connect=tuple(args.connect),
+                    config_file=args.zenoh_config)
+    install_sigterm()
+    session = bus.open()
+    print(f"zenoh router {session.zid()} listening on {list(bus.listen)}; Ctrl-C to stop", flush=True)
+    try:
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+    return 0
+
+
+def cmd_run(args) -> int:
+    record = None
+    if not args.no_record:
+        record = args.record or Path("recordings") / time.strftime("run-%Y%m%d-%H%M%S.mcap")
+    alpha = default_alpha(args.algo) if args.alpha is None else args.alpha
+    cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
+                    quantizer=quantizer_config(args, alpha), k=args.k, algo=args.algo, bus=bus_from_args(args),
+                    record=record, frames=args.frames)
+    install_sigterm()
+    summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
+    if args.json:
+        print_json(summary)
+    else:
+        print(format_summary(summary))
+    return 0
