@@ -13,7 +13,8 @@ import zenoh
 
 from pipeline.bus import BusConfig
 from pipeline.localize import position_error_m
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SimSourceNode, run_nodes
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from radar_driver.source import SimSourceConfig, SimulatedSource
 from pipeline.quantize import QuantizerConfig, unit_dither
 from pipeline.wire import (
     RawFrameMsg,
@@ -52,8 +53,10 @@ def test_in_process_pipeline_localizes_the_scenes():
         single, chamber = resolve_scene("single"), resolve_scene("chamber")
         nodes = [LocalizeNode(bus, LocalizerConfig(k=2, radar=chamber.radar), session=session),
                  QuantizeNode(bus, QuantizerConfig(alpha=0.55, dither_seed=1), session=session),
-                 SimSourceNode(bus, chamber, n_sensors=3, rate_hz=100, id_prefix="ch", session=session, frames=60),
-                 SimSourceNode(bus, single, n_sensors=1, rate_hz=100, id_prefix="one", session=session, frames=60)]
+                 SourceNode(bus, SimulatedSource(SimSourceConfig(
+                     chamber, sensors=3, rate_hz=100, id_prefix="ch", frames=60)), session=session),
+                 SourceNode(bus, SimulatedSource(SimSourceConfig(
+                     single, sensors=1, rate_hz=100, id_prefix="one", frames=60)), session=session)]
         threading.Thread(target=lambda: (nodes[2].done.wait(30), nodes[3].done.wait(30), time.sleep(0.5)),
                          daemon=True).start()
         run_nodes(nodes, duration_s=3.0)
@@ -75,7 +78,7 @@ def test_in_process_pipeline_localizes_the_scenes():
         seeds = {decode_quantized(p).dither_seed for p in col.of("/quantized")}
         assert len(seeds) == 4
         health = [decode_health(p) for p in col.of("/health")]
-        assert {h.node for h in health} >= {"quantize", "localize", "simsource"}
+        assert {h.node for h in health} >= {"quantize", "localize", "source"}
         last_loc = [h for h in health if h.node == "localize" and h.sensor_id == "ch0"][-1]
         assert last_loc.frames_out == 60 and last_loc.drops == 0 and last_loc.latency_ms["p50"] > 0
         col.sub.undeclare()
@@ -90,7 +93,8 @@ def test_quantized_frames_carry_a_reproducible_dither():
         col = Collector(session, "radar/*/quantized")
         scene = resolve_scene("single")
         q = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=5), session=session)
-        src = SimSourceNode(bus, scene, n_sensors=1, rate_hz=200, session=session, frames=5)
+        src = SourceNode(bus, SimulatedSource(SimSourceConfig(
+                     scene, sensors=1, rate_hz=200, frames=5)), session=session)
         raw = Collector(session, "radar/*/raw")
         run_nodes([q, src], duration_s=1.5)
         from pipeline.quantize import quantize
@@ -160,7 +164,7 @@ def test_a_full_queue_drops_are_counted_never_silent():
 
 
 def _spawn(args):
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
@@ -230,7 +234,7 @@ def test_router_joins_clients():
 
 
 def test_qradar_run_end_to_end_json():
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--duration", "5", "--json"],
+    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "5", "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()
@@ -269,7 +273,8 @@ def test_localizer_node_with_the_dither_aware_decoder():
         loc = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2)
         nodes = [loc,
                  QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=2), session=session),
-                 SimSourceNode(bus, scene, n_sensors=1, rate_hz=100, id_prefix="qd", session=session, frames=30)]
+                 SourceNode(bus, SimulatedSource(SimSourceConfig(
+                     scene, sensors=1, rate_hz=100, id_prefix="qd", frames=30)), session=session)]
         run_nodes(nodes, duration_s=1.5)
         targets = [decode_targets(p) for p in col.of("qd0/targets")]
         assert len(targets) == 30 and all(t.algo == "qiht" for t in targets)

@@ -141,7 +141,7 @@ def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_pat
         port = s.getsockname()[1]
     ep = f"tcp/127.0.0.1:{port}"
     path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "record", "-o", str(path), "--listen", ep],
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "record", "-o", str(path), "--listen", ep],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     session = None
     try:
@@ -174,7 +174,7 @@ def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_pat
     flushed_before = [i for i, t in enumerate(sent_at) if kill_at - t > 1.5]
     assert set(flushed_before) <= set(seqs)  # the player's reader gets everything flushed
     out = tmp_path / "recovered.mcap"
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "recover", str(path), "-o", str(out)],
+    r = subprocess.run([sys.executable, "-m", "qradar", "recover", str(path), "-o", str(out)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     g = McapFile(out)
@@ -220,7 +220,7 @@ def test_bad_files_give_clear_errors(tmp_path):
         load_raw(other)
     with pytest.raises(ReplayError, match="cannot open"):
         McapFile(tmp_path / "missing.mcap").scan()
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "replay", str(junk), "--fast"],
+    proc = subprocess.run([sys.executable, "-m", "qradar", "replay", str(junk), "--fast"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "is not an MCAP file" in proc.stderr
     for bad in ("2:1", "0:1:0", "-0.5", "a,b"):
@@ -265,7 +265,7 @@ def test_reprocess_is_deterministic_and_dither_beats_no_dither_on_the_recording(
 
 def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
     out = tmp_path / "rp"
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "reprocess", str(CHAMBER), "--alpha", "0:1:0.25",
+    proc = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(CHAMBER), "--alpha", "0:1:0.25",
                            "--out", str(out), "--mcap", str(tmp_path / "re.mcap")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -275,19 +275,19 @@ def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
     for png in ("alpha_sweep.png", "reconstructions.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     assert McapFile(tmp_path / "re.mcap").scan() == 2 * 106
-    truthless = subprocess.run([sys.executable, "-m", "pipeline.cli", "reprocess", str(tmp_path / "re.mcap")],
+    truthless = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(tmp_path / "re.mcap")],
                                capture_output=True, text=True, timeout=60)
     assert truthless.returncode == 2 and "no raw frames" in truthless.stderr
 
 
 def test_qradar_run_leaves_a_recording_that_replays(tmp_path):
     path = tmp_path / "run.mcap"
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--duration", "3", "--json", "--record",
+    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--json", "--record",
                            str(path)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)
     assert s["recording"]["files"] == [str(path)] and s["recording"]["dropped"] == 0
-    rp = subprocess.run([sys.executable, "-m", "pipeline.cli", "replay", str(path), "--fast", "--replay-prefix",
+    rp = subprocess.run([sys.executable, "-m", "qradar", "replay", str(path), "--fast", "--replay-prefix",
                          "replay"], capture_output=True, text=True, timeout=120)
     assert rp.returncode == 0, rp.stderr
     out = json.loads(rp.stdout.strip().splitlines()[-1])

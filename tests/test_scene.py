@@ -66,7 +66,7 @@ def test_bad_faults():
 def test_cli_sim_rejects_a_bad_scene(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("[[target]]\nrange_m = -3\nangle_deg = 0\namplitude = 1\n")
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "sim", "--scene", str(path), "--link",
+    proc = subprocess.run([sys.executable, "-m", "qradar", "sim", "--scene", str(path), "--link",
                            str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "qradar sim: error:" in proc.stderr and "range_m: -3 is outside" in proc.stderr

@@ -170,7 +170,7 @@ def _wait_for(path: Path, timeout_s: float = 20.0) -> None:
 
 @pytest.mark.parametrize("garbage", [False, True])
 def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
-    sim_cmd = [sys.executable, "-m", "pipeline.cli", "sim", "--scene", "chamber", "--link", str(link)]
+    sim_cmd = [sys.executable, "-m", "qradar", "sim", "--scene", "chamber", "--link", str(link)]
     if garbage:
         sim_cmd += ["--garbage", "0.2"]
     sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -178,7 +178,7 @@ def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
         _wait_for(link)
         out = tmp_path / "frames.npz"
         drive = subprocess.run(
-            [sys.executable, "-m", "pipeline.cli", "drive", "--port", str(link), "--frames", "40", "--json",
+            [sys.executable, "-m", "qradar", "drive", "--port", str(link), "--frames", "40", "--json",
              "--out", str(out)], capture_output=True, text=True, timeout=120)
         assert drive.returncode == 0, drive.stderr
         counters = json.loads(drive.stdout.strip().splitlines()[-1])
