@@ -90,19 +90,3 @@ class BusConfig:
 
     def liveliness_key(self, node: str) -> str:
         return f"{self.prefix}/alive/{node}/{uuid.uuid4().hex[:12]}"
-
-
-def bus_options(parser) -> None:
-    """Add --zenoh-config, --connect, --listen, --mode, --prefix to an argparse parser."""
-    g = parser.add_argument_group("zenoh")
-    g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh JSON5 config file")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    g.add_argument("--mode", choices=["peer", "client"], default="peer")
-    g.add_argument("--prefix", default="radar", help="key prefix (default radar)")
-
-
-def bus_from_args(args, mode: str | None = None) -> BusConfig:
-    return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                     config_file=args.zenoh_config, prefix=args.prefix)
-

@@ -68,6 +68,33 @@ class FrameSource(Protocol):
     def stats(self) -> dict[str, dict[str, int]]: ...
 
 
+class StoppableSource:
+    """The life cycle shared by sources without a port to close: a context manager whose
+    :meth:`request_stop` (safe from another thread) and :meth:`close` set ``_stop``,
+    which :meth:`frames` watches."""
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self._stop.set()
+
+    def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[RawFrame]:
+        return self.frames()
+
+
 @dataclass(frozen=True)
 class SimSourceConfig:
     """In-process simulated sensors.
@@ -107,34 +134,22 @@ class _SimSensorStats:
     dropped: int = 0
 
 
-class SimulatedSource:
+class SimulatedSource(StoppableSource):
     """Simulated sensors in this process (see :class:`SimSourceConfig`): every tick,
     one frame per sensor of the scene's ramps through the paper's model, with sensor
     noise and the 12-bit ADC of the simulated K-MD2. Paced on the monotonic clock; a
     tick that comes more than a frame period late is counted in ``late_ticks``."""
 
     def __init__(self, config: SimSourceConfig):
+        super().__init__()
         self.config = config
         self.radar = config.scene.radar
         self.late_ticks = 0
         self.elapsed_s = 0.0
-        self._stop = threading.Event()
         self._stats = {sid: _SimSensorStats() for sid in config.sensor_ids}
         self._rngs = [np.random.default_rng(np.random.SeedSequence(config.seed + i, spawn_key=(0,)))
                       for i in range(config.sensors)]
         self._tick = 0
-
-    def __enter__(self) -> "SimulatedSource":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def request_stop(self) -> None:
-        self._stop.set()
-
-    def close(self) -> None:
-        self._stop.set()
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {sid: {"frames": st.frames, "dropped": st.dropped} for sid, st in self._stats.items()}
@@ -171,7 +186,4 @@ class SimulatedSource:
                         return
         finally:
             self.elapsed_s = time.monotonic() - t0
-
-    def __iter__(self) -> Iterator[RawFrame]:
-        return self.frames()
 

@@ -12,14 +12,13 @@ yields the frames of its complete chunks and sets ``truncated``.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 from pipeline.wire import WireError, decode_raw
-from radar_driver.source import RawFrame
+from radar_driver.source import RawFrame, StoppableSource
 
 from .errors import ReplayError
 from .mcapio import McapFile
@@ -35,13 +34,14 @@ class _RecordedSensorStats:
     last_seq: int | None = None
 
 
-class RecordingSource:
+class RecordingSource(StoppableSource):
     """``with RecordingSource(path) as src: for frame in src.frames(): ...``
 
     sensors: the sensor ids to read (None = all). rate: None = as fast as read, else
     the recorded pace (log times) times ``rate``."""
 
     def __init__(self, path: str | Path, sensors: list[str] | None = None, rate: float | None = None):
+        super().__init__()
         if rate is not None and not rate > 0:
             raise ReplayError(f"rate={rate!r} must be > 0 (or None: as fast as read)")
         self.path = Path(path)
@@ -50,21 +50,11 @@ class RecordingSource:
         self.file = McapFile(self.path)
         self.truncated = False
         self._stats: dict[str, _RecordedSensorStats] = {}
-        self._stop = threading.Event()
 
     def __enter__(self) -> "RecordingSource":
         if not self.path.is_file():
             raise ReplayError(f"cannot open {self.path}: no such file")
         return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def request_stop(self) -> None:
-        self._stop.set()
-
-    def close(self) -> None:
-        self._stop.set()
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {sid: {"frames": st.frames, "dropped": st.dropped, "bad_frames": st.bad_frames}
@@ -115,6 +105,3 @@ class RecordingSource:
         if self.truncated:
             log.warning("%s is cut short (%s); read up to its last complete chunk", self.path,
                         self.file.truncation_reason)
-
-    def __iter__(self) -> Iterator[RawFrame]:
-        return self.frames()
