@@ -1,7 +1,23 @@
+"""Shared fixtures: a radar configuration, a seeded rng, and the zenoh ones (an embedded
+peer session, a free loopback port, a bounded connect to a listener in another process).
+Helpers that are not fixtures (Collector, wait_until, free_port) live in zenoh_helpers."""
+
+import time
+
 import numpy as np
 import pytest
 
+import zenoh_helpers
+from pipeline.bus import BusConfig
+from pipeline.errors import PipelineError
 from radar_driver.model import RadarConfig
+
+#: pause between two connection attempts, s
+CONNECT_RETRY_S = 0.2
+#: how long one opened session may wait for the peer or router to join before it is retried, s
+CONNECT_ATTEMPT_S = 2.0
+#: how often a session is polled for its peers / routers, s
+CONNECT_POLL_S = 0.05
 
 
 @pytest.fixture
@@ -12,3 +28,76 @@ def cfg() -> RadarConfig:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture
+def bus() -> BusConfig:
+    """The default bus: an isolated embedded peer (no listener, no scouting)."""
+    return BusConfig()
+
+
+@pytest.fixture
+def zenoh_session(bus):
+    """A session opened with ``bus.open()`` (the ``bus`` fixture of the same test), closed after."""
+    session = bus.open()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+@pytest.fixture(name="free_port")
+def free_port_fixture() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    return zenoh_helpers.free_port()
+
+
+def _joined(session, timeout_s: float) -> bool:
+    """True once ``session`` sees a peer or a router, polling for at most ``timeout_s``."""
+    for _ in range(max(1, int(timeout_s / CONNECT_POLL_S)) + 1):
+        if session.info.peers_zid() or session.info.routers_zid():
+            return True
+        time.sleep(CONNECT_POLL_S)
+    return False
+
+
+@pytest.fixture
+def connect_when_ready():
+    """``connect_when_ready(endpoint, timeout_s=20, mode="peer")``: a zenoh session connected
+    to ``endpoint``, whose listener is in another process that may not be up yet.
+
+    Each attempt opens a session (a client fails at once when nothing listens: a
+    PipelineError) and waits up to CONNECT_ATTEMPT_S for a peer or router to join (a peer
+    opens even when nothing listens); an attempt that fails is closed and retried after
+    CONNECT_RETRY_S. At most ``timeout_s / CONNECT_RETRY_S + 1`` attempts, none started
+    after ``timeout_s``; then the test fails saying what the last attempt saw. Sessions
+    are closed when the test ends (closing one earlier in the test is fine too)."""
+    opened = []
+
+    def connect(endpoint: str, timeout_s: float = 20.0, mode: str = "peer"):
+        bus = BusConfig(mode=mode, connect=(endpoint,))
+        deadline = time.monotonic() + timeout_s
+        max_attempts = int(timeout_s / CONNECT_RETRY_S) + 1
+        last = "no attempt was made"
+        for attempt in range(1, max_attempts + 1):
+            try:
+                session = bus.open()
+            except PipelineError as exc:
+                last = str(exc)
+            else:
+                t_open = time.monotonic()
+                if _joined(session, max(0.0, min(CONNECT_ATTEMPT_S, deadline - t_open))):
+                    opened.append(session)
+                    return session
+                session.close()
+                last = (f"a session opened, but no peer or router had joined it "
+                        f"{time.monotonic() - t_open:.1f} s later")
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(CONNECT_RETRY_S)
+        pytest.fail(f"could not connect a zenoh {mode} to {endpoint} within {timeout_s} s "
+                    f"({attempt} attempts); last attempt: {last}", pytrace=False)
+
+    yield connect
+    for session in opened:
+        session.close()

@@ -24,13 +24,7 @@ from pipeline.wire import (
     encode_raw,
 )
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import Collector, free_port, wait_until
-
-
-
-
-
-
+from zenoh_helpers import Collector, wait_until
 
 
 def truth_error(scene, targets_msgs):
@@ -45,122 +39,106 @@ def truth_error(scene, targets_msgs):
     return np.array(errs)  # (frames, targets)
 
 
-def test_in_process_pipeline_localizes_the_scenes():
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        col = Collector(session, "radar/**")
-        single, chamber = resolve_scene("single"), resolve_scene("chamber")
-        nodes = [LocalizeNode(bus, LocalizerConfig(k=2, radar=chamber.radar), session=session),
-                 QuantizeNode(bus, QuantizerConfig(alpha=0.55, dither_seed=1), session=session),
-                 SourceNode(bus, SimulatedSource(SimSourceConfig(
-                     chamber, sensors=3, rate_hz=100, id_prefix="ch", frames=60)), session=session),
-                 SourceNode(bus, SimulatedSource(SimSourceConfig(
-                     single, sensors=1, rate_hz=100, id_prefix="one", frames=60)), session=session)]
-        threading.Thread(target=lambda: (nodes[2].done.wait(30), nodes[3].done.wait(30), time.sleep(0.5)),
-                         daemon=True).start()
-        run_nodes(nodes, duration_s=3.0)
-        targets = [decode_targets(p) for p in col.of("/targets")]
-        by_sensor = {}
-        for t in targets:
-            by_sensor.setdefault(t.sensor_id, []).append(t)
-        assert set(by_sensor) == {"ch0", "ch1", "ch2", "one0"}  # one node, many sensors
-        assert all(len(v) == 60 for v in by_sensor.values())
-        # single noiseless target, 1-bit dithered, on grid (12 m = bin 20): within 0.5 m in 95 % of frames
-        e1 = truth_error(single, by_sensor["one0"])
-        assert np.percentile(e1, 95) < 0.5, e1.ravel()
-        # the chamber (weak target at 4.8 m, noise): median error under 1 m for each target
-        ec = truth_error(chamber, by_sensor["ch0"] + by_sensor["ch1"] + by_sensor["ch2"])
-        assert np.all(np.median(ec, axis=0) < 1.0), np.median(ec, axis=0)
-        q = decode_quantized(col.of("/quantized")[0])
-        assert q.bits == 1 and q.alpha == pytest.approx(0.55) and len(col.of("/quantized")[0]) == 320
-        # the dither of each sensor is distinct (per-sensor seeds)
-        seeds = {decode_quantized(p).dither_seed for p in col.of("/quantized")}
-        assert len(seeds) == 4
-        health = [decode_health(p) for p in col.of("/health")]
-        assert {h.node for h in health} >= {"quantize", "localize", "source"}
-        last_loc = [h for h in health if h.node == "localize" and h.sensor_id == "ch0"][-1]
-        assert last_loc.frames_out == 60 and last_loc.drops == 0 and last_loc.latency_ms["p50"] > 0
-        col.sub.undeclare()
-    finally:
-        session.close()
+def test_in_process_pipeline_localizes_the_scenes(bus, zenoh_session):
+    session = zenoh_session
+    col = Collector(session, "radar/**")
+    single, chamber = resolve_scene("single"), resolve_scene("chamber")
+    nodes = [LocalizeNode(bus, LocalizerConfig(k=2, radar=chamber.radar), session=session),
+             QuantizeNode(bus, QuantizerConfig(alpha=0.55, dither_seed=1), session=session),
+             SourceNode(bus, SimulatedSource(SimSourceConfig(
+                 chamber, sensors=3, rate_hz=100, id_prefix="ch", frames=60)), session=session),
+             SourceNode(bus, SimulatedSource(SimSourceConfig(
+                 single, sensors=1, rate_hz=100, id_prefix="one", frames=60)), session=session)]
+    threading.Thread(target=lambda: (nodes[2].done.wait(30), nodes[3].done.wait(30), time.sleep(0.5)),
+                     daemon=True).start()
+    run_nodes(nodes, duration_s=3.0)
+    targets = [decode_targets(p) for p in col.of("/targets")]
+    by_sensor = {}
+    for t in targets:
+        by_sensor.setdefault(t.sensor_id, []).append(t)
+    assert set(by_sensor) == {"ch0", "ch1", "ch2", "one0"}  # one node, many sensors
+    assert all(len(v) == 60 for v in by_sensor.values())
+    # single noiseless target, 1-bit dithered, on grid (12 m = bin 20): within 0.5 m in 95 % of frames
+    e1 = truth_error(single, by_sensor["one0"])
+    assert np.percentile(e1, 95) < 0.5, e1.ravel()
+    # the chamber (weak target at 4.8 m, noise): median error under 1 m for each target
+    ec = truth_error(chamber, by_sensor["ch0"] + by_sensor["ch1"] + by_sensor["ch2"])
+    assert np.all(np.median(ec, axis=0) < 1.0), np.median(ec, axis=0)
+    q = decode_quantized(col.of("/quantized")[0])
+    assert q.bits == 1 and q.alpha == pytest.approx(0.55) and len(col.of("/quantized")[0]) == 320
+    # the dither of each sensor is distinct (per-sensor seeds)
+    seeds = {decode_quantized(p).dither_seed for p in col.of("/quantized")}
+    assert len(seeds) == 4
+    health = [decode_health(p) for p in col.of("/health")]
+    assert {h.node for h in health} >= {"quantize", "localize", "source"}
+    last_loc = [h for h in health if h.node == "localize" and h.sensor_id == "ch0"][-1]
+    assert last_loc.frames_out == 60 and last_loc.drops == 0 and last_loc.latency_ms["p50"] > 0
+    col.sub.undeclare()
 
 
-def test_quantized_frames_carry_a_reproducible_dither():
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        col = Collector(session, "radar/*/quantized")
-        scene = resolve_scene("single")
-        q = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=5), session=session)
-        src = SourceNode(bus, SimulatedSource(SimSourceConfig(
-                     scene, sensors=1, rate_hz=200, frames=5)), session=session)
-        raw = Collector(session, "radar/*/raw")
-        run_nodes([q, src], duration_s=1.5)
-        from pipeline.quantize import quantize
-        from pipeline.wire import decode_raw
+def test_quantized_frames_carry_a_reproducible_dither(bus, zenoh_session):
+    session = zenoh_session
+    col = Collector(session, "radar/*/quantized")
+    scene = resolve_scene("single")
+    q = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=5), session=session)
+    src = SourceNode(bus, SimulatedSource(SimSourceConfig(
+                 scene, sensors=1, rate_hz=200, frames=5)), session=session)
+    raw = Collector(session, "radar/*/raw")
+    run_nodes([q, src], duration_s=1.5)
+    from pipeline.quantize import quantize
+    from pipeline.wire import decode_raw
 
-        raws = {m.seq: m for m in map(decode_raw, raw.of("/raw"))}
-        for p in col.of("/quantized"):
-            m = decode_quantized(p)
-            u = unit_dither(m.dither_seed, m.seq, 512)
-            again = quantize(raws[m.seq].data[None].astype(complex), m.delta, 1, m.alpha * m.delta * u)
-            assert np.array_equal(again[0], m.codes)  # a decoder regenerates xi exactly
-    finally:
-        session.close()
+    raws = {m.seq: m for m in map(decode_raw, raw.of("/raw"))}
+    for p in col.of("/quantized"):
+        m = decode_quantized(p)
+        u = unit_dither(m.dither_seed, m.seq, 512)
+        again = quantize(raws[m.seq].data[None].astype(complex), m.delta, 1, m.alpha * m.delta * u)
+        assert np.array_equal(again[0], m.codes)  # a decoder regenerates xi exactly
 
 
-def test_a_node_survives_garbage_and_reports_it_in_health():
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        col = Collector(session, "radar/**")
-        q = QuantizeNode(bus, QuantizerConfig(), session=session, health_period_s=0.2).start()
-        loc = LocalizeNode(bus, LocalizerConfig(k=1), session=session, health_period_s=0.2).start()
-        time.sleep(0.2)
-        session.put("radar/bad1/raw", b"\x00garbage")
-        session.put("radar/bad1/quantized", b"QRDR\x01\x02\x01\x01" + bytes(10))
-        session.put("radar/bad1/raw", encode_raw(RawFrameMsg("other", 0, 0, 0, np.zeros((512, 2), np.complex64))))
-        scene = resolve_scene("single")
-        frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
-        for i in range(3):
-            session.put("radar/bad1/raw", encode_raw(RawFrameMsg("bad1", i, time.time_ns(), scene.radar.config_id(), frame)))
-        wait_until(lambda: len(col.of("bad1/targets")) == 3, 10, "targets after garbage")
+def test_a_node_survives_garbage_and_reports_it_in_health(bus, zenoh_session):
+    session = zenoh_session
+    col = Collector(session, "radar/**")
+    q = QuantizeNode(bus, QuantizerConfig(), session=session, health_period_s=0.2).start()
+    loc = LocalizeNode(bus, LocalizerConfig(k=1), session=session, health_period_s=0.2).start()
+    time.sleep(0.2)
+    session.put("radar/bad1/raw", b"\x00garbage")
+    session.put("radar/bad1/quantized", b"QRDR\x01\x02\x01\x01" + bytes(10))
+    session.put("radar/bad1/raw", encode_raw(RawFrameMsg("other", 0, 0, 0, np.zeros((512, 2), np.complex64))))
+    scene = resolve_scene("single")
+    frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+    for i in range(3):
+        session.put("radar/bad1/raw", encode_raw(RawFrameMsg("bad1", i, time.time_ns(), scene.radar.config_id(), frame)))
+    wait_until(lambda: len(col.of("bad1/targets")) == 3, 10, "targets after garbage")
 
-        def errors(node):
-            hs = [decode_health(p) for p in col.of("bad1/health")]
-            hs = [h for h in hs if h.node == node]
-            return hs[-1].decode_errors if hs else -1
+    def errors(node):
+        hs = [decode_health(p) for p in col.of("bad1/health")]
+        hs = [h for h in hs if h.node == node]
+        return hs[-1].decode_errors if hs else -1
 
-        wait_until(lambda: errors("quantize") == 2 and errors("localize") == 1, 10, "health with decode errors")
-        assert q.totals()["decode_errors"] == 2 and not q.errors and not loc.errors
-        q.stop()
-        loc.stop()
-    finally:
-        session.close()
+    wait_until(lambda: errors("quantize") == 2 and errors("localize") == 1, 10, "health with decode errors")
+    assert q.totals()["decode_errors"] == 2 and not q.errors and not loc.errors
+    q.stop()
+    loc.stop()
 
 
-def test_a_full_queue_drops_are_counted_never_silent():
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        class SlowQuantize(QuantizeNode):
-            def process(self, batch):
-                time.sleep(0.01)
-                super().process(batch)
+def test_a_full_queue_drops_are_counted_never_silent(bus, zenoh_session):
+    session = zenoh_session
+    class SlowQuantize(QuantizeNode):
+        def process(self, batch):
+            time.sleep(0.01)
+            super().process(batch)
 
-        q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1).start()
-        frame = np.zeros((512, 2), np.complex64)
-        pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
-        for i in range(100):
-            pub.put(encode_raw(RawFrameMsg("fl", i, 0, 0, frame)))
-        q.stop()
-        t = q.totals()
-        assert t["frames_in"] == 100
-        assert t["drops"] > 0
-        assert t["frames_out"] + t["drops"] == 100  # every frame is either processed or counted
-    finally:
-        session.close()
+    q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1).start()
+    frame = np.zeros((512, 2), np.complex64)
+    pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+    for i in range(100):
+        pub.put(encode_raw(RawFrameMsg("fl", i, 0, 0, frame)))
+    q.stop()
+    t = q.totals()
+    assert t["frames_in"] == 100
+    assert t["drops"] > 0
+    assert t["frames_out"] + t["drops"] == 100  # every frame is either processed or counted
 
 
 def _spawn(args):
@@ -168,21 +146,27 @@ def _spawn(args):
                             stderr=subprocess.PIPE, text=True)
 
 
-def test_nodes_in_separate_processes_over_loopback():
-    port = free_port()
-    ep = f"tcp/127.0.0.1:{port}"
+def _stop(procs, timeout_s=20):
+    """SIGTERM every process, then collect (stdout, stderr) of each; one that has not exited
+    within ``timeout_s`` is killed (its return code then says so)."""
+    for p in procs:
+        p.terminate()
+    outs = []
+    for p in procs:
+        try:
+            outs.append(p.communicate(timeout=timeout_s))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            outs.append(p.communicate(timeout=timeout_s))
+    return outs
+
+
+def test_nodes_in_separate_processes_over_loopback(free_port, connect_when_ready):
+    ep = f"tcp/127.0.0.1:{free_port}"
     procs = [_spawn(["quantize", "--listen", ep, "--alpha", "0.5", "--duration", "40"]),
              _spawn(["localize", "--connect", ep, "--K", "1", "--duration", "40"])]
-    bus = BusConfig(connect=(ep,))
     try:
-        session = None
-        deadline = time.monotonic() + 20
-        while session is None:
-            try:
-                session = bus.open()
-            except Exception:
-                assert time.monotonic() < deadline, "quantize node never listened"
-                time.sleep(0.2)
+        session = connect_when_ready(ep, timeout_s=20)
         col = Collector(session, "radar/**")
 
         def alive():
@@ -202,23 +186,19 @@ def test_nodes_in_separate_processes_over_loopback():
         assert np.percentile(truth_error(scene, targets), 90) < 0.5
         session.close()
     finally:
-        for p in procs:
-            p.terminate()
-        outs = [p.communicate(timeout=20) for p in procs]
+        outs = _stop(procs)
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err
         summary = json.loads(out.strip().splitlines()[-1])
         assert summary["frames_out"] == 20 and summary["drops"] == 0
 
 
-def test_router_joins_clients():
-    port = free_port()
-    ep = f"tcp/127.0.0.1:{port}"
+def test_router_joins_clients(free_port, connect_when_ready):
+    ep = f"tcp/127.0.0.1:{free_port}"
     router = _spawn(["router", "--listen", ep, "--duration", "30"])
     try:
-        wait_until(lambda: router.stdout.readline().startswith("zenoh router"), 20, "router start")
-        a = BusConfig(mode="client", connect=(ep,)).open()
-        b = BusConfig(mode="client", connect=(ep,)).open()
+        a = connect_when_ready(ep, timeout_s=20, mode="client")
+        b = connect_when_ready(ep, timeout_s=20, mode="client")
         col = Collector(b, "radar/**")
         time.sleep(0.5)
         for _ in range(5):
@@ -228,9 +208,9 @@ def test_router_joins_clients():
         a.close()
         b.close()
     finally:
-        router.terminate()
-        router.communicate(timeout=20)
-    assert router.returncode == 0
+        [(out, err)] = _stop([router])
+    assert router.returncode == 0, err
+    assert out.startswith("zenoh router"), out
 
 
 def test_qradar_run_end_to_end_json():
@@ -264,29 +244,25 @@ def test_bus_config_errors():
     assert BusConfig().sensor_of("radar/s1/targets") == "s1" and BusConfig().sensor_of("radar/s1/x") is None
 
 
-def test_localizer_node_with_the_dither_aware_decoder():
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        col = Collector(session, "radar/**")
-        scene = resolve_scene("single")
-        loc = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2)
-        nodes = [loc,
-                 QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=2), session=session),
-                 SourceNode(bus, SimulatedSource(SimSourceConfig(
-                     scene, sensors=1, rate_hz=100, id_prefix="qd", frames=30)), session=session)]
-        run_nodes(nodes, duration_s=1.5)
-        targets = [decode_targets(p) for p in col.of("qd0/targets")]
-        assert len(targets) == 30 and all(t.algo == "qiht" for t in targets)
-        assert np.percentile(truth_error(scene, targets), 90) < 0.3
-        # a non-dithered frame: counted and logged, the node keeps running
-        loc2 = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2).start()
-        q0 = QuantizeNode(bus, QuantizerConfig(alpha=0.0), session=session).start()
-        frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
-        session.put("radar/nd0/raw", encode_raw(RawFrameMsg("nd0", 0, time.time_ns(), scene.radar.config_id(), frame)))
-        wait_until(lambda: loc2.totals()["decode_errors"] == 1, 10, "the non-dithered frame to be refused")
-        assert not loc2.errors
-        q0.stop()
-        loc2.stop()
-    finally:
-        session.close()
+def test_localizer_node_with_the_dither_aware_decoder(bus, zenoh_session):
+    session = zenoh_session
+    col = Collector(session, "radar/**")
+    scene = resolve_scene("single")
+    loc = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2)
+    nodes = [loc,
+             QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=2), session=session),
+             SourceNode(bus, SimulatedSource(SimSourceConfig(
+                 scene, sensors=1, rate_hz=100, id_prefix="qd", frames=30)), session=session)]
+    run_nodes(nodes, duration_s=1.5)
+    targets = [decode_targets(p) for p in col.of("qd0/targets")]
+    assert len(targets) == 30 and all(t.algo == "qiht" for t in targets)
+    assert np.percentile(truth_error(scene, targets), 90) < 0.3
+    # a non-dithered frame: counted and logged, the node keeps running
+    loc2 = LocalizeNode(bus, LocalizerConfig(k=1, algo="qiht"), session=session, health_period_s=0.2).start()
+    q0 = QuantizeNode(bus, QuantizerConfig(alpha=0.0), session=session).start()
+    frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+    session.put("radar/nd0/raw", encode_raw(RawFrameMsg("nd0", 0, time.time_ns(), scene.radar.config_id(), frame)))
+    wait_until(lambda: loc2.totals()["decode_errors"] == 1, 10, "the non-dithered frame to be refused")
+    assert not loc2.errors
+    q0.stop()
+    loc2.stop()

@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
 from pipeline.bus import BusConfig
@@ -25,8 +28,6 @@ from zenoh_helpers import Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
-
-
 
 
 def traffic(n=30, sensors=("a0", "b1")):
@@ -50,108 +51,83 @@ def per_topic(pairs):
     return d
 
 
-
-
-def test_record_then_replay_round_trip(tmp_path):
-    bus = BusConfig()
-    session = bus.open()
+def test_record_then_replay_round_trip(tmp_path, bus, zenoh_session):
+    session = zenoh_session
     path = tmp_path / "rt.mcap"
-    try:
-        rec = RecorderNode(bus, path, session=session, topics="radar/*/raw", health_period_s=60).start()
-        rec2 = RecorderNode(bus, tmp_path / "all.mcap", session=session, health_period_s=60).start()
-        sent = traffic()
-        for key, payload in sent:
-            session.put(key, payload)
-        wait_until(lambda: rec2.written >= len(sent), 10, "recorder to write everything")
-        rec.stop()
-        rec2.stop()
-        f = McapFile(tmp_path / "all.mcap")
-        msgs = list(f.messages())
-        assert not f.truncated
-        topics = {ch.topic for ch, _ in msgs}
-        assert {"radar/a0/raw", "radar/a0/targets", "radar/a0/pointcloud", "radar/b1/targets"} <= topics
-        assert {ch.topic for ch, _ in McapFile(path).messages()} == {"radar/a0/raw", "radar/b1/raw"}  # --topics
-        raw = [(ch, m) for ch, m in msgs if ch.topic == "radar/a0/raw"]
-        assert [m.sequence for _, m in raw] == list(range(30))  # the frames' seq
-        assert [m.publish_time for _, m in raw] == [1_000 + i for i in range(30)]  # the sensor timestamps
-        assert all(m.log_time > 1e18 for _, m in raw)  # arrival at the recorder, ns since the epoch
-        counters = f.metadata_dict()["qradar.recorder_counters"]
-        assert int(counters["dropped"]) == 0 and int(counters["written"]) == int(counters["received"])
+    rec = RecorderNode(bus, path, session=session, topics="radar/*/raw", health_period_s=60).start()
+    rec2 = RecorderNode(bus, tmp_path / "all.mcap", session=session, health_period_s=60).start()
+    sent = traffic()
+    for key, payload in sent:
+        session.put(key, payload)
+    wait_until(lambda: rec2.written >= len(sent), 10, "recorder to write everything")
+    rec.stop()
+    rec2.stop()
+    f = McapFile(tmp_path / "all.mcap")
+    msgs = list(f.messages())
+    assert not f.truncated
+    topics = {ch.topic for ch, _ in msgs}
+    assert {"radar/a0/raw", "radar/a0/targets", "radar/a0/pointcloud", "radar/b1/targets"} <= topics
+    assert {ch.topic for ch, _ in McapFile(path).messages()} == {"radar/a0/raw", "radar/b1/raw"}  # --topics
+    raw = [(ch, m) for ch, m in msgs if ch.topic == "radar/a0/raw"]
+    assert [m.sequence for _, m in raw] == list(range(30))  # the frames' seq
+    assert [m.publish_time for _, m in raw] == [1_000 + i for i in range(30)]  # the sensor timestamps
+    assert all(m.log_time > 1e18 for _, m in raw)  # arrival at the recorder, ns since the epoch
+    counters = f.metadata_dict()["qradar.recorder_counters"]
+    assert int(counters["dropped"]) == 0 and int(counters["written"]) == int(counters["received"])
 
-        col = Collector(session, "replay/**")
-        result = play(tmp_path / "all.mcap", bus, PlayConfig(fast=True, prefix="replay", topics="radar/*/raw"),
-                      session=session)
-        wait_until(lambda: len(col.items) == 60, 10, "replayed raw frames")
-        got = per_topic((k.replace("replay/", "radar/", 1), p) for k, p in col.items)
-        want = per_topic((k, p) for k, p in sent if k.endswith("/raw"))
-        assert got == want  # same messages, bytes and order per topic
-        assert result.published == 60 and not result.truncated
-        col.sub.undeclare()
-    finally:
-        session.close()
+    col = Collector(session, "replay/**")
+    result = play(tmp_path / "all.mcap", bus, PlayConfig(fast=True, prefix="replay", topics="radar/*/raw"),
+                  session=session)
+    wait_until(lambda: len(col.items) == 60, 10, "replayed raw frames")
+    got = per_topic((k.replace("replay/", "radar/", 1), p) for k, p in col.items)
+    want = per_topic((k, p) for k, p in sent if k.endswith("/raw"))
+    assert got == want  # same messages, bytes and order per topic
+    assert result.published == 60 and not result.truncated
+    col.sub.undeclare()
 
 
-def test_player_keeps_the_original_timing_scaled(tmp_path):
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        rec = RecorderNode(bus, tmp_path / "t.mcap", session=session, health_period_s=60).start()
-        for i in range(6):
-            session.put("radar/tm/health", json.dumps({"version": 1, "type": "health", "node": "x", "sensor_id": "tm",
-                                                        "timestamp_ns": i}).encode())
-            time.sleep(0.1)
-        wait_until(lambda: rec.written == 6, 10)
-        rec.stop()
-        t0 = time.monotonic()
-        r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=2.0), session=session)
-        elapsed = time.monotonic() - t0
-        assert r.published == 6 and 0.2 <= elapsed < 5  # 0.5 s of traffic at twice the speed
-        r = play(tmp_path / "t.mcap", bus, PlayConfig(fast=True, start_s=0.25), session=session)
-        assert 2 <= r.published <= 4
-        stop = threading.Event()
-        threading.Timer(1.2, stop.set).start()
-        r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=4.0, loop=True), session=session, stop=stop)
-        assert r.loops >= 2 and r.published >= 12
-    finally:
-        session.close()
+def test_player_keeps_the_original_timing_scaled(tmp_path, bus, zenoh_session):
+    session = zenoh_session
+    rec = RecorderNode(bus, tmp_path / "t.mcap", session=session, health_period_s=60).start()
+    for i in range(6):
+        session.put("radar/tm/health", json.dumps({"version": 1, "type": "health", "node": "x", "sensor_id": "tm",
+                                                    "timestamp_ns": i}).encode())
+        time.sleep(0.1)
+    wait_until(lambda: rec.written == 6, 10)
+    rec.stop()
+    t0 = time.monotonic()
+    r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=2.0), session=session)
+    elapsed = time.monotonic() - t0
+    assert r.published == 6 and 0.2 <= elapsed < 5  # 0.5 s of traffic at twice the speed
+    r = play(tmp_path / "t.mcap", bus, PlayConfig(fast=True, start_s=0.25), session=session)
+    assert 2 <= r.published <= 4
+    stop = threading.Event()
+    threading.Timer(1.2, stop.set).start()
+    r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=4.0, loop=True), session=session, stop=stop)
+    assert r.loops >= 2 and r.published >= 12
 
 
-def test_split_by_duration(tmp_path):
-    bus = BusConfig()
-    session = bus.open()
-    try:
-        rec = RecorderNode(bus, tmp_path / "s.mcap", session=session, split_duration_s=0.3, health_period_s=60).start()
-        for i in range(10):
-            session.put("radar/sp/raw", encode_raw(RawFrameMsg("sp", i, i, 7, np.zeros((4, 2), np.complex64))))
-            time.sleep(0.1)
-        wait_until(lambda: rec.written == 10, 10)
-        rec.stop()
-        assert len(rec.paths) >= 2
-        total = sum(McapFile(p).scan() for p in rec.paths)
-        assert total == 10
-    finally:
-        session.close()
+def test_split_by_duration(tmp_path, bus, zenoh_session):
+    session = zenoh_session
+    rec = RecorderNode(bus, tmp_path / "s.mcap", session=session, split_duration_s=0.3, health_period_s=60).start()
+    for i in range(10):
+        session.put("radar/sp/raw", encode_raw(RawFrameMsg("sp", i, i, 7, np.zeros((4, 2), np.complex64))))
+        time.sleep(0.1)
+    wait_until(lambda: rec.written == 10, 10)
+    rec.stop()
+    assert len(rec.paths) >= 2
+    total = sum(McapFile(p).scan() for p in rec.paths)
+    assert total == 10
 
 
-def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_path):
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    ep = f"tcp/127.0.0.1:{port}"
+def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_path, free_port, connect_when_ready):
+    ep = f"tcp/127.0.0.1:{free_port}"
     path = tmp_path / "killed.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "qradar", "record", "-o", str(path), "--listen", ep],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     session = None
     try:
-        deadline = time.monotonic() + 20
-        while session is None:
-            try:
-                session = BusConfig(connect=(ep,)).open()
-            except Exception:
-                assert time.monotonic() < deadline, "recorder never listened"
-                time.sleep(0.2)
+        session = connect_when_ready(ep, timeout_s=20)
         wait_until(lambda: any(r.ok is not None for r in session.liveliness().get("radar/alive/record/**",
                                                                                   timeout=1.0)), 20, "recorder alive")
         sent_at = []
@@ -180,25 +156,44 @@ def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_pat
     g = McapFile(out)
     assert [m.sequence for ch, m in g.messages() if ch.topic == "radar/k1/raw"] == seqs
     assert not g.truncated and "qradar.versions" in g.metadata_dict()
-    from mcap.reader import make_reader
-
     with open(out, "rb") as fh:  # complete and indexed: the seeking reader uses the summary
         summary = make_reader(fh).get_summary()
         assert summary is not None and summary.statistics.message_count >= len(seqs)
 
 
-def test_truncated_file_plays_up_to_its_last_complete_chunk(tmp_path):
+def test_truncated_file_plays_up_to_its_last_complete_chunk(tmp_path, bus, zenoh_session):
     data = CHAMBER.read_bytes()
+    cut_at = int(len(data) * 0.6)
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: int(len(data) * 0.6)])
-    full = McapFile(CHAMBER)
-    n_full = full.scan()
+    cut.write_bytes(data[:cut_at])
+    # what "its last complete chunk" means, from the complete file's own chunk index
+    with open(CHAMBER, "rb") as fh:
+        index = sorted(make_reader(fh).get_summary().chunk_indexes, key=lambda ci: ci.chunk_start_offset)
+    with open(CHAMBER, "rb") as fh:
+        chunks = [r for r in StreamReader(fh, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) == len(index)
+    complete = sum(ci.chunk_start_offset + ci.chunk_length <= cut_at for ci in index)
+    assert 0 < complete < len(index)  # the cut falls inside a later chunk
+    in_complete_chunks = sum(isinstance(r, Message) for c in chunks[:complete] for r in breakup_chunk(c))
+
+    full = list(McapFile(CHAMBER).messages())
     f = McapFile(cut)
-    n_cut = f.scan()
-    assert f.truncated and 0 < n_cut < n_full
-    bus = BusConfig()
-    r = play(cut, bus, PlayConfig(fast=True, prefix="cutplay"))
-    assert r.truncated and r.published > 0
+    got = list(f.messages())
+    assert f.truncated and f.truncation_reason
+    # every message of the complete chunks, none of the cut one, in the file's order
+    assert len(got) == in_complete_chunks < len(full)
+    assert [(ch.topic, m.log_time, m.data) for ch, m in got] == \
+        [(ch.topic, m.log_time, m.data) for ch, m in full[:in_complete_chunks]]
+
+    # the player publishes exactly those (its qradar channels: not the pointclouds) and says it was cut
+    want = [(ch.topic, m.data) for ch, m in got if ch.topic.rsplit("/", 1)[-1] in ("raw", "quantized", "targets",
+                                                                                   "health")]
+    col = Collector(zenoh_session, "cutplay/**")
+    r = play(cut, bus, PlayConfig(fast=True, prefix="cutplay"), session=zenoh_session)
+    assert r.truncated and r.published == len(want) > 0
+    wait_until(lambda: len(col.items) >= len(want), 10, "the cut file's messages")
+    assert per_topic((k.replace("cutplay/", "radar/", 1), p) for k, p in col.items) == per_topic(want)
+    col.sub.undeclare()
 
 
 def test_bad_files_give_clear_errors(tmp_path):

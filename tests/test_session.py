@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radar_driver.model import simulate_frames
+from pipeline.localize import localize
+from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.protocol import Gnfd, Init, OtherMessage, Resp, RespCode, StreamDecoder, encode
 from radar_driver.scene import SimScene, SimTarget, resolve_scene
 from radar_driver.session import (
@@ -22,6 +23,7 @@ from radar_driver.session import (
     SessionConfig,
 )
 from radar_driver.simulator import SimFaults, SimulatedKMD2, SimulatorServer
+from zenoh_helpers import wait_until
 
 LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
 SCENE = SimScene((SimTarget(12.0, 20.0, 0.5), SimTarget(4.8, -35.0, 0.1, phase_deg=40.0)))
@@ -161,13 +163,6 @@ def test_device_answers_errors_like_the_sensor():
     assert "RESP 2 (INVALID_PARAMETER)" in str(err)
 
 
-def _wait_for(path: Path, timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        assert time.monotonic() < deadline, f"{path} did not appear within {timeout_s} s"
-        time.sleep(0.05)
-
-
 @pytest.mark.parametrize("garbage", [False, True])
 def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
     sim_cmd = [sys.executable, "-m", "qradar", "sim", "--scene", "chamber", "--link", str(link)]
@@ -175,7 +170,7 @@ def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
         sim_cmd += ["--garbage", "0.2"]
     sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for(link)
+        wait_until(link.exists, 20, f"{link} to appear")
         out = tmp_path / "frames.npz"
         drive = subprocess.run(
             [sys.executable, "-m", "qradar", "drive", "--port", str(link), "--frames", "40", "--json",
@@ -189,12 +184,22 @@ def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
         else:
             assert counters["resyncs"] == 0
         saved = np.load(out)
-        assert saved["frames"].shape == (40, 512, 2)
-        # the chamber scene's strong reflector dominates every frame
-        chamber = resolve_scene("chamber")
-        assert np.abs(saved["frames"]).max() < 1.0
+        frames = saved["frames"]
+        assert frames.shape == (40, 512, 2)
         assert saved["seq"].tolist() == list(range(40))
-        assert json.loads(str(saved["radar_config"]))["ramps_per_frame"] == chamber.radar.ramps_per_frame
+        chamber = resolve_scene("chamber")  # radar_driver/scenes/chamber.toml
+        radar = RadarConfig.from_dict(json.loads(str(saved["radar_config"])))
+        assert radar == chamber.radar and radar.ramps_per_frame == 2
+        # no clipping: no I or Q sample at either end of the 12-bit ADC (codes 0 and 4095)
+        assert -1.0 < frames.real.min() and frames.real.max() < 2047 / 2048
+        assert -1.0 < frames.imag.min() and frames.imag.max() < 2047 / 2048
+        # the chamber scene's strong reflector dominates every frame: PBP's strongest detection
+        # is it, within one range bin and a few degrees
+        strong = max(chamber.targets, key=lambda t: t.amplitude)
+        assert strong.amplitude > 2 * min(t.amplitude for t in chamber.targets)
+        det = localize(frames, radar, k=len(chamber.targets))
+        assert np.all(np.abs(det.range_m[:, 0] - strong.range_m) <= radar.range_resolution_m), det.range_m[:, 0]
+        assert np.all(np.abs(det.angle_deg[:, 0] - strong.angle_deg) <= 3.0), det.angle_deg[:, 0]
     finally:
         sim.send_signal(signal.SIGINT)
         try:

@@ -1,8 +1,11 @@
-"""Helpers shared by the zenoh tests: bounded waits, a collecting subscriber, a free port."""
+"""Helpers shared by the tests (not fixtures; those are in conftest.py): a bounded wait, a
+collecting zenoh subscriber, a free loopback port for code that needs one outside a fixture."""
 
 import socket
 import threading
 import time
+
+import pytest
 
 
 def free_port() -> int:
@@ -11,11 +14,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_until(pred, timeout_s=20.0, what="condition"):
+def wait_until(pred, timeout_s=20.0, what="condition", poll_s=0.05):
+    """Poll ``pred`` every ``poll_s`` s until it is true; fail the test once ``timeout_s`` has
+    passed or after ``timeout_s / poll_s + 1`` polls, whichever comes first."""
     deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
-        time.sleep(0.05)
+    for _ in range(int(timeout_s / poll_s) + 1):
+        if pred():
+            return
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(poll_s)
+    pytest.fail(f"timed out after {timeout_s} s waiting for {what}", pytrace=False)
 
 
 class Collector:
