@@ -233,9 +233,13 @@ class TargetsMsg:
         return json.dumps(obj, separators=(",", ":")).encode()
 
 
+def _reject_constant(name: str):
+    raise json.JSONDecodeError(f"{name} is not a number JSON allows", name, 0)
+
+
 def _load_json(payload: bytes, source: str, kind: str) -> dict[str, Any]:
     try:
-        obj = json.loads(bytes(payload).decode("utf-8"))
+        obj = json.loads(bytes(payload).decode("utf-8"), parse_constant=_reject_constant)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise WireError(f"{kind} from {source}: not UTF-8 JSON ({exc})") from None
     if not isinstance(obj, dict):
@@ -255,7 +259,7 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
         return TargetsMsg(check_sensor_id(obj["sensor_id"]), int(obj["seq"]), int(obj["timestamp_ns"]),
                           int(obj["config_id"]), str(obj["algo"]), int(obj["K"]), str(obj["source"]), targets,
                           int(obj.get("published_ns", 0)))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise WireError(f"targets from {source}: missing or bad field ({exc!r})") from None
 
 
@@ -291,5 +295,5 @@ def decode_health(payload: bytes, source: str = "<bytes>") -> HealthMsg:
                          int(obj["frames_out"]), int(obj["drops"]), int(obj["decode_errors"]),
                          dict(obj["latency_ms"]), float(obj["bytes_in_per_s"]), float(obj["bytes_out_per_s"]),
                          dict(obj.get("extra", {})))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise WireError(f"health from {source}: missing or bad field ({exc!r})") from None
