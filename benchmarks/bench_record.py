@@ -29,6 +29,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.bus import BusConfig  # noqa: E402
+from pipeline.decode import Algo  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
 from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw  # noqa: E402
 from replay.mcapio import McapFile, McapSink  # noqa: E402
@@ -51,7 +52,7 @@ def messages(sensors: int) -> list[tuple[str, bytes]]:
         out.append((f"radar/{sid}/raw", encode_raw(RawFrameMsg(sid, 0, 0, 7, data[s].astype(np.complex64)))))
         out.append((f"radar/{sid}/quantized", encode_quantized(QuantizedFrameMsg(
             sid, 0, 0, 7, 1, q.alpha, float(q.delta[s]), 1, q.codes[s]))))
-        t = TargetsMsg(sid, 0, 0, 7, "pbp", 2, "quantized",
+        t = TargetsMsg(sid, 0, 0, 7, Algo.PBP, 2, "quantized",
                        [{"range_m": 9.0, "angle_deg": 15.0, "x_m": 8.7, "y_m": 2.3, "amplitude": 0.4}] * 2, 0)
         out.append((f"radar/{sid}/targets", t.to_json()))
     return out

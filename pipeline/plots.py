@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .decode import Algo
+
 
 def _pyplot():
     import matplotlib
@@ -111,7 +113,7 @@ def error_vs_m(summary: dict, stat: str = "median_m") -> dict[str, dict]:
         for name, st in block.items():
             m = pat.match(name)
             if m:
-                series.setdefault(f"{kkey} {m.group(2) or 'pbp'}", {})[int(m.group(1))] = st[stat]
+                series.setdefault(f"{kkey} {m.group(2) or Algo.PBP}", {})[int(m.group(1))] = st[stat]
     out = {}
     for label, pts in sorted(series.items()):
         if len(pts) < 2:
@@ -128,7 +130,7 @@ def error_vs_m_figure(path: Path, series: dict[str, dict], stat: str = "median")
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=110)
     for label, s in series.items():
-        ls = "-" if label.endswith("pbp") else "--"
+        ls = "-" if label.endswith(Algo.PBP) else "--"
         ax.loglog(s["M"], s["error_m"], ls, marker="o", label=f"{label}: slope {s['slope']:+.2f}")
     ax.set_xlabel("measurements M (whole ramps of 256)")
     ax.set_ylabel(f"{stat} position error (m)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from pipeline.decode import ALGOS
+from pipeline.decode import ALGOS, Algo
 from pipeline.montecarlo import DEFAULT_SCHEMES, MonteCarloConfig, prepare_out_dir, run_montecarlo, write_outputs
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
@@ -28,7 +28,8 @@ def add_commands(sub) -> None:
     p.add_argument("--schemes", nargs="+", default=list(DEFAULT_SCHEMES),
                    help="dither_m<M>, nodither_m<M>, 32bit_m<M> (default: the paper's four)")
     p.add_argument("--seed", type=nonneg_int, default=0)
-    p.add_argument("--algos", nargs="+", default=["pbp"], help=f"decoders: {', '.join(ALGOS)} (default pbp); "
+    p.add_argument("--algos", nargs="+", default=[Algo.PBP.value],
+                   help=f"decoders: {', '.join(ALGOS)} (default {Algo.PBP}); "
                    "non-PBP results appear as <scheme>@<algo>")
     p.add_argument("--fallback-pbp", action="store_true", help="decode schemes without dither with PBP "
                    "when a dither-aware algo is asked for")

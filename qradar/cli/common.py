@@ -7,7 +7,7 @@ import signal
 from pathlib import Path
 
 from pipeline.bus import BusConfig
-from pipeline.decode import ALGOS
+from pipeline.decode import ALGOS, Algo
 from pipeline.quantize import QuantizerConfig
 
 
@@ -54,7 +54,7 @@ def delta_arg(text: str) -> str | float:
 
 def algo_option(p: argparse.ArgumentParser, help: str) -> None:
     """``--algo``, one of the decoders (pipeline.decode.Algo), default pbp."""
-    p.add_argument("--algo", choices=list(ALGOS), default="pbp", help=help)
+    p.add_argument("--algo", choices=list(ALGOS), default=Algo.PBP.value, help=help)
 
 
 def install_sigterm() -> None:
