@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import PipelineError
+from .errors import WireError
 from .quantize import check_alpha, check_bits, pack_codes, packed_size, unpack_codes
 
 MAGIC = b"QRDR"
@@ -34,10 +34,6 @@ QUANT_HEADER_LEN = COMMON.size + QUANT_EXT.size  # 64
 MAX_M = 1 << 20
 SENSOR_ID_MAX = 16
 JSON_VERSION = 1
-
-
-class WireError(PipelineError, ValueError):
-    """A payload is not a valid message of the expected format."""
 
 
 def check_sensor_id(sensor_id: str) -> str:

@@ -1,5 +1,5 @@
-"""Exception root of the ``radar_driver`` package: every error raised here is a
-:class:`RadarError`. Errors about bad arguments are also ``ValueError``s."""
+"""Exceptions of the ``radar_driver`` package, all in this module: every error raised
+here is a :class:`RadarError`. Errors about bad arguments are also ``ValueError``s."""
 
 
 class RadarError(Exception):
@@ -12,3 +12,34 @@ class ConfigError(RadarError, ValueError):
 
 class InputError(RadarError, ValueError):
     """An array argument has the wrong shape, dtype or values."""
+
+
+class ProtocolError(RadarError):
+    """A byte string is not a valid message, or a message cannot be encoded."""
+
+
+class SensorError(RadarError):
+    """Root of the errors of a sensor session."""
+
+
+class SensorTimeout(SensorError):
+    """The sensor did not answer in time; the message says what was seen instead."""
+
+
+class SensorResponseError(SensorError):
+    """The sensor answered a command with a RESP error code."""
+
+    def __init__(self, command: str, code: int):
+        from .protocol import RespCode  # here, not at the top: protocol imports this module
+
+        name = RespCode(code).name if code in RespCode._value2member_map_ else "UNDEFINED"
+        super().__init__(f"sensor answered {command} with RESP {code} ({name})")
+        self.command, self.code = command, code
+
+
+class LinkError(SensorError):
+    """The port could not be opened, or failed (unplugged device, closed socket)."""
+
+
+class LinkDown(RadarError):
+    """The simulated link has no peer or was closed."""

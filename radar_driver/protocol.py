@@ -25,14 +25,10 @@ from typing import Iterator, Union
 
 import numpy as np
 
-from .errors import RadarError
+from .errors import ProtocolError
 
 HEADER_LEN = 4
 PREFIX_LEN = 8  # header + uint32 length
-
-
-class ProtocolError(RadarError):
-    """A byte string is not a valid message, or a message cannot be encoded."""
 
 
 class RespCode(IntEnum):
