@@ -18,7 +18,7 @@ from pathlib import Path
 
 import zenoh
 
-from .errors import ParameterError
+from .errors import BusError, ParameterError
 from .wire import TOPICS
 
 
@@ -49,8 +49,8 @@ class BusConfig:
         if self.config_file is not None:
             try:
                 conf = zenoh.Config.from_file(str(self.config_file))
-            except Exception as exc:  # zenoh raises its own ZError with the parser's message
-                raise ParameterError(f"zenoh config {self.config_file}: {exc}") from None
+            except zenoh.ZError as exc:  # missing, unreadable or unparsable: the parser's message
+                raise BusError(f"zenoh config file {self.config_file}: {exc}") from None
         else:
             conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
@@ -68,8 +68,8 @@ class BusConfig:
         try:
             return zenoh.open(self.zenoh_config())
         except zenoh.ZError as exc:
-            raise ParameterError(f"cannot open zenoh session ({self.mode}, connect={list(self.connect)}, "
-                                 f"listen={list(self.listen)}): {exc}") from None
+            raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
+                           f"listen={list(self.listen)}): {exc}") from None
 
     # -- keys ------------------------------------------------------------------------------
     def key(self, sensor_id: str, topic: str) -> str:

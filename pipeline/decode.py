@@ -32,7 +32,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, carrier
 
-from .errors import ParameterError
+from .errors import DitherUnavailable, ParameterError
 from .localize import Detections, back_project_ramps, detections_from_support, localize, project_theta_k
 from .quantize import QuantizedFrames
 
@@ -63,10 +63,6 @@ def ml_temperatures(m: int, steps: int = 8) -> np.ndarray:
     last one twice more."""
     t = np.geomspace(1 / 8, 1 / (2 * m), max(steps, 1))
     return np.concatenate([t, t[-1:], t[-1:]])
-
-
-class DitherUnavailable(ParameterError):
-    """A dither-aware decoder was given a frame whose dither is unknown or absent."""
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
-"""Exception root of the ``pipeline`` package: every error raised here is a
-:class:`PipelineError`. Errors about bad arguments are also ``ValueError``s."""
+"""Exceptions of the ``pipeline`` package, all in this module: every error raised here
+is a :class:`PipelineError`. Errors about bad arguments are also ``ValueError``s."""
 
 
 class PipelineError(Exception):
@@ -8,3 +8,15 @@ class PipelineError(Exception):
 
 class ParameterError(PipelineError, ValueError):
     """A processing parameter (bits, alpha, delta, K, ...) or an array shape is invalid."""
+
+
+class WireError(PipelineError, ValueError):
+    """A payload is not a valid message of the expected format."""
+
+
+class DitherUnavailable(ParameterError):
+    """A dither-aware decoder was given a frame whose dither is unknown or absent."""
+
+
+class BusError(PipelineError):
+    """A zenoh session could not be opened or connected, or its config file is unusable."""

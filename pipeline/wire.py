@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import PipelineError
+from .errors import WireError
 from .quantize import QuantizedFrames, check_alpha, check_bits, pack_codes, packed_size, unit_dither, unpack_codes
 
 MAGIC = b"QRDR"
@@ -36,10 +36,6 @@ SENSOR_ID_MAX = 16
 JSON_VERSION = 1
 #: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``; this is the one list of them
 TOPICS = ("raw", "quantized", "targets", "health")
-
-
-class WireError(PipelineError, ValueError):
-    """A payload is not a valid message of the expected format."""
 
 
 def check_sensor_id(sensor_id: str) -> str:

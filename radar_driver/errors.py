@@ -1,5 +1,7 @@
-"""Exception root of the ``radar_driver`` package: every error raised here is a
-:class:`RadarError`. Errors about bad arguments are also ``ValueError``s."""
+"""Exceptions of the ``radar_driver`` package, all in this module: every error raised
+here is a :class:`RadarError`. Errors about bad arguments are also ``ValueError``s."""
+
+from enum import IntEnum
 
 
 class RadarError(Exception):
@@ -12,3 +14,45 @@ class ConfigError(RadarError, ValueError):
 
 class InputError(RadarError, ValueError):
     """An array argument has the wrong shape, dtype or values."""
+
+
+class ProtocolError(RadarError):
+    """A byte string is not a valid message, or a message cannot be encoded."""
+
+
+class SensorError(RadarError):
+    """Root of the errors of a sensor session."""
+
+
+class SensorTimeout(SensorError):
+    """The sensor did not answer in time; the message says what was seen instead."""
+
+
+class RespCode(IntEnum):
+    """Codes of the ``RESP`` answer (K-LD7 datasheet); the codec (protocol.py) uses them, the
+    errors name them."""
+
+    OK = 0
+    UNKNOWN_COMMAND = 1
+    INVALID_PARAMETER = 2
+    INVALID_PARAMETER_VERSION = 3
+    UART_ERROR = 4
+    SENSOR_BUSY = 5
+    TIMEOUT = 6
+
+
+class SensorResponseError(SensorError):
+    """The sensor answered a command with a RESP error code."""
+
+    def __init__(self, command: str, code: int):
+        name = RespCode(code).name if code in RespCode._value2member_map_ else "UNDEFINED"
+        super().__init__(f"sensor answered {command} with RESP {code} ({name})")
+        self.command, self.code = command, code
+
+
+class LinkError(SensorError):
+    """The port could not be opened, or failed (unplugged device, closed socket)."""
+
+
+class LinkDown(RadarError):
+    """The simulated link has no peer or was closed."""

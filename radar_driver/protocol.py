@@ -20,31 +20,14 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Iterator, Union
 
 import numpy as np
 
-from .errors import RadarError
+from .errors import ProtocolError, RespCode
 
 HEADER_LEN = 4
 PREFIX_LEN = 8  # header + uint32 length
-
-
-class ProtocolError(RadarError):
-    """A byte string is not a valid message, or a message cannot be encoded."""
-
-
-class RespCode(IntEnum):
-    """Codes of the ``RESP`` answer (K-LD7 datasheet)."""
-
-    OK = 0
-    UNKNOWN_COMMAND = 1
-    INVALID_PARAMETER = 2
-    INVALID_PARAMETER_VERSION = 3
-    UART_ERROR = 4
-    SENSOR_BUSY = 5
-    TIMEOUT = 6
 
 
 #: ``INIT`` baud code -> baud rate. The sensor answers ``INIT`` at 115200, then switches.

@@ -30,7 +30,7 @@ from typing import Callable, Iterator
 import numpy as np
 import serial
 
-from .errors import ConfigError, RadarError
+from .errors import ConfigError, LinkError, SensorError, SensorResponseError, SensorTimeout
 from .model import RadarConfig
 from .source import RawFrame
 from .protocol import (
@@ -52,27 +52,6 @@ from .protocol import (
 )
 
 log = logging.getLogger("qradar.driver")
-
-
-class SensorError(RadarError):
-    """Root of the errors of a sensor session."""
-
-
-class SensorTimeout(SensorError):
-    """The sensor did not answer in time; the message says what was seen instead."""
-
-
-class SensorResponseError(SensorError):
-    """The sensor answered a command with a RESP error code."""
-
-    def __init__(self, command: str, code: int):
-        name = RespCode(code).name if code in RespCode._value2member_map_ else "UNDEFINED"
-        super().__init__(f"sensor answered {command} with RESP {code} ({name})")
-        self.command, self.code = command, code
-
-
-class LinkError(SensorError):
-    """The port could not be opened, or failed (unplugged device, closed socket)."""
 
 
 @dataclass

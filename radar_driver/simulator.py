@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, RadarError
+from .errors import ConfigError, LinkDown
 from .protocol import (
     BAUD_CODES,
     DEFAULT_BAUD,
@@ -206,10 +206,6 @@ class SimulatedKMD2:
 _SPEED_TO_BAUD = {getattr(termios, f"B{b}"): b for b in (9600, 19200, 38400, 57600, 115200, 230400, 460800,
                                                         921600, 1000000, 1500000, 2000000, 3000000)
                   if hasattr(termios, f"B{b}")}
-
-
-class LinkDown(RadarError):
-    """The simulated link has no peer or was closed."""
 
 
 class PtyLink:

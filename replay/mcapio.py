@@ -14,13 +14,16 @@ from __future__ import annotations
 
 import base64
 import json
+import struct
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+from zstandard import ZstdError
 
 from pipeline.wire import TARGET_FIELDS, TOPICS, TargetsMsg
 
@@ -152,6 +155,15 @@ class McapSink:
         self._fh.close()
 
 
+#: What mcap's StreamReader raises on a file cut short or corrupted (measured on real
+#: recordings cut at every record boundary and with header and random bytes overwritten):
+#: McapError (EndOfFile, RecordLengthLimitExceeded, InvalidMagic), struct.error (a field
+#: cut short), ValueError (UnicodeDecodeError in a string field), OverflowError and
+#: MemoryError (a corrupted length the read tries to allocate), ZstdError (a zstd chunk),
+#: RuntimeError (what lz4.frame raises for an lz4 chunk).
+_CUT_SHORT = (McapError, struct.error, ValueError, OverflowError, MemoryError, ZstdError, RuntimeError)
+
+
 class McapFile:
     """Tolerant sequential reader. :meth:`messages` yields (channel, message) for every
     message of the file's complete chunks, in file order; schemas, channels and metadata
@@ -184,7 +196,7 @@ class McapFile:
                     rec = next(records)
                 except StopIteration:
                     return
-                except Exception as exc:  # noqa: BLE001 - any failure here is a record cut short
+                except _CUT_SHORT as exc:
                     self.truncated = True
                     self.truncation_reason = f"{type(exc).__name__}: {exc}".rstrip(": ")
                     return
