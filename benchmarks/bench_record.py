@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.bus import BusConfig  # noqa: E402
 from pipeline.decode import Algo  # noqa: E402
+from pipeline.errors import BusError  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
 from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw  # noqa: E402
 from replay.mcapio import McapFile, McapSink  # noqa: E402
@@ -79,11 +80,13 @@ def trial(msgs, rate: float, seconds: float, tmp: Path) -> dict:
     while session is None:
         try:
             session = BusConfig(connect=(ep,)).open()
-        except Exception:
+        except BusError:
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.2)
     while not any(r.ok is not None for r in session.liveliness().get("radar/alive/record/**", timeout=1.0)):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the recorder on {ep} did not come up within 20 s")
         time.sleep(0.1)
     pubs = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, _ in msgs}
     frames = int(rate * seconds)

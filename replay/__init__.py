@@ -1,1 +1,3 @@
-"""MCAP recording, replay and offline re-processing (see the MCAP issue)."""
+"""Recordings: MCAP writing and tolerant reading, the recorder node, the player, a
+recording as a frame source, and offline re-processing. It imports ``radar_driver`` and
+``pipeline``, never ``qradar``; re-processing does not import zenoh."""
