@@ -1,7 +1,8 @@
-"""The player: an MCAP recording back onto zenoh, with its original timing scaled by
-``rate`` or as fast as the subscribers take it (``fast``: publishers block rather than
-drop). ``prefix`` remaps the first key chunk(s), so replayed data cannot be mistaken
-for live data."""
+"""The player: an MCAP recording back onto zenoh, every qradar channel as recorded, with
+its original timing scaled by ``rate`` or as fast as the subscribers take it (``fast``:
+publishers block rather than drop). ``prefix`` remaps the first key chunk(s), so
+replayed data cannot be mistaken for live data. The recording is read in time by
+:func:`replay.source.recorded_messages`, as the recording frame source reads it."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pipeline.bus import BusConfig
 
 from .errors import NoQradarChannelsError, ReplayError
 from .mcapio import McapFile, qradar_channels
+from .source import recorded_messages
 
 log = logging.getLogger("qradar.replay")
 
@@ -64,32 +66,13 @@ def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = 
     publishers: dict[str, zenoh.Publisher] = {}
     try:
         while not stop.is_set():
-            first_log = None
-            t0 = None
-            seen_qradar = False
             recorded_prefix = None
-            for ch, msg in f.messages():
-                if ch.id not in qradar_channels({ch.id: ch}):
-                    continue
+            seen_qradar = False
+            for ch, msg in recorded_messages(f, None if cfg.fast else cfg.rate, stop, cfg.start_s, cfg.end_s,
+                                             None if selector is None else selector.intersects):
                 seen_qradar = True
-                if first_log is None:
-                    first_log = msg.log_time
-                rel_s = (msg.log_time - first_log) / 1e9
-                if cfg.start_s is not None and rel_s < cfg.start_s:
-                    continue
-                if cfg.end_s is not None and rel_s > cfg.end_s:
-                    break
-                if selector is not None and not selector.intersects(ch.topic):
-                    continue
                 if recorded_prefix is None:
                     recorded_prefix = ch.topic.rsplit("/", 2)[0]
-                if not cfg.fast:
-                    base = cfg.start_s or 0.0
-                    if t0 is None:
-                        t0 = time.monotonic()
-                    delay = t0 + (rel_s - base) / cfg.rate - time.monotonic()
-                    if delay > 0 and stop.wait(delay):
-                        break
                 key = remap(ch.topic, recorded_prefix, cfg.prefix)
                 pub = publishers.get(key)
                 if pub is None:
@@ -103,12 +86,12 @@ def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = 
             if f.truncated and not result.truncated:
                 result.truncated = True
                 log.warning("%s is cut short (%s); played up to its last complete chunk", path, f.truncation_reason)
-            if not seen_qradar:
+            if not seen_qradar and not stop.is_set() and not any(qradar_channels(f.channels)):
                 raise NoQradarChannelsError(
                     f"{path} has no qradar channels (<prefix>/<sensor>/raw|quantized|targets|health); "
                     f"its topics: {sorted({c.topic for c in f.channels.values()}) or 'none'}")
             result.loops += 1
-            if not cfg.loop:
+            if not cfg.loop or stop.is_set():
                 break
     finally:
         for pub in publishers.values():

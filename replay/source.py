@@ -1,5 +1,7 @@
-"""A recording as a source of raw frames: the ``<prefix>/<sensor>/raw`` messages of an
-MCAP file, as :class:`~radar_driver.source.RawFrame` objects
+"""Reading a recording in time: :func:`recorded_messages` yields the qradar messages of
+an MCAP file at their recorded pace (the player publishes them all), and
+:class:`RecordingSource` is a recording as a source of raw frames: its
+``<prefix>/<sensor>/raw`` messages as :class:`~radar_driver.source.RawFrame` objects
 (:class:`~radar_driver.source.FrameSource`).
 
 Frames come in file order, as fast as they are read, or at their recorded pace scaled
@@ -12,18 +14,52 @@ yields the frames of its complete chunks and sets ``truncated``.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from pipeline.wire import WireError, decode_raw
 from radar_driver.source import RawFrame, StoppableSource
 
+from mcap.records import Channel, Message
+
 from .errors import ReplayError
-from .mcapio import McapFile
+from .mcapio import McapFile, qradar_channels
 
 log = logging.getLogger("qradar.replay")
+
+
+def recorded_messages(f: McapFile, rate: float | None, stop: threading.Event, start_s: float | None = None,
+                      end_s: float | None = None, topic: Callable[[str], bool] | None = None
+                      ) -> Iterator[tuple[Channel, Message]]:
+    """The qradar messages of ``f`` in file order, each released at its recorded time
+    (log time) divided by ``rate`` (None: at once), from ``start_s`` to ``end_s`` (s
+    from the file's first qradar message; None: the start, the end), those whose topic
+    ``topic`` accepts. Ends early once ``stop`` is set."""
+    first_log = t0 = None
+    for ch, msg in f.messages():
+        if stop.is_set():
+            return
+        if ch.id not in qradar_channels({ch.id: ch}):
+            continue
+        if first_log is None:
+            first_log = msg.log_time
+        rel_s = (msg.log_time - first_log) / 1e9
+        if start_s is not None and rel_s < start_s:
+            continue
+        if end_s is not None and rel_s > end_s:
+            return
+        if topic is not None and not topic(ch.topic):
+            continue
+        if rate is not None:
+            if t0 is None:
+                t0 = time.monotonic()
+            delay = t0 + (rel_s - (start_s or 0.0)) / rate - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                return
+        yield ch, msg
 
 
 @dataclass
@@ -73,12 +109,9 @@ class RecordingSource(StoppableSource):
     def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
         self._stop.clear()
         n = 0
-        first_log_ns = t0 = None
-        for ch, msg in self.file.messages():
-            if self._stop.is_set() or (limit is not None and n >= limit):
+        for ch, msg in recorded_messages(self.file, self.rate, self._stop, topic=lambda t: t.endswith("/raw")):
+            if limit is not None and n >= limit:
                 break
-            if not ch.topic.endswith("/raw"):
-                continue
             try:
                 m = decode_raw(msg.data, f"{self.path}: {ch.topic} #{msg.sequence}")
             except WireError as exc:
@@ -92,12 +125,6 @@ class RecordingSource(StoppableSource):
             if st.last_seq is not None and m.seq > st.last_seq + 1:
                 st.dropped += m.seq - st.last_seq - 1
             st.last_seq = m.seq if st.last_seq is None else max(st.last_seq, m.seq)
-            if self.rate is not None:
-                if first_log_ns is None:
-                    first_log_ns, t0 = msg.log_time, time.monotonic()
-                delay = t0 + (msg.log_time - first_log_ns) / 1e9 / self.rate - time.monotonic()
-                if delay > 0 and self._stop.wait(delay):
-                    break
             st.frames += 1
             n += 1
             yield RawFrame(m.sensor_id, m.seq, m.timestamp_ns, m.data, (), m.config_id)
