@@ -22,7 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from radar_driver.model import RadarConfig, angle_from_antennas_rad, carrier, polar_to_xy, sensing_matrix
+from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, polar_to_plane, polar_to_xy,
+                                sensing_matrix)
 
 from .errors import ParameterError
 
@@ -181,8 +182,8 @@ def nearest_estimates(
 
     true_* : (B, K); est_* : (B, L); errors are ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``.
     """
-    t = np.asarray(true_range_m) * np.exp(1j * np.deg2rad(true_angle_deg))
-    e = np.asarray(est_range_m) * np.exp(1j * np.deg2rad(est_angle_deg))
+    t = polar_to_plane(true_range_m, np.deg2rad(true_angle_deg))
+    e = polar_to_plane(est_range_m, np.deg2rad(est_angle_deg))
     dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, K, L)
     nearest = np.argmin(dist, axis=2)
     pos = np.take_along_axis(np.broadcast_to(e[:, None, :], dist.shape), nearest[:, :, None], axis=2)[..., 0]

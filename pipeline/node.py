@@ -94,7 +94,8 @@ class Node:
                 target()
             except BaseException as exc:  # a dead worker is reported, never silent
                 if not self._stop.is_set():
-                    log.exception("%s %s thread failed", self.name, what)
+                    log.error("%s %s thread failed: %s", self.name, what, exc)
+                    log.debug("%s %s thread failed", self.name, what, exc_info=True)  # the traceback under -v
                     self.errors.append(exc)
 
         t = threading.Thread(target=run, name=f"{self.name}-{what}", daemon=True)
@@ -265,6 +266,18 @@ class ProcessingNode(Node):
         raise NotImplementedError
 
 
+def _raise_node_error(nodes: list[Node]) -> None:
+    """Raise the first error of a failed node: its own (a package error says what and
+    where) or, for anything else, a PipelineError naming the node."""
+    for nd in nodes:
+        if nd.errors:
+            exc = nd.errors[0]
+            if isinstance(exc, Exception) and type(exc).__module__.split(".")[0] in ("radar_driver", "pipeline",
+                                                                                        "replay"):
+                raise exc
+            raise PipelineError(f"node {nd.name} failed: {exc!r}") from exc
+
+
 def run_nodes(nodes: list[Node], duration_s: float | None, stop: threading.Event | None = None) -> None:
     """Start nodes in order, run until ``duration_s`` or ``stop``, stop them in reverse order."""
     started: list[Node] = []
@@ -277,9 +290,8 @@ def run_nodes(nodes: list[Node], duration_s: float | None, stop: threading.Event
         while deadline is None or time.monotonic() < deadline:
             if stop.wait(0.1):
                 break
-            for nd in started:
-                if nd.errors:
-                    raise PipelineError(f"node {nd.name} failed: {nd.errors[0]!r}") from nd.errors[0]
+            _raise_node_error(started)
+        _raise_node_error(started)  # a node that failed and so ended the run
     finally:
         for nd in reversed(started):
             nd.stop()

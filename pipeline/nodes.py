@@ -195,10 +195,10 @@ class LocalizeNode(ProcessingNode):
                 self.count_error(sensor, exc)
                 continue
             if isinstance(msg, QuantizedFrameMsg):
-                groups[(msg.config_id, msg.bits, msg.dithered, key.rsplit("/", 1)[-1])].append(msg)
+                groups[(msg.config_id, msg.bits, msg.dithered)].append(msg)
             else:
-                groups[(msg.config_id, 0, False, "raw")].append(msg)
-        for (config_id, bits, _, _), msgs in groups.items():
+                groups[(msg.config_id, 0, False)].append(msg)
+        for (config_id, bits, _), msgs in groups.items():
             frames = quantized_batch(msgs) if bits else np.stack([m.data for m in msgs])
             try:
                 det = decode_batch(frames, self._configs[config_id], self.config.k, self.config.decoder())

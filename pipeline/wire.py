@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .errors import WireError
-from .quantize import QuantizedFrames, check_alpha, check_bits, pack_codes, packed_size, unit_dither, unpack_codes
+from .quantize import QuantizedFrames, check_alpha, check_bits, pack_codes, packed_size, unpack_codes
 
 MAGIC = b"QRDR"
 VERSION = 1
@@ -88,9 +88,8 @@ class QuantizedFrameMsg:
     def dither(self) -> np.ndarray | None:
         """The dither xi = alpha delta u this frame was quantized with, regenerated from
         (dither_seed, seq): (M, 2) complex; None when the frame is not dithered."""
-        if not self.dithered:
-            return None
-        return self.alpha * self.delta * unit_dither(self.dither_seed, self.seq, self.codes.shape[0])[0]
+        xi = quantized_batch([self]).dither()
+        return None if xi is None else xi[0]
 
     def __eq__(self, other: object) -> bool:
         return (isinstance(other, QuantizedFrameMsg) and self.header() == other.header()

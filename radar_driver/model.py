@@ -155,9 +155,16 @@ def angle_from_antennas_rad(x1: np.ndarray, x2: np.ndarray, config: RadarConfig)
     return np.arcsin(np.clip(s, -1.0, 1.0))
 
 
+def polar_to_plane(range_m: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
+    """Positions x + i y = R e^{i theta} (m) of polar points: x along boresight, y across
+    (positive angle = antenna 2 side). Same shape as the inputs."""
+    return np.asarray(range_m) * np.exp(1j * np.asarray(angle_rad))
+
+
 def polar_to_xy(range_m: np.ndarray, angle_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(x_m, y_m) = (R cos theta, R sin theta): x along boresight, y across."""
-    return range_m * np.cos(angle_rad), range_m * np.sin(angle_rad)
+    """(x_m, y_m) = (R cos theta, R sin theta): :func:`polar_to_plane` as two real arrays."""
+    p = polar_to_plane(range_m, angle_rad)
+    return p.real, p.imag
 
 
 # -- the signal model (eq. 2) ---------------------------------------------------------

@@ -30,7 +30,7 @@ from typing import Callable, Iterator
 import numpy as np
 import serial
 
-from .errors import ConfigError, LinkError, SensorError, SensorResponseError, SensorTimeout
+from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout
 from .model import RadarConfig
 from .source import RawFrame
 from .protocol import (

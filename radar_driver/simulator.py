@@ -293,9 +293,13 @@ class TcpLink:
 
     def open(self) -> None:
         srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind((self.host, self.port))
-        srv.listen(1)
+        try:
+            srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            srv.bind((self.host, self.port))
+            srv.listen(1)
+        except (OSError, OverflowError) as exc:
+            srv.close()
+            raise ConfigError(f"cannot serve on {self.host}:{self.port}: {getattr(exc, 'strerror', None) or exc}") from None
         self.port = srv.getsockname()[1]
         self.server = srv
         log.info("simulated K-MD2 on socket://%s:%d", self.host, self.port)

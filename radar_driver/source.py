@@ -149,7 +149,9 @@ class SimulatedSource(StoppableSource):
         self._stats = {sid: _SimSensorStats() for sid in config.sensor_ids}
         self._rngs = [np.random.default_rng(np.random.SeedSequence(config.seed + i, spawn_key=(0,)))
                       for i in range(config.sensors)]
-        self._tick = 0
+        self._tick = 0  # frames made per sensor
+        self._next_sensor = 0  # where a read that stopped mid-tick resumes
+        self._tick_data: tuple | None = None
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {sid: {"frames": st.frames, "dropped": st.dropped} for sid, st in self._stats.items()}
@@ -163,27 +165,32 @@ class SimulatedSource(StoppableSource):
         t0 = time.monotonic() - (self._tick / cfg.rate_hz if cfg.rate_hz else 0.0)
         yielded = 0
         try:
-            while not self._stop.is_set() and (cfg.frames is None or self._tick < cfg.frames):
+            while not self._stop.is_set():
+                if self._next_sensor >= len(ids):  # the tick is done for every sensor
+                    self._tick, self._next_sensor, self._tick_data = self._tick + 1, 0, None
                 k = self._tick
-                if cfg.rate_hz:
-                    delay = t0 + k / cfg.rate_hz - time.monotonic()
-                    if delay > 0:
-                        if self._stop.wait(delay):
-                            return
-                    elif delay < -1.0 / cfg.rate_hz:
-                        self.late_ticks += 1
-                ramp_index = k * rpf + np.arange(rpf)
-                clean = scene.clean_ramps(ramp_time_s(ramp_index, ramp_rate_hz))  # (R, N, 2)
-                ts = time.time_ns()
-                self._tick += 1
-                for i, sid in enumerate(ids):
-                    data = adc_round_trip(clean + scene.noise(rpf, self._rngs[i])).reshape(rpf * n, 2)
-                    self._stats[sid].frames += 1
-                    yield RawFrame(sid, k, ts, data.astype(np.complex64), tuple(int(c) for c in ramp_index),
-                                   config_id)
-                    yielded += 1
-                    if limit is not None and yielded >= limit:
-                        return
+                if cfg.frames is not None and k >= cfg.frames:
+                    return
+                if self._tick_data is None:  # a new tick: wait for its time, then the scene's ramps
+                    if cfg.rate_hz:
+                        delay = t0 + k / cfg.rate_hz - time.monotonic()
+                        if delay > 0:
+                            if self._stop.wait(delay):
+                                return
+                        elif delay < -1.0 / cfg.rate_hz:
+                            self.late_ticks += 1
+                    ramp_index = k * rpf + np.arange(rpf)
+                    clean = scene.clean_ramps(ramp_time_s(ramp_index, ramp_rate_hz))  # (R, N, 2)
+                    self._tick_data = (tuple(int(c) for c in ramp_index), clean, time.time_ns())
+                counters, clean, ts = self._tick_data
+                i = self._next_sensor
+                data = adc_round_trip(clean + scene.noise(rpf, self._rngs[i])).reshape(rpf * n, 2)
+                self._stats[ids[i]].frames += 1
+                self._next_sensor = i + 1
+                yield RawFrame(ids[i], k, ts, data.astype(np.complex64), counters, config_id)
+                yielded += 1
+                if limit is not None and yielded >= limit:
+                    return
         finally:
             self.elapsed_s = time.monotonic() - t0
 

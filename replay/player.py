@@ -86,7 +86,7 @@ def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = 
             if f.truncated and not result.truncated:
                 result.truncated = True
                 log.warning("%s is cut short (%s); played up to its last complete chunk", path, f.truncation_reason)
-            if not seen_qradar and not stop.is_set() and not any(qradar_channels(f.channels)):
+            if not seen_qradar and not stop.is_set() and not qradar_channels(f.channels):
                 raise NoQradarChannelsError(
                     f"{path} has no qradar channels (<prefix>/<sensor>/raw|quantized|targets|health); "
                     f"its topics: {sorted({c.topic for c in f.channels.values()}) or 'none'}")

@@ -107,7 +107,6 @@ class RecordingSource(StoppableSource):
         return self.file.metadata_dict()
 
     def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
-        self._stop.clear()
         n = 0
         for ch, msg in recorded_messages(self.file, self.rate, self._stop, topic=lambda t: t.endswith("/raw")):
             if limit is not None and n >= limit:

@@ -20,6 +20,11 @@ def qradar(*args, timeout_s=60):
     (["reprocess", "/nonexistent/rec.mcap"], "/nonexistent/rec.mcap"),
     (["run", "--scene", "/nonexistent/scene.toml", "--no-record"], "/nonexistent/scene.toml"),
     (["replay", "pyproject.toml", "--fast"], "pyproject.toml"),
+    (["drive", "--port", "/dev/qradar-no-such-port", "--frames", "1"], "/dev/qradar-no-such-port"),  # via the node
+    (["drive", "--port", "/dev/null", "--sensor-id", "a/b"], "'a/b'"),
+    (["source", "--recording", "/nonexistent/rec.mcap", "--duration", "5"], "/nonexistent/rec.mcap"),
+    (["source", "--recording", "pyproject.toml", "--duration", "5"], "pyproject.toml"),
+    (["sim", "--tcp", "99999"], "99999"),
 ])
 def test_errors_are_one_line_naming_the_place(args, where):
     proc = qradar(*args)
@@ -39,3 +44,13 @@ def test_bad_option_values_are_usage_errors():
     assert proc.returncode == 2 and "--delta" in proc.stderr and "Traceback" not in proc.stderr
     proc = qradar("sim")
     assert proc.returncode == 2 and "--link" in proc.stderr
+
+
+def test_a_busy_tcp_port_is_a_one_line_error(free_port):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", free_port))
+        s.listen(1)
+        proc = qradar("sim", "--tcp", str(free_port))
+    assert proc.returncode == 2 and f"127.0.0.1:{free_port}" in proc.stderr and "Traceback" not in proc.stderr

@@ -152,6 +152,12 @@ def test_request_stop_from_another_thread_ends_the_stream(opened):
         assert len(got) < 10_000
 
 
+def test_a_stop_before_reading_yields_nothing(opened):
+    with opened().source as src:
+        src.request_stop()
+        assert list(src.frames(5)) == []
+
+
 def test_a_source_that_ends_ends_cleanly(tmp_path):
     with in_process(STATIC, SEED, frames=5) as src:
         frames = list(src.frames())
@@ -186,3 +192,12 @@ def test_many_in_process_sensors_have_their_own_noise():
     assert np.abs(frames[0].data - frames[1].data).max() > 10 * LSB
     with in_process(NOISY, SEED + 1) as one:  # sensor i draws as a single sensor of seed + i
         np.testing.assert_array_equal(next(iter(one.frames(1))).data, frames[1].data)
+
+
+def test_reads_that_stop_mid_tick_lose_no_frame():
+    cfg = SimSourceConfig(STATIC, sensors=2, id_prefix="m", rate_hz=0, seed=SEED, frames=3)
+    with SimulatedSource(cfg) as src:
+        got = [(f.sensor_id, f.seq) for f in src.frames(3)] + [(f.sensor_id, f.seq) for f in src.frames(2)]
+        got += [(f.sensor_id, f.seq) for f in src.frames()]
+    assert got == [(f"m{i}", k) for k in range(3) for i in range(2)]
+    assert src.stats() == {"m0": {"frames": 3, "dropped": 0}, "m1": {"frames": 3, "dropped": 0}}

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.nodes import SourceNode
+from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.session import SensorSession, SessionConfig, save_frames_npz
 from radar_driver.simulator import SimFaults, SimulatorServer
@@ -76,7 +77,7 @@ def cmd_sim(args) -> int:
 
 def cmd_drive(args) -> int:
     cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
-                        sensor_id=args.sensor_id)
+                        sensor_id=check_sensor_id(args.sensor_id))
     lines = sys.stderr if args.json else sys.stdout
     frames = []
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from pipeline.bus import BusConfig
 from pipeline.decode import default_alpha
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from replay.source import RecordingSource
@@ -22,6 +23,7 @@ from .common import (
     bus_from_args,
     bus_options,
     install_sigterm,
+    nonneg_float,
     nonneg_int,
     pos_int,
     quantizer_config,
@@ -54,9 +56,12 @@ def add_commands(sub) -> None:
                        "frames of an MCAP file instead.")
     p.add_argument("--scene", default="chamber")
     p.add_argument("--sensors", type=pos_int, default=1)
-    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    p.add_argument("--rate", type=nonneg_float, default=None,
+                   help="frames per second per sensor (default 20; 0 = as fast as read); with --recording, "
+                   "the speed factor of the recorded pace (default 1; 0 = as fast as read)")
     p.add_argument("--id-prefix", default="sim", help="sensor ids are <prefix>0, <prefix>1, ...")
-    p.add_argument("--frames", type=pos_int, default=None, help="frames per sensor, then stop")
+    p.add_argument("--frames", type=pos_int, default=None,
+                   help="frames per sensor, then stop (with --recording: frames in all)")
     p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("--recording", type=Path, default=None,
                    help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
@@ -115,11 +120,15 @@ def cmd_localize(args) -> int:
 
 def cmd_source(args) -> int:
     if args.recording is not None:
-        source = RecordingSource(args.recording, rate=args.rate if args.rate > 0 else None)
+        rate = 1.0 if args.rate is None else args.rate
+        source = RecordingSource(args.recording, rate=rate or None)
         limit = args.frames
     else:
-        source = SimulatedSource(SimSourceConfig(resolve_scene(args.scene), sensors=args.sensors, id_prefix=args.id_prefix,
-                                                 rate_hz=args.rate, seed=args.seed, frames=args.frames))
+        cfg = SimSourceConfig(resolve_scene(args.scene), sensors=args.sensors, id_prefix=args.id_prefix,
+                              rate_hz=20.0 if args.rate is None else args.rate, seed=args.seed, frames=args.frames)
+        for sid in cfg.sensor_ids:
+            check_sensor_id(sid)
+        source = SimulatedSource(cfg)
         limit = None
     node = SourceNode(bus_from_args(args), source, frames=limit)
     stop = threading.Event()
