@@ -33,10 +33,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging, tracebacks on errors")
     sub = parser.add_subparsers(dest="command", required=True)
-    analysis.add_commands(sub)
+    analysis.add_montecarlo(sub)  # the order of `qradar -h`, as before the split into groups
     sensor.add_commands(sub)
     stream.add_commands(sub)
     record.add_commands(sub)
+    analysis.add_reprocess(sub)
     return parser
 
 

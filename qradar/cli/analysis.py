@@ -15,7 +15,7 @@ from replay.reprocess import run as run_reprocess
 from .common import algo_option, nonneg_int, pos_int
 
 
-def add_commands(sub) -> None:
+def add_montecarlo(sub) -> None:
     p = sub.add_parser(
         "montecarlo",
         help="reproduce the paper's Monte Carlo (Sec. 5, Figs. 2-4)",
@@ -40,6 +40,8 @@ def add_commands(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_montecarlo)
 
+
+def add_reprocess(sub) -> None:
     p = sub.add_parser("reprocess", help="re-quantize and re-localize a recording's raw frames offline (alpha sweep)")
     p.add_argument("file", type=Path)
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
