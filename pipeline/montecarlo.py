@@ -25,7 +25,7 @@ import re
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,10 +79,66 @@ class Scheme:
         return self.n_measurements // n if self.n_measurements % n == 0 else 0
 
 
+RANGE_PLACEMENTS = ("grid", "cells", "continuous")
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """How the Monte Carlo places targets and what the sensor adds.
+
+    ranges: ``grid`` (the paper's protocol: cell centres snapped to the range grid),
+    ``cells`` (cell centres kept exact, off the grid) or ``continuous`` (uniform over
+    [range_min_m, range_max_m], targets at least ``min_separation_m`` apart).
+    max_angle_deg: angles within +-this (cells: the angle cells whose centre is inside;
+    continuous: uniform). min_amplitude: the weaker targets' amplitudes are uniform in
+    [min_amplitude, 1] (the strongest is 1). noise_sigma: complex white Gaussian noise,
+    std of each of I and Q relative to the strongest amplitude, added to Gamma before
+    quantization (every scheme, the 32-bit ones too). The defaults are the paper's."""
+
+    ranges: str = "grid"
+    range_min_m: float = 3.0
+    range_max_m: float = 150.0
+    min_separation_m: float = 1.5
+    max_angle_deg: float = 90.0
+    min_amplitude: float = 0.0
+    noise_sigma: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.ranges not in RANGE_PLACEMENTS:
+            raise ParameterError(f"ranges={self.ranges!r} must be one of {', '.join(RANGE_PLACEMENTS)}")
+        for name in ("range_min_m", "range_max_m", "min_separation_m", "max_angle_deg", "min_amplitude",
+                     "noise_sigma"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+                raise ParameterError(f"{name}={v!r} must be a finite number >= 0")
+        if not 0 < self.max_angle_deg <= 90:
+            raise ParameterError(f"max_angle_deg={self.max_angle_deg!r} must be in (0, 90]")
+        if self.min_amplitude > 1:
+            raise ParameterError(f"min_amplitude={self.min_amplitude!r} must be in [0, 1]")
+        if not self.range_min_m < self.range_max_m:
+            raise ParameterError(f"the range interval [{self.range_min_m}, {self.range_max_m}] m is empty")
+
+    def check(self, config: RadarConfig, k_max: int) -> None:
+        """Errors for a scene that cannot be drawn with this radar and up to ``k_max`` targets."""
+        if self.ranges == "continuous":
+            if self.range_max_m > config.max_range_m:
+                raise ParameterError(f"range_max_m={self.range_max_m} is beyond the radar's {config.max_range_m} m")
+            if (k_max - 1) * self.min_separation_m * 2 > self.range_max_m - self.range_min_m:
+                raise ParameterError(
+                    f"{k_max} targets {self.min_separation_m} m apart do not fit at random in "
+                    f"[{self.range_min_m}, {self.range_max_m}] m; widen it or lower --min-separation-m")
+        elif not np.any(np.abs(cell_centres(config)[1]) <= self.max_angle_deg):
+            raise ParameterError(f"no angle cell centre lies within +-{self.max_angle_deg} deg")
+
+    def to_dict(self) -> dict:
+        return dict(vars(self))
+
+
 @dataclass(frozen=True)
 class MonteCarloConfig:
     """What to run: sparsities, runs per (scheme, K) (None = the paper's 320 000 x K),
-    schemes, seed, off-grid ranges, worker processes (None = all cores)."""
+    schemes, seed, off-grid ranges (the same as ``scene.ranges = "cells"``), worker
+    processes (None = all cores), decoders, and the scenes (:class:`SceneSpec`)."""
 
     ks: tuple[int, ...] = (1, 2)
     runs: int | None = None
@@ -93,8 +149,12 @@ class MonteCarloConfig:
     radar: RadarConfig = field(default_factory=RadarConfig)
     algos: tuple[Algo, ...] = (Algo.PBP,)
     fallback_pbp: bool = False
+    scene: SceneSpec = field(default_factory=SceneSpec)
 
     def __post_init__(self) -> None:
+        if self.off_grid and self.scene.ranges == "grid":
+            object.__setattr__(self, "scene", replace(self.scene, ranges="cells"))
+        object.__setattr__(self, "off_grid", self.scene.ranges != "grid")
         if not self.ks or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= GRID_CELLS for k in self.ks):
             raise ParameterError(f"K values {self.ks!r} must be integers in [1, {GRID_CELLS}]")
         if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
@@ -110,6 +170,7 @@ class MonteCarloConfig:
             raise ParameterError(f"seed={self.seed!r} must be an integer >= 0")
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
             raise ParameterError(f"workers={self.workers!r} must be an integer >= 1")
+        self.check_scene()
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ParameterError(f"algos {self.algos!r} must be distinct and at least one")
         for a in self.algos:
@@ -123,6 +184,9 @@ class MonteCarloConfig:
                     raise ParameterError(
                         f"algo {a!r} decodes dithered 1-bit frames of whole ramps (dither_m<256 k>); scheme {s!r} "
                         "has no dither to regenerate. Drop it, or pass --fallback-pbp to decode it with PBP")
+
+    def check_scene(self) -> None:
+        self.scene.check(self.radar, max(self.ks))
 
     def runs_for(self, k: int) -> int:
         return self.runs if self.runs is not None else 320_000 * k
@@ -139,22 +203,56 @@ def cell_centres(config: RadarConfig, off_grid: bool = False) -> tuple[np.ndarra
     return r, a
 
 
-def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConfig, off_grid: bool = False):
-    """K targets per run in distinct range cells. Returns (range_cell, angle_cell) ints
-    and (range_m, angle_deg, amplitude complex), all (n_runs, K); target 0 is the strongest
-    (amplitude 1), the others U[0, 1]; phases uniform."""
-    r_centres, a_centres = cell_centres(config, off_grid)
-    range_cell = np.argpartition(rng.random((n_runs, GRID_CELLS)), k - 1, axis=1)[:, :k]
-    angle_cell = rng.integers(0, GRID_CELLS, (n_runs, k))
+def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConfig, off_grid: bool = False,
+                scene: SceneSpec | None = None):
+    """K targets per run. Returns (range_cell, angle_cell) ints and (range_m, angle_deg,
+    amplitude complex), all (n_runs, K); target 0 is the strongest (amplitude 1), the
+    others U[min_amplitude, 1]; phases uniform. ``grid``/``cells``: targets in distinct
+    range cells at the cell centres; ``continuous``: uniform ranges and angles, the cells
+    are those the targets fall in (for the maps)."""
+    scene = scene or SceneSpec(ranges="cells" if off_grid else "grid")
+    r_centres, a_centres = cell_centres(config, scene.ranges != "grid")
+    if scene.ranges == "continuous":
+        range_m = _separated_ranges(n_runs, k, rng, scene)
+        angle_deg = rng.uniform(-scene.max_angle_deg, scene.max_angle_deg, (n_runs, k))
+        range_cell = np.clip((range_m / (config.max_range_m / GRID_CELLS)).astype(int), 0, GRID_CELLS - 1)
+        angle_cell = np.clip(((angle_deg + 90.0) / ANGLE_CELL_DEG).astype(int), 0, GRID_CELLS - 1)
+    else:
+        range_cell = np.argpartition(rng.random((n_runs, GRID_CELLS)), k - 1, axis=1)[:, :k]
+        if scene.max_angle_deg >= 90:
+            angle_cell = rng.integers(0, GRID_CELLS, (n_runs, k))
+        else:
+            allowed = np.flatnonzero(np.abs(a_centres) <= scene.max_angle_deg)
+            angle_cell = allowed[rng.integers(0, allowed.size, (n_runs, k))]
+        range_m, angle_deg = r_centres[range_cell], a_centres[angle_cell]
     mag = np.ones((n_runs, k))
-    mag[:, 1:] = rng.random((n_runs, k - 1))
+    mag[:, 1:] = scene.min_amplitude + (1.0 - scene.min_amplitude) * rng.random((n_runs, k - 1))
     amplitude = mag * np.exp(2j * np.pi * rng.random((n_runs, k)))
-    return range_cell, angle_cell, r_centres[range_cell], a_centres[angle_cell], amplitude
+    return range_cell, angle_cell, range_m, angle_deg, amplitude
 
 
-def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig):
+def _separated_ranges(n_runs: int, k: int, rng: np.random.Generator, scene: SceneSpec,
+                      max_rounds: int = 200) -> np.ndarray:
+    """(n_runs, K) ranges uniform in the scene's interval, every pair at least
+    ``min_separation_m`` apart: runs that break it are drawn again (bounded)."""
+    lo, hi = scene.range_min_m, scene.range_max_m
+    r = rng.uniform(lo, hi, (n_runs, k))
+    for _ in range(max_rounds):
+        gaps = np.diff(np.sort(r, axis=1), axis=1)
+        bad = np.flatnonzero((gaps < scene.min_separation_m).any(axis=1)) if k > 1 else np.array([], int)
+        if bad.size == 0:
+            return r
+        r[bad] = rng.uniform(lo, hi, (bad.size, k))
+    raise ParameterError(f"could not place {k} targets {scene.min_separation_m} m apart in [{lo}, {hi}] m "
+                         f"in {max_rounds} rounds")
+
+
+def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig,
+            noise_sigma: float = 0.0, noise_rng: np.random.Generator | None = None):
     """Measurements Z (n_runs, M, 2), the frequency indices (None or (n_runs, M)), the
-    dither xi (None when there is none) and delta ((n_runs,) or None)."""
+    dither xi (None when there is none) and delta ((n_runs,) or None). ``noise_sigma``:
+    std of each of I and Q of white noise added to Gamma before quantization, drawn from
+    ``noise_rng`` (so that the dither does not depend on it)."""
     n = config.samples_per_ramp
     if scheme.ramps(config):
         indices = None
@@ -162,6 +260,8 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
     else:
         indices = np.sort(np.argsort(rng.random((n_runs, n)), axis=1)[:, : scheme.n_measurements], axis=1)
         gamma = gamma_fn(indices)
+    if noise_sigma > 0:
+        gamma = gamma + noise_sigma * (noise_rng.standard_normal(gamma.shape) + 1j * noise_rng.standard_normal(gamma.shape))
     if scheme.bits is None:
         return gamma.astype(np.complex64), indices, None, None
     delta = auto_delta(gamma)
@@ -179,19 +279,23 @@ class ChunkResult:
     error_m: np.ndarray  # (n, K)
 
 
-def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, off_grid: bool, radar: RadarConfig,
+def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
               algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True) -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
     given its arguments. Returns {algo: ChunkResult}."""
+    if isinstance(scene, bool):  # the former off_grid flag
+        scene = SceneSpec(ranges="cells" if scene else "grid")
     scheme = Scheme.parse(scheme_name, radar)
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
     scheme_rng = np.random.default_rng(
         np.random.SeedSequence(seed, spawn_key=(k, chunk, zlib.crc32(scheme_name.encode())))
     )
-    rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, off_grid)
+    crc = zlib.crc32(scheme_name.encode())
+    noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
+    rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
     z, indices, xi, delta = measure(
         scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs,
-        scheme_rng, radar)
+        scheme_rng, radar, scene.noise_sigma, noise_rng)
     out = {}
     for algo in algos:
         det = decode(z, xi, delta, scheme.bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=fallback_pbp), indices)
@@ -279,11 +383,11 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
-                collect(job, run_chunk(*job, cfg.seed, cfg.off_grid, cfg.radar, algos, cfg.fallback_pbp))
+                collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.off_grid, cfg.radar, algos,
+                futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
                                              cfg.fallback_pbp))
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
@@ -302,11 +406,12 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                     maps[f"K{k}_{name_sa}_{name}"] = arr
     runs_per_k = {f"K{k}": cfg.runs_for(k) for k in cfg.ks}
     summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
+    summary["scene"] = cfg.scene.to_dict()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     run_config = {
         "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
-        "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp,
+        "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp, "scene": cfg.scene.to_dict(),
     }
     return MonteCarloResult(summary, maps, run_config)
 

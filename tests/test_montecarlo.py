@@ -12,6 +12,7 @@ from pipeline.errors import ParameterError
 from pipeline.montecarlo import (
     GRID_CELLS,
     MonteCarloConfig,
+    SceneSpec,
     Scheme,
     cell_centres,
     draw_scenes,
@@ -83,7 +84,7 @@ def test_32bit_full_ramp_on_grid_has_zero_error(k2_small):
 
 def test_summary_shape(k2_small):
     s = k2_small.summary
-    assert set(s) == {"K2", "runs", "seconds"}
+    assert set(s) == {"K2", "runs", "seconds", "scene"}
     assert set(s["K2"]) == {"nodither_m512", "dither_m512", "32bit_m16", "32bit_m256"}
     for st in s["K2"].values():
         assert set(st) == SUMMARY_KEYS
@@ -128,7 +129,7 @@ def test_cli_writes_summary_maps_and_pngs(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "dither_m512" in proc.stdout and "montecarlo [" in proc.stderr  # table and progress bar
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary) == {"K1", "K2", "runs", "seconds"}
+    assert set(summary) == {"K1", "K2", "runs", "seconds", "scene"}
     assert set(summary["K1"]["dither_m512"]) == SUMMARY_KEYS
     maps = np.load(out / "maps.npz")
     assert maps["K2_dither_m512_strong"].shape == (40, 40)
@@ -155,6 +156,71 @@ def test_same_seed_same_summary_as_the_recorded_one():
     r = run_montecarlo(MonteCarloConfig(ks=(1, 2), runs=300, seed=7, workers=1, algos=("pbp", "qiht"),
                                         fallback_pbp=True), progress=False)
     r.summary.pop("seconds")
+    # the scene options came later (issue 10); with their defaults every figure stays as it was
+    assert r.summary.pop("scene") == r.run_config.pop("scene") == SceneSpec().to_dict()
     assert json.loads(json.dumps(r.summary)) == golden["summary"]
     golden["config"]["workers"] = r.run_config["workers"]
     assert json.loads(json.dumps(r.run_config)) == golden["config"]
+
+
+def test_continuous_scenes_keep_their_separation_angles_and_amplitudes(cfg):
+    spec = SceneSpec(ranges="continuous", range_min_m=3.0, range_max_m=150.0, min_separation_m=1.5,
+                     max_angle_deg=60.0, min_amplitude=0.1)
+    rc, ac, r, a, x = draw_scenes(5000, 3, np.random.default_rng(1), cfg, scene=spec)
+    assert r.min() >= 3.0 and r.max() <= 150.0 and np.abs(a).max() <= 60.0
+    assert np.diff(np.sort(r, axis=1), axis=1).min() >= 1.5
+    assert np.all(np.abs(x[:, 0]) == pytest.approx(1.0)) and np.abs(x[:, 1:]).min() >= 0.1
+    off = np.abs(r / cfg.range_resolution_m - np.rint(r / cfg.range_resolution_m))
+    assert np.median(off) > 0.2  # off the range grid, not snapped
+    assert rc.max() < GRID_CELLS and ac.min() >= 4 and ac.max() <= 35  # the cells the targets fall in
+    _, ac_cells, _, a_cells, _ = draw_scenes(2000, 2, np.random.default_rng(2), cfg, scene=SceneSpec(max_angle_deg=60))
+    assert np.abs(a_cells).max() < 60.0
+
+
+def test_scene_options_reach_the_results_and_noise_costs_accuracy():
+    base = dict(ks=(1,), runs=600, schemes=("dither_m512", "32bit_m512"), seed=3, workers=1)
+    spec = SceneSpec(ranges="continuous", max_angle_deg=60.0, min_amplitude=0.1)
+    clean = run_montecarlo(MonteCarloConfig(scene=spec, **base), progress=False)
+    noisy = run_montecarlo(MonteCarloConfig(scene=SceneSpec(**{**spec.to_dict(), "noise_sigma": 0.3}), **base),
+                           progress=False)
+    assert clean.summary["scene"] == clean.run_config["scene"] == spec.to_dict()
+    assert noisy.summary["scene"]["noise_sigma"] == 0.3
+    for scheme in ("dither_m512", "32bit_m512"):
+        assert noisy.summary["K1"][scheme]["median_m"] > clean.summary["K1"][scheme]["median_m"]
+    # off the grid, the 32-bit PBP reference cannot reach zero (a grid decoder cannot place a target between bins)
+    assert 0.05 < clean.summary["K1"]["32bit_m512"]["median_m"] < 0.3
+
+
+@pytest.mark.parametrize("kwargs, fragment", [
+    (dict(ranges="polar"), "ranges"),
+    (dict(max_angle_deg=95.0), "max_angle_deg"),
+    (dict(min_amplitude=1.5), "min_amplitude"),
+    (dict(noise_sigma=-1.0), "noise_sigma"),
+    (dict(range_min_m=50.0, range_max_m=10.0), "empty"),
+])
+def test_bad_scene_options(kwargs, fragment):
+    with pytest.raises(ParameterError, match=fragment):
+        SceneSpec(**kwargs)
+
+
+def test_scenes_that_cannot_be_drawn_are_refused():
+    with pytest.raises(ParameterError, match="do not fit"):
+        MonteCarloConfig(ks=(40,), runs=10, scene=SceneSpec(ranges="continuous", range_min_m=3, range_max_m=20))
+    with pytest.raises(ParameterError, match="beyond"):
+        MonteCarloConfig(runs=10, scene=SceneSpec(ranges="continuous", range_max_m=200.0))
+
+
+def test_cli_scene_options_go_to_config_json(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "--runs", "200", "--schemes", "dither_m512",
+         "--ranges", "continuous", "--range-interval", "5", "100", "--max-angle-deg", "45", "--noise-sigma", "0.05",
+         "--min-amplitude", "0.1", "--quiet", "--no-plots", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    scene = json.loads((tmp_path / "config.json").read_text())["scene"]
+    assert scene == {"ranges": "continuous", "range_min_m": 5.0, "range_max_m": 100.0, "min_separation_m": 1.5,
+                     "max_angle_deg": 45.0, "min_amplitude": 0.1, "noise_sigma": 0.05}
+    assert json.loads((tmp_path / "summary.json").read_text())["scene"] == scene
+    bad = subprocess.run([sys.executable, "-m", "qradar", "montecarlo", "--ranges", "continuous", "--range-interval",
+                          "5", "400", "--runs", "10", "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "range_max_m=400.0" in bad.stderr

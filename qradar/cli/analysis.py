@@ -7,12 +7,13 @@ import sys
 from pathlib import Path
 
 from pipeline.decode import ALGOS, Algo
-from pipeline.montecarlo import DEFAULT_SCHEMES, MonteCarloConfig, prepare_out_dir, run_montecarlo, write_outputs
+from pipeline.montecarlo import (DEFAULT_SCHEMES, RANGE_PLACEMENTS, MonteCarloConfig, SceneSpec, prepare_out_dir,
+                                 run_montecarlo, write_outputs)
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
-from .common import algo_option, nonneg_int, pos_int
+from .common import algo_option, nonneg_float, nonneg_int, pos_int
 
 
 def add_montecarlo(sub) -> None:
@@ -33,7 +34,22 @@ def add_montecarlo(sub) -> None:
                    "non-PBP results appear as <scheme>@<algo>")
     p.add_argument("--fallback-pbp", action="store_true", help="decode schemes without dither with PBP "
                    "when a dither-aware algo is asked for")
-    p.add_argument("--off-grid", action="store_true", help="keep range cell centres off the range grid")
+    p.add_argument("--off-grid", action="store_true", help="keep range cell centres off the range grid "
+                   "(the same as --ranges cells)")
+    g = p.add_argument_group("scenes (defaults: the paper's protocol)")
+    g.add_argument("--ranges", choices=list(RANGE_PLACEMENTS), default="grid",
+                   help="grid: cell centres on the range grid; cells: cell centres; continuous: uniform over "
+                   "--range-interval (default grid)")
+    g.add_argument("--range-interval", type=nonneg_float, nargs=2, default=[3.0, 150.0], metavar=("MIN_M", "MAX_M"),
+                   help="with --ranges continuous (default 3 150)")
+    g.add_argument("--min-separation-m", type=nonneg_float, default=1.5,
+                   help="with --ranges continuous: targets at least this far apart (default 1.5)")
+    g.add_argument("--max-angle-deg", type=nonneg_float, default=90.0, help="angles within +-this (default 90)")
+    g.add_argument("--min-amplitude", type=nonneg_float, default=0.0,
+                   help="weaker targets' amplitudes uniform in [this, 1] (default 0)")
+    g.add_argument("--noise-sigma", type=nonneg_float, default=0.0,
+                   help="sensor noise before quantization: std of I and of Q relative to the strongest target "
+                   "(default 0)")
     p.add_argument("--workers", type=pos_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--out", type=Path, default=Path("montecarlo_out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG maps")
@@ -62,6 +78,9 @@ def cmd_montecarlo(args) -> int:
         ks=tuple(args.ks), runs=args.runs, schemes=tuple(args.schemes), seed=args.seed,
         off_grid=args.off_grid, workers=args.workers, radar=RadarConfig(), algos=tuple(args.algos),
         fallback_pbp=args.fallback_pbp,
+        scene=SceneSpec(ranges=args.ranges, range_min_m=args.range_interval[0], range_max_m=args.range_interval[1],
+                        min_separation_m=args.min_separation_m, max_angle_deg=args.max_angle_deg,
+                        min_amplitude=args.min_amplitude, noise_sigma=args.noise_sigma),
     )
     prepare_out_dir(args.out)
     result = run_montecarlo(cfg, progress=not args.quiet)
