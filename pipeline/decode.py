@@ -34,22 +34,26 @@ from radar_driver.model import RadarConfig, carrier
 
 from .errors import DitherUnavailable, ParameterError
 from .localize import Detections, back_project_ramps, detections_from_support, localize, project_theta_k
+from .cml import cml
 from .quantize import QuantizedFrames
 
 
 class Algo(StrEnum):
-    """The decoders: ``pbp`` (the paper's eq. 5, any frames) and ``qiht`` (dither-aware:
-    QIHT then 1-bit likelihood; dithered frames of whole ramps)."""
+    """The decoders: ``pbp`` (the paper's eq. 5, any frames), ``qiht`` (dither-aware, on the
+    range grid: QIHT then 1-bit likelihood; dithered frames of whole ramps) and ``cml``
+    (continuous ranges, maximum likelihood of the codes with their dither and the sensor
+    noise, :mod:`pipeline.cml`; quantized or unquantized frames of whole ramps)."""
 
     PBP = "pbp"
     QIHT = "qiht"
+    CML = "cml"
 
 
 ALGOS = tuple(a.value for a in Algo)
 
 #: dither scale used when none is given: PBP at the paper's best alpha for its noisy
 #: chamber (Fig. 5a); the dither-aware decoders want the full dither
-DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0}
+DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0, Algo.CML: 1.0}
 
 
 def default_alpha(algo: str) -> float:
@@ -68,19 +72,24 @@ def ml_temperatures(m: int, steps: int = 8) -> np.ndarray:
 @dataclass(frozen=True)
 class DecoderConfig:
     """algo: an :class:`Algo` (or its name). iters / mu: QIHT iterations and step. ml:
-    run the likelihood stage (1-bit only). fallback_pbp: decode frames without a usable
-    dither (or unquantized frames) with PBP instead of raising DitherUnavailable."""
+    run the likelihood stage (1-bit only). fallback_pbp: decode frames a decoder cannot
+    (qiht: without a usable dither or unquantized; qiht and cml: a frequency subset) with
+    PBP instead of raising DitherUnavailable. noise_sigma: cml's sensor noise, std of I
+    and of Q in frame units (None: estimated from each frame)."""
 
     algo: Algo = Algo.QIHT
     iters: int = 10
     mu: float = 1.0
     ml: bool = True
     fallback_pbp: bool = False
+    noise_sigma: float | None = None
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
+        if self.noise_sigma is not None and not (np.isfinite(self.noise_sigma) and self.noise_sigma >= 0):
+            raise ParameterError(f"noise_sigma={self.noise_sigma!r} must be a finite number >= 0 or None")
         if not (isinstance(self.iters, int) and 0 <= self.iters <= 1000):
             raise ParameterError(f"iters={self.iters!r} must be an integer in [0, 1000]")
         if not 0 < self.mu <= 4:
@@ -232,18 +241,23 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     (B, M, 2) or None) or full-resolution frames (``bits=None``); ``indices``: the
     frequency subset of the dense path (None = whole ramps). PBP decodes anything. A
     dither-aware decoder needs quantized frames of whole ramps with their dither; other
-    frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable."""
+    frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable. ``cml``
+    decodes quantized frames (with or without dither) and unquantized ones (least
+    squares), of whole ramps."""
     z = np.asarray(z)
     if decoder.algo == Algo.PBP:
         return localize(z, config, k, indices)
+    if decoder.algo == Algo.CML and indices is None:
+        return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
+                   noise_sigma=decoder.noise_sigma).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
             return localize(z, config, k, indices)
-        what = ("frames are not quantized" if bits is None else "frames are a frequency subset"
-                if indices is not None else "frame is not dithered")
-        raise DitherUnavailable(
-            f"{decoder.algo} needs the dither of every frame (a dithered frame of whole ramps with a known seed); "
-            f"this {what}. Use PBP, or ask for the PBP fallback")
+        what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
+                if bits is None else "frame is not dithered")
+        needs = ("frames of whole ramps" if decoder.algo == Algo.CML else
+                 "the dither of every frame (a dithered frame of whole ramps with a known seed)")
+        raise DitherUnavailable(f"{decoder.algo} needs {needs}; this {what}. Use PBP, or ask for the PBP fallback")
     x, support, _ = qiht(z, xi, delta, bits, config, k, decoder.iters, decoder.mu)
     if decoder.ml and bits == 1:
         x0 = np.take_along_axis(x, support[:, :, None], axis=1)

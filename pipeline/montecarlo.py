@@ -180,7 +180,11 @@ class MonteCarloConfig:
                 continue
             for s in self.schemes:
                 sch = Scheme.parse(s, self.radar)
-                if sch.bits is None or sch.alpha == 0 or not sch.ramps(self.radar):
+                if a == Algo.CML and not sch.ramps(self.radar):
+                    raise ParameterError(
+                        f"algo {a!r} decodes frames of whole ramps; scheme {s!r} is a frequency subset. Drop it, or "
+                        "pass --fallback-pbp to decode it with PBP")
+                if a == Algo.QIHT and (sch.bits is None or sch.alpha == 0 or not sch.ramps(self.radar)):
                     raise ParameterError(
                         f"algo {a!r} decodes dithered 1-bit frames of whole ramps (dither_m<256 k>); scheme {s!r} "
                         "has no dither to regenerate. Drop it, or pass --fallback-pbp to decode it with PBP")

@@ -149,8 +149,8 @@ class LocalizerConfig:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo).algo)  # validates the name
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
-        if self.source == "raw" and self.algo != Algo.PBP:
-            raise ParameterError(f"algo={self.algo!r} decodes quantized frames; the raw baseline uses pbp")
+        if self.source == "raw" and self.algo == Algo.QIHT:
+            raise ParameterError(f"algo={self.algo!r} decodes quantized frames; the raw baseline uses pbp or cml")
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp)

@@ -110,3 +110,30 @@ def test_montecarlo_reports_qiht_beside_pbp():
     assert set(k1) == {"dither_m512", "dither_m512@qiht"}
     assert k1["dither_m512@qiht"]["median_m"] < k1["dither_m512"]["median_m"] / 5
     assert "K1_dither_m512@qiht_all" in res.maps
+
+
+def test_cml_through_the_decode_entry_places_an_off_grid_target():
+    cfg = RadarConfig()
+    g = simulate_frames([[31.47]], [[17.0]], [[0.8]], cfg)  # between bins 52 (31.2 m) and 53 (31.8 m)
+    q = quantize_frames(g, QuantizerConfig(alpha=1.0, dither_seed=4), seq=[0])
+    det = decode(q.values(), q.dither(), q.delta, 1, cfg, 1, DecoderConfig(algo="cml"))
+    assert abs(det.range_m[0, 0] - 31.47) < 0.05 and abs(det.angle_deg[0, 0] - 17.0) < 2.0
+    grid = decode(q.values(), q.dither(), q.delta, 1, cfg, 1, DecoderConfig(algo="qiht"))
+    assert abs(grid.range_m[0, 0] - 31.47) > 0.2  # a grid decoder cannot place it between bins
+    full = decode(g, None, None, None, cfg, 1, DecoderConfig(algo="cml"))  # unquantized: least squares
+    assert abs(full.range_m[0, 0] - 31.47) < 1e-3
+    with pytest.raises(DitherUnavailable, match="subset"):
+        decode(g[:, :16], None, None, None, cfg, 1, DecoderConfig(algo="cml"), indices=np.arange(16))
+
+
+def test_montecarlo_decodes_the_32bit_reference_with_the_same_decoder():
+    from pipeline.montecarlo import SceneSpec
+
+    res = run_montecarlo(MonteCarloConfig(ks=(1,), runs=400, schemes=("dither_m512", "32bit_m512"),
+                                          algos=("pbp", "cml"), scene=SceneSpec(ranges="continuous", max_angle_deg=60)),
+                         progress=False)
+    k1 = res.summary["K1"]
+    assert k1["32bit_m512@cml"]["median_m"] < 0.05 < k1["32bit_m512"]["median_m"]  # least squares vs the grid
+    assert k1["dither_m512@cml"]["median_m"] < k1["dither_m512"]["median_m"] / 4
+    with pytest.raises(ParameterError, match="32bit_m16.*subset"):
+        MonteCarloConfig(algos=("cml",), schemes=("32bit_m16",))

@@ -266,3 +266,22 @@ def test_localizer_node_with_the_dither_aware_decoder(bus, zenoh_session):
     assert not loc2.errors
     q0.stop()
     loc2.stop()
+
+
+def test_localizer_node_with_the_continuous_decoder_off_the_grid(bus, zenoh_session):
+    from radar_driver.scene import SimScene, SimTarget
+
+    session = zenoh_session
+    scene = SimScene((SimTarget(23.43, 12.0, 0.5), SimTarget(9.23, -20.0, 0.2)), noise_std=0.005, name="offgrid")
+    col = Collector(session, "radar/**")
+    nodes = [LocalizeNode(bus, LocalizerConfig(k=2, algo="cml"), session=session),
+             QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=3), session=session),
+             SourceNode(bus, SimulatedSource(SimSourceConfig(scene, rate_hz=100, id_prefix="cm", frames=20)),
+                        session=session)]
+    run_nodes(nodes, duration_s=2.0)
+    targets = [decode_targets(p) for p in col.of("cm0/targets")]
+    assert len(targets) == 20 and all(t.algo == "cml" for t in targets)
+    err = truth_error(scene, targets)
+    assert np.median(err, axis=0).max() < 0.6, np.median(err, axis=0)  # both targets, off the 0.6 m grid
+    ranges = np.array([sorted(t["range_m"] for t in m.targets) for m in targets])
+    assert np.median(np.abs(ranges - [9.23, 23.43]), axis=0).max() < 0.1  # between the bins, not on them
