@@ -31,6 +31,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pbp.py
 	$(PY) benchmarks/bench_driver.py
+	$(PY) benchmarks/bench_cml.py
 
 # The paper's full run: 320 000 x K runs per scheme, K = 1 and 2, all four schemes.
 montecarlo-paper: $(STAMP)

@@ -1,0 +1,73 @@
+#!/usr/bin/env python3
+"""Cost of the continuous-range decoder (cml) against PBP and qiht on the same frames, in
+the same process: 1-bit dithered frames (M = 512) of off-grid scenes (ranges uniform over
+3-150 m, |theta| <= 60 deg), K = 2, decoded in batches. The three decoders take turns for
+``--seconds`` (default 60), so a busy machine slows them alike; the figure to compare
+across machines is the ratio to PBP. Each step is meant to run in a fresh process:
+
+    .venv/bin/python benchmarks/bench_cml.py [--seconds 60] [--batch 256] [--K 2]
+
+Prints one JSON object: ms per frame (median over the rounds) for each decoder, the
+ratio to PBP, and how many 20-frames/s sensors one core decodes with cml.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.decode import DecoderConfig, decode  # noqa: E402
+from pipeline.montecarlo import SceneSpec, draw_scenes  # noqa: E402
+from pipeline.progress import Progress  # noqa: E402
+from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
+from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
+
+ALGOS = ("pbp", "qiht", "cml")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=60.0, help="how long the decoders take turns")
+    ap.add_argument("--batch", type=int, default=256, help="frames per call")
+    ap.add_argument("--K", type=int, default=2)
+    args = ap.parse_args()
+
+    cfg = RadarConfig()
+    rng = np.random.default_rng(0)
+    scene = SceneSpec(ranges="continuous", max_angle_deg=60.0, min_amplitude=0.1)
+    _, _, r, a, x = draw_scenes(args.batch, args.K, rng, cfg, scene=scene)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(args.batch))
+    z, xi = q.values(), q.dither()
+    times: dict[str, list[float]] = {algo: [] for algo in ALGOS}
+    deadline = time.monotonic() + args.seconds
+    with Progress(int(args.seconds), "bench_cml", unit="s") as bar:
+        done = 0
+        while time.monotonic() < deadline:
+            for algo in ALGOS:
+                t0 = time.process_time()
+                decode(z, xi, q.delta, 1, cfg, args.K, DecoderConfig(algo=algo))
+                times[algo].append((time.process_time() - t0) / args.batch * 1e3)
+            now = int(args.seconds - max(0.0, deadline - time.monotonic()))
+            bar.update(now - done)
+            done = now
+    ms = {algo: float(np.median(v)) for algo, v in times.items()}
+    print(json.dumps({
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__},
+        "batch": args.batch, "K": args.K, "rounds": len(times["pbp"]), "seconds": args.seconds,
+        "ms_per_frame": {k: round(v, 4) for k, v in ms.items()},
+        "ratio_to_pbp": {k: round(v / ms["pbp"], 1) for k, v in ms.items()},
+        "cml_sensors_per_core_at_20_fps": int(1000.0 / ms["cml"] / 20.0),
+    }, indent=1))
+
+
+if __name__ == "__main__":
+    main()
