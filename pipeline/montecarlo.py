@@ -170,7 +170,7 @@ class MonteCarloConfig:
             raise ParameterError(f"seed={self.seed!r} must be an integer >= 0")
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
             raise ParameterError(f"workers={self.workers!r} must be an integer >= 1")
-        self.check_scene()
+        self.scene.check(self.radar, max(self.ks))
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ParameterError(f"algos {self.algos!r} must be distinct and at least one")
         for a in self.algos:
@@ -188,9 +188,6 @@ class MonteCarloConfig:
                     raise ParameterError(
                         f"algo {a!r} decodes dithered 1-bit frames of whole ramps (dither_m<256 k>); scheme {s!r} "
                         "has no dither to regenerate. Drop it, or pass --fallback-pbp to decode it with PBP")
-
-    def check_scene(self) -> None:
-        self.scene.check(self.radar, max(self.ks))
 
     def runs_for(self, k: int) -> int:
         return self.runs if self.runs is not None else 320_000 * k
@@ -287,8 +284,6 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
               algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True) -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
     given its arguments. Returns {algo: ChunkResult}."""
-    if isinstance(scene, bool):  # the former off_grid flag
-        scene = SceneSpec(ranges="cells" if scene else "grid")
     scheme = Scheme.parse(scheme_name, radar)
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
     scheme_rng = np.random.default_rng(

@@ -28,6 +28,8 @@ from typing import Callable, Iterable
 import numpy as np
 import zenoh
 
+from radar_driver.errors import RadarError
+
 from .bus import BusConfig
 from .errors import ParameterError, PipelineError
 from .wire import HealthMsg
@@ -267,13 +269,12 @@ class ProcessingNode(Node):
 
 
 def _raise_node_error(nodes: list[Node]) -> None:
-    """Raise the first error of a failed node: its own (a package error says what and
-    where) or, for anything else, a PipelineError naming the node."""
+    """Raise the first error of a failed node: its own when it is a RadarError or a
+    PipelineError (its message says what and where), else a PipelineError naming the node."""
     for nd in nodes:
         if nd.errors:
             exc = nd.errors[0]
-            if isinstance(exc, Exception) and type(exc).__module__.split(".")[0] in ("radar_driver", "pipeline",
-                                                                                        "replay"):
+            if isinstance(exc, (RadarError, PipelineError)):
                 raise exc
             raise PipelineError(f"node {nd.name} failed: {exc!r}") from exc
 
