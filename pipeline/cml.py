@@ -60,7 +60,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from .errors import ParameterError
-from .localize import Detections
+from .localize import Detections, cfar_threshold, to_db
 
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
 LOGISTIC_PER_SIGMA = 1.702
@@ -74,6 +74,12 @@ MAX_RANGE_STEP_BINS = 0.5
 BLOCK_FRAMES = 64
 #: RMS distance of the wrong codes to their cells, in units of the noise std (see above)
 WRONG_RMS_PER_SIGMA = np.sqrt(2.0 / 3.0)
+#: independent cells a bin of the count test's search is worth (its peak is sought on the
+#: oversampled grid, between the bins too); measured on target-free residuals (README)
+SEARCH_CELLS_PER_BIN = 3.0
+#: the count test looks for a peak this far from the targets found, range bins (a guard
+#: band: a strong target's 1-bit fit leaves residual energy up to ~2 bins away)
+COUNT_GUARD_BINS = 2.0
 
 
 @dataclass(frozen=True)
@@ -87,12 +93,15 @@ class CmlResult:
         projection of the final residual (``Z - xi - model``).
     sigma_eff : (B,) the last ``sigma_eff`` of the likelihood (std of each real part,
         frame units); for unquantized frames the RMS of the residual.
+    present : (B, K) bool; with a count test (``pfa``) the targets past a frame's count
+        are False (their other entries are meaningless), else all True.
     """
 
     range_m: np.ndarray
     amplitudes: np.ndarray
     statistic_db: np.ndarray
     sigma_eff: np.ndarray
+    present: np.ndarray
 
     def detections(self, config: RadarConfig) -> Detections:
         """The same targets as :class:`pipeline.localize.Detections`."""
@@ -106,8 +115,10 @@ def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     angle = angle_from_antennas_rad(a[..., 0], a[..., 1], config)
     x, y = polar_to_xy(result.range_m, angle)
     amp = np.sqrt((np.abs(a) ** 2).sum(axis=-1) / 2.0)
-    bins = np.rint(result.range_m / config.range_resolution_m).astype(np.int64) % config.samples_per_ramp
-    return Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins)
+    bins = np.rint(np.nan_to_num(result.range_m) / config.range_resolution_m).astype(np.int64) % \
+        config.samples_per_ramp
+    det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
+    return det if result.present.all() else det.masked(result.present)
 
 
 def model_frames(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarConfig, ramps: int) -> np.ndarray:
@@ -278,10 +289,12 @@ class _Fit:
 
     def __init__(self, codes: _Codes, kc: np.ndarray, b: int):
         self.codes, self.kc = codes, kc
-        self.set(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex))
+        self.set(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool))
 
-    def set(self, nu: np.ndarray, amp: np.ndarray) -> None:
-        self.nu, self.amp = nu, amp
+    def set(self, nu: np.ndarray, amp: np.ndarray, live: np.ndarray) -> None:
+        """Targets (B, K) in bins, amplitudes (B, K, 2); ``live`` (B, K): the targets
+        that move (the others stay where they are: zero amplitude, past a frame's count)."""
+        self.nu, self.amp, self.live = nu, amp, live
         self.w = _atoms(nu, self.kc)
         self.mu = self._mu(self.w, amp)
         self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
@@ -304,6 +317,8 @@ class _Fit:
         keeps its step only if its likelihood improves. amp_cap : (B,) largest amplitude
         change of a target."""
         b, k = self.nu.shape
+        if k == 0:  # no target found in the whole block (K auto)
+            return
         n = self.kc.size
         # the Jacobian of part c of mu_p is R^T Z[2p + c]: R (4K, N) holds the real and the
         # imaginary parts of the atoms w_t and of dw_t / dnu; Z how each parameter mixes them
@@ -320,6 +335,7 @@ class _Fit:
         damp = self.lm[:, None] * diag + 1e-9 * diag.max(axis=1, keepdims=True) + 1e-300
         step = -np.linalg.solve(hess + damp[:, :, None] * np.eye(5 * k), grad[..., None])[..., 0]
         step = step.reshape(b, k, 5)
+        step[~self.live] = 0.0
         step[..., 0] = np.clip(step[..., 0], -MAX_RANGE_STEP_BINS, MAX_RANGE_STEP_BINS)
         norm = np.linalg.norm(step[..., 1:], axis=2)
         step[..., 1:] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
@@ -397,7 +413,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
 
 # -- the decoder ----------------------------------------------------------------------------
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
-        noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8) -> CmlResult:
+        noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8,
+        pfa: float | None = None) -> CmlResult:
     """Greedy continuous-range maximum likelihood decoder (see the module docstring).
 
     Parameters
@@ -409,37 +426,48 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     delta : quantizer step, scalar or (B,), frame units; ignored when ``bits`` is None.
     bits : bits per real value, or None for unquantized frames.
     config : the radar configuration (N, frequencies, c).
-    k : targets per frame, 1 <= k <= N/2.
+    k : targets per frame, 1 <= k <= N/2; with ``pfa``, the most a frame can have.
     noise_sigma : std of the sensor noise on each real part, frame units, scalar or (B,);
         None: estimated from the frame. The likelihood is never sharper than the noise.
     iters : refinement steps after each detection.
     anneal : final levels of ``sigma_eff``, falling geometrically to its floor (one
         refinement step each); unquantized frames: more least-squares steps.
     oversample : detection grid of ``oversample * N`` ranges.
+    pfa : None (exactly ``k`` targets), or decide each frame's count: before each
+        detection, the peak over the mean of the joint energy of the residual's back
+        projection (away from the targets found) must reach the threshold whose
+        false-alarm probability on a target-free residual is ``pfa`` per frame and test
+        (:func:`pipeline.localize.cfar_threshold` over ``SEARCH_CELLS_PER_BIN * N``
+        cells), on the linear residual and on the likelihood's score both
+        (:func:`_count_statistic`); the first miss ends the frame's targets.
 
     Returns
     -------
-    CmlResult, targets strongest first.
+    CmlResult, targets strongest first (with ``pfa``: the present ones first).
 
     The batch is decoded in blocks of ``BLOCK_FRAMES`` frames (vectorized within a
     block): a frame's result does not depend on the others. About 20 evaluations of the
     likelihood and 12 Gauss--Newton systems for K = 2: ~1 ms a frame (M = 512).
     """
     z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample)
+    threshold = None if pfa is None else cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * config.samples_per_ramp)
     if z.shape[0] == 0:
-        return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0))
+        return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
+                         np.zeros((0, k), dtype=bool))
     parts = []
     for lo in range(0, z.shape[0], BLOCK_FRAMES):  # blocks small enough for the work arrays to stay in cache
         sl = slice(lo, lo + BLOCK_FRAMES)
         parts.append(_decode(z[sl], None if xi is None else xi[sl], None if delta is None else delta[sl], bits,
-                             config, k, None if noise_sigma is None else noise_sigma[sl], iters, anneal, oversample))
+                             config, k, None if noise_sigma is None else noise_sigma[sl], iters, anneal, oversample,
+                             threshold))
     if len(parts) == 1:
         return parts[0]
     return CmlResult(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(CmlResult)))
 
 
-def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample) -> CmlResult:
-    """:func:`cml` on one block of checked frames."""
+def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold) -> CmlResult:
+    """:func:`cml` on one block of checked frames; ``threshold``: the count test's
+    (linear), or None."""
     b, m, _ = z.shape
     n = config.samples_per_ramp
     kc = np.arange(n) - (n - 1) / 2.0
@@ -453,10 +481,18 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         floor = np.maximum(delta / m, noise)
         sigma = np.maximum(SIGMA_START * delta, noise)
         amp_cap = delta * (1 << (bits - 1))  # largest amplitude change a step: the quantizer's half range
+    active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
+    if threshold is not None:
+        fit.evaluate(sigma / LOGISTIC_PER_SIGMA)  # the score of the empty model, for the first count test
     for t in range(k):
+        if threshold is not None:
+            active &= _count_statistic(fit, codes, oversample) >= threshold
+            if not active.any():
+                break
         nu0 = _detect(fit, codes, oversample)
-        amp0 = _amplitude_at(codes, fit, nu0)
-        fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1))
+        amp0 = np.where(active[:, None], _amplitude_at(codes, fit, nu0), 0.0)
+        fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
+                np.concatenate([fit.live, active[:, None]], axis=1))
         fit.evaluate(sigma / LOGISTIC_PER_SIGMA)
         for _ in range(iters):
             fit.step(amp_cap)
@@ -474,27 +510,74 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         for _ in range(anneal):  # least squares: polish
             fit.step(amp_cap)
         sigma = codes.wrong_rms(fit.mu)
-    return _result(fit, codes, config, sigma)
+    return _result(fit, codes, config, sigma, k)
 
 
-def _detect(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
-    """Range (bins, (B,)) of the peak of the joint energy of the residual's back
-    projection on a grid of ``oversample`` points a bin, refined by a parabola."""
-    n, ramps = codes.n, codes.ramps
-    b, t = fit.nu.shape
-    if t == 0 or codes.bits is None:
-        y = codes.data.reshape(b, ramps, n, 2).sum(axis=1) - ramps * fit.model()
-    else:
-        y = np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex)  # the score, (B, N, 2)
+def _energy(y: np.ndarray, fit: _Fit, oversample: int, guard_bins: float) -> tuple[np.ndarray, np.ndarray]:
+    """Joint energy ``|U1|^2 + |U2|^2`` (B, L) of the back projection of ``y`` (B, N, 2)
+    on a grid of ``oversample`` points a bin (zero-padded inverse FFT), zero within
+    ``guard_bins`` of the live targets found, and that mask (B, L) bool."""
+    b, n = y.shape[:2]
     size = oversample * n
     u = np.fft.ifft(np.ascontiguousarray(y.transpose(0, 2, 1)), n=size, axis=2).view(float)  # (B, 2, 2L)
     np.square(u, out=u)
     both = u[:, 0] + u[:, 1]
     energy = both[:, 0::2] + both[:, 1::2]  # (B, L): |U1|^2 + |U2|^2
-    reach = int(np.ceil(MIN_SEPARATION_BINS * oversample)) - 1
-    for j in range(t):  # no detection within MIN_SEPARATION_BINS of a target already found
-        near = np.rint(fit.nu[:, j] * oversample).astype(np.int64)[:, None] + np.arange(-reach, reach + 1)
-        np.put_along_axis(energy, near % size, 0.0, axis=1)
+    near = np.zeros(energy.shape, dtype=bool)
+    reach = int(np.ceil(guard_bins * oversample)) - 1
+    for j in range(fit.nu.shape[1]):
+        idx = np.rint(fit.nu[:, j] * oversample).astype(np.int64)[:, None] + np.arange(-reach, reach + 1)
+        np.put_along_axis(near, idx % size, fit.live[:, j, None], axis=1)
+    energy[near] = 0.0
+    return energy, near
+
+
+def _residual(codes: _Codes, fit: _Fit) -> np.ndarray:
+    """``Z - xi - model`` (full frames: ``Z - model``) summed over the ramps, (B, N, 2)."""
+    b = fit.nu.shape[0]
+    return codes.data.reshape(b, codes.ramps, codes.n, 2).sum(axis=1) - codes.ramps * fit.model()
+
+
+def _peak_ratio(y: np.ndarray, fit: _Fit, oversample: int) -> np.ndarray:
+    """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
+    beyond COUNT_GUARD_BINS of the targets found (0 where ``y`` is exactly 0)."""
+    energy, near = _energy(y, fit, oversample, COUNT_GUARD_BINS)
+    mean = energy.sum(axis=1) / np.maximum(energy.shape[1] - near.sum(axis=1), 1)
+    peak = energy.max(axis=1)
+    return np.divide(peak, mean, out=np.zeros_like(peak), where=mean > 0)
+
+
+def _count_statistic(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
+    """The count test's statistic (B,), peak over mean of two residuals, the smaller:
+
+    * the linear residual ``Z - xi - model``: white when the quantizer is linear on
+      average over the dither (alpha = 1: ``E Q(x + xi) = x``), but with alpha < 1 it
+      carries the quantizer's harmonics of strong targets;
+    * the score of the likelihood (``Z - E[Z | model, xi]`` per code, the generalized
+      residual): free of those harmonics, but not white while the likelihood is
+      sharper or softer than the noise (noiseless frames at the greedy stage).
+
+    A frame passes only if both show a peak, so the false-alarm rate holds wherever
+    either residual is white. Unquantized frames: the linear residual."""
+    ratio = _peak_ratio(_residual(codes, fit), fit, oversample)
+    if codes.bits is None:
+        return ratio
+    b = fit.nu.shape[0]
+    score = np.ascontiguousarray(-fit.g).reshape(b, codes.n, 4).view(complex)
+    return np.minimum(ratio, _peak_ratio(score, fit, oversample))
+
+
+def _detect(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
+    """Range (bins, (B,)) of the peak of the joint energy of the residual's back
+    projection on a grid of ``oversample`` points a bin, refined by a parabola."""
+    n = codes.n
+    b, t = fit.nu.shape
+    if t == 0 or codes.bits is None:
+        y = _residual(codes, fit)
+    else:
+        y = np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex)  # the score, (B, N, 2)
+    size = oversample * n
+    energy, _ = _energy(y, fit, oversample, MIN_SEPARATION_BINS)  # not within a bin of a target found
     peak = np.argmax(energy, axis=1)
     left, centre, right = (np.take_along_axis(energy, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
     curv = left - 2 * centre + right
@@ -505,24 +588,32 @@ def _detect(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
 def _amplitude_at(codes: _Codes, fit: _Fit, nu0: np.ndarray) -> np.ndarray:
     """Least-squares amplitudes (B, 2) of one target at ``nu0`` (bins) in ``Z - xi - model``."""
     n, ramps = codes.n, codes.ramps
-    b = nu0.shape[0]
-    y = codes.data.reshape(b, ramps, n, 2).sum(axis=1) - ramps * fit.model()
+    y = _residual(codes, fit)
     w = _atoms(nu0[:, None], fit.kc)[:, 0]
     return np.einsum("bn,bnp->bp", np.conj(w), y) / (ramps * n)
 
 
-def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray) -> CmlResult:
+def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k: int) -> CmlResult:
+    """The fit in the model's terms, its statistic, padded to ``k`` targets (absent ones
+    last), present ones strongest first."""
     n, ramps = codes.n, codes.ramps
-    b = fit.nu.shape[0]
+    b, t = fit.nu.shape
     range_m = (fit.nu % n) * config.range_resolution_m
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
     amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
         ..., None]
-    y = codes.data.reshape(b, ramps, n, 2).sum(axis=1) - ramps * fit.model()
-    noise = (np.abs(np.fft.ifft(y, axis=1) / ramps) ** 2).sum(axis=2).mean(axis=1)  # per bin of Phi^* r / M
+    noise = (np.abs(np.fft.ifft(_residual(codes, fit), axis=1) / ramps) ** 2).sum(axis=2).mean(axis=1)  # a bin
     power = (np.abs(fit.amp) ** 2).sum(axis=2)
-    with np.errstate(divide="ignore"):
-        stat = 10 * np.log10(power / np.maximum(noise, np.finfo(float).tiny)[:, None])
-    order = np.argsort(-power, axis=1, kind="stable")
-    return CmlResult(np.take_along_axis(range_m, order, axis=1), np.take_along_axis(amp, order[..., None], axis=1),
-                     np.take_along_axis(stat, order, axis=1), sigma)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stat = to_db(power / noise[:, None])
+    pad = k - t
+    if pad:
+        range_m = np.concatenate([range_m, np.full((b, pad), np.nan)], axis=1)
+        amp = np.concatenate([amp, np.zeros((b, pad, 2), dtype=complex)], axis=1)
+        stat = np.concatenate([stat, np.full((b, pad), np.nan)], axis=1)
+        power = np.concatenate([power, np.zeros((b, pad))], axis=1)
+    present = np.concatenate([fit.live, np.zeros((b, pad), dtype=bool)], axis=1)
+    order = np.lexsort((-power, ~present), axis=1)  # present first, then strongest first
+    take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
+    return CmlResult(take(range_m), np.take_along_axis(amp, order[..., None], axis=1), take(stat), sigma,
+                     take(present))

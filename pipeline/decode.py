@@ -33,7 +33,8 @@ import numpy as np
 from radar_driver.model import RadarConfig, carrier
 
 from .errors import DitherUnavailable, ParameterError
-from .localize import Detections, back_project_ramps, detections_from_support, localize, project_theta_k
+from .localize import (DEFAULT_PFA, Detections, back_project, back_project_ramps, cfar_threshold,
+                       detections_from_support, grid_statistic_db, localize, project_theta_k)
 from .cml import cml
 from .quantize import QuantizedFrames
 
@@ -52,8 +53,9 @@ class Algo(StrEnum):
 ALGOS = tuple(a.value for a in Algo)
 
 #: dither scale used when none is given: PBP at the paper's best alpha for its noisy
-#: chamber (Fig. 5a); the dither-aware decoders want the full dither
-DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0, Algo.CML: 1.0}
+#: chamber (Fig. 5a); qiht wants the full dither; cml at its best on the off-grid noisy
+#: chamber recording (0.45-0.6 within 5 % of the best, README)
+DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0, Algo.CML: 0.5}
 
 
 def default_alpha(algo: str) -> float:
@@ -75,7 +77,9 @@ class DecoderConfig:
     run the likelihood stage (1-bit only). fallback_pbp: decode frames a decoder cannot
     (qiht: without a usable dither or unquantized; qiht and cml: a frequency subset) with
     PBP instead of raising DitherUnavailable. noise_sigma: cml's sensor noise, std of I
-    and of Q in frame units (None: estimated from each frame)."""
+    and of Q in frame units (None: estimated from each frame). auto_k: decide each
+    frame's count (``K auto``; the K passed to :func:`decode` is then the most), by a
+    CFAR test of false-alarm probability ``pfa`` per frame and test (pbp and cml)."""
 
     algo: Algo = Algo.QIHT
     iters: int = 10
@@ -83,11 +87,17 @@ class DecoderConfig:
     ml: bool = True
     fallback_pbp: bool = False
     noise_sigma: float | None = None
+    auto_k: bool = False
+    pfa: float = DEFAULT_PFA
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
+        cfar_threshold(self.pfa, 1.0)  # checks pfa
+        if self.auto_k and self.algo == Algo.QIHT:
+            raise ParameterError("K auto needs a decoder that tests each detection: pbp or cml (qiht projects "
+                                 "on exactly K bins)")
         if self.noise_sigma is not None and not (np.isfinite(self.noise_sigma) and self.noise_sigma >= 0):
             raise ParameterError(f"noise_sigma={self.noise_sigma!r} must be a finite number >= 0 or None")
         if not (isinstance(self.iters, int) and 0 <= self.iters <= 1000):
@@ -245,14 +255,15 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     decodes quantized frames (with or without dither) and unquantized ones (least
     squares), of whole ramps."""
     z = np.asarray(z)
+    pfa = decoder.pfa if decoder.auto_k else None
     if decoder.algo == Algo.PBP:
-        return localize(z, config, k, indices)
+        return localize(z, config, k, indices, pfa)
     if decoder.algo == Algo.CML and indices is None:
         return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma).detections(config)
+                   noise_sigma=decoder.noise_sigma, pfa=pfa).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
-            return localize(z, config, k, indices)
+            return localize(z, config, k, indices, pfa)
         what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                 if bits is None else "frame is not dithered")
         needs = ("frames of whole ramps" if decoder.algo == Algo.CML else
@@ -264,7 +275,7 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
         amp = ml_refine(z, xi, delta, support, x0, config)
         x = np.zeros_like(x)
         np.put_along_axis(x, support[:, :, None], amp, axis=1)
-    return detections_from_support(x, support, config)
+    return detections_from_support(x, support, config, grid_statistic_db(back_project(z, config), support))
 
 
 def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,

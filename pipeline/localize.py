@@ -119,12 +119,65 @@ def pbp(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None =
     return project_theta_k(back_project(z, config, indices), k)
 
 
+#: default false-alarm probability of ``K auto``: per frame and per test, the chance that a
+#: residual with no target left crosses the detection threshold
+DEFAULT_PFA = 1e-3
+#: a detection statistic too large to be finite (a noiseless fit) is reported as this, dB
+STATISTIC_CAP_DB = 300.0
+
+
+def cfar_threshold(pfa: float, cells: float) -> float:
+    """Detection threshold on (peak joint energy) / (mean joint energy per bin), linear.
+
+    Under the null (white Gaussian residual: 4 real degrees of freedom a bin over the
+    two antennas) the joint energy of a bin over its mean is Gamma(2, 1/2), exceeded
+    with probability ``e^-2x (1 + 2x)``, so the largest of ``cells`` independent bins
+    exceeds T with probability ``cells e^-2T (1 + 2T)``; T solves that equal to ``pfa``
+    (0 < pfa < 1)."""
+    if isinstance(pfa, bool) or not (isinstance(pfa, (int, float)) and 0 < pfa < 1):
+        raise ParameterError(f"pfa={pfa!r} must be a false-alarm probability in (0, 1)")
+    base = np.log(max(cells, 1.0) / pfa)
+    y = max(base, 1.0)
+    for _ in range(50):  # y = log(cells / pfa) + log(1 + y), y = 2T: a contraction
+        y = base + np.log1p(y)
+    return float(y / 2.0)
+
+
+def sequential_present(statistic_db: np.ndarray, threshold_db: float) -> np.ndarray:
+    """Targets kept by a sequential test (B, K) bool: target t of a frame is kept while
+    every target up to t has ``statistic_db >= threshold_db`` (targets in test order)."""
+    return np.cumprod(np.asarray(statistic_db) >= threshold_db, axis=1).astype(bool)
+
+
+def to_db(ratio: np.ndarray) -> np.ndarray:
+    """10 log10 of a power ratio, capped at +-STATISTIC_CAP_DB (0 -> -cap, inf -> +cap)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        db = 10 * np.log10(ratio)
+    return np.clip(np.nan_to_num(db, nan=-STATISTIC_CAP_DB), -STATISTIC_CAP_DB, STATISTIC_CAP_DB)
+
+
+def grid_statistic_db(u: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """Cell-averaging statistic of the support bins of a back projection U (B, N, 2),
+    support (B, K) strongest first: dB, (B, K). Target t: its joint energy
+    ``|U1|^2 + |U2|^2`` over the mean of the bins outside ``support[:, :t + 1]``."""
+    energy = (np.abs(u) ** 2).sum(axis=2)  # (B, N)
+    n = energy.shape[1]
+    e_t = np.take_along_axis(energy, support, axis=1)
+    rest = (energy.sum(axis=1, keepdims=True) - np.cumsum(e_t, axis=1)) / np.maximum(
+        n - 1 - np.arange(support.shape[1]), 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return to_db(e_t / np.maximum(rest, 0.0))
+
+
 @dataclass(frozen=True)
 class Detections:
     """Targets found in a batch of frames; every array is (B, K), strongest first.
 
     range_m (m), angle_deg (deg, positive = antenna 2 leads), x_m / y_m (m, x along
-    boresight), amplitude (joint magnitude / sqrt(2), frame units), bin (range bin).
+    boresight), amplitude (joint magnitude / sqrt(2), frame units), bin (range bin),
+    statistic_db (detection statistic, dB: the target's joint power over the mean
+    noise power per range bin of the back projection; see each decoder), present
+    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN).
     """
 
     range_m: np.ndarray
@@ -133,9 +186,31 @@ class Detections:
     y_m: np.ndarray
     amplitude: np.ndarray
     bin: np.ndarray
+    statistic_db: np.ndarray | None = None
+    present: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        shape = np.shape(self.range_m)
+        if self.statistic_db is None:
+            object.__setattr__(self, "statistic_db", np.full(shape, np.nan))
+        if self.present is None:
+            object.__setattr__(self, "present", np.ones(shape, dtype=bool))
+
+    @property
+    def count(self) -> np.ndarray:
+        """Targets per frame, (B,) int."""
+        return self.present.sum(axis=1)
+
+    def masked(self, present: np.ndarray) -> "Detections":
+        """The same detections keeping only ``present`` (B, K): the others become NaN
+        (bin -1) and not present."""
+        present = np.asarray(present, dtype=bool) & self.present
+        nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
+        return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
+                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present)
 
     def frame(self, i: int) -> list[dict[str, float]]:
-        """The targets of frame ``i`` as plain dicts (for JSON)."""
+        """The targets of frame ``i`` that are present, as plain dicts (for JSON)."""
         return [
             {
                 "range_m": float(self.range_m[i, j]),
@@ -144,25 +219,36 @@ class Detections:
                 "y_m": float(self.y_m[i, j]),
                 "amplitude": float(self.amplitude[i, j]),
                 "bin": int(self.bin[i, j]),
+                **({"statistic_db": float(self.statistic_db[i, j])} if np.isfinite(self.statistic_db[i, j]) else {}),
             }
-            for j in range(self.range_m.shape[1])
+            for j in range(self.range_m.shape[1]) if self.present[i, j]
         ]
 
 
-def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarConfig) -> Detections:
+def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarConfig,
+                            statistic_db: np.ndarray | None = None) -> Detections:
     """Range, angle and position of each support bin of U (B, N, 2); support (B, K)."""
     rows = np.take_along_axis(u, support[:, :, None], axis=1)  # (B, K, 2)
     angle = angle_from_antennas_rad(rows[..., 0], rows[..., 1], config)
     rng_m = config.range_grid_m()[support]
     x, y = polar_to_xy(rng_m, angle)
     amp = np.sqrt((np.abs(rows) ** 2).sum(axis=2) / 2.0)
-    return Detections(rng_m, np.rad2deg(angle), x, y, amp, support)
+    return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
 
 
-def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None) -> Detections:
-    """PBP targets of a batch of frames Z (B, M, 2) (quantized or not)."""
+def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
+             pfa: float | None = None) -> Detections:
+    """PBP targets of a batch of frames Z (B, M, 2) (quantized or not), each with its
+    cell-averaging statistic (:func:`grid_statistic_db`). ``pfa``: decide the count (at
+    most ``k``) by a sequential CFAR test with this false-alarm probability per frame
+    and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets."""
     u = back_project(z, config, indices)
-    return detections_from_support(u, joint_support(u, k), config)
+    support = joint_support(u, k)
+    det = detections_from_support(u, support, config, grid_statistic_db(u, support))
+    if pfa is None:
+        return det
+    threshold_db = 10 * np.log10(cfar_threshold(pfa, config.samples_per_ramp))
+    return det.masked(sequential_present(det.statistic_db, threshold_db))
 
 
 def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None) -> list[dict[str, float]]:
@@ -180,11 +266,13 @@ def nearest_estimates(
     """For each true target, the closest estimate in the plane: (error m (B, K),
     position x + i y of that estimate (B, K) complex, m).
 
-    true_* : (B, K); est_* : (B, L); errors are ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``.
+    true_* : (B, K); est_* : (B, L); errors are ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``;
+    NaN estimates (absent targets) are skipped, and a frame without any gives inf.
     """
     t = polar_to_plane(true_range_m, np.deg2rad(true_angle_deg))
     e = polar_to_plane(est_range_m, np.deg2rad(est_angle_deg))
     dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, K, L)
+    dist = np.where(np.isnan(dist), np.inf, dist)  # absent estimates (NaN) are never the nearest
     nearest = np.argmin(dist, axis=2)
     pos = np.take_along_axis(np.broadcast_to(e[:, None, :], dist.shape), nearest[:, :, None], axis=2)[..., 0]
     return np.take_along_axis(dist, nearest[:, :, None], axis=2)[..., 0], pos

@@ -23,6 +23,7 @@ from radar_driver.source import FrameSource, RawFrame
 from .bus import BusConfig
 from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
+from .localize import DEFAULT_PFA
 from .node import Node, ProcessingNode, run_nodes
 from .quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
 from .wire import (
@@ -142,18 +143,20 @@ class LocalizerConfig:
     radar: RadarConfig = field(default_factory=RadarConfig)
     max_ramps: int = 16
     fallback_pbp: bool = False
+    auto_k: bool = False
+    pfa: float = DEFAULT_PFA
 
     def __post_init__(self) -> None:
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
             raise ParameterError(f"K={self.k!r} must be an integer in [1, {self.radar.samples_per_ramp}]")
-        object.__setattr__(self, "algo", DecoderConfig(algo=self.algo).algo)  # validates the name
+        object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
         if self.source == "raw" and self.algo == Algo.QIHT:
             raise ParameterError(f"algo={self.algo!r} decodes quantized frames; the raw baseline uses pbp or cml")
 
     def decoder(self) -> DecoderConfig:
-        return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp)
+        return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp, auto_k=self.auto_k, pfa=self.pfa)
 
     def known_configs(self) -> dict[int, RadarConfig]:
         return {c.config_id(): c for c in (replace(self.radar, ramps_per_frame=r)
@@ -211,7 +214,7 @@ class LocalizeNode(ProcessingNode):
             for i, m in enumerate(msgs):
                 now = time.time_ns()
                 out = TargetsMsg(m.sensor_id, m.seq, m.timestamp_ns, config_id, str(self.config.algo), self.config.k,
-                                 self.config.source, det.frame(i), published_ns=now)
+                                 self.config.source, det.frame(i), published_ns=now, auto_k=self.config.auto_k)
                 self.publish(m.sensor_id, "targets", out.to_json(), "application/json")
                 with self._lock:
                     self.stats[m.sensor_id].latency_ms.append((now - m.timestamp_ns) / 1e6)

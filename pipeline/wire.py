@@ -203,12 +203,22 @@ def quantized_batch(msgs: list[QuantizedFrameMsg]) -> QuantizedFrames:
 
 # -- JSON messages ---------------------------------------------------------------------------
 TARGET_FIELDS = ("range_m", "angle_deg", "x_m", "y_m", "amplitude")
+#: per-target fields a target may carry (older recordings do not)
+OPTIONAL_TARGET_FIELDS = ("statistic_db",)
+
+
+def _target(t: dict) -> dict[str, float]:
+    """A target's fields as finite floats (the optional ones when present)."""
+    out = {f: float(t[f]) for f in TARGET_FIELDS}
+    out.update({f: float(t[f]) for f in OPTIONAL_TARGET_FIELDS if t.get(f) is not None})
+    return out
 
 
 @dataclass(frozen=True)
 class TargetsMsg:
-    """Targets of one frame: each a dict with TARGET_FIELDS; ``published_ns`` is the
-    localizer's wall clock when it published them."""
+    """Targets of one frame: each a dict with TARGET_FIELDS (and OPTIONAL_TARGET_FIELDS
+    when known); ``published_ns`` is the localizer's wall clock when it published them;
+    ``auto_k``: the localizer decided the count (``k`` is then the most it allows)."""
 
     sensor_id: str
     seq: int
@@ -219,12 +229,13 @@ class TargetsMsg:
     source: str  # "quantized" or "raw"
     targets: list[dict[str, float]]
     published_ns: int = 0
+    auto_k: bool = False
 
     def to_json(self) -> bytes:
         obj = {"version": JSON_VERSION, "type": "targets", "sensor_id": self.sensor_id, "seq": self.seq,
                "timestamp_ns": self.timestamp_ns, "config_id": self.config_id, "algo": self.algo,
-               "K": self.k, "source": self.source, "published_ns": self.published_ns,
-               "targets": [{f: float(t[f]) for f in TARGET_FIELDS} for t in self.targets]}
+               "K": self.k, **({"K_auto": True} if self.auto_k else {}), "source": self.source,
+               "published_ns": self.published_ns, "targets": [_target(t) for t in self.targets]}
         return json.dumps(obj, separators=(",", ":")).encode()
 
 
@@ -250,10 +261,10 @@ def _load_json(payload: bytes, source: str, kind: str) -> dict[str, Any]:
 def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
     obj = _load_json(payload, source, "targets")
     try:
-        targets = [{f: float(t[f]) for f in TARGET_FIELDS} for t in obj["targets"]]
+        targets = [_target(t) for t in obj["targets"]]
         return TargetsMsg(check_sensor_id(obj["sensor_id"]), int(obj["seq"]), int(obj["timestamp_ns"]),
                           int(obj["config_id"]), str(obj["algo"]), int(obj["K"]), str(obj["source"]), targets,
-                          int(obj.get("published_ns", 0)))
+                          int(obj.get("published_ns", 0)), bool(obj.get("K_auto", False)))
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise WireError(f"targets from {source}: missing or bad field ({exc!r})") from None
 

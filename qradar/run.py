@@ -21,7 +21,7 @@ import zenoh
 from pipeline.bus import BusConfig
 from pipeline.decode import Algo, DecoderConfig
 from pipeline.errors import ParameterError
-from pipeline.localize import position_error_m
+from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import WireError, decode_targets
@@ -99,15 +99,17 @@ class RunConfig:
     duration_s: float | None = 15.0
     rate_hz: float = 20.0
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
-    k: int | None = None  # None = as many as the scene has targets
-    algo: Algo = Algo.PBP
+    k: int | None = None  # None = as many as the scene has targets; with auto_k the most a frame has
+    algo: Algo = Algo.CML
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000
     record: Path | None = None  # MCAP path, or None for no recording
     frames: int | None = None  # stop after this many frames per sensor
+    auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
+    pfa: float = DEFAULT_PFA
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "algo", DecoderConfig(algo=self.algo).algo)  # validates the name
+        object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
         if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 256):
             raise ParameterError(f"sensors={self.sensors!r} must be an integer in [1, 256]")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -130,7 +132,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         try:
             monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
             localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar,
-                                                              fallback_pbp=cfg.quantizer.alpha == 0),
+                                                              fallback_pbp=cfg.quantizer.alpha == 0,
+                                                              auto_k=cfg.auto_k, pfa=cfg.pfa),
                                      session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
             drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
@@ -164,7 +167,7 @@ def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
     return {
         "qradar.radar": scene.radar.to_dict() | {"config_id": scene.radar.config_id()},
         "qradar.quantizer": asdict(cfg.quantizer),
-        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "source": "quantized"},
+        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized"},
         "qradar.scene": {"scene": json.dumps(scene.to_dict()), "simulated": "true", "sensors": str(cfg.sensors),
                          "rate_hz": str(cfg.rate_hz)},
     }
@@ -198,7 +201,7 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
                       "dither_seed": cfg.quantizer.dither_seed},
-        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k},
+        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k},
         "driver": {sid: c for d in drivers for sid, c in d.source.stats().items()},
     }
 

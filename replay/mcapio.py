@@ -25,7 +25,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from zstandard import ZstdError
 
-from pipeline.wire import TARGET_FIELDS, TOPICS, TargetsMsg
+from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TargetsMsg
 
 from .errors import NotMcapError, ReplayError
 
@@ -37,9 +37,10 @@ _TARGETS_SCHEMA = {
     "properties": {"version": {"type": "integer"}, "type": {"const": "targets"}, "sensor_id": {"type": "string"},
                    "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
                    "config_id": {"type": "integer"}, "algo": {"type": "string"}, "K": {"type": "integer"},
-                   "source": {"type": "string"}, "published_ns": {"type": "integer"},
+                   "K_auto": {"type": "boolean"}, "source": {"type": "string"}, "published_ns": {"type": "integer"},
                    "targets": {"type": "array", "items": {"type": "object", "properties": {
-                       f: {"type": "number"} for f in TARGET_FIELDS}, "required": list(TARGET_FIELDS)}}},
+                       f: {"type": "number"} for f in TARGET_FIELDS + OPTIONAL_TARGET_FIELDS},
+                       "required": list(TARGET_FIELDS)}}},
     "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "targets"],
 }
 _HEALTH_SCHEMA = {

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pipeline.bus import BusConfig
 from pipeline.decode import ALGOS, Algo
+from pipeline.localize import DEFAULT_PFA
 from pipeline.quantize import QuantizerConfig
 
 
@@ -52,9 +53,40 @@ def delta_arg(text: str) -> str | float:
     return v
 
 
-def algo_option(p: argparse.ArgumentParser, help: str) -> None:
-    """``--algo``, one of the decoders (pipeline.decode.Algo), default pbp."""
-    p.add_argument("--algo", choices=list(ALGOS), default=Algo.PBP.value, help=help)
+def k_arg(text: str) -> int | str:
+    """``auto`` or a target count >= 1."""
+    if text == "auto":
+        return text
+    try:
+        return pos_int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 'auto' or an integer >= 1") from None
+
+
+def pfa_arg(text: str) -> float:
+    v = float(text)
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a false-alarm probability in (0, 1)")
+    return v
+
+
+def count_options(p: argparse.ArgumentParser, default, help: str) -> None:
+    """``--K N|auto``, ``--max-targets`` and ``--pfa``; see :func:`count_from_args`."""
+    p.add_argument("--K", dest="k", type=k_arg, default=default,
+                   help=f"{help}; auto: decide each frame's count (pbp, cml) by a CFAR test, at most --max-targets")
+    p.add_argument("--max-targets", type=pos_int, default=4, help="with --K auto: the most a frame has (default 4)")
+    p.add_argument("--pfa", type=pfa_arg, default=DEFAULT_PFA,
+                   help=f"with --K auto: false-alarm probability per frame and test (default {DEFAULT_PFA:g})")
+
+
+def count_from_args(args) -> tuple[int | None, bool]:
+    """(K, auto): with ``--K auto`` the K is --max-targets."""
+    return (args.max_targets, True) if args.k == "auto" else (args.k, False)
+
+
+def algo_option(p: argparse.ArgumentParser, help: str, default: Algo = Algo.PBP) -> None:
+    """``--algo``, one of the decoders (pipeline.decode.Algo)."""
+    p.add_argument("--algo", choices=list(ALGOS), default=default.value, help=f"{help} (default {default})")
 
 
 def install_sigterm() -> None:

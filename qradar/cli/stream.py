@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from pipeline.bus import BusConfig
-from pipeline.decode import default_alpha
+from pipeline.decode import Algo, default_alpha
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
@@ -21,6 +21,8 @@ from ..run import RunConfig, format_summary, print_json, run
 from .common import (
     algo_option,
     bus_from_args,
+    count_from_args,
+    count_options,
     bus_options,
     install_sigterm,
     nonneg_float,
@@ -40,8 +42,8 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_quantize)
 
     p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> PBP -> radar/<sensor>/targets")
-    p.add_argument("--K", dest="k", type=pos_int, default=2, help="targets per frame")
-    algo_option(p, "pbp, or qiht: the dither-aware decoder (needs dithered frames)")
+    count_options(p, 2, "targets per frame (default 2)")
+    algo_option(p, "pbp; qiht: dither-aware on the range grid (needs dithered frames); cml: continuous ranges")
     p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
@@ -85,10 +87,10 @@ def add_commands(sub) -> None:
     p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
-    quantizer_options(p, None, "dither scale (default: 0.55 with pbp, the paper's best for its noisy chamber; "
-                      "1 with qiht, which wants the full dither)")
-    p.add_argument("--K", dest="k", type=pos_int, default=None, help="targets per frame (default: the scene's count)")
-    algo_option(p, "decoder of the localizer")
+    quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
+                      "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
+    count_options(p, None, "targets per frame (default: the scene's count)")
+    algo_option(p, "decoder of the localizer", Algo.CML)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
@@ -114,7 +116,9 @@ def cmd_quantize(args) -> int:
 
 
 def cmd_localize(args) -> int:
-    cfg = LocalizerConfig(k=args.k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp)
+    k, auto = count_from_args(args)
+    cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
+                          pfa=args.pfa)
     return serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
 
 
@@ -166,9 +170,10 @@ def cmd_run(args) -> int:
     if not args.no_record:
         record = args.record or Path("recordings") / time.strftime("run-%Y%m%d-%H%M%S.mcap")
     alpha = default_alpha(args.algo) if args.alpha is None else args.alpha
+    k, auto = count_from_args(args)
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
-                    quantizer=quantizer_config(args, alpha), k=args.k, algo=args.algo, bus=bus_from_args(args),
-                    record=record, frames=args.frames)
+                    quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
+                    record=record, frames=args.frames, auto_k=auto, pfa=args.pfa)
     install_sigterm()
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
     if args.json:
