@@ -6,7 +6,8 @@ strongest amplitude 1 and the others U[0, 1]; a scheme measures them, PBP locali
 and each true target's error is ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``.
 
 Schemes are named ``<kind>_m<M>``: ``dither`` / ``nodither`` (1-bit, delta per run the
-smallest 1-bit step, alpha 1 / 0) and ``32bit`` (unquantized complex64 values).
+smallest 1-bit step, alpha 1 / 0; ``dither_a<alpha>_m<M>``: another alpha in (0, 1]) and
+``32bit`` (unquantized complex64 values).
 M a multiple of N means whole ramps (FFT path); M < N means a random subset of the N
 frequencies drawn per run (dense path).
 
@@ -34,7 +35,7 @@ from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
 from .errors import ParameterError, PipelineError
 from .decode import ALGOS, Algo, DecoderConfig, decode
-from .localize import position_error_m
+from .localize import DEFAULT_PFA, cfar_threshold, position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -45,7 +46,7 @@ CHUNK_RUNS = 4096
 WITHIN_DEG = 60.0
 OVER_M = 5.0
 
-_SCHEME_RE = re.compile(r"^(nodither|dither|32bit)_m([1-9][0-9]*)$")
+_SCHEME_RE = re.compile(r"^(nodither|dither|32bit)(?:_a([01](?:\.[0-9]+)?))?_m([1-9][0-9]*)$")
 
 
 @dataclass(frozen=True)
@@ -60,11 +61,12 @@ class Scheme:
     @classmethod
     def parse(cls, name: str, config: RadarConfig) -> "Scheme":
         m = _SCHEME_RE.match(name)
-        if not m:
+        if not m or (m.group(2) is not None and (m.group(1) != "dither" or not 0 < float(m.group(2)) <= 1)):
             raise ParameterError(
-                f"scheme {name!r} is not of the form dither_m<M>, nodither_m<M> or 32bit_m<M>"
+                f"scheme {name!r} is not of the form dither_m<M>, dither_a<alpha>_m<M> (0 < alpha <= 1), "
+                "nodither_m<M> or 32bit_m<M>"
             )
-        kind, n_meas = m.group(1), int(m.group(2))
+        kind, n_meas = m.group(1), int(m.group(3))
         n = config.samples_per_ramp
         if n_meas % n and n_meas > n:
             raise ParameterError(
@@ -72,7 +74,8 @@ class Scheme:
             )
         if kind == "32bit":
             return cls(name, n_meas, None, 0.0)
-        return cls(name, n_meas, 1, 1.0 if kind == "dither" else 0.0)
+        alpha = float(m.group(2)) if m.group(2) is not None else 1.0 if kind == "dither" else 0.0
+        return cls(name, n_meas, 1, alpha)
 
     def ramps(self, config: RadarConfig) -> int:
         n = config.samples_per_ramp
@@ -135,10 +138,42 @@ class SceneSpec:
 
 
 @dataclass(frozen=True)
+class CountSpec:
+    """How the decoders learn the number of targets. ``auto`` False: they are told each
+    scene's K (the paper's protocol). ``auto`` True: they decide it (``K auto``), at most
+    ``max_targets``, with false-alarm probability ``pfa`` per frame and test; a true
+    target is then *found* when a detection not claimed by a stronger true target lies
+    within ``gate_m`` of its range, detections left unclaimed are false targets, and the
+    errors cover the found targets."""
+
+    auto: bool = False
+    max_targets: int = 4
+    pfa: float = DEFAULT_PFA
+    gate_m: float = 0.6
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_targets, bool) or not isinstance(self.max_targets, int) or not \
+                1 <= self.max_targets <= 16:
+            raise ParameterError(f"max_targets={self.max_targets!r} must be an integer in [1, 16]")
+        cfar_threshold(self.pfa, 1.0)  # checks pfa
+        if isinstance(self.gate_m, bool) or not isinstance(self.gate_m, (int, float)) or not (
+                np.isfinite(self.gate_m) and self.gate_m > 0):
+            raise ParameterError(f"gate_m={self.gate_m!r} must be a finite number > 0")
+
+    def to_dict(self) -> dict:
+        return dict(vars(self))
+
+
+#: amplitude of the weaker target from which K auto must find it (the issue's goal)
+PD_AMPLITUDE = 0.3
+
+
+@dataclass(frozen=True)
 class MonteCarloConfig:
     """What to run: sparsities, runs per (scheme, K) (None = the paper's 320 000 x K),
     schemes, seed, off-grid ranges (the same as ``scene.ranges = "cells"``), worker
-    processes (None = all cores), decoders, and the scenes (:class:`SceneSpec`)."""
+    processes (None = all cores), decoders, the scenes (:class:`SceneSpec`) and how the
+    decoders learn the target count (:class:`CountSpec`)."""
 
     ks: tuple[int, ...] = (1, 2)
     runs: int | None = None
@@ -150,6 +185,7 @@ class MonteCarloConfig:
     algos: tuple[Algo, ...] = (Algo.PBP,)
     fallback_pbp: bool = False
     scene: SceneSpec = field(default_factory=SceneSpec)
+    count: CountSpec = field(default_factory=CountSpec)
 
     def __post_init__(self) -> None:
         if self.off_grid and self.scene.ranges == "grid":
@@ -176,6 +212,9 @@ class MonteCarloConfig:
         for a in self.algos:
             if a not in ALGOS:
                 raise ParameterError(f"algo {a!r} is not known; available: {', '.join(ALGOS)}")
+            if self.count.auto and a == Algo.QIHT:
+                raise ParameterError("K auto needs a decoder that tests each detection: pbp or cml (qiht projects "
+                                     "on exactly K bins)")
             if a == Algo.PBP or self.fallback_pbp:
                 continue
             for s in self.schemes:
@@ -277,11 +316,34 @@ class ChunkResult:
     range_cell: np.ndarray  # (n, K)
     angle_cell: np.ndarray  # (n, K)
     angle_deg: np.ndarray  # (n, K) true angles
-    error_m: np.ndarray  # (n, K)
+    error_m: np.ndarray  # (n, K); with K auto, NaN for a target not found
+    amplitude: np.ndarray | None = None  # (n, K) true |amplitude| (K auto only)
+    found: np.ndarray | None = None  # (n, K) bool (K auto only)
+    false_targets: np.ndarray | None = None  # (n,) detections that are no true target (K auto only)
+
+
+def match_detections(true_range_m: np.ndarray, est_range_m: np.ndarray, gate_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matching of detections to true targets by range: each true target in
+    turn (strongest first) claims the nearest unclaimed detection within ``gate_m``.
+
+    true_range_m : (B, K); est_range_m : (B, L), NaN for absent. Returns found (B, K)
+    bool and false targets (B,) int (present detections left unclaimed)."""
+    est = np.array(est_range_m, dtype=float)
+    present = ~np.isnan(est)
+    found = np.zeros(true_range_m.shape, dtype=bool)
+    for t in range(true_range_m.shape[1]):  # K true targets, not frames
+        dist = np.abs(est - true_range_m[:, t, None])
+        dist[np.isnan(dist)] = np.inf
+        j = np.argmin(dist, axis=1)
+        hit = np.take_along_axis(dist, j[:, None], axis=1)[:, 0] <= gate_m
+        found[:, t] = hit
+        est[np.flatnonzero(hit), j[hit]] = np.nan  # claimed
+    return found, present.sum(axis=1) - found.sum(axis=1)
 
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
-              algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True) -> dict[str, ChunkResult]:
+              algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True,
+              count: CountSpec = CountSpec()) -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
     given its arguments. Returns {algo: ChunkResult}."""
     scheme = Scheme.parse(scheme_name, radar)
@@ -297,16 +359,25 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
         scheme_rng, radar, scene.noise_sigma, noise_rng)
     out = {}
     for algo in algos:
-        det = decode(z, xi, delta, scheme.bits, radar, k, DecoderConfig(algo=algo, fallback_pbp=fallback_pbp), indices)
+        decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa)
+        det = decode(z, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
-        out[algo] = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+        res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+        if count.auto:
+            found, false_targets = match_detections(r, det.range_m, count.gate_m)
+            res = ChunkResult(res.range_cell, res.angle_cell, a, np.where(found, err, np.nan), np.abs(x), found,
+                              false_targets)
+        out[algo] = res
     return out
 
 
 # -- aggregation ----------------------------------------------------------------------------
 def cell_mean_map(range_cell: np.ndarray, angle_cell: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``values`` per (range cell, angle cell): (40, 40) means (NaN where empty)
-    and (40, 40) counts."""
+    """Mean of ``values`` per (range cell, angle cell), NaN values left out: (40, 40)
+    means (NaN where empty) and (40, 40) counts."""
+    keep = ~np.isnan(values)
+    if not keep.all():
+        range_cell, angle_cell, values = range_cell[keep], angle_cell[keep], values[keep]
     flat = range_cell.astype(np.int64) * GRID_CELLS + angle_cell
     counts = np.bincount(flat, minlength=GRID_CELLS**2).reshape(GRID_CELLS, GRID_CELLS)
     sums = np.bincount(flat, weights=values, minlength=GRID_CELLS**2).reshape(GRID_CELLS, GRID_CELLS)
@@ -325,7 +396,9 @@ def summarize(result: ChunkResult) -> tuple[dict[str, float], dict[str, np.ndarr
     """Figures and maps of all runs of one (scheme, K).
 
     Target 0 is the strongest; the weakest is the one of smallest amplitude, which the
-    scene draw puts last (for K = 1 the only target is both)."""
+    scene draw puts last (for K = 1 the only target is both). With K auto the error
+    figures cover the found targets (NaN errors are left out), and the detection figures
+    of :func:`detection_stats` are added."""
     err, a = result.error_m, result.angle_deg
     within = np.abs(a) < WITHIN_DEG
     maps: dict[str, np.ndarray] = {}
@@ -337,20 +410,56 @@ def summarize(result: ChunkResult) -> tuple[dict[str, float], dict[str, np.ndarr
     cols = within_60_columns()
     sub = strong_map[:, cols]
     sub = sub[np.isfinite(sub)]
+    found = ~np.isnan(err)
+
+    def of(values: np.ndarray, fn) -> float:  # fn over the errors of found targets (NaN if none)
+        v = values if found.all() else values[~np.isnan(values)]
+        return float(fn(v)) if v.size else float("nan")
+
     stats = {
-        "mean_m": float(err.mean()),
-        "median_m": float(np.median(err)),
-        "p90_m": float(np.percentile(err, 90)),
-        "median_within_60deg_m": float(np.median(err[within])) if within.any() else float("nan"),
+        "mean_m": of(err, np.mean),
+        "median_m": of(err, np.median),
+        "p90_m": of(err, lambda v: np.percentile(v, 90)),
+        "median_within_60deg_m": of(err[within], np.median),
         "cells_over_5m_within_60deg": float(np.mean(sub > OVER_M)) if sub.size else float("nan"),
-        "strong_mean_m": float(err[:, 0].mean()),
-        "weak_mean_m": float(err[:, -1].mean()),
+        "strong_mean_m": of(err[:, 0], np.mean),
+        "weak_mean_m": of(err[:, -1], np.mean),
     }
+    if result.found is not None:
+        stats.update(detection_stats(result))
     return stats, maps
 
 
+def detection_stats(result: ChunkResult) -> dict:
+    """K auto figures: detection probability of the strongest and of the weakest target
+    (and of the weakest when its amplitude >= PD_AMPLITUDE), false targets per frame and
+    the fraction of frames with any, the fraction of frames with exactly K targets, and
+    the weakest target's detection probability in amplitude bins of 0.1
+    (``pd_weak_by_amplitude``: [bin's lower edge, pd, runs])."""
+    found, amp = result.found, result.amplitude
+    k = found.shape[1]
+    count = found.sum(axis=1) + result.false_targets
+    strong_enough = amp[:, -1] >= PD_AMPLITUDE
+    edges = np.round(np.arange(0.0, 1.0001, 0.1), 1)
+    idx = np.clip(np.digitize(amp[:, -1], edges) - 1, 0, len(edges) - 2)
+    runs = np.bincount(idx, minlength=len(edges) - 1)
+    hits = np.bincount(idx, weights=found[:, -1], minlength=len(edges) - 1)
+    return {
+        "pd_strong": float(found[:, 0].mean()),
+        "pd_weak": float(found[:, -1].mean()),
+        f"pd_weak_amp_ge_{PD_AMPLITUDE}": float(found[strong_enough, -1].mean()) if strong_enough.any() else
+        float("nan"),
+        "false_targets_per_frame": float(result.false_targets.mean()),
+        "frames_with_false_targets": float(np.mean(result.false_targets > 0)),
+        "count_exact": float(np.mean(count == k)),
+        "pd_weak_by_amplitude": [[float(edges[i]), float(hits[i] / runs[i]), int(runs[i])]
+                                 for i in range(len(runs)) if runs[i]],
+    }
+
+
 def _concat(parts: list[ChunkResult]) -> ChunkResult:
-    return ChunkResult(*(np.concatenate([getattr(p, f) for p in parts]) for f in ChunkResult.__dataclass_fields__))
+    return ChunkResult(*(None if getattr(parts[0], f) is None else np.concatenate([getattr(p, f) for p in parts])
+                         for f in ChunkResult.__dataclass_fields__))
 
 
 @dataclass
@@ -382,12 +491,12 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
-                collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp))
+                collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp, cfg.count))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
-                                             cfg.fallback_pbp))
+                                             cfg.fallback_pbp, cfg.count))
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
                     collect(job, fut.result())
@@ -406,11 +515,13 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     runs_per_k = {f"K{k}": cfg.runs_for(k) for k in cfg.ks}
     summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
     summary["scene"] = cfg.scene.to_dict()
+    summary["count"] = cfg.count.to_dict()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     run_config = {
         "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
         "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp, "scene": cfg.scene.to_dict(),
+        "count": cfg.count.to_dict(),
     }
     return MonteCarloResult(summary, maps, run_config)
 
@@ -428,7 +539,7 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
     """Write summary.json, config.json, maps.npz, the polar error maps (PNG, unless
     ``plots`` is False) and, when the schemes span several M, error_vs_m.json/.png to
     ``out_dir``. Returns the report lines (the table, the slopes, what was written)."""
-    from .plots import error_vs_m, error_vs_m_figure, montecarlo_figures
+    from .plots import detection_figure, error_vs_m, error_vs_m_figure, montecarlo_figures
 
     out_dir = Path(out_dir)
     try:
@@ -437,6 +548,9 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
         (out_dir / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
         np.savez_compressed(out_dir / "maps.npz", **result.maps)
         pngs = montecarlo_figures(out_dir, result.summary, result.maps, max_range_m) if plots else []
+        if plots and result.summary.get("count", {}).get("auto"):
+            pd_png = detection_figure(out_dir / "detection.png", result.summary)
+            pngs += [pd_png] if pd_png else []
         slopes = error_vs_m(result.summary)
         if slopes:
             (out_dir / "error_vs_m.json").write_text(json.dumps(slopes, indent=2) + "\n")
@@ -455,11 +569,15 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
 
 
 def format_table(summary: dict) -> str:
-    """The summary as a fixed-width text table (one row per K and scheme)."""
+    """The summary as a fixed-width text table (one row per K and scheme; with K auto
+    the detection columns too)."""
     cols = ["mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
             "strong_mean_m", "weak_mean_m"]
     heads = ["mean", "median", "p90", "med|θ|<60", "cells>5m", "strong", "weak"]
-    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads)]
+    pd_cols = ["pd_strong", "pd_weak", f"pd_weak_amp_ge_{PD_AMPLITUDE}", "false_targets_per_frame"]
+    pd_heads = ["Pd strong", "Pd weak", f"Pd w≥{PD_AMPLITUDE}", "false/fr"]
+    auto = bool(summary.get("count", {}).get("auto"))
+    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads + (pd_heads if auto else []))]
     for key, block in summary.items():
         if not (key.startswith("K") and isinstance(block, dict)):
             continue
@@ -468,5 +586,8 @@ def format_table(summary: dict) -> str:
             for c in cols:
                 v = st[c]
                 vals.append(f"{v:>10.1%} " if c == "cells_over_5m_within_60deg" else f"{v:>9.3f}m ")
+            if auto:
+                vals += [f"{st[c]:>10.3f} " if c == "false_targets_per_frame" else f"{st[c]:>10.1%} "
+                         for c in pd_cols]
             lines.append(f"{key[1:]:<3} {scheme:<22}" + "".join(vals))
     return "\n".join(lines)

@@ -147,3 +147,33 @@ def error_vs_m_figure(path: Path, series: dict[str, dict], stat: str = "median")
     fig.savefig(path)
     plt.close(fig)
     return Path(path)
+
+
+def detection_figure(path: Path, summary: dict) -> Path | None:
+    """K auto: the weakest target's detection probability against its amplitude, one
+    curve per (K > 1, scheme, decoder), with the false targets per frame in the legend.
+    None when the summary has no such curve."""
+    curves = [(f"K={key[1:]} {name}", st) for key, block in summary.items()
+              if key.startswith("K") and isinstance(block, dict) and key != "K1"
+              for name, st in block.items() if "pd_weak_by_amplitude" in st]
+    if not curves:
+        return None
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=110)
+    for label, st in curves:
+        pts = np.array(st["pd_weak_by_amplitude"], dtype=float)
+        ax.plot(pts[:, 0] + 0.05, pts[:, 1], "-o", ms=3,
+                label=f"{label}: {st['false_targets_per_frame']:.3f} false targets/frame")
+    ax.axhline(0.95, color="0.5", lw=0.8, ls=":")
+    ax.set_xlabel("amplitude of the weakest target (strongest = 1), bin centres")
+    ax.set_ylabel("detection probability")
+    ax.set_ylim(0, 1.02)
+    ax.set_xlim(0, 1)
+    ax.set_title(f"K auto (pfa {summary['count']['pfa']:g}, at most {summary['count']['max_targets']} targets)",
+                 fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

@@ -11,6 +11,7 @@ import pytest
 from pipeline.errors import ParameterError
 from pipeline.montecarlo import (
     GRID_CELLS,
+    CountSpec,
     MonteCarloConfig,
     SceneSpec,
     Scheme,
@@ -84,7 +85,7 @@ def test_32bit_full_ramp_on_grid_has_zero_error(k2_small):
 
 def test_summary_shape(k2_small):
     s = k2_small.summary
-    assert set(s) == {"K2", "runs", "seconds", "scene"}
+    assert set(s) == {"K2", "runs", "seconds", "scene", "count"}
     assert set(s["K2"]) == {"nodither_m512", "dither_m512", "32bit_m16", "32bit_m256"}
     for st in s["K2"].values():
         assert set(st) == SUMMARY_KEYS
@@ -110,7 +111,9 @@ def test_scheme_names(cfg):
     assert Scheme.parse("dither_m1024", cfg).ramps(cfg) == 4
     assert Scheme.parse("32bit_m16", cfg).ramps(cfg) == 0
     assert Scheme.parse("nodither_m512", cfg).alpha == 0.0
-    for bad in ("dither512", "fourbit_m512", "dither_m300", "32bit_m0"):
+    assert Scheme.parse("dither_a0.5_m512", cfg).alpha == 0.5 and Scheme.parse("dither_a1_m512", cfg).alpha == 1.0
+    for bad in ("dither512", "fourbit_m512", "dither_m300", "32bit_m0", "dither_a0_m512", "dither_a1.5_m512",
+                "nodither_a0.5_m512", "32bit_a0.5_m512"):
         with pytest.raises(ParameterError, match="scheme"):
             Scheme.parse(bad, cfg)
     with pytest.raises(ParameterError, match="runs=0"):
@@ -129,7 +132,7 @@ def test_cli_writes_summary_maps_and_pngs(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "dither_m512" in proc.stdout and "montecarlo [" in proc.stderr  # table and progress bar
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary) == {"K1", "K2", "runs", "seconds", "scene"}
+    assert set(summary) == {"K1", "K2", "runs", "seconds", "scene", "count"}
     assert set(summary["K1"]["dither_m512"]) == SUMMARY_KEYS
     maps = np.load(out / "maps.npz")
     assert maps["K2_dither_m512_strong"].shape == (40, 40)
@@ -158,6 +161,7 @@ def test_same_seed_same_summary_as_the_recorded_one():
     r.summary.pop("seconds")
     # the scene options came later (issue 10); with their defaults every figure stays as it was
     assert r.summary.pop("scene") == r.run_config.pop("scene") == SceneSpec().to_dict()
+    assert r.summary.pop("count") == r.run_config.pop("count") == CountSpec().to_dict()  # K given (issue 10)
     assert json.loads(json.dumps(r.summary)) == golden["summary"]
     golden["config"]["workers"] = r.run_config["workers"]
     assert json.loads(json.dumps(r.run_config)) == golden["config"]

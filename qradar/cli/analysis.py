@@ -7,13 +7,14 @@ import sys
 from pathlib import Path
 
 from pipeline.decode import ALGOS, Algo
-from pipeline.montecarlo import (DEFAULT_SCHEMES, RANGE_PLACEMENTS, MonteCarloConfig, SceneSpec, prepare_out_dir,
-                                 run_montecarlo, write_outputs)
+from pipeline.localize import DEFAULT_PFA
+from pipeline.montecarlo import (DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
+                                 prepare_out_dir, run_montecarlo, write_outputs)
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
-from .common import algo_option, nonneg_float, nonneg_int, pos_int
+from .common import count_from_args, count_options, nonneg_float, nonneg_int, pfa_arg, pos_int
 
 
 def add_montecarlo(sub) -> None:
@@ -50,6 +51,16 @@ def add_montecarlo(sub) -> None:
     g.add_argument("--noise-sigma", type=nonneg_float, default=0.0,
                    help="sensor noise before quantization: std of I and of Q relative to the strongest target "
                    "(default 0)")
+    g = p.add_argument_group("target count (default: each decoder is told the scene's K)")
+    g.add_argument("--count", choices=["given", "auto"], default="given",
+                   help="auto: the decoders (pbp, cml) decide each frame's count, as with localize --K auto; the "
+                   "summary adds detection probabilities and false targets per frame")
+    g.add_argument("--max-targets", type=pos_int, default=4, help="with --count auto: the most a frame has (default 4)")
+    g.add_argument("--pfa", type=pfa_arg, default=DEFAULT_PFA,
+                   help=f"with --count auto: false-alarm probability per frame and test (default {DEFAULT_PFA:g})")
+    g.add_argument("--gate-m", type=nonneg_float, default=0.6,
+                   help="with --count auto: a true target is found by a detection within this range of it "
+                   "(default 0.6, one range bin)")
     p.add_argument("--workers", type=pos_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--out", type=Path, default=Path("montecarlo_out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG maps")
@@ -62,8 +73,10 @@ def add_reprocess(sub) -> None:
     p.add_argument("file", type=Path)
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
     p.add_argument("--bits", type=pos_int, default=1)
-    p.add_argument("--K", dest="k", type=pos_int, default=None, help="targets (default: the truth's count)")
-    algo_option(p, "decoder; qiht decodes alpha = 0 with PBP (there is no dither to use)")
+    count_options(p, None, "targets (default: the truth's count)")
+    p.add_argument("--algos", "--algo", dest="algos", nargs="+", choices=list(ALGOS), default=[Algo.PBP.value],
+                   help="decoders, one alpha sweep and one curve each (default pbp); qiht decodes alpha = 0 with "
+                   "PBP (there is no dither to use)")
     p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
     p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
@@ -81,6 +94,7 @@ def cmd_montecarlo(args) -> int:
         scene=SceneSpec(ranges=args.ranges, range_min_m=args.range_interval[0], range_max_m=args.range_interval[1],
                         min_separation_m=args.min_separation_m, max_angle_deg=args.max_angle_deg,
                         min_amplitude=args.min_amplitude, noise_sigma=args.noise_sigma),
+        count=CountSpec(auto=args.count == "auto", max_targets=args.max_targets, pfa=args.pfa, gate_m=args.gate_m),
     )
     prepare_out_dir(args.out)
     result = run_montecarlo(cfg, progress=not args.quiet)
@@ -89,9 +103,10 @@ def cmd_montecarlo(args) -> int:
 
 
 def cmd_reprocess(args) -> int:
-    cfg = ReprocessConfig(file=args.file, alphas=tuple(parse_alphas(args.alpha)), bits=args.bits, k=args.k,
-                          algo=args.algo, seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
-                          mcap=args.mcap, progress=not args.quiet)
+    k, auto = count_from_args(args)
+    cfg = ReprocessConfig(file=args.file, alphas=tuple(parse_alphas(args.alpha)), bits=args.bits, k=k,
+                          algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
+                          mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa)
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)
