@@ -1,21 +1,22 @@
 """Offline re-processing of a recording: its raw frames (read through
 :class:`~replay.source.RecordingSource`) quantized and localized again with other
 parameters, without zenoh; the dither-scale sweep of the paper's Sec. 6 (Fig. 5a: mean
-position error against alpha; Fig. 5b: reconstructions over consecutive frames,
-alpha = 0 against the best alpha). :func:`run` does the whole job of ``qradar
-reprocess`` from a :class:`ReprocessConfig`."""
+position error against alpha, one curve per decoder; Fig. 5b: reconstructions over
+consecutive frames, alpha = 0 against the best alpha). :func:`run` does the whole job
+of ``qradar reprocess`` from a :class:`ReprocessConfig`."""
 
 from __future__ import annotations
 
 import json
 import logging
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.decode import Algo, DecoderConfig, decode_batch
-from pipeline.localize import Detections, nearest_estimates
+from pipeline.localize import DEFAULT_PFA, Detections, nearest_estimates
 from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
 from pipeline.wire import TargetsMsg
@@ -115,11 +116,13 @@ class AlphaResult:
 
 
 def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
-              seed: int, algo: Algo = Algo.PBP) -> AlphaResult:
+              seed: int, algo: Algo = Algo.PBP, auto_k: bool = False, pfa: float = DEFAULT_PFA) -> AlphaResult:
+    """One alpha: quantize every frame, decode (``auto_k``: at most ``k`` targets, counted
+    with false-alarm probability ``pfa``) and measure each true target's error."""
     q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
                         dither_seed=sensor_dither_seed(seed, rec.sensor_id))
-    # alpha = 0 has no dither to use: a dither-aware decoder falls back to PBP there
-    det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True))
+    # alpha = 0 has no dither to use: qiht falls back to PBP there (cml decodes it without dither)
+    det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True, auto_k=auto_k, pfa=pfa))
     f = rec.frames.shape[0]
     tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
     ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
@@ -137,12 +140,17 @@ class SweepResult:
 
     @property
     def mean_error_m(self) -> np.ndarray:
-        """(A, T) mean error of each true target for each alpha."""
-        return np.array([r.errors_m.mean(axis=0) for r in self.results])
+        """(A, T) mean error of each true target for each alpha (frames without any
+        target, possible with K auto, left out; NaN if every frame is)."""
+        e = np.array([r.errors_m for r in self.results])  # (A, F, T)
+        ok = np.isfinite(e)
+        n = ok.sum(axis=1)
+        return np.where(n > 0, np.where(ok, e, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
 
     @property
     def best_index(self) -> int:
-        return int(np.argmin(self.mean_error_m.mean(axis=1)))
+        me = self.mean_error_m.mean(axis=1)
+        return int(np.nanargmin(me)) if np.isfinite(me).any() else 0
 
     def summary(self) -> dict:
         me = self.mean_error_m
@@ -162,38 +170,61 @@ class SweepResult:
 
 
 def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
-          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = Algo.PBP) -> SweepResult:
+          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = Algo.PBP,
+          auto_k: bool = False, pfa: float = DEFAULT_PFA, bar: Progress | None = None) -> SweepResult:
+    """Every alpha of ``alphas`` with one decoder. ``bar``: a progress bar of the
+    caller's to advance (else one of its own, shown if ``progress``)."""
     k = k or len(truth)
     out = []
-    with Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress) as bar:
+    own = Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress)
+    with own if bar is None else nullcontext(bar) as bar:
         for a in alphas:
-            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo))
+            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo, auto_k, pfa))
             bar.update(rec.frames.shape[0])
     return SweepResult(np.asarray(alphas, float), out, truth, rec,
-                       {"bits": bits, "K": k, "algo": str(algo), "seed": seed})
+                       {"bits": bits, "K": k, "K_auto": auto_k, "algo": str(algo), "seed": seed})
 
 
 # -- figures ---------------------------------------------------------------------------------
-def plot_alpha_sweep(result: SweepResult, path: Path) -> Path:
+def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
+    """Fig. 5a: mean position error against alpha. One decoder: a curve per target and
+    their mean; several: the mean of the targets, one curve per decoder (each target's
+    curve dotted, in the decoder's colour), each decoder's best alpha marked."""
     from pipeline.plots import _pyplot
 
     plt = _pyplot()
-    me = result.mean_error_m
+    first = next(iter(results.values()))
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
-    for i, t in enumerate(result.truth):
-        ax.plot(result.alphas, me[:, i], marker="o", ms=3,
-                label=f"target {i + 1}: {t['range_m']:.1f} m, {t['angle_deg']:+.0f}°")
-    ax.plot(result.alphas, me.mean(axis=1), "k--", lw=1, label="mean of targets")
-    best = result.best_index
-    ax.axvline(result.alphas[best], color="grey", lw=0.8, ls=":")
-    ax.annotate(f"best α = {result.alphas[best]:.2f}", (result.alphas[best], me.mean(axis=1)[best]),
-                textcoords="offset points", xytext=(8, 12), fontsize=8)
+    if len(results) == 1:
+        me = first.mean_error_m
+        for i, t in enumerate(first.truth):
+            ax.plot(first.alphas, me[:, i], marker="o", ms=3,
+                    label=f"target {i + 1}: {t['range_m']:.2f} m, {t['angle_deg']:+.0f}°")
+        ax.plot(first.alphas, me.mean(axis=1), "k--", lw=1, label="mean of targets")
+    for n, (algo, result) in enumerate(results.items()):
+        me = result.mean_error_m
+        best = result.best_index
+        color = "grey" if len(results) == 1 else f"C{n}"
+        if len(results) > 1:
+            ax.plot(result.alphas, me.mean(axis=1), "-", marker="o", ms=3, color=color,
+                    label=f"{algo}, mean of targets: best α = {result.alphas[best]:.2f}, {me[best].mean():.3f} m")
+            for i in range(me.shape[1]):
+                ax.plot(result.alphas, me[:, i], ":", lw=0.8, color=color)
+        else:
+            ax.annotate(f"best α = {result.alphas[best]:.2f}", (result.alphas[best], me.mean(axis=1)[best]),
+                        textcoords="offset points", xytext=(8, 12), fontsize=8)
+        ax.axvline(result.alphas[best], color=color, lw=0.8, ls=":")
+    if len(results) > 1:
+        ax.set_yscale("log")
+        ax.plot([], [], ":", color="0.4", lw=0.8, label="each target")
     ax.set_xlabel("dither scale α")
     ax.set_ylabel("mean position error (m)")
-    ax.set_title(f"{result.rec.sensor_id}: {result.rec.frames.shape[0]} frames, "
-                 f"{result.params['bits']}-bit, {result.params['algo'].upper()} K = {result.params['K']}", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    p = first.params
+    ax.set_title(f"{first.rec.sensor_id}: {first.rec.frames.shape[0]} frames, {p['bits']}-bit, "
+                 f"{', '.join(a.upper() for a in results)}, K = {'auto, at most ' if p['K_auto'] else ''}{p['K']}",
+                 fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="best", framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -235,8 +266,8 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
     ax.plot(0, 0, "k^", ms=8, label="radar")
     ax.set_xlabel("y (m), across boresight (+ = antenna 2 side)")
     ax.set_ylabel("x (m), along boresight")
-    ax.set_title(f"{result.rec.frames.shape[0]} frames: mean of the estimate nearest each target, 2σ ellipses",
-                 fontsize=9)
+    ax.set_title(f"{result.params['algo'].upper()}, {result.rec.frames.shape[0]} frames: mean of the estimate "
+                 "nearest each target, 2σ ellipses", fontsize=9)
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
@@ -269,27 +300,36 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
 @dataclass(frozen=True)
 class ReprocessConfig:
     """What ``qradar reprocess`` does. file: the recording. alphas: dither scales to sweep
-    (see :func:`parse_alphas`). k: targets (None = the truth's count). sensor: sensor id
-    (None = the first). truth: a scene TOML with the true positions (None = the
-    recording's ``qradar.scene`` metadata). out: folder for results.json and the plots.
-    mcap: also write the best alpha's targets there."""
+    (see :func:`parse_alphas`). k: targets (None = the truth's count; with ``auto_k`` the
+    most a frame has, counted with false-alarm probability ``pfa``). algos: the
+    decoders, one sweep each (the first is the reference of the summary's top level).
+    sensor: sensor id (None = the first). truth: a scene TOML with the true positions
+    (None = the recording's ``qradar.scene`` metadata). out: folder for results.json and
+    the plots. mcap: also write the targets of the best (decoder, alpha) there."""
 
     file: Path
     alphas: tuple[float, ...] = tuple(parse_alphas("0:1:0.05"))
     bits: int = 1
     k: int | None = None
-    algo: Algo = Algo.PBP
+    algos: tuple[Algo, ...] = (Algo.PBP,)
     seed: int = 0
     sensor: str | None = None
     truth: Path | None = None
     out: Path = Path("out/reprocess")
     mcap: Path | None = None
     progress: bool = True
+    auto_k: bool = False
+    pfa: float = DEFAULT_PFA
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):
             raise ReplayError(f"alphas {self.alphas!r} must be at least one value in [0, 1]")
-        object.__setattr__(self, "algo", Algo(self.algo))
+        if isinstance(self.algos, str):
+            object.__setattr__(self, "algos", (self.algos,))
+        algos = tuple(DecoderConfig(algo=a, auto_k=self.auto_k, pfa=self.pfa).algo for a in self.algos)
+        if not algos or len(set(algos)) != len(algos):
+            raise ReplayError(f"algos {self.algos!r} must be distinct and at least one")
+        object.__setattr__(self, "algos", algos)
 
 
 @dataclass
@@ -300,32 +340,46 @@ class ReprocessResult:
     lines: list[str]
 
 
+#: what results.json keeps of each decoder's sweep under ``by_algo``
+PER_ALGO = ("mean_error_m", "mean_error_all_m", "best_alpha", "error_at_best_m", "error_at_alpha0_m")
+
+
 def run(cfg: ReprocessConfig) -> ReprocessResult:
-    """Load, sweep alpha, write results.json, the two figures and (optionally) an MCAP of
-    the best alpha's targets. Returns the summary, the files written, notes for the
-    user (warnings) and the report lines."""
+    """Load, sweep alpha with each decoder, write results.json, the two figures and
+    (optionally) an MCAP of the best (decoder, alpha)'s targets. Returns the summary,
+    the files written, notes for the user (warnings) and the report lines."""
     rec = load_raw(cfg.file, cfg.sensor)
     scene = truth_scene(rec, cfg.truth)
     radar = radar_for(rec, scene.radar)
     notes = []
     if any(t.velocity_m_s for t in scene.targets):
         notes.append("note: moving targets; the truth is taken at the first frame")
-    result = sweep(rec, radar, scene.truth(0.0), np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k, seed=cfg.seed,
-                   progress=cfg.progress, algo=cfg.algo)
-    summary = result.summary() | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
-                                  "truncated": rec.truncated}
+    results: dict[str, SweepResult] = {}
+    with Progress(len(cfg.alphas) * rec.frames.shape[0] * len(cfg.algos), "reprocess", unit="frames",
+                  enabled=cfg.progress) as bar:
+        for algo in cfg.algos:
+            results[str(algo)] = sweep(rec, radar, scene.truth(0.0), np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k,
+                                       seed=cfg.seed, algo=algo, auto_k=cfg.auto_k, pfa=cfg.pfa, bar=bar)
+    first = next(iter(results.values()))
+    summaries = {a: r.summary() for a, r in results.items()}
+    summary = summaries[str(cfg.algos[0])] | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
+                                              "truncated": rec.truncated}
+    if len(results) > 1:
+        summary["by_algo"] = {a: {key: s[key] for key in PER_ALGO} for a, s in summaries.items()}
+    best_algo = min(summaries, key=lambda a: summaries[a]["error_at_best_m"])
     try:
         cfg.out.mkdir(parents=True, exist_ok=True)
         (cfg.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
-        written = [cfg.out / "results.json", plot_alpha_sweep(result, cfg.out / "alpha_sweep.png"),
-                   plot_reconstructions(result, cfg.out / "reconstructions.png")]
+        written = [cfg.out / "results.json", plot_alpha_sweep(results, cfg.out / "alpha_sweep.png"),
+                   plot_reconstructions(results[best_algo], cfg.out / "reconstructions.png")]
         if cfg.mcap is not None:
-            write_targets_mcap(result, result.best_index, radar, cfg.mcap)
+            write_targets_mcap(results[best_algo], results[best_algo].best_index, radar, cfg.mcap)
             written.append(cfg.mcap)
     except OSError as exc:
         raise ReplayError(f"cannot write the re-processing results ({exc.filename or cfg.out}): "
                           f"{exc.strerror or exc}") from None
-    lines = [f"{rec.sensor_id}: {rec.frames.shape[0]} frames; best alpha {summary['best_alpha']:.2f} "
-             f"(mean error {summary['error_at_best_m']} m; at alpha 0: {summary['error_at_alpha0_m']} m)",
-             f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:])]
+    lines = [f"{rec.sensor_id}: {first.rec.frames.shape[0]} frames"]
+    lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {s['error_at_best_m']} m; at alpha 0: "
+              f"{s['error_at_alpha0_m']} m)" for a, s in summaries.items()]
+    lines.append(f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:]))
     return ReprocessResult(summary, written, notes, lines)
