@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Cost of the continuous-range decoder (cml) against PBP and qiht on the same frames, in
 the same process: 1-bit dithered frames (M = 512) of off-grid scenes (ranges uniform over
-3-150 m, |theta| <= 60 deg), K = 2, decoded in batches. The three decoders take turns for
+3-150 m, |theta| <= 60 deg), K = 2, decoded in batches, each decoder told K, and pbp and
+cml also deciding the count (K auto, at most 4). The decoders take turns for
 ``--seconds`` (default 60), so a busy machine slows them alike; the figure to compare
 across machines is the ratio to PBP. Each step is meant to run in a fresh process:
 
@@ -39,6 +40,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0, help="how long the decoders take turns")
     ap.add_argument("--batch", type=int, default=256, help="frames per call")
     ap.add_argument("--K", type=int, default=2)
+    ap.add_argument("--max-targets", type=int, default=4, help="the most targets of the K auto runs")
     args = ap.parse_args()
 
     cfg = RadarConfig()
@@ -47,25 +49,29 @@ def main() -> None:
     _, _, r, a, x = draw_scenes(args.batch, args.K, rng, cfg, scene=scene)
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(args.batch))
     z, xi = q.values(), q.dither()
-    times: dict[str, list[float]] = {algo: [] for algo in ALGOS}
+    # each decoder told K, and pbp and cml deciding the count (K auto, at most --max-targets)
+    runs = {algo: (DecoderConfig(algo=algo), args.K) for algo in ALGOS}
+    runs |= {f"{algo}_auto": (DecoderConfig(algo=algo, auto_k=True), args.max_targets) for algo in ("pbp", "cml")}
+    times: dict[str, list[float]] = {label: [] for label in runs}
     deadline = time.monotonic() + args.seconds
     with Progress(int(args.seconds), "bench_cml", unit="s") as bar:
         done = 0
         while time.monotonic() < deadline:
-            for algo in ALGOS:
+            for label, (decoder, k) in runs.items():
                 t0 = time.process_time()
-                decode(z, xi, q.delta, 1, cfg, args.K, DecoderConfig(algo=algo))
-                times[algo].append((time.process_time() - t0) / args.batch * 1e3)
+                decode(z, xi, q.delta, 1, cfg, k, decoder)
+                times[label].append((time.process_time() - t0) / args.batch * 1e3)
             now = int(args.seconds - max(0.0, deadline - time.monotonic()))
             bar.update(now - done)
             done = now
     ms = {algo: float(np.median(v)) for algo, v in times.items()}
     print(json.dumps({
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__},
-        "batch": args.batch, "K": args.K, "rounds": len(times["pbp"]), "seconds": args.seconds,
+        "batch": args.batch, "K": args.K, "max_targets_auto": args.max_targets, "rounds": len(times["pbp"]), "seconds": args.seconds,
         "ms_per_frame": {k: round(v, 4) for k, v in ms.items()},
         "ratio_to_pbp": {k: round(v / ms["pbp"], 1) for k, v in ms.items()},
         "cml_sensors_per_core_at_20_fps": int(1000.0 / ms["cml"] / 20.0),
+        "cml_auto_sensors_per_core_at_20_fps": int(1000.0 / ms["cml_auto"] / 20.0),
     }, indent=1))
 
 
