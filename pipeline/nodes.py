@@ -150,6 +150,9 @@ class LocalizerConfig:
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
             raise ParameterError(f"K={self.k!r} must be an integer in [1, {self.radar.samples_per_ramp}]")
         object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
+        if self.algo == Algo.CML and self.k > self.radar.samples_per_ramp // 2:
+            raise ParameterError(f"K={self.k} (or --max-targets) must be at most N/2 = "
+                                 f"{self.radar.samples_per_ramp // 2} for cml")
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
         if self.source == "raw" and self.algo == Algo.QIHT:

@@ -152,19 +152,31 @@ class SweepResult:
         me = self.mean_error_m.mean(axis=1)
         return int(np.nanargmin(me)) if np.isfinite(me).any() else 0
 
+    @property
+    def frames_without_targets(self) -> np.ndarray:
+        """(A,) frames in which the decoder reported no target at all (K auto)."""
+        return np.array([int(np.all(~np.isfinite(r.errors_m), axis=1).sum()) for r in self.results])
+
     def summary(self) -> dict:
+        """The sweep's figures as JSON-ready values (null where no frame had a target)."""
         me = self.mean_error_m
-        labels = [f"target {i + 1} ({t['range_m']:.1f} m, {t['angle_deg']:+.1f} deg)" for i, t in enumerate(self.truth)]
+        labels = [f"target {i + 1} ({t['range_m']:.2f} m, {t['angle_deg']:+.1f} deg)"
+                  for i, t in enumerate(self.truth)]
         best = self.best_index
         zero = int(np.argmin(np.abs(self.alphas))) if np.any(self.alphas == 0) else None
+
+        def m(v) -> float | None:
+            return round(float(v), 4) if np.isfinite(v) else None
+
         return {
             "sensor_id": self.rec.sensor_id, "frames": int(self.rec.frames.shape[0]),
             "alphas": [float(a) for a in self.alphas],
-            "mean_error_m": {lab: [round(float(v), 4) for v in me[:, i]] for i, lab in enumerate(labels)},
-            "mean_error_all_m": [round(float(v), 4) for v in me.mean(axis=1)],
+            "mean_error_m": {lab: [m(v) for v in me[:, i]] for i, lab in enumerate(labels)},
+            "mean_error_all_m": [m(v) for v in me.mean(axis=1)],
+            "frames_without_targets": self.frames_without_targets.tolist(),
             "best_alpha": float(self.alphas[best]),
-            "error_at_best_m": round(float(me[best].mean()), 4),
-            "error_at_alpha0_m": None if zero is None else round(float(me[zero].mean()), 4),
+            "error_at_best_m": m(me[best].mean()),
+            "error_at_alpha0_m": None if zero is None else m(me[zero].mean()),
             "truth": self.truth, **self.params,
         }
 
@@ -214,7 +226,8 @@ def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
             ax.annotate(f"best α = {result.alphas[best]:.2f}", (result.alphas[best], me.mean(axis=1)[best]),
                         textcoords="offset points", xytext=(8, 12), fontsize=8)
         ax.axvline(result.alphas[best], color=color, lw=0.8, ls=":")
-    if len(results) > 1:
+    if len(results) > 1 and any(np.any(np.isfinite(r.mean_error_m) & (r.mean_error_m > 0))
+                                for r in results.values()):
         ax.set_yscale("log")
         ax.plot([], [], ":", color="0.4", lw=0.8, label="each target")
     ax.set_xlabel("dither scale α")
@@ -254,6 +267,9 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
         r = result.results[idx]
         for i in range(len(result.truth)):
             xy = r.nearest_xy[:, i]
+            xy = xy[np.all(np.isfinite(xy), axis=1)]  # frames without any target (K auto) have no estimate
+            if not xy.shape[0]:
+                continue
             mean = xy.mean(axis=0)
             cov = np.cov(xy.T) if xy.shape[0] > 1 else np.zeros((2, 2))
             ax.scatter(xy[:, 1], xy[:, 0], s=4, color=color, alpha=0.25)
@@ -286,7 +302,8 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
         sink.metadata("qradar.reprocess", {"alpha": str(r.alpha), **{k: str(v) for k, v in result.params.items()}})
         for i in range(rec.frames.shape[0]):
             msg = TargetsMsg(rec.sensor_id, int(rec.seq[i]), int(rec.timestamp_ns[i]), radar.config_id(),
-                             result.params["algo"], result.params["K"], "quantized", r.detections.frame(i), 0)
+                             result.params["algo"], result.params["K"], "quantized", r.detections.frame(i), 0,
+                             auto_k=result.params["K_auto"])
             key = f"reprocess/{rec.sensor_id}/targets"
             ts = int(rec.timestamp_ns[i])
             sink.write(key, msg.to_json(), ts, ts, int(rec.seq[i]))
@@ -366,7 +383,8 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
                                               "truncated": rec.truncated}
     if len(results) > 1:
         summary["by_algo"] = {a: {key: s[key] for key in PER_ALGO} for a, s in summaries.items()}
-    best_algo = min(summaries, key=lambda a: summaries[a]["error_at_best_m"])
+    best_algo = min(summaries, key=lambda a: np.inf if summaries[a]["error_at_best_m"] is None
+                    else summaries[a]["error_at_best_m"])
     try:
         cfg.out.mkdir(parents=True, exist_ok=True)
         (cfg.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -380,6 +398,8 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
                           f"{exc.strerror or exc}") from None
     lines = [f"{rec.sensor_id}: {first.rec.frames.shape[0]} frames"]
     lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {s['error_at_best_m']} m; at alpha 0: "
-              f"{s['error_at_alpha0_m']} m)" for a, s in summaries.items()]
+              f"{s['error_at_alpha0_m']} m)" + (f"; frames without any target: {max(s['frames_without_targets'])} at "
+                                               "worst" if any(s["frames_without_targets"]) else "")
+              for a, s in summaries.items()]
     lines.append(f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:]))
     return ReprocessResult(summary, written, notes, lines)

@@ -216,3 +216,29 @@ def test_the_localizer_node_counts_the_chamber_targets(bus, zenoh_session):
     assert all(np.isfinite(t["statistic_db"]) for m in msgs for t in m.targets)
     assert all(m.targets[0]["statistic_db"] > m.targets[1]["statistic_db"] + 6 for m in msgs if len(m.targets) == 2)
     col.sub.undeclare()
+
+
+def test_reprocess_with_k_auto_counts_empty_frames_and_writes_valid_json(tmp_path):
+    """A pfa so small that no frame has a target: figures are null, not NaN, and the frames
+    without any target are counted; the targets MCAP says K_auto."""
+    from pathlib import Path
+
+    from replay.mcapio import McapFile
+    from replay.reprocess import ReprocessConfig, run
+
+    chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    out = run(ReprocessConfig(chamber, alphas=(0.5,), algos=("cml", "pbp"), auto_k=True, pfa=1e-300, k=2,
+                              out=tmp_path, mcap=tmp_path / "t.mcap", progress=False))
+    res = json.loads((tmp_path / "results.json").read_text(), parse_constant=lambda c: pytest.fail(c))
+    assert res["error_at_best_m"] is None and res["frames_without_targets"] == [106]
+    assert res["by_algo"]["pbp"]["error_at_best_m"] is None and out.summary["K_auto"] is True
+    msgs = [json.loads(m.data) for ch, m in McapFile(tmp_path / "t.mcap").messages() if ch.topic.endswith("targets")]
+    assert len(msgs) == 106 and all(m["K_auto"] is True and m["targets"] == [] for m in msgs)
+
+
+def test_cml_localizer_refuses_more_targets_than_it_can_fit():
+    from pipeline.nodes import LocalizerConfig
+
+    with pytest.raises(ParameterError, match="at most N/2 = 128 for cml"):
+        LocalizerConfig(k=200, algo="cml", auto_k=True)
+    assert LocalizerConfig(k=200, algo="pbp", auto_k=True).k == 200
