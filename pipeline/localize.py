@@ -278,6 +278,25 @@ def nearest_estimates(
     return np.take_along_axis(dist, nearest[:, :, None], axis=2)[..., 0], pos
 
 
+def match_detections(true_range_m: np.ndarray, est_range_m: np.ndarray, gate_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matching of detections to true targets by range: each true target in
+    turn (strongest first) claims the nearest unclaimed detection within ``gate_m``.
+
+    true_range_m : (B, K); est_range_m : (B, L), NaN for absent. Returns found (B, K)
+    bool and false targets (B,) int (present detections left unclaimed)."""
+    est = np.array(est_range_m, dtype=float)
+    present = ~np.isnan(est)
+    found = np.zeros(true_range_m.shape, dtype=bool)
+    for t in range(true_range_m.shape[1]):  # K true targets, not frames
+        dist = np.abs(est - true_range_m[:, t, None])
+        dist[np.isnan(dist)] = np.inf
+        j = np.argmin(dist, axis=1)
+        hit = np.take_along_axis(dist, j[:, None], axis=1)[:, 0] <= gate_m
+        found[:, t] = hit
+        est[np.flatnonzero(hit), j[hit]] = np.nan  # claimed
+    return found, present.sum(axis=1) - found.sum(axis=1)
+
+
 def position_error_m(
     true_range_m: np.ndarray, true_angle_deg: np.ndarray, est_range_m: np.ndarray, est_angle_deg: np.ndarray
 ) -> np.ndarray:

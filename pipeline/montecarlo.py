@@ -35,7 +35,7 @@ from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
 from .errors import ParameterError, PipelineError
 from .decode import ALGOS, Algo, DecoderConfig, decode
-from .localize import DEFAULT_PFA, cfar_threshold, position_error_m
+from .localize import DEFAULT_PFA, cfar_threshold, match_detections, position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -320,25 +320,6 @@ class ChunkResult:
     amplitude: np.ndarray | None = None  # (n, K) true |amplitude| (K auto only)
     found: np.ndarray | None = None  # (n, K) bool (K auto only)
     false_targets: np.ndarray | None = None  # (n,) detections that are no true target (K auto only)
-
-
-def match_detections(true_range_m: np.ndarray, est_range_m: np.ndarray, gate_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one matching of detections to true targets by range: each true target in
-    turn (strongest first) claims the nearest unclaimed detection within ``gate_m``.
-
-    true_range_m : (B, K); est_range_m : (B, L), NaN for absent. Returns found (B, K)
-    bool and false targets (B,) int (present detections left unclaimed)."""
-    est = np.array(est_range_m, dtype=float)
-    present = ~np.isnan(est)
-    found = np.zeros(true_range_m.shape, dtype=bool)
-    for t in range(true_range_m.shape[1]):  # K true targets, not frames
-        dist = np.abs(est - true_range_m[:, t, None])
-        dist[np.isnan(dist)] = np.inf
-        j = np.argmin(dist, axis=1)
-        hit = np.take_along_axis(dist, j[:, None], axis=1)[:, 0] <= gate_m
-        found[:, t] = hit
-        est[np.flatnonzero(hit), j[hit]] = np.nan  # claimed
-    return found, present.sum(axis=1) - found.sum(axis=1)
 
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.decode import Algo, DecoderConfig, decode_batch
-from pipeline.localize import DEFAULT_PFA, Detections, nearest_estimates
+from pipeline.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
 from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
 from pipeline.wire import TargetsMsg
@@ -168,6 +168,13 @@ class SweepResult:
         def m(v) -> float | None:
             return round(float(v), 4) if np.isfinite(v) else None
 
+        detection = {}
+        if self.params.get("K_auto"):  # found: a detection within one range bin (0.6 m) of the true range
+            true_r = np.broadcast_to(np.array([[t["range_m"] for t in self.truth]]), self.results[0].errors_m.shape)
+            found, false = zip(*(match_detections(true_r, r.detections.range_m, 0.6) for r in self.results))
+            detection = {"detected": {lab: [round(float(f[:, i].mean()), 4) for f in found]
+                                      for i, lab in enumerate(labels)},
+                         "false_targets_per_frame": [round(float(x.mean()), 4) for x in false]}
         return {
             "sensor_id": self.rec.sensor_id, "frames": int(self.rec.frames.shape[0]),
             "alphas": [float(a) for a in self.alphas],
@@ -177,7 +184,7 @@ class SweepResult:
             "best_alpha": float(self.alphas[best]),
             "error_at_best_m": m(me[best].mean()),
             "error_at_alpha0_m": None if zero is None else m(me[zero].mean()),
-            "truth": self.truth, **self.params,
+            "truth": self.truth, **detection, **self.params,
         }
 
 

@@ -12,8 +12,8 @@ import pytest
 from pipeline.cml import cml
 from pipeline.decode import DecoderConfig, decode
 from pipeline.errors import ParameterError
-from pipeline.localize import Detections, cfar_threshold, localize, sequential_present
-from pipeline.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, match_detections, run_montecarlo
+from pipeline.localize import Detections, cfar_threshold, localize, match_detections, sequential_present
+from pipeline.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
 from pipeline.quantize import batch_unit_dither, dequantize, quantize
 from pipeline.wire import TargetsMsg, decode_targets
 from test_cml import measure, nearest_estimates, random_scenes
@@ -242,3 +242,14 @@ def test_cml_localizer_refuses_more_targets_than_it_can_fit():
     with pytest.raises(ParameterError, match="at most N/2 = 128 for cml"):
         LocalizerConfig(k=200, algo="cml", auto_k=True)
     assert LocalizerConfig(k=200, algo="pbp", auto_k=True).k == 200
+
+
+def test_reprocess_with_k_auto_reports_detection_per_reflector(tmp_path):
+    from pathlib import Path
+
+    from replay.reprocess import ReprocessConfig, run
+
+    chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    s = run(ReprocessConfig(chamber, alphas=(0.5,), algos=("cml",), auto_k=True, out=tmp_path, progress=False)).summary
+    weak, strong = s["detected"].values()  # truth order: 4.87 m (weak), 9.23 m (strong)
+    assert strong == [1.0] and 0.5 <= weak[0] < 1.0 and s["false_targets_per_frame"] == [0.0]
