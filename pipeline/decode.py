@@ -33,8 +33,8 @@ import numpy as np
 from radar_driver.model import RadarConfig, carrier
 
 from .errors import DitherUnavailable, ParameterError
-from .localize import (DEFAULT_PFA, Detections, back_project, back_project_ramps, cfar_threshold,
-                       detections_from_support, grid_statistic_db, localize, project_theta_k)
+from .localize import (DEFAULT_PFA, Detections, back_project, back_project_ramps, check_pfa, detections_from_support,
+                       grid_statistic_db, localize, project_theta_k)
 from .cml import cml
 from .quantize import QuantizedFrames
 
@@ -94,7 +94,7 @@ class DecoderConfig:
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
-        cfar_threshold(self.pfa, 1.0)  # checks pfa
+        check_pfa(self.pfa)
         if self.auto_k and self.algo == Algo.QIHT:
             raise ParameterError("K auto needs a decoder that tests each detection: pbp or cml (qiht projects "
                                  "on exactly K bins)")

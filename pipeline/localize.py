@@ -126,6 +126,13 @@ DEFAULT_PFA = 1e-3
 STATISTIC_CAP_DB = 300.0
 
 
+def check_pfa(pfa) -> float:
+    """``pfa`` if it is a false-alarm probability in (0, 1), else a ParameterError."""
+    if isinstance(pfa, bool) or not (isinstance(pfa, (int, float)) and 0 < pfa < 1):
+        raise ParameterError(f"pfa={pfa!r} must be a false-alarm probability in (0, 1)")
+    return float(pfa)
+
+
 def cfar_threshold(pfa: float, cells: float) -> float:
     """Detection threshold on (peak joint energy) / (mean joint energy per bin), linear.
 
@@ -134,9 +141,7 @@ def cfar_threshold(pfa: float, cells: float) -> float:
     with probability ``e^-2x (1 + 2x)``, so the largest of ``cells`` independent bins
     exceeds T with probability ``cells e^-2T (1 + 2T)``; T solves that equal to ``pfa``
     (0 < pfa < 1)."""
-    if isinstance(pfa, bool) or not (isinstance(pfa, (int, float)) and 0 < pfa < 1):
-        raise ParameterError(f"pfa={pfa!r} must be a false-alarm probability in (0, 1)")
-    base = np.log(max(cells, 1.0) / pfa)
+    base = np.log(max(cells, 1.0) / check_pfa(pfa))
     y = max(base, 1.0)
     for _ in range(50):  # y = log(cells / pfa) + log(1 + y), y = 2T: a contraction
         y = base + np.log1p(y)

@@ -35,7 +35,7 @@ from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
 from .errors import ParameterError, PipelineError
 from .decode import ALGOS, Algo, DecoderConfig, decode
-from .localize import DEFAULT_PFA, cfar_threshold, match_detections, position_error_m
+from .localize import DEFAULT_PFA, check_pfa, match_detections, position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -155,7 +155,7 @@ class CountSpec:
         if isinstance(self.max_targets, bool) or not isinstance(self.max_targets, int) or not \
                 1 <= self.max_targets <= 16:
             raise ParameterError(f"max_targets={self.max_targets!r} must be an integer in [1, 16]")
-        cfar_threshold(self.pfa, 1.0)  # checks pfa
+        check_pfa(self.pfa)
         if isinstance(self.gate_m, bool) or not isinstance(self.gate_m, (int, float)) or not (
                 np.isfinite(self.gate_m) and self.gate_m > 0):
             raise ParameterError(f"gate_m={self.gate_m!r} must be a finite number > 0")
@@ -212,9 +212,7 @@ class MonteCarloConfig:
         for a in self.algos:
             if a not in ALGOS:
                 raise ParameterError(f"algo {a!r} is not known; available: {', '.join(ALGOS)}")
-            if self.count.auto and a == Algo.QIHT:
-                raise ParameterError("K auto needs a decoder that tests each detection: pbp or cml (qiht projects "
-                                     "on exactly K bins)")
+            DecoderConfig(algo=a, auto_k=self.count.auto, pfa=self.count.pfa)  # the decoder's own checks
             if a == Algo.PBP or self.fallback_pbp:
                 continue
             for s in self.schemes:
