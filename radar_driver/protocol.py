@@ -5,15 +5,16 @@ the payload; multi-byte fields are little-endian. The K-MD2 pads payloads to a
 multiple of 4 bytes: the decoder tolerates both a length that counts the padding and
 zero padding after an unpadded length.
 
-What the public documents do not say is assumed, and every assumption sits in the
-tables of this module (:data:`RADC_LAYOUT`, :data:`FRAME_BITS`, :data:`BAUD_CODES`,
-:data:`PLAUSIBLE_LENGTH`), so that a capture from a real sensor can correct them in
-one place.
+What the public documents do not say is assumed, and every assumption sits in a
+sensor profile (:mod:`.profile`: the ``RADC`` layout, the baud codes, the ``GNFD`` bits,
+the plausible lengths of other frames), so that a capture from a real sensor can
+correct them in one TOML file. The codec takes a profile; without one it uses
+:data:`~.profile.DEFAULT_PROFILE`.
 
 :class:`StreamDecoder` takes arbitrary chunks of bytes and yields messages. On garbage
 it resynchronizes by scanning for a known header whose length is plausible for that
-header and whose payload is valid (a RADC payload holds 12-bit words only), and counts
-the bytes it skipped; it never raises on input.
+header and whose payload is valid (a RADC payload holds ADC-range words only), and
+counts the bytes it skipped; it never raises on input.
 """
 
 from __future__ import annotations
@@ -25,65 +26,22 @@ from typing import Iterator, Union
 import numpy as np
 
 from .errors import ProtocolError, RespCode
+from .profile import DEFAULT_PROFILE, RadcLayout, SensorProfile
 
 HEADER_LEN = 4
 PREFIX_LEN = 8  # header + uint32 length
 
 
-#: ``INIT`` baud code -> baud rate. The sensor answers ``INIT`` at 115200, then switches.
-BAUD_CODES: dict[int, int] = {0: 115_200, 1: 460_800, 2: 921_600, 3: 2_000_000, 4: 3_000_000}
-DEFAULT_BAUD = 115_200
+#: Line speed of a sensor after power-up and after GBYE (every shipped profile's startup_baud).
+DEFAULT_BAUD = DEFAULT_PROFILE.startup_baud
 #: Seconds the host waits after ``RESP`` to ``INIT`` before switching its own rate.
 BAUD_SWITCH_SETTLE_S = 0.075
-
-#: ``GNFD`` bit mask of the frames a host can ask for (assumed, as on the K-LD7).
-FRAME_BITS: dict[str, int] = {"RADC": 0x01, "RMRD": 0x02, "PDAT": 0x04, "TDAT": 0x08}
-
-
-@dataclass(frozen=True)
-class RadcLayout:
-    """Assumed K-MD2 ``RADC`` payload: for each azimuth receiver, ``samples`` I words then
-    ``samples`` Q words, uint16 little-endian, ``adc_bits``-bit ADC centred on ``offset``.
-    One ramp per ``RADC``. Complex samples are in units of full scale:
-    ``((I - offset) + i (Q - offset)) / offset``, so +-1 is the ADC's range."""
-
-    receivers: int = 2
-    samples: int = 256
-    adc_bits: int = 12
-    offset: int = 2048
-
-    @property
-    def payload_len(self) -> int:
-        return self.receivers * 2 * self.samples * 2
-
-    @property
-    def max_word(self) -> int:
-        return (1 << self.adc_bits) - 1
-
-
-RADC_LAYOUT = RadcLayout()
-
-#: Inclusive (min, max) payload length accepted for each known header; a header with
-#: another length is taken for garbage. Lengths may include up to 3 padding bytes.
-PLAUSIBLE_LENGTH: dict[bytes, tuple[int, int]] = {
-    b"INIT": (4, 4),
-    b"GNFD": (4, 4),
-    b"GBYE": (0, 4),
-    b"RESP": (1, 4),
-    b"DONE": (4, 4),
-    b"RADC": (RADC_LAYOUT.payload_len, RADC_LAYOUT.payload_len + 3),
-    # frames the K-MD2 names whose layout we do not use: passed on as OtherMessage
-    b"RMRD": (4, 16384),
-    b"PDAT": (0, 4096),
-    b"TDAT": (0, 4096),
-}
-KNOWN_HEADERS = tuple(PLAUSIBLE_LENGTH)
 
 
 # -- messages ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Init:
-    """Host -> sensor: start a session and switch to ``BAUD_CODES[baud_code]``."""
+    """Host -> sensor: start a session and switch to the profile's ``baud_codes[baud_code]``."""
 
     baud_code: int = 0
     header = b"INIT"
@@ -94,9 +52,9 @@ class Init:
 
 @dataclass(frozen=True)
 class Gnfd:
-    """Host -> sensor: send the next frame(s) selected by ``mask`` (FRAME_BITS), then DONE."""
+    """Host -> sensor: send the next frame(s) selected by ``mask`` (the profile's gnfd_bits), then DONE."""
 
-    mask: int = FRAME_BITS["RADC"]
+    mask: int = DEFAULT_PROFILE.gnfd_bits["RADC"]
     header = b"GNFD"
 
     def payload(self) -> bytes:
@@ -137,26 +95,22 @@ class Done:
 
 @dataclass(frozen=True, eq=False)
 class Radc:
-    """Sensor -> host: one ramp of raw ADC words, shape (receivers, 2 (I, Q), samples) uint16."""
+    """Sensor -> host: one RADC of raw ADC words, shape (receivers, chirps, samples, 2
+    (I, Q)) in the ``layout`` of a sensor profile (one ramp in the default profile)."""
 
     words: np.ndarray
+    layout: RadcLayout = DEFAULT_PROFILE.radc
     header = b"RADC"
 
     def payload(self) -> bytes:
-        w = np.asarray(self.words)
-        lay = RADC_LAYOUT
-        if w.shape != (lay.receivers, 2, lay.samples):
-            raise ProtocolError(f"RADC words must have shape {(lay.receivers, 2, lay.samples)}, got {w.shape}")
-        if w.size and (w.min() < 0 or w.max() > lay.max_word):
-            raise ProtocolError(f"RADC words must lie in [0, {lay.max_word}]")
-        return w.astype("<u2").tobytes()
+        return self.layout.payload_from_words(self.words)
 
     def samples(self) -> np.ndarray:
-        """Complex samples in units of full scale, shape (samples, receivers)."""
-        return adc_to_complex(self.words[None])[0]
+        """Complex samples in units of full scale, shape (chirps, samples, receivers)."""
+        return self.layout.to_complex(self.words)
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, Radc) and np.array_equal(self.words, other.words)
+        return isinstance(other, Radc) and self.layout == other.layout and np.array_equal(self.words, other.words)
 
 
 @dataclass(frozen=True)
@@ -173,27 +127,6 @@ class OtherMessage:
 Message = Union[Init, Gnfd, Gbye, Resp, Done, Radc, OtherMessage]
 
 
-# -- ADC conversion ----------------------------------------------------------------------------
-def adc_to_complex(words: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
-    """ADC words (B, receivers, 2, samples) -> complex (B, samples, receivers), unit full scale."""
-    w = np.asarray(words, dtype=np.float64) - layout.offset
-    return np.transpose(w[:, :, 0] + 1j * w[:, :, 1], (0, 2, 1)) / layout.offset
-
-
-def complex_to_adc(samples: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
-    """Complex (B, samples, receivers) in full-scale units -> ADC words (B, receivers, 2,
-    samples) uint16: rounded to the nearest code and clipped to the ADC range."""
-    s = np.transpose(np.asarray(samples), (0, 2, 1))
-    iq = np.stack([s.real, s.imag], axis=2) * layout.offset + layout.offset
-    return np.clip(np.rint(iq), 0, layout.max_word).astype(np.uint16)
-
-
-def adc_round_trip(samples: np.ndarray, layout: RadcLayout = RADC_LAYOUT) -> np.ndarray:
-    """What complex samples (B, samples, receivers) become through the ADC and back:
-    rounded to the nearest code and clipped, full-scale units, same shape."""
-    return adc_to_complex(complex_to_adc(samples, layout), layout)
-
-
 # -- encoding ---------------------------------------------------------------------------------
 def encode(message: Message, pad: bool = True) -> bytes:
     """Bytes of one message: header, uint32 LE payload length (unpadded), payload, and
@@ -208,11 +141,10 @@ def encode(message: Message, pad: bool = True) -> bytes:
     return out
 
 
-def decode_payload(header: bytes, payload: bytes) -> Message:
-    """The message of a header and its payload (padding allowed after the fields).
-
-    Raises ProtocolError naming the header and what is wrong."""
-    lo, hi = PLAUSIBLE_LENGTH.get(header, (None, None))
+def decode_payload(header: bytes, payload: bytes, profile: SensorProfile = DEFAULT_PROFILE) -> Message:
+    """The message of a header and its payload (padding allowed after the fields), in the
+    conventions of ``profile``. Raises ProtocolError naming the header and what is wrong."""
+    lo, hi = profile.plausible_length().get(header, (None, None))
     if lo is None:
         raise ProtocolError(f"unknown header {header!r}")
     if not lo <= len(payload) <= hi:
@@ -230,18 +162,11 @@ def decode_payload(header: bytes, payload: bytes) -> Message:
     if header == b"DONE":
         return Done(struct.unpack_from("<I", payload)[0])
     if header == b"RADC":
-        lay = RADC_LAYOUT
-        words = np.frombuffer(payload, dtype="<u2", count=lay.payload_len // 2)
-        if words.max(initial=0) > lay.max_word:
-            bad = int(np.argmax(words > lay.max_word))
-            raise ProtocolError(
-                f"RADC word {bad} is {int(words[bad])}, beyond the {lay.adc_bits}-bit ADC range"
-            )
-        return Radc(words.reshape(lay.receivers, 2, lay.samples).copy())
+        return Radc(profile.radc.words_from_payload(payload), profile.radc)
     return OtherMessage(header, bytes(payload))
 
 
-def decode(data: bytes) -> Message:
+def decode(data: bytes, profile: SensorProfile = DEFAULT_PROFILE) -> Message:
     """Decode exactly one message (with optional trailing zero padding)."""
     if len(data) < PREFIX_LEN:
         raise ProtocolError(f"message of {len(data)} bytes is shorter than the 8-byte header and length")
@@ -252,7 +177,7 @@ def decode(data: bytes) -> Message:
         raise ProtocolError(f"{header!r} declares {length} payload bytes, {len(body)} present")
     if any(body[length:]) or len(body) - length > 3:
         raise ProtocolError(f"{header!r}: {len(body) - length} bytes after the payload are not padding")
-    return decode_payload(header, bytes(body[:length]))
+    return decode_payload(header, bytes(body[:length]), profile)
 
 
 # -- streaming decoder -----------------------------------------------------------------------
@@ -272,12 +197,18 @@ class StreamDecoder:
 
     Garbage is skipped up to the next known header with a plausible length; each run of
     skipped bytes counts one resync. Memory is bounded by the largest plausible message.
+    ``profile``: the sensor's conventions (RADC layout, other frames' lengths).
     """
 
+    profile: SensorProfile = DEFAULT_PROFILE
     stats: DecoderStats = field(default_factory=DecoderStats)
     _buf: bytearray = field(default_factory=bytearray)
     _pad: int = 0  # zero padding that may follow the last message
     _skipping: bool = False
+
+    def __post_init__(self) -> None:
+        self._lengths = self.profile.plausible_length()
+        self._headers = tuple(self._lengths)
 
     def feed(self, chunk: bytes) -> list[Message]:
         self._buf += chunk
@@ -290,7 +221,7 @@ class StreamDecoder:
         buf = self._buf
         if len(buf) < PREFIX_LEN:
             return PREFIX_LEN - len(buf)
-        lo, hi = PLAUSIBLE_LENGTH.get(bytes(buf[:4]), (1, 0))
+        lo, hi = self._lengths.get(bytes(buf[:4]), (1, 0))
         (length,) = struct.unpack_from("<I", buf, 4)
         if lo <= length <= hi:
             return max(1, PREFIX_LEN + length - len(buf))
@@ -319,20 +250,20 @@ class StreamDecoder:
                 self._pad = 0
             if len(buf) < PREFIX_LEN:
                 head = bytes(buf[:HEADER_LEN])
-                if buf and not any(h.startswith(head) for h in KNOWN_HEADERS):
+                if buf and not any(h.startswith(head) for h in self._headers):
                     self._skip(1)
                     continue
                 return  # wait for the length
             header = bytes(buf[:4])
             (length,) = struct.unpack_from("<I", buf, 4)
-            lo, hi = PLAUSIBLE_LENGTH.get(header, (1, 0))
+            lo, hi = self._lengths.get(header, (1, 0))
             if not lo <= length <= hi:
                 self._skip(1)
                 continue
             if len(buf) < PREFIX_LEN + length:
                 return  # wait for the payload
             try:
-                msg = decode_payload(header, bytes(buf[PREFIX_LEN : PREFIX_LEN + length]))
+                msg = decode_payload(header, bytes(buf[PREFIX_LEN : PREFIX_LEN + length]), self.profile)
             except ProtocolError as exc:
                 self.stats.invalid += 1
                 self.stats.last_error = str(exc)
@@ -350,13 +281,13 @@ class StreamDecoder:
         if not self._skipping:
             self.stats.resyncs += 1
             self._skipping = True
-        starts = [i for i in (buf.find(h, n) for h in KNOWN_HEADERS) if i >= 0]
+        starts = [i for i in (buf.find(h, n) for h in self._headers) if i >= 0]
         if starts:
             cut = min(starts)
         else:
             # keep a tail that could be the start of a header split across chunks
             cut = max(n, len(buf) - (HEADER_LEN - 1))
-            while cut < len(buf) and not any(h.startswith(bytes(buf[cut:])) for h in KNOWN_HEADERS):
+            while cut < len(buf) and not any(h.startswith(bytes(buf[cut:])) for h in self._headers):
                 cut += 1
         self.stats.skipped_bytes += cut
         del buf[:cut]

@@ -3,11 +3,17 @@ links that serve it on a pseudo-terminal or a TCP port.
 
 The device answers ``INIT`` / ``GNFD`` / ``GBYE`` like the sensor: ``RESP`` first (with
 an error code for an unknown command or a bad parameter), then for ``GNFD`` the
-selected ``RADC`` ramp and ``DONE`` with its frame counter. Ramps come from the scene
-through the paper's model (``SimScene.ramp``), with noise and 12-bit ADC quantization,
-at ``rate_hz`` frames per second (``ramps_per_frame`` ramps each; 0 = as fast as
-polled). The device measures on its own clock: a host that polls late finds the
-counter advanced, and the gap is what a real sensor shows for dropped frames.
+selected ``RADC`` and ``DONE`` with its frame counter. It speaks a sensor profile
+(:mod:`.profile`): in the default one a ``RADC`` is one ramp and a frame takes
+``ramps_per_frame`` of them; in a profile of many chirps per ``RADC`` (``kmd2-cube256``)
+one ``RADC`` is one measurement. Chirps come from the scene through the paper's model,
+with noise and the profile's ADC, at ``rate_hz`` frames per second (0 = as fast as
+polled). The azimuth pair carries the scene; any other receiver (the K-MD2's elevation
+one) sees antenna 1's signal with its own noise. The azimuth noise of the first
+``ramps_per_frame`` chirps of a ``RADC`` is drawn from the scene's noise stream, so
+that frames built from them equal the in-process simulated sensor's with the same seed.
+The device measures on its own clock: a host that polls late finds the counter
+advanced, and the gap is what a real sensor shows for dropped frames.
 
 On a pty the device reads the host's line speed from the terminal settings and, like
 a real UART, does not understand bytes sent at another speed than its own.
@@ -31,10 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError, LinkDown
+from .profile import DEFAULT_PROFILE, SensorProfile
 from .protocol import (
-    BAUD_CODES,
-    DEFAULT_BAUD,
-    FRAME_BITS,
     Done,
     Gbye,
     Gnfd,
@@ -44,7 +48,6 @@ from .protocol import (
     Resp,
     RespCode,
     StreamDecoder,
-    complex_to_adc,
     encode,
 )
 from .scene import SimScene, ramp_time_s
@@ -98,28 +101,39 @@ class SimulatedKMD2:
     rate_hz: float = 20.0
     faults: SimFaults = field(default_factory=SimFaults)
     seed: int = 0
+    profile: SensorProfile = DEFAULT_PROFILE
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and self.rate_hz >= 0):
             raise ConfigError(f"rate_hz={self.rate_hz!r} must be >= 0 (0 = as fast as polled)")
-        self.decoder = StreamDecoder()
-        self.baud = DEFAULT_BAUD
-        self.counter = -1  # frame counter of the last ramp sent
-        self.ramps_sent = 0
+        lay, radar = self.profile.radc, self.scene.radar
+        if lay.samples != radar.samples_per_ramp:
+            raise ConfigError(f"profile {self.profile.name} has {lay.samples} samples a chirp; "
+                              f"the scene's radar {radar.samples_per_ramp}")
+        rpf = radar.ramps_per_frame
+        if lay.chirps > 1 and rpf > lay.chirps:
+            raise ConfigError(f"a frame of {rpf} ramps does not fit the {lay.chirps} chirps of a "
+                              f"{self.profile.name} RADC")
+        self.decoder = StreamDecoder(self.profile)
+        self.baud = self.profile.startup_baud
+        self.counter = -1  # frame counter of the last RADC sent
+        self.radcs_sent = 0
         self.events: list[tuple[str, int | None]] = []
         self._noise_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(0,)))
         self._fault_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(1,)))
+        self._extra_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(2,)))
         self._t0: float | None = None
         self._disconnected_once = False
-        rpf = self.scene.radar.ramps_per_frame
-        self.ramp_rate_hz = self.rate_hz * rpf
+        #: RADCs a frame takes, and RADCs a second the sensor measures (0 = when polled)
+        self.radcs_per_frame = rpf if lay.chirps == 1 else 1
+        self.radc_rate_hz = self.rate_hz * self.radcs_per_frame
 
     # -- link events --------------------------------------------------------------------
     def link_reset(self, power_cycle: bool) -> None:
         """The link went down. ``power_cycle``: the sensor restarts at 115200 baud."""
         self.decoder.reset()
         if power_cycle:
-            self.baud = DEFAULT_BAUD
+            self.baud = self.profile.startup_baud
         self.events.append(("LINK_RESET", self.baud))
 
     # -- bytes in, bytes out ---------------------------------------------------------------
@@ -136,20 +150,21 @@ class SimulatedKMD2:
     def _handle(self, msg, host_baud: int | None, now: float) -> list[Reply]:
         if isinstance(msg, Init):
             self.events.append(("INIT", host_baud))
-            if msg.baud_code not in BAUD_CODES:
+            codes = self.profile.baud_codes
+            if msg.baud_code not in codes:
                 return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
             reply = self._reply(Resp(RespCode.OK))
-            self.baud = BAUD_CODES[msg.baud_code]
+            self.baud = codes[msg.baud_code]
             self.events.append(("SWITCH", self.baud))
             return [reply]
         if isinstance(msg, Gbye):
             self.events.append(("GBYE", host_baud))
             reply = self._reply(Resp(RespCode.OK))
-            self.baud = DEFAULT_BAUD
+            self.baud = self.profile.startup_baud
             return [reply]
         if isinstance(msg, Gnfd):
             self.events.append(("GNFD", host_baud))
-            if msg.mask & ~sum(FRAME_BITS.values()) or msg.mask == 0:
+            if msg.mask & ~self.profile.frame_mask or msg.mask == 0:
                 return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
             return [self._reply(Resp(RespCode.OK))] + self._ramp_replies(msg.mask, now)
         # a sensor-to-host message or an unknown frame sent to the sensor
@@ -158,40 +173,57 @@ class SimulatedKMD2:
 
     def _ramp_replies(self, mask: int, now: float) -> list[Reply]:
         rng = self._fault_rng
-        if self.ramp_rate_hz > 0:
+        if self.radc_rate_hz > 0:
             if self._t0 is None:
                 self._t0 = now
-            measured = math.ceil((now - self._t0) * self.ramp_rate_hz - 1e-9)
+            measured = math.ceil((now - self._t0) * self.radc_rate_hz - 1e-9)
             index = max(self.counter + 1, measured)
-            due = self._t0 + index / self.ramp_rate_hz
+            due = self._t0 + index / self.radc_rate_hz
         else:
             index, due = self.counter + 1, None
-        t_s = float(ramp_time_s(index, self.ramp_rate_hz))
+        measured_index = index
         if self.faults.skip_done_prob and rng.random() < self.faults.skip_done_prob:
             skip = int(rng.integers(1, 4))
             index += skip
             self.events.append(("SKIP_DONE", skip))
         self.counter = index
         out = []
-        if mask & FRAME_BITS["RADC"]:
-            ramp = self.scene.ramp(t_s, self._noise_rng)
-            words = complex_to_adc(ramp[None])[0]
-            radc = self._reply(Radc(words), due)
+        bits = self.profile.gnfd_bits
+        if mask & bits["RADC"]:
+            radc = self._reply(Radc(self.measure(measured_index), self.profile.radc), due)
             if self.faults.truncate_prob and rng.random() < self.faults.truncate_prob:
                 radc.data = radc.data[: int(rng.integers(1, len(radc.data)))]
                 self.events.append(("TRUNCATED", index))
             out.append(radc)
-        for name in ("RMRD", "PDAT", "TDAT"):
-            if mask & FRAME_BITS[name]:
+        for name, bit in bits.items():
+            if name != "RADC" and mask & bit:
                 out.append(self._reply(OtherMessage(name.encode()), due))
         out.append(self._reply(Done(index & 0xFFFFFFFF), due))
-        self.ramps_sent += 1
+        self.radcs_sent += 1
         n = self.faults.disconnect_after_frames
-        if n is not None and not self._disconnected_once and self.ramps_sent >= n * self.scene.radar.ramps_per_frame:
+        if n is not None and not self._disconnected_once and self.radcs_sent >= n * self.radcs_per_frame:
             self._disconnected_once = True
             out[-1].disconnect = True
             self.events.append(("DISCONNECT", index))
         return out
+
+    def measure(self, index: int) -> np.ndarray:
+        """The ADC words (receivers, chirps, samples, 2) of RADC ``index``: the scene's
+        chirps at their times, noise, the profile's ADC."""
+        lay, scene = self.profile.radc, self.scene
+        chirps = lay.chirps
+        t_s = ramp_time_s(index * chirps + np.arange(chirps), self.radc_rate_hz * chirps)
+        clean = scene.clean_ramps(t_s)  # (chirps, N, 2)
+        first = min(chirps, scene.radar.ramps_per_frame)
+        azimuth = clean + np.concatenate([scene.noise(first, self._noise_rng),
+                                          scene.noise(chirps - first, self._extra_rng)])
+        z = np.empty((chirps, lay.samples, lay.receivers), complex)
+        for rx in range(lay.receivers):
+            if rx in lay.azimuth:
+                z[..., rx] = azimuth[..., lay.azimuth.index(rx)]
+            else:  # the elevation receiver, at elevation 0: antenna 1's signal, its own noise
+                z[..., rx] = clean[..., 0] + scene.noise(chirps, self._extra_rng)[..., 0]
+        return lay.from_complex(z)
 
     def _reply(self, msg, due: float | None = None) -> Reply:
         data = encode(msg)
@@ -361,6 +393,7 @@ class SimulatorServer:
         rate_hz: float = 20.0,
         faults: SimFaults | None = None,
         seed: int = 0,
+        profile: SensorProfile = DEFAULT_PROFILE,
     ):
         if link_path is None and tcp_port is None:
             raise ConfigError("SimulatorServer needs a pty link path or a TCP port")
@@ -369,7 +402,7 @@ class SimulatorServer:
             self.links.append(PtyLink(link_path))
         if tcp_port is not None:
             self.links.append(TcpLink(tcp_port))
-        self.devices = [SimulatedKMD2(scene, rate_hz, faults or SimFaults(), seed) for _ in self.links]
+        self.devices = [SimulatedKMD2(scene, rate_hz, faults or SimFaults(), seed, profile) for _ in self.links]
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []

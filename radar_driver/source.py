@@ -25,7 +25,7 @@ from typing import Iterator, Protocol, runtime_checkable
 import numpy as np
 
 from .errors import ConfigError
-from .protocol import adc_round_trip
+from .profile import DEFAULT_PROFILE
 from .scene import SimScene, ramp_time_s
 
 
@@ -184,7 +184,7 @@ class SimulatedSource(StoppableSource):
                     self._tick_data = (tuple(int(c) for c in ramp_index), clean, time.time_ns())
                 counters, clean, ts = self._tick_data
                 i = self._next_sensor
-                data = adc_round_trip(clean + scene.noise(rpf, self._rngs[i])).reshape(rpf * n, 2)
+                data = DEFAULT_PROFILE.radc.round_trip(clean + scene.noise(rpf, self._rngs[i])).reshape(rpf * n, 2)
                 self._stats[ids[i]].frames += 1
                 self._next_sensor = i + 1
                 yield RawFrame(ids[i], k, ts, data.astype(np.complex64), counters, config_id)

@@ -5,8 +5,8 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from radar_driver.errors import RadarError
+from radar_driver.profile import DEFAULT_PROFILE, resolve_profile
 from radar_driver.protocol import (
-    RADC_LAYOUT,
     Done,
     Gbye,
     Gnfd,
@@ -16,15 +16,17 @@ from radar_driver.protocol import (
     Radc,
     Resp,
     StreamDecoder,
-    adc_to_complex,
-    complex_to_adc,
     decode,
     encode,
 )
 
 
+LAYOUT = DEFAULT_PROFILE.radc
+
+
 def _words(seed=0):
-    return np.random.default_rng(seed).integers(0, 4096, (2, 2, 256)).astype(np.uint16)
+    """Words of one RADC in the default profile: (receivers 2, chirps 1, samples 256, I/Q)."""
+    return np.random.default_rng(seed).integers(0, 4096, (2, 1, 256, 2)).astype(np.uint16)
 
 
 def test_exact_bytes_of_commands_and_answers():
@@ -37,10 +39,10 @@ def test_exact_bytes_of_commands_and_answers():
     assert encode(Done(0x01020304)) == b"DONE\x04\x00\x00\x00\x04\x03\x02\x01"
 
 
-def test_radc_layout_table():
+def test_radc_layout_of_the_default_profile():
     # for each receiver 256 I words then 256 Q words, uint16 little-endian
-    w = np.zeros((2, 2, 256), np.uint16)
-    w[0, 0, 0], w[0, 1, 0], w[1, 0, 255], w[1, 1, 1] = 1, 2, 3, 4095
+    w = np.full((2, 1, 256, 2), 2048, np.uint16)
+    w[0, 0, 0, 0], w[0, 0, 0, 1], w[1, 0, 255, 0], w[1, 0, 1, 1] = 1, 2, 3, 4095
     b = encode(Radc(w))
     assert b[:8] == b"RADC\x00\x08\x00\x00" and len(b) == 8 + 2048
     p = b[8:]
@@ -48,21 +50,45 @@ def test_radc_layout_table():
     assert p[512:514] == b"\x02\x00"  # rx1 Q[0]
     assert p[1024 + 510 : 1024 + 512] == b"\x03\x00"  # rx2 I[255]
     assert p[1536 + 2 : 1536 + 4] == b"\xff\x0f"  # rx2 Q[1]
-    assert RADC_LAYOUT.payload_len == 2048
+    assert LAYOUT.payload_len == 2048
+    assert decode(b).words.shape == (2, 1, 256, 2)
+    assert_array_equal(decode(b).words, w)
+
+
+def test_radc_layout_of_the_cube_profile():
+    # 3 receivers x 256 chirps x 256 samples, I and Q interleaved, uint16 little-endian
+    cube = resolve_profile("kmd2-cube256")
+    lay = cube.radc
+    assert lay.payload_len == 786_432
+    w = np.full(lay.words_shape, 2048, np.uint16)
+    w[0, 0, 0] = (1, 2)  # rx1 chirp 0 sample 0: I, Q
+    w[2, 255, 255, 1] = 4095  # rx3 last chirp last sample Q
+    w[1, 3, 7, 0] = 9
+    b = encode(Radc(w, lay))
+    p = b[8:]
+    assert p[0:4] == b"\x01\x00\x02\x00"
+    assert p[-2:] == b"\xff\x0f"
+    assert p[((1 * 256 + 3) * 256 + 7) * 4 : ((1 * 256 + 3) * 256 + 7) * 4 + 2] == b"\x09\x00"
+    assert decode(b, cube) == Radc(w, lay)
+    d = StreamDecoder(cube)
+    assert d.feed(encode(Resp(0)) + b + encode(Done(3))) == [Resp(0), Radc(w, lay), Done(3)]
+    # a RADC of one profile is garbage to the other
+    assert StreamDecoder().feed(b + encode(Done(4))) == [Done(4)]
 
 
 def test_adc_conversion_is_unit_full_scale():
-    w = np.full((1, 2, 2, 256), 2048, np.uint16)
-    w[0, 0, 0, 5] = 4095  # rx1 I[5]
-    w[0, 1, 1, 7] = 0  # rx2 Q[7]
-    s = adc_to_complex(w)
+    w = np.full((2, 1, 256, 2), 2048, np.uint16)
+    w[0, 0, 5, 0] = 4095  # rx1 I[5]
+    w[1, 0, 7, 1] = 0  # rx2 Q[7]
+    s = LAYOUT.to_complex(w)
     assert s.shape == (1, 256, 2)
     assert s[0, 5, 0] == pytest.approx(2047 / 2048)
     assert s[0, 7, 1] == pytest.approx(-1j)
-    assert_array_equal(complex_to_adc(s), w)
+    assert_array_equal(LAYOUT.from_complex(s), w)
     x = np.random.default_rng(1).uniform(-0.9, 0.9, (3, 256, 2)) * np.exp(1j)
-    assert_allclose(adc_to_complex(complex_to_adc(x)), x, atol=np.sqrt(2) * 0.5 / 2048 * 1.0001)  # half an LSB on I and on Q
-    assert complex_to_adc(np.full((1, 256, 2), 5 + 5j)).max() == 4095  # clipped
+    assert_allclose(LAYOUT.to_complex(LAYOUT.from_complex(x)), x, atol=np.sqrt(2) * 0.5 / 2048 * 1.0001)  # half an LSB on I and on Q
+    assert_array_equal(LAYOUT.round_trip(x), LAYOUT.to_complex(LAYOUT.from_complex(x)))
+    assert LAYOUT.from_complex(np.full((1, 256, 2), 5 + 5j)).max() == 4095  # clipped
 
 
 @pytest.mark.parametrize("msg", [Init(4), Gnfd(5), Gbye(), Resp(6), Done(2**32 - 1), Radc(_words()),
@@ -88,7 +114,7 @@ def test_length_counting_the_padding_is_tolerated():
         (b"ABCD\x00\x00\x00\x00", "unknown header"),
         (b"DONE\x04\x00\x00\x00\x01", "declares 4 payload bytes, 1 present"),
         (b"DONE\x08\x00\x00\x00" + bytes(8), "payload of 8 bytes; expected 4..4"),
-        (b"RADC\x00\x08\x00\x00" + b"\xff" * 2048, "RADC word 0 is 65535, beyond the 12-bit ADC range"),
+        (b"RADC\x00\x08\x00\x00" + b"\xff" * 2048, r"RADC word 0 is 65535, beyond the 12-bit ADC range \[0, 4095\]"),
         (b"RESP\x01\x00\x00\x00\x00\x07", "not padding"),
     ],
 )

@@ -1,7 +1,7 @@
 """One contract for every source of raw frames (radar_driver.source.FrameSource), run
 over the three implementations: the serial session talking to a simulated K-MD2 on a
-real pseudo-terminal, the in-process simulated sensor, and a recording (an MCAP file
-written with the real writer and read back)."""
+real pseudo-terminal (in each shipped sensor profile), the in-process simulated
+sensor, and a recording (an MCAP file written with the real writer and read back)."""
 
 import threading
 import time
@@ -12,6 +12,7 @@ import pytest
 
 from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.model import simulate_frames
+from radar_driver.profile import packaged_profiles, resolve_profile
 from radar_driver.scene import SimScene, SimTarget
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
@@ -23,7 +24,8 @@ LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
 STATIC = SimScene((SimTarget(12.0, 20.0, 0.5), SimTarget(4.8, -35.0, 0.1, phase_deg=40.0)), name="static")
 NOISY = SimScene(STATIC.targets, noise_std=0.01, name="noisy")
 SEED = 5
-KINDS = ["serial", "in-process", "recording"]
+PROFILES = packaged_profiles()
+KINDS = [f"serial-{p}" for p in PROFILES] + ["in-process", "recording"]
 
 
 def in_process(scene: SimScene, seed: int, frames: int | None = None) -> SimulatedSource:
@@ -46,10 +48,12 @@ class Opened:
 
     def __init__(self, kind: str, scene: SimScene, seed: int, tmp_path: Path, n_recorded: int = 12):
         self.kind, self.server = kind, None
-        if kind == "serial":
-            link = tmp_path / f"kmd2-{scene.name}"
-            self.server = SimulatorServer(scene, link_path=link, rate_hz=0, seed=seed).start()
-            self.source = SensorSession(SessionConfig(str(link), sensor_id="s0", reconnect_timeout_s=5.0))
+        if kind.startswith("serial-"):
+            profile = resolve_profile(kind.removeprefix("serial-"))
+            link = tmp_path / f"kmd2-{scene.name}-{seed}"
+            self.server = SimulatorServer(scene, link_path=link, rate_hz=0, seed=seed, profile=profile).start()
+            self.source = SensorSession(SessionConfig(str(link), sensor_id="s0", reconnect_timeout_s=5.0,
+                                                      profile=profile))
         elif kind == "in-process":
             self.source = in_process(scene, seed)
         else:
