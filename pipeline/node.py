@@ -90,15 +90,19 @@ class Node:
     def _start(self) -> None:
         """Subclass hook: declare subscribers, spawn workers."""
 
-    def _spawn(self, target: Callable[[], None], what: str) -> None:
+    def _spawn(self, target: Callable[[], None], what: str, after: Callable[[], None] | None = None) -> None:
+        """Run ``target`` in a thread; an exception it raises goes to :attr:`errors` (which
+        the owner raises: run_nodes, the commands), and then ``after`` runs."""
         def run():
             try:
                 target()
             except BaseException as exc:  # a dead worker is reported, never silent
                 if not self._stop.is_set():
-                    log.error("%s %s thread failed: %s", self.name, what, exc)
                     log.debug("%s %s thread failed", self.name, what, exc_info=True)  # the traceback under -v
                     self.errors.append(exc)
+            finally:
+                if after is not None:
+                    after()
 
         t = threading.Thread(target=run, name=f"{self.name}-{what}", daemon=True)
         t.start()
@@ -292,7 +296,7 @@ def run_nodes(nodes: list[Node], duration_s: float | None, stop: threading.Event
             if stop.wait(0.1):
                 break
             _raise_node_error(started)
-        _raise_node_error(started)  # a node that failed and so ended the run
     finally:
         for nd in reversed(started):
             nd.stop()
+    _raise_node_error(started)  # a node that failed and so ended the run

@@ -62,19 +62,16 @@ class SourceNode(Node):
         self.done = threading.Event()
 
     def _start(self) -> None:
-        self._spawn(self._read_loop, "reader")
+        self._spawn(self._read_loop, "reader", after=self.done.set)  # done once an error is recorded
 
     def _read_loop(self) -> None:
-        try:
-            with self.source:
-                for frame in self.source.frames(self.frames_limit):  # ends at request_stop()
-                    check_sensor_id(frame.sensor_id)
-                    msg = RawFrameMsg(frame.sensor_id, frame.seq, frame.timestamp_ns, frame.config_id, frame.data)
-                    self.publish(frame.sensor_id, "raw", encode_raw(msg), "application/octet-stream")
-                    if self.on_frame is not None:
-                        self.on_frame(frame)
-        finally:
-            self.done.set()
+        with self.source:
+            for frame in self.source.frames(self.frames_limit):  # ends at request_stop()
+                check_sensor_id(frame.sensor_id)
+                msg = RawFrameMsg(frame.sensor_id, frame.seq, frame.timestamp_ns, frame.config_id, frame.data)
+                self.publish(frame.sensor_id, "raw", encode_raw(msg), "application/octet-stream")
+                if self.on_frame is not None:
+                    self.on_frame(frame)
 
     def _stopping(self) -> None:
         self.source.request_stop()  # the reader ends at the next frame and closes the source itself

@@ -1,6 +1,8 @@
 """The command's error contract: a failure prints one line naming what failed and where,
 exits 2, and shows a traceback only under -v."""
 
+import json
+import os
 import subprocess
 import sys
 
@@ -32,6 +34,62 @@ def test_errors_are_one_line_naming_the_place(args, where):
     errors = [ln for ln in proc.stderr.splitlines() if ": error: " in ln]
     assert len(errors) == 1 and errors[0].startswith(f"qradar {args[0]}: error: ") and where in errors[0], proc.stderr
     assert "Traceback" not in proc.stderr
+    message = errors[0].split(": error: ", 1)[1]
+    assert sum(message in ln for ln in proc.stderr.splitlines()) == 1, proc.stderr  # said once
+
+
+@pytest.mark.parametrize("port, hint", [
+    ("/dev/qradar-no-such-port", "no such device (is the sensor plugged in?"),
+    ("loop://", "our own INIT came back: the link echoes (a loopback, a modem or a console), not a K-MD2"),
+    ("socket://127.0.0.1:1", "connection refused (is the sensor, ser2net or `qradar sim --tcp` listening there?)"),
+])
+def test_drive_errors_say_what_to_check_once_and_as_json(port, hint):
+    proc = qradar("drive", "--port", port, "--no-publish", "--timeout", "0.2", "--json")
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.count(hint) == 1, proc.stderr
+    assert "[Errno" not in proc.stderr  # pyserial's repeated errno text is not passed on
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["exit_code"] == 2 and out["command"] == "drive" and hint in out["error"]
+    proc = qradar("drive", "--port", port, "--no-publish", "--timeout", "0.2", "-v")
+    assert "Traceback" in proc.stderr  # -v after the command too
+
+
+def test_a_silent_port_suggests_the_line_speed_or_another_device():
+    master, slave = os.openpty()  # a port where nothing answers
+    try:
+        proc = qradar("drive", "--port", os.ttyname(slave), "--no-publish", "--timeout", "0.2")
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert proc.returncode == 2
+    assert "saw no message (check that it is a K-MD2, powered, and that the line runs at 115200 baud 8E1" in proc.stderr
+
+
+def test_permission_denied_names_the_dialout_group():
+    import errno
+
+    import serial
+
+    from radar_driver.session import open_error
+
+    # what pyserial raises for a device the user may not open (as root the real one cannot be made)
+    exc = serial.SerialException(errno.EACCES, "could not open port /dev/ttyUSB0: [Errno 13] Permission denied: "
+                                 "'/dev/ttyUSB0'")
+    msg = open_error("/dev/ttyUSB0", exc)
+    assert msg == ("cannot open /dev/ttyUSB0: permission denied (add yourself to the dialout group: "
+                   "`sudo usermod -aG dialout $USER`, then log in again)")
+
+
+@pytest.mark.parametrize("command, defaults", [
+    ("drive", ["--ramps RAMPS         ramps per frame (M = 256 x ramps) (default: 2)", "default 2000000",
+               "(default: 0.5)", "(default: kmd2-blocks)", "(default: kmd2)"]),
+    ("sim", ["(default: chamber)", "(default: 20.0)", "(default: kmd2-blocks)"]),
+])
+def test_help_shows_the_defaults(command, defaults):
+    proc = qradar(command, "--help")
+    text = " ".join(proc.stdout.split())
+    for d in defaults:
+        assert " ".join(d.split()) in text, (d, proc.stdout)
 
 
 def test_verbose_adds_the_traceback():

@@ -217,3 +217,80 @@ def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
             sim.kill()
     assert sim.returncode == 0, sim.stderr.read()
     assert not link.exists()  # the symlink is removed on exit
+
+
+def test_socket_links_stay_at_the_start_up_speed_with_the_default_options(caplog):
+    """Ethernet or raw ser2net: no baud switch (INIT asks for 115200), said in the log;
+    an explicit --baud is ignored with a warning; GBYE on close."""
+    with SimulatorServer(SCENE, tcp_port=0, rate_hz=0) as sim:
+        url = f"socket://127.0.0.1:{sim.tcp_port}"
+        with caplog.at_level("INFO", logger="qradar.driver"), session(url) as s:
+            frames = list(s.frames(4))
+        assert len(frames) == 4 and s.counters.reconnects == 0
+        assert "socket link: the line speed stays at 115200 baud" in caplog.text
+        with caplog.at_level("WARNING", logger="qradar.driver"), session(url, baud=3_000_000) as s:
+            assert len(list(s.frames(2))) == 2
+        assert "cannot change the line speed: baud 3000000 ignored, staying at 115200" in caplog.text
+        events = sim.devices[0].events
+    assert ("SWITCH", 115_200) in events and not any(e == "SWITCH" and b != 115_200 for e, b in events)
+    assert [e for e in events if e[0] == "GBYE"] == [("GBYE", None)] * 2  # one per session
+    assert sim.devices[0].baud == 115_200
+
+
+def test_the_cli_drives_a_tcp_sensor_with_the_default_options(tmp_path, free_port):
+    sim = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--tcp", str(free_port), "--rate", "0"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "socket://127.0.0.1" in sim.stdout.readline()
+        drive = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", f"socket://127.0.0.1:{free_port}",
+                                "--frames", "10", "--no-publish", "--json", "--quiet"],
+                               capture_output=True, text=True, timeout=60)
+        assert drive.returncode == 0, drive.stderr
+        c = json.loads(drive.stdout.strip().splitlines()[-1])
+        assert c["frames"] == 10 and c["reconnects"] == 0 and c["timeouts"] == 0
+        assert "the line speed stays at 115200" in drive.stderr
+    finally:
+        sim.send_signal(signal.SIGINT)
+        sim.wait(10)
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT"])
+def test_a_signal_leaves_the_sensor_at_its_start_up_speed(link, how):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
+        drive = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--baud", "921600",
+                                  "--no-publish"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert drive.stdout.readline().startswith("frame")
+            assert sim.devices[0].baud == 921_600
+            drive.send_signal(getattr(signal, how))
+            out, err = drive.communicate(timeout=15)
+        finally:
+            drive.kill()
+        assert drive.returncode == 0, err
+        assert "counters: frames=" in out
+        wait_until(lambda: sim.devices[0].events[-1][0] == "GBYE", 5, "GBYE")
+        assert sim.devices[0].baud == 115_200
+
+
+def test_an_error_without_reconnect_says_goodbye_first(link):
+    """Every RADC cut short (the cut RADC swallows its DONE): the session ends with a
+    timeout (reconnect off), and the sensor got a GBYE before the error reached the caller."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=SimFaults(truncate_prob=1.0)) as sim:
+        s = session(link, reconnect=False, baud=921_600)
+        with pytest.raises(SensorTimeout, match="no complete RADC from .* after 2 GNFD polls"):
+            with s:
+                list(s.frames(2))
+        events = sim.devices[0].events
+        assert events[-1] == ("GBYE", 921_600) and sim.devices[0].baud == 115_200
+
+
+def test_one_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(link, caplog):
+    faults = SimFaults(disconnect_after_frames=3, reconnect_after_s=1.0)
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults) as sim:
+        with caplog.at_level("WARNING", logger="qradar.driver"), session(link, backoff_s=0.1, max_backoff_s=0.2) as s:
+            frames = list(s.frames(6))
+    assert len(frames) == 6 and s.counters.reconnects == 1
+    attempts = [r.getMessage() for r in caplog.records if "reconnect attempt" in r.getMessage()]
+    assert 2 <= len(attempts) <= 15, attempts
+    assert all(" s since the last frame" in a and str(link) in a for a in attempts)
+    assert any("reconnected after" in r.getMessage() for r in caplog.records)

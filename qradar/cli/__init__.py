@@ -7,13 +7,17 @@
 
 A command function parses its arguments into the libraries' configs and delegates.
 Errors: only the packages' roots (RadarError, PipelineError, ReplayError) are caught;
-their messages say what failed and where (a file, a port, a key). The command prints
-``qradar <command>: error: <message>`` and exits 2; ``-v`` adds the traceback.
+their messages say what failed and where (a file, a port, a key) and what to check.
+The command prints one line, ``qradar <command>: error: <message>``, and exits 2;
+``-v`` (before or after the command) adds the traceback; a command run with ``--json``
+prints ``{"error": ..., "exit_code": 2, "command": ...}`` on stdout as well. ``--help``
+shows every default.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import traceback
@@ -23,13 +27,15 @@ from radar_driver.errors import RadarError
 from replay.errors import ReplayError
 
 from . import analysis, record, sensor, stream
+from .common import DefaultsFormatter
 
 log = logging.getLogger("qradar")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="qradar", description="1-bit dithered FMCW radar localization: simulation, streaming, replay."
+        prog="qradar", description="1-bit dithered FMCW radar localization: simulation, streaming, replay.",
+        formatter_class=DefaultsFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging, tracebacks on errors")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -38,6 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     stream.add_commands(sub)
     record.add_commands(sub)
     analysis.add_reprocess(sub)
+    for p in sub.choices.values():
+        p.formatter_class = DefaultsFormatter
+        p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                       help="debug logging, tracebacks on errors")
     return parser
 
 
@@ -49,13 +59,21 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (PipelineError, RadarError, ReplayError) as exc:
-        if args.verbose:
-            traceback.print_exc()
-        print(f"qradar {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return fail(args, exc, 2)
     except KeyboardInterrupt:
-        print(f"qradar {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return fail(args, "interrupted", 130)
+
+
+def fail(args, exc: BaseException | str, code: int) -> int:
+    """One line on stderr (the traceback too under -v); with --json, a JSON object on stdout."""
+    if args.verbose and isinstance(exc, BaseException):
+        traceback.print_exception(exc)
+    message = " ".join(str(exc).split()) or type(exc).__name__
+    print(f"qradar {args.command}: error: {message}" if code != 130 else f"qradar {args.command}: {message}",
+          file=sys.stderr, flush=True)
+    if getattr(args, "json", False):
+        print(json.dumps({"error": message, "exit_code": code, "command": args.command}), flush=True)
+    return code
 
 
 if __name__ == "__main__":

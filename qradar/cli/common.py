@@ -26,6 +26,24 @@ def pos_int(text: str) -> int:
     return v
 
 
+def pos_float(text: str) -> float:
+    v = float(text)
+    if not v > 0.0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return v
+
+
+class DefaultsFormatter(argparse.RawDescriptionHelpFormatter):
+    """``--help`` shows every option's default (unless its help already says it)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text.lower() or action.default in (None, False, [], (), argparse.SUPPRESS)
+                or action.option_strings == [] or isinstance(action, argparse._HelpAction)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def prob(text: str) -> float:
     v = float(text)
     if not 0.0 <= v <= 1.0:
@@ -106,7 +124,7 @@ def bus_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh JSON5 config file")
     g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    g.add_argument("--mode", choices=["peer", "client"], default="peer")
+    g.add_argument("--mode", choices=["peer", "client"], default="peer", help="zenoh mode")
     g.add_argument("--prefix", default="radar", help="key prefix (default radar)")
 
 

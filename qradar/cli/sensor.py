@@ -11,11 +11,12 @@ import numpy as np
 
 from pipeline.nodes import SourceNode
 from pipeline.wire import check_sensor_id
+from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, packaged_profiles, resolve_profile
 from radar_driver.scene import resolve_scene
-from radar_driver.session import SensorSession, SessionConfig, save_frames_npz
+from radar_driver.session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig, save_frames_npz
 from radar_driver.simulator import SimFaults, SimulatorServer
 
-from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, nonneg_int, pos_int, prob
+from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, nonneg_int, pos_float, pos_int, prob
 
 
 def add_commands(sub) -> None:
@@ -33,6 +34,7 @@ def add_commands(sub) -> None:
     p.add_argument("--skip-done", type=prob, default=0.0, metavar="P", help="DONE counter jumps")
     p.add_argument("--disconnect-after", type=pos_int, default=None, metavar="N", help="drop the link after N frames")
     p.add_argument("--reconnect-after", type=nonneg_float, default=1.0, metavar="T", help="link back after T s")
+    profile_option(p)
     p.set_defaults(func=cmd_sim, parser=p)
 
     p = sub.add_parser("drive", help="read frames from a K-MD2 (real or simulated)",
@@ -40,12 +42,19 @@ def add_commands(sub) -> None:
                        "socket://host:port, rfc2217://host:port), 8E1, reconnecting on errors.")
     p.add_argument("--port", required=True, help="pyserial URL or device path")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames (default: until Ctrl-C)")
-    p.add_argument("--baud", type=int, default=2_000_000, help="rate after INIT (115200, 460800, 921600, 2000000, 3000000)")
+    p.add_argument("--baud", type=int, default=None,
+                   help=f"rate after INIT (115200, 460800, 921600, 2000000, 3000000); default {DEFAULT_FAST_BAUD}, "
+                   "except on socket:// (Ethernet, raw ser2net), which stays at the start-up 115200")
     p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (M = 256 x ramps)")
-    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for a GNFD answer")
+    p.add_argument("--timeout", type=pos_float, default=0.5, help="seconds to wait for a GNFD answer")
+    profile_option(p)
+    p.add_argument("--chirp-select", choices=CHIRP_SELECT, default="first",
+                   help="with several chirps per RADC: a frame takes the first --ramps chirps, or every k-th")
     p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
-    p.add_argument("--json", action="store_true", help="end with one JSON object of counters on stdout")
-    p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys (default kmd2)")
+    p.add_argument("--json", action="store_true",
+                   help="end with one JSON object on stdout: the counters, or the error and exit code")
+    p.add_argument("--quiet", action="store_true", help="no line per frame")
+    p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys")
     p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
     bus_options(p)
     p.set_defaults(func=cmd_drive)
@@ -58,13 +67,15 @@ def cmd_sim(args) -> int:
     faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
                        disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
     install_sigterm()
+    profile = resolve_profile(args.profile)
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
-                             faults=faults, seed=args.seed)
+                             faults=faults, seed=args.seed, profile=profile)
     with server:
         where = [str(args.link)] if args.link else []
         if args.tcp is not None:
             where.append(f"socket://127.0.0.1:{server.tcp_port}")
-        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {args.rate:g} frames/s) on "
+        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {args.rate:g} frames/s, "
+              f"profile {profile.name}) on "
               f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
         try:
             while not server.wait(0.5):
@@ -75,41 +86,50 @@ def cmd_sim(args) -> int:
     return 0
 
 
+def profile_option(p) -> None:
+    p.add_argument("--profile", default=DEFAULT_PROFILE_NAME,
+                   help=f"sensor profile (RADC layout, baud codes): {', '.join(packaged_profiles())} or a TOML file")
+
+
 def cmd_drive(args) -> int:
     cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
-                        sensor_id=check_sensor_id(args.sensor_id))
+                        sensor_id=check_sensor_id(args.sensor_id), profile=args.profile,
+                        chirp_select=args.chirp_select)
     lines = sys.stderr if args.json else sys.stdout
     frames = []
 
     def show(frame) -> None:
         if args.out is not None:
             frames.append(frame)
+        if args.quiet:
+            return
         peak = np.abs(frame.data).max()
         print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
               f"peak {peak:.3f} FS", file=lines, flush=True)
 
     install_sigterm()
     session = SensorSession(cfg)
-    if args.no_publish:
-        try:
+    try:
+        session.open()  # in this thread, so that a port that does not open says so once
+        if args.no_publish:
             with session:
                 for frame in session.frames(args.frames):
                     show(frame)
-        except KeyboardInterrupt:
-            pass
-    else:
-        node = SourceNode(bus_from_args(args), session, frames=args.frames, on_frame=show)
-        try:
-            node.start()
-            while not node.done.wait(0.2):
-                if node.errors:
-                    break
-        except KeyboardInterrupt:
-            pass
-        finally:
-            node.stop()
-        if node.errors:
-            raise node.errors[0]
+        else:
+            node = SourceNode(bus_from_args(args), session, frames=args.frames, on_frame=show)
+            try:
+                node.start()
+                while not node.done.wait(0.2):
+                    if node.errors:
+                        break
+            finally:
+                node.stop()
+            if node.errors:
+                raise node.errors[0]
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()  # GBYE: also on an error and on SIGTERM
     if args.out is not None:
         save_frames_npz(args.out, frames, cfg)
     c = session.counters.as_dict()
@@ -118,4 +138,3 @@ def cmd_drive(args) -> int:
     else:
         print("counters: " + ", ".join(f"{k}={v}" for k, v in c.items()))
     return 0
-
