@@ -3,15 +3,23 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
+JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast bench montecarlo-quick montecarlo-paper clean
+.PHONY: run test test-fast js-deps bench montecarlo-quick montecarlo-paper clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
 	@touch $(STAMP)
+
+# The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
+$(JS_STAMP): tests/js/package.json tests/js/package-lock.json
+	cd tests/js && npm ci --no-audit --no-fund
+	@touch $(JS_STAMP)
+
+js-deps: $(JS_STAMP)
 
 # The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
 run: $(STAMP)
@@ -22,10 +30,10 @@ montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
 # The whole suite, slow tests included (CI runs this).
-test: $(STAMP)
+test: $(STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q
 
-test-fast: $(STAMP)
+test-fast: $(STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
 bench: $(STAMP)
@@ -38,4 +46,4 @@ montecarlo-paper: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --out $(OUT)/montecarlo-paper
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info
+	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info tests/js/node_modules

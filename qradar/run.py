@@ -11,7 +11,7 @@ import tempfile
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -29,6 +29,8 @@ from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from replay.recorder import RecorderNode
+
+from .view import FoxgloveView, ViewConfig
 
 
 class Monitor:
@@ -107,6 +109,7 @@ class RunConfig:
     frames: int | None = None  # stop after this many frames per sensor
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
+    foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -145,10 +148,17 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             recorder = []
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k))]
+            view = None
+            if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
+                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=scene.radar), session=session).start()
+                if live is not None:
+                    print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
                 monitor.stop()
+                if view is not None:
+                    view.stop()
         finally:
             session.close()
             for sim in sims:
@@ -157,6 +167,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     if recorder:
         summary["recording"] = {"files": [str(p) for p in recorder[0].paths], "written": recorder[0].written,
                                 "dropped": recorder[0].totals()["drops"]}
+    if view is not None:
+        summary["foxglove"] = view.summary()
     return summary
 
 

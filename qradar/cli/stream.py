@@ -31,6 +31,7 @@ from .common import (
     quantizer_config,
     quantizer_options,
 )
+from .view import foxglove_arg
 
 
 def add_commands(sub) -> None:
@@ -96,6 +97,9 @@ def add_commands(sub) -> None:
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
+    p.add_argument("--foxglove", type=foxglove_arg, default=None, metavar="[HOST:]PORT",
+                   help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
+                   "127.0.0.1)")
     bus_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -173,7 +177,8 @@ def cmd_run(args) -> int:
     k, auto = count_from_args(args)
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
-                    record=record, frames=args.frames, auto_k=auto, pfa=args.pfa)
+                    record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
+                    foxglove=args.foxglove)
     install_sigterm()
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
     if args.json:
