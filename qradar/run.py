@@ -1,11 +1,17 @@
 """``qradar run``: the main job. Simulated K-MD2(s) on pseudo-terminals, the serial driver
-(a source node per sensor), the quantize-with-dither node, the localizer and the
-recorder, wired through one embedded zenoh session; live targets beside the ground
-truth, and a summary at the end. It composes all three libraries, so it lives here."""
+of each sensor in its own process (``qradar drive``, so that nothing here can stall
+its serial line), the quantize-with-dither node, the localizer and the recorder, wired
+through one embedded zenoh session; live targets beside the ground truth, and a
+summary at the end. It composes all three libraries, so it lives here.
+
+The driver processes reach the run's session through a unix socket in the run's
+temporary directory (zenoh client mode): no network port is opened."""
 
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -25,6 +31,7 @@ from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import WireError, decode_targets
+from radar_driver.errors import RadarError
 from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
@@ -110,6 +117,7 @@ class RunConfig:
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
+    driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -131,7 +139,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 for i in range(cfg.sensors)]
         for sim in sims:
             sim.start()
-        session = cfg.bus.open()
+        bus = driver_bus(cfg.bus, Path(tmp))
+        session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if bus.connect != cfg.bus.connect
+                   else cfg.bus).open()
         try:
             monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
             localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar,
@@ -139,9 +149,15 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                                               auto_k=cfg.auto_k, pfa=cfg.pfa),
                                      session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
-            drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
-                str(sim.links[0].link_path), baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame,
-                sensor_id=f"kmd2-{i}")), session=session, frames=cfg.frames) for i, sim in enumerate(sims)]
+            links = [str(sim.links[0].link_path) for sim in sims]
+            if cfg.driver_process:
+                drivers = [DriverProcess(link, f"kmd2-{i}", cfg.baud, scene.radar.ramps_per_frame, bus,
+                                         frames=cfg.frames, log=sys.stderr if live is not None else None)
+                           for i, link in enumerate(links)]
+            else:
+                drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
+                    link, baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame, sensor_id=f"kmd2-{i}")),
+                    session=session, frames=cfg.frames) for i, link in enumerate(links)]
             if cfg.frames is not None:
                 stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
@@ -172,6 +188,107 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     return summary
 
 
+def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
+    """How a driver process joins the run's zenoh session: through a unix socket in the
+    run's directory (nothing listens on the network), or, when the run is itself a zenoh
+    client, through the same endpoints."""
+    if bus.mode == "client":
+        return replace(bus, listen=())
+    return BusConfig(mode="client", connect=(f"unixsock-stream/{tmp / 'zenoh.sock'}",), prefix=bus.prefix)
+
+
+class DriverProcess:
+    """One sensor's serial driver in its own process (``qradar drive``), publishing raw
+    frames on ``bus`` (a zenoh client). Node-like for :func:`run_nodes`: ``start``,
+    ``stop``, ``errors``, ``done``. Stopped with SIGTERM, it says GBYE and prints its
+    counters (JSON), which :meth:`stats` returns; its log lines go to ``log``."""
+
+    name = "driver"
+
+    def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
+                 frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None):
+        self.sensor_id = sensor_id
+        self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
+                    "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix]
+        self.cmd += [a for ep in bus.connect for a in ("--connect", ep)]
+        if bus.config_file is not None:
+            self.cmd += ["--zenoh-config", str(bus.config_file)]
+        if baud is not None:
+            self.cmd += ["--baud", str(baud)]
+        if frames is not None:
+            self.cmd += ["--frames", str(frames)]
+        if profile is not None:
+            self.cmd += ["--profile", profile]
+        self.log = log
+        self.errors: list[BaseException] = []
+        self.done = threading.Event()
+        self.counters: dict[str, int] = {}
+        self._proc: subprocess.Popen | None = None
+        self._stopping = False
+        self._out: list[str] = []
+        self._threads: list[threading.Thread] = []
+
+    def start(self) -> "DriverProcess":
+        self._proc = subprocess.Popen(self.cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True, start_new_session=True)
+        for target in (self._read_stdout, self._read_stderr, self._watch):
+            t = threading.Thread(target=target, name=f"driver-{self.sensor_id}-{target.__name__}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def _read_stdout(self) -> None:
+        for line in self._proc.stdout:
+            self._out.append(line)
+            del self._out[:-4]
+
+    def _read_stderr(self) -> None:
+        for line in self._proc.stderr:
+            if self.log is not None:
+                self.log.write(f"[driver {self.sensor_id}] {line}")
+                self.log.flush()
+
+    def _watch(self) -> None:
+        rc = self._proc.wait()
+        for t in self._threads[:2]:
+            t.join(5.0)
+        last = self._last_json()
+        if "error" in last:
+            self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
+        elif rc != 0 and not self._stopping:
+            self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
+        else:
+            self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
+        self.done.set()
+
+    def _last_json(self) -> dict:
+        for line in reversed(self._out):
+            try:
+                out = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(out, dict):
+                return out
+        return {}
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM (the driver says GBYE and prints its counters); SIGKILL after ``timeout_s``."""
+        if self._proc is None:
+            return
+        self._stopping = True
+        if self._proc.poll() is None:
+            self._proc.send_signal(signal.SIGTERM)
+            try:
+                self._proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self.errors.append(RadarError(f"the driver of {self.sensor_id} did not stop in {timeout_s} s"))
+        self.done.wait(timeout_s)
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        return {self.sensor_id: dict(self.counters)}
+
+
 def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
     """MCAP metadata of a run: radar config, node configs and the ground-truth scene."""
     from dataclasses import asdict
@@ -191,7 +308,8 @@ def _stat(values, fn) -> float | None:
 
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float) -> dict:
-    driver_drops = sum(d.source.counters.dropped for d in drivers)
+    driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
+    driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
     queue_drops = localizer.totals()["drops"] + quantizer.totals()["drops"]
     cnt, size = monitor.count, monitor.bytes
     return {
@@ -214,7 +332,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
                       "dither_seed": cfg.quantizer.dither_seed},
         "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k},
-        "driver": {sid: c for d in drivers for sid, c in d.source.stats().items()},
+        "driver": driver_stats,
+        "driver_process": cfg.driver_process,
     }
 
 

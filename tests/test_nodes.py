@@ -2,10 +2,12 @@
 127.0.0.1. Every wait is bounded in count and time."""
 
 import json
+import os
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -229,6 +231,53 @@ def test_qradar_run_end_to_end_json():
     assert 0 < s["latency_ms"]["p50"] <= s["latency_ms"]["p99"]
     assert s["position_error_m"]["median"] < 1.0
     assert "targets (" in proc.stderr  # live lines beside the truth
+    # the driver ran in its own process, and its counters reached the summary
+    assert s["driver_process"] is True
+    assert s["driver"]["kmd2-0"]["frames"] == s["frames_raw"] and s["driver"]["kmd2-0"]["timeouts"] == 0
+    assert "[driver kmd2-0]" in proc.stderr and "connected to" in proc.stderr
+
+
+def _listening_inodes() -> set[str]:
+    out = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6", "/proc/net/udp", "/proc/net/udp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                cols = line.split()
+                if cols[3] in ("0A", "07"):  # TCP LISTEN, or an unconnected UDP socket
+                    out.add(cols[9])
+    return out
+
+
+def _socket_inodes(pid: int) -> set[str]:
+    out = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            out.add(target[8:-1])
+    return out
+
+
+def test_qradar_run_listens_on_no_port_and_its_driver_is_another_process():
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "6", "--no-record", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        def children() -> list[int]:
+            path = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+            return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+        wait_until(lambda: any("drive" in Path(f"/proc/{c}/cmdline").read_text() for c in children()), 30,
+                   "the driver process")
+        time.sleep(1.0)  # running
+        pids = [proc.pid, *children()]
+        listening = _listening_inodes()
+        assert all(not (_socket_inodes(p) & listening) for p in pids)
+    finally:
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert json.loads(out)["frames_targets"] > 0
 
 
 def test_bus_config_errors():

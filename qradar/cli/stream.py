@@ -97,6 +97,8 @@ def add_commands(sub) -> None:
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
+    p.add_argument("--driver-in-process", action="store_true",
+                   help="run the serial drivers as threads of this process (default: a process each)")
     p.add_argument("--foxglove", type=foxglove_arg, default=None, metavar="[HOST:]PORT",
                    help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
                    "127.0.0.1)")
@@ -178,7 +180,7 @@ def cmd_run(args) -> int:
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
-                    foxglove=args.foxglove)
+                    foxglove=args.foxglove, driver_process=not args.driver_in_process)
     install_sigterm()
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
     if args.json:
