@@ -1,11 +1,12 @@
 """The driver through a real ser2net (4.x) in front of the simulated K-MD2's pty: raw TCP
 (``socket://``) and RFC 2217 (``rfc2217://...?ign_set_control``), with the YAML of
-tests/ser2net_helpers.py. Skipped without ser2net unless
+docs/chamber.md (tests/ser2net_helpers.py). Skipped without ser2net unless
 QRADAR_REQUIRE_SER2NET=1 (CI), where a missing ser2net fails.
 
 The simulated K-MD2 reads the host's line speed from the pty's terminal settings, so
 what ser2net does to the pty (and only that) decides whether a baud switch arrives."""
 
+import re
 import socket
 import time
 from pathlib import Path
@@ -17,9 +18,10 @@ import ser2net_helpers
 from radar_driver.errors import SensorError
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
-from ser2net_helpers import HOST, REQUIRE_ENV, listening_addresses, require_ser2net, ser2net_for
+from ser2net_helpers import HOST, REQUIRE_ENV, listening_addresses, require_ser2net, ser2net_for, ser2net_yaml
 from test_session import LSB, SCENE, expected_frame
 
+ROOT = Path(__file__).resolve().parents[1]
 #: every test here ends well within this (each takes about a second)
 BOUND_S = 15.0
 
@@ -136,6 +138,22 @@ def test_raw_tcp_with_the_default_baud(link):
         with session(s2n.url, reconnect=False, timeout_s=0.2) as s:
             frames = list(s.frames(3))
     check_frames(frames, 3)
+
+
+def test_the_chamber_guide_shows_the_tested_yaml():
+    """docs/chamber.md shows, verbatim, the YAML these tests run (for its device and port)."""
+    text = (ROOT / "docs" / "chamber.md").read_text()
+    blocks = re.findall(r"```yaml\n(.*?)```", text, re.S)
+    shown = {}
+    for block in blocks:
+        m = re.search(r"accepter: (?:telnet\(rfc2217\),)?tcp\(nodelay\),([^,\s]+),(\d+)\n"
+                      r"  connector: serialdev,(\S+?),", block)
+        if m:
+            kind = "rfc2217" if "telnet(rfc2217)" in block else "raw"
+            shown[kind] = (block, ser2net_yaml(m.group(3), kind, int(m.group(2)), host=m.group(1)))
+    assert set(shown) == {"raw", "rfc2217"}, "docs/chamber.md lost a ser2net YAML"
+    for kind, (block, tested) in shown.items():
+        assert block == tested, f"docs/chamber.md's {kind} YAML is not the tested one"
 
 
 def test_a_missing_ser2net_skips_or_fails_in_ci(monkeypatch):
