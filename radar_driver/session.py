@@ -39,6 +39,7 @@ from __future__ import annotations
 import errno
 import logging
 import queue
+import termios
 import threading
 import time
 from collections import deque
@@ -214,8 +215,14 @@ def open_error(url: str, exc: BaseException) -> str:
                 f"`sudo usermod -aG dialout $USER`, then log in again)")
     if code == errno.EBUSY:
         return f"cannot open {url}: the device is busy (another program has it open: `fuser {url}`)"
+    if isinstance(exc, termios.error):
+        reason = exc.args[1] if len(exc.args) > 1 else exc
+        return f"cannot open {url}: the port refused the terminal settings (8E1 at its speed): {reason}"
     if isinstance(exc, (TimeoutError, serial.SerialTimeoutException)) or "timed out" in str(exc).lower():
         return f"cannot open {url}: timed out (is the host reachable and the port right?)"
+    if code == errno.EPIPE or "broken pipe" in str(exc).lower() or "reset by peer" in str(exc).lower():
+        return (f"cannot open {url}: the other end hung up during the set-up (ser2net could not open its "
+                f"device? see its log, the device path in its YAML, its user's dialout group)")
     reason = getattr(exc, "strerror", None) or str(exc)
     # pyserial repeats itself: "[Errno 2] could not open port X: [Errno 2] ..."; keep the last clause
     reason = reason.rsplit("] ", 1)[-1] if reason.count("[Errno") else reason
@@ -241,6 +248,7 @@ class SensorSession:
         self._port: serial.SerialBase | None = None
         self._decoder = StreamDecoder(self.profile)
         self._inbox: deque = deque()
+        self._first_bytes = bytearray()  # what arrived first after connecting (for error messages)
         self._pending_radc: Radc | None = None
         self._last_counter: int | None = None
         self._radcs: list[tuple[int, int, np.ndarray]] = []  # (counter, t_ns, words) of a partial frame
@@ -315,14 +323,13 @@ class SensorSession:
         cfg = self.config
         url = port_url(cfg.url)
         try:
-            port = self._port_factory(url, baudrate=self.profile.startup_baud, bytesize=serial.EIGHTBITS,
-                                      parity=serial.PARITY_EVEN, stopbits=serial.STOPBITS_ONE,
-                                      timeout=self.READ_TIMEOUT_S)
-        except (serial.SerialException, OSError, ValueError) as exc:
+            port = self._open_port(url)
+        except (serial.SerialException, OSError, ValueError, termios.error) as exc:
             raise LinkError(open_error(cfg.url, exc)) from exc
         self._port = port
         self._decoder.reset()
         self._inbox.clear()
+        self._first_bytes.clear()
         self._pending_radc = None
         self._outstanding = False
         self._reset_assembly()
@@ -342,9 +349,20 @@ class SensorSession:
             if cfg.kind.can_change_speed and cfg.line_baud != self.profile.startup_baud:
                 time.sleep(BAUD_SWITCH_SETTLE_S)
                 port.baudrate = cfg.line_baud
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, termios.error) as exc:
             self._drop_port()
             raise LinkError(f"{cfg.url} failed during INIT: {getattr(exc, 'strerror', None) or exc}") from exc
+        except SensorError as exc:
+            self._drop_port()
+            text = self._peer_text()  # e.g. ser2net's "Device open failure: ..." before it hangs up
+            said = f", saying {text!r}" if text else ""
+            if isinstance(exc, LinkError):
+                raise LinkError(f"{exc}: the other end hung up during the set-up{said} (ser2net could not open "
+                                f"its device? see its log, the device path in its YAML, its user's dialout "
+                                f"group)") from exc
+            if text:
+                raise type(exc)(f"{exc}; the other end said {text!r}: not a K-MD2") from exc
+            raise
         except BaseException:
             self._drop_port()
             raise
@@ -356,6 +374,34 @@ class SensorSession:
         else:
             log.info("connected to %s (%s link: the line speed stays at %d baud; profile %s)", cfg.url,
                      cfg.kind.value, cfg.line_baud, self.profile.name)
+
+    def _open_port(self, url: str) -> serial.SerialBase:
+        """The port at the start-up speed, 8E1. A Linux pty has no parity and refuses
+        (EINVAL) terminal settings that change nothing else, e.g. a second session at the
+        speed the first left: then it opens at another speed and switches."""
+        kw = dict(bytesize=serial.EIGHTBITS, parity=serial.PARITY_EVEN, stopbits=serial.STOPBITS_ONE,
+                  timeout=self.READ_TIMEOUT_S)
+        start = self.profile.startup_baud
+        try:
+            return self._port_factory(url, baudrate=start, **kw)
+        except termios.error as exc:
+            if not exc.args or exc.args[0] != errno.EINVAL:
+                raise
+        other = next(b for b in sorted(self.profile.baud_codes.values()) if b != start)
+        port = self._port_factory(url, baudrate=other, **kw)
+        try:
+            port.baudrate = start
+        except BaseException:
+            port.close()
+            raise
+        return port
+
+    def _peer_text(self) -> str:
+        """The first bytes received since connecting, if they read as a line of text."""
+        raw = bytes(self._first_bytes).strip(b"\r\n\x00 ")
+        if len(raw) < 4 or sum(32 <= b < 127 or b in (9, 10, 13) for b in raw) < 0.9 * len(raw):
+            return ""
+        return " ".join(raw.decode("ascii", "replace").split())[:120]
 
     def _release_stuck_sensor(self) -> None:
         port = self._port
@@ -399,6 +445,8 @@ class SensorSession:
             raise LinkError(f"read from {self.config.url} failed: {getattr(exc, 'strerror', None) or exc}") from exc
         if not data:
             return
+        if len(self._first_bytes) < 256:
+            self._first_bytes += data[: 256 - len(self._first_bytes)]
         st = self._decoder.stats
         before = (st.resyncs, st.skipped_bytes)
         self._inbox.extend(self._decoder.feed(data))

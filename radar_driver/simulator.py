@@ -16,7 +16,10 @@ The device measures on its own clock: a host that polls late finds the counter
 advanced, and the gap is what a real sensor shows for dropped frames.
 
 On a pty the device reads the host's line speed from the terminal settings and, like
-a real UART, does not understand bytes sent at another speed than its own.
+a real UART, does not understand bytes sent at another speed than its own. With
+``line_rate`` it also takes as long as a real serial line to send (11 bits a byte at
+8E1: a 2 080-byte ``RADC`` takes 11 ms at 2 Mbaud, 199 ms at 115200); without it a pty
+delivers at once.
 """
 
 from __future__ import annotations
@@ -381,6 +384,10 @@ class TcpLink:
             return False
 
 
+#: bits on the line per byte at 8E1: start, 8 data, parity, stop
+BITS_PER_BYTE = 11
+
+
 class SimulatorServer:
     """Serves a simulated K-MD2 on a pty (``link_path``) and/or TCP (``tcp_port``, 0 =
     any free port) until :meth:`stop`. Each link has its own device state."""
@@ -394,6 +401,7 @@ class SimulatorServer:
         faults: SimFaults | None = None,
         seed: int = 0,
         profile: SensorProfile = DEFAULT_PROFILE,
+        line_rate: bool = False,
     ):
         if link_path is None and tcp_port is None:
             raise ConfigError("SimulatorServer needs a pty link path or a TCP port")
@@ -403,6 +411,7 @@ class SimulatorServer:
         if tcp_port is not None:
             self.links.append(TcpLink(tcp_port))
         self.devices = [SimulatedKMD2(scene, rate_hz, faults or SimFaults(), seed, profile) for _ in self.links]
+        self.line_rate = line_rate
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []
@@ -437,6 +446,7 @@ class SimulatorServer:
         return self._stop.wait(timeout_s)
 
     def _serve(self, link, dev: SimulatedKMD2) -> None:
+        line_free = 0.0  # monotonic s when the serial line is free again (line_rate)
         try:
             while not self._stop.is_set():
                 try:
@@ -448,9 +458,14 @@ class SimulatorServer:
                     raise
                 if not data:
                     continue
-                for reply in dev.receive(data, link.host_baud()):
-                    if reply.due_s is not None:
-                        delay = reply.due_s - time.monotonic()
+                baud = link.host_baud()
+                for reply in dev.receive(data, baud):
+                    due = reply.due_s
+                    if self.line_rate and baud:  # the last byte arrives a line time after the line is free
+                        start = max(due or 0.0, line_free, time.monotonic())
+                        due = line_free = start + len(reply.data) * BITS_PER_BYTE / baud
+                    if due is not None:
+                        delay = due - time.monotonic()
                         if delay > 0 and self._stop.wait(delay):
                             return
                     if not link.write(reply.data):

@@ -7,6 +7,8 @@ The simulated K-MD2 reads the host's line speed from the pty's terminal settings
 what ser2net does to the pty (and only that) decides whether a baud switch arrives."""
 
 import re
+import subprocess
+import sys
 import socket
 import time
 from pathlib import Path
@@ -15,7 +17,6 @@ import numpy as np
 import pytest
 
 import ser2net_helpers
-from radar_driver.errors import SensorError
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from ser2net_helpers import HOST, REQUIRE_ENV, listening_addresses, require_ser2net, ser2net_for, ser2net_yaml
@@ -51,8 +52,8 @@ def test_raw_tcp_40_frames(link):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, ser2net_for(link, "raw", workdir=link.parent) as s2n:
         assert s2n.url == f"socket://127.0.0.1:{s2n.port}"
         assert listening_addresses(s2n.port) == {HOST}  # nothing beyond the loopback
-        # after the socket:// change: default baud
-        with session(s2n.url, baud=115_200) as s:
+        with session(s2n.url) as s:  # the default options: a socket stays at 115200
+            assert s.config.line_baud == 115_200
             frames = list(s.frames(40))
         assert not sim.errors
     check_frames(frames, 40)
@@ -70,8 +71,9 @@ def test_rfc2217_switches_the_pty_to_2M_and_says_gbye_on_close(link):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, ser2net_for(link, "rfc2217", workdir=link.parent) as s2n:
         assert s2n.url == f"rfc2217://127.0.0.1:{s2n.port}?ign_set_control"
         assert listening_addresses(s2n.port) == {HOST}
-        with session(s2n.url) as s:  # the default rate, 2 000 000
-            assert s.config.baud == 2_000_000
+        bare = s2n.url.split("?")[0]  # the driver adds ign_set_control itself
+        with session(bare) as s:  # the default rate, 2 000 000
+            assert s.config.line_baud == 2_000_000
             # ser2net applied the client's SET-BAUDRATE to the pty's terminal settings
             assert sim.links[0].host_baud() == 2_000_000
             frames = list(s.frames(40))
@@ -88,11 +90,9 @@ def test_rfc2217_switches_the_pty_to_2M_and_says_gbye_on_close(link):
 
 @pytest.mark.parametrize("kind", ["raw", "rfc2217"])
 def test_the_driver_reconnects_after_ser2net_restarts(link, kind):
-    # after the socket:// change: default baud (for raw)
-    baud = 115_200 if kind == "raw" else 2_000_000
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, ser2net_for(link, kind, workdir=link.parent) as s2n:
         frames = []
-        with session(s2n.url, baud=baud, reconnect_timeout_s=10.0) as s:
+        with session(s2n.url, reconnect_timeout_s=10.0) as s:  # the default options
             for f in s.frames(12):
                 frames.append(f)
                 if len(frames) == 5:
@@ -120,8 +120,7 @@ def test_a_stale_client_is_kicked_off(link):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0), ser2net_for(link, "raw", workdir=link.parent) as s2n:
         stale = socket.create_connection((HOST, s2n.port), timeout=2.0)
         try:
-            # after the socket:// change: default baud
-            with session(s2n.url, baud=115_200) as s:
+            with session(s2n.url) as s:
                 frames = list(s.frames(3))
             assert stale.recv(1) == b""  # ser2net closed the old connection
         finally:
@@ -129,15 +128,17 @@ def test_a_stale_client_is_kicked_off(link):
     check_frames(frames, 3)
 
 
-@pytest.mark.xfail(strict=True, raises=SensorError,
-                   reason="issue 11: the driver still switches the baud over socket://, which no "
-                          "socket can follow; remove this marker with the socket:// change")
-def test_raw_tcp_with_the_default_baud(link):
-    with SimulatorServer(SCENE, link_path=link, rate_hz=0), ser2net_for(link, "raw", workdir=link.parent) as s2n:
-        # after the socket:// change: default baud (this test then passes: drop the xfail)
-        with session(s2n.url, reconnect=False, timeout_s=0.2) as s:
+def test_raw_tcp_with_an_explicit_fast_baud_stays_at_115200(link, caplog):
+    """A --baud that a socket cannot follow is ignored with a warning (no INIT to 2 M,
+    which would leave the sensor unreachable behind ser2net's fixed 115200)."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, \
+            ser2net_for(link, "raw", workdir=link.parent) as s2n:
+        with caplog.at_level("WARNING", logger="qradar.driver"), \
+                session(s2n.url, baud=2_000_000, reconnect=False, timeout_s=0.5) as s:
             frames = list(s.frames(3))
     check_frames(frames, 3)
+    assert "baud 2000000 ignored, staying at 115200" in caplog.text
+    assert ("SWITCH", 2_000_000) not in sim.devices[0].events
 
 
 def test_the_chamber_guide_shows_the_tested_yaml():
@@ -165,3 +166,12 @@ def test_a_missing_ser2net_skips_or_fails_in_ci(monkeypatch):
     monkeypatch.setenv(REQUIRE_ENV, "1")
     with pytest.raises(pytest.fail.Exception, match="QRADAR_REQUIRE_SER2NET=1 requires"):
         require_ser2net()
+
+
+@pytest.mark.parametrize("kind", ["raw", "rfc2217"])
+def test_ser2net_that_cannot_open_its_device_is_named(tmp_path, kind):
+    says = "the other end hung up during the set-up"  # and, when pyserial passed it on, what ser2net said
+    with ser2net_for(tmp_path / "no-such-device", kind, workdir=tmp_path) as s2n:
+        proc = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", s2n.url.split("?")[0],
+                               "--no-publish", "--frames", "1"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr

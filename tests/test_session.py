@@ -294,3 +294,32 @@ def test_one_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(li
     assert 2 <= len(attempts) <= 15, attempts
     assert all(" s since the last frame" in a and str(link) in a for a in attempts)
     assert any("reconnected after" in r.getMessage() for r in caplog.records)
+
+
+def test_the_simulated_line_takes_as_long_as_a_real_one(link):
+    """With line_rate, a 2 080-byte RADC takes 11 bits a byte at the host's speed: 199 ms
+    at 115200 (so a 115200 line carries 2.5 frames/s, never the sensor's 20), 11 ms at
+    2 Mbaud. These are lower bounds: the line cannot be faster."""
+    radc_bytes = 8 + 2048 + 12 + 12  # RADC, DONE and RESP of one poll
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, line_rate=True) as sim:
+        with session(link, baud=115_200) as s:
+            t0 = time.monotonic()
+            list(s.frames(2))
+            slow = time.monotonic() - t0
+        with session(link, baud=2_000_000) as s:
+            t0 = time.monotonic()
+            list(s.frames(10))
+            fast = time.monotonic() - t0
+        assert not sim.errors
+    assert slow >= 4 * radc_bytes * 11 / 115_200 * 0.99  # 4 ramps: 0.80 s
+    assert fast >= 20 * radc_bytes * 11 / 2_000_000 * 0.99  # 20 ramps: 0.23 s
+
+
+def test_sessions_one_after_another_at_115200_on_one_pty(link):
+    """A Linux pty has no parity and refuses settings that change nothing else: the
+    second session at 115200 8E1 on the same pty opens all the same."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim:
+        for _ in range(3):
+            with session(link, baud=115_200) as s:
+                assert len(list(s.frames(1))) == 1
+        assert not sim.errors

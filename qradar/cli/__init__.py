@@ -21,6 +21,7 @@ import argparse
 import json
 import logging
 import sys
+import threading
 import traceback
 
 from pipeline.errors import PipelineError
@@ -58,12 +59,23 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    threading.excepthook = _thread_failed
     try:
         return args.func(args)
     except (PipelineError, RadarError, ReplayError) as exc:
         return fail(args, exc, 2)
     except KeyboardInterrupt:
         return fail(args, "interrupted", 130)
+
+
+def _thread_failed(hook: threading.ExceptHookArgs) -> None:
+    """A thread that dies of an exception: one log line (its traceback under -v), not
+    Python's traceback on stderr. pyserial's RFC 2217 reader thread dies when the other end
+    hangs up; the session reports that itself, so it is only a debug line."""
+    name = hook.thread.name if hook.thread is not None else "a thread"
+    level = logging.DEBUG if name.startswith("pySerial") else logging.ERROR
+    log.log(level, "%s died: %s", name, hook.exc_value)
+    log.debug("%s died", name, exc_info=(hook.exc_type, hook.exc_value, hook.exc_traceback))
 
 
 def fail(args, exc: BaseException | str, code: int) -> int:

@@ -34,6 +34,8 @@ def add_commands(sub) -> None:
     p.add_argument("--skip-done", type=prob, default=0.0, metavar="P", help="DONE counter jumps")
     p.add_argument("--disconnect-after", type=pos_int, default=None, metavar="N", help="drop the link after N frames")
     p.add_argument("--reconnect-after", type=nonneg_float, default=1.0, metavar="T", help="link back after T s")
+    p.add_argument("--line-rate", action="store_true",
+                   help="on the pty, take as long as a real serial line at the host's speed (8E1)")
     profile_option(p)
     p.set_defaults(func=cmd_sim, parser=p)
 
@@ -69,7 +71,7 @@ def cmd_sim(args) -> int:
     install_sigterm()
     profile = resolve_profile(args.profile)
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
-                             faults=faults, seed=args.seed, profile=profile)
+                             faults=faults, seed=args.seed, profile=profile, line_rate=args.line_rate)
     with server:
         where = [str(args.link)] if args.link else []
         if args.tcp is not None:
