@@ -6,10 +6,10 @@ Two passes over the bytes the sensor sent, port opening by port opening:
 
 1. **Without a profile** (:func:`split_messages`): messages are a 4-character header
    (an upper-case letter, then upper-case letters or digits), a uint32 LE length and
-   that many bytes (plus up to 3 zero bytes of padding). A header the protocol knows is
-   taken at its word; any other must be followed by another header (or the end), so
-   that garbage is not taken for a message. Per header: count, declared lengths, rate;
-   and the garbage bytes, resyncs and the message cut short at the end.
+   that many bytes (plus up to 3 zero bytes of padding), followed by another message;
+   a header the protocol knows may also be followed by garbage. Per header: count,
+   declared lengths, rate; and the garbage bytes, resyncs and the message cut short at
+   the end.
 2. **With each profile** (:func:`score_profile`): the codec's
    :class:`~.protocol.StreamDecoder`; decoded RADCs become frames as the session makes
    them (the azimuth pair; ``ramps_per_frame`` consecutive RADCs by the DONE counter,
@@ -118,9 +118,24 @@ def _header_at(buf: bytes, pos: int) -> tuple[str, int] | None:
     return (buf[pos:pos + 4].decode("ascii"), length) if length <= MAX_PAYLOAD else None
 
 
+def _next_header(buf: bytes, start: int, end: int | None = None) -> int | None:
+    """Where the first plausible message prefix in ``buf[start:end]`` starts, or None."""
+    end = len(buf) if end is None else end
+    while (m := HEADER_RE.search(buf, start, end + 3)) is not None and m.start() < end:
+        if _header_at(buf, m.start()) is not None:
+            return m.start()
+        start = m.start() + 1
+    return None
+
+
 def split_messages(segs: Iterable[Segment], split: Split | None = None) -> Split:
-    """Cut each segment's bytes into messages by header and length, without a profile
-    (see the module docstring). Adds to ``split`` if given."""
+    """Cut each segment's bytes into messages by header and length, without a profile.
+
+    A message is taken when another one (or the end) follows it, or, for a header the
+    protocol knows, when no other message starts inside its payload (garbage may follow
+    a message; a message cut short is followed by the next one inside its declared
+    length). A message running past the end is ``cut`` unless another starts inside it.
+    Adds to ``split`` if given."""
     out = split or Split()
     known = {h.decode() for h in HEADERS}
     for seg in segs:
@@ -134,12 +149,14 @@ def split_messages(segs: Iterable[Segment], split: Split | None = None) -> Split
             if head is not None:
                 name, length = head
                 end = pos + PREFIX_LEN + length
-                if end > n:
-                    out.cut.append((name, length))
-                    break
                 pad = (-length) % 4
                 nxt = end + pad if buf[end:end + pad] == bytes(pad) else end
-                if name in known or nxt >= n or _header_at(buf, nxt) is not None:
+                if end > n:
+                    if _next_header(buf, pos + PREFIX_LEN) is None:
+                        out.cut.append((name, length))
+                        break
+                elif (nxt >= n or _header_at(buf, nxt) is not None
+                      or (name in known and _next_header(buf, pos + PREFIX_LEN, end) is None)):
                     t_ns = times[min(int(np.searchsorted(ends, end - 1, side="right")), len(times) - 1)]
                     st = out.headers.setdefault(name, HeaderStats(first_ns=t_ns))
                     st.count += 1
@@ -153,8 +170,10 @@ def split_messages(segs: Iterable[Segment], split: Split | None = None) -> Split
             if not in_garbage:
                 out.resyncs += 1
                 in_garbage = True
-            m = HEADER_RE.search(buf, pos + 1)
-            nxt = m.start() if m else n
+            nxt = _next_header(buf, pos + 1)
+            if nxt is None:  # keep a tail that may be a header cut inside its length
+                tail = HEADER_RE.search(buf, max(pos + 1, n - PREFIX_LEN + 1))
+                nxt = tail.start() if tail is not None else n
             out.garbage_bytes += nxt - pos
             pos = nxt
     return out

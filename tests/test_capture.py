@@ -40,7 +40,7 @@ from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.profile import RadcLayout, SensorProfile, packaged_profiles, resolve_profile
 from radar_driver.protocol import Done, OtherMessage, Radc, Resp, encode
 from radar_driver.scene import SimScene, SimTarget
-from radar_driver.simulator import SimulatorServer
+from radar_driver.simulator import SimFaults, SimulatorServer
 
 ROOT = Path(__file__).resolve().parents[1]
 #: one reflector off the range grid (bin 20.5), on antenna 2's side, with sensor noise
@@ -203,6 +203,11 @@ def test_split_without_a_profile_counts_headers_lengths_garbage_and_a_cut_end():
         "RESP": (2, {1: 2}), "RADC": (1, {2048: 1}), "DONE": (2, {4: 2}), "XYZ1": (1, {5: 1})}
     assert split.garbage_bytes == 9 + 8 and split.resyncs == 2 and split.cut == [("RADC", 2048)]
     assert split.bytes == len(stream)
+    # a RADC cut short: the next message starts inside its declared length, so it is garbage
+    stream = encode(Resp()) + radc[:500] + encode(Done(1)) + radc + encode(Done(2))
+    split = split_messages([[(0, stream)]])
+    assert {h: s.count for h, s in split.headers.items()} == {"RESP": 1, "DONE": 2, "RADC": 1}
+    assert split.garbage_bytes == 500 and split.resyncs == 1 and split.cut == []
     # an unknown header must be followed by a message: here it is not, so it is garbage
     split = split_messages([[(0, encode(OtherMessage(b"XYZ1", b"1234")) + b"\x00\x01\x02" * 5)]])
     assert "XYZ1" not in split.headers and split.garbage_bytes == 8 + 4 + 15
@@ -287,6 +292,20 @@ def test_layouts_of_the_same_length_are_told_apart_by_images_and_the_known_angle
     report = inspect_capture(cap, ["kmd2-blocks"] + decoys, reflector=Reflector(12.3, 20.0))
     assert report.best == "kmd2-blocks" and report.ambiguous == []
     assert "not +20 deg" in {s.name: s for s in report.scores}["swapped"].why
+
+
+def test_a_capture_with_garbage_and_cut_messages_is_still_identified(tmp_path):
+    link, out = tmp_path / "kmd2", tmp_path / "faults.bin"
+    faults = SimFaults(garbage_prob=0.1, truncate_prob=0.1)
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults, seed=4) as sim:
+        summary = run_capture(CaptureConfig(str(link), frames=20, seconds=8), out)
+    assert not sim.errors and summary.frames == 20
+    truncated = sum(e[0] == "TRUNCATED" for e in sim.devices[0].events)
+    report = inspect_capture(Capture.read(out))
+    assert truncated >= 1 and report.sensor.garbage_bytes > 0 and report.sensor.resyncs >= truncated
+    heads = report.sensor.headers
+    assert heads["RADC"].count == heads["DONE"].count - truncated and heads["RADC"].lengths == {2048: heads["RADC"].count}
+    assert report.best == "kmd2-blocks"
 
 
 # -- the command as a process -------------------------------------------------------------------------------
