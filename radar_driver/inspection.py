@@ -14,15 +14,19 @@ Two passes over the bytes the sensor sent, port opening by port opening:
    :class:`~.protocol.StreamDecoder`; decoded RADCs become frames as the session makes
    them (the azimuth pair; ``ramps_per_frame`` consecutive RADCs by the DONE counter,
    or that many chirps of one RADC, ``chirp_select``), scored on the assumption of a
-   single static reflector (:func:`score_frames`): the range profile's peak over its
-   median (dB), the peak bin, and the angle at the peak per frame (the model's
-   convention, :func:`~.model.angle_from_antennas_rad`) with its spread (deg).
+   single static reflector (:func:`score_frames`): the range profile's peak bin, the
+   peak over the profile's median (sharpness, dB) and over the highest bin outside its
+   main lobe (purity, dB: a wrong word order makes images of the reflector), and the
+   angle at the peak per frame (the model's convention,
+   :func:`~.model.angle_from_antennas_rad`) with its spread (deg).
 
-A profile fits when at least :data:`MIN_FRAMES` frames decode, the peak stands
-:data:`MIN_SHARPNESS_DB` over the median and the angle spreads less than
-:data:`MAX_ANGLE_SPREAD_DEG`; the verdict is the fit with the purest peak (then the sharpest). A single static reflector
-cannot tell the azimuth pair's order: the angle's sign says it (put the reflector on
-antenna 2's side: the angle must come out positive).
+A profile fits when at least :data:`MIN_FRAMES` frames decode, the sharpness is at least
+:data:`MIN_SHARPNESS_DB`, the purity at least :data:`MIN_PURITY_DB`, the angle spreads
+less than :data:`MAX_ANGLE_SPREAD_DEG` and, if the reflector's place is given
+(:class:`Reflector`), it comes out there; the verdict is the fit with the purest peak
+(then the sharpest). A single static reflector cannot tell which receivers are the
+azimuth pair and in which order: swapping them flips the angle's sign (put the reflector
+on antenna 2's side: the angle must come out positive).
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from .protocol import PREFIX_LEN, Done, Radc, StreamDecoder
 HEADER_RE = re.compile(rb"[A-Z][A-Z0-9]{3}")
 #: the longest payload the profile-free split believes, bytes
 MAX_PAYLOAD = 64 << 20
-#: what a fit needs: frames, peak over median (dB), angle spread (deg)
+#: what a fit needs: frames, peak over median (dB), peak over the next outside its lobe (dB), angle spread (deg)
 MIN_FRAMES = 3
 MIN_SHARPNESS_DB = 15.0
 MIN_PURITY_DB = 10.0
@@ -95,8 +99,8 @@ class HeaderStats:
 class Split:
     """A byte stream cut into messages without a profile: per header its
     :class:`HeaderStats` (in order of first appearance), the ``garbage_bytes`` between
-    messages in ``resyncs`` runs, and ``cut`` (header and declared length of a message
-    the stream ends inside, or None per segment)."""
+    messages in ``resyncs`` runs, and ``cut``: (header, declared length) of each message
+    a segment ends inside (length -1: it ends inside the length)."""
 
     headers: dict[str, HeaderStats] = field(default_factory=dict)
     bytes: int = 0

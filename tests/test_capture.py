@@ -108,6 +108,9 @@ def test_the_format_round_trips(tmp_path):
     assert w.records == 6 and w.bytes[Kind.RX] == 10240 and w.bytes[Kind.TX] == 12
     cap = Capture.read(path)
     assert cap.header == h and cap.records == records and cap.truncated is None
+    with CaptureReader(path) as reader:  # the same, one record at a time
+        records_read = iter(reader)
+        assert reader.header == h and next(records_read) == records[0] and list(records_read) == records[1:]
     assert cap.records[3].baud == 2_000_000 and cap.byte_count(Kind.RX) == 10240
     with pytest.raises(CaptureError, match="closed"):
         w.write(Kind.RX, b"x")
