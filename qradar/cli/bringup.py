@@ -31,10 +31,10 @@ def pos_float(text: str) -> float:
 
 def add_commands(sub) -> None:
     p = sub.add_parser("capture", help="record the raw bytes of a session with a K-MD2, with timestamps",
-                       description="Talk to a sensor on any pyserial URL and record every byte each way, every "
-                       "line-speed change and every port opening, with the host's time, to FILE (format: "
-                       "docs/capture-format.md). The driver runs with --profile; if it decodes no frame (an "
-                       "unknown layout), a raw poller (INIT, a GNFD per DONE, GBYE) captures on without "
+                       description="Talk to a sensor on any pyserial URL and record every byte each way, every\n"
+                       "line-speed change and every port opening, with the host's time, to FILE (format:\n"
+                       "docs/capture-format.md). The driver runs with --profile; if it decodes no frame (an\n"
+                       "unknown layout), a raw poller (INIT, a GNFD per DONE, GBYE) captures on without\n"
                        "decoding. Then `qradar inspect FILE`.")
     p.add_argument("--port", required=True, help="pyserial URL or device path")
     p.add_argument("-o", "--out", type=Path, required=True, help="capture file to write")
@@ -57,9 +57,9 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("inspect", help="list a capture's messages and find the sensor profile that reads it",
-                       description="Split the sensor's bytes of a capture into messages without a profile "
-                       "(headers, lengths, counts, garbage), then decode them with every shipped profile (and "
-                       "--profile ones) and score the frames as a single static reflector: a sharp range peak "
+                       description="Split the sensor's bytes of a capture into messages without a profile\n"
+                       "(headers, lengths, counts, garbage), then decode them with every shipped profile (and\n"
+                       "--profile ones) and score the frames as a single static reflector: a sharp range peak\n"
                        "without images and a steady angle. Exit status 0 when a profile fits, 1 when none does.")
     p.add_argument("file", type=Path, help="a file of `qradar capture`")
     p.add_argument("--profile", action="append", default=[], metavar="NAME|PATH",
