@@ -56,3 +56,7 @@ class LinkError(SensorError):
 
 class LinkDown(RadarError):
     """The simulated link has no peer or was closed."""
+
+
+class CaptureError(RadarError):
+    """A capture file (:mod:`.capture`) cannot be read or written; the message names the file."""
