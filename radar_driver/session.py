@@ -142,7 +142,10 @@ class SessionConfig:
     profile's name or a TOML path (None = the default, kmd2-blocks). chirp_select:
     with several chirps per RADC, a frame takes the first ``ramps_per_frame`` of them or
     every (chirps // ramps_per_frame)-th. queue_frames: frames the reader may hold for
-    a slow consumer before it stops asking the sensor."""
+    a slow consumer before it stops asking the sensor. outstanding: GNFDs kept in flight;
+    1 (the next goes out when a DONE arrives) or 2 (the sensor then holds a request
+    while the host is late by up to a measurement period; that a real K-MD2 queues a
+    second GNFD is an assumption)."""
 
     url: str
     baud: int | None = None
@@ -156,6 +159,7 @@ class SessionConfig:
     profile: SensorProfile | str | None = None
     chirp_select: str = "first"
     queue_frames: int = 256
+    outstanding: int = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.url, str) or not self.url:
@@ -176,6 +180,8 @@ class SessionConfig:
             self.profile.radc.chirp_indices(self.ramps_per_frame, self.chirp_select)  # fits?
         if not (isinstance(self.queue_frames, int) and self.queue_frames >= 1):
             raise ConfigError(f"queue_frames={self.queue_frames!r} must be an integer >= 1")
+        if self.outstanding not in (1, 2):
+            raise ConfigError(f"outstanding={self.outstanding!r} must be 1 or 2")
 
     @property
     def kind(self) -> LinkKind:
@@ -266,9 +272,9 @@ class SensorSession:
         self._lock = threading.Lock()
         self._produced = 0  # frames the reader queued
         self._target: int | None = 0  # frames the consumer asked for in all (None = no end)
-        self._outstanding = False
-        self._deadline = 0.0
-        self._polls = 0  # GNFDs sent for the RADC awaited (a second one after a timeout)
+        self._in_flight = 0  # GNFDs sent and not yet answered by a DONE
+        self._deadline = 0.0  # when the next answer is late (monotonic s)
+        self._retries = 0  # timeouts since the last DONE
         self._incomplete_in_a_row = 0
         self._last_frame_mono: float | None = None
 
@@ -331,7 +337,8 @@ class SensorSession:
         self._inbox.clear()
         self._first_bytes.clear()
         self._pending_radc = None
-        self._outstanding = False
+        self._in_flight = 0
+        self._retries = 0
         self._reset_assembly()
         if cfg.baud is not None and cfg.baud != cfg.line_baud and not self._ever_connected:
             log.warning("%s is a %s link, which cannot change the line speed: baud %d ignored, staying at %d",
@@ -513,26 +520,27 @@ class SensorSession:
                                         daemon=True)
         self._reader.start()
 
-    def _wants_more(self, completing: int = 0) -> bool:
-        """May the reader ask for another RADC, with ``completing`` frames about to be queued?"""
+    def _may_poll(self) -> bool:
+        """May the reader ask for another RADC? Not at a stop, not beyond the frames asked
+        for, not beyond the queue's bound (counting the RADCs in hand and in flight)."""
         if self._stop.is_set():
             return False
-        target = self._target
-        produced = self._produced + completing
-        if target is not None and produced >= target:
+        coming = (len(self._radcs) + self._in_flight) // self.config.radcs_per_frame
+        if self._target is not None and self._produced + coming >= self._target:
             return False
-        return self._queue.qsize() + completing < self.config.queue_frames
+        return self._queue.qsize() + coming < self.config.queue_frames
 
-    def _poll(self) -> None:
-        """Send a GNFD for the next RADC."""
-        self._write(encode(Gnfd(self.profile.gnfd_bits["RADC"])))
-        self._outstanding = True
-        self._deadline = time.monotonic() + self.config.timeout_s
-        self._polls += 1
+    def _top_up(self) -> None:
+        """Keep ``outstanding`` GNFDs in flight (fewer when fewer frames are wanted)."""
+        while self._in_flight < self.config.outstanding and self._may_poll():
+            self._write(encode(Gnfd(self.profile.gnfd_bits["RADC"])))
+            if self._in_flight == 0:
+                self._deadline = time.monotonic() + self.config.timeout_s
+            self._in_flight += 1
 
     def _read_loop(self) -> None:
         """The reader thread: poll, read, assemble, queue; reconnect on errors. At a stop
-        it waits up to DRAIN_S for the answer to its outstanding GNFD, so that the GBYE
+        it waits up to DRAIN_S for the answers to its outstanding GNFDs, so that the GBYE
         of close() finds a quiet line."""
         cfg = self.config
         drain_until = None
@@ -541,14 +549,14 @@ class SensorSession:
                 if self._stop.is_set():
                     now = time.monotonic()
                     drain_until = drain_until or now + self.DRAIN_S
-                    if not self._outstanding or self._port is None or now > drain_until:
+                    if not self._in_flight or self._port is None or now > drain_until:
                         return
                 if self._port is None and not self._reconnect():  # LinkError once reconnect_timeout_s is spent
                     return
                 try:
                     self._step()
                 except SensorError as exc:
-                    self._outstanding = False
+                    self._in_flight = 0
                     if not cfg.reconnect or self._stop.is_set():
                         self._goodbye()
                         raise
@@ -561,19 +569,19 @@ class SensorSession:
 
     def _step(self) -> None:
         """One read of the port and what it completes."""
-        if not self._outstanding and self._wants_more():
-            self._polls = 0
-            self._poll()
+        self._top_up()
         self._fill_inbox()
         while self._inbox:
             self._handle(self._inbox.popleft())
-        if self._outstanding and time.monotonic() >= self._deadline:
+        if self._in_flight and time.monotonic() >= self._deadline:
             self.counters.timeouts += 1
-            if self._polls >= 2 or self._stop.is_set():
+            self._retries += 1
+            if self._retries >= 2 or self._stop.is_set():
                 raise SensorTimeout(f"no complete RADC from {self.config.url} after 2 GNFD polls of "
                                     f"{self.config.timeout_s:.2f} s; {self._decoder.stats.skipped_bytes} bytes "
                                     f"skipped in all")
-            self._poll()  # once more
+            self._in_flight = 0  # the answers are lost: ask once more
+            self._top_up()
 
     def _handle(self, m) -> None:
         if isinstance(m, Radc):
@@ -581,7 +589,9 @@ class SensorSession:
                 self.counters.incomplete += 1
             self._pending_radc = m
         elif isinstance(m, Done):
-            self._outstanding = False
+            self._in_flight = max(0, self._in_flight - 1)
+            self._retries = 0
+            self._deadline = time.monotonic() + self.config.timeout_s
             radc, self._pending_radc = self._pending_radc, None
             self._note_counter(m.frame_counter)
             t_ns = time.time_ns()
@@ -593,22 +603,17 @@ class SensorSession:
                     self._incomplete_in_a_row = 0
                     raise SensorTimeout(f"{self.MAX_INCOMPLETE_IN_A_ROW} GNFD answers in a row from "
                                         f"{self.config.url} lacked a whole RADC")
-                if self._wants_more():
-                    self._polls = 0
-                    self._poll()
+                self._top_up()
                 return
             self._incomplete_in_a_row = 0
-            completes = int(len(self._radcs) + 1 >= self.config.radcs_per_frame)
-            if self._wants_more(completes):  # the next request first, then the frame
-                self._polls = 0
-                self._poll()
             self.counters.ramps += 1
             self._radcs.append((m.frame_counter, t_ns, radc.words))
-            if completes:
+            self._top_up()  # the next request first, then the frame
+            if len(self._radcs) >= self.config.radcs_per_frame:
                 self._queue_frame()
         elif isinstance(m, Resp) and m.code != RespCode.OK:
             self.counters.resp_errors += 1
-            self._outstanding = False
+            self._in_flight = 0
             raise SensorResponseError("GNFD", m.code)
 
     def _queue_frame(self) -> None:

@@ -323,3 +323,20 @@ def test_sessions_one_after_another_at_115200_on_one_pty(link):
             with session(link, baud=115_200) as s:
                 assert len(list(s.frames(1))) == 1
         assert not sim.errors
+
+
+@pytest.mark.parametrize("outstanding", [1, 2])
+def test_requests_in_flight_ask_for_exactly_the_frames_wanted(link, outstanding):
+    """One or two GNFDs in flight: every frame intact, no drop at the sensor's pace, and
+    no GNFD beyond the ramps of the frames asked for (a stop leaves none unanswered)."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
+        with session(link, outstanding=outstanding) as s:
+            frames = list(s.frames(6))
+            more = list(s.frames(2))
+        assert not sim.errors
+        gnfds = [e for e in sim.devices[0].events if e[0] == "GNFD"]
+    gamma = expected_frame(SCENE)
+    assert [f.seq for f in frames + more] == list(range(8))
+    assert all(np.abs(f.data - gamma).max() <= LSB for f in frames + more)
+    assert len(gnfds) == 16 and s.counters.ramps == 16
+    assert s.counters.timeouts == 0 and s.counters.incomplete == 0

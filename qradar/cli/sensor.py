@@ -50,6 +50,9 @@ def add_commands(sub) -> None:
     p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (M = 256 x ramps)")
     p.add_argument("--timeout", type=pos_float, default=0.5, help="seconds to wait for a GNFD answer")
     profile_option(p)
+    p.add_argument("--outstanding", type=int, choices=(1, 2), default=1,
+                   help="GNFD requests kept in flight: 2 lets the sensor hold one while the host is late "
+                   "(assumes the K-MD2 queues a second GNFD; the simulator does)")
     p.add_argument("--chirp-select", choices=CHIRP_SELECT, default="first",
                    help="with several chirps per RADC: a frame takes the first --ramps chirps, or every k-th")
     p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
@@ -96,7 +99,7 @@ def profile_option(p) -> None:
 def cmd_drive(args) -> int:
     cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
                         sensor_id=check_sensor_id(args.sensor_id), profile=args.profile,
-                        chirp_select=args.chirp_select)
+                        chirp_select=args.chirp_select, outstanding=args.outstanding)
     lines = sys.stderr if args.json else sys.stdout
     frames = []
 
