@@ -106,6 +106,9 @@ class SimulatedKMD2:
     seed: int = 0
     profile: SensorProfile = DEFAULT_PROFILE
 
+    #: lateness of the simulator's own writes that hold_clock lets pass (a scheduler tick)
+    LATE_TOLERANCE_S = 0.002
+
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and self.rate_hz >= 0):
             raise ConfigError(f"rate_hz={self.rate_hz!r} must be >= 0 (0 = as fast as polled)")
@@ -130,6 +133,20 @@ class SimulatedKMD2:
         #: RADCs a frame takes, and RADCs a second the sensor measures (0 = when polled)
         self.radcs_per_frame = rpf if lay.chirps == 1 else 1
         self.radc_rate_hz = self.rate_hz * self.radcs_per_frame
+        self.late_writes = 0
+        self.late_s = 0.0
+
+    def hold_clock(self, late_s: float) -> None:
+        """The process that plays the sensor wrote a reply ``late_s`` after it was due
+        (it was not scheduled: a loaded host). A real K-MD2 measures on its own clock
+        and would have sent it on time, so the device clock stands still for that long
+        instead of counting the host's next GNFD late (a drop that is the simulator's,
+        not the driver's). Counted in ``late_writes`` / ``late_s``."""
+        if late_s > self.LATE_TOLERANCE_S and self._t0 is not None:
+            self._t0 += late_s
+            self.late_writes += 1
+            self.late_s += late_s
+            self.events.append(("LATE", round(late_s * 1e3, 2)))
 
     # -- link events --------------------------------------------------------------------
     def link_reset(self, power_cycle: bool) -> None:
@@ -402,6 +419,7 @@ class SimulatorServer:
         seed: int = 0,
         profile: SensorProfile = DEFAULT_PROFILE,
         line_rate: bool = False,
+        hold_clock_when_late: bool = False,
     ):
         if link_path is None and tcp_port is None:
             raise ConfigError("SimulatorServer needs a pty link path or a TCP port")
@@ -412,6 +430,7 @@ class SimulatorServer:
             self.links.append(TcpLink(tcp_port))
         self.devices = [SimulatedKMD2(scene, rate_hz, faults or SimFaults(), seed, profile) for _ in self.links]
         self.line_rate = line_rate
+        self.hold_clock_when_late = hold_clock_when_late
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []
@@ -459,6 +478,7 @@ class SimulatorServer:
                 if not data:
                     continue
                 baud = link.host_baud()
+                last_due = None  # when the last timed reply (DONE) of this answer was due
                 for reply in dev.receive(data, baud):
                     due = reply.due_s
                     if self.line_rate and baud:  # the last byte arrives a line time after the line is free
@@ -470,9 +490,14 @@ class SimulatorServer:
                             return
                     if not link.write(reply.data):
                         log.warning("host is not reading: dropped %d bytes", len(reply.data))
+                    elif due is not None:
+                        last_due = due
                     if reply.disconnect:
                         self._disconnect(link, dev)
+                        last_due = None
                         break
+                if last_due is not None and self.hold_clock_when_late:
+                    dev.hold_clock(time.monotonic() - last_due)
         except BaseException as exc:  # surfaced through .errors, never silent
             if not self._stop.is_set():
                 log.exception("simulator link %s failed", link)

@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.localize import localize
 from radar_driver.model import RadarConfig, simulate_frames
-from radar_driver.protocol import Gnfd, Init, OtherMessage, Resp, RespCode, StreamDecoder, encode
+from radar_driver.protocol import Done, Gnfd, Init, OtherMessage, Resp, RespCode, StreamDecoder, encode
 from radar_driver.scene import SimScene, SimTarget, resolve_scene
 from radar_driver.session import (
     LinkError,
@@ -340,3 +340,54 @@ def test_requests_in_flight_ask_for_exactly_the_frames_wanted(link, outstanding)
     assert all(np.abs(f.data - gamma).max() <= LSB for f in frames + more)
     assert len(gnfds) == 16 and s.counters.ramps == 16
     assert s.counters.timeouts == 0 and s.counters.incomplete == 0
+
+
+@pytest.mark.parametrize("outstanding, drops", [(1, True), (2, False)])
+def test_a_second_request_in_flight_rides_out_a_stall_of_the_host(link, outstanding, drops):
+    """The reader stalls for 40 ms (1.6 RADC periods: the host not scheduled) just after
+    a DONE arrived: with one GNFD in flight the next goes out too late and the sensor's
+    counter moves on (a drop); with two, the next was already queued at the sensor and
+    nothing is lost. Either way no more GNFDs go out than RADCs come back. (The
+    simulator's own lateness, on a loaded host, does not count: hold_clock_when_late.)"""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20, hold_clock_when_late=True) as sim:
+        s = session(link, outstanding=outstanding)
+        fill, stall_at = s._fill_inbox, {10, 30}
+
+        def stalling_fill():
+            fill()
+            if s.counters.ramps in stall_at and any(isinstance(m, Done) for m in s._inbox):
+                stall_at.discard(s.counters.ramps)
+                time.sleep(0.04)  # a RADC period is 25 ms at 20 frames/s of 2 ramps
+
+        s._fill_inbox = stalling_fill
+        with s:
+            frames = list(s.frames(20))
+        wait_until(lambda: any(e == "GBYE" for e, _ in sim.devices[0].events), 2.0, "GBYE")
+    assert not stall_at and [f.seq for f in frames] == list(range(20))
+    assert (s.counters.dropped_radcs > 0) == drops
+    assert sum(e == "GNFD" for e, _ in sim.devices[0].events) == s.counters.ramps
+    assert s.counters.timeouts == 0 and not sim.errors
+
+
+@pytest.mark.parametrize("hold", [False, True])
+def test_a_simulator_late_by_its_own_fault_can_hold_its_clock(link, hold):
+    """The simulator itself writes one RADC 35 ms after it was due (60 ms to measure it:
+    its process not scheduled): on its own clock the host's next GNFD is then late and a
+    RADC is counted lost, a drop that a real K-MD2 would not have; with
+    hold_clock_when_late the device clock stands still for that long and nothing is lost."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20, hold_clock_when_late=hold) as sim:
+        dev = sim.devices[0]
+        measure = dev.measure
+
+        def late_measure(index):
+            if index == 10:
+                time.sleep(0.06)  # asked for at RADC 9's DONE: 25 ms before it is due, 50 before RADC 11
+            return measure(index)
+
+        dev.measure = late_measure
+        with session(link) as s:
+            frames = list(s.frames(10))
+        assert not sim.errors
+    assert len(frames) == 10
+    assert (s.counters.dropped_radcs > 0) == (not hold)
+    assert (dev.late_writes >= 1 and 0.03 < dev.late_s < 0.5) if hold else dev.late_writes == 0

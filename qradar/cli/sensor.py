@@ -36,6 +36,9 @@ def add_commands(sub) -> None:
     p.add_argument("--reconnect-after", type=nonneg_float, default=1.0, metavar="T", help="link back after T s")
     p.add_argument("--line-rate", action="store_true",
                    help="on the pty, take as long as a real serial line at the host's speed (8E1)")
+    p.add_argument("--hold-clock-when-late", action="store_true",
+                   help="when this process itself writes a reply late (a loaded host), stop the device clock for "
+                   "as long, as a K-MD2 on its own clock would: the drops left are the driver's")
     profile_option(p)
     p.set_defaults(func=cmd_sim, parser=p)
 
@@ -74,7 +77,8 @@ def cmd_sim(args) -> int:
     install_sigterm()
     profile = resolve_profile(args.profile)
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
-                             faults=faults, seed=args.seed, profile=profile, line_rate=args.line_rate)
+                             faults=faults, seed=args.seed, profile=profile, line_rate=args.line_rate,
+                             hold_clock_when_late=args.hold_clock_when_late)
     with server:
         where = [str(args.link)] if args.link else []
         if args.tcp is not None:
@@ -88,6 +92,10 @@ def cmd_sim(args) -> int:
                     raise server.errors[0]
         except KeyboardInterrupt:
             pass
+    late = [(d.late_writes, d.late_s) for d in server.devices]
+    if any(n for n, _ in late):
+        print("simulator: " + "; ".join(f"{n} late writes, {s * 1e3:.1f} ms in all (device clock held)"
+                                        for n, s in late), flush=True)
     return 0
 
 
