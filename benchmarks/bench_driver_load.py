@@ -1,0 +1,393 @@
+#!/usr/bin/env python3
+"""Sensor frames dropped by the K-MD2 driver while other work keeps both cores busy,
+for the code before the reader-thread redesign (commit 28790cf) and after it.
+
+Each trial starts fresh processes and ends them all:
+
+1. ``--load`` busy loops (``python -c "while True: pass"``), started first and killed
+   last; their CPU seconds over the trial's wall seconds (from /proc/<pid>/stat) say
+   whether they really ran at ~100 % each;
+2. for the driver steps, the simulated K-MD2 in its own process
+   (``qradar sim --link <tmp>/kmd2 --rate 20 --scene chamber``);
+3. the driver, ``qradar drive --port <url> --frames N --json --quiet`` (an embedded zenoh
+   peer with no listener: every frame is still put), over
+
+   - ``pty``: the simulator's pty link;
+   - ``ser2net``: ser2net raw, ``tcp(nodelay)``, in front of that pty (the current
+     driver stays at 115200 on a socket:// link by itself; the old one is told
+     ``--baud 115200``);
+   - ``pty-nopub`` / ``ser2net-nopub``: the same with ``--no-publish``;
+
+4. or ``qradar run --frames N --no-record --json`` (``run``: its driver in its own
+   process after the redesign, a thread of the run before it; ``run-in-process``: the
+   current run with ``--driver-in-process``), whose simulator is a thread of the run.
+
+The baseline in the same process is ``--load 0`` (a quiet machine). Code "before" is a
+worktree at 28790cf, "after" this tree: each runs as ``python -m qradar`` with its tree
+as the working directory and PYTHONPATH.
+
+Counters: the old driver's ``dropped`` counted RADCs (ramps); here ``dropped_radcs``
+is that figure, and its dropped frames are derived the way the current driver counts
+them: (RADC gaps + RADCs discarded with a partial frame) // ramps per frame.
+
+    .venv/bin/python benchmarks/bench_driver_load.py [--frames 2000] [--load 2] \\
+        [--steps pty:before pty:after ser2net run ...] [--out results.json]
+
+A step that does not end within frames/rate*1.5+60 s is stopped (SIGTERM, then SIGKILL)
+and reported as timed out, with the counters it printed if any.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+LINKS = ("pty", "ser2net", "pty-nopub", "ser2net-nopub", "run", "run-in-process")
+CODES = ("before", "after")
+DEFAULT_STEPS = ("pty:before", "pty:after", "ser2net:before", "ser2net:after", "run:before", "run:after")
+BEFORE_COMMIT = "28790cf"
+BUSY = "while True: pass"
+PROGRESS_S = 20.0
+START_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = 10.0
+
+
+# -- processes and their CPU -------------------------------------------------------------------
+def proc_cpu_s(pid: int) -> float | None:
+    """utime + stime of a live (or zombie) process, s; None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14 and 15 of stat(5)
+
+
+def machine_busy_s() -> float:
+    """CPU seconds all cores spent not idle since boot (user nice system irq softirq steal)."""
+    f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return (f[0] + f[1] + f[2] + f[5] + f[6] + (f[7] if len(f) > 7 else 0)) / CLK_TCK
+
+
+class Child:
+    """A child process whose CPU time is taken from wait4 (its own and that of the
+    children it reaped), with stdout kept and stderr tailed in threads."""
+
+    def __init__(self, name: str, cmd: list[str], cwd: Path, env: dict, count_prefix: str | None = None):
+        self.name, self.cmd = name, cmd
+        self.proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, start_new_session=True)
+        self.t0 = time.monotonic()
+        self.stdout: list[str] = []
+        self.stderr_tail: deque[str] = deque(maxlen=40)
+        self.count_prefix, self.counted = count_prefix, 0
+        self.cpu_s: float | None = None
+        self.wall_s: float | None = None
+        self.returncode: int | None = None
+        self._threads = [threading.Thread(target=self._read_out, daemon=True),
+                         threading.Thread(target=self._read_err, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _read_out(self) -> None:
+        for line in self.proc.stdout:
+            self.stdout.append(line)
+
+    def _read_err(self) -> None:
+        for line in self.proc.stderr:
+            if self.count_prefix is not None and line.startswith(self.count_prefix):
+                self.counted += 1  # the old drive's line per frame
+            else:
+                self.stderr_tail.append(line.rstrip("\n"))
+
+    def poll(self) -> int | None:
+        """The exit code once it has ended (reaped here with its rusage), else None."""
+        if self.returncode is not None:
+            return self.returncode
+        pid, status, ru = os.wait4(self.proc.pid, os.WNOHANG)
+        if pid == 0:
+            return None
+        self.returncode = self.proc.returncode = os.waitstatus_to_exitcode(status)
+        self.cpu_s = ru.ru_utime + ru.ru_stime
+        self.wall_s = time.monotonic() - self.t0
+        for t in self._threads:
+            t.join(5.0)
+        return self.returncode
+
+    def wait(self, timeout_s: float) -> int | None:
+        deadline = time.monotonic() + timeout_s
+        while self.poll() is None:
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.05)
+        return self.returncode
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        """``sig``, then SIGKILL to the process group after STOP_TIMEOUT_S."""
+        if self.poll() is None:
+            try:
+                os.kill(self.proc.pid, sig)
+            except ProcessLookupError:
+                pass
+            if self.wait(STOP_TIMEOUT_S) is None:
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                self.wait(STOP_TIMEOUT_S)
+        return self.returncode
+
+    def last_json(self) -> dict:
+        for line in reversed(self.stdout):
+            try:
+                out = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(out, dict):
+                return out
+        return {}
+
+
+class BusyLoops:
+    """``n`` busy-loop processes; ``share()`` is each one's CPU s / wall s."""
+
+    def __init__(self, n: int):
+        self.procs = [subprocess.Popen([sys.executable, "-c", BUSY], stdin=subprocess.DEVNULL,
+                                       start_new_session=True) for _ in range(n)]
+        self.t0 = time.monotonic()
+        self.cpu_s: list[float] = []
+        self.wall_s = 0.0
+
+    def stop(self) -> None:
+        self.wall_s = time.monotonic() - self.t0
+        self.cpu_s = [proc_cpu_s(p.pid) or 0.0 for p in self.procs]
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait(STOP_TIMEOUT_S)
+
+    def shares(self) -> list[float]:
+        return [round(c / self.wall_s, 3) for c in self.cpu_s] if self.wall_s else []
+
+
+# -- counters ------------------------------------------------------------------------------
+def normalize(counters: dict, ramps: int = 2) -> dict:
+    """The figures of the table from a driver's counters, old or new."""
+    if not counters:
+        return {}
+    if "dropped_radcs" in counters:  # the current driver counts both
+        return {"dropped_frames": counters["dropped"], "dropped_radcs": counters["dropped_radcs"],
+                "dropped_frames_derived": False}
+    # the old driver: ``dropped`` were RADC gaps; frames as the current one counts them
+    return {"dropped_frames": (counters["dropped"] + counters.get("discarded_ramps", 0)) // ramps,
+            "dropped_radcs": counters["dropped"], "dropped_frames_derived": True}
+
+
+# -- one trial -------------------------------------------------------------------------------
+def load_ser2net(path: str | None):
+    """The Ser2net class of tests/ser2net_helpers.py (this tree's, or ``path``'s)."""
+    for d in ([Path(path)] if path else []) + [HERE / "tests", Path("/work/wt-s2n/tests")]:
+        if (d / "ser2net_helpers.py").is_file():
+            sys.path.insert(0, str(d))
+            import ser2net_helpers
+
+            return ser2net_helpers.Ser2net
+    raise SystemExit("tests/ser2net_helpers.py not found (give --ser2net-helpers DIR)")
+
+
+def wait_for_link(sim: Child, link: Path) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not (link.is_symlink() and sim.stdout):
+        if sim.poll() is not None:
+            raise RuntimeError(f"qradar sim exited ({sim.returncode}): {' | '.join(sim.stderr_tail)}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"qradar sim made no link {link} within {START_TIMEOUT_S} s")
+        time.sleep(0.05)
+
+
+def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
+    link_kind, code = step.split(":")
+    tree = trees[code]
+    env = dict(os.environ, PYTHONPATH=str(tree), PYTHONUNBUFFERED="1")
+    py = [args.python, "-m", "qradar"]
+    limit_s = args.frames / args.rate * 1.5 + 60
+    out: dict = {"step": step, "link": link_kind, "code": code, "frames_wanted": args.frames, "load": args.load,
+                 "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
+    busy_before = machine_busy_s()
+    t_trial = time.monotonic()
+    busy = BusyLoops(args.load)
+    sim = s2n = driver = None
+    time.sleep(0.5)  # let the busy loops take the cores
+    try:
+        with tempfile.TemporaryDirectory(prefix="qradar-bench-load-") as tmp:
+            tmp = Path(tmp)
+            if link_kind.startswith("run"):
+                cmd = py + ["run", "--frames", str(args.frames), "--rate", str(args.rate), "--scene", args.scene,
+                            "--no-record", "--json", "--duration", str(round(limit_s - 30, 1))]
+                if link_kind == "run-in-process":
+                    if code == "before":
+                        raise ValueError("run-in-process:before is run:before (the old run had no driver process)")
+                    cmd.append("--driver-in-process")
+            else:
+                link = tmp / "kmd2"
+                sim = Child("sim", py + ["sim", "--link", str(link), "--rate", str(args.rate), "--scene",
+                                         args.scene], tree, env)
+                wait_for_link(sim, link)
+                url = str(link)
+                if link_kind.startswith("ser2net"):
+                    s2n = ser2net_cls(link, "raw", tmp).start()
+                    url = s2n.url
+                cmd = py + ["drive", "--port", url, "--frames", str(args.frames), "--json"]
+                if code == "after":
+                    cmd.append("--quiet")
+                if code == "before" and link_kind.startswith("ser2net"):
+                    cmd += ["--baud", "115200"]  # the old driver would switch the sensor to 2 Mbd
+                if link_kind.endswith("-nopub"):
+                    cmd.append("--no-publish")
+            out["cmd"] = " ".join(cmd[1:])
+            driver = Child("driver", cmd, tree, env, count_prefix="frame " if code == "before" else None)
+            next_progress = time.monotonic() + PROGRESS_S
+            timed_out = False
+            while driver.poll() is None:
+                now = time.monotonic()
+                if now - driver.t0 > limit_s:
+                    timed_out = True
+                    driver.stop()
+                    break
+                if now >= next_progress:
+                    next_progress += PROGRESS_S
+                    seen = f", {driver.counted} frames so far" if driver.counted else ""
+                    print(f"  [{step}] {now - driver.t0:5.0f} s{seen}", file=sys.stderr, flush=True)
+                time.sleep(0.1)
+            out["timed_out"] = timed_out
+            out["exit_code"] = driver.returncode
+            out["wall_s"] = round(driver.wall_s, 2)
+            out["driver_cpu_s"] = round(driver.cpu_s, 2)
+            result = driver.last_json()
+            if link_kind.startswith("run"):
+                counters = next(iter(result.get("driver", {}).values()), {})
+                out["run"] = {k: result.get(k) for k in ("seconds", "frames_raw", "frames_quantized",
+                                                          "frames_targets", "drops", "drops_detail", "latency_ms")}
+                out["run_sensor_frames_reported"] = (result.get("drops_detail") or {}).get("sensor_frames")
+            else:
+                counters = {k: v for k, v in result.items() if isinstance(v, int)}
+            if "error" in result:
+                out["error"] = result["error"]
+            out["counters"] = counters
+            out.update(normalize(counters))
+            if not counters:
+                out["stderr_tail"] = list(driver.stderr_tail)[-10:]
+    finally:
+        for child in (driver,):
+            if child is not None:
+                child.stop()
+        if s2n is not None:
+            s2n.stop()
+        if sim is not None:
+            sim.stop()
+            out["sim_cpu_s"] = round(sim.cpu_s or 0.0, 2)
+            out["sim_warnings"] = [ln for ln in sim.stderr_tail if "WARNING" in ln][-5:]
+        busy.stop()
+    out["trial_wall_s"] = round(time.monotonic() - t_trial, 2)
+    out["busy_cpu_s"] = [round(c, 1) for c in busy.cpu_s]
+    out["busy_share"] = busy.shares()
+    total = machine_busy_s() - busy_before
+    ours = sum(busy.cpu_s) + ((driver.cpu_s or 0.0) if driver else 0.0) + ((sim.cpu_s or 0.0) if sim else 0.0)
+    out["machine_cpu_share"] = round(total / out["trial_wall_s"] / os.cpu_count(), 3)
+    out["others_cpu_s"] = round(max(0.0, total - ours), 1)  # CPU this trial did not use: other work, ser2net
+    out["loadavg_end"] = Path("/proc/loadavg").read_text().split()[:3]
+    return out
+
+
+# -- the report -------------------------------------------------------------------------------
+def table(rows: list[dict]) -> str:
+    head = ("| step | link | code | frames | dropped frames | dropped RADCs | timeouts | reconnects | wall s "
+            "| busy-loop CPU share | other CPU s |")
+    lines = [head, "|" + "|".join("---" for _ in range(head.count("|") - 1)) + "|"]
+    for r in rows:
+        c = r.get("counters", {})
+        frames = c.get("frames", "–")
+        dropped = r.get("dropped_frames", "–")
+        if r.get("dropped_frames_derived"):
+            dropped = f"{dropped}*"
+        note = " (timed out)" if r.get("timed_out") else (f" ({r['error']})" if r.get("error") else "")
+        share = " / ".join(f"{s:.2f}" for s in r.get("busy_share", [])) or "–"
+        lines.append(f"| {r['step']}{note} | {r['link']} | {r['code']} | {frames} | {dropped} | "
+                     f"{r.get('dropped_radcs', '–')} | {c.get('timeouts', '–')} | {c.get('reconnects', '–')} | "
+                     f"{r.get('wall_s', '–')} | {share} | {r.get('others_cpu_s', '–')} |")
+    return "\n".join(lines)
+
+
+def parse_steps(tokens: list[str]) -> list[str]:
+    steps = []
+    for tok in tokens:
+        link, _, code = tok.partition(":")
+        if link not in LINKS or (code and code not in CODES):
+            raise SystemExit(f"--steps {tok!r}: LINK[:CODE] with LINK in {LINKS}, CODE in {CODES}")
+        for c in ([code] if code else [c for c in CODES if not (link == "run-in-process" and c == "before")]):
+            steps.append(f"{link}:{c}")
+    return steps
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=2000, help="frames per trial")
+    ap.add_argument("--rate", type=float, default=20.0, help="the simulated sensor's frames/s")
+    ap.add_argument("--scene", default="chamber")
+    ap.add_argument("--load", type=int, default=2, help="busy-loop processes (0: a quiet baseline)")
+    ap.add_argument("--steps", nargs="+", default=list(DEFAULT_STEPS),
+                    help=f"LINK[:CODE], LINK in {', '.join(LINKS)}; CODE before|after (both if omitted)")
+    ap.add_argument("--before", type=Path, default=Path("/work/wt-before"),
+                    help=f"a worktree at {BEFORE_COMMIT} (git worktree add DIR {BEFORE_COMMIT})")
+    ap.add_argument("--after", type=Path, default=HERE, help="the tree of the current code (default: this one)")
+    ap.add_argument("--python", default=sys.executable, help="the interpreter with qradar's dependencies")
+    ap.add_argument("--ser2net-helpers", default=None, help="directory of ser2net_helpers.py")
+    ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    args = ap.parse_args()
+    steps = parse_steps(args.steps)
+    trees = {"before": args.before.resolve(), "after": args.after.resolve()}
+    for code in {s.split(":")[1] for s in steps}:
+        if not (trees[code] / "qradar" / "__main__.py").is_file():
+            raise SystemExit(f"{trees[code]} is no qradar tree (--{code})")
+    ser2net_cls = load_ser2net(args.ser2net_helpers) if any("ser2net" in s for s in steps) else None
+    rows, t0 = [], time.monotonic()
+    for i, step in enumerate(steps, 1):
+        print(f"[{i}/{len(steps)}] {step}, load {args.load}, {args.frames} frames at {args.rate:g}/s ...",
+              file=sys.stderr, flush=True)
+        try:
+            r = trial(step, args, trees, ser2net_cls)
+        except Exception as exc:  # one failed step does not lose the others
+            r = {"step": step, "link": step.split(":")[0], "code": step.split(":")[1], "error": str(exc)}
+        except BaseException as exc:  # pytest.fail from the ser2net helper
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            r = {"step": step, "link": step.split(":")[0], "code": step.split(":")[1], "error": str(exc)}
+        rows.append(r)
+        print(f"[{i}/{len(steps)}] {step}: frames {r.get('counters', {}).get('frames')}, dropped frames "
+              f"{r.get('dropped_frames')}, dropped RADCs {r.get('dropped_radcs')}, wall {r.get('wall_s')} s, "
+              f"busy {r.get('busy_share')}{' TIMED OUT' if r.get('timed_out') else ''}"
+              f"{' error: ' + r['error'] if r.get('error') else ''}", file=sys.stderr, flush=True)
+    result = {"frames": args.frames, "rate_hz": args.rate, "load": args.load, "scene": args.scene,
+              "cpus": os.cpu_count(), "before_tree": str(trees["before"]), "after_tree": str(trees["after"]),
+              "total_wall_s": round(time.monotonic() - t0, 1), "trials": rows}
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+    print()
+    print(table(rows))
+    print("\n* derived: the old driver counted RADCs; frames = (RADC gaps + discarded RADCs) // 2")
+
+
+if __name__ == "__main__":
+    main()
