@@ -40,6 +40,7 @@ and reported as timed out, with the counters it printed if any.
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import os
 import signal
@@ -57,26 +58,44 @@ LINKS = ("pty", "ser2net", "pty-nopub", "ser2net-nopub", "run", "run-in-process"
 CODES = ("before", "after")
 DEFAULT_STEPS = ("pty:before", "pty:after", "ser2net:before", "ser2net:after", "run:before", "run:after")
 BEFORE_COMMIT = "28790cf"
+PROBE = Path(__file__).resolve().parent / "load_probe"
 BUSY = "while True: pass"
 PROGRESS_S = 20.0
+#: each process in a session of its own (and so, with CONFIG_SCHED_AUTOGROUP, a scheduling
+#: group of its own, like programs started from different terminals); --same-session: all
+#: in the benchmark's session and group
+NEW_SESSION = True
+#: --latency-probe: a process that sleeps 2 ms at a time and reports how late it woke
+LATENCY_PROBE = """
+import json, signal, sys, time
+late = []
+signal.signal(signal.SIGTERM, lambda *a: (print(json.dumps(late)), sys.exit(0)))
+while True:
+    t = time.monotonic()
+    time.sleep(0.002)
+    late.append(round((time.monotonic() - t - 0.002) * 1e3, 3))
+"""
 START_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 10.0
 
 
 # -- processes and their CPU -------------------------------------------------------------------
-def proc_cpu_s(pid: int) -> float | None:
-    """utime + stime of a live (or zombie) process, s; None once it is gone."""
+def proc_cpu_s(pid: int, children: bool = False) -> float | None:
+    """utime + stime of a live (or zombie) process, s (with ``children``: and of the
+    children it has reaped); None once it is gone."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return None
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14 and 15 of stat(5)
+    n = 4 if children else 2
+    return sum(int(x) for x in fields[11:11 + n]) / CLK_TCK  # fields 14-17 of stat(5)
 
 
-def machine_busy_s() -> float:
-    """CPU seconds all cores spent not idle since boot (user nice system irq softirq steal)."""
+def machine_busy_s() -> tuple[float, float]:
+    """CPU seconds all cores spent running something since boot (user nice system irq
+    softirq), and the seconds the hypervisor took from this machine (steal)."""
     f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    return (f[0] + f[1] + f[2] + f[5] + f[6] + (f[7] if len(f) > 7 else 0)) / CLK_TCK
+    return (f[0] + f[1] + f[2] + f[5] + f[6]) / CLK_TCK, (f[7] if len(f) > 7 else 0) / CLK_TCK
 
 
 class Child:
@@ -86,7 +105,7 @@ class Child:
     def __init__(self, name: str, cmd: list[str], cwd: Path, env: dict, count_prefix: str | None = None):
         self.name, self.cmd = name, cmd
         self.proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, start_new_session=True)
+                                     stderr=subprocess.PIPE, text=True, start_new_session=NEW_SESSION)
         self.t0 = time.monotonic()
         self.stdout: list[str] = []
         self.stderr_tail: deque[str] = deque(maxlen=40)
@@ -141,7 +160,10 @@ class Child:
                 pass
             if self.wait(STOP_TIMEOUT_S) is None:
                 try:
-                    os.killpg(self.proc.pid, signal.SIGKILL)
+                    if NEW_SESSION:
+                        os.killpg(self.proc.pid, signal.SIGKILL)
+                    else:
+                        self.proc.kill()
                 except ProcessLookupError:
                     pass
                 self.wait(STOP_TIMEOUT_S)
@@ -163,7 +185,7 @@ class BusyLoops:
 
     def __init__(self, n: int):
         self.procs = [subprocess.Popen([sys.executable, "-c", BUSY], stdin=subprocess.DEVNULL,
-                                       start_new_session=True) for _ in range(n)]
+                                       start_new_session=NEW_SESSION) for _ in range(n)]
         self.t0 = time.monotonic()
         self.cpu_s: list[float] = []
         self.wall_s = 0.0
@@ -219,14 +241,26 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
     link_kind, code = step.split(":")
     tree = trees[code]
     env = dict(os.environ, PYTHONPATH=str(tree), PYTHONUNBUFFERED="1")
-    py = [args.python, "-m", "qradar"]
+    trace_dir = None
+    if args.trace is not None:
+        trace_dir = args.trace / f"{step.replace(':', '-')}-load{args.load}-{time.strftime('%H%M%S')}"
+        trace_dir.mkdir(parents=True, exist_ok=True)
+        env.update(PYTHONPATH=f"{tree}{os.pathsep}{PROBE}", QRADAR_PROBE_DIR=str(trace_dir))
+    py = (["chrt", "-f", str(args.chrt)] if args.chrt else []) + [args.python, "-m", "qradar"]
     limit_s = args.frames / args.rate * 1.5 + 60
     out: dict = {"step": step, "link": link_kind, "code": code, "frames_wanted": args.frames, "load": args.load,
                  "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
     busy_before = machine_busy_s()
     t_trial = time.monotonic()
     busy = BusyLoops(args.load)
-    sim = s2n = driver = None
+    sim = s2n = driver = lat = None
+    other = None
+    if args.other:
+        other = subprocess.Popen(["bash", "-c", f"while true; do {args.other}; done"], cwd=HERE,
+                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                 start_new_session=True)
+    if args.latency_probe:
+        lat = Child("latency", [args.python, "-c", LATENCY_PROBE], HERE, dict(os.environ))
     time.sleep(0.5)  # let the busy loops take the cores
     try:
         with tempfile.TemporaryDirectory(prefix="qradar-bench-load-") as tmp:
@@ -240,8 +274,10 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
                     cmd.append("--driver-in-process")
             else:
                 link = tmp / "kmd2"
+                sim_tree, sim_env = (trees["after"], dict(env, PYTHONPATH=env["PYTHONPATH"].replace(
+                    str(tree), str(trees["after"]), 1))) if args.sim_after else (tree, env)
                 sim = Child("sim", py + ["sim", "--link", str(link), "--rate", str(args.rate), "--scene",
-                                         args.scene], tree, env)
+                                         args.scene], sim_tree, sim_env)
                 wait_for_link(sim, link)
                 url = str(link)
                 if link_kind.startswith("ser2net"):
@@ -254,7 +290,7 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
                     cmd += ["--baud", "115200"]  # the old driver would switch the sensor to 2 Mbd
                 if link_kind.endswith("-nopub"):
                     cmd.append("--no-publish")
-            out["cmd"] = " ".join(cmd[1:])
+            out["cmd"] = " ".join(cmd[cmd.index("-m"):])
             driver = Child("driver", cmd, tree, env, count_prefix="frame " if code == "before" else None)
             next_progress = time.monotonic() + PROGRESS_S
             timed_out = False
@@ -297,22 +333,113 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
             sim.stop()
             out["sim_cpu_s"] = round(sim.cpu_s or 0.0, 2)
             out["sim_warnings"] = [ln for ln in sim.stderr_tail if "WARNING" in ln][-5:]
+        if lat is not None:
+            lat.stop()
+            try:
+                late = sorted(json.loads(lat.stdout[-1]))
+                out["wake_late_ms"] = {"n": len(late), "p50": late[len(late) // 2], "p99": late[int(len(late) * .99)],
+                                       "max": late[-1], "over_10ms": sum(x > 10 for x in late),
+                                       "over_25ms": sum(x > 25 for x in late)}
+            except (IndexError, ValueError):
+                out["wake_late_ms"] = None
         busy.stop()
+        if other is not None:
+            out["other_work_cpu_s"] = round(proc_cpu_s(other.pid, children=True) or 0.0, 1)
+            os.killpg(other.pid, signal.SIGKILL)
+            other.wait(STOP_TIMEOUT_S)
     out["trial_wall_s"] = round(time.monotonic() - t_trial, 2)
     out["busy_cpu_s"] = [round(c, 1) for c in busy.cpu_s]
     out["busy_share"] = busy.shares()
-    total = machine_busy_s() - busy_before
-    ours = sum(busy.cpu_s) + ((driver.cpu_s or 0.0) if driver else 0.0) + ((sim.cpu_s or 0.0) if sim else 0.0)
+    total, steal = (a - b for a, b in zip(machine_busy_s(), busy_before))
+    ours = sum(busy.cpu_s) + ((lat.cpu_s or 0.0) if lat else 0.0) + ((driver.cpu_s or 0.0) if driver else 0.0) + ((sim.cpu_s or 0.0) if sim else 0.0)
     out["machine_cpu_share"] = round(total / out["trial_wall_s"] / os.cpu_count(), 3)
-    out["others_cpu_s"] = round(max(0.0, total - ours), 1)  # CPU this trial did not use: other work, ser2net
+    # CPU used by the rest of the machine: --other, ser2net, and whatever else runs on it
+    out["others_cpu_s"] = round(max(0.0, total - ours), 1)
+    out["steal_s"] = round(steal, 2)
     out["loadavg_end"] = Path("/proc/loadavg").read_text().split()[:3]
+    if trace_dir is not None:
+        out["trace_dir"] = str(trace_dir)
+        out["trace"] = analyze_trace(trace_dir, args.rate * 2)
     return out
+
+
+# -- the probe's timings ---------------------------------------------------------------------------
+def _after(times: list[float], t: float) -> float | None:
+    i = bisect.bisect_left(times, t)
+    return times[i] if i < len(times) else None
+
+
+def _pcts(v: list[float]) -> dict:
+    if not v:
+        return {}
+    v = sorted(v)
+    q = lambda p: round(v[min(len(v) - 1, int(p * len(v)))] * 1e3, 2)  # noqa: E731
+    return {"p50_ms": q(0.5), "p99_ms": q(0.99), "p999_ms": q(0.999), "max_ms": round(v[-1] * 1e3, 2)}
+
+
+def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
+    """Each GNFD cycle of the trial, from the probe's timings (benchmarks/load_probe): the
+    simulated sensor wrote DONE k at ``w`` (``sim_late`` = w - the time RADC k was due),
+    the driver read it at ``r`` (``to_host`` = r - w: the host's wake-up, its GIL, and
+    ser2net's relay when there is one), wrote the next GNFD at ``p`` (``host`` = p - r),
+    the simulator read it at ``g`` (``to_sim`` = g - p) and answered from its clock at
+    ``now``. RADC k+1 was due 1/radc_rate after RADC k: a GNFD read after that finds
+    the counter advanced (a drop). Each drop is listed with these parts, the driver's
+    GC passes and publishes that overlap [w, p], and where it happened: ``sim`` when the
+    simulator's own parts (sim_late + to_sim) outweigh the host's (to_host + host), a
+    simulated sensor starved by the load where a real one, on its own clock, would not
+    have been; ``host`` otherwise."""
+    ev: dict[str, list] = {}
+    driver_gc: list = []
+    for f in sorted(trace_dir.glob("*.json")):
+        d = json.loads(f.read_text())
+        for k in ("gnfd_in", "ramp", "done_out", "done_in", "gnfd_out", "publish"):
+            ev.setdefault(k, []).extend(d.get(k, []))
+        if d.get("done_in"):
+            driver_gc.extend(d.get("gc", []))
+    if not ev.get("ramp") or not ev.get("done_in"):
+        return {"error": f"no probe data in {trace_dir}"}
+    period = 1.0 / radc_rate_hz
+    due = {idx: dd for _, _, idx, dd in ev["ramp"] if dd is not None}
+    wrote = {c: t1 for _, t1, c, _ in ev["done_out"]}
+    read = {}
+    for t, c, _ in ev["done_in"]:
+        read.setdefault(c, t)
+    polls = sorted(t0 for t0, _ in ev["gnfd_out"])
+    gin = sorted(ev["gnfd_in"])
+    parts: dict[str, list[float]] = {k: [] for k in ("sim_late", "to_host", "host", "to_sim", "slack")}
+    drops = []
+    for now, before, idx, _ in ev["ramp"]:
+        if before < 0 or before not in due or before not in wrote or before not in read:
+            continue
+        w, r = wrote[before], read[before]
+        p = _after(polls, r)
+        g = _after(gin, p) if p is not None else None
+        if p is None or g is None or g > now + 1e-3:
+            continue
+        row = {"sim_late": w - due[before], "to_host": r - w, "host": p - r, "to_sim": g - p,
+               "slack": due[before] + period - now}
+        for k, v in row.items():
+            parts[k].append(v)
+        if idx > before + 1:
+            at_sim = row["sim_late"] + row["to_sim"] >= row["to_host"] + row["host"]
+            gcs = [round((b - a) * 1e3, 2) for a, b, _ in driver_gc if b > w and a < p]
+            pubs = [round((b - a) * 1e3, 2) for a, b in ev["publish"] if b > w and a < p]
+            drops.append({"counter": before, "lost": idx - before - 1, "where": "sim" if at_sim else "host",
+                          "at_s": round(due[before] - due.get(0, due[before]), 1),
+                          **{k + "_ms": round(v * 1e3, 2) for k, v in row.items()},
+                          "gc_ms": gcs, "publish_ms": pubs})
+    return {"cycles": len(parts["slack"]),
+            "lost_radcs_by": {w: sum(d["lost"] for d in drops if d["where"] == w) for w in ("sim", "host")},
+            "drops": drops, "parts": {k: _pcts(v) for k, v in parts.items()},
+            "driver_gc_passes": len(driver_gc), "driver_gc_max_ms": round(max(((b - a) for a, b, _ in driver_gc),
+                                                                                default=0) * 1e3, 2)}
 
 
 # -- the report -------------------------------------------------------------------------------
 def table(rows: list[dict]) -> str:
     head = ("| step | link | code | frames | dropped frames | dropped RADCs | timeouts | reconnects | wall s "
-            "| busy-loop CPU share | other CPU s |")
+            "| busy-loop CPU share | other CPU s | lost RADCs at sim / host | wake-up late > 25 ms |")
     lines = [head, "|" + "|".join("---" for _ in range(head.count("|") - 1)) + "|"]
     for r in rows:
         c = r.get("counters", {})
@@ -322,9 +449,12 @@ def table(rows: list[dict]) -> str:
             dropped = f"{dropped}*"
         note = " (timed out)" if r.get("timed_out") else (f" ({r['error']})" if r.get("error") else "")
         share = " / ".join(f"{s:.2f}" for s in r.get("busy_share", [])) or "–"
+        by = (r.get("trace") or {}).get("lost_radcs_by")
+        where = f"{by['sim']} / {by['host']}" if by else "–"
+        late = (r.get("wake_late_ms") or {}).get("over_25ms", "–")
         lines.append(f"| {r['step']}{note} | {r['link']} | {r['code']} | {frames} | {dropped} | "
                      f"{r.get('dropped_radcs', '–')} | {c.get('timeouts', '–')} | {c.get('reconnects', '–')} | "
-                     f"{r.get('wall_s', '–')} | {share} | {r.get('others_cpu_s', '–')} |")
+                     f"{r.get('wall_s', '–')} | {share} | {r.get('others_cpu_s', '–')} | {where} | {late} |")
     return "\n".join(lines)
 
 
@@ -350,10 +480,28 @@ def main() -> None:
     ap.add_argument("--before", type=Path, default=Path("/work/wt-before"),
                     help=f"a worktree at {BEFORE_COMMIT} (git worktree add DIR {BEFORE_COMMIT})")
     ap.add_argument("--after", type=Path, default=HERE, help="the tree of the current code (default: this one)")
+    ap.add_argument("--sim-after", action="store_true",
+                    help="the current simulator for the before steps too (default: each tree its own)")
     ap.add_argument("--python", default=sys.executable, help="the interpreter with qradar's dependencies")
     ap.add_argument("--ser2net-helpers", default=None, help="directory of ser2net_helpers.py")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    ap.add_argument("--latency-probe", action="store_true",
+                    help="also run a process that sleeps 2 ms at a time and report how late it woke (the machine's "
+                         "scheduling noise, beside the driver's)")
+    ap.add_argument("--chrt", type=int, default=0, metavar="PRIO",
+                    help="run the simulator and the driver (or the run) SCHED_FIFO at PRIO (chrt -f; root): "
+                         "tells scheduling delays from stalls below the scheduler (0: normal priority)")
+    ap.add_argument("--other", default=None, metavar="CMD",
+                    help="other work beside the busy loops: a shell command run over and over during each trial "
+                         "(e.g. '.venv/bin/python -m qradar montecarlo --K 1 2 --runs 20000 --out /tmp/mc --quiet "
+                         "--no-plots')")
+    ap.add_argument("--same-session", action="store_true",
+                    help="start every process in the benchmark's session (one autogroup) instead of one each")
+    ap.add_argument("--trace", type=Path, default=None,
+                    help="time each GNFD cycle (benchmarks/load_probe) into DIR and report where drops come from")
     args = ap.parse_args()
+    global NEW_SESSION
+    NEW_SESSION = not args.same_session
     steps = parse_steps(args.steps)
     trees = {"before": args.before.resolve(), "after": args.after.resolve()}
     for code in {s.split(":")[1] for s in steps}:
@@ -378,6 +526,7 @@ def main() -> None:
               f"busy {r.get('busy_share')}{' TIMED OUT' if r.get('timed_out') else ''}"
               f"{' error: ' + r['error'] if r.get('error') else ''}", file=sys.stderr, flush=True)
     result = {"frames": args.frames, "rate_hz": args.rate, "load": args.load, "scene": args.scene,
+              "other": args.other, "chrt": args.chrt, "same_session": args.same_session,
               "cpus": os.cpu_count(), "before_tree": str(trees["before"]), "after_tree": str(trees["after"]),
               "total_wall_s": round(time.monotonic() - t0, 1), "trials": rows}
     text = json.dumps(result, indent=2)
