@@ -277,7 +277,7 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
                 sim_tree, sim_env = (trees["after"], dict(env, PYTHONPATH=env["PYTHONPATH"].replace(
                     str(tree), str(trees["after"]), 1))) if args.sim_after else (tree, env)
                 sim = Child("sim", py + ["sim", "--link", str(link), "--rate", str(args.rate), "--scene",
-                                         args.scene], sim_tree, sim_env)
+                                         args.scene, *args.sim_args.split()], sim_tree, sim_env)
                 wait_for_link(sim, link)
                 url = str(link)
                 if link_kind.startswith("ser2net"):
@@ -290,6 +290,8 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
                     cmd += ["--baud", "115200"]  # the old driver would switch the sensor to 2 Mbd
                 if link_kind.endswith("-nopub"):
                     cmd.append("--no-publish")
+                if code == "after":
+                    cmd += args.drive_args.split()
             out["cmd"] = " ".join(cmd[cmd.index("-m"):])
             driver = Child("driver", cmd, tree, env, count_prefix="frame " if code == "before" else None)
             next_progress = time.monotonic() + PROGRESS_S
@@ -333,6 +335,7 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
             sim.stop()
             out["sim_cpu_s"] = round(sim.cpu_s or 0.0, 2)
             out["sim_warnings"] = [ln for ln in sim.stderr_tail if "WARNING" in ln][-5:]
+            out["sim_said"] = [ln.rstrip() for ln in sim.stdout[1:]]  # after its start-up line
         if lat is not None:
             lat.stop()
             try:
@@ -388,7 +391,8 @@ def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
     GC passes and publishes that overlap [w, p], and where it happened: ``sim`` when the
     simulator's own parts (sim_late + to_sim) outweigh the host's (to_host + host), a
     simulated sensor starved by the load where a real one, on its own clock, would not
-    have been; ``host`` otherwise."""
+    have been; ``host`` otherwise; ``?`` when the GNFD had gone out before DONE k was read
+    (two in flight, ``drive --outstanding 2``), where there is no such chain."""
     ev: dict[str, list] = {}
     driver_gc: list = []
     for f in sorted(trace_dir.glob("*.json")):
@@ -400,7 +404,7 @@ def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
     if not ev.get("ramp") or not ev.get("done_in"):
         return {"error": f"no probe data in {trace_dir}"}
     period = 1.0 / radc_rate_hz
-    due = {idx: dd for _, _, idx, dd in ev["ramp"] if dd is not None}
+    due = {r[2]: r[3] for r in ev["ramp"] if r[3] is not None}
     wrote = {c: t1 for _, t1, c, _ in ev["done_out"]}
     read = {}
     for t, c, _ in ev["done_in"]:
@@ -409,16 +413,22 @@ def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
     gin = sorted(ev["gnfd_in"])
     parts: dict[str, list[float]] = {k: [] for k in ("sim_late", "to_host", "host", "to_sim", "slack")}
     drops = []
-    for now, before, idx, _ in ev["ramp"]:
+    for now, before, idx, *rest in ev["ramp"]:
+        next_due = rest[1] if len(rest) > 1 and rest[1] is not None else None
         if before < 0 or before not in due or before not in wrote or before not in read:
             continue
         w, r = wrote[before], read[before]
         p = _after(polls, r)
         g = _after(gin, p) if p is not None else None
         if p is None or g is None or g > now + 1e-3:
+            # the GNFD answered here went out before DONE k was read (drive --outstanding 2):
+            # no chain to take apart, only whether it was late
+            if idx > before + 1:
+                drops.append({"counter": before, "lost": idx - before - 1, "where": "?",
+                              "sim_late_ms": round((w - due[before]) * 1e3, 2)})
             continue
         row = {"sim_late": w - due[before], "to_host": r - w, "host": p - r, "to_sim": g - p,
-               "slack": due[before] + period - now}
+               "slack": (next_due if next_due is not None else due[before] + period) - now}
         for k, v in row.items():
             parts[k].append(v)
         if idx > before + 1:
@@ -430,7 +440,7 @@ def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
                           **{k + "_ms": round(v * 1e3, 2) for k, v in row.items()},
                           "gc_ms": gcs, "publish_ms": pubs})
     return {"cycles": len(parts["slack"]),
-            "lost_radcs_by": {w: sum(d["lost"] for d in drops if d["where"] == w) for w in ("sim", "host")},
+            "lost_radcs_by": {w: sum(d["lost"] for d in drops if d["where"] == w) for w in ("sim", "host", "?")},
             "drops": drops, "parts": {k: _pcts(v) for k, v in parts.items()},
             "driver_gc_passes": len(driver_gc), "driver_gc_max_ms": round(max(((b - a) for a, b, _ in driver_gc),
                                                                                 default=0) * 1e3, 2)}
@@ -450,7 +460,7 @@ def table(rows: list[dict]) -> str:
         note = " (timed out)" if r.get("timed_out") else (f" ({r['error']})" if r.get("error") else "")
         share = " / ".join(f"{s:.2f}" for s in r.get("busy_share", [])) or "–"
         by = (r.get("trace") or {}).get("lost_radcs_by")
-        where = f"{by['sim']} / {by['host']}" if by else "–"
+        where = (f"{by['sim']} / {by['host']}" + (f" (+{by['?']} ?)" if by.get("?") else "")) if by else "–"
         late = (r.get("wake_late_ms") or {}).get("over_25ms", "–")
         lines.append(f"| {r['step']}{note} | {r['link']} | {r['code']} | {frames} | {dropped} | "
                      f"{r.get('dropped_radcs', '–')} | {c.get('timeouts', '–')} | {c.get('reconnects', '–')} | "
@@ -482,6 +492,10 @@ def main() -> None:
     ap.add_argument("--after", type=Path, default=HERE, help="the tree of the current code (default: this one)")
     ap.add_argument("--sim-after", action="store_true",
                     help="the current simulator for the before steps too (default: each tree its own)")
+    ap.add_argument("--sim-args", default="", metavar="ARGS",
+                    help="more arguments for qradar sim (e.g. '--line-rate'; one the old sim lacks needs --sim-after)")
+    ap.add_argument("--drive-args", default="", metavar="ARGS",
+                    help="more arguments for the current qradar drive (the after steps over pty and ser2net)")
     ap.add_argument("--python", default=sys.executable, help="the interpreter with qradar's dependencies")
     ap.add_argument("--ser2net-helpers", default=None, help="directory of ser2net_helpers.py")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
@@ -526,7 +540,8 @@ def main() -> None:
               f"busy {r.get('busy_share')}{' TIMED OUT' if r.get('timed_out') else ''}"
               f"{' error: ' + r['error'] if r.get('error') else ''}", file=sys.stderr, flush=True)
     result = {"frames": args.frames, "rate_hz": args.rate, "load": args.load, "scene": args.scene,
-              "other": args.other, "chrt": args.chrt, "same_session": args.same_session,
+              "other": args.other, "chrt": args.chrt, "same_session": args.same_session, "sim_after": args.sim_after,
+              "sim_args": args.sim_args, "drive_args": args.drive_args,
               "cpus": os.cpu_count(), "before_tree": str(trees["before"]), "after_tree": str(trees["after"]),
               "total_wall_s": round(time.monotonic() - t0, 1), "trials": rows}
     text = json.dumps(result, indent=2)

@@ -6,8 +6,8 @@ not get it) with ``QRADAR_PROBE_DIR`` set. It wraps, on the classes of whichever
 running (the same method names before and after the redesign):
 
 - the simulator: ``PtyLink.read`` (when a GNFD arrived), ``SimulatedKMD2._ramp_replies``
-  (the device clock: the counter it had, the RADC index it answers, when that RADC is
-  due), ``PtyLink.write`` of each DONE (when it went out);
+  (the device clock: the counter it had, the RADC index it answers, when that RADC and
+  the one after the counter are due), ``PtyLink.write`` of each DONE (when it went out);
 - the driver: ``SensorSession._fill_inbox`` (when a DONE was read, by its counter) and
   ``SensorSession._write`` of each GNFD (when it went out);
 - the consumer: ``SourceNode.publish`` (start, end) and the garbage collector's passes;
@@ -73,7 +73,9 @@ def _install() -> None:
         out = ramp0(self, mask, now)
         rate = getattr(self, "radc_rate_hz", None) or getattr(self, "ramp_rate_hz", 0)  # after / before
         due = self._t0 + self.counter / rate if rate and self._t0 is not None else None
-        _EV["ramp"].append((now, before, self.counter, due))
+        # when RADC before+1 was due on the device clock as it stood (a held clock moves it)
+        next_due = self._t0 + (before + 1) / rate if due is not None else None
+        _EV["ramp"].append((now, before, self.counter, due, next_due))
         return out
 
     simulator.PtyLink.read, simulator.PtyLink.write = read, write
