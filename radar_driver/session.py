@@ -111,7 +111,8 @@ class DriverCounters:
     and the partial frames they broke, in frames); ``dropped_radcs``: the gaps in RADCs
     (ramps in the default profile); ``incomplete``: RADCs that never arrived whole;
     ``discarded_ramps``: RADCs thrown away with a partial frame; ``timeouts``: GNFDs sent
-    again after ``timeout_s`` of silence."""
+    again after ``timeout_s`` of silence; ``repeated``: answers with the last counter
+    again (not a new measurement: skipped)."""
 
     frames: int = 0
     ramps: int = 0
@@ -125,6 +126,7 @@ class DriverCounters:
     discarded_ramps: int = 0
     timeouts: int = 0
     resp_errors: int = 0
+    repeated: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -593,6 +595,10 @@ class SensorSession:
             self._retries = 0
             self._deadline = time.monotonic() + self.config.timeout_s
             radc, self._pending_radc = self._pending_radc, None
+            if m.frame_counter == self._last_counter:  # the same RADC again (a sensor that answers
+                self.counters.repeated += 1           # a queued GNFD at once): not a new measurement
+                self._top_up()
+                return
             self._note_counter(m.frame_counter)
             t_ns = time.time_ns()
             if radc is None:

@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.localize import localize
 from radar_driver.model import RadarConfig, simulate_frames
-from radar_driver.protocol import Done, Gnfd, Init, OtherMessage, Resp, RespCode, StreamDecoder, encode
+from radar_driver.protocol import Done, Gnfd, Init, OtherMessage, Radc, Resp, RespCode, StreamDecoder, encode
 from radar_driver.scene import SimScene, SimTarget, resolve_scene
 from radar_driver.session import (
     LinkError,
@@ -391,3 +391,17 @@ def test_a_simulator_late_by_its_own_fault_can_hold_its_clock(link, hold):
     assert len(frames) == 10
     assert (s.counters.dropped_radcs > 0) == (not hold)
     assert (dev.late_writes >= 1 and 0.03 < dev.late_s < 0.5) if hold else dev.late_writes == 0
+
+
+def test_an_answer_with_the_last_counter_again_is_not_a_new_frame():
+    """A sensor that answered a queued GNFD at once with the RADC it already sent (same
+    DONE counter) must not have that RADC assembled twice."""
+    s = SensorSession(SessionConfig("/dev/null"))
+    s._target = None
+    s._write = lambda data: None  # no port: the codec's messages are handed in directly
+    words = np.full((2, 1, 256, 2), 2048, np.uint16)
+    for counter in (0, 1, 1, 2, 3):
+        s._handle(Radc(words))
+        s._handle(Done(counter))
+    assert s.counters.repeated == 1 and s.counters.ramps == 4 and s.counters.frames == 2
+    assert [f.counters for f in (s._queue.get_nowait(), s._queue.get_nowait())] == [(0, 1), (2, 3)]
