@@ -228,6 +228,9 @@ def open_error(url: str, exc: BaseException) -> str:
         return f"cannot open {url}: the port refused the terminal settings (8E1 at its speed): {reason}"
     if isinstance(exc, (TimeoutError, serial.SerialTimeoutException)) or "timed out" in str(exc).lower():
         return f"cannot open {url}: timed out (is the host reachable and the port right?)"
+    if "does not seem to support rfc2217" in str(exc).lower():
+        return (f"cannot open {url}: the other end did not negotiate RFC 2217 (a raw TCP port rather than "
+                f"telnet(rfc2217)? or ser2net could not open its device? see its log)")
     if code == errno.EPIPE or "broken pipe" in str(exc).lower() or "reset by peer" in str(exc).lower():
         return (f"cannot open {url}: the other end hung up during the set-up (ser2net could not open its "
                 f"device? see its log, the device path in its YAML, its user's dialout group)")

@@ -170,8 +170,20 @@ def test_a_missing_ser2net_skips_or_fails_in_ci(monkeypatch):
 
 @pytest.mark.parametrize("kind", ["raw", "rfc2217"])
 def test_ser2net_that_cannot_open_its_device_is_named(tmp_path, kind):
-    says = "the other end hung up during the set-up"  # and, when pyserial passed it on, what ser2net said
+    # "the other end hung up during the set-up" (raw: with what ser2net said, when pyserial
+    # passed it on) or, for RFC 2217 when the hang-up beats the negotiation, "did not
+    # negotiate RFC 2217"; both name the likely cause
+    says = "ser2net could not open its device?"
     with ser2net_for(tmp_path / "no-such-device", kind, workdir=tmp_path) as s2n:
         proc = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", s2n.url.split("?")[0],
                                "--no-publish", "--frames", "1"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_an_rfc2217_url_on_a_raw_port_says_so(link):
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0), ser2net_for(link, "raw", workdir=link.parent) as s2n:
+        url = s2n.url.replace("socket://", "rfc2217://")
+        proc = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", url, "--no-publish", "--frames", "1"],
+                              capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "did not negotiate RFC 2217 (a raw TCP port rather than telnet(rfc2217)?" in proc.stderr, proc.stderr
