@@ -307,7 +307,10 @@ def test_a_capture_with_garbage_and_cut_messages_is_still_identified(tmp_path):
     report = inspect_capture(Capture.read(out))
     assert truncated >= 1 and report.sensor.garbage_bytes > 0 and report.sensor.resyncs >= truncated
     heads = report.sensor.headers
-    assert heads["RADC"].count == heads["DONE"].count - truncated and heads["RADC"].lengths == {2048: heads["RADC"].count}
+    # every RADC cut short is lost (a cut one may also swallow the DONE behind it, or a
+    # timeout's second GNFD may bring a whole one): between DONEs - cut and DONEs
+    assert heads["DONE"].count - truncated <= heads["RADC"].count <= heads["DONE"].count
+    assert heads["RADC"].lengths == {2048: heads["RADC"].count}
     assert report.best == "kmd2-blocks"
 
 
