@@ -53,6 +53,9 @@ from collections import deque
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(HERE))
+
+from qradar.run import last_json_object  # noqa: E402
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 LINKS = ("pty", "ser2net", "pty-nopub", "ser2net-nopub", "run", "run-in-process")
 CODES = ("before", "after")
@@ -170,14 +173,7 @@ class Child:
         return self.returncode
 
     def last_json(self) -> dict:
-        for line in reversed(self.stdout):
-            try:
-                out = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(out, dict):
-                return out
-        return {}
+        return last_json_object(self.stdout)
 
 
 class BusyLoops:

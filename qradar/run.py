@@ -140,8 +140,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         for sim in sims:
             sim.start()
         bus = driver_bus(cfg.bus, Path(tmp))
-        session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if bus.connect != cfg.bus.connect
-                   else cfg.bus).open()
+        listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
+        session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
             monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
             localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar,
@@ -195,6 +195,19 @@ def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
     if bus.mode == "client":
         return replace(bus, listen=())
     return BusConfig(mode="client", connect=(f"unixsock-stream/{tmp / 'zenoh.sock'}",), prefix=bus.prefix)
+
+
+def last_json_object(lines) -> dict:
+    """The last line of ``lines`` that is a JSON object (what a ``--json`` command ends
+    with), or {}."""
+    for line in reversed(list(lines)):
+        try:
+            out = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(out, dict):
+            return out
+    return {}
 
 
 class DriverProcess:
@@ -252,7 +265,7 @@ class DriverProcess:
         rc = self._proc.wait()
         for t in self._threads[:2]:
             t.join(5.0)
-        last = self._last_json()
+        last = last_json_object(self._out)
         if "error" in last:
             self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
@@ -261,15 +274,6 @@ class DriverProcess:
             self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
         self.done.set()
 
-    def _last_json(self) -> dict:
-        for line in reversed(self._out):
-            try:
-                out = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(out, dict):
-                return out
-        return {}
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """SIGTERM (the driver says GBYE and prints its counters); SIGKILL after ``timeout_s``."""

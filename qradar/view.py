@@ -65,6 +65,7 @@ from pipeline.wire import (
     decode_targets,
 )
 from radar_driver.errors import RadarError
+from replay.mcapio import TARGETS_SCHEMA
 from radar_driver.model import RadarConfig, polar_to_xy
 
 log = logging.getLogger("qradar.view")
@@ -85,15 +86,6 @@ MAX_NODES_PER_SENSOR = 16
 #: the largest sensor timestamp a foxglove Timestamp holds (uint32 seconds), ns
 MAX_TIMESTAMP_NS = (1 << 32) * 1_000_000_000 - 1
 
-TARGETS_SCHEMA = {
-    "type": "object", "title": "qradar.Targets",
-    "properties": {"version": {"type": "integer"}, "type": {"const": "targets"}, "sensor_id": {"type": "string"},
-                   "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
-                   "config_id": {"type": "integer"}, "algo": {"type": "string"}, "K": {"type": "integer"},
-                   "K_auto": {"type": "boolean"}, "source": {"type": "string"}, "published_ns": {"type": "integer"},
-                   "targets": {"type": "array", "items": {"type": "object", "properties": {
-                       f: {"type": "number"} for f in TARGET_FIELDS + OPTIONAL_TARGET_FIELDS}}}},
-}
 HEALTH_SCHEMA = {
     "type": "object", "title": "qradar.Health",
     "properties": {"node": {"type": "string"}, "sensor_id": {"type": "string"}, "timestamp_ns": {"type": "integer"},

@@ -225,6 +225,11 @@ class SensorProfile:
                 raise ConfigError(f"{where}: lengths.{name}={list(lh)!r} must be [min, max] with "
                                   f"0 <= min <= max <= {MAX_OTHER_LENGTH}")
         object.__setattr__(self, "lengths", {k: tuple(v) for k, v in self.lengths.items()})
+        n = self.radc.payload_len
+        plausible = {b"INIT": (4, 4), b"GNFD": (4, 4), b"GBYE": (0, 4), b"RESP": (1, 4), b"DONE": (4, 4),
+                     b"RADC": (n, n + 3)}
+        plausible.update({name.encode(): lh for name, lh in self.lengths.items()})
+        object.__setattr__(self, "_plausible", plausible)
 
     def baud_code(self, baud: int) -> int:
         """The INIT code of a line speed; ConfigError if the profile has none."""
@@ -240,12 +245,9 @@ class SensorProfile:
 
     def plausible_length(self) -> dict[bytes, tuple[int, int]]:
         """Header -> inclusive (min, max) payload bytes; lengths may include up to 3
-        padding bytes. A header with another length is taken for garbage."""
-        n = self.radc.payload_len
-        out = {b"INIT": (4, 4), b"GNFD": (4, 4), b"GBYE": (0, 4), b"RESP": (1, 4), b"DONE": (4, 4),
-               b"RADC": (n, n + 3)}
-        out.update({name.encode(): lh for name, lh in self.lengths.items()})
-        return out
+        padding bytes. A header with another length is taken for garbage. Computed once
+        (the codec asks per message); do not modify."""
+        return self._plausible
 
     def to_dict(self) -> dict[str, Any]:
         r = self.radc
@@ -276,14 +278,15 @@ def profile_from_dict(data: dict[str, Any], source: str = "<dict>") -> SensorPro
     except ValueError:
         raise ConfigError(f"profile {source}: baud_codes keys must be integers") from None
     kw = {k: data[k] for k in ("description", "startup_baud", "gnfd_bits", "lengths") if k in data}
+    if codes:
+        kw["baud_codes"] = codes
     if "name" not in data:
         raise ConfigError(f"profile {source}: missing name")
     try:
         layout = RadcLayout(**radc)
     except ConfigError as exc:
         raise ConfigError(f"profile {source}: {exc}") from None
-    return SensorProfile(name=data["name"], radc=layout, baud_codes=codes or SensorProfile.__dataclass_fields__[
-        "baud_codes"].default_factory(), source=source, **kw)
+    return SensorProfile(name=data["name"], radc=layout, source=source, **kw)
 
 
 def load_profile(path: str | Path) -> SensorProfile:

@@ -32,7 +32,8 @@ from .errors import NotMcapError, ReplayError
 WIRE_ENCODING = "qradar/wire-v1"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
 
-_TARGETS_SCHEMA = {
+#: JSON schema of the targets JSON (docs/wire-formats.md): MCAP channels and the Foxglove view
+TARGETS_SCHEMA = {
     "type": "object", "title": "qradar.Targets",
     "properties": {"version": {"type": "integer"}, "type": {"const": "targets"}, "sensor_id": {"type": "string"},
                    "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
@@ -121,7 +122,7 @@ class McapSink:
                 sid = self.writer.register_schema("foxglove.PointCloud", "jsonschema",
                                                   json.dumps(FOXGLOVE_POINTCLOUD_SCHEMA).encode())
             else:
-                schema = _TARGETS_SCHEMA if topic == "targets" else _HEALTH_SCHEMA
+                schema = TARGETS_SCHEMA if topic == "targets" else _HEALTH_SCHEMA
                 sid = self.writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._schemas[topic] = sid
         return self._schemas[topic]
