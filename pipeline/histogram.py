@@ -103,7 +103,7 @@ class SharedHistogram(LogHistogram):
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
-        self._hlock = threading.Lock()
+        self._hlock = threading.RLock()
 
     def add(self, value: float) -> None:
         with self._hlock:
