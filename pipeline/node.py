@@ -1,83 +1,132 @@
 """The base of every zenoh node: session, liveliness, health, publishers, statistics,
-and the subscribe -> bounded queue -> batch -> process loop of processing nodes.
+and the subscribe -> bounded fair queue -> batch -> process loop of processing nodes.
 
 A processing node subscribes with a wildcard (``<prefix>/*/raw``, ...) and so serves
-many sensors at once. zenoh's callback only copies the payload into a bounded queue
-(a full queue drops the newest sample and counts it in ``drops``); a worker thread
-takes batches from the queue and hands them to :meth:`ProcessingNode.process`, which
-calls the vectorized math. Data publishers use ``CongestionControl.BLOCK``: when the
-network is slower than the data, a publisher waits instead of dropping, so
-back-pressure reaches the node's bounded queue, where every drop is counted. Health
-goes out with ``DROP``: it is periodic and a lost one is replaced a second later.
+many sensors at once. zenoh's callback checks the key and the payload's length before
+copying anything (a frame whose length no announced configuration has is refused
+there), notes the frame's sequence number (a gap is counted in ``frames_missing``) and
+puts the payload into a :class:`~pipeline.fairqueue.FairQueue`: one FIFO per sensor,
+bounded per sensor, in frames and in bytes, served round-robin, so a flooding sensor
+loses its own frames (counted in its ``drops``), not the others'. A worker thread takes
+batches and hands them to :meth:`ProcessingNode.process`, which calls the vectorized
+math. Data publishers use ``CongestionControl.BLOCK``: when the network is slower than
+the data, a publisher waits instead of dropping, so back-pressure reaches the node's
+bounded queue, where every drop is counted. Health goes out with ``DROP``: it is
+periodic and a lost one is replaced a second later.
+
+No input stops a node: each failure is counted by kind (:data:`ERROR_KINDS`), logged at
+most once a second with the key and the reason, and the node goes on; a worker that
+dies anyway is restarted and counted (``worker_restarts``). A sensor silent for
+``sensor_expiry_s`` is forgotten (its counters stay in the node's totals), and sensor
+ids that are not valid key chunks (``*``, ``$*``, ...) never get state, health or a key.
 
 Every node declares a liveliness token and publishes ``<prefix>/<sensor>/health``
-once a second for every sensor it has seen. A malformed payload is counted
-(``decode_errors``), logged and skipped; the node keeps running.
+once a second for every sensor it has seen.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
+import struct
 import threading
 import time
-from collections import defaultdict, deque
-from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from dataclasses import dataclass, field, fields
+from typing import Callable
 
-import numpy as np
 import zenoh
 
 from radar_driver.errors import RadarError
 
 from .bus import BusConfig
-from .errors import ParameterError, PipelineError
-from .wire import HealthMsg
+from .errors import ParameterError, PipelineError, WireError
+from .fairqueue import FairQueue
+from .histogram import LogHistogram
+from .wire import HEADER_LEN, MAGIC, HealthMsg, check_sensor_id
 
 log = logging.getLogger("qradar.node")
 
-LATENCY_WINDOW = 2000
+#: counters of failures, by kind: unparsable payloads; frames that parse but contradict
+#: the announced configuration (length, M, config id, bits, samples not finite);
+#: failures of the math or of publishing one message
+ERROR_KINDS = ("decode_errors", "invalid_frames", "processing_errors")
+#: the counters summed by :meth:`Node.totals`
+COUNTERS = ("frames_in", "frames_out", "drops", *ERROR_KINDS, "frames_missing", "seq_resets",
+            "bytes_in", "bytes_out")
+#: the stats bucket of messages with no valid sensor id (never published as a key)
+NO_SENSOR = ""
+SEQ = struct.Struct("<Q")
+SEQ_OFFSET = 8  # of the uint64 sequence number in the common frame header
+DEFAULT_SENSOR_EXPIRY_S = 60.0
+DEFAULT_SENSOR_QUEUE = 128
+DEFAULT_QUEUE_BYTES = 64 << 20
 
 
 @dataclass
 class SensorStats:
+    """Counters of one sensor at one node; ``latency`` in ms (a fixed-size histogram)."""
+
     frames_in: int = 0
     frames_out: int = 0
     drops: int = 0
     decode_errors: int = 0
+    invalid_frames: int = 0
+    processing_errors: int = 0
+    frames_missing: int = 0
+    seq_resets: int = 0
     bytes_in: int = 0
     bytes_out: int = 0
-    latency_ms: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    latency: LogHistogram = field(default_factory=LogHistogram)
+    last_seen: float = field(default_factory=time.monotonic)
+    # the last sequence number seen per input topic
+    last_seq: dict = field(default_factory=dict)
     # for rates between two health messages
     _last_bytes: tuple[int, int, float] = (0, 0, 0.0)
 
+    def add_counters(self, other: "SensorStats") -> None:
+        for k in COUNTERS:
+            setattr(self, k, getattr(self, k) + getattr(other, k))
 
-def percentile_ms(values: Iterable[float], q: float) -> float | None:
-    v = np.fromiter(values, dtype=float)
-    return round(float(np.percentile(v, q)), 3) if v.size else None
+    def note_seq(self, topic: str, seq: int) -> None:
+        """Count a gap (frames_missing) or a restart of the sequence (seq_resets)."""
+        last = self.last_seq.get(topic)
+        self.last_seq[topic] = seq
+        if last is None or seq == last + 1:
+            return
+        if seq > last + 1:
+            self.frames_missing += seq - last - 1
+        else:  # the sender restarted its count (or repeated a frame)
+            self.seq_resets += 1
 
 
 class Node:
     """Base of every node: zenoh session, liveliness, health, publishers, statistics.
 
     ``session=None`` opens a session from ``bus`` (closed on stop); a given session is
-    shared and left open.
-    """
+    shared and left open. ``sensor_expiry_s``: a sensor silent that long is forgotten
+    (None: never)."""
 
     name = "node"
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, health_period_s: float = 1.0):
+    def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, health_period_s: float = 1.0,
+                 sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S):
+        if sensor_expiry_s is not None and not sensor_expiry_s > 0:
+            raise ParameterError(f"sensor expiry {sensor_expiry_s!r} s must be > 0 (or None: never)")
         self.bus = bus
         self._own_session = session is None
         self.session = session if session is not None else bus.open()
         self.health_period_s = health_period_s
-        self.stats: dict[str, SensorStats] = defaultdict(SensorStats)
+        self.sensor_expiry_s = sensor_expiry_s
+        self.stats: dict[str, SensorStats] = {}
+        self._retired = SensorStats()  # counters of expired sensors
+        self.sensors_expired = 0
+        self.worker_restarts = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, dict[str, zenoh.Publisher]] = {}  # sensor -> key -> publisher
+        self._retiring: list[zenoh.Publisher] = []
         self._token = None
-        self._last_error_log = 0.0
+        self._last_log: dict[str, float] = {}
         self.errors: list[BaseException] = []
 
     # -- life cycle -----------------------------------------------------------------------
@@ -108,6 +157,23 @@ class Node:
         t.start()
         self._threads.append(t)
 
+    def _spawn_supervised(self, target: Callable[[], None], what: str, backoff_s: float = 0.1) -> None:
+        """Run ``target`` in a thread and run it again (counted in ``worker_restarts``)
+        whenever it dies of an Exception before stop: a worker never stays dead."""
+        def supervise():
+            while not self._stop.is_set():
+                try:
+                    target()
+                    return
+                except Exception as exc:
+                    with self._lock:
+                        self.worker_restarts += 1
+                    log.debug("%s %s thread died", self.name, what, exc_info=True)
+                    self.log_limited("restart", "%s: %s thread died (%s: %s); restarted (counted in "
+                                     "worker_restarts)", self.name, what, type(exc).__name__, exc)
+                    self._stop.wait(backoff_s)
+        self._spawn(supervise, what)
+
     def stop(self, timeout_s: float = 5.0) -> None:
         if self._stop.is_set():
             return
@@ -116,7 +182,7 @@ class Node:
         for t in self._threads:
             t.join(timeout_s)
         self._publish_health()  # last counters
-        for pub in self._publishers.values():
+        for pub in [p for pubs in self._publishers.values() for p in pubs.values()] + self._retiring:
             try:
                 pub.undeclare()
             except zenoh.ZError:
@@ -138,32 +204,90 @@ class Node:
     def wait(self, timeout_s: float | None = None) -> bool:
         return self._stop.wait(timeout_s)
 
+    # -- statistics ---------------------------------------------------------------------------
+    def sensor_stats(self, sensor_id: str) -> SensorStats:
+        """The stats of a sensor, created on first use; call with ``_lock`` held."""
+        st = self.stats.get(sensor_id)
+        if st is None:
+            st = self.stats[sensor_id] = SensorStats()
+        return st
+
+    def log_limited(self, what: str, fmt: str, *args) -> None:
+        """A warning, at most one a second for each ``what``."""
+        now = time.monotonic()
+        if now - self._last_log.get(what, -1e9) >= 1.0:
+            self._last_log[what] = now
+            log.warning(fmt, *args)
+
+    def count(self, sensor_id: str, kind: str, reason: object, n: int = 1) -> None:
+        """Count ``n`` failures of ``kind`` (one of :data:`ERROR_KINDS`) against a sensor
+        and log the reason (which names the key) at most once a second per kind."""
+        if kind not in ERROR_KINDS:
+            raise ParameterError(f"error kind {kind!r} is not one of {ERROR_KINDS}")
+        with self._lock:
+            st = self.sensor_stats(sensor_id)
+            setattr(st, kind, getattr(st, kind) + n)
+        self.log_limited(kind, "%s: %s (counted in %s; node keeps running)", self.name, reason, kind)
+
+    def count_error(self, sensor_id: str, exc: Exception) -> None:
+        """A payload that does not decode (``decode_errors``)."""
+        self.count(sensor_id, "decode_errors", exc)
+
+    def record_latency(self, sensor_id: str, latency_ms: float) -> None:
+        with self._lock:
+            self.sensor_stats(sensor_id).latency.add(latency_ms)
+
     # -- publishing -----------------------------------------------------------------------------
     def publish(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
+        """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>``; a sensor id that is not a
+        plain key chunk (a wildcard, ...) is a WireError, never a key."""
+        check_sensor_id(sensor_id)
         key = self.bus.key(sensor_id, topic)
-        pub = self._publishers.get(key)
+        with self._lock:
+            pubs = self._publishers.setdefault(sensor_id, {})
+            pub = pubs.get(key)
         if pub is None:
             pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(encoding),
                                                  congestion_control=zenoh.CongestionControl.BLOCK)
-            self._publishers[key] = pub
+            with self._lock:
+                self._publishers.setdefault(sensor_id, {})[key] = pub
         pub.put(payload)
         with self._lock:
-            st = self.stats[sensor_id]
+            st = self.sensor_stats(sensor_id)
             st.frames_out += 1
             st.bytes_out += len(payload)
-
-    def count_error(self, sensor_id: str, exc: Exception) -> None:
-        with self._lock:
-            self.stats[sensor_id].decode_errors += 1
-        now = time.monotonic()
-        if now - self._last_error_log > 1.0:  # at most one line a second
-            self._last_error_log = now
-            log.warning("%s: %s (counted in decode_errors; node keeps running)", self.name, exc)
+            st.last_seen = time.monotonic()
 
     # -- health ------------------------------------------------------------------------------------
     def _health_loop(self) -> None:
         while not self._stop.wait(self.health_period_s):
-            self._publish_health()
+            try:
+                self._publish_health()
+                self._expire()
+            except Exception as exc:  # health must not die either
+                self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
+
+    def _expire(self) -> None:
+        """Forget sensors silent for sensor_expiry_s; their publishers are undeclared one
+        period later (a worker may still hold one)."""
+        retiring, self._retiring = self._retiring, []
+        for pub in retiring:
+            try:
+                pub.undeclare()
+            except zenoh.ZError:
+                pass
+        if self.sensor_expiry_s is None:
+            return
+        horizon = time.monotonic() - self.sensor_expiry_s
+        with self._lock:
+            for sensor in [s for s, st in self.stats.items() if st.last_seen < horizon and s != NO_SENSOR]:
+                self._retired.add_counters(self.stats.pop(sensor))
+                self._retiring.extend(self._publishers.pop(sensor, {}).values())
+                self.sensors_expired += 1
+                self.forget(sensor)
+
+    def forget(self, sensor_id: str) -> None:
+        """Subclass hook (called with ``_lock`` held): drop per-sensor state of an expired sensor."""
 
     def health_extra(self, sensor_id: str) -> dict:
         return {}
@@ -172,49 +296,63 @@ class Node:
         now_ns = time.time_ns()
         with self._lock:
             snapshot = []
+            restarts = self.worker_restarts
             for sensor, st in self.stats.items():
+                if sensor == NO_SENSOR:
+                    continue
                 b_in, b_out, t_prev = st._last_bytes
                 dt = (now_ns - t_prev) / 1e9 if t_prev else self.health_period_s
                 msg = HealthMsg(
                     node=self.name, sensor_id=sensor, timestamp_ns=now_ns, frames_in=st.frames_in,
                     frames_out=st.frames_out, drops=st.drops, decode_errors=st.decode_errors,
-                    latency_ms={"p50": percentile_ms(st.latency_ms, 50), "p99": percentile_ms(st.latency_ms, 99)},
+                    latency_ms=st.latency.summary(),
                     bytes_in_per_s=(st.bytes_in - b_in) / max(dt, 1e-9),
                     bytes_out_per_s=(st.bytes_out - b_out) / max(dt, 1e-9),
+                    invalid_frames=st.invalid_frames, processing_errors=st.processing_errors,
+                    frames_missing=st.frames_missing, seq_resets=st.seq_resets, worker_restarts=restarts,
                 )
                 st._last_bytes = (st.bytes_in, st.bytes_out, now_ns)
                 snapshot.append(msg)
         for msg in snapshot:
-            msg.extra = self.health_extra(msg.sensor_id)
-            if msg.sensor_id == "_unknown":
-                continue
             try:
-                self.session.put(self.bus.key(msg.sensor_id, "health"), msg.to_json(),
+                msg.extra = self.health_extra(msg.sensor_id)
+                self.session.put(self.bus.key(check_sensor_id(msg.sensor_id), "health"), msg.to_json(),
                                  encoding=zenoh.Encoding.APPLICATION_JSON,
                                  congestion_control=zenoh.CongestionControl.DROP)
-            except zenoh.ZError as exc:
+            except (zenoh.ZError, WireError) as exc:
                 log.debug("health publish failed: %s", exc)
 
     def totals(self) -> dict[str, int]:
+        """Every counter summed over the sensors (expired ones included), plus
+        ``worker_restarts`` and ``sensors_expired``."""
         with self._lock:
-            out = {"frames_in": 0, "frames_out": 0, "drops": 0, "decode_errors": 0, "bytes_in": 0, "bytes_out": 0}
+            out = {k: getattr(self._retired, k) for k in COUNTERS}
             for st in self.stats.values():
-                for k in out:
+                for k in COUNTERS:
                     out[k] += getattr(st, k)
+            out["worker_restarts"] = self.worker_restarts
+            out["sensors_expired"] = self.sensors_expired
             return out
 
 
 class ProcessingNode(Node):
-    """Subscribes ``<prefix>/*/<in_topic>``; callback -> bounded queue -> batches -> :meth:`process`."""
+    """Subscribes ``<prefix>/*/<in_topic>``; callback -> fair queue -> batches -> :meth:`process`.
+
+    queue_size: frames waiting in all; sensor_queue_size: of one sensor (default
+    min(queue_size, 128)); queue_bytes: payload bytes waiting in all."""
 
     in_topic = "raw"
+    #: True: messages on keys without a valid sensor chunk are processed too (the recorder)
+    accepts_any_key = False
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 512,
-                 batch_max: int = 64, health_period_s: float = 1.0):
-        super().__init__(bus, session, health_period_s)
+                 batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
+                 queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S):
+        super().__init__(bus, session, health_period_s, sensor_expiry_s)
         if queue_size < 1 or batch_max < 1:
             raise ParameterError(f"queue_size={queue_size} and batch_max={batch_max} must be >= 1")
-        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        per_sensor = min(queue_size, DEFAULT_SENSOR_QUEUE) if sensor_queue_size is None else sensor_queue_size
+        self._queue = FairQueue(queue_size, per_sensor, queue_bytes)
         self.batch_max = batch_max
         self._subscriber = None
 
@@ -224,46 +362,78 @@ class ProcessingNode(Node):
 
     def _start(self) -> None:
         self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
-        self._spawn(self._work_loop, "worker")
+        self._spawn_supervised(self._work_loop, "worker")
 
     def _stopping(self) -> None:
         if self._subscriber is not None:
             self._subscriber.undeclare()
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """zenoh's thread: copy and enqueue, nothing else."""
-        key = str(sample.key_expr)
-        sensor = self.bus.sensor_of(key) or "_unknown"
-        payload = sample.payload.to_bytes()
+    def admit(self, key: str, n_bytes: int) -> str | None:
+        """Why a payload of ``n_bytes`` on ``key`` is refused before it is copied (None:
+        admitted). Subclasses check the lengths their announced configurations allow."""
+        return None
+
+    def sensor_of(self, key: str) -> str:
+        """The key's sensor id, or :data:`NO_SENSOR` when it has none that is valid."""
+        sensor = self.bus.sensor_of(key)
+        if sensor is None:
+            return NO_SENSOR
         try:
-            self._queue.put_nowait((sensor, key, payload, time.time_ns()))
-        except queue.Full:
+            return check_sensor_id(sensor)
+        except WireError:
+            return NO_SENSOR
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """zenoh's thread: check the key and the length, note the sequence number, enqueue."""
+        try:
+            self._admit_sample(sample)
+        except Exception as exc:  # nothing a sender does may kill zenoh's callback thread
+            self.count(NO_SENSOR, "processing_errors", f"{sample.key_expr}: {type(exc).__name__}: {exc}")
+
+    def _admit_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        sensor = self.sensor_of(key)
+        n = len(sample.payload)
+        reason = None
+        if sensor == NO_SENSOR and not self.accepts_any_key:
+            reason = "not a key of a valid sensor id (1-16 characters of [A-Za-z0-9_-])"
+        else:
+            reason = self.admit(key, n)
+        if reason is not None:  # refused before the copy; an unknown sensor gets no state
             with self._lock:
-                self.stats[sensor].drops += 1
-            now = time.monotonic()
-            if now - self._last_error_log > 1.0:
-                self._last_error_log = now
-                log.warning("%s: queue full, dropped a sample of %s (counted in drops)", self.name, key)
+                bucket = sensor if sensor in self.stats else NO_SENSOR
+                st = self.sensor_stats(bucket)
+                st.frames_in += 1
+                st.bytes_in += n
+            self.count(bucket, "invalid_frames", f"{key}: {reason}")
+            return
+        payload = sample.payload.to_bytes()
         with self._lock:
-            st = self.stats[sensor]
+            st = self.sensor_stats(sensor)
             st.frames_in += 1
-            st.bytes_in += len(payload)
+            st.bytes_in += n
+            st.last_seen = time.monotonic()
+            if sensor != NO_SENSOR and len(payload) >= HEADER_LEN and payload[:4] == MAGIC:
+                st.note_seq(key.rsplit("/", 1)[-1], SEQ.unpack_from(payload, SEQ_OFFSET)[0])
+        for victim in self._queue.put(sensor, (sensor, key, payload, time.time_ns()), n):
+            with self._lock:
+                self.sensor_stats(victim).drops += 1
+            self.log_limited("drops", "%s: queue full, dropped a frame of %s (counted in its drops)",
+                             self.name, victim or key)
 
     def _work_loop(self) -> None:
         # after stop, drain what was queued before the subscriber went away
         while not (self._stop.is_set() and self._queue.empty()):
-            try:
-                first = self._queue.get(timeout=0.1)
-            except queue.Empty:
+            batch = self._queue.get_batch(self.batch_max, 0.1)
+            if not batch:
                 self.on_idle()
                 continue
-            batch = [first]
-            while len(batch) < self.batch_max:
-                try:
-                    batch.append(self._queue.get_nowait())
-                except queue.Empty:
-                    break
-            self.process(batch)
+            try:
+                self.process(batch)
+            except Exception as exc:  # a failure process() did not isolate: the batch is lost, counted
+                log.debug("%s: batch failed", self.name, exc_info=True)
+                for sensor, key, _, _ in batch:
+                    self.count(sensor, "processing_errors", f"{key}: {type(exc).__name__}: {exc}")
 
     def on_idle(self) -> None:
         """Called by the worker when no sample came for 0.1 s."""

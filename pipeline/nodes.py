@@ -7,12 +7,13 @@ them into batches and publishes what the math returns.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
+import time
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
-import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import zenoh
@@ -22,11 +23,13 @@ from radar_driver.source import FrameSource, RawFrame
 
 from .bus import BusConfig
 from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
-from .errors import ParameterError
+from .errors import ParameterError, PipelineError
 from .localize import DEFAULT_PFA
 from .node import Node, ProcessingNode, run_nodes
-from .quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
+from .quantize import MAX_BITS, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seed
 from .wire import (
+    HEADER_LEN,
+    QUANT_HEADER_LEN,
     QuantizedFrameMsg,
     RawFrameMsg,
     TargetsMsg,
@@ -83,48 +86,162 @@ class SourceNode(Node):
         stats = self.source.stats()
         with self._lock:
             for sid, st in stats.items():
-                self.stats[sid].drops = st.get("dropped", 0)
+                self.sensor_stats(sid).drops = st.get("dropped", 0)
         super()._publish_health()
 
 
-class QuantizeNode(ProcessingNode):
-    """``<prefix>/*/raw`` -> dithered b-bit quantization -> ``<prefix>/<sensor>/quantized``."""
+#: the largest |Re| or |Im| of a raw sample a node accepts, full-scale units (the ADC's
+#: full scale is 1; beyond this a frame is refused as invalid, not quantized)
+MAX_SAMPLE = 1e4
+
+
+def radar_configs(radar: RadarConfig, max_ramps: int) -> dict[int, RadarConfig]:
+    """The announced configurations: ``radar`` with 1..max_ramps ramps per frame, by config id."""
+    if not (isinstance(max_ramps, int) and max_ramps >= 1):
+        raise ParameterError(f"max_ramps={max_ramps!r} must be an integer >= 1")
+    return {c.config_id(): c for c in (replace(radar, ramps_per_frame=r) for r in range(1, max_ramps + 1))}
+
+
+def frame_lengths(configs: dict[int, RadarConfig], topic: str) -> frozenset[int]:
+    """Every payload length a raw or quantized frame of these configurations can have, bytes."""
+    ms = {c.n_measurements for c in configs.values()}
+    if topic == "raw":
+        return frozenset(HEADER_LEN + 16 * m for m in ms)
+    return frozenset(QUANT_HEADER_LEN + packed_size(4 * m, b) for m in ms for b in range(1, MAX_BITS + 1))
+
+
+def bad_samples(frames: np.ndarray) -> np.ndarray:
+    """(B,) True where a frame (B, M, 2) has a sample that is not finite or beyond MAX_SAMPLE."""
+    parts = frames.view(np.float32 if frames.dtype == np.complex64 else np.float64)
+    return ~(np.abs(parts) <= MAX_SAMPLE).reshape(frames.shape[0], -1).all(axis=1)  # NaN fails <=
+
+
+class FrameNode(ProcessingNode):
+    """A processing node of radar frames: it refuses, before copying, payloads whose
+    length no announced configuration (``radar`` with 1..max_ramps ramps) has, and
+    checks each decoded frame's sensor id, config id and M."""
+
+    def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | None, **kw):
+        super().__init__(bus, session, **kw)
+        self._configs = radar_configs(radar, max_ramps)
+        self._lengths = frame_lengths(self._configs, self.in_topic)
+
+    def admit(self, key: str, n_bytes: int) -> str | None:
+        if n_bytes in self._lengths:
+            return None
+        return (f"{n_bytes} bytes, a length no announced radar configuration has "
+                f"({len(self._configs)} configs, {min(self._lengths)}-{max(self._lengths)} bytes)")
+
+    def decode(self, sensor: str, key: str, payload: bytes) -> QuantizedFrameMsg | RawFrameMsg | None:
+        """The frame, or None when it is counted as a decode error or an invalid frame."""
+        try:
+            msg = decode_quantized(payload, key) if self.in_topic == "quantized" else decode_raw(payload, key)
+            if msg.sensor_id != sensor:
+                raise WireError(f"frame from {key}: sensor id {msg.sensor_id!r} does not match the key")
+        except WireError as exc:
+            self.count(sensor, "decode_errors", exc)
+            return None
+        radar = self._configs.get(msg.config_id)
+        m = msg.codes.shape[0] if isinstance(msg, QuantizedFrameMsg) else msg.data.shape[0]
+        if radar is None:
+            self.count(sensor, "invalid_frames", f"frame {msg.seq} from {key}: unknown radar config id "
+                       f"{msg.config_id:#010x}")
+        elif m != radar.n_measurements:
+            self.count(sensor, "invalid_frames", f"frame {msg.seq} from {key}: M={m} but its radar config "
+                       f"has M={radar.n_measurements}")
+        else:
+            return msg
+        return None
+
+    def valid_raw(self, msgs: list[RawFrameMsg]) -> tuple[list[RawFrameMsg], np.ndarray | None]:
+        """The frames whose samples are finite and within MAX_SAMPLE, stacked (B, M, 2)
+        complex128; the others are counted as invalid."""
+        frames = np.stack([m.data for m in msgs])
+        bad = bad_samples(frames)
+        if bad.any():
+            for i in np.flatnonzero(bad):
+                m = msgs[i]
+                self.count(m.sensor_id, "invalid_frames", f"frame {m.seq} from "
+                           f"{self.bus.key(m.sensor_id, self.in_topic)}: a sample is not finite or beyond "
+                           f"{MAX_SAMPLE:g} full scale")
+            keep = np.flatnonzero(~bad)
+            msgs, frames = [msgs[i] for i in keep], frames[keep]
+        return msgs, (frames.astype(np.complex128) if msgs else None)
+
+    def publish_each(self, items) -> None:
+        """Publish (sensor, topic, payload-maker, encoding) one by one; a failure loses that
+        message only (processing_errors)."""
+        for sensor, topic, make, encoding in items:
+            try:
+                self.publish(sensor, topic, make(), encoding)
+            except (PipelineError, zenoh.ZError) as exc:
+                self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {exc}")
+
+
+def isolate(compute: Callable[[list], Any], items: list, on_error: Callable[[Any, Exception], None]) -> list:
+    """[(items, result)]: ``compute(items)`` on the whole group, or, if that raises, on each
+    item alone, so one bad frame loses only itself (``on_error(item, exc)``)."""
+    try:
+        return [(items, compute(items))]
+    except Exception as exc:
+        if len(items) == 1:
+            on_error(items[0], exc)
+            return []
+    out = []
+    for it in items:
+        try:
+            out.append(([it], compute([it])))
+        except Exception as exc:
+            on_error(it, exc)
+    return out
+
+
+class QuantizeNode(FrameNode):
+    """``<prefix>/*/raw`` -> dithered b-bit quantization -> ``<prefix>/<sensor>/quantized``.
+
+    radar, max_ramps: the announced configurations; other frames are refused."""
 
     name = "quantize"
     in_topic = "raw"
 
-    def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | None = None, **kw):
-        super().__init__(bus, session, **kw)
+    def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | None = None,
+                 radar: RadarConfig | None = None, max_ramps: int = 16, **kw):
+        super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
 
     def process(self, batch) -> None:
-        decoded: list[RawFrameMsg] = []
-        for sensor, key, payload, _ in batch:
-            try:
-                msg = decode_raw(payload, key)
-                if msg.sensor_id != sensor:
-                    raise WireError(f"raw frame from {key}: sensor id {msg.sensor_id!r} does not match the key")
-                decoded.append(msg)
-            except WireError as exc:
-                self.count_error(sensor, exc)
         by_m: dict[int, list[RawFrameMsg]] = defaultdict(list)
-        for msg in decoded:
-            by_m[msg.data.shape[0]].append(msg)
+        for sensor, key, payload, _ in batch:
+            msg = self.decode(sensor, key, payload)
+            if msg is not None:
+                by_m[msg.data.shape[0]].append(msg)
         for msgs in by_m.values():
-            frames = np.stack([m.data for m in msgs]).astype(np.complex128)
+            msgs, frames = self.valid_raw(msgs)
+            if not msgs:
+                continue
             # one dither seed per sensor: quantize per sensor group, vectorized inside
             by_sensor: dict[str, list[int]] = defaultdict(list)
             for i, m in enumerate(msgs):
                 by_sensor[m.sensor_id].append(i)
             for sensor, idx in by_sensor.items():
-                q = quantize_frames(frames[idx], self.config, [msgs[i].seq for i in idx],
-                                    dither_seed=sensor_dither_seed(self.config.dither_seed, sensor))
-                seed = int(q.dither_seed)
-                for j, i in enumerate(idx):
-                    m = msgs[i]
-                    out = QuantizedFrameMsg(sensor, m.seq, m.timestamp_ns, m.config_id, q.bits, q.alpha,
-                                            float(q.delta[j]), seed, q.codes[j])
-                    self.publish(sensor, "quantized", encode_quantized(out), "application/octet-stream")
+                group = [(msgs[i], frames[i]) for i in idx]
+                seed = sensor_dither_seed(self.config.dither_seed, sensor)
+
+                def compute(g, seed=seed):
+                    return quantize_frames(np.stack([f for _, f in g]), self.config, [m.seq for m, _ in g],
+                                           dither_seed=seed)
+
+                for part, q in isolate(compute, group, self._failed):
+                    self.publish_each(
+                        (sensor, "quantized", functools.partial(encode_quantized, QuantizedFrameMsg(
+                            sensor, m.seq, m.timestamp_ns, m.config_id, q.bits, q.alpha, float(q.delta[j]),
+                            int(q.dither_seed), q.codes[j])), "application/octet-stream")
+                        for j, (m, _) in enumerate(part))
+
+    def _failed(self, item, exc: Exception) -> None:
+        m = item[0]
+        self.count(m.sensor_id, "processing_errors", f"frame {m.seq} from "
+                   f"{self.bus.key(m.sensor_id, 'raw')}: {type(exc).__name__}: {exc}")
 
 
 @dataclass(frozen=True)
@@ -159,11 +276,10 @@ class LocalizerConfig:
         return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp, auto_k=self.auto_k, pfa=self.pfa)
 
     def known_configs(self) -> dict[int, RadarConfig]:
-        return {c.config_id(): c for c in (replace(self.radar, ramps_per_frame=r)
-                                           for r in range(1, self.max_ramps + 1))}
+        return radar_configs(self.radar, self.max_ramps)
 
 
-class LocalizeNode(ProcessingNode):
+class LocalizeNode(FrameNode):
     """``<prefix>/*/quantized`` (or raw) -> PBP -> ``<prefix>/<sensor>/targets`` (JSON).
 
     Latency (health and ``published_ns``) runs from the frame's sensor timestamp to the
@@ -173,48 +289,43 @@ class LocalizeNode(ProcessingNode):
 
     def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None, **kw):
         self.in_topic = config.source
-        super().__init__(bus, session, **kw)
+        super().__init__(bus, config.radar, config.max_ramps, session, **kw)
         self.config = config
-        self._configs = config.known_configs()
-
-    def _decode(self, sensor: str, key: str, payload: bytes) -> QuantizedFrameMsg | RawFrameMsg:
-        msg = decode_quantized(payload, key) if self.config.source == "quantized" else decode_raw(payload, key)
-        if msg.sensor_id != sensor:
-            raise WireError(f"frame from {key}: sensor id {msg.sensor_id!r} does not match the key")
-        radar = self._configs.get(msg.config_id)
-        if radar is None:
-            raise WireError(f"frame from {key}: unknown radar config id {msg.config_id:#010x}")
-        m = msg.codes.shape[0] if isinstance(msg, QuantizedFrameMsg) else msg.data.shape[0]
-        if m != radar.n_measurements:
-            raise WireError(f"frame from {key}: M={m} but its radar config has M={radar.n_measurements}")
-        return msg
 
     def process(self, batch) -> None:
         groups: dict[tuple, list] = defaultdict(list)
         for sensor, key, payload, _ in batch:
-            try:
-                msg = self._decode(sensor, key, payload)
-            except WireError as exc:
-                self.count_error(sensor, exc)
-                continue
+            msg = self.decode(sensor, key, payload)
             if isinstance(msg, QuantizedFrameMsg):
-                groups[(msg.config_id, msg.bits, msg.dithered)].append(msg)
-            else:
-                groups[(msg.config_id, 0, False)].append(msg)
-        for (config_id, bits, _), msgs in groups.items():
-            frames = quantized_batch(msgs) if bits else np.stack([m.data for m in msgs])
-            try:
-                det = decode_batch(frames, self._configs[config_id], self.config.k, self.config.decoder())
-            except DitherUnavailable as exc:
-                for m in msgs:
-                    self.count_error(m.sensor_id, DitherUnavailable(
-                        f"frame {m.seq} from {self.bus.key(m.sensor_id, self.in_topic)}: {exc}; run the localizer "
-                        "with --fallback-pbp to decode such frames with PBP"))
+                groups[(msg.config_id, msg.bits, msg.dithered)].append((msg, None))
+            elif msg is not None:
+                groups[(msg.config_id, 0, False)].append((msg, None))
+        for (config_id, bits, _), items in groups.items():
+            if not bits:  # raw frames: finite samples only
+                msgs, frames = self.valid_raw([m for m, _ in items])
+                items = list(zip(msgs, frames)) if msgs else []
+            if not items:
                 continue
-            for i, m in enumerate(msgs):
-                now = time.time_ns()
-                out = TargetsMsg(m.sensor_id, m.seq, m.timestamp_ns, config_id, str(self.config.algo), self.config.k,
-                                 self.config.source, det.frame(i), published_ns=now, auto_k=self.config.auto_k)
-                self.publish(m.sensor_id, "targets", out.to_json(), "application/json")
-                with self._lock:
-                    self.stats[m.sensor_id].latency_ms.append((now - m.timestamp_ns) / 1e6)
+            radar = self._configs[config_id]
+
+            def compute(g, radar=radar, bits=bits):
+                frames = quantized_batch([m for m, _ in g]) if bits else np.stack([f for _, f in g])
+                return decode_batch(frames, radar, self.config.k, self.config.decoder())
+
+            for part, det in isolate(compute, items, self._failed):
+                for i, (m, _) in enumerate(part):
+                    now = time.time_ns()
+                    out = TargetsMsg(m.sensor_id, m.seq, m.timestamp_ns, config_id, str(self.config.algo),
+                                     self.config.k, self.config.source, det.frame(i), published_ns=now,
+                                     auto_k=self.config.auto_k)
+                    self.publish_each([(m.sensor_id, "targets", out.to_json, "application/json")])
+                    self.record_latency(m.sensor_id, (now - m.timestamp_ns) / 1e6)
+
+    def _failed(self, item, exc: Exception) -> None:
+        m = item[0]
+        key = self.bus.key(m.sensor_id, self.in_topic)
+        if isinstance(exc, DitherUnavailable):
+            self.count(m.sensor_id, "invalid_frames", f"frame {m.seq} from {key}: {exc}; run the localizer "
+                       "with --fallback-pbp to decode such frames with PBP")
+        else:
+            self.count(m.sensor_id, "processing_errors", f"frame {m.seq} from {key}: {type(exc).__name__}: {exc}")

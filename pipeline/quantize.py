@@ -63,6 +63,21 @@ def check_frames(frames: np.ndarray, name: str = "frames") -> np.ndarray:
     return f
 
 
+def check_seq(seq) -> np.ndarray:
+    """Sequence numbers (an int or a 1-D sequence of them) as a (B,) uint64 array; each
+    must be in [0, 2**64), the wire format's range."""
+    a = np.asarray(seq)
+    if np.issubdtype(a.dtype, np.signedinteger):
+        ok = not a.size or a.min() >= 0
+    elif a.dtype == object:  # Python ints beyond int64
+        ok = all(isinstance(x, (int, np.integer)) and 0 <= x < 2**64 for x in a.ravel())
+    else:
+        ok = np.issubdtype(a.dtype, np.unsignedinteger)
+    if not ok:
+        raise ParameterError(f"seq must be integers in [0, 2**64), got {np.ravel(a)[:4].tolist()}")
+    return np.atleast_1d(a.astype(np.uint64))
+
+
 def _per_frame(delta: np.ndarray, ndim: int) -> np.ndarray:
     """Reshape a () or (B,) delta to broadcast against an array of ``ndim`` dims."""
     return delta.reshape(delta.shape + (1,) * (ndim - delta.ndim)) if delta.ndim else delta
@@ -277,7 +292,7 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
     decoder regenerates exactly the dither used here. ``dither_seed`` overrides the
     config's (a node derives one per sensor)."""
     f = check_frames(frames)
-    seqs = np.atleast_1d(np.asarray(seq, dtype=np.int64))
+    seqs = check_seq(seq)
     if seqs.shape != (f.shape[0],):
         raise ParameterError(f"seq has shape {seqs.shape}, expected ({f.shape[0]},) for {f.shape[0]} frames")
     if config.delta == "auto":

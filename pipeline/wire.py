@@ -269,6 +269,10 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
         raise WireError(f"targets from {source}: missing or bad field ({exc!r})") from None
 
 
+#: health counters added in this version of the JSON (0 when a message lacks them)
+HEALTH_LOSS_FIELDS = ("invalid_frames", "processing_errors", "frames_missing", "seq_resets", "worker_restarts")
+
+
 @dataclass
 class HealthMsg:
     """1 Hz counters of one node for one sensor."""
@@ -284,12 +288,19 @@ class HealthMsg:
     bytes_in_per_s: float = 0.0
     bytes_out_per_s: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    # failures by kind and lost frames (absent from older recordings: 0)
+    invalid_frames: int = 0
+    processing_errors: int = 0
+    frames_missing: int = 0
+    seq_resets: int = 0
+    worker_restarts: int = 0
 
     def to_json(self) -> bytes:
         obj = {"version": JSON_VERSION, "type": "health", "node": self.node, "sensor_id": self.sensor_id,
                "timestamp_ns": self.timestamp_ns, "frames_in": self.frames_in, "frames_out": self.frames_out,
                "drops": self.drops, "decode_errors": self.decode_errors, "latency_ms": self.latency_ms,
                "bytes_in_per_s": round(self.bytes_in_per_s, 1), "bytes_out_per_s": round(self.bytes_out_per_s, 1),
+               **{k: getattr(self, k) for k in HEALTH_LOSS_FIELDS},
                **({"extra": self.extra} if self.extra else {})}
         return json.dumps(obj, separators=(",", ":")).encode()
 
@@ -300,6 +311,6 @@ def decode_health(payload: bytes, source: str = "<bytes>") -> HealthMsg:
         return HealthMsg(str(obj["node"]), str(obj["sensor_id"]), int(obj["timestamp_ns"]), int(obj["frames_in"]),
                          int(obj["frames_out"]), int(obj["drops"]), int(obj["decode_errors"]),
                          dict(obj["latency_ms"]), float(obj["bytes_in_per_s"]), float(obj["bytes_out_per_s"]),
-                         dict(obj.get("extra", {})))
+                         dict(obj.get("extra", {})), **{k: int(obj.get(k, 0)) for k in HEALTH_LOSS_FIELDS})
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise WireError(f"health from {source}: missing or bad field ({exc!r})") from None

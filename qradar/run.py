@@ -54,6 +54,8 @@ class Monitor:
         self.latency_ms: list[float] = []
         self.errors_m: list[float] = []
         self.bad_targets = 0
+        self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
+        self._last_seq: dict[str, int] = {}
         self._last_print: dict[str, float] = {}
         self._lock = threading.Lock()
         self._sub = None
@@ -89,6 +91,10 @@ class Monitor:
         err = position_error_m(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
                                est_r, est_a)[0] if truth and msg.targets else np.array([])
         with self._lock:
+            last = self._last_seq.get(msg.sensor_id)
+            if last is not None and msg.seq > last + 1:
+                self.targets_missing += msg.seq - last - 1
+            self._last_seq[msg.sensor_id] = msg.seq
             self.latency_ms.append((msg.published_ns - msg.timestamp_ns) / 1e6)
             self.errors_m.extend(err.tolist())
         now = time.monotonic()
@@ -148,7 +154,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                                               fallback_pbp=cfg.quantizer.alpha == 0,
                                                               auto_k=cfg.auto_k, pfa=cfg.pfa),
                                      session=session)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session)
+            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=scene.radar)
             links = [str(sim.links[0].link_path) for sim in sims]
             if cfg.driver_process:
                 drivers = [DriverProcess(link, f"kmd2-{i}", cfg.baud, scene.radar.ramps_per_frame, bus,
@@ -314,7 +320,8 @@ def _stat(values, fn) -> float | None:
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float) -> dict:
     driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
     driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
-    queue_drops = localizer.totals()["drops"] + quantizer.totals()["drops"]
+    q_tot, l_tot = quantizer.totals(), localizer.totals()
+    queue_drops = l_tot["drops"] + q_tot["drops"]
     cnt, size = monitor.count, monitor.bytes
     return {
         "scene": scene.name,
@@ -325,8 +332,15 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "frames_targets": cnt["targets"],
         "drops": driver_drops + queue_drops,
         "drops_detail": {"sensor_frames": driver_drops, "node_queues": queue_drops,
-                         "decode_errors": localizer.totals()["decode_errors"] + quantizer.totals()["decode_errors"],
+                         "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
+                         "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
+                         "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
                          "undecodable_targets": monitor.bad_targets},
+        # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
+        # quantizer is missing at every later stage too
+        "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
+                           "targets": monitor.targets_missing},
+        "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
         "latency_ms": {"p50": _stat(monitor.latency_ms, np.median),
                        "p99": _stat(monitor.latency_ms, lambda v: np.percentile(v, 99))},
         "position_error_m": {"median": _stat(monitor.errors_m, np.median), "mean": _stat(monitor.errors_m, np.mean),
@@ -347,6 +361,7 @@ def format_summary(s: dict) -> str:
         f"qradar run: scene {s['scene']}, {s['sensors']} sensor(s), {s['seconds']} s",
         f"  frames      raw {s['frames_raw']}, quantized {s['frames_quantized']}, targets {s['frames_targets']}",
         f"  drops       {s['drops']} ({s['drops_detail']})",
+        f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
         f"  latency     p50 {lat['p50']} ms, p99 {lat['p99']} ms (sensor timestamp -> targets published)",
         f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true target "
         f"to the nearest estimate)",

@@ -296,7 +296,7 @@ class FoxgloveView(ProcessingNode):
     def _start(self) -> None:
         topics = ["targets", "health"] + (["quantized"] if self.config.profile_rate_hz > 0 else [])
         self._subscribers = [self.session.declare_subscriber(self.bus.wildcard(t), self._on_sample) for t in topics]
-        self._spawn(self._work_loop, "worker")
+        self._spawn_supervised(self._work_loop, "worker")
 
     def _stopping(self) -> None:
         for sub in self._subscribers:
@@ -399,11 +399,11 @@ class FoxgloveView(ProcessingNode):
 
     def _count_out(self, sensor: str, messages: int, size: int, latency_ms: float | None = None) -> None:
         with self._lock:
-            st = self.stats[sensor]
+            st = self.sensor_stats(sensor)
             st.frames_out += messages
             st.bytes_out += size
             if latency_ms is not None:
-                st.latency_ms.append(latency_ms)
+                st.latency.add(latency_ms)
 
     def _log_transform(self, sensor: str) -> None:
         if self._tf is not None:

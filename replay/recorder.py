@@ -66,11 +66,13 @@ class RecorderNode(ProcessingNode):
     records written at the start of every file (radar config, node configs, scene)."""
 
     name = "record"
+    accepts_any_key = True  # every key under the subscription is recorded
 
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
                  session: zenoh.Session | None = None, split_size_mb: float | None = None,
                  split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
                  queue_size: int = 20000, **kw):
+        kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
         super().__init__(bus, session, queue_size=queue_size, batch_max=512, **kw)
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
@@ -145,7 +147,7 @@ class RecorderNode(ProcessingNode):
             sink.write(key, payload, log_ns, publish_ns, seq)
             self.written += 1
             with self._lock:
-                self.stats[sensor].frames_out += 1
+                self.sensor_stats(sensor).frames_out += 1
             if topic == "targets":
                 try:
                     msg = decode_targets(payload, key)

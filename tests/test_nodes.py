@@ -25,6 +25,7 @@ from pipeline.wire import (
     decode_targets,
     encode_raw,
 )
+from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from zenoh_helpers import Collector, wait_until
 
@@ -113,13 +114,19 @@ def test_a_node_survives_garbage_and_reports_it_in_health(bus, zenoh_session):
         session.put("radar/bad1/raw", encode_raw(RawFrameMsg("bad1", i, time.time_ns(), scene.radar.config_id(), frame)))
     wait_until(lambda: len(col.of("bad1/targets")) == 3, 10, "targets after garbage")
 
-    def errors(node):
+    def health(node):
         hs = [decode_health(p) for p in col.of("bad1/health")]
         hs = [h for h in hs if h.node == node]
-        return hs[-1].decode_errors if hs else -1
+        return hs[-1] if hs else None
 
-    wait_until(lambda: errors("quantize") == 2 and errors("localize") == 1, 10, "health with decode errors")
-    assert q.totals()["decode_errors"] == 2 and not q.errors and not loc.errors
+    # garbage of a length no configuration has is refused before it is copied, and a sensor
+    # that never sent a valid frame gets no state: counted in the node's totals only
+    wait_until(lambda: health("quantize") is not None and health("quantize").decode_errors == 1
+               and health("localize") is not None, 10, "health with decode errors")
+    assert q.totals()["decode_errors"] == 1 and q.totals()["invalid_frames"] == 1
+    assert loc.totals()["invalid_frames"] == 1 and loc.totals()["decode_errors"] == 0
+    assert health("localize").invalid_frames == 0 and health("quantize").frames_missing == 0
+    assert not q.errors and not loc.errors
     q.stop()
     loc.stop()
 
@@ -135,7 +142,7 @@ def test_a_full_queue_drops_are_counted_never_silent(bus, zenoh_session):
     frame = np.zeros((512, 2), np.complex64)
     pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
     for i in range(100):
-        pub.put(encode_raw(RawFrameMsg("fl", i, 0, 0, frame)))
+        pub.put(encode_raw(RawFrameMsg("fl", i, 0, RadarConfig().config_id(), frame)))
     q.stop()
     t = q.totals()
     assert t["frames_in"] == 100
@@ -311,7 +318,7 @@ def test_localizer_node_with_the_dither_aware_decoder(bus, zenoh_session):
     q0 = QuantizeNode(bus, QuantizerConfig(alpha=0.0), session=session).start()
     frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
     session.put("radar/nd0/raw", encode_raw(RawFrameMsg("nd0", 0, time.time_ns(), scene.radar.config_id(), frame)))
-    wait_until(lambda: loc2.totals()["decode_errors"] == 1, 10, "the non-dithered frame to be refused")
+    wait_until(lambda: loc2.totals()["invalid_frames"] == 1, 10, "the non-dithered frame to be refused")
     assert not loc2.errors
     q0.stop()
     loc2.stop()

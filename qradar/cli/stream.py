@@ -27,6 +27,7 @@ from .common import (
     install_sigterm,
     nonneg_float,
     nonneg_int,
+    pos_float,
     pos_int,
     quantizer_config,
     quantizer_options,
@@ -37,7 +38,7 @@ from .view import foxglove_arg
 def add_commands(sub) -> None:
     p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
     quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
-    p.add_argument("--queue", type=pos_int, default=512, help="bounded input queue (frames)")
+    queue_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p)
     p.set_defaults(func=cmd_quantize)
@@ -48,7 +49,7 @@ def add_commands(sub) -> None:
     p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
-    p.add_argument("--queue", type=pos_int, default=512, help="bounded input queue (frames)")
+    queue_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p)
     p.set_defaults(func=cmd_localize)
@@ -106,6 +107,22 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_run)
 
 
+def queue_options(p) -> None:
+    """The input queue and per-sensor state of a processing node."""
+    g = p.add_argument_group("input queue")
+    g.add_argument("--queue", type=pos_int, default=512, help="frames waiting, in all")
+    g.add_argument("--sensor-queue", type=pos_int, default=128,
+                   help="frames waiting of one sensor (a flooding sensor loses its own frames beyond this)")
+    g.add_argument("--queue-mb", type=pos_float, default=64.0, help="payload megabytes waiting, in all")
+    g.add_argument("--sensor-expiry", type=pos_float, default=60.0,
+                   help="forget a sensor silent this many seconds (its counters stay in the totals)")
+
+
+def queue_kwargs(args) -> dict:
+    return {"queue_size": args.queue, "sensor_queue_size": min(args.sensor_queue, args.queue),
+            "queue_bytes": int(args.queue_mb * 1e6), "sensor_expiry_s": args.sensor_expiry}
+
+
 def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
     """Run one node until ``duration``, ``stop`` or Ctrl-C; print its totals as JSON."""
     install_sigterm()
@@ -118,14 +135,14 @@ def serve(node, duration: float | None, stop: threading.Event | None = None) -> 
 
 
 def cmd_quantize(args) -> int:
-    return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), queue_size=args.queue), args.duration)
+    return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), **queue_kwargs(args)), args.duration)
 
 
 def cmd_localize(args) -> int:
     k, auto = count_from_args(args)
     cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
                           pfa=args.pfa)
-    return serve(LocalizeNode(bus_from_args(args), cfg, queue_size=args.queue), args.duration)
+    return serve(LocalizeNode(bus_from_args(args), cfg, **queue_kwargs(args)), args.duration)
 
 
 def cmd_source(args) -> int:
