@@ -234,6 +234,8 @@ def test_qradar_run_end_to_end_json():
         assert key in s
     assert s["frames_raw"] >= 50  # 20 frames/s for 5 s, minus start-up
     assert s["frames_raw"] == s["frames_quantized"] == s["frames_targets"]
+    assert s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0} and s["worker_restarts"] == 0
+    assert s["drops_detail"]["invalid_frames"] == 0 and s["drops_detail"]["processing_errors"] == 0
     assert s["bytes_per_quantized_frame"] == 320 and s["bytes_per_raw_frame"] == 8240
     assert 0 < s["latency_ms"]["p50"] <= s["latency_ms"]["p99"]
     assert s["position_error_m"]["median"] < 1.0

@@ -1,0 +1,290 @@
+"""No input stops a node, every lost frame is counted where it is noticed, and a flooding
+or misbehaving sender costs only itself (issue 12). Real zenoh sessions, in process and
+across processes over 127.0.0.1; every wait bounded."""
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from pipeline.errors import ParameterError
+from pipeline.fairqueue import FairQueue
+from pipeline.node import NO_SENSOR
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
+from pipeline.quantize import QuantizerConfig
+from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
+from radar_driver.scene import resolve_scene
+from zenoh_helpers import Collector, wait_until
+
+SCENE = resolve_scene("single")
+CONFIG_ID = SCENE.radar.config_id()
+FRAME = np.tile(SCENE.clean_ramp(0.0), (2, 1)).astype(np.complex64)
+
+
+def raw(sensor, seq, data=FRAME, config_id=CONFIG_ID):
+    return encode_raw(RawFrameMsg(sensor, seq, time.time_ns(), config_id, data))
+
+
+def chain(bus, session, **kw):
+    q = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=3), session=session, health_period_s=0.2, **kw)
+    loc = LocalizeNode(bus, LocalizerConfig(k=1), session=session, health_period_s=0.2, **kw)
+    return q.start(), loc.start()
+
+
+# -- the fair queue ---------------------------------------------------------------------------
+def test_fair_queue_serves_sensors_in_turn_and_bounds_each():
+    q = FairQueue(max_frames=100, max_frames_per_sensor=3, max_bytes=10_000)
+    dropped = [s for i in range(10) for s in q.put("evil", ("evil", i), 10)]
+    assert dropped == ["evil"] * 7  # beyond its own share, a sensor loses its own newest frames
+    assert q.put("good", ("good", 0), 10) == [] and q.put("good", ("good", 1), 10) == []
+    assert q.get_batch(4, 0.0) == [("evil", 0), ("good", 0), ("evil", 1), ("good", 1)]  # round-robin, FIFO each
+    assert q.get_batch(10, 0.0) == [("evil", 2)] and q.empty() and q.nbytes == 0
+    assert q.get_batch(10, 0.01) == []
+
+
+def test_fair_queue_bounded_in_bytes_drops_from_the_largest_sensor():
+    q = FairQueue(max_frames=100, max_frames_per_sensor=100, max_bytes=1000)
+    assert q.put("big", "b0", 400) == [] and q.put("big", "b1", 400) == []
+    assert q.put("small", "s0", 300) == ["big"]  # room made by the sensor holding the most bytes
+    assert q.nbytes == 700 and len(q) == 2
+    assert q.put("big", "b2", 400) == ["big"]  # the largest sensor's own frame is refused
+    assert q.put("any", "x", 2000) == ["any"]  # larger than the whole queue
+    assert q.get_batch(10, 0.0) == ["b0", "s0"]
+    with pytest.raises(ParameterError):
+        FairQueue(0)
+
+
+def test_isolate_loses_only_the_bad_frame():
+    failed = []
+
+    def compute(items):
+        if any(np.isnan(x) for x in items):
+            raise ValueError("nan")
+        return sum(items)
+
+    assert isolate(compute, [1.0, 2.0], lambda it, e: failed.append(it)) == [([1.0, 2.0], 3.0)]
+    out = isolate(compute, [1.0, np.nan, 2.0], lambda it, e: failed.append(it))
+    assert out == [([1.0], 1.0), ([2.0], 2.0)] and len(failed) == 1 and np.isnan(failed[0])
+
+
+# -- a node never stops -------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", ["nan", "inf", "huge"])
+def test_a_frame_of_bad_samples_is_counted_and_the_stream_goes_on(bus, zenoh_session, bad):
+    col = Collector(zenoh_session, "radar/*/targets")
+    q, loc = chain(bus, zenoh_session)
+    try:
+        frame = FRAME.copy()
+        frame[7, 1] = {"nan": np.nan, "inf": -np.inf, "huge": 3e38}[bad]
+        zenoh_session.put("radar/s1/raw", raw("s1", 0))
+        zenoh_session.put("radar/s1/raw", raw("s1", 1, frame))
+        zenoh_session.put("radar/s1/raw", raw("s1", 2 ** 63))  # a sequence number beyond int64
+        zenoh_session.put("radar/s1/raw", raw("s1", 2 ** 64 - 1))
+        wait_until(lambda: len(col.of("s1/targets")) == 3, 15, "targets of the three good frames")
+        assert sorted(decode_targets(p).seq for p in col.of("s1/targets")) == [0, 2 ** 63, 2 ** 64 - 1]
+        assert q.totals()["invalid_frames"] == 1 and q.totals()["processing_errors"] == 0
+        assert not q.errors and not loc.errors
+    finally:
+        q.stop()
+        loc.stop()
+
+
+def test_a_frame_no_configuration_announces_is_refused_before_it_is_copied(bus, zenoh_session):
+    q, loc = chain(bus, zenoh_session)
+    try:
+        huge = np.zeros((1 << 20, 2), np.complex64)  # M = 2^20, 16 MB: the wire's largest
+        for i in range(4):
+            zenoh_session.put("radar/s2/raw", raw("s2", i, huge))
+        zenoh_session.put("radar/s2/raw", raw("s2", 4, FRAME, config_id=12345))  # right length, unknown config
+        wait_until(lambda: q.totals()["invalid_frames"] == 5, 15, "five refused frames")
+        with q._lock:
+            st = q.stats["s2"]  # the config-id frame gave it state
+            assert st.frames_in == 1 and st.invalid_frames == 1
+            assert q.stats[NO_SENSOR].invalid_frames == 4  # the huge ones came before any valid frame
+        assert q._queue.nbytes == 0 and not q.errors
+    finally:
+        q.stop()
+        loc.stop()
+
+
+def test_a_dead_worker_is_restarted_and_counted(bus, zenoh_session):
+    class Flaky(QuantizeNode):
+        fails = 2
+
+        def on_idle(self):
+            if self.fails:
+                self.fails -= 1
+                raise RuntimeError("worker bug")
+
+    col = Collector(zenoh_session, "radar/*/quantized")
+    q = Flaky(bus, QuantizerConfig(), session=zenoh_session).start()
+    try:
+        wait_until(lambda: q.totals()["worker_restarts"] == 2, 10, "two restarts")
+        zenoh_session.put("radar/s3/raw", raw("s3", 0))
+        wait_until(lambda: len(col.of("s3/quantized")) == 1, 10, "a frame after the restarts")
+        assert not q.errors
+    finally:
+        q.stop()
+
+
+# -- exhaustion and strangers ---------------------------------------------------------------
+def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_session):
+    class Slow(QuantizeNode):
+        def process(self, batch):
+            time.sleep(0.002 * len(batch))  # a busy node: 2 ms a frame
+            super().process(batch)
+
+    col = Collector(zenoh_session, "radar/*/quantized")
+    q = Slow(bus, QuantizerConfig(), session=zenoh_session, queue_size=64, sensor_queue_size=16,
+             batch_max=8).start()
+    try:
+        evil = zenoh_session.declare_publisher("radar/evil/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+        payload = raw("evil", 0)
+        for i in range(40):  # 40 ticks of 20 ms: the real sensor sends 1 frame, the evil one 50
+            for j in range(50):
+                evil.put(payload)
+            zenoh_session.put("radar/real/raw", raw("real", i))
+            time.sleep(0.02)
+        wait_until(lambda: len(col.of("real/quantized")) == 40, 20, "every frame of the real sensor")
+        with q._lock:
+            assert q.stats["real"].drops == 0 and q.stats["evil"].drops > 1000
+    finally:
+        q.stop()
+
+
+def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, zenoh_session):
+    q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session, health_period_s=0.1,
+                     sensor_expiry_s=0.5).start()
+    try:
+        for i in range(1000):  # one-byte puts to distinct keys
+            zenoh_session.put(f"radar/k{i}/raw", b"x")
+        for i in range(20):
+            zenoh_session.put(f"radar/v{i}/raw", raw(f"v{i}", 0))
+        wait_until(lambda: q.totals()["frames_out"] == 20, 10, "the valid frames")
+        with q._lock:
+            assert set(q.stats) <= {NO_SENSOR} | {f"v{i}" for i in range(20)}
+        wait_until(lambda: not (set(q.stats) - {NO_SENSOR}) and not q._publishers, 10, "the sensors to expire")
+        t = q.totals()
+        assert t["frames_in"] == 1020 and t["frames_out"] == 20 and t["invalid_frames"] == 1000
+        assert t["sensors_expired"] == 20
+    finally:
+        q.stop()
+
+
+def test_a_wildcard_key_never_becomes_a_published_key(bus, zenoh_session):
+    col = Collector(zenoh_session, "radar/**")
+    q, loc = chain(bus, zenoh_session)
+    try:
+        zenoh_session.put("radar/*/raw", raw("s4", 0))
+        zenoh_session.put("radar/s$*/raw", raw("s4", 1))
+        zenoh_session.put("radar/s4/raw", raw("s4", 2))
+        wait_until(lambda: len(col.of("s4/targets")) == 1, 10, "the valid frame's targets")
+        wait_until(lambda: col.of("s4/health"), 10, "health")
+        time.sleep(0.3)
+        with col.lock:
+            keys = {k for k, _ in col.items}
+        assert not [k for k in keys if ("*" in k or "$" in k) and not k.endswith("/raw")]  # only the test's puts
+        assert {"radar/s4/quantized", "radar/s4/targets", "radar/s4/health"} <= keys
+        assert q.totals()["invalid_frames"] == 2
+    finally:
+        q.stop()
+        loc.stop()
+
+
+# -- every lost frame is counted ---------------------------------------------------------------
+def test_sequence_gaps_are_counted_at_every_stage(bus, zenoh_session):
+    col = Collector(zenoh_session, "radar/*/health")
+    q, loc = chain(bus, zenoh_session)
+    try:
+        for s in [*range(10), *range(20, 30)]:  # 10 frames lost before the quantizer
+            zenoh_session.put("radar/s5/raw", raw("s5", s))
+        wait_until(lambda: loc.totals()["frames_out"] == 20, 10, "20 targets")
+        for s in range(3):  # the sensor restarted: its count starts again
+            zenoh_session.put("radar/s5/raw", raw("s5", s))
+        wait_until(lambda: loc.totals()["frames_out"] == 23, 10, "23 targets")
+        for node in (q, loc):
+            t = node.totals()
+            assert (t["frames_missing"], t["seq_resets"]) == (10, 1), node.name
+
+        def last(node):
+            hs = [h for h in map(decode_health, col.of("s5/health")) if h.node == node]
+            return hs[-1] if hs else None
+
+        wait_until(lambda: last("localize") is not None and last("localize").frames_missing == 10
+                   and last("localize").seq_resets == 1, 10, "the gap in the localizer's health")
+    finally:
+        q.stop()
+        loc.stop()
+
+
+def _qradar(*args):
+    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, connect_when_ready):
+    """Kill the quantize process mid-stream and start another: the localize process counts
+    the frames lost meanwhile, so frames it received + frames missing = frames sent."""
+    ep = f"tcp/127.0.0.1:{free_port}"
+    client = ["--mode", "client", "--connect", ep]
+    procs = {"router": _qradar("router", "--listen", ep, "--duration", "90")}
+    try:
+        session = connect_when_ready(ep, timeout_s=20, mode="client")
+        procs["localize"] = _qradar("localize", "--K", "1", "--duration", "90", *client)
+        procs["quantize"] = _qradar("quantize", "--duration", "90", *client)
+        health = Collector(session, "radar/r0/health")
+        targets = Collector(session, "radar/r0/targets")
+
+        def alive(node):
+            return sum(1 for r in session.liveliness().get(f"radar/alive/{node}/**", timeout=1.0) if r.ok is not None)
+
+        wait_until(lambda: alive("quantize") == 1 and alive("localize") == 1, 30, "both nodes alive")
+        pub = session.declare_publisher("radar/r0/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+        seq = 0
+
+        def send(n):
+            nonlocal seq
+            for _ in range(n):
+                pub.put(raw("r0", seq))
+                seq += 1
+                time.sleep(0.02)
+
+        send(30)
+        wait_until(lambda: len(targets.of("r0/targets")) >= 30, 20, "targets before the restart")
+        procs["quantize"].kill()
+        procs["quantize"].communicate(timeout=20)
+        send(25)  # sent while no quantizer runs: lost
+        procs["quantize"] = _qradar("quantize", "--duration", "90", *client)
+        for _ in range(300):  # keep the stream going until the new quantizer is in it (bounded)
+            send(1)
+            if alive("quantize") == 1 and len(targets.of("r0/targets")) >= 40:
+                break
+        send(10)
+        last = seq - 1
+        wait_until(lambda: any(decode_targets(p).seq == last for p in targets.of("r0/targets")), 20,
+                   "the last frame's targets")
+
+        def localize_health():
+            hs = [h for h in map(decode_health, health.of("r0/health")) if h.node == "localize"]
+            return hs[-1] if hs else None
+
+        wait_until(lambda: localize_health() is not None and localize_health().frames_in
+                   + localize_health().frames_missing == seq, 20, "received + missing = sent")
+        h = localize_health()
+        assert h.frames_missing >= 25 and h.frames_in == len(targets.of("r0/targets"))
+        session.close()
+    finally:
+        for p in procs.values():
+            p.terminate()
+        outs = {}
+        for name, p in procs.items():
+            try:
+                outs[name] = p.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                outs[name] = p.communicate(timeout=20)
+    loc = json.loads(outs["localize"][0].strip().splitlines()[-1])
+    assert loc["frames_missing"] == h.frames_missing and loc["drops"] == 0
