@@ -211,7 +211,18 @@ def _target(t: dict) -> dict[str, float]:
     """A target's fields as finite floats (the optional ones when present)."""
     out = {f: float(t[f]) for f in TARGET_FIELDS}
     out.update({f: float(t[f]) for f in OPTIONAL_TARGET_FIELDS if t.get(f) is not None})
+    bad = [f for f, v in out.items() if not np.isfinite(v)]
+    if bad:
+        raise ValueError(f"target field {bad[0]}={out[bad[0]]} is not finite")
     return out
+
+
+def _uint(obj: dict, name: str, bits: int = 64) -> int:
+    """A JSON integer field in [0, 2**bits)."""
+    v = obj[name]
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**bits:
+        raise ValueError(f"{name}={v!r} must be an integer in [0, 2**{bits})")
+    return v
 
 
 @dataclass(frozen=True)
@@ -262,11 +273,11 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
     obj = _load_json(payload, source, "targets")
     try:
         targets = [_target(t) for t in obj["targets"]]
-        return TargetsMsg(check_sensor_id(obj["sensor_id"]), int(obj["seq"]), int(obj["timestamp_ns"]),
-                          int(obj["config_id"]), str(obj["algo"]), int(obj["K"]), str(obj["source"]), targets,
+        return TargetsMsg(check_sensor_id(obj["sensor_id"]), _uint(obj, "seq"), int(obj["timestamp_ns"]),
+                          _uint(obj, "config_id", 32), str(obj["algo"]), int(obj["K"]), str(obj["source"]), targets,
                           int(obj.get("published_ns", 0)), bool(obj.get("K_auto", False)))
-    except (KeyError, TypeError, ValueError, OverflowError) as exc:
-        raise WireError(f"targets from {source}: missing or bad field ({exc!r})") from None
+    except (KeyError, TypeError, ValueError, OverflowError, WireError) as exc:
+        raise WireError(f"targets from {source}: missing or bad field ({exc})") from None
 
 
 #: health counters added in this version of the JSON (0 when a message lacks them)
