@@ -225,9 +225,11 @@ def _qradar(*args):
                             stderr=subprocess.PIPE, text=True)
 
 
-def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, connect_when_ready):
-    """Kill the quantize process mid-stream and start another: the localize process counts
-    the frames lost meanwhile, so frames it received + frames missing = frames sent."""
+@pytest.mark.parametrize("victim", ["quantize", "router"])
+def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, connect_when_ready, victim):
+    """Kill the quantize process (or the router every node is a client of) mid-stream and
+    start another: the localize process counts the frames lost meanwhile, so frames it
+    received + frames missing = frames sent."""
     ep = f"tcp/127.0.0.1:{free_port}"
     client = ["--mode", "client", "--connect", ep]
     procs = {"router": _qradar("router", "--listen", ep, "--duration", "90")}
@@ -254,13 +256,14 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
 
         send(30)
         wait_until(lambda: len(targets.of("r0/targets")) >= 30, 20, "targets before the restart")
-        procs["quantize"].kill()
-        procs["quantize"].communicate(timeout=20)
-        send(25)  # sent while no quantizer runs: lost
-        procs["quantize"] = _qradar("quantize", "--duration", "90", *client)
+        procs[victim].kill()
+        procs[victim].communicate(timeout=20)
+        send(25)  # sent while it is down: lost
+        procs[victim] = _qradar("router", "--listen", ep, "--duration", "90") if victim == "router" else \
+            _qradar("quantize", "--duration", "90", *client)
         for _ in range(300):  # keep the stream going until the new quantizer is in it (bounded)
             send(1)
-            if alive("quantize") == 1 and len(targets.of("r0/targets")) >= 40:
+            if len(targets.of("r0/targets")) >= 40 and alive("quantize") == 1:
                 break
         send(10)
         last = seq - 1
