@@ -144,6 +144,11 @@ class Policy:
             raise ParameterError(f"identity {ident.name!r} exists already")
         return Policy(self.identities + (ident,))
 
+    def without(self, name: str) -> "Policy":
+        if self.get(name) is None:
+            raise ParameterError(f"no identity {name!r} (known: {', '.join(i.name for i in self.identities)})")
+        return Policy(tuple(i for i in self.identities if i.name != name))
+
     @classmethod
     def load(cls, directory: Path) -> "Policy":
         path = Path(directory) / POLICY_FILE

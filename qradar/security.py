@@ -4,7 +4,7 @@ certificate per identity, made with the ``openssl`` command (OpenSSL 1.1.1 or la
 ``init`` makes the CA (``ca.pem``, ``ca.key``) and the identities of a pipeline —
 ``router``, ``sensor-<id>`` per sensor, ``quantizer``, ``localizer``, ``recorder``,
 ``viewer`` — and their policy (``identities.json``, see :mod:`pipeline.security`);
-``add`` issues one more with the CA key. Keys are EC P-256, written 0600 in a 0700
+``add`` issues one more with the CA key, ``remove`` withdraws one. Keys are EC P-256, written 0600 in a 0700
 directory; the CA key never needs to leave the machine that issues certificates: a host
 gets ``ca.pem``, ``identities.json`` and its own ``<name>.pem`` / ``<name>.key``.
 
@@ -66,7 +66,7 @@ def _openssl(*args: str, cwd: Path) -> str:
 
 
 def _new_key(path: Path) -> None:
-    _openssl("genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", str(path),
+    _openssl("genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", path.name,
              cwd=path.parent)
     path.chmod(0o600)
 
@@ -153,6 +153,16 @@ def add(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identity:
     issued = issue(directory, ident, days)
     policy.with_identity(issued).save(directory)
     return issued
+
+
+def remove(directory: Path, name: str) -> None:
+    """Withdraw an identity: out of the policy, its certificate and key deleted. A router
+    restarted with this policy denies it everything (there is no revocation list: the
+    certificate itself stays valid for TLS until it expires)."""
+    directory = Path(directory)
+    Policy.load(directory).without(name).save(directory)
+    for suffix in (".pem", ".key"):
+        (directory / f"{name}{suffix}").unlink(missing_ok=True)
 
 
 def _check_days(days: int, ca_days: int) -> None:

@@ -156,7 +156,7 @@ def openssl(*args) -> subprocess.CompletedProcess:
     return subprocess.run(["openssl", *map(str, args)], capture_output=True, text=True, timeout=30)
 
 
-def test_security_init_and_add_make_a_ca_and_certificates(pki, tmp_path, capsys):
+def test_security_init_and_add_make_a_ca_and_certificates(pki, tmp_path, capsys, monkeypatch):
     lab, other = pki
     assert os.stat(lab).st_mode & 0o777 == 0o700
     policy = Policy.load(lab)
@@ -174,7 +174,8 @@ def test_security_init_and_add_make_a_ca_and_certificates(pki, tmp_path, capsys)
     # a sensor on another host, with its own SANs; the CA's copy of the directory
     copy = tmp_path / "lab"
     shutil.copytree(lab, copy)
-    assert main(["security", "add", str(copy), "--role", "sensor", "--id", "s3", "--host", "10.0.0.5",
+    monkeypatch.chdir(tmp_path)  # a relative directory
+    assert main(["security", "add", "lab", "--role", "sensor", "--id", "s3", "--host", "10.0.0.5",
                  "--host", "sensor3.lab"]) == 0
     assert "sensor-s3" in capsys.readouterr().out
     text = openssl("x509", "-in", copy / "sensor-s3.pem", "-noout", "-ext", "subjectAltName").stdout
@@ -256,12 +257,15 @@ def attack(sessions, fakes, stop_evt, rounds=60, period_s=0.025) -> None:
         time.sleep(period_s)
 
 
-def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free_port, connect_when_ready):
+def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free_port, connect_when_ready, capsys):
     lab, other = pki
     ep = f"tls/127.0.0.1:{free_port}"
     frames = 20
     scene = resolve_scene("single")
-    router = qradar("router", "--secure", lab, "--listen", ep, "--duration", "60")
+    routers = tmp_path / "router-pki"  # the router's copy, where the recorder has been withdrawn
+    shutil.copytree(lab, routers)
+    assert main(["security", "remove", str(routers), "recorder"]) == 0
+    router = qradar("router", "--secure", routers, "--listen", ep, "--duration", "60")
     procs, attackers = [router], {}
     try:
         viewer = connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer"))
@@ -288,6 +292,8 @@ def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free
         attackers["s1-peer"] = BusConfig(connect=(ep,), listen=(f"tls/127.0.0.1:{free_port_other(free_port)}",),
                                          secure=SecureConfig(lab, "sensor-s1")).open()
         attackers["viewer"] = BusConfig(mode="client", connect=(ep,), secure=SecureConfig(lab, "viewer")).open()
+        # ... and a withdrawn one (still signed by the CA)
+        attackers["removed"] = BusConfig(mode="client", connect=(ep,), secure=SecureConfig(lab, "recorder")).open()
         tokens = [s.liveliness().declare_token("radar/alive/localize/forged") for s in attackers.values()]
 
         stop_evt = threading.Event()

@@ -6,7 +6,7 @@
 - :mod:`.analysis`: ``montecarlo``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)
-- :mod:`.security`: ``security init|add|list`` (certificates for ``--secure``)
+- :mod:`.security`: ``security init|add|remove|list`` (certificates for ``--secure``)
 
 A command function parses its arguments into the libraries' configs and delegates.
 Errors: only the packages' roots (RadarError, PipelineError, ReplayError) are caught;

@@ -26,7 +26,7 @@ def add_commands(sub) -> None:
                        description="A certificate authority of your own and one certificate per node identity, "
                        "for --secure DIR on every node and the router. The CA key (ca.key) stays on the machine "
                        "that runs init; another host gets ca.pem, identities.json and its own NAME.pem, NAME.key.")
-    ss = p.add_subparsers(dest="action", required=True)
+    ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list}")
 
     q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
                       "viewer")
@@ -49,6 +49,11 @@ def add_commands(sub) -> None:
                    "role and id")
     _cert_options(q)
     q.set_defaults(func=cmd_add)
+
+    q = ss.add_parser("remove", help="withdraw an identity from the policy of DIR (restart the router to apply)")
+    q.add_argument("dir", type=Path)
+    q.add_argument("name")
+    q.set_defaults(func=cmd_remove)
 
     q = ss.add_parser("list", help="the identities of DIR and what each may publish")
     q.add_argument("dir", type=Path)
@@ -91,6 +96,12 @@ def cmd_add(args) -> int:
     ident = security.add(args.dir, Identity(args.name or default, role, sensors, tuple(args.host)), days=args.days)
     _show(args, [ident], f"issued {ident.name} in {args.dir}; copy ca.pem, {POLICY_FILE}, {ident.name}.pem and "
           f"{ident.name}.key to its host, {POLICY_FILE} to the router's, and restart the router")
+    return 0
+
+
+def cmd_remove(args) -> int:
+    security.remove(args.dir, args.name)
+    print(f"removed {args.name} from {args.dir / POLICY_FILE}; copy it to the router's host and restart the router")
     return 0
 
 
