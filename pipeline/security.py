@@ -180,7 +180,9 @@ class Policy:
     def access_control(self, prefix: str) -> dict:
         """zenoh's ``access_control`` block: default deny; every identity (by certificate
         common name) may read everything under ``prefix`` and publish what its role allows;
-        a local unix-socket peer gets a sensor's rights for every sensor."""
+        a local unix-socket peer gets a sensor's rights for every sensor. (The ids of rules
+        and subjects made from identity names all start with cn-, publish-, alive-,
+        forward- or policy-: they cannot collide with the fixed ones.)"""
         everything = [f"{prefix}/**"]
         rules = [
             {"id": "read", "permission": "allow", "flows": ["ingress", "egress"], "key_exprs": everything,
@@ -202,14 +204,14 @@ class Policy:
                               "key_exprs": everything, "messages": list(ALL_MESSAGES)})
                 names.append(f"forward-{ident.name}")
             policies.append({"id": f"policy-{ident.name}", "subjects": [sid], "rules": names})
-        subjects.append({"id": "local", "link_protocols": list(LOCAL_LINKS)})
-        rules.append({"id": "publish-local", "permission": "allow", "flows": ["ingress"],
+        subjects.append({"id": "unixsock", "link_protocols": list(LOCAL_LINKS)})
+        rules.append({"id": "unixsock-publish", "permission": "allow", "flows": ["ingress"],
                       "key_exprs": [f"{prefix}/*/raw", f"{prefix}/*/quantized", f"{prefix}/*/health"],
                       "messages": ["put", "delete"]})
-        rules.append({"id": "alive-local", "permission": "allow", "flows": ["ingress"],
+        rules.append({"id": "unixsock-alive", "permission": "allow", "flows": ["ingress"],
                       "key_exprs": [f"{prefix}/alive/{ROLE_NODE['sensor']}/*"], "messages": ["liveliness_token"]})
-        policies.append({"id": "policy-local", "subjects": ["local"],
-                         "rules": ["read", "receive", "publish-local", "alive-local"]})
+        policies.append({"id": "unixsock-policy", "subjects": ["unixsock"],
+                         "rules": ["read", "receive", "unixsock-publish", "unixsock-alive"]})
         return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
                 "policies": policies}
 
