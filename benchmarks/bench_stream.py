@@ -108,7 +108,7 @@ def main() -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
     nodes = [cli("quantize", "--listen", ep, "--queue", "4096"), cli("localize", "--connect", ep, "--queue", "4096")]
     time.sleep(2.0)
-    session = BusConfig(connect=(ep,)).open()
+    session = BusConfig(mode="client", connect=(ep,)).open()  # a client: the listening quantizer routes targets to it
     sink = Sink(session)
     rows, best = [], {}
     try:

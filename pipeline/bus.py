@@ -1,9 +1,16 @@
 """Zenoh sessions and key expressions.
 
-Default: an embedded peer with multicast scouting off, so nothing leaves the process
-unless asked. ``connect`` / ``listen`` endpoints (e.g. ``tcp/127.0.0.1:7447``) join
-nodes in other processes or on other hosts; a JSON5 config file can set anything else
-(the endpoints and mode given here are applied on top of it).
+Default: an embedded peer with multicast scouting off and no listener, so nothing
+leaves the process and nothing comes in unless asked. ``connect`` / ``listen``
+endpoints (e.g. ``tcp/127.0.0.1:7447``) join nodes in other processes or on other
+hosts; a JSON5 config file can set anything else (the endpoints and mode given here are
+applied on top of it). A session listens only on the endpoints given here or in the
+file's ``listen/endpoints``: never on zenoh's implicit ``tcp/[::]:0`` (peer) or
+``tcp/[::]:7447`` (router), which would open a port on every interface.
+
+``secure`` (:class:`pipeline.security.SecureConfig`) turns on mutual TLS and the
+access-control policy, and refuses every endpoint that is not ``tls/`` (or a local
+``unixsock-stream/``), also those of the config file.
 
 Keys: ``<prefix>/<sensor>/{raw,quantized,targets,health}``; liveliness tokens at
 ``<prefix>/alive/<node>/<instance>``.
@@ -19,7 +26,10 @@ from pathlib import Path
 import zenoh
 
 from .errors import BusError, ParameterError
+from .security import SecureConfig, check_secure_endpoint
 from .wire import TOPICS
+
+_DEFAULT_ENDPOINTS = {key: zenoh.Config().get_json(key) for key in ("listen/endpoints", "connect/endpoints")}
 
 
 @dataclass(frozen=True)
@@ -32,6 +42,7 @@ class BusConfig:
     config_file: Path | None = None
     prefix: str = "radar"
     multicast_scouting: bool = False
+    secure: SecureConfig | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -44,32 +55,65 @@ class BusConfig:
                 raise ParameterError(f"endpoint {ep!r} must look like tcp/127.0.0.1:7447")
         if self.mode == "client" and not self.connect:
             raise ParameterError("a zenoh client needs at least one --connect endpoint")
+        if self.secure is not None:
+            for what, eps in (("connect", self.connect), ("listen", self.listen)):
+                for ep in eps:
+                    check_secure_endpoint(ep, what)
+
+    def _file_config(self) -> zenoh.Config:
+        if self.config_file is None:
+            return zenoh.Config()
+        try:
+            return zenoh.Config.from_file(str(self.config_file))
+        except zenoh.ZError as exc:  # missing, unreadable or unparsable: the parser's message
+            raise BusError(f"zenoh config file {self.config_file}: {exc}") from None
+
+    def _endpoints(self, conf: zenoh.Config, what: str) -> list[str]:
+        """``what`` (listen or connect) endpoints of ``conf`` for this mode; zenoh's
+        defaults count as none (a file that leaves them alone asks for nothing)."""
+        raw = conf.get_json(f"{what}/endpoints")
+        if raw == _DEFAULT_ENDPOINTS[f"{what}/endpoints"]:
+            return []
+        value = json.loads(raw)
+        if isinstance(value, dict):  # per mode: {router: [...], peer: [...], client: [...]}
+            value = value.get(self.mode, [])
+        out = []
+        for ep in value or []:  # an endpoint, or {"strategy": ..., "locators": [...]}
+            out.extend(ep.get("locators", []) if isinstance(ep, dict) else [ep])
+        return [str(ep) for ep in out]
+
+    def listen_endpoints(self) -> list[str]:
+        """Where a session of this config listens: ``listen``, else the config file's
+        endpoints for this mode, else nowhere."""
+        return list(self.listen) or self._endpoints(self._file_config(), "listen")
 
     def zenoh_config(self) -> zenoh.Config:
-        if self.config_file is not None:
-            try:
-                conf = zenoh.Config.from_file(str(self.config_file))
-            except zenoh.ZError as exc:  # missing, unreadable or unparsable: the parser's message
-                raise BusError(f"zenoh config file {self.config_file}: {exc}") from None
-        else:
-            conf = zenoh.Config()
+        conf = self._file_config()
+        file_listen = self._endpoints(conf, "listen")
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         if self.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        if self.listen:
+        if self.listen or not file_listen:  # no implicit listener on every interface
             conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        elif self.config_file is None and self.mode == "peer" and not self.connect:
-            # an isolated embedded peer: no listener needed
-            conf.insert_json5("listen/endpoints", "[]")
+        if self.secure is not None:
+            where = f"zenoh config file {self.config_file}" if self.config_file is not None else "zenoh config"
+            for what in ("connect", "listen"):
+                for ep in self._endpoints(conf, what):
+                    check_secure_endpoint(ep, f"{where}: {what}")
+            for key, value in self.secure.tls().items():
+                conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+            conf.insert_json5("access_control", json.dumps(self.secure.policy.access_control(self.prefix)))
         return conf
 
     def open(self) -> zenoh.Session:
+        conf = self.zenoh_config()
         try:
-            return zenoh.open(self.zenoh_config())
+            return zenoh.open(conf)
         except zenoh.ZError as exc:
+            who = "" if self.secure is None else f", secure as {self.secure.identity!r} from {self.secure.directory}"
             raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
-                           f"listen={list(self.listen)}): {exc}") from None
+                           f"listen={self.listen_endpoints()}{who}): {exc}") from None
 
     # -- keys ------------------------------------------------------------------------------
     def key(self, sensor_id: str, topic: str) -> str:

@@ -63,8 +63,9 @@ def _joined(session, timeout_s: float) -> bool:
 
 @pytest.fixture
 def connect_when_ready():
-    """``connect_when_ready(endpoint, timeout_s=20, mode="peer")``: a zenoh session connected
-    to ``endpoint``, whose listener is in another process that may not be up yet.
+    """``connect_when_ready(endpoint, timeout_s=20, mode="peer", secure=None)``: a zenoh session
+    connected to ``endpoint`` (with ``secure``, a pipeline.security.SecureConfig, over mTLS),
+    whose listener is in another process that may not be up yet.
 
     Each attempt opens a session (a client fails at once when nothing listens: a
     PipelineError) and waits up to CONNECT_ATTEMPT_S for a peer or router to join (a peer
@@ -74,8 +75,8 @@ def connect_when_ready():
     are closed when the test ends (closing one earlier in the test is fine too)."""
     opened = []
 
-    def connect(endpoint: str, timeout_s: float = 20.0, mode: str = "peer"):
-        bus = BusConfig(mode=mode, connect=(endpoint,))
+    def connect(endpoint: str, timeout_s: float = 20.0, mode: str = "peer", secure=None):
+        bus = BusConfig(mode=mode, connect=(endpoint,), secure=secure)
         deadline = time.monotonic() + timeout_s
         max_attempts = int(timeout_s / CONNECT_RETRY_S) + 1
         last = "no attempt was made"

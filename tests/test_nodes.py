@@ -175,7 +175,7 @@ def test_nodes_in_separate_processes_over_loopback(free_port, connect_when_ready
     procs = [_spawn(["quantize", "--listen", ep, "--alpha", "0.5", "--duration", "40"]),
              _spawn(["localize", "--connect", ep, "--K", "1", "--duration", "40"])]
     try:
-        session = connect_when_ready(ep, timeout_s=20)
+        session = connect_when_ready(ep, timeout_s=20, mode="client")  # routed by the listening peer
         col = Collector(session, "radar/**")
 
         def alive():

@@ -1,6 +1,8 @@
 """Helpers shared by the tests (not fixtures; those are in conftest.py): a bounded wait, a
-collecting zenoh subscriber, a free loopback port for code that needs one outside a fixture."""
+collecting zenoh subscriber, a free loopback port for code that needs one outside a fixture,
+the listening sockets of a process."""
 
+import os
 import socket
 import threading
 import time
@@ -41,3 +43,25 @@ class Collector:
     def of(self, suffix):
         with self.lock:
             return [p for k, p in self.items if k.endswith(suffix)]
+
+
+def listening_sockets(pid: int) -> set[tuple[str, str, int]]:
+    """(protocol, local address as /proc/net writes it in hex, port) of every TCP socket in
+    LISTEN state and every unconnected UDP socket that process ``pid`` holds."""
+    table = {}
+    for proto in ("tcp", "tcp6", "udp", "udp6"):
+        with open(f"/proc/{pid}/net/{proto}") as f:
+            for line in f.readlines()[1:]:
+                cols = line.split()
+                if cols[3] in ("0A", "07"):  # TCP LISTEN, or an unconnected UDP socket
+                    addr, port = cols[1].split(":")
+                    table[cols[9]] = (proto, addr, int(port, 16))
+    out = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:[") and target[8:-1] in table:
+            out.add(table[target[8:-1]])
+    return out

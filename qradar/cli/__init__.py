@@ -6,6 +6,7 @@
 - :mod:`.analysis`: ``montecarlo``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)
+- :mod:`.security`: ``security init|add|remove|list`` (certificates for ``--secure``)
 
 A command function parses its arguments into the libraries' configs and delegates.
 Errors: only the packages' roots (RadarError, PipelineError, ReplayError) are caught;
@@ -29,7 +30,7 @@ from pipeline.errors import PipelineError
 from radar_driver.errors import RadarError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, record, sensor, stream, view
+from . import analysis, bringup, record, security, sensor, stream, view
 from .common import DefaultsFormatter
 
 log = logging.getLogger("qradar")
@@ -49,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     analysis.add_reprocess(sub)
     view.add_commands(sub)
     bringup.add_commands(sub)
+    security.add_commands(sub)
     for p in sub.choices.values():
         p.formatter_class = DefaultsFormatter
         p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,

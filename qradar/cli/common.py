@@ -7,7 +7,9 @@ import signal
 from pathlib import Path
 
 from pipeline.bus import BusConfig
+from pipeline.security import SecureConfig
 from pipeline.decode import ALGOS, Algo
+from pipeline.errors import ParameterError
 from pipeline.localize import DEFAULT_PFA
 from pipeline.quantize import QuantizerConfig
 
@@ -118,19 +120,57 @@ def install_sigterm() -> None:
     signal.signal(signal.SIGINT, handler)
 
 
-def bus_options(parser: argparse.ArgumentParser) -> None:
-    """Add --zenoh-config, --connect, --listen, --mode, --prefix."""
+def bus_options(parser: argparse.ArgumentParser, modes: tuple[str, ...] = ("peer", "client")) -> None:
+    """Add --zenoh-config, --connect, --listen, --mode, --prefix, --secure, --identity."""
     g = parser.add_argument_group("zenoh")
     g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh JSON5 config file")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
-    g.add_argument("--mode", choices=["peer", "client"], default="peer", help="zenoh mode")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="e.g. tcp/127.0.0.1:7447 (with --secure: tls/HOST:PORT)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="e.g. tcp/127.0.0.1:7447; none by default (nothing listens unless asked, here or in "
+                   "--zenoh-config)")
+    if len(modes) > 1:
+        g.add_argument("--mode", choices=list(modes), default=modes[0], help="zenoh mode")
+    else:
+        parser.set_defaults(mode=modes[0])
     g.add_argument("--prefix", default="radar", help="key prefix (default radar)")
+    g.add_argument("--secure", type=Path, default=None, metavar="DIR",
+                   help="mutual TLS and the access-control policy of DIR (made by `qradar security init`); "
+                   "only tls/ endpoints")
+    g.add_argument("--identity", default=None, metavar="NAME",
+                   help="with --secure: the certificate to use (default: this command's role, e.g. quantizer, "
+                   "localizer, recorder, viewer, router, sensor-<id>)")
+
+
+# the identity a command speaks as under --secure unless --identity names another
+COMMAND_IDENTITY = {"router": "router", "run": "router", "quantize": "quantizer", "localize": "localizer",
+                    "record": "recorder", "view": "viewer"}
+
+
+def default_identity(args) -> str | None:
+    """The identity ``args.command`` uses by default: its role's, or ``sensor-<id>`` for
+    a node publishing one sensor (``drive``, ``source`` of one simulated sensor)."""
+    command = getattr(args, "command", None)
+    if command in COMMAND_IDENTITY:
+        return COMMAND_IDENTITY[command]
+    if command == "drive":
+        return f"sensor-{args.sensor_id}"
+    if command == "source" and args.recording is None and args.sensors == 1:
+        return f"sensor-{args.id_prefix}0"
+    return None
 
 
 def bus_from_args(args, mode: str | None = None) -> BusConfig:
+    secure = None
+    if args.secure is not None:
+        identity = args.identity or default_identity(args)
+        if identity is None:
+            raise ParameterError(f"qradar {args.command} --secure needs --identity NAME (it has no single role)")
+        secure = SecureConfig(args.secure, identity)
+    elif args.identity is not None:
+        raise ParameterError("--identity is for --secure DIR")
     return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                     config_file=args.zenoh_config, prefix=args.prefix)
+                     config_file=args.zenoh_config, prefix=args.prefix, secure=secure)
 
 
 def quantizer_options(p: argparse.ArgumentParser, alpha_default: float | None, alpha_help: str) -> None:

@@ -7,10 +7,11 @@ import json
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from pipeline.bus import BusConfig
 from pipeline.decode import Algo, default_alpha
+from pipeline.errors import ParameterError
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
@@ -73,12 +74,12 @@ def add_commands(sub) -> None:
     bus_options(p)
     p.set_defaults(func=cmd_source)
 
-    p = sub.add_parser("router", help="a zenoh router for multi-host set-ups")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="e.g. tcp/0.0.0.0:7447 (default)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
-    p.add_argument("--zenoh-config", type=Path, default=None)
+    p = sub.add_parser("router", help="a zenoh router for multi-host set-ups",
+                       description="A zenoh router the nodes join as clients (--mode client --connect ...). It "
+                       f"listens on --listen, else on the --zenoh-config file's listen/endpoints, else on "
+                       f"{ROUTER_LISTEN} ({ROUTER_LISTEN_SECURE} with --secure).")
     p.add_argument("--duration", type=float, default=None)
+    bus_options(p, modes=("router",))
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("run", help="the main job: simulated K-MD2 -> driver -> quantize -> localize over zenoh",
@@ -171,20 +172,29 @@ def cmd_source(args) -> int:
     return 0
 
 
+ROUTER_LISTEN = "tcp/0.0.0.0:7447"
+ROUTER_LISTEN_SECURE = "tls/0.0.0.0:7447"
+
+
 def cmd_router(args) -> int:
-    bus = BusConfig(mode="router", listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]), connect=tuple(args.connect),
-                    config_file=args.zenoh_config)
+    bus = bus_from_args(args)
+    if not bus.listen_endpoints():  # neither --listen nor the config file says where
+        bus = replace(bus, listen=(ROUTER_LISTEN_SECURE if bus.secure is not None else ROUTER_LISTEN,))
     install_sigterm()
-    session = bus.open()
-    print(f"zenoh router {session.zid()} listening on {list(bus.listen)}; Ctrl-C to stop", flush=True)
+    session = None
     try:
+        session = bus.open()  # (a router takes a moment to open: a SIGTERM meanwhile is a clean stop too)
+        secure = "" if bus.secure is None else f" (mTLS and access control as {bus.secure.identity!r})"
+        print(f"zenoh router {session.zid()} listening on {bus.listen_endpoints()}{secure}; Ctrl-C to stop",
+              flush=True)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         while deadline is None or time.monotonic() < deadline:
             time.sleep(0.2)
     except KeyboardInterrupt:
         pass
     finally:
-        session.close()
+        if session is not None:
+            session.close()
     return 0
 
 
@@ -192,6 +202,9 @@ def cmd_run(args) -> int:
     record = None
     if not args.no_record:
         record = args.record or Path("recordings") / time.strftime("run-%Y%m%d-%H%M%S.mcap")
+    if args.secure is not None and args.mode == "client":
+        raise ParameterError("qradar run --secure runs as a peer (its drivers join it over a private unix socket); "
+                             "drop --mode client, and give --listen tls/... to serve other nodes")
     alpha = default_alpha(args.algo) if args.alpha is None else args.alpha
     k, auto = count_from_args(args)
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,

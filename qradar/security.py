@@ -1,0 +1,170 @@
+"""Certificates for ``--secure``: a certificate authority of the project's own and one
+certificate per identity, made with the ``openssl`` command (OpenSSL 1.1.1 or later).
+
+``init`` makes the CA (``ca.pem``, ``ca.key``) and the identities of a pipeline —
+``router``, ``sensor-<id>`` per sensor, ``quantizer``, ``localizer``, ``recorder``,
+``viewer`` — and their policy (``identities.json``, see :mod:`pipeline.security`);
+``add`` issues one more with the CA key, ``remove`` withdraws one. Keys are EC P-256, written 0600 in a 0700
+directory; the CA key never needs to leave the machine that issues certificates: a host
+gets ``ca.pem``, ``identities.json`` and its own ``<name>.pem`` / ``<name>.key``.
+
+A certificate names its hosts (subjectAltName: DNS names and IP addresses) so that a
+node connecting to a listener can check the listener's name; every certificate also
+names ``localhost`` and ``127.0.0.1``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+import secrets
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+from pipeline.errors import BusError, ParameterError
+from pipeline.security import CA_CERT, CA_KEY, POLICY_FILE, Identity, Policy
+
+DEFAULT_HOSTS = ("localhost", "127.0.0.1")
+DEFAULT_DAYS = 365
+CA_DAYS = 3650
+_DNS = re.compile(r"(\*\.)?([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?\.)*[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def san_entry(host: str) -> str:
+    """``IP:…`` for an address, ``DNS:…`` for a host name; anything else is an error."""
+    try:
+        return f"IP:{ipaddress.ip_address(host)}"
+    except ValueError:
+        pass
+    if len(host) <= 253 and _DNS.fullmatch(host):
+        return f"DNS:{host}"
+    raise ParameterError(f"host {host!r} is neither an IP address nor a DNS name")
+
+
+def _hosts(extra) -> tuple[str, ...]:
+    out = list(DEFAULT_HOSTS)
+    for h in extra:
+        san_entry(h)
+        if h not in out:
+            out.append(h)
+    return tuple(out)
+
+
+def _openssl(*args: str, cwd: Path) -> str:
+    exe = shutil.which("openssl")
+    if exe is None:
+        raise BusError("the openssl command is not installed (e.g. apt-get install openssl); "
+                       "qradar security uses it to make certificates")
+    proc = subprocess.run([exe, *args], cwd=cwd, capture_output=True, text=True, timeout=60)
+    if proc.returncode != 0:
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        raise BusError(f"openssl {args[0]} failed in {cwd}: {lines[-1] if lines else f'exit code {proc.returncode}'}")
+    return proc.stdout
+
+
+def _new_key(path: Path) -> None:
+    _openssl("genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", path.name,
+             cwd=path.parent)
+    path.chmod(0o600)
+
+
+def _serial() -> str:
+    return "0x" + secrets.token_hex(15)
+
+
+def make_ca(directory: Path, days: int = CA_DAYS) -> None:
+    """``ca.key`` and a self-signed ``ca.pem`` (unique subject, so two CAs never look alike)."""
+    _new_key(directory / CA_KEY)
+    _openssl("req", "-x509", "-new", "-key", CA_KEY, "-sha256", "-days", str(days), "-set_serial", _serial(),
+             "-subj", f"/O=qradar/CN=qradar CA {secrets.token_hex(4)}",
+             "-addext", "basicConstraints=critical,CA:TRUE,pathlen:0",
+             "-addext", "keyUsage=critical,keyCertSign,cRLSign", "-out", CA_CERT, cwd=directory)
+
+
+def issue(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identity:
+    """``<name>.key`` and ``<name>.pem`` signed by the CA in ``directory``; returns the
+    identity with its expiry filled in."""
+    directory = Path(directory)
+    for path in (directory / CA_CERT, directory / CA_KEY):
+        if not path.is_file():
+            raise BusError(f"{path} is missing: certificates are issued where `qradar security init` made the CA")
+    name = ident.name
+    ext = "\n".join([
+        "basicConstraints=critical,CA:FALSE",
+        "keyUsage=critical,digitalSignature",
+        "extendedKeyUsage=serverAuth,clientAuth",
+        "subjectKeyIdentifier=hash",
+        "authorityKeyIdentifier=keyid",
+        "subjectAltName=" + ",".join(san_entry(h) for h in ident.hosts),
+    ]) + "\n"
+    _new_key(directory / f"{name}.key")
+    with tempfile.TemporaryDirectory(prefix="qradar-csr-") as tmp:
+        csr, extfile = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
+        extfile.write_text(ext)
+        _openssl("req", "-new", "-key", f"{name}.key", "-subj", f"/O=qradar/OU={ident.role}/CN={name}",
+                 "-out", str(csr), cwd=directory)
+        _openssl("x509", "-req", "-in", str(csr), "-CA", CA_CERT, "-CAkey", CA_KEY, "-set_serial", _serial(),
+                 "-days", str(days), "-sha256", "-extfile", str(extfile), "-out", f"{name}.pem", cwd=directory)
+    end = _openssl("x509", "-in", f"{name}.pem", "-noout", "-enddate", cwd=directory).strip()
+    return Identity(ident.name, ident.role, ident.sensors, ident.hosts, end.partition("=")[2])
+
+
+def default_identities(sensors, hosts=()) -> list[Identity]:
+    """The identities of one pipeline: a router, a sensor per id, one quantizer and one
+    localizer serving every sensor, a recorder and a viewer."""
+    h = _hosts(hosts)
+    return [Identity("router", "router", hosts=h),
+            *(Identity(f"sensor-{s}", "sensor", (s,), h) for s in sensors),
+            Identity("quantizer", "quantizer", hosts=h), Identity("localizer", "localizer", hosts=h),
+            Identity("recorder", "recorder", hosts=h), Identity("viewer", "viewer", hosts=h)]
+
+
+def init(directory: Path, sensors, hosts=(), days: int = DEFAULT_DAYS, ca_days: int = CA_DAYS) -> Policy:
+    """A new CA and the :func:`default_identities` in ``directory`` (made 0700); refuses
+    a directory that has a CA already."""
+    directory = Path(directory)
+    _check_days(days, ca_days)
+    if (directory / CA_KEY).exists() or (directory / CA_CERT).exists() or (directory / POLICY_FILE).exists():
+        raise BusError(f"{directory} has a CA already; add identities with `qradar security add {directory} ...` "
+                       "or choose another directory")
+    idents = default_identities(sensors, hosts)
+    Policy(tuple(idents))  # duplicate names (a sensor id given twice) before anything is written
+    try:
+        directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.chmod(directory, 0o700)
+    except OSError as exc:
+        raise BusError(f"cannot make {directory}: {exc.strerror}") from None
+    make_ca(directory, ca_days)
+    policy = Policy(tuple(issue(directory, i, days) for i in idents))
+    policy.save(directory)
+    return policy
+
+
+def add(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identity:
+    """Issue one more identity with the CA in ``directory`` and add it to the policy."""
+    directory = Path(directory)
+    _check_days(days, days)
+    policy = Policy.load(directory)
+    policy.with_identity(ident)  # refuses an existing name before a key is overwritten
+    ident = Identity(ident.name, ident.role, ident.sensors, _hosts(ident.hosts))
+    issued = issue(directory, ident, days)
+    policy.with_identity(issued).save(directory)
+    return issued
+
+
+def remove(directory: Path, name: str) -> None:
+    """Withdraw an identity: out of the policy, its certificate and key deleted. A router
+    restarted with this policy denies it everything (there is no revocation list: the
+    certificate itself stays valid for TLS until it expires)."""
+    directory = Path(directory)
+    Policy.load(directory).without(name).save(directory)
+    for suffix in (".pem", ".key"):
+        (directory / f"{name}{suffix}").unlink(missing_ok=True)
+
+
+def _check_days(days: int, ca_days: int) -> None:
+    if not (isinstance(days, int) and days >= 1 and isinstance(ca_days, int) and ca_days >= 1):
+        raise ParameterError(f"validity days={days!r}, ca_days={ca_days!r} must be integers >= 1")
