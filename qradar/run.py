@@ -27,32 +27,41 @@ import zenoh
 from pipeline.bus import BusConfig
 from pipeline.decode import Algo, DecoderConfig
 from pipeline.errors import ParameterError
+from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
-from pipeline.wire import WireError, decode_targets
+from pipeline.wire import TOPICS, WireError, decode_targets
 from radar_driver.errors import RadarError
 from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
-from replay.recorder import RecorderNode
+from replay.recorder import OnWriteError, RecorderNode
 
 from .view import FoxgloveView, ViewConfig
+
+#: topics the monitor counts by name (``other`` for the rest)
+MONITORED_TOPICS = frozenset(TOPICS)
 
 
 class Monitor:
     """Watches ``<prefix>/**``: counts and sizes per topic, latency and position error of
     the targets against the scene's truth, and prints live lines (at most one a second
-    per sensor). Light work only, so it runs in zenoh's callback."""
+    per sensor). Light work only, so it runs in zenoh's callback. Its memory is fixed
+    however long it runs: latency and error go into fixed-size histograms, counts are
+    per known topic (the rest under ``other``)."""
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session, scene: SimScene, t0_ns: int,
+    #: sensors whose last live line is remembered (beyond, the memory is cleared)
+    MAX_SENSORS = 1024
+
+    def __init__(self, bus: BusConfig, session: zenoh.Session | None, scene: SimScene, t0_ns: int,
                  live: TextIO | None = sys.stdout):
         self.bus, self.session, self.scene, self.t0_ns = bus, session, scene, t0_ns
         self.live = live
         self.count: dict[str, int] = defaultdict(int)
         self.bytes: dict[str, int] = defaultdict(int)
-        self.latency_ms: list[float] = []
-        self.errors_m: list[float] = []
+        self.latency_ms = LogHistogram(lo=1e-3, hi=1e6)  # sensor timestamp -> targets published, ms
+        self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
         self.bad_targets = 0
         self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
         self._last_seq: dict[str, int] = {}
@@ -70,9 +79,13 @@ class Monitor:
             self._sub = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+        self.on_message(str(sample.key_expr), sample.payload.to_bytes())
+
+    def on_message(self, key: str, payload: bytes) -> None:
+        """One message of ``<prefix>/**`` (what the zenoh callback hands over)."""
         topic = key.rsplit("/", 1)[-1]
-        payload = sample.payload.to_bytes()
+        if topic not in MONITORED_TOPICS:
+            topic = "other"
         with self._lock:
             self.count[topic] += 1
             self.bytes[topic] += len(payload)
@@ -95,10 +108,12 @@ class Monitor:
             if last is not None and msg.seq > last + 1:
                 self.targets_missing += msg.seq - last - 1
             self._last_seq[msg.sensor_id] = msg.seq
-            self.latency_ms.append((msg.published_ns - msg.timestamp_ns) / 1e6)
-            self.errors_m.extend(err.tolist())
+            self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
+            self.errors_m.add_many(err)
         now = time.monotonic()
         if self.live is not None and now - self._last_print.get(msg.sensor_id, 0.0) >= 1.0:
+            if len(self._last_print) >= self.MAX_SENSORS:
+                self._last_print.clear()
             self._last_print[msg.sensor_id] = now
             est = "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets)
             tru = "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
@@ -124,6 +139,8 @@ class RunConfig:
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
     driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
+    record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
+    record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -133,6 +150,10 @@ class RunConfig:
             raise ParameterError(f"duration={self.duration_s!r} must be > 0")
         if not self.rate_hz > 0:
             raise ParameterError(f"rate={self.rate_hz!r} must be > 0")
+        if self.record_on_error not in tuple(OnWriteError) or not self.record_retry_s > 0:
+            raise ParameterError(f"record_on_error={self.record_on_error!r} must be one of "
+                                 f"{[m.value for m in OnWriteError]} and record_retry_s={self.record_retry_s!r} > 0")
+        object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
 
 
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
@@ -169,7 +190,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k))]
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k),
+                                         on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s)]
             view = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=scene.radar), session=session).start()
@@ -186,9 +208,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             for sim in sims:
                 sim.stop()
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start)
-    if recorder:
-        summary["recording"] = {"files": [str(p) for p in recorder[0].paths], "written": recorder[0].written,
-                                "dropped": recorder[0].totals()["drops"]}
+    if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
+        summary["recording"] = recorder[0].summary()
     if view is not None:
         summary["foxglove"] = view.summary()
     return summary
@@ -312,9 +333,8 @@ def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
     }
 
 
-def _stat(values, fn) -> float | None:
-    v = np.asarray(values, dtype=float)
-    return round(float(fn(v)), 4) if v.size else None
+def _stat(value: float | None) -> float | None:
+    return None if value is None else round(float(value), 4)
 
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float) -> dict:
@@ -323,6 +343,7 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
     q_tot, l_tot = quantizer.totals(), localizer.totals()
     queue_drops = l_tot["drops"] + q_tot["drops"]
     cnt, size = monitor.count, monitor.bytes
+    lat, err = monitor.latency_ms, monitor.errors_m  # fixed-size histograms: within 2 % of the exact figures
     return {
         "scene": scene.name,
         "sensors": cfg.sensors,
@@ -341,10 +362,9 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
                            "targets": monitor.targets_missing},
         "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
-        "latency_ms": {"p50": _stat(monitor.latency_ms, np.median),
-                       "p99": _stat(monitor.latency_ms, lambda v: np.percentile(v, 99))},
-        "position_error_m": {"median": _stat(monitor.errors_m, np.median), "mean": _stat(monitor.errors_m, np.mean),
-                             "p90": _stat(monitor.errors_m, lambda v: np.percentile(v, 90))},
+        "latency_ms": {"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
+        "position_error_m": {"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
+                             "p90": _stat(err.percentile(90))},
         "bytes_per_raw_frame": round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
@@ -368,6 +388,12 @@ def format_summary(s: dict) -> str:
         f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
         f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})",
     ]
+    rec = s.get("recording")
+    if rec is not None:
+        lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
+                     f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
+                     + (f" {rec['lost_by_topic']}" if rec["lost"] else "")
+                     + (f"; last write error: {rec['error']}" if rec["error"] else ""))
     return "\n".join(lines)
 
 

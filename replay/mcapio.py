@@ -8,19 +8,28 @@ shows them without plugins.
 
 Reading goes record by record, so a file cut short (no footer, a chunk half written)
 yields every message of its complete chunks and reports that it was truncated.
+
+Writing is unbuffered below the MCAP writer (each write is a whole record group), so a
+write error (a full disk, EFBIG, EIO) leaves nothing pending: :meth:`McapSink.abort`
+cuts the file back to its last flushed chunk and, if the disk takes ~50 more bytes,
+ends it with a footer (a complete MCAP without an index; ``qradar recover`` indexes it).
 """
 
 from __future__ import annotations
 
 import base64
+import errno
 import json
+import os
 import struct
+from collections import Counter
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 from mcap.exceptions import McapError
-from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from zstandard import ZstdError
@@ -95,22 +104,89 @@ def topic_of(key: str) -> str | None:
     return last if last in TOPICS + ("pointcloud",) else None
 
 
+def describe_os_error(exc: BaseException) -> str:
+    """``No space left on device (ENOSPC)``: an OSError's text and errno name."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        return f"{exc.strerror or exc} ({errno.errorcode.get(exc.errno, exc.errno)})"
+    return str(exc) or type(exc).__name__
+
+
+class _RecordFile:
+    """The file below an MCAP Writer: each ``write`` goes to the OS at once (no user-space
+    buffer), and ``pos`` is the byte count the OS took, so after a write error the file
+    can be cut back to a record boundary with nothing left behind in a buffer."""
+
+    def __init__(self, path: Path):
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+        self.pos = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        done = 0
+        while done < len(view):  # a short write (the disk filling up) is followed by an OSError
+            n = os.write(self.fd, view[done:])
+            if n <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            done += n
+            self.pos += n
+        return done
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        """Nothing to do: every write already went to the OS."""
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            fd, self.fd = self.fd, -1
+            os.close(fd)
+
+
+def _tail() -> bytes:
+    """DataEnd, a Footer without a summary section, and the closing magic (50 bytes)."""
+    builder = RecordBuilder()
+    DataEnd(data_section_crc=0).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return bytes(builder.end()) + b"\x89MCAP0\r\n"
+
+
 class McapSink:
-    """A Writer with one schema per message type and one channel per key."""
+    """A Writer with one schema per message type and one channel per key.
+
+    ``kept_bytes`` / ``kept_messages``: what the file holds up to its last :meth:`flush`
+    (what survives a write error); ``pending_by_topic``: messages written since, by topic.
+    Writing methods raise OSError on a write error; then :meth:`abort` closes the file."""
 
     def __init__(self, path: Path, chunk_size: int = 1 << 20):
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh = open(self.path, "wb")
+            self._fh = _RecordFile(self.path)
         except OSError as exc:
-            raise ReplayError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+            raise ReplayError(f"cannot write {self.path}: {describe_os_error(exc)}") from None
         self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self.writer.start(profile="", library="qradar")
+        try:
+            self.writer.start(profile="", library="qradar")
+        except OSError as exc:
+            self._fh.close()
+            self.path.unlink(missing_ok=True)
+            raise ReplayError(f"cannot write {self.path}: {describe_os_error(exc)}") from None
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._topics: dict[int, str] = {}  # channel id -> topic (or "other"), for the counts
         self.messages = 0
+        self.kept_bytes = 0
+        self.kept_messages = 0
+        self.pending_by_topic: Counter[str] = Counter()  # written since the last flush, by topic
+        self.by_topic: Counter[str] = Counter()  # flushed, by topic
+        self.removed = False
         self.closed = False
+
+    @property
+    def size(self) -> int:
+        """Bytes written to the file so far."""
+        return self._fh.pos
 
     def _schema(self, topic: str) -> int:
         if topic not in self._schemas:
@@ -134,27 +210,73 @@ class McapSink:
             encoding = WIRE_ENCODING if topic in ("raw", "quantized") else "json"
             cid = self.writer.register_channel(key, encoding, self._schema(topic))
             self._channels[key] = cid
+            self._topics[cid] = topic_of(key) or "other"
         return cid
 
     def write(self, key: str, data: bytes, log_time_ns: int, publish_time_ns: int, sequence: int) -> None:
-        self.writer.add_message(self.channel(key), log_time=log_time_ns, data=data,
+        cid = self.channel(key)
+        self.writer.add_message(cid, log_time=log_time_ns, data=data,
                                 publish_time=publish_time_ns, sequence=sequence & 0xFFFFFFFF)
         self.messages += 1
+        self.pending_by_topic[self._topics[cid]] += 1
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         self.writer.add_metadata(name, {k: str(v) for k, v in data.items()})
 
     def flush(self) -> None:
-        """Close the chunk in progress and push it to the file (readable after a kill)."""
+        """Close the chunk in progress and push it to the file (readable after a kill).
+        OSError also when the file was removed meanwhile (it would fill the disk unseen)."""
         self.writer.flush()
-        self._fh.flush()
+        if os.fstat(self._fh.fd).st_nlink == 0:
+            self.removed = True
+            raise OSError(errno.ENOENT, "the file was removed while being written")
+        self.kept_bytes, self.kept_messages = self._fh.pos, self.messages
+        self.by_topic.update(self.pending_by_topic)
+        self.pending_by_topic.clear()
 
     def close(self) -> None:
+        """Finish the file (summary and index). OSError on a write error: then :meth:`abort`."""
         if self.closed:
             return
-        self.closed = True
         self.writer.finish()
+        self.closed = True
         self._fh.close()
+
+    def abort(self) -> dict:
+        """After a write error: cut the file back to its last flushed chunk, end it with a
+        footer if the disk takes it, close it. Never raises. Returns {"path", "bytes",
+        "messages" (kept), "lost" (written after the last flush, or all when the file was
+        removed), "lost_by_topic", "footer"}."""
+        if self.removed:  # nothing is kept; free its space
+            self.kept_bytes, self.kept_messages = 0, 0
+            self.pending_by_topic.update(self.by_topic)
+        out = {"path": str(self.path), "bytes": self.kept_bytes, "messages": self.kept_messages,
+               "lost": self.messages - self.kept_messages, "lost_by_topic": dict(self.pending_by_topic),
+               "footer": False}
+        if self.closed:
+            return out
+        self.closed = True
+        fd = self._fh.fd
+        try:
+            os.ftruncate(fd, self.kept_bytes)  # shrinking needs no space
+            if self.removed:
+                raise OSError(errno.ENOENT, "removed")
+            tail = _tail()
+            try:
+                out["footer"] = os.pwrite(fd, tail, self.kept_bytes) == len(tail)
+            except OSError:
+                pass
+            if out["footer"]:
+                out["bytes"] += len(tail)
+            else:
+                os.ftruncate(fd, self.kept_bytes)  # a tail half written is worse than none
+        except OSError:
+            pass  # EIO: what the file holds stays as it is; the reader stops at the first bad record
+        try:
+            self._fh.close()
+        except OSError:
+            pass
+        return out
 
 
 #: What mcap's StreamReader raises on a file cut short or corrupted (measured on real
@@ -240,6 +362,15 @@ def recover(src: str | Path, dst: str | Path) -> dict:
             n += 1
         for md in f.metadata:
             sink.metadata(md.name, dict(md.metadata))
-    finally:
         sink.close()
+    except OSError as exc:
+        kept = sink.abort()
+        raise ReplayError(f"cannot write {dst}: {describe_os_error(exc)} (it holds {kept['messages']} messages "
+                          f"of {src})") from None
+    finally:
+        if not sink.closed:  # src was not MCAP: dst ends empty but valid
+            try:
+                sink.close()
+            except OSError:
+                sink.abort()
     return {"messages": n, "truncated": f.truncated, "reason": f.truncation_reason}

@@ -8,13 +8,14 @@ import sys
 import threading
 from pathlib import Path
 
+from pipeline.nodes import run_nodes
 from radar_driver.scene import resolve_scene
+from replay.errors import ReplayError
 from replay.mcapio import recover
 from replay.player import PlayConfig, play
-from replay.recorder import RecorderNode
+from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
-from .common import bus_from_args, bus_options, install_sigterm
-from .stream import serve
+from .common import bus_from_args, bus_options, install_sigterm, pos_float
 
 
 def add_commands(sub) -> None:
@@ -25,6 +26,7 @@ def add_commands(sub) -> None:
     p.add_argument("--split-duration", type=float, default=None, metavar="S", help="new file every S seconds")
     p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    write_error_options(p, "exit with status 2 (a recorder with nothing left to record ends)")
     bus_options(p)
     p.set_defaults(func=cmd_record)
 
@@ -48,15 +50,33 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_replay)
 
 
+def write_error_options(p, on_stop: str) -> None:
+    """--on-write-error and --write-retry (``record``, ``run``); ``on_stop``: what the command does then."""
+    p.add_argument("--on-write-error", choices=[m.value for m in OnWriteError], default=OnWriteError.RESUME.value,
+                   help="after a write error (a full disk, EFBIG, EIO, a removed folder) the file is closed up to "
+                   "its last flushed chunk; resume: keep running, count the messages that cannot be written (by "
+                   "topic) and go on in a new file (NAME_0001.mcap, ...) when space returns; stop: end the "
+                   f"recording and {on_stop}. A file that cannot be created at the start is an error either way")
+    p.add_argument("--write-retry", type=pos_float, default=5.0, metavar="S",
+                   help="while paused after a write error, look for space every S seconds")
+
+
 def cmd_record(args) -> int:
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
     node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
-                        split_duration_s=args.split_duration, metadata=meta)
+                        split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
+                        retry_s=args.write_retry)
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
-    serve(node, args.duration)
-    print(json.dumps({"files": [str(p) for p in node.paths], "written": node.written}), flush=True)
+    install_sigterm()
+    try:
+        run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
+    except KeyboardInterrupt:
+        pass
+    print(json.dumps({"node": node.name, **node.totals(), **node.summary()}), flush=True)
+    if node.state is RecordingState.STOPPED:
+        raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
     return 0
 
 

@@ -33,6 +33,7 @@ from .common import (
     quantizer_config,
     quantizer_options,
 )
+from .record import write_error_options
 from .view import foxglove_arg
 
 
@@ -98,6 +99,7 @@ def add_commands(sub) -> None:
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="do not record")
+    write_error_options(p, "go on without it (the pipeline keeps running; the summary says so)")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
     p.add_argument("--driver-in-process", action="store_true",
                    help="run the serial drivers as threads of this process (default: a process each)")
@@ -210,7 +212,8 @@ def cmd_run(args) -> int:
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
-                    foxglove=args.foxglove, driver_process=not args.driver_in_process)
+                    foxglove=args.foxglove, driver_process=not args.driver_in_process,
+                    record_on_error=args.on_write_error, record_retry_s=args.write_retry)
     install_sigterm()
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
     if args.json:
