@@ -105,6 +105,8 @@ class Monitor:
                                est_r, est_a)[0] if truth and msg.targets else np.array([])
         with self._lock:
             last = self._last_seq.get(msg.sensor_id)
+            if last is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
+                self._last_seq.clear()
             if last is not None and msg.seq > last + 1:
                 self.targets_missing += msg.seq - last - 1
             self._last_seq[msg.sensor_id] = msg.seq
