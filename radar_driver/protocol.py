@@ -252,8 +252,9 @@ class StreamDecoder:
         self._kinds = [_FIXED if h in _FIXED_HEADERS else _RESP if h == b"RESP"
                        else _RADC if h == b"RADC" and radc_checked else _OPAQUE for h in self._names]
         self._kind = np.array(self._kinds)
-        self._first = np.zeros(256, bool)  # first bytes of the headers
-        self._first[[h[0] for h in self._headers]] = True
+        self._first2 = np.zeros(1 << 16, bool)  # the first two bytes of the headers, as uint16 LE
+        self._first2[[h[0] | h[1] << 8 for h in self._headers]] = True
+        self._max_len = max(b[1] for b in self._bounds)
         self._prefixes = {h[:i] for h in self._headers for i in range(1, HEADER_LEN + 1)}
         self._radc_len = lay.payload_len
         # unsigned words with a 0 minimum and a 2^b - 1 maximum, b >= 8: a word is out of
@@ -394,6 +395,7 @@ class StreamDecoder:
             self._cands += new
             undecided += new
         else:  # the kept candidates all lie before the new ones
+            pos, k, n = (np.asarray(a, np.int64) for a in (pos, k, n))
             kept = sorted([c[0] for c in self._cands] + self._bulk[0].tolist())
             every = np.concatenate((np.array(kept, np.int64), pos)) if kept else pos
         if undecided:
@@ -426,16 +428,17 @@ class StreamDecoder:
                     i = buf.find(h, i + 1, hi)
             found.sort()
             return [f[0] for f in found], [f[1] for f in found], [f[2] for f in found]
-        a = np.frombuffer(buf, np.uint8, m, s0 - base)
-        idx = np.flatnonzero(np.take(self._first, a))
-        # uint32 at every byte offset (an unaligned view): header codes and lengths in one gather each
+        # uint16 and uint32 at every byte offset (unaligned views): the first two bytes of a
+        # header, then the length (most garbage fails here) and the header, one gather each
+        u2 = np.ndarray((m,), "<u2", buf, s0 - base, (1,))
+        idx = np.flatnonzero(np.take(self._first2, u2))
         u4 = np.ndarray((m + HEADER_LEN,), "<u4", buf, s0 - base, (1,))
+        n = u4[idx + HEADER_LEN]
+        short = np.flatnonzero(n <= self._max_len)
+        idx, n = idx[short], n[short].astype(np.int64)
         h = u4[idx]
         k = np.searchsorted(self._codes, h)
-        hit = np.flatnonzero(self._codes[k] == h)
-        idx, k = idx[hit], k[hit]
-        n = u4[idx + HEADER_LEN].astype(np.int64)
-        ok = np.flatnonzero((self._lo[k] <= n) & (n <= self._hi[k]))
+        ok = np.flatnonzero((self._codes[k] == h) & (self._lo[k] <= n) & (n <= self._hi[k]))
         return idx[ok] + s0, k[ok], n[ok]
 
     def _decide(self, c: list[int], base: int, end: int, every: np.ndarray | None) -> None:
@@ -506,13 +509,11 @@ class StreamDecoder:
         why = np.full(pos.size, -1, np.int64)
         count = np.bincount(kind, minlength=4)
         view = np.frombuffer(self._buf, np.uint8)  # released on return: the buffer resizes later
-        if count[_RESP]:  # zero padding after the code
+        if count[_RESP]:  # zero padding after the code: the payload's bytes 1 to 3 that it has
             m = np.flatnonzero((kind == _RESP) & (st == _OK))
-            zero = np.ones(m.size, bool)
-            for i in (1, 2, 3):
-                at = np.minimum(pos[m] + PREFIX_LEN + i, end - 1) - base
-                zero &= (n[m] <= i) | (view[at] == 0)
-            st[m] = np.where(zero, _OK, _REJ)
+            at = np.minimum(pos[m, None] + (PREFIX_LEN + 1 + np.arange(3)), end - 1) - base
+            padded = (view[at] != 0) & (np.arange(1, 4) < n[m, None])
+            st[m[padded.any(axis=1)]] = _REJ
         if count[_RADC] and end - lo >= 2:  # the first word out of the ADC range
             self.stats.scanned_bytes += end - lo
             bad = self._bad_words(view[lo - base :])  # words starting at lo, lo + 1, ...

@@ -18,6 +18,7 @@ from radar_driver.protocol import (
     Resp,
     StreamDecoder,
     decode,
+    decode_payload,
     encode,
 )
 
@@ -363,3 +364,119 @@ def test_fuzz_garbage_then_valid_frames():
         assert d.pending() == 0 and d.stats.scanned_bytes <= 3 * len(stream) + 64
         cases += 1
     assert cases >= 100, f"only {cases} fuzz cases ran in 60 s"
+
+
+def _reference_decode(data, prof):
+    """The decoder's rules, by brute force on a whole stream: (messages, skipped bytes,
+    refused candidates, resyncs, bytes pending)."""
+    lengths, lay = prof.plausible_length(), prof.radc
+    limits = np.iinfo(np.dtype(lay.dtype))
+    radc_checked = lay.min_word > limits.min or lay.max_word < limits.max
+    prefixes = {h[:i] for h in lengths for i in range(1, 5)}
+    end = len(data)
+    cands = [(p, data[p : p + 4], int.from_bytes(data[p + 4 : p + 8], "little")) for p in range(end - 7)]
+    cands = [(p, h, n) for p, h, n in cands if h in lengths and lengths[h][0] <= n <= lengths[h][1]]
+
+    def status(p, h, n):
+        stop = p + 8 + n
+        if h == b"RADC" and radc_checked:
+            words = np.frombuffer(data, lay.dtype, max(0, (min(stop, p + 8 + lay.payload_len, end) - p - 8) // 2), p + 8)
+            if ((words < lay.min_word) | (words > lay.max_word)).any():
+                return "refused"
+        elif h == b"RESP" and stop <= end and any(data[p + 9 : stop]):
+            return "refused"
+        elif h not in (b"INIT", b"GNFD", b"GBYE", b"DONE", b"RESP"):  # uninterpreted: no candidate inside
+            if any(p + 8 <= q < stop for q, _, _ in cands):
+                return "refused"
+            if any(data[q : q + 4] in prefixes for q in range(max(p + 8, end - 7), min(stop, end))):
+                return "waiting"  # the last bytes may start a header yet
+        return "ok" if stop <= end else "waiting"
+
+    out, cursor, stats, head = [], 0, [0, 0, 0], None  # skipped, refused, resyncs
+    skipping = False
+    for p, h, n in cands:
+        if p < cursor:
+            continue
+        st = status(p, h, n)
+        if st == "refused":
+            stats[1] += 1
+            continue
+        if st == "waiting":
+            head = p
+            break
+        if p > cursor:
+            stats[0] += p - cursor
+            stats[2] += not skipping
+        skipping = False
+        out.append(decode_payload(h, data[p + 8 : p + 8 + n], prof))
+        cursor = p + 8 + n
+        pad = (-n) % 4
+        while pad and cursor < end and data[cursor] == 0:
+            cursor, pad = cursor + 1, pad - 1
+    if head is None:
+        head = next((q for q in range(max(cursor, end - 7), end) if data[q : q + 4] in prefixes), end)
+    if head > cursor:
+        stats[0] += head - cursor
+        stats[2] += not skipping
+    return out, stats[0], stats[1], stats[2], end - head
+
+
+def test_decoding_equals_the_rules_by_brute_force_however_the_bytes_are_cut():
+    """Seeded, bounded: random streams of frames, stray headers with plausible lengths,
+    cut frames, zeros and noise, in five profiles (12-bit blocks, 15-bit, 16-bit signed:
+    a RADC it cannot check is treated like an uninterpreted frame, big-endian with an
+    extra frame, 6-bit), fed at once, in small and random pieces: the messages and the
+    counters equal a brute-force application of the rules."""
+    profiles = [DEFAULT_PROFILE,
+                profile_from_dict({"name": "w15", "radc": {"adc_bits": 15, "offset": 16384, "samples": 16}}),
+                profile_from_dict({"name": "s16", "radc": {"adc_bits": 16, "word": "int16le", "offset": 0,
+                                                           "samples": 16}}),
+                profile_from_dict({"name": "be", "radc": {"word": "uint16be", "samples": 16},
+                                   "lengths": {"RMRD": [4, 64], "PDAT": [0, 40], "XY12": [2, 30]}}),
+                profile_from_dict({"name": "b6", "radc": {"adc_bits": 6, "offset": 32, "samples": 8}})]
+    rng = np.random.default_rng(7)
+    t0, cases = time.monotonic(), 0
+    while cases < 250 and time.monotonic() - t0 < 60:
+        prof = profiles[cases % len(profiles)]
+        lay, lengths = prof.radc, prof.plausible_length()
+        heads = list(lengths)
+        opaque = [h for h in heads if h not in (b"INIT", b"GNFD", b"GBYE", b"RESP", b"DONE", b"RADC")]
+        parts = []
+        for _ in range(int(rng.integers(1, 25 if cases % 4 else 120))):
+            r = int(rng.integers(0, 7))
+            if r == 0:
+                parts.append(rng.integers(0, 256, int(rng.integers(1, 40)), dtype=np.uint8).tobytes())
+            elif r == 1:  # a header, mostly with a plausible length
+                h = heads[int(rng.integers(0, len(heads)))]
+                lo, hi = lengths[h]
+                n = int(rng.integers(lo, min(hi, 3000) + 1)) if rng.random() < 0.8 else int(rng.integers(0, 2**32))
+                parts.append(h + n.to_bytes(4, "little"))
+            elif r == 2:
+                parts.append(encode(Radc(rng.integers(lay.min_word, lay.max_word + 1, lay.words_shape), lay)))
+            elif r == 3:
+                m = [Done(int(rng.integers(0, 9))), Resp(int(rng.integers(0, 3))), Gbye(), Init(1)][int(rng.integers(0, 4))]
+                parts.append(encode(m, pad=bool(rng.random() < 0.7)))
+            elif r == 4:
+                data = rng.integers(0, 256, int(rng.integers(4, 30)), dtype=np.uint8).tobytes()
+                parts.append(encode(OtherMessage(opaque[int(rng.integers(0, len(opaque)))], data)))
+            elif r == 5:
+                parts.append(bytes(int(rng.integers(1, 6))))
+            else:  # the last parts, cut
+                b = b"".join(parts[-2:]) or b"RADC"
+                parts.append(b[: int(rng.integers(0, len(b)))])
+        stream = b"".join(parts)
+        expected = _reference_decode(stream, prof)
+        for chunk in (None, 1, 3, 17, 200, 0):
+            d = StreamDecoder(prof)
+            if chunk == 0:  # random pieces
+                out, i = [], 0
+                while i < len(stream):
+                    n = int(rng.integers(1, 600))
+                    out += d.feed(stream[i : i + n])
+                    i += n
+            else:
+                out = _feed(d, stream, chunk)
+            st = d.stats
+            assert (out, st.skipped_bytes, st.invalid, st.resyncs, d.pending()) == expected, (cases, prof.name, chunk)
+        cases += 1
+    assert cases >= 100, f"only {cases} cases ran in 60 s"
