@@ -4,10 +4,11 @@
 For each kind of garbage (header-like bytes everywhere, nothing valid), the best of
 ``--repeat`` runs of feeding 1 MiB at once and in 4 KiB chunks, with:
 
-- ``ms``: wall time (target: well under 50 ms for 1 MiB at once);
-- ``x valid``: that time over the time of decoding 1 MiB of valid ramps (RADC + DONE)
+- ``cpu ms``: the process's CPU time, and ``wall ms`` (target: well under 50 ms for
+  1 MiB at once; on a shared host the CPU time is the steadier figure);
+- ``x valid``: the CPU time over that of decoding 1 MiB of valid ramps (RADC + DONE)
   the same way, measured in the same process: the baseline;
-- ``t 1M/64K``: time of 1 MiB over time of 64 KiB (linear: about 16; the old decoder,
+- ``t 1M/64K``: CPU time of 1 MiB over that of 64 KiB (linear: about 16; the old decoder,
   which rescanned the buffer once per skipped byte, took 23-63 s for 256 KiB);
 - ``w 1M/64K``: the same ratio of work, ``stats.scanned_bytes`` (what the tests assert),
   and ``w/B``: bytes examined per byte fed.
@@ -59,18 +60,19 @@ def valid_ramps(size: int, seed: int = 0) -> bytes:
     return b"".join(encode(Radc(words[i % 64])) + encode(Done(i)) for i in range(n))
 
 
-def run(data: bytes, chunk: int | None, repeat: int) -> tuple[float, StreamDecoder]:
-    """Best wall time (s) of decoding ``data`` fed in ``chunk``-byte pieces (None: at once)."""
+def run(data: bytes, chunk: int | None, repeat: int) -> tuple[float, float, StreamDecoder]:
+    """Best CPU and wall times (s) of decoding ``data`` fed in ``chunk``-byte pieces (None:
+    at once), and the last decoder."""
     step = chunk or len(data)
     pieces = [data[i : i + step] for i in range(0, len(data), step)]
-    best = float("inf")
+    cpu = wall = float("inf")
     for _ in range(repeat):
         d = StreamDecoder()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for p in pieces:
             d.feed(p)
-        best = min(best, time.perf_counter() - t0)
-    return best, d
+        cpu, wall = min(cpu, time.process_time() - c0), min(wall, time.perf_counter() - t0)
+    return cpu, wall, d
 
 
 def main() -> None:
@@ -84,25 +86,26 @@ def main() -> None:
     rows = []
     for name in big:
         for chunk in (None, CHUNK):
-            t_big, d_big = run(big[name], chunk, args.repeat)
-            t_small, d_small = run(small[name], chunk, args.repeat)
+            t_big, wall, d_big = run(big[name], chunk, args.repeat)
+            t_small, _, d_small = run(small[name], chunk, args.repeat)
             rows.append({"garbage": name, "feed": "1 feed" if chunk is None else "4 KiB",
-                         "ms": t_big * 1e3, "x_valid": t_big / base[chunk], "time_ratio": t_big / t_small,
+                         "cpu_ms": t_big * 1e3, "wall_ms": wall * 1e3, "x_valid": t_big / base[chunk],
+                         "time_ratio": t_big / t_small,
                          "work_ratio": d_big.stats.scanned_bytes / d_small.stats.scanned_bytes,
                          "work_per_byte": d_big.stats.scanned_bytes / d_big.stats.bytes_in,
                          "skipped": d_big.stats.skipped_bytes, "invalid": d_big.stats.invalid})
     if args.json:
         print(json.dumps({"valid_1mib_ms": {str(k): v * 1e3 for k, v in base.items()}, "garbage": rows}, indent=2))
         return
-    print(f"baseline: 1 MiB of valid ramps decodes in {base[None] * 1e3:.1f} ms at once, "
+    print(f"baseline: 1 MiB of valid ramps decodes in {base[None] * 1e3:.1f} ms CPU at once, "
           f"{base[CHUNK] * 1e3:.1f} ms in 4 KiB chunks ({len(valid) // 2068 / base[CHUNK]:,.0f} ramps/s)")
-    print(f"{'garbage (1 MiB)':22s} {'feed':>7s} {'ms':>7s} {'x valid':>8s} {'t 1M/64K':>9s} {'w 1M/64K':>9s} "
-          f"{'w/B':>5s} {'invalid':>8s}")
+    print(f"{'garbage (1 MiB)':22s} {'feed':>7s} {'cpu ms':>7s} {'wall ms':>8s} {'x valid':>8s} {'t 1M/64K':>9s} "
+          f"{'w 1M/64K':>9s} {'w/B':>5s} {'invalid':>8s}")
     for r in rows:
-        print(f"{r['garbage']:22s} {r['feed']:>7s} {r['ms']:7.1f} {r['x_valid']:8.2f} {r['time_ratio']:9.1f} "
-              f"{r['work_ratio']:9.1f} {r['work_per_byte']:5.2f} {r['invalid']:8d}")
-    worst = max(r["ms"] for r in rows if r["feed"] == "1 feed")
-    print(f"worst 1 MiB in one feed: {worst:.1f} ms (target: well under 50 ms); linear: ratios about 16")
+        print(f"{r['garbage']:22s} {r['feed']:>7s} {r['cpu_ms']:7.1f} {r['wall_ms']:8.1f} {r['x_valid']:8.2f} "
+              f"{r['time_ratio']:9.1f} {r['work_ratio']:9.1f} {r['work_per_byte']:5.2f} {r['invalid']:8d}")
+    worst = max(r["cpu_ms"] for r in rows if r["feed"] == "1 feed")
+    print(f"worst 1 MiB in one feed: {worst:.1f} ms CPU (target: well under 50 ms); linear: ratios about 16")
 
 
 if __name__ == "__main__":
