@@ -349,18 +349,17 @@ class StreamDecoder:
                 c = [base, k, n, _PEND, -1, base + PREFIX_LEN]
             _, k, n = c[:3]
             stop = base + PREFIX_LEN + n
-            if self._kinds[k] == _RADC:
-                bad = self._check_words(c, base, end)
-                if bad >= 0:
+            radc = self._kinds[k] == _RADC
+            if stop > end:  # wait for the rest; a RADC's words are checked as they come
+                if radc and (bad := self._check_words(c, base, end)) >= 0:
                     c[3], c[4] = _REJ, bad
                     return self._hand_over(c)
-            if stop > end:  # wait for the rest
                 self._hand_over(c)
                 return True
             try:
                 msg = decode_payload(self._names[k], bytes(buf[PREFIX_LEN : PREFIX_LEN + n]), self.profile)
-            except ProtocolError:  # a RESP's padding
-                c[3] = _REJ
+            except ProtocolError:  # a RADC word out of range, a RESP's padding
+                c[3], c[4] = _REJ, self._check_words(c, base, end) if radc else -1
                 return self._hand_over(c)
             out.append(msg)
             self.stats.messages += 1
