@@ -12,16 +12,18 @@ correct them in one TOML file. The codec takes a profile; without one it uses
 :data:`~.profile.DEFAULT_PROFILE`.
 
 :class:`StreamDecoder` takes arbitrary chunks of bytes and yields messages. On garbage
-it resynchronizes by scanning for a known header whose length is plausible for that
-header and whose payload is valid (a RADC payload holds ADC-range words only), and
-counts the bytes it skipped; it never raises on input.
+it resynchronizes on the next known header whose length is plausible for that header
+and whose payload is valid (a RADC payload holds ADC-range words only; a frame the
+driver does not interpret holds no other such header before its declared end), and
+counts the bytes it skipped; it never raises on input, and its work is linear in the
+bytes fed, however they are cut.
 """
 
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from typing import Iterator, Union
+from typing import Union
 
 import numpy as np
 
@@ -181,39 +183,111 @@ def decode(data: bytes, profile: SensorProfile = DEFAULT_PROFILE) -> Message:
 
 
 # -- streaming decoder -----------------------------------------------------------------------
+# How the payload of a candidate (a known header with a plausible length) is validated:
+_FIXED, _RESP, _RADC, _OPAQUE = 0, 1, 2, 3  # any payload / zero padding / ADC range / no candidate inside
+_FIXED_HEADERS = (b"INIT", b"GNFD", b"GBYE", b"DONE")
+# What a candidate would be at the head of the stream:
+_PEND, _OK, _REJ = 0, 1, 2  # undecided (more bytes needed) / a message / garbage
+_NONE = np.iinfo(np.int64).max
+_ODD = 1 << 61  # added to odd positions to sort them after the even ones
+_EMPTY = np.zeros(0, np.int64)
+#: new candidates of one feed decided one by one in Python up to this many, with numpy beyond
+_FEW = 16
+#: new bytes searched for headers with bytes.find up to this many, with numpy beyond
+_FIND_BYTES = 512
+
+
 @dataclass
 class DecoderStats:
+    """Counters of a :class:`StreamDecoder` since it was made (``reset`` keeps them)."""
+
     messages: int = 0
     bytes_in: int = 0
     skipped_bytes: int = 0
     resyncs: int = 0
     invalid: int = 0  # plausible header whose payload failed validation
     last_error: str = ""
+    #: bytes the decoder examined (the header search, the ADC words behind RADC headers):
+    #: its work, a small multiple of ``bytes_in`` whatever the input and its chunking
+    scanned_bytes: int = 0
 
 
 @dataclass
 class StreamDecoder:
     """Incremental decoder: ``feed(chunk)`` returns the messages completed by ``chunk``.
 
-    Garbage is skipped up to the next known header with a plausible length; each run of
-    skipped bytes counts one resync. Memory is bounded by the largest plausible message.
+    A *candidate* is a known header with a plausible length. Where the stream is not a
+    message, the decoder skips to the next candidate whose payload is valid: a RADC's
+    words lie in the ADC range; a RESP's padding is zero; a frame the driver does not
+    interpret (RMRD, PDAT, TDAT) holds no other candidate before its declared end (a
+    stray header claiming 16 KiB does not swallow the frames after it). Each run of
+    skipped bytes counts one resync, each refused candidate one ``invalid``.
+
+    The work is linear in the bytes fed, whatever they are and however they are cut
+    (``stats.scanned_bytes`` counts it). Messages that follow each other are taken in
+    step, without a search; elsewhere each new byte is searched for headers once, and
+    each candidate is decided once, with numpy when there are many; a candidate waiting
+    for a long payload is re-examined on the new bytes only. Memory is bounded by the
+    largest plausible message plus the chunk being fed.
     ``profile``: the sensor's conventions (RADC layout, other frames' lengths).
     """
 
     profile: SensorProfile = DEFAULT_PROFILE
     stats: DecoderStats = field(default_factory=DecoderStats)
-    _buf: bytearray = field(default_factory=bytearray)
-    _pad: int = 0  # zero padding that may follow the last message
-    _skipping: bool = False
 
     def __post_init__(self) -> None:
-        self._lengths = self.profile.plausible_length()
-        self._headers = tuple(self._lengths)
+        lengths = self.profile.plausible_length()
+        self._headers = tuple(lengths)
+        lay = self.profile.radc
+        limits = np.iinfo(np.dtype(lay.dtype))
+        radc_checked = lay.min_word > limits.min or lay.max_word < limits.max  # 16-bit words: no check
+        # header index: the order of the headers' uint32 codes (for numpy's searchsorted)
+        codes = [int.from_bytes(h, "little") for h in self._headers]
+        self._names = [h for _, h in sorted(zip(codes, self._headers))]
+        self._codes = np.array(sorted(codes) + [0xFFFFFFFF], np.uint32)  # a sentinel no header has
+        self._index = {h: i for i, h in enumerate(self._names)}
+        self._bounds = [lengths[h] for h in self._names]
+        self._lo = np.array([b[0] for b in self._bounds] + [1], np.int64)
+        self._hi = np.array([b[1] for b in self._bounds] + [0], np.int64)
+        self._kinds = [_FIXED if h in _FIXED_HEADERS else _RESP if h == b"RESP"
+                       else _RADC if h == b"RADC" and radc_checked else _OPAQUE for h in self._names]
+        self._kind = np.array(self._kinds)
+        self._first2 = np.zeros(1 << 16, bool)  # the first two bytes of the headers, as uint16 LE
+        self._first2[[h[0] | h[1] << 8 for h in self._headers]] = True
+        self._max_len = max(b[1] for b in self._bounds)
+        self._prefixes = {h[:i] for h in self._headers for i in range(1, HEADER_LEN + 1)}
+        self._radc_len = lay.payload_len
+        # unsigned words with a 0 minimum and a 2^b - 1 maximum, b >= 8: a word is out of
+        # range iff its high byte exceeds max >> 8 (checked on bytes, without numpy)
+        self._hi_off = None
+        if lay.word in ("uint16le", "uint16be") and lay.min_word == 0 and lay.adc_bits >= 8:
+            self._hi_off = 1 if lay.word == "uint16le" else 0
+            self._hi_max = lay.max_word >> 8
+            self._badmap = bytes(int(b > self._hi_max) for b in range(256))
+        self._buf = bytearray()
+        self._restart(0)
+
+    def _restart(self, base: int) -> None:
+        self._base = base  # stream offset of _buf[0]; all positions are stream offsets
+        self._scan = base  # positions below were searched for candidates
+        self._pad = 0  # zero padding that may follow the last message
+        self._skipping = False
+        self._err_at = -1  # stream offset of the candidate last_error names
+        # candidates from _base on, by position: [position, header index, declared length,
+        # status, why refused (the first bad RADC word, the candidate inside an opaque
+        # frame), the next RADC word to check]
+        self._cands: list[list[int]] = []
+        # refused candidates decided in bulk (numpy): position, header index, length, why
+        self._bulk = (_EMPTY, _EMPTY, _EMPTY, _EMPTY)
 
     def feed(self, chunk: bytes) -> list[Message]:
         self._buf += chunk
         self.stats.bytes_in += len(chunk)
-        return list(self._drain())
+        out: list[Message] = []
+        if not self._in_step(out):
+            self._classify()
+            out += self._walk()
+        return out
 
     def wanted(self) -> int:
         """Fewest further bytes that can complete the next message (at least 1): what a
@@ -221,11 +295,13 @@ class StreamDecoder:
         buf = self._buf
         if len(buf) < PREFIX_LEN:
             return PREFIX_LEN - len(buf)
-        lo, hi = self._lengths.get(bytes(buf[:4]), (1, 0))
-        (length,) = struct.unpack_from("<I", buf, 4)
-        if lo <= length <= hi:
-            return max(1, PREFIX_LEN + length - len(buf))
-        return 1
+        if not self._cands or self._cands[0][0] != self._base:
+            return 1
+        k, n = self._cands[0][1:3]
+        need = PREFIX_LEN + n - len(buf)
+        if self._kinds[k] == _OPAQUE:  # a header in the next bytes may decide it sooner
+            need = min(need, PREFIX_LEN)
+        return max(1, need)
 
     def pending(self) -> int:
         """Bytes held, waiting for the rest of a message."""
@@ -233,61 +309,346 @@ class StreamDecoder:
 
     def reset(self) -> None:
         """Forget buffered bytes (after a reconnect); the counters stay."""
+        base = self._base + len(self._buf)
         self._buf.clear()
-        self._pad = 0
-        self._skipping = False
+        self._restart(base)
 
-    def _drain(self) -> Iterator[Message]:
+    # -- in step: message after message, no search ---------------------------------------------
+    def _in_step(self, out: list[Message]) -> bool:
+        """Take the messages that follow each other from the head while each is a fixed-size
+        frame, a RESP or a valid RADC, never searching the bytes they span; wait for an
+        incomplete one (checking a RADC's words as they come). False when anything else
+        is at the head: the search decides then (the bytes of a RADC refused here were
+        never searched, so each byte is examined at most twice)."""
         buf = self._buf
         while True:
+            base = self._base
             if self._pad:
-                n = 0
-                while n < self._pad and n < len(buf) and buf[n] == 0:
-                    n += 1
-                if n < self._pad and n == len(buf):
-                    return  # maybe more padding to come
-                del buf[:n]
-                self._pad = 0
-            if len(buf) < PREFIX_LEN:
-                head = bytes(buf[:HEADER_LEN])
-                if buf and not any(h.startswith(head) for h in self._headers):
-                    self._skip(1)
-                    continue
-                return  # wait for the length
-            header = bytes(buf[:4])
-            (length,) = struct.unpack_from("<I", buf, 4)
-            lo, hi = self._lengths.get(header, (1, 0))
-            if not lo <= length <= hi:
-                self._skip(1)
-                continue
-            if len(buf) < PREFIX_LEN + length:
-                return  # wait for the payload
+                at = self._eat_padding(base, base + len(buf))
+                del buf[: at - base]
+                self._base = base = at
+                if self._pad:
+                    return True  # all zeros so far
+            end = base + len(buf)
+            if self._bulk[0].size or len(self._cands) > 1:
+                return False
+            if self._cands:  # one waiting candidate at the head
+                c = self._cands[0]
+                if c[0] != base or c[3] != _PEND or self._kinds[c[1]] == _OPAQUE:
+                    return False
+            else:
+                if end - base < PREFIX_LEN:
+                    return not buf
+                k = self._index.get(bytes(buf[:HEADER_LEN]))
+                if k is None or self._kinds[k] == _OPAQUE:
+                    return False
+                n = int.from_bytes(buf[HEADER_LEN:PREFIX_LEN], "little")
+                lo, hi = self._bounds[k]
+                if not lo <= n <= hi:
+                    return False
+                c = [base, k, n, _PEND, -1, base + PREFIX_LEN]
+            _, k, n = c[:3]
+            stop = base + PREFIX_LEN + n
+            radc = self._kinds[k] == _RADC
+            if stop > end:  # wait for the rest; a RADC's words are checked as they come
+                if radc and (bad := self._check_words(c, base, end)) >= 0:
+                    c[3], c[4] = _REJ, bad
+                    return self._hand_over(c)
+                self._hand_over(c)
+                return True
             try:
-                msg = decode_payload(header, bytes(buf[PREFIX_LEN : PREFIX_LEN + length]), self.profile)
-            except ProtocolError as exc:
-                self.stats.invalid += 1
-                self.stats.last_error = str(exc)
-                self._skip(1)
-                continue
-            del buf[: PREFIX_LEN + length]
-            self._pad = (-length) % 4
-            self._skipping = False
+                msg = decode_payload(self._names[k], bytes(buf[PREFIX_LEN : PREFIX_LEN + n]), self.profile)
+            except ProtocolError:  # a RADC word out of range, a RESP's padding
+                c[3], c[4] = _REJ, self._check_words(c, base, end) if radc else -1
+                return self._hand_over(c)
+            out.append(msg)
             self.stats.messages += 1
-            yield msg
+            self._skipping = False
+            self._pad = (-n) % 4
+            del buf[: stop - base]
+            self._base = stop
+            self._cands = []
+            self._scan = max(self._scan, stop)
 
-    def _skip(self, n: int) -> None:
-        """Drop ``n`` bytes and then everything up to the next possible header start."""
+    def _hand_over(self, c: list[int]) -> bool:
+        """Keep the head candidate ``c`` for the search (which starts after it); False."""
+        if not self._cands:
+            self._cands = [c]
+            self._scan = max(self._scan, c[0] + 1)
+        return False
+
+    # -- deciding candidates ----------------------------------------------------------------------
+    def _classify(self) -> None:
+        """Find the candidates among the new bytes and decide what the bytes so far decide
+        of them and of the undecided ones."""
+        base, end = self._base, self._base + len(self._buf)
+        s0 = max(self._scan, base)
+        pos, k, n = self._search(s0, base, end)
+        undecided = [c for c in self._cands if c[3] == _PEND]
+        few = len(pos) <= _FEW
+        every = None  # positions of all candidates, sorted (for the opaque frames)
+        if few:
+            if not isinstance(pos, list):
+                pos, k, n = pos.tolist(), k.tolist(), n.tolist()
+            new = [[p, kk, nn, _PEND, -1, p + PREFIX_LEN] for p, kk, nn in zip(pos, k, n)]
+            self._cands += new
+            undecided += new
+        else:  # the kept candidates all lie before the new ones
+            pos, k, n = (np.asarray(a, np.int64) for a in (pos, k, n))
+            kept = sorted([c[0] for c in self._cands] + self._bulk[0].tolist())
+            every = np.concatenate((np.array(kept, np.int64), pos)) if kept else pos
+        if undecided:
+            if every is None and self._bulk[0].size:
+                every = np.array(sorted([c[0] for c in self._cands] + self._bulk[0].tolist()), np.int64)
+            for c in undecided:
+                self._decide(c, base, end, every)
+        if not few:
+            self._decide_many(pos, k, n, every, s0 + PREFIX_LEN, base, end)
+
+    def _search(self, s0: int, base: int, end: int) -> tuple:
+        """Candidates starting in [s0, end - 8] (where all 8 bytes of a header and its length
+        are present): positions, header indices, lengths (lists, or int64 arrays)."""
+        if end - s0 < PREFIX_LEN:
+            return [], [], []
+        self._scan = end - PREFIX_LEN + 1
+        self.stats.scanned_bytes += end - s0
+        m = end - s0 - PREFIX_LEN + 1  # positions searched
         buf = self._buf
+        if m <= _FIND_BYTES:
+            found = []
+            lo, hi = s0 - base, s0 - base + m + HEADER_LEN - 1
+            for h in self._headers:
+                i = buf.find(h, lo, hi)
+                while i >= 0:
+                    n = int.from_bytes(buf[i + HEADER_LEN : i + PREFIX_LEN], "little")
+                    k = self._index[h]
+                    if self._bounds[k][0] <= n <= self._bounds[k][1]:
+                        found.append((i + base, k, n))
+                    i = buf.find(h, i + 1, hi)
+            found.sort()
+            return [f[0] for f in found], [f[1] for f in found], [f[2] for f in found]
+        # uint16 and uint32 at every byte offset (unaligned views): the first two bytes of a
+        # header, then the length (most garbage fails here) and the header, one gather each
+        u2 = np.ndarray((m,), "<u2", buf, s0 - base, (1,))
+        idx = np.flatnonzero(np.take(self._first2, u2))
+        u4 = np.ndarray((m + HEADER_LEN,), "<u4", buf, s0 - base, (1,))
+        n = u4[idx + HEADER_LEN]
+        short = np.flatnonzero(n <= self._max_len)
+        idx, n = idx[short], n[short].astype(np.int64)
+        h = u4[idx]
+        k = np.searchsorted(self._codes, h)
+        ok = np.flatnonzero((self._codes[k] == h) & (self._lo[k] <= n) & (n <= self._hi[k]))
+        return idx[ok] + s0, k[ok], n[ok]
+
+    def _decide(self, c: list[int], base: int, end: int, every: np.ndarray | None) -> None:
+        """Decide one candidate from the bytes so far, if they decide it."""
+        p, k, n = c[0], c[1], c[2]
+        stop = p + PREFIX_LEN + n
+        kind = self._kinds[k]
+        if kind == _RADC:
+            bad = self._check_words(c, base, end)
+            if bad >= 0:
+                c[3], c[4] = _REJ, bad
+            elif stop <= end:
+                c[3] = _OK
+        elif kind == _OPAQUE:
+            inside = self._next_candidate(p + PREFIX_LEN, every)
+            if inside < stop:
+                c[3], c[4] = _REJ, inside
+            elif stop <= end and self._tail_start(p + PREFIX_LEN, base, end) >= stop:
+                c[3] = _OK
+        elif stop <= end:
+            c[3] = _REJ if kind == _RESP and any(self._buf[p + PREFIX_LEN + 1 - base : stop - base]) else _OK
+
+    def _next_candidate(self, x: int, every: np.ndarray | None) -> int:
+        """Position of the first candidate at or after stream offset x, or _NONE."""
+        if every is not None:
+            i = int(np.searchsorted(every, x))
+            return int(every[i]) if i < every.size else _NONE
+        return next((c[0] for c in self._cands if c[0] >= x), _NONE)
+
+    def _check_words(self, c: list[int], base: int, end: int) -> int:
+        """Range-check the words of RADC candidate ``c`` that came since its last check:
+        the position of the first word out of the ADC range, or -1."""
+        start, stop = c[5], min(c[0] + PREFIX_LEN + self._radc_len, end)
+        if stop - start < 2:
+            return -1
+        self.stats.scanned_bytes += stop - start
+        words = (stop - start) // 2
+        if self._hi_off is not None:
+            o = self._hi_off - base
+            i = self._buf[start + o : stop - 1 + o : 2].translate(self._badmap).find(1)
+        else:
+            bad = self._bad_words(np.frombuffer(self._buf, np.uint8, stop - start, start - base))[::2]
+            i = int(bad.argmax()) if bad[bad.argmax()] else -1
+        if i >= 0:
+            return start + 2 * i
+        c[5] = start + 2 * words
+        return -1
+
+    def _bad_words(self, a: np.ndarray) -> np.ndarray:
+        """Whether the word starting at each byte of ``a`` (all but the last) is out of the
+        ADC range of the profile, (len(a) - 1,) bool."""
+        lay = self.profile.radc
+        if self._hi_off is not None:
+            return a[self._hi_off : len(a) - 1 + self._hi_off] > self._hi_max
+        lo, hi = a[:-1].astype(np.uint16), a[1:].astype(np.uint16)
+        v = (lo << 8 | hi) if lay.word == "uint16be" else (lo | hi << 8)
+        if lay.word == "int16le":
+            v = v.view(np.int16)
+        return (v < lay.min_word) | (v > lay.max_word)
+
+    def _decide_many(self, pos, k, n, every, lo, base, end) -> None:
+        """Decide many new candidates at once (numpy); the refused ones go to _bulk, the
+        others to _cands. ``every``: the positions of all candidates, sorted; ``lo``: the
+        first byte of the new candidates' payloads."""
+        kind = self._kind[k]
+        stop = pos + PREFIX_LEN + n
+        st = (stop <= end).astype(np.int8)  # _OK if whole, else _PEND: right for _FIXED
+        why = np.full(pos.size, -1, np.int64)
+        count = np.bincount(kind, minlength=4)
+        view = np.frombuffer(self._buf, np.uint8)  # released on return: the buffer resizes later
+        if count[_RESP]:  # zero padding after the code: the payload's bytes 1 to 3 that it has
+            m = np.flatnonzero((kind == _RESP) & (st == _OK))
+            at = np.minimum(pos[m, None] + (PREFIX_LEN + 1 + np.arange(3)), end - 1) - base
+            padded = (view[at] != 0) & (np.arange(1, 4) < n[m, None])
+            st[m[padded.any(axis=1)]] = _REJ
+        if count[_RADC] and end - lo >= 2:  # the first word out of the ADC range
+            self.stats.scanned_bytes += end - lo
+            bad = self._bad_words(view[lo - base :])  # words starting at lo, lo + 1, ...
+            m = np.flatnonzero(kind == _RADC)
+            first = pos[m] + PREFIX_LEN  # first word of each
+            shift = (first & 1) * _ODD  # a RADC's words have the parity of its first
+            # the bad words, keyed by parity: the even ones, then the odd ones + _ODD, in order
+            e = lo & 1  # index in ``bad`` of the first even position
+            keys = np.concatenate((np.flatnonzero(bad[e::2]) * 2 + (lo + e),
+                                   np.flatnonzero(bad[1 - e :: 2]) * 2 + (lo + 1 - e + _ODD), [_NONE]))
+            first_bad = keys[np.searchsorted(keys, first + shift)] - shift  # >= _ODD - 1: none
+            refused = first_bad < first + self._radc_len
+            st[m[refused]] = _REJ
+            why[m[refused]] = first_bad[refused]
+        if count[_OPAQUE]:  # refused if another candidate starts inside
+            m = np.flatnonzero(kind == _OPAQUE)
+            j = np.searchsorted(every, pos[m] + PREFIX_LEN)
+            inside = np.where(j < every.size, every[np.minimum(j, every.size - 1)], _NONE)
+            refused = inside < stop[m]
+            st[m[refused]] = _REJ
+            why[m[refused]] = inside[refused]
+            for i in m[~refused & (st[m] == _OK)]:  # whole: the last 7 bytes may start a header yet
+                if self._tail_start(int(pos[i]) + PREFIX_LEN, base, end) < stop[i]:
+                    st[i] = _PEND
+        rej = st == _REJ
+        if rej.any():
+            new = (pos[rej], k[rej], n[rej], why[rej])
+            old = self._bulk
+            self._bulk = tuple(np.concatenate(ab) for ab in zip(old, new)) if old[0].size else new
+            keep = np.flatnonzero(~rej)
+            pos, k, n, st = pos[keep], k[keep], n[keep], st[keep]
+        nr, kinds = self._radc_len, self._kinds
+        for p, kk, nn, s in zip(pos.tolist(), k.tolist(), n.tolist(), st.tolist()):
+            checked = p + PREFIX_LEN  # the next RADC word to check, if undecided
+            if s == _PEND and kinds[kk] == _RADC:
+                checked += (min(p + PREFIX_LEN + nr, end) - checked) // 2 * 2
+            self._cands.append([p, kk, nn, s, -1, checked])
+
+    def _tail_start(self, lo: int, base: int, end: int) -> int:
+        """First position from ``lo`` among the last, unsearched bytes that may still start a
+        header (its bytes so far begin one), or ``end``."""
+        buf, prefixes = self._buf, self._prefixes
+        for p in range(max(lo, self._scan, base), end):
+            if bytes(buf[p - base : p - base + HEADER_LEN]) in prefixes:
+                return p
+        return end
+
+    # -- the walk: messages in order, garbage counted --------------------------------------------
+    def _walk(self) -> list[Message]:
+        """Emit the messages of the candidates decided _OK, from the head on, and skip what
+        lies between them; stop at the first undecided candidate."""
+        buf, base = self._buf, self._base
+        end = base + len(buf)
+        out: list[Message] = []
+        cursor = self._eat_padding(base, end) if self._pad else base
+        head = -1
+        for c in self._cands:
+            q, k, n, st = c[:4]
+            if q < cursor:
+                continue  # inside a message just taken
+            if st == _PEND:
+                head = q
+                break
+            if st == _REJ:
+                self._refused(q, k, n, c[4])
+                continue
+            try:
+                msg = decode_payload(self._names[k], bytes(buf[q + PREFIX_LEN - base : q + PREFIX_LEN + n - base]),
+                                     self.profile)
+            except ProtocolError as exc:  # not expected after the checks; refused all the same
+                self.stats.invalid += 1
+                self.stats.last_error, self._err_at = f"{exc} (stream byte {q})", q
+                continue
+            self._garbage(cursor, q)
+            out.append(msg)
+            self.stats.messages += 1
+            self._skipping = False
+            self._pad = (-n) % 4
+            cursor = q + PREFIX_LEN + n
+            if self._pad:
+                cursor = self._eat_padding(cursor, end)
+        if head < 0:
+            head = self._tail_start(cursor, base, end)
+        self._garbage(cursor, head)
+        del buf[: head - base]
+        self._base = head
+        if self._cands and self._cands[0][0] < head:
+            self._cands = [c for c in self._cands if c[0] >= head]
+        if self._bulk[0].size:
+            i = int(np.searchsorted(self._bulk[0], head))
+            self._bulk = tuple(a[i:] for a in self._bulk)
+        return out
+
+    def _eat_padding(self, at: int, end: int) -> int:
+        """Skip up to ``_pad`` zero bytes from stream offset ``at``; the offset after them."""
+        buf, base = self._buf, self._base
+        n = 0
+        while n < self._pad and at + n < end and buf[at + n - base] == 0:
+            n += 1
+        self._pad = self._pad - n if at + n == end else 0  # more padding may come
+        return at + n
+
+    def _garbage(self, start: int, stop: int) -> None:
+        """Count the bytes [start, stop) as skipped and the refused candidates among them
+        that were decided in bulk (the others are counted as the walk meets them)."""
+        if stop <= start:
+            return
+        self.stats.skipped_bytes += stop - start
         if not self._skipping:
             self.stats.resyncs += 1
             self._skipping = True
-        starts = [i for i in (buf.find(h, n) for h in self._headers) if i >= 0]
-        if starts:
-            cut = min(starts)
-        else:
-            # keep a tail that could be the start of a header split across chunks
-            cut = max(n, len(buf) - (HEADER_LEN - 1))
-            while cut < len(buf) and not any(h.startswith(bytes(buf[cut:])) for h in self._headers):
-                cut += 1
-        self.stats.skipped_bytes += cut
-        del buf[:cut]
+        r = self._bulk[0]
+        if r.size:
+            i, j = int(np.searchsorted(r, start)), int(np.searchsorted(r, stop))
+            if j > i:
+                self._refused(*(int(a[j - 1]) for a in self._bulk), count=j - i)
+
+    def _refused(self, q: int, k: int, n: int, why: int, count: int = 1) -> None:
+        """Count ``count`` refused candidates, the last at stream offset ``q``."""
+        self.stats.invalid += count
+        if q > self._err_at:
+            self.stats.last_error, self._err_at = self._why(q, k, n, why), q
+
+    def _why(self, q: int, k: int, n: int, w: int) -> str:
+        """One line on why the candidate at stream offset ``q`` was refused."""
+        base = self._base
+        name = self._names[k].decode("ascii")
+        kind = self._kinds[k]
+        if kind == _RADC:
+            lay = self.profile.radc
+            value = int(np.frombuffer(bytes(self._buf[w - base : w - base + 2]), lay.dtype)[0])
+            return (f"RADC word {(w - q - PREFIX_LEN) // 2} is {value}, beyond the {lay.adc_bits}-bit ADC range "
+                    f"[{lay.min_word}, {lay.max_word}] of this profile (stream byte {q})")
+        if kind == _OPAQUE:
+            other = bytes(self._buf[w - base : w - base + HEADER_LEN]).decode("ascii", "replace")
+            return (f"{name} declares {n} payload bytes but a {other} header starts {w - q - PREFIX_LEN} bytes "
+                    f"into them: a stray header (stream byte {q})")
+        payload = bytes(self._buf[q + PREFIX_LEN - base : q + PREFIX_LEN + n - base])
+        return f"{name} padding is not zero: {payload.hex()} (stream byte {q})"

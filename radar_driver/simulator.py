@@ -34,6 +34,7 @@ import termios
 import threading
 import time
 import tty
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,13 +63,17 @@ log = logging.getLogger("qradar.sim")
 class SimFaults:
     """Fault injection. Probabilities are per message (garbage: a burst of 1 to
     ``garbage_max_bytes`` random bytes before a message; truncate: a RADC cut short;
-    skip_done: the DONE counter jumps by 1 to 3). ``disconnect_after_frames``: drop the
-    link once after that many frames and bring it back after ``reconnect_after_s``."""
+    skip_done: the DONE counter jumps by 1 to 3). ``skip_frames_after``: once, after
+    that many frames, the counter jumps over ``skip_frames`` whole frames (what a host
+    that stalled that long finds). ``disconnect_after_frames``: drop the link once after
+    that many frames and bring it back after ``reconnect_after_s``."""
 
     garbage_prob: float = 0.0
     garbage_max_bytes: int = 64
     truncate_prob: float = 0.0
     skip_done_prob: float = 0.0
+    skip_frames_after: int | None = None
+    skip_frames: int = 1
     disconnect_after_frames: int | None = None
     reconnect_after_s: float = 1.0
 
@@ -79,11 +84,51 @@ class SimFaults:
                 raise ConfigError(f"SimFaults.{name}={v!r} must be a probability in [0, 1]")
         if not (isinstance(self.garbage_max_bytes, int) and self.garbage_max_bytes >= 1):
             raise ConfigError(f"SimFaults.garbage_max_bytes={self.garbage_max_bytes!r} must be an integer >= 1")
-        n = self.disconnect_after_frames
-        if n is not None and not (isinstance(n, int) and n >= 1):
-            raise ConfigError(f"SimFaults.disconnect_after_frames={n!r} must be an integer >= 1")
+        for name in ("skip_frames_after", "disconnect_after_frames"):
+            n = getattr(self, name)
+            if n is not None and not (isinstance(n, int) and n >= 1):
+                raise ConfigError(f"SimFaults.{name}={n!r} must be an integer >= 1")
+        if not (isinstance(self.skip_frames, int) and self.skip_frames >= 1):
+            raise ConfigError(f"SimFaults.skip_frames={self.skip_frames!r} must be an integer >= 1")
         if not (math.isfinite(self.reconnect_after_s) and self.reconnect_after_s >= 0):
             raise ConfigError(f"SimFaults.reconnect_after_s={self.reconnect_after_s!r} must be >= 0")
+
+
+class RecentEvents:
+    """The last ``maxlen`` events of a device, oldest first: a ring, so a long run keeps a
+    bounded memory. Reads (iteration, indexing, slicing, ``in``) see a snapshot, safe
+    while the device's thread appends."""
+
+    def __init__(self, maxlen: int):
+        self._ring: deque[tuple[str, float | None]] = deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+
+    def append(self, event: tuple[str, float | None]) -> None:
+        with self._lock:
+            self._ring.append(event)
+
+    def snapshot(self) -> list[tuple[str, float | None]]:
+        with self._lock:
+            return list(self._ring)
+
+    @property
+    def maxlen(self) -> int:
+        return self._ring.maxlen
+
+    def __len__(self) -> int:
+        return len(self._ring)
+
+    def __iter__(self):
+        return iter(self.snapshot())
+
+    def __getitem__(self, i):
+        return self.snapshot()[i]
+
+    def __contains__(self, event) -> bool:
+        return event in self.snapshot()
+
+    def __repr__(self) -> str:
+        return f"RecentEvents({self.snapshot()!r}, maxlen={self.maxlen})"
 
 
 @dataclass
@@ -108,6 +153,8 @@ class SimulatedKMD2:
 
     #: lateness of the simulator's own writes that hold_clock lets pass (a scheduler tick)
     LATE_TOLERANCE_S = 0.002
+    #: events kept in ``events`` (the most recent); ``event_counts`` counts all since start
+    EVENTS_KEPT = 1024
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and self.rate_hz >= 0):
@@ -124,7 +171,12 @@ class SimulatedKMD2:
         self.baud = self.profile.startup_baud
         self.counter = -1  # frame counter of the last RADC sent
         self.radcs_sent = 0
-        self.events: list[tuple[str, int | None]] = []
+        #: (kind, value) of the latest commands and faults, at most EVENTS_KEPT; counts of every
+        #: kind since start in ``event_counts``, the RADCs the counter jumped over in ``skipped_radcs``
+        self.events = RecentEvents(self.EVENTS_KEPT)
+        self.event_counts: Counter[str] = Counter()
+        self.skipped_radcs = 0
+        self._skipped_once = False
         self._noise_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(0,)))
         self._fault_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(1,)))
         self._extra_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(2,)))
@@ -136,6 +188,10 @@ class SimulatedKMD2:
         self.late_writes = 0
         self.late_s = 0.0
 
+    def _event(self, kind: str, value: float | None) -> None:
+        self.events.append((kind, value))
+        self.event_counts[kind] += 1
+
     def hold_clock(self, late_s: float) -> None:
         """The process that plays the sensor wrote a reply ``late_s`` after it was due
         (it was not scheduled: a loaded host). A real K-MD2 measures on its own clock
@@ -146,7 +202,7 @@ class SimulatedKMD2:
             self._t0 += late_s
             self.late_writes += 1
             self.late_s += late_s
-            self.events.append(("LATE", round(late_s * 1e3, 2)))
+            self._event("LATE", round(late_s * 1e3, 2))
 
     # -- link events --------------------------------------------------------------------
     def link_reset(self, power_cycle: bool) -> None:
@@ -154,12 +210,12 @@ class SimulatedKMD2:
         self.decoder.reset()
         if power_cycle:
             self.baud = self.profile.startup_baud
-        self.events.append(("LINK_RESET", self.baud))
+        self._event("LINK_RESET", self.baud)
 
     # -- bytes in, bytes out ---------------------------------------------------------------
     def receive(self, data: bytes, host_baud: int | None = None, now_s: float | None = None) -> list[Reply]:
         if host_baud is not None and host_baud != self.baud:
-            self.events.append(("BAUD_MISMATCH", host_baud))
+            self._event("BAUD_MISMATCH", host_baud)
             return []  # a UART at another speed sees noise, not bytes
         now = time.monotonic() if now_s is None else now_s
         replies: list[Reply] = []
@@ -169,26 +225,26 @@ class SimulatedKMD2:
 
     def _handle(self, msg, host_baud: int | None, now: float) -> list[Reply]:
         if isinstance(msg, Init):
-            self.events.append(("INIT", host_baud))
+            self._event("INIT", host_baud)
             codes = self.profile.baud_codes
             if msg.baud_code not in codes:
                 return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
             reply = self._reply(Resp(RespCode.OK))
             self.baud = codes[msg.baud_code]
-            self.events.append(("SWITCH", self.baud))
+            self._event("SWITCH", self.baud)
             return [reply]
         if isinstance(msg, Gbye):
-            self.events.append(("GBYE", host_baud))
+            self._event("GBYE", host_baud)
             reply = self._reply(Resp(RespCode.OK))
             self.baud = self.profile.startup_baud
             return [reply]
         if isinstance(msg, Gnfd):
-            self.events.append(("GNFD", host_baud))
+            self._event("GNFD", host_baud)
             if msg.mask & ~self.profile.frame_mask or msg.mask == 0:
                 return [self._reply(Resp(RespCode.INVALID_PARAMETER))]
             return [self._reply(Resp(RespCode.OK))] + self._ramp_replies(msg.mask, now)
         # a sensor-to-host message or an unknown frame sent to the sensor
-        self.events.append(("UNKNOWN", None))
+        self._event("UNKNOWN", None)
         return [self._reply(Resp(RespCode.UNKNOWN_COMMAND))]
 
     def _ramp_replies(self, mask: int, now: float) -> list[Reply]:
@@ -201,11 +257,21 @@ class SimulatedKMD2:
             due = self._t0 + index / self.radc_rate_hz
         else:
             index, due = self.counter + 1, None
+        n = self.faults.skip_frames_after
+        if n is not None and not self._skipped_once and self.radcs_sent >= n * self.radcs_per_frame:
+            self._skipped_once = True  # whole frames go by unpolled: the device clock ran on
+            skip = self.faults.skip_frames * self.radcs_per_frame
+            index += skip
+            if self.radc_rate_hz > 0:
+                self._t0 -= skip / self.radc_rate_hz
+            self._event("SKIP_DONE", skip)
+            self.skipped_radcs += skip
         measured_index = index
         if self.faults.skip_done_prob and rng.random() < self.faults.skip_done_prob:
             skip = int(rng.integers(1, 4))
             index += skip
-            self.events.append(("SKIP_DONE", skip))
+            self._event("SKIP_DONE", skip)
+            self.skipped_radcs += skip
         self.counter = index
         out = []
         bits = self.profile.gnfd_bits
@@ -213,7 +279,7 @@ class SimulatedKMD2:
             radc = self._reply(Radc(self.measure(measured_index), self.profile.radc), due)
             if self.faults.truncate_prob and rng.random() < self.faults.truncate_prob:
                 radc.data = radc.data[: int(rng.integers(1, len(radc.data)))]
-                self.events.append(("TRUNCATED", index))
+                self._event("TRUNCATED", index)
             out.append(radc)
         for name, bit in bits.items():
             if name != "RADC" and mask & bit:
@@ -224,7 +290,7 @@ class SimulatedKMD2:
         if n is not None and not self._disconnected_once and self.radcs_sent >= n * self.radcs_per_frame:
             self._disconnected_once = True
             out[-1].disconnect = True
-            self.events.append(("DISCONNECT", index))
+            self._event("DISCONNECT", index)
         return out
 
     def measure(self, index: int) -> np.ndarray:

@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.localize import localize
 from radar_driver.model import RadarConfig, simulate_frames
-from radar_driver.protocol import Done, Gnfd, Init, OtherMessage, Radc, Resp, RespCode, StreamDecoder, encode
+from radar_driver.protocol import Done, Gbye, Gnfd, Init, OtherMessage, Radc, Resp, RespCode, StreamDecoder, encode
 from radar_driver.scene import SimScene, SimTarget, resolve_scene
 from radar_driver.session import (
     LinkError,
@@ -109,7 +109,7 @@ def test_done_counter_gaps_count_as_drops(link):
     faults = SimFaults(skip_done_prob=0.2)
     with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults, seed=1) as sim, session(link) as s:
         frames = list(s.frames(30))
-    skipped = sum(n for e, n in sim.devices[0].events if e == "SKIP_DONE")
+    skipped = sim.devices[0].skipped_radcs
     assert skipped > 0
     c = s.counters
     assert c.dropped_radcs == skipped  # the counter's gaps, in RADCs (ramps here)
@@ -134,8 +134,8 @@ def test_device_disconnects_and_returns_and_the_driver_reconnects(link, transpor
     assert len(frames) == 12 and [f.seq for f in frames] == list(range(12))
     gamma = expected_frame(SCENE)
     assert all(np.abs(f.data - gamma).max() <= LSB for f in frames)
-    events = [e[0] for e in sim.devices[0].events]
-    assert events.count("INIT") == 2 and "DISCONNECT" in events
+    counts = sim.devices[0].event_counts
+    assert counts["INIT"] == 2 and counts["DISCONNECT"] == 1
 
 
 def test_paced_at_the_frame_rate(link):
@@ -273,11 +273,12 @@ def test_a_signal_leaves_the_sensor_at_its_start_up_speed(link, how):
 
 
 def test_an_error_without_reconnect_says_goodbye_first(link):
-    """Every RADC cut short (the cut RADC swallows its DONE): the session ends with a
-    timeout (reconnect off), and the sensor got a GBYE before the error reached the caller."""
+    """Every RADC cut short (the decoder refuses it at the DONE header inside it, so every
+    answer lacks a whole RADC): the session ends with a timeout (reconnect off), and the
+    sensor got a GBYE before the error reached the caller."""
     with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=SimFaults(truncate_prob=1.0)) as sim:
         s = session(link, reconnect=False, baud=921_600)
-        with pytest.raises(SensorTimeout, match="no complete RADC from .* after 2 GNFD polls"):
+        with pytest.raises(SensorTimeout, match="GNFD answers in a row from .* lacked a whole RADC"):
             with s:
                 list(s.frames(2))
         events = sim.devices[0].events
@@ -334,11 +335,11 @@ def test_requests_in_flight_ask_for_exactly_the_frames_wanted(link, outstanding)
             frames = list(s.frames(6))
             more = list(s.frames(2))
         assert not sim.errors
-        gnfds = [e for e in sim.devices[0].events if e[0] == "GNFD"]
+        gnfds = sim.devices[0].event_counts["GNFD"]
     gamma = expected_frame(SCENE)
     assert [f.seq for f in frames + more] == list(range(8))
     assert all(np.abs(f.data - gamma).max() <= LSB for f in frames + more)
-    assert len(gnfds) == 16 and s.counters.ramps == 16
+    assert gnfds == 16 and s.counters.ramps == 16
     assert s.counters.timeouts == 0 and s.counters.incomplete == 0
 
 
@@ -365,7 +366,7 @@ def test_a_second_request_in_flight_rides_out_a_stall_of_the_host(link, outstand
         wait_until(lambda: any(e == "GBYE" for e, _ in sim.devices[0].events), 2.0, "GBYE")
     assert not stall_at and [f.seq for f in frames] == list(range(20))
     assert (s.counters.dropped_radcs > 0) == drops
-    assert sum(e == "GNFD" for e, _ in sim.devices[0].events) == s.counters.ramps
+    assert sim.devices[0].event_counts["GNFD"] == s.counters.ramps
     assert s.counters.timeouts == 0 and not sim.errors
 
 
@@ -405,3 +406,38 @@ def test_an_answer_with_the_last_counter_again_is_not_a_new_frame():
         s._handle(Done(counter))
     assert s.counters.repeated == 1 and s.counters.ramps == 4 and s.counters.frames == 2
     assert [f.counters for f in (s._queue.get_nowait(), s._queue.get_nowait())] == [(0, 1), (2, 3)]
+
+
+def test_a_gap_of_66_frames_counts_66_dropped_frames_not_132_ramps(link):
+    """The sensor's counter jumps over 66 frames of 2 ramps (a host stalled that long):
+    ``dropped`` counts the 66 frames, ``dropped_radcs`` the 132 RADCs."""
+    faults = SimFaults(skip_frames_after=3, skip_frames=66)
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults) as sim, session(link) as s:
+        frames = list(s.frames(6))
+    assert sim.devices[0].skipped_radcs == 132
+    c = s.counters
+    assert c.dropped == 66 and c.dropped_radcs == 132 and c.discarded_ramps == 0
+    assert [f.counters for f in frames] == [(0, 1), (2, 3), (4, 5), (138, 139), (140, 141), (142, 143)]
+    # on the device's clock (20 frames/s) the gap is time that went by: the answers stay on time
+    dev = SimulatedKMD2(SCENE, rate_hz=20, faults=SimFaults(skip_frames_after=1, skip_frames=66))
+    dec = StreamDecoder()
+    seen = []
+    for k in range(4):
+        for reply in dev.receive(encode(Gnfd()), now_s=100.0 + k / 40):
+            seen += [(m.frame_counter, reply.due_s) for m in dec.feed(reply.data) if isinstance(m, Done)]
+    assert [n for n, _ in seen] == [0, 1, 134, 135]
+    assert np.allclose([t for _, t in seen], [100.0, 100.025, 100.05, 100.075])
+
+
+def test_the_simulated_sensor_keeps_recent_events_and_counts_all_of_them():
+    """A long run (here 3 times the events kept) does not grow the device's event list;
+    the counts since start stay exact."""
+    dev = SimulatedKMD2(SCENE, rate_hz=0)
+    n = 3 * dev.EVENTS_KEPT  # GNFDs with an empty mask (answered RESP 2) and 2 for a frame
+    replies = dev.receive(encode(Init(0)) + encode(Gnfd(0)) * n + encode(Gnfd()) * 2 + encode(Gbye()))
+    assert sum(r.data == encode(Resp(RespCode.INVALID_PARAMETER)) for r in replies) == n
+    assert len(dev.events) == dev.EVENTS_KEPT == dev.events.maxlen
+    assert dict(dev.event_counts) == {"INIT": 1, "SWITCH": 1, "GNFD": n + 2, "GBYE": 1}
+    assert dev.radcs_sent == 2 and dev.counter == 1
+    assert dev.events[-1] == ("GBYE", None) and dev.events[:-1] == [("GNFD", None)] * (dev.EVENTS_KEPT - 1)
+    assert ("INIT", None) not in dev.events  # the oldest are gone, but counted
