@@ -73,6 +73,7 @@ START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 10.0
 RUN_GRACE_S = 120.0
 DRAIN_S = 5.0
+AIM_MB = 5.0  # growth after warm-up the soak aims to stay within
 LOSS_FIELDS = ("drops", "decode_errors", "invalid_frames", "processing_errors", "frames_missing")
 
 
@@ -288,7 +289,8 @@ def memory_figures(samples: list[tuple[float, float]], start_s: float, warmup_s:
     if not samples:
         return {"samples": 0}
     post = [(t, r) for t, r in samples if t >= start_s + warmup_s]
-    out = {"samples": len(samples), "first_mb": round(samples[0][1], 1), "peak_mb": round(max(r for _, r in samples), 1)}
+    out = {"samples": len(samples), "first_mb": round(samples[0][1], 1),
+           "peak_mb": round(max(r for _, r in samples), 1)}
     if len(post) < 2:
         return out | {"note": "fewer than 2 samples after warm-up"}
     t = np.array([p[0] for p in post])
@@ -401,8 +403,9 @@ def soak(args) -> dict:
     t_stop = D - args.tail
     out: dict = {"duration_s": D, "warmup_s": args.warmup, "sensors": args.sensors, "flood_rate_hz": args.flood_rate,
                  "flood_mix": args.flood_mix, "junk_ids": args.junk_ids, "ext_sensors": args.ext_sensors,
-                 "ext_rate_hz": args.ext_rate, "restart_gap_s": args.restart_gap, "sample_s": args.sample, "tail_s": args.tail,
-                 "endpoint": ep, "tree": str(tree), "cpus": os.cpu_count(), "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
+                 "ext_rate_hz": args.ext_rate, "restart_gap_s": args.restart_gap, "sample_s": args.sample,
+                 "tail_s": args.tail, "endpoint": ep, "tree": str(tree), "cpus": os.cpu_count(),
+                 "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
     children: list[Child] = []
     crashes: list[dict] = []
     samples: dict[str, list[tuple[float, float]]] = defaultdict(list)
@@ -535,8 +538,8 @@ def soak(args) -> dict:
     run_q, run_l = observer.health_of("radar", "quantize"), observer.health_of("radar", "localize")
     for i in range(args.sensors):
         sid = f"kmd2-{i}"
-        losses[f"radar/{sid}"] = explain(accounting(tcounts.get(("radar", sid)), (driver.get(sid) or {}).get("frames")),
-                                         run_l.get(sid)) | {
+        acc = accounting(tcounts.get(("radar", sid)), (driver.get(sid) or {}).get("frames"))
+        losses[f"radar/{sid}"] = explain(acc, run_l.get(sid)) | {
             "sensor_frames_dropped": (driver.get(sid) or {}).get("dropped"), "quantize": node_view(run_q.get(sid))}
     losses["radar/evil"] = accounting(tcounts.get(("radar", "evil")), flood_out.get("seq_next")) | {
         "quantize": node_view(run_q.get("evil")), "localize": node_view(run_l.get("evil"))}
@@ -603,15 +606,19 @@ def table(r: dict) -> str:
         locs = loc if isinstance(loc, list) else [loc]
         lat = "; ".join(f"{(v.get('latency_ms') or {}).get('p50')} / {(v.get('latency_ms') or {}).get('p99')}"
                         for v in locs if v)
-        lines.append(f"| {name} | {a.get('published')} | {a.get('received')} | {a.get('gaps', '–')} | "
+        pub = a.get("published")
+        if a.get("sensor_frames_dropped"):
+            pub = f"{pub} (+{a['sensor_frames_dropped']} lost at the sensor, counted by its driver)"
+        lines.append(f"| {name} | {pub} | {a.get('received')} | {a.get('gaps', '–')} | "
                      f"{a.get('unaccounted', '–')} | {a.get('restart_loss', '–')} | "
                      f"{a.get('counted_by_nodes', '–')} | {a.get('unexplained', '–')} | {lat or '–'} |")
-    lines += ["", "| process | RSS start MB | middle | end | growth MB | slope MB/min | peak | CPU s |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += ["", f"| process | RSS start MB | middle | end | growth MB | slope MB/min | peak | CPU s | "
+              f"growth within {AIM_MB:g} MB |", "|---|---|---|---|---|---|---|---|---|"]
     for name, m in r.get("memory", {}).items():
         lines.append(f"| {name} | {m.get('start_mb', '–')} | {m.get('middle_mb', '–')} | {m.get('end_mb', '–')} | "
                      f"{m.get('growth_mb', '–')} | {m.get('slope_mb_per_min', '–')} | {m.get('peak_mb', '–')} | "
-                     f"{r.get('cpu_s', {}).get(name, '–')} |")
+                     f"{r.get('cpu_s', {}).get(name, '–')} | "
+                     f"{('yes' if abs(m['growth_mb']) <= AIM_MB else 'NO') if 'growth_mb' in m else '–'} |")
     return "\n".join(lines)
 
 
