@@ -25,12 +25,17 @@ its warm-up (``--warmup`` s after it started), in the middle and at the end (bef
 flood stops), the growth end - start and the slope (MB/min, least squares over the
 samples after warm-up). Aim: growth within 5 MB.
 
-Losses: for each sensor, ``unaccounted`` = frames published with a sequence number at
-or after the first target the observer received, minus targets received, minus gaps
-counted (every loss counted: 0); the restart's loss is the gap at the first target of
-each external sensor after the kill. ``counted by nodes`` sums the losses the
-localize nodes' health says they saw (frames_missing, drops and errors); ``restart``
-+ ``counted by nodes`` should explain the observer's gaps.
+Losses, per sensor (the run's kmd2-<i>, the flood's evil, the chain's sim<i>):
+``unaccounted`` = frames published with a sequence number at or after the first target
+the observer received - targets received - gaps counted (a loss no gap shows: at the
+tail); ``restart loss`` = the gap at each external sensor's first target from the new
+localize; ``counted by nodes`` = what the localize node(s) said they lost or saw missing
+upstream (health: frames_missing, drops, errors; the killed one's last health);
+``unexplained`` = gaps + unaccounted - restart loss - counted by nodes. For evil,
+``unexplained`` balances the run's final totals instead: numbered frames sent - targets
+received - queue drops - invalid frames (less the flood's unnumbered messages) - errors -
+frames missing at the quantizer. Every loss counted: unexplained 0. The run's simulated
+sensors also lose frames before their driver (its ``dropped``, shown beside published).
 
 Crashes: a process that exits before it is stopped (but the killed localize), or a run
 that ends without rc 0 and its JSON summary.
@@ -40,7 +45,9 @@ that ends without rc 0 and its JSON summary.
 
 At the end the flood and the external source stop ``--tail`` s before the run's own
 end, the external nodes 5 s later; each stop is SIGTERM, then SIGKILL after 10 s; the
-run gets 120 s past its duration.
+run gets 120 s past its duration. ``--malloc-arena-max 2`` runs every process with
+MALLOC_ARENA_MAX=2: RSS that grows with glibc's default arenas and not with 2 is heap
+held by per-thread arenas (zenoh's and Python's threads), not Python objects.
 """
 
 from __future__ import annotations
@@ -394,6 +401,8 @@ def evil_balance(losses: dict, summary: dict, flood: dict) -> int | None:
 def soak(args) -> dict:
     tree = args.tree.resolve()
     env = dict(os.environ, PYTHONPATH=str(tree), PYTHONUNBUFFERED="1")
+    if args.malloc_arena_max:
+        env["MALLOC_ARENA_MAX"] = str(args.malloc_arena_max)
     py = [args.python, "-m", "qradar"]
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -404,7 +413,7 @@ def soak(args) -> dict:
     out: dict = {"duration_s": D, "warmup_s": args.warmup, "sensors": args.sensors, "flood_rate_hz": args.flood_rate,
                  "flood_mix": args.flood_mix, "junk_ids": args.junk_ids, "ext_sensors": args.ext_sensors,
                  "ext_rate_hz": args.ext_rate, "restart_gap_s": args.restart_gap, "sample_s": args.sample,
-                 "tail_s": args.tail, "endpoint": ep, "tree": str(tree), "cpus": os.cpu_count(),
+                 "tail_s": args.tail, "malloc_arena_max": args.malloc_arena_max or None, "endpoint": ep, "tree": str(tree), "cpus": os.cpu_count(),
                  "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
     children: list[Child] = []
     crashes: list[dict] = []
@@ -641,6 +650,9 @@ def main() -> None:
     ap.add_argument("--python", default=sys.executable, help="the interpreter with qradar's dependencies")
     ap.add_argument("--tree", type=Path, default=HERE, help="the qradar tree the run and the nodes come from "
                     "(default: this one; the flood is always this tree's)")
+    ap.add_argument("--malloc-arena-max", type=int, default=0, metavar="N",
+                    help="MALLOC_ARENA_MAX for every process (glibc's malloc arenas; 0: glibc's default, 8 per "
+                    "core): tells native heap growth from a leak")
     ap.add_argument("--tmp", default=None, help="directory for the recording (default: the system's temp)")
     ap.add_argument("--keep", action="store_true", help="keep the recording")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
