@@ -409,10 +409,14 @@ class ProcessingNode(Node):
             return
         payload = sample.payload.to_bytes()
         with self._lock:
+            health = key.endswith("/health")
+            if health and sensor not in self.stats:
+                sensor = NO_SENSOR  # health makes no sensor state (a recorder records its own health)
             st = self.sensor_stats(sensor)
             st.frames_in += 1
             st.bytes_in += n
-            st.last_seen = time.monotonic()
+            if not health:  # nor keeps one alive: else a sensor seen once by a recorder never expires
+                st.last_seen = time.monotonic()
             if sensor != NO_SENSOR and len(payload) >= HEADER_LEN and payload[:4] == MAGIC:
                 st.note_seq(key.rsplit("/", 1)[-1], SEQ.unpack_from(payload, SEQ_OFFSET)[0])
         for victim in self._queue.put(sensor, (sensor, key, payload, time.time_ns()), n):

@@ -34,7 +34,7 @@ from pathlib import Path
 import zenoh
 
 from pipeline.bus import BusConfig
-from pipeline.node import ProcessingNode
+from pipeline.node import NO_SENSOR, ProcessingNode
 from pipeline.wire import COMMON, MAGIC, WireError, decode_targets
 
 from .errors import ReplayError
@@ -320,8 +320,8 @@ class RecorderNode(ProcessingNode):
                 continue
             if topic is None:
                 self.unparsed += 1
-            with self._lock:
-                self.sensor_stats(sensor).frames_out += 1
+            with self._lock:  # a late message of an expired sensor makes no new state
+                (self.stats.get(sensor) or self.sensor_stats(NO_SENSOR)).frames_out += 1
         self._maybe_flush_or_split()
 
     def on_idle(self) -> None:

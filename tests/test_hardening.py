@@ -291,3 +291,22 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
                 outs[name] = p.communicate(timeout=20)
     loc = json.loads(outs["localize"][0].strip().splitlines()[-1])
     assert loc["frames_missing"] == h.frames_missing and loc["drops"] == 0
+
+
+def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, zenoh_session, tmp_path):
+    # the recorder records its own health on radar/<sensor>/health: that must neither keep a
+    # silent sensor's state alive nor make it again (benchmarks/soak.py's junk keys)
+    from replay.recorder import RecorderNode
+
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session, health_period_s=0.1,
+                       sensor_expiry_s=0.5).start()
+    try:
+        zenoh_session.put("radar/junk1/raw", b"\x00")
+        wait_until(lambda: "junk1" in rec.stats, 10, "the junk sensor's state")
+        wait_until(lambda: rec.sensors_expired >= 1 and "junk1" not in rec.stats, 10, "the junk sensor to expire")
+        time.sleep(1.0)  # ten health periods: late health makes no state again
+        with rec._lock:
+            assert "junk1" not in rec.stats
+        assert rec.sensors_expired == 1 and rec.totals()["frames_in"] >= 2  # the put and some health
+    finally:
+        rec.stop()
