@@ -83,9 +83,10 @@ class FairQueue:
             except ValueError:
                 pass
 
-    def get_batch(self, max_items: int, timeout_s: float) -> list[Any]:
-        """Up to ``max_items`` frames, one per waiting sensor in turn; waits at most
-        ``timeout_s`` for the first; [] if none came."""
+    def get_batch(self, max_items: int, timeout_s: float, per_sensor: int | None = None) -> list[Any]:
+        """Up to ``max_items`` frames, one per waiting sensor in turn, at most ``per_sensor``
+        of one sensor (a flooding sensor cannot fill a batch and so delay the others' next
+        frames by a whole batch); waits at most ``timeout_s`` for the first; [] if none came."""
         deadline = time.monotonic() + timeout_s
         out: list[Any] = []
         with self._cond:
@@ -94,6 +95,8 @@ class FairQueue:
                 if left <= 0 or not self._cond.wait(left):
                     if not self._frames:
                         return out
+            taken: dict[Hashable, int] = {}
+            full: list[Hashable] = []  # sensors whose share of this batch is taken
             while self._ring and len(out) < max_items:
                 sensor = self._ring.popleft()
                 fifo = self._fifos[sensor]
@@ -102,8 +105,12 @@ class FairQueue:
                 self._frames -= 1
                 self._bytes -= nbytes
                 self._bytes_of[sensor] -= nbytes
-                if fifo:
-                    self._ring.append(sensor)
-                else:
+                taken[sensor] = n = taken.get(sensor, 0) + 1
+                if not fifo:
                     del self._fifos[sensor], self._bytes_of[sensor]
+                elif per_sensor is not None and n >= per_sensor:
+                    full.append(sensor)
+                else:
+                    self._ring.append(sensor)
+            self._ring.extend(full)  # after the sensors still waiting their turn
         return out

@@ -344,6 +344,9 @@ class ProcessingNode(Node):
     in_topic = "raw"
     #: True: messages on keys without a valid sensor chunk are processed too (the recorder)
     accepts_any_key = False
+    #: the most frames of one sensor in a batch (None: no limit): a flooding sensor's batch
+    #: ends early, so the others' next frames do not wait behind a whole batch of its
+    batch_per_sensor: int | None = 16
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 512,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
@@ -428,7 +431,7 @@ class ProcessingNode(Node):
     def _work_loop(self) -> None:
         # after stop, drain what was queued before the subscriber went away
         while not (self._stop.is_set() and self._queue.empty()):
-            batch = self._queue.get_batch(self.batch_max, 0.1)
+            batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor)
             if not batch:
                 self.on_idle()
                 continue

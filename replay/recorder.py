@@ -35,7 +35,7 @@ import zenoh
 
 from pipeline.bus import BusConfig
 from pipeline.node import NO_SENSOR, ProcessingNode
-from pipeline.wire import COMMON, MAGIC, WireError, decode_targets
+from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
 from .errors import ReplayError
 from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
@@ -43,6 +43,7 @@ from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
 log = logging.getLogger("qradar.record")
 
 FLUSH_PERIOD_S = 1.0
+
 #: at most one log line per this many seconds while recording is paused
 PAUSED_LOG_PERIOD_S = 1.0
 #: file names listed in health and summaries (the newest); ``files_written`` counts them all
@@ -100,6 +101,7 @@ class RecorderNode(ProcessingNode):
 
     name = "record"
     accepts_any_key = True  # every key under the subscription is recorded
+    batch_per_sensor = None  # writing is cheap: whole batches
 
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
                  session: zenoh.Session | None = None, split_size_mb: float | None = None,
@@ -154,6 +156,18 @@ class RecorderNode(ProcessingNode):
     def lost(self) -> int:
         with self._lock:
             return sum(self.lost_by_topic.values())
+
+    def admit(self, key: str, n_bytes: int) -> str | None:
+        """A raw or quantized frame of a length no frame of any M can have is refused
+        (counted in invalid_frames, not written): garbage must not grow the file's channels.
+        Anything of a possible length is recorded, whatever its configuration."""
+        topic = key.rsplit("/", 1)[-1]
+        if topic == "raw" and not (n_bytes >= HEADER_LEN + 16 and (n_bytes - HEADER_LEN) % 16 == 0
+                                   and n_bytes <= HEADER_LEN + 16 * MAX_M):
+            return f"{n_bytes} bytes, not the length of a raw frame (48 + 16 M) (not recorded)"
+        if topic == "quantized" and not QUANT_HEADER_LEN < n_bytes <= QUANT_HEADER_LEN + 8 * MAX_M:
+            return f"{n_bytes} bytes, not the length of a quantized frame (not recorded)"
+        return None
 
     def subscription(self) -> str:
         return self.topics

@@ -301,7 +301,7 @@ def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, z
     rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session, health_period_s=0.1,
                        sensor_expiry_s=0.5).start()
     try:
-        zenoh_session.put("radar/junk1/raw", b"\x00")
+        zenoh_session.put("radar/junk1/raw", raw("junk1", 0))
         wait_until(lambda: "junk1" in rec.stats, 10, "the junk sensor's state")
         wait_until(lambda: rec.sensors_expired >= 1 and "junk1" not in rec.stats, 10, "the junk sensor to expire")
         time.sleep(1.0)  # ten health periods: late health makes no state again
@@ -310,3 +310,34 @@ def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, z
         assert rec.sensors_expired == 1 and rec.totals()["frames_in"] >= 2  # the put and some health
     finally:
         rec.stop()
+
+
+def test_a_flooding_sensor_cannot_fill_a_batch():
+    q = FairQueue(max_frames=1000, max_frames_per_sensor=500)
+    for i in range(100):
+        q.put("evil", ("evil", i), 1)
+    q.put("good", ("good", 0), 1)
+    batch = q.get_batch(64, 0.0, per_sensor=16)
+    assert len(batch) == 17 and ("good", 0) in batch  # the evil sensor's share ends the batch early
+    q.put("good", ("good", 1), 1)
+    nxt = q.get_batch(64, 0.0, per_sensor=16)
+    assert len(nxt) == 17 and ("good", 1) in nxt  # served in the next batch, not 64 frames later
+
+
+def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, zenoh_session, tmp_path):
+    from mcap.reader import make_reader
+
+    from replay.recorder import RecorderNode
+
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session).start()
+    try:
+        for i in range(50):
+            zenoh_session.put(f"radar/junk{i}/raw", b"x")
+        zenoh_session.put("radar/s6/raw", raw("s6", 0))
+        wait_until(lambda: rec.totals()["frames_out"] == 1 and rec.totals()["invalid_frames"] == 50, 10,
+                   "one frame recorded, 50 refused")
+    finally:
+        rec.stop()
+    with open(tmp_path / "r.mcap", "rb") as f:
+        topics = {ch.topic for ch in make_reader(f).get_summary().channels.values()}
+    assert "radar/s6/raw" in topics and not [t for t in topics if "junk" in t]
