@@ -458,7 +458,8 @@ def soak(args) -> dict:
 
     try:
         run = start("run", py + ["run", "--duration", f"{D:g}", "--sensors", str(args.sensors), "--listen", ep,
-                                 "--json", "--record", str(rec), "--scene", args.scene])
+                                 "--json", *(["--no-record"] if args.no_record else ["--record", str(rec)]),
+                                 "--scene", args.scene])
         wait_port(port, run, START_TIMEOUT_S)
         observer = Observer(ep, ("radar", "soak"), t0)
         ext_loc = start("ext-localize#1", py + ["localize", "--prefix", "soak", *client])
@@ -655,6 +656,8 @@ def main() -> None:
                     "core): tells native heap growth from a leak")
     ap.add_argument("--tmp", default=None, help="directory for the recording (default: the system's temp)")
     ap.add_argument("--keep", action="store_true", help="keep the recording")
+    ap.add_argument("--no-record", action="store_true",
+                    help="the run records nothing (tells the recorder's memory from the rest's)")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args()

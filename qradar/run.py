@@ -143,6 +143,7 @@ class RunConfig:
     driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
     record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
+    record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -193,7 +194,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             recorder = []
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k),
-                                         on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s)]
+                                         on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
+                                         split_size_mb=cfg.record_split_mb)]
             view = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=scene.radar), session=session).start()

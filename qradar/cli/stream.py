@@ -99,6 +99,9 @@ def add_commands(sub) -> None:
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to (default recordings/run-<time>.mcap)")
     p.add_argument("--no-record", action="store_true", help="do not record")
+    p.add_argument("--split-size", type=pos_float, default=None, metavar="MB",
+                   help="record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps "
+                   "each chunk's index in memory until its file ends, ~17 MB per GB recorded")
     write_error_options(p, "go on without it (the pipeline keeps running; the summary says so)")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
     p.add_argument("--driver-in-process", action="store_true",
@@ -213,7 +216,8 @@ def cmd_run(args) -> int:
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
-                    record_on_error=args.on_write_error, record_retry_s=args.write_retry)
+                    record_on_error=args.on_write_error, record_retry_s=args.write_retry,
+                    record_split_mb=args.split_size)
     install_sigterm()
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
     if args.json:
