@@ -24,18 +24,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from radar_driver.profile import DEFAULT_PROFILE  # noqa: E402
 from radar_driver.protocol import Done, Radc, Resp, StreamDecoder, encode  # noqa: E402
 from radar_driver.scene import resolve_scene  # noqa: E402
 from radar_driver.session import SensorSession, SessionConfig  # noqa: E402
 from radar_driver.simulator import SimulatorServer  # noqa: E402
 
 
+LAYOUT = DEFAULT_PROFILE.radc  # one ramp per RADC: words (receivers, chirps, samples, I/Q) = (2, 1, 256, 2)
+RAMP_LEN = len(encode(Resp(0))) + 8 + LAYOUT.payload_len + len(encode(Done(0)))  # RESP, RADC, DONE: bytes
+
+
 def frame_bytes(seed: int) -> bytes:
     rng = np.random.default_rng(seed)
     out = b""
     for r in range(2):
-        words = rng.integers(0, 4096, (2, 2, 256)).astype(np.uint16)
-        out += encode(Resp(0)) + encode(Radc(words)) + encode(Done(2 * seed + r))
+        words = rng.integers(LAYOUT.min_word, LAYOUT.max_word + 1, LAYOUT.words_shape).astype(np.uint16)
+        out += encode(Resp(0)) + encode(Radc(words, LAYOUT)) + encode(Done(2 * seed + r))
     return out
 
 
@@ -48,11 +53,12 @@ def bench_codec(frames: int) -> dict:
     codec_s = time.perf_counter() - t0
     assert n == frames * 6, n
     # baseline: just view the RADC payloads as words
-    payload_offsets = [12 + 8 + k * (2 * (12 + 2056 + 12)) for k in range(frames)]
+    words = LAYOUT.payload_len // 2
+    payload_offsets = [len(encode(Resp(0))) + 8 + k * 2 * RAMP_LEN for k in range(frames)]
     t0 = time.perf_counter()
     for off in payload_offsets:
-        np.frombuffer(stream, dtype="<u2", count=1024, offset=off).max()
-        np.frombuffer(stream, dtype="<u2", count=1024, offset=off + 2080).max()
+        np.frombuffer(stream, dtype="<u2", count=words, offset=off).max()
+        np.frombuffer(stream, dtype="<u2", count=words, offset=off + RAMP_LEN).max()
     base_s = time.perf_counter() - t0
     return {"codec_frames_per_s": frames / codec_s, "codec_mb_per_s": len(stream) / codec_s / 1e6,
             "frombuffer_frames_per_s": frames / base_s, "codec_over_frombuffer": base_s / codec_s}

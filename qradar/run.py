@@ -19,7 +19,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TextIO
+from typing import Callable, TextIO
 
 import numpy as np
 import zenoh
@@ -64,6 +64,7 @@ class Monitor:
         self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
         self.bad_targets = 0
         self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
+        self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
         self._last_seq: dict[str, int] = {}
         self._last_print: dict[str, float] = {}
         self._lock = threading.Lock()
@@ -89,6 +90,11 @@ class Monitor:
         with self._lock:
             self.count[topic] += 1
             self.bytes[topic] += len(payload)
+            if topic == "raw":
+                sensor = key.rsplit("/", 2)[-2]
+                if sensor not in self.raw_by_sensor and len(self.raw_by_sensor) >= self.MAX_SENSORS:
+                    self.raw_by_sensor.clear()  # keys of garbage: bounded
+                self.raw_by_sensor[sensor] = self.raw_by_sensor.get(sensor, 0) + 1
         if topic != "targets":
             return
         try:
@@ -182,7 +188,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             links = [str(sim.links[0].link_path) for sim in sims]
             if cfg.driver_process:
                 drivers = [DriverProcess(link, f"kmd2-{i}", cfg.baud, scene.radar.ramps_per_frame, bus,
-                                         frames=cfg.frames, log=sys.stderr if live is not None else None)
+                                         frames=cfg.frames, log=sys.stderr if live is not None else None,
+                                         received=lambda sid=f"kmd2-{i}": monitor.raw_by_sensor.get(sid, 0))
                            for i, link in enumerate(links)]
             else:
                 drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
@@ -244,13 +251,21 @@ def last_json_object(lines) -> dict:
 class DriverProcess:
     """One sensor's serial driver in its own process (``qradar drive``), publishing raw
     frames on ``bus`` (a zenoh client). Node-like for :func:`run_nodes`: ``start``,
-    ``stop``, ``errors``, ``done``. Stopped with SIGTERM, it says GBYE and prints its
-    counters (JSON), which :meth:`stats` returns; its log lines go to ``log``."""
+    ``stop``, ``errors``, ``done`` (the driver has finished: its counters came, or it
+    exited). Stopped with SIGTERM, it says GBYE and prints its counters (JSON), which
+    :meth:`stats` returns; its log lines go to ``log``.
+
+    ``received()``: the raw frames of this sensor the run has received. With it the
+    driver keeps its zenoh session open after its counters (``--linger-stdin``) until
+    the run has received every frame they count (at most ``ack_timeout_s``), and only
+    then is its stdin closed: zenoh can lose a put made just before its session
+    closes, and the last frames of a stop are just that."""
 
     name = "driver"
 
     def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
-                 frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None):
+                 frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None,
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0):
         self.sensor_id = sensor_id
         self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
                     "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix]
@@ -263,6 +278,9 @@ class DriverProcess:
             self.cmd += ["--frames", str(frames)]
         if profile is not None:
             self.cmd += ["--profile", profile]
+        if received is not None:
+            self.cmd.append("--linger-stdin")
+        self.received, self.ack_timeout_s = received, ack_timeout_s
         self.log = log
         self.errors: list[BaseException] = []
         self.done = threading.Event()
@@ -270,10 +288,13 @@ class DriverProcess:
         self._proc: subprocess.Popen | None = None
         self._stopping = False
         self._out: list[str] = []
+        self._final: dict = {}  # the JSON object the driver ends with (counters or error)
+        self._exited = threading.Event()
         self._threads: list[threading.Thread] = []
 
     def start(self) -> "DriverProcess":
-        self._proc = subprocess.Popen(self.cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stdin = subprocess.DEVNULL if self.received is None else subprocess.PIPE
+        self._proc = subprocess.Popen(self.cmd, stdin=stdin, stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True, start_new_session=True)
         for target in (self._read_stdout, self._read_stderr, self._watch):
             t = threading.Thread(target=target, name=f"driver-{self.sensor_id}-{target.__name__}", daemon=True)
@@ -285,6 +306,10 @@ class DriverProcess:
         for line in self._proc.stdout:
             self._out.append(line)
             del self._out[:-4]
+            final = last_json_object([line])
+            if final:
+                self._final = final
+                self.done.set()
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:
@@ -303,22 +328,43 @@ class DriverProcess:
             self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
         else:
             self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
+        self._exited.set()
         self.done.set()
 
+    def _acknowledge(self) -> None:
+        """Once the run has received the frames the driver counted (or after
+        ack_timeout_s, said in the log), close its stdin: it closes its zenoh session."""
+        sent = self._final.get("frames")
+        if self.received is not None and isinstance(sent, int) and self._proc.poll() is None:
+            deadline = time.monotonic() + self.ack_timeout_s
+            while self.received() < sent and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if self.received() < sent and self.log is not None:
+                self.log.write(f"[driver {self.sensor_id}] the run received {self.received()} of its {sent} frames "
+                               f"within {self.ack_timeout_s:g} s\n")
+        if self._proc.stdin is not None:
+            try:
+                self._proc.stdin.close()
+            except OSError:
+                pass
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """SIGTERM (the driver says GBYE and prints its counters); SIGKILL after ``timeout_s``."""
+        """SIGTERM (the driver says GBYE and prints its counters) unless it has finished;
+        the acknowledgement of its last frames; SIGKILL after ``timeout_s``."""
         if self._proc is None:
             return
         self._stopping = True
-        if self._proc.poll() is None:
+        if self._proc.poll() is None and not self.done.is_set():
             self._proc.send_signal(signal.SIGTERM)
-            try:
-                self._proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self.errors.append(RadarError(f"the driver of {self.sensor_id} did not stop in {timeout_s} s"))
-        self.done.wait(timeout_s)
+        if self.received is not None:
+            self.done.wait(timeout_s)  # its counters, or its exit
+        self._acknowledge()
+        try:
+            self._proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self.errors.append(RadarError(f"the driver of {self.sensor_id} did not stop in {timeout_s} s"))
+        self._exited.wait(timeout_s)
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {self.sensor_id: dict(self.counters)}

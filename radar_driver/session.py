@@ -305,8 +305,11 @@ class SensorSession:
         self._start_reader()
 
     def request_stop(self) -> None:
-        """Ask :meth:`frames` to end at once, without touching the port (safe from
-        another thread); the owner then closes."""
+        """Ask :meth:`frames` to end, without touching the port (safe from another
+        thread); the owner then closes. The reader stops asking at once; the frames it
+        already assembled, and one that the answers to its outstanding GNFDs complete
+        (within DRAIN_S), still come out of :meth:`frames` before its end, so that
+        ``frames`` counts only frames handed on."""
         self._closed = True
         self._stop.set()
 
@@ -644,9 +647,10 @@ class SensorSession:
         )
         self._seq += 1
         self.counters.frames += 1
-        self._produced += 1
         self._last_frame_mono = time.monotonic()
-        self._queue.put(frame)
+        with self._lock:  # _produced and the queue change together: frames() reads both
+            self._produced += 1
+            self._queue.put(frame)
 
     def _note_counter(self, counter: int) -> None:
         last = self._last_counter
@@ -697,8 +701,8 @@ class SensorSession:
 
     # -- the consumer side ------------------------------------------------------------------------
     def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
-        """Frames until ``limit`` (None = forever) or :meth:`request_stop`. The reader
-        asks the sensor for exactly the frames wanted. With ``reconnect``, errors lead to
+        """Frames until ``limit`` (None = forever) or :meth:`request_stop` (then the frames
+        the reader still had). The reader asks the sensor for exactly the frames wanted. With ``reconnect``, errors lead to
         a reconnect with backoff (counted) instead of ending the stream; without it (or
         once ``reconnect_timeout_s`` is spent) the error is raised here."""
         n = 0
@@ -712,15 +716,17 @@ class SensorSession:
             if item is None:
                 return
             if isinstance(item, BaseException):
+                if self._stop.is_set():  # an error of the drain after a stop (counted): the end
+                    log.debug("%s: after the stop: %s", self.config.url, item)
+                    return
                 raise item
             yield item
             n += 1
 
     def _get(self):
-        """The next item of the reader's queue, or None at a stop or the stream's end."""
+        """The next item of the reader's queue, or None at the stream's end (after a stop:
+        once the reader has queued what it had and ended)."""
         while True:
-            if self._closed:
-                return None
             try:
                 item = self._queue.get(timeout=0.05)
             except queue.Empty:

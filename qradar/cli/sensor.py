@@ -4,7 +4,10 @@ a K-MD2, real or simulated, and publish its frames)."""
 from __future__ import annotations
 
 import json
+import os
+import select
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +20,21 @@ from radar_driver.session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig
 from radar_driver.simulator import SimFaults, SimulatorServer
 
 from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, nonneg_int, pos_float, pos_int, prob
+
+
+#: at most this long, ``drive --linger-stdin`` keeps its zenoh session open after the counters, s
+LINGER_S = 10.0
+
+
+def linger_until_stdin_closes(timeout_s: float) -> bool:
+    """Read stdin until it ends (the parent closed it): True, or False after ``timeout_s``."""
+    fd = sys.stdin.fileno()
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        ready, _, _ = select.select([fd], [], [], left)
+        if ready and not os.read(fd, 4096):
+            return True
+    return False
 
 
 def add_commands(sub) -> None:
@@ -64,6 +82,10 @@ def add_commands(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no line per frame")
     p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys")
     p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
+    p.add_argument("--linger-stdin", action="store_true",
+                   help="after a stop, print the counters and keep the zenoh session open until stdin closes "
+                   f"(at most {LINGER_S:g} s): a parent that reads the counters closes stdin once it has received "
+                   "every frame they count (a put just before a session closes can be lost)")
     bus_options(p)
     p.set_defaults(func=cmd_drive)
 
@@ -122,6 +144,7 @@ def cmd_drive(args) -> int:
 
     install_sigterm()
     session = SensorSession(cfg)
+    bus_session = None  # the zenoh session, closed last: after the counters (and the parent's ack)
     try:
         session.open()  # in this thread, so that a port that does not open says so once
         if args.no_publish:
@@ -129,25 +152,40 @@ def cmd_drive(args) -> int:
                 for frame in session.frames(args.frames):
                     show(frame)
         else:
-            node = SourceNode(bus_from_args(args), session, frames=args.frames, on_frame=show)
+            bus = bus_from_args(args)
+            bus_session = bus.open()
+            node = SourceNode(bus, session, session=bus_session, frames=args.frames, on_frame=show)
             try:
                 node.start()
                 while not node.done.wait(0.2):
                     if node.errors:
                         break
             finally:
-                node.stop()
+                node.stop()  # publishes the frames the driver still had, then undeclares
             if node.errors:
                 raise node.errors[0]
     except KeyboardInterrupt:
         pass
+    except BaseException:
+        if bus_session is not None:
+            bus_session.close()
+        raise
     finally:
         session.close()  # GBYE: also on an error and on SIGTERM
     if args.out is not None:
         save_frames_npz(args.out, frames, cfg)
     c = session.counters.as_dict()
     if args.json:
-        print(json.dumps(c))
+        print(json.dumps(c), flush=True)
     else:
-        print("counters: " + ", ".join(f"{k}={v}" for k, v in c.items()))
+        print("counters: " + ", ".join(f"{k}={v}" for k, v in c.items()), flush=True)
+    if bus_session is not None:
+        if args.linger_stdin:
+            try:
+                if not linger_until_stdin_closes(LINGER_S):
+                    print(f"qradar drive: stdin still open after {LINGER_S:g} s; closing the zenoh session",
+                          file=sys.stderr, flush=True)
+            except KeyboardInterrupt:
+                pass
+        bus_session.close()
     return 0
