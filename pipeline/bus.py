@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import uuid
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -134,3 +135,43 @@ class BusConfig:
 
     def liveliness_key(self, node: str) -> str:
         return f"{self.prefix}/alive/{node}/{uuid.uuid4().hex[:12]}"
+
+
+def check_sensor_pattern(pattern: str) -> str:
+    """A key chunk naming sensors: characters of a sensor id and ``*`` wildcards (``*`` =
+    every sensor, ``b1*`` = the ids starting with b1); anything else is a ParameterError."""
+    ok = isinstance(pattern, str) and 1 <= len(pattern) <= 64 and all(
+        c.isascii() and (c.isalnum() or c in "_-*") for c in pattern) and "**" not in pattern
+    if not ok:
+        raise ParameterError(f"sensor pattern {pattern!r} must be one key chunk of [A-Za-z0-9_-] and * wildcards "
+                             "(e.g. '*' or 'b1*')")
+    return pattern
+
+
+@dataclass(frozen=True)
+class Shard:
+    """Shard ``index`` of ``count``: the sensors whose stable hash ``crc32(sensor id) mod
+    count`` is ``index``. Processes with shards 0/n .. n-1/n serve every sensor exactly once,
+    whichever host they run on and in whatever order they start."""
+
+    index: int
+    count: int
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.count, int) and isinstance(self.index, int) and 0 <= self.index < self.count):
+            raise ParameterError(f"shard {self.index!r}/{self.count!r} must be i/n with 0 <= i < n")
+
+    @classmethod
+    def parse(cls, text: str) -> "Shard":
+        """``"i/n"``, e.g. ``"0/2"``."""
+        try:
+            i, n = (int(x) for x in text.split("/"))
+        except ValueError:
+            raise ParameterError(f"shard {text!r} must be i/n, e.g. 0/2") from None
+        return cls(i, n)
+
+    def serves(self, sensor_id: str) -> bool:
+        return zlib.crc32(sensor_id.encode()) % self.count == self.index
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"

@@ -79,23 +79,24 @@ class LogHistogram:
     def percentile(self, q: float) -> float | None:
         """The q-th percentile (0-100), the geometric centre of its bin clipped to the
         observed min and max; None when empty."""
+        return self.percentiles((q,))[0]
+
+    def percentiles(self, qs) -> list[float | None]:
+        """Several percentiles (0-100) from one cumulative sum over the bins."""
         if not self.count:
-            return None
-        rank = max(1, int(math.ceil(q / 100.0 * self.count)))
-        i = int(np.searchsorted(np.cumsum(self.counts), rank))
-        centre = 10 ** (self._log_lo + (i + 0.5) / self._per_decade)
-        return float(min(max(centre, self.min), self.max))
+            return [None] * len(qs)
+        ranks = [max(1, int(math.ceil(q / 100.0 * self.count))) for q in qs]
+        idx = np.searchsorted(np.cumsum(self.counts), ranks).tolist()
+        return [float(min(max(10 ** (self._log_lo + (i + 0.5) / self._per_decade), self.min), self.max))
+                for i in idx]
 
     def mean(self) -> float | None:
         return self.total / self.count if self.count else None
 
     def summary(self, digits: int = 3) -> dict[str, float | None]:
         """{"p50", "p99"} rounded, None when empty."""
-        out = {}
-        for name, q in (("p50", 50), ("p99", 99)):
-            p = self.percentile(q)
-            out[name] = None if p is None else round(p, digits)
-        return out
+        return {name: None if p is None else round(p, digits)
+                for name, p in zip(("p50", "p99"), self.percentiles((50, 99)))}
 
 
 class SharedHistogram(LogHistogram):
@@ -113,9 +114,9 @@ class SharedHistogram(LogHistogram):
         with self._hlock:
             super().add_many(values)
 
-    def percentile(self, q: float) -> float | None:
+    def percentiles(self, qs) -> list[float | None]:
         with self._hlock:
-            return super().percentile(q)
+            return super().percentiles(qs)
 
     def summary(self, digits: int = 3) -> dict[str, float | None]:
         with self._hlock:

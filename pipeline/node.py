@@ -30,14 +30,14 @@ import logging
 import struct
 import threading
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Callable
 
 import zenoh
 
 from radar_driver.errors import RadarError
 
-from .bus import BusConfig
+from .bus import BusConfig, Shard, check_sensor_pattern
 from .errors import ParameterError, PipelineError, WireError
 from .fairqueue import FairQueue
 from .histogram import LogHistogram
@@ -59,6 +59,11 @@ SEQ_OFFSET = 8  # of the uint64 sequence number in the common frame header
 DEFAULT_SENSOR_EXPIRY_S = 60.0
 DEFAULT_SENSOR_QUEUE = 128
 DEFAULT_QUEUE_BYTES = 64 << 20
+#: a node publishes health in this many slices of its sensors spread over the health
+#: period, so that a thousand sensors never cost one long stall (each still once a period)
+HEALTH_SLICES = 10
+#: the most keys whose classification (sensor id, served or not) a node remembers
+KEY_CACHE_SIZE = 8192
 
 
 @dataclass
@@ -77,6 +82,8 @@ class SensorStats:
     bytes_out: int = 0
     latency: LogHistogram = field(default_factory=LogHistogram)
     last_seen: float = field(default_factory=time.monotonic)
+    #: which of the HEALTH_SLICES publishes this sensor's health
+    slot: int = 0
     # the last sequence number seen per input topic
     last_seq: dict = field(default_factory=dict)
     # for rates between two health messages
@@ -118,12 +125,13 @@ class Node:
         self.sensor_expiry_s = sensor_expiry_s
         self.stats: dict[str, SensorStats] = {}
         self._retired = SensorStats()  # counters of expired sensors
+        self._next_slot = 0
         self.sensors_expired = 0
         self.worker_restarts = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._publishers: dict[str, dict[str, zenoh.Publisher]] = {}  # sensor -> key -> publisher
+        self._publishers: dict[str, dict[str, zenoh.Publisher]] = {}  # sensor -> topic -> publisher
         self._retiring: list[zenoh.Publisher] = []
         self._token = None
         self._last_log: dict[str, float] = {}
@@ -209,7 +217,8 @@ class Node:
         """The stats of a sensor, created on first use; call with ``_lock`` held."""
         st = self.stats.get(sensor_id)
         if st is None:
-            st = self.stats[sensor_id] = SensorStats()
+            st = self.stats[sensor_id] = SensorStats(slot=self._next_slot)
+            self._next_slot = (self._next_slot + 1) % HEALTH_SLICES
         return st
 
     def log_limited(self, what: str, fmt: str, *args) -> None:
@@ -237,33 +246,62 @@ class Node:
         with self._lock:
             self.sensor_stats(sensor_id).latency.add(latency_ms)
 
-    # -- publishing -----------------------------------------------------------------------------
-    def publish(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
-        """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>``; a sensor id that is not a
-        plain key chunk (a wildcard, ...) is a WireError, never a key."""
-        check_sensor_id(sensor_id)
-        key = self.bus.key(sensor_id, topic)
+    def record_latencies(self, sensor_ids: list[str], latency_ms) -> None:
+        """One latency (ms) per sensor id, under one lock (a batch of frames)."""
         with self._lock:
-            pubs = self._publishers.setdefault(sensor_id, {})
-            pub = pubs.get(key)
+            for sensor, value in zip(sensor_ids, latency_ms.tolist() if hasattr(latency_ms, "tolist") else latency_ms):
+                self.sensor_stats(sensor).latency.add(value)
+
+    # -- publishing -----------------------------------------------------------------------------
+    def _publisher(self, sensor_id: str, topic: str, encoding: str) -> zenoh.Publisher:
+        """The data publisher of ``<prefix>/<sensor_id>/<topic>``, declared on first use; a
+        sensor id that is not a plain key chunk (a wildcard, ...) is a WireError, never a key."""
+        pubs = self._publishers.get(sensor_id)
+        pub = None if pubs is None else pubs.get(topic)
         if pub is None:
+            key = self.bus.key(check_sensor_id(sensor_id), topic)
             pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(encoding),
                                                  congestion_control=zenoh.CongestionControl.BLOCK)
             with self._lock:
-                self._publishers.setdefault(sensor_id, {})[key] = pub
-        pub.put(payload)
+                self._publishers.setdefault(sensor_id, {})[topic] = pub
+        return pub
+
+    def publish(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
+        """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>``."""
+        self._publisher(sensor_id, topic, encoding).put(payload)
         with self._lock:
             st = self.sensor_stats(sensor_id)
             st.frames_out += 1
             st.bytes_out += len(payload)
             st.last_seen = time.monotonic()
 
+    def publish_many(self, sensor_ids: list[str], topic: str, payloads: list[bytes], encoding: str) -> None:
+        """Put each payload on its sensor's ``topic`` key, the counters under one lock; a
+        message that fails is counted in its sensor's ``processing_errors`` (the others go on)."""
+        sent = []
+        for sensor, payload in zip(sensor_ids, payloads):
+            try:
+                self._publisher(sensor, topic, encoding).put(payload)
+                sent.append((sensor, len(payload)))
+            except (PipelineError, zenoh.ZError) as exc:
+                self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {exc}")
+        now = time.monotonic()
+        with self._lock:
+            for sensor, n in sent:
+                st = self.sensor_stats(sensor)
+                st.frames_out += 1
+                st.bytes_out += n
+                st.last_seen = now
+
     # -- health ------------------------------------------------------------------------------------
     def _health_loop(self) -> None:
-        while not self._stop.wait(self.health_period_s):
+        tick = 0
+        while not self._stop.wait(self.health_period_s / HEALTH_SLICES):
+            tick += 1
             try:
-                self._publish_health()
-                self._expire()
+                self._publish_health(tick % HEALTH_SLICES)
+                if tick % HEALTH_SLICES == 0:
+                    self._expire()
             except Exception as exc:  # health must not die either
                 self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
 
@@ -292,13 +330,15 @@ class Node:
     def health_extra(self, sensor_id: str) -> dict:
         return {}
 
-    def _publish_health(self) -> None:
+    def _publish_health(self, part: int | None = None) -> None:
+        """Publish the health of the sensors of slice ``part`` (0..HEALTH_SLICES-1; None: of
+        every sensor); subclasses that add once-a-period work do it for part 0 or None."""
         now_ns = time.time_ns()
         with self._lock:
             snapshot = []
             restarts = self.worker_restarts
             for sensor, st in self.stats.items():
-                if sensor == NO_SENSOR:
+                if sensor == NO_SENSOR or (part is not None and st.slot != part):
                     continue
                 b_in, b_out, t_prev = st._last_bytes
                 dt = (now_ns - t_prev) / 1e9 if t_prev else self.health_period_s
@@ -332,14 +372,21 @@ class Node:
                     out[k] += getattr(st, k)
             out["worker_restarts"] = self.worker_restarts
             out["sensors_expired"] = self.sensors_expired
+            if isinstance(self, ProcessingNode) and self.shard is not None:
+                out["foreign_frames"] = self.foreign_frames
             return out
 
 
 class ProcessingNode(Node):
-    """Subscribes ``<prefix>/*/<in_topic>``; callback -> fair queue -> batches -> :meth:`process`.
+    """Subscribes ``<prefix>/<sensors>/<in_topic>``; callback -> fair queue -> batches ->
+    :meth:`process`.
 
     queue_size: frames waiting in all; sensor_queue_size: of one sensor (default
-    min(queue_size, 128)); queue_bytes: payload bytes waiting in all."""
+    min(queue_size, 128)); queue_bytes: payload bytes waiting in all. ``sensors``: the
+    sensors served, a key chunk with ``*`` wildcards (zenoh filters the others before they
+    reach this process); ``shard``: serve only the sensors of this :class:`~pipeline.bus.Shard`
+    (the others' frames are counted in ``foreign_frames`` and dropped in the callback,
+    before any copy)."""
 
     in_topic = "raw"
     #: True: messages on keys without a valid sensor chunk are processed too (the recorder)
@@ -350,8 +397,13 @@ class ProcessingNode(Node):
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 512,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
-                 queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S):
+                 queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
+                 sensors: str = "*", shard: Shard | None = None):
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
+        self.sensors = check_sensor_pattern(sensors)
+        self.shard = shard
+        self.foreign_frames = 0
+        self._key_info: dict[str, tuple[str, bool]] = {}  # key -> (sensor or NO_SENSOR, served)
         if queue_size < 1 or batch_max < 1:
             raise ParameterError(f"queue_size={queue_size} and batch_max={batch_max} must be >= 1")
         per_sensor = min(queue_size, DEFAULT_SENSOR_QUEUE) if sensor_queue_size is None else sensor_queue_size
@@ -361,7 +413,7 @@ class ProcessingNode(Node):
 
     def subscription(self) -> str:
         """The key expression this node listens to."""
-        return self.bus.wildcard(self.in_topic)
+        return self.bus.key(self.sensors, self.in_topic)
 
     def _start(self) -> None:
         self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
@@ -393,9 +445,24 @@ class ProcessingNode(Node):
         except Exception as exc:  # nothing a sender does may kill zenoh's callback thread
             self.count(NO_SENSOR, "processing_errors", f"{sample.key_expr}: {type(exc).__name__}: {exc}")
 
+    def _classify(self, key: str) -> tuple[str, bool]:
+        """(sensor id or NO_SENSOR, whether this node serves it), remembered per key."""
+        info = self._key_info.get(key)
+        if info is None:
+            sensor = self.sensor_of(key)
+            info = (sensor, sensor == NO_SENSOR or self.shard is None or self.shard.serves(sensor))
+            if len(self._key_info) >= KEY_CACHE_SIZE:  # a flood of junk keys: start again
+                self._key_info.clear()
+            self._key_info[key] = info
+        return info
+
     def _admit_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        sensor = self.sensor_of(key)
+        sensor, served = self._classify(key)
+        if not served:  # another shard's sensor: not ours to count or queue
+            with self._lock:
+                self.foreign_frames += 1
+            return
         n = len(sample.payload)
         reason = None
         if sensor == NO_SENSOR and not self.accepts_any_key:

@@ -7,39 +7,35 @@ them into batches and publishes what the math returns.
 
 from __future__ import annotations
 
-import functools
 import logging
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable
 
 import numpy as np
 import zenoh
 
 from radar_driver.model import RadarConfig
-from radar_driver.source import FrameSource, RawFrame
+from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from .bus import BusConfig
 from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
-from .errors import ParameterError, PipelineError
-from .localize import DEFAULT_PFA
+from .errors import ParameterError
+from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
-from .quantize import MAX_BITS, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seed
+from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seed
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,
-    QuantizedFrameMsg,
-    RawFrameMsg,
-    TargetsMsg,
-    WireError,
+    FrameHeaders,
     check_sensor_id,
-    decode_quantized,
-    decode_raw,
-    encode_quantized,
-    encode_raw,
-    quantized_batch,
+    decode_quantized_batch,
+    decode_raw_batch,
+    encode_quantized_batch,
+    encode_raw_batch,
+    encode_targets_batch,
 )
 
 log = logging.getLogger("qradar.node")
@@ -49,19 +45,32 @@ __all__ = ["LocalizeNode", "LocalizerConfig", "QuantizeNode", "SourceNode", "run
 
 class SourceNode(Node):
     """Any :class:`~radar_driver.source.FrameSource` (a K-MD2 over serial, simulated
-    sensors in this process, a recording) -> ``<prefix>/<sensor>/raw``. The source is
-    read in its own thread; its drop counters go into the health of each sensor.
-    ``frames``: stop after that many frames in all (None = when the source ends);
-    ``on_frame`` sees every frame after it is published."""
+    sensors in this process, a recording) -> ``<prefix>/<sensor>/raw``, and with a
+    ``quantizer`` (edge quantization) -> ``<prefix>/<sensor>/quantized``: the sensor's
+    process quantizes with the same per-sensor dither seed rule and options as the
+    quantize node, so its 1-bit frames are bit for bit the quantize node's. ``raw_every``:
+    publish the raw frames whose seq is a multiple of it too (default: every one without a
+    quantizer, none with one; 0 = none). The source is read in its own thread, in the
+    groups it makes frames (one vectorized quantization per group); its drop counters go
+    into the health of each sensor. ``frames``: stop after that many frames in all (None
+    = when the source ends); ``on_frame`` sees every frame after it is published."""
 
     name = "source"
 
     def __init__(self, bus: BusConfig, source: FrameSource, session: zenoh.Session | None = None,
-                 frames: int | None = None, on_frame: Callable[[RawFrame], None] | None = None, **kw):
+                 frames: int | None = None, on_frame: Callable[[RawFrame], None] | None = None,
+                 quantizer: QuantizerConfig | None = None, raw_every: int | None = None, **kw):
+        raw_every = (0 if quantizer is not None else 1) if raw_every is None else raw_every
+        if not (isinstance(raw_every, int) and raw_every >= 0) or (quantizer is None and not raw_every):
+            raise ParameterError(f"raw_every={raw_every!r} must be an integer >= 0, and >= 1 without edge "
+                                 "quantization (else nothing is published)")
         super().__init__(bus, session, **kw)
         self.source = source
         self.frames_limit = frames
         self.on_frame = on_frame
+        self.quantizer = quantizer
+        self.raw_every = raw_every
+        self._seeds = DitherSeeds(quantizer.dither_seed if quantizer is not None else 0)
         self.done = threading.Event()
 
     def _start(self) -> None:
@@ -69,12 +78,29 @@ class SourceNode(Node):
 
     def _read_loop(self) -> None:
         with self.source:
-            for frame in self.source.frames(self.frames_limit):  # ends at request_stop()
-                check_sensor_id(frame.sensor_id)
-                msg = RawFrameMsg(frame.sensor_id, frame.seq, frame.timestamp_ns, frame.config_id, frame.data)
-                self.publish(frame.sensor_id, "raw", encode_raw(msg), "application/octet-stream")
+            for batch in frame_batches(self.source, self.frames_limit):  # ends at request_stop()
+                self._publish_batch(batch)
                 if self.on_frame is not None:
-                    self.on_frame(frame)
+                    for frame in batch:
+                        self.on_frame(frame)
+
+    def _publish_batch(self, batch: list[RawFrame]) -> None:
+        by_m: dict[int, list[RawFrame]] = defaultdict(list)
+        for f in batch:
+            by_m[f.data.shape[0]].append(f)
+        for group in by_m.values():
+            headers = FrameHeaders([check_sensor_id(f.sensor_id) for f in group],
+                                   np.array([f.seq for f in group], dtype=np.uint64),
+                                   np.array([f.timestamp_ns for f in group], dtype=np.int64),
+                                   np.array([f.config_id for f in group], dtype=np.uint32))
+            data = np.stack([f.data for f in group])
+            if self.raw_every:
+                keep = np.flatnonzero(headers.seq % np.uint64(self.raw_every) == 0)
+                if keep.size:
+                    raw = headers.take(keep)
+                    self.publish_many(raw.sensor_id, "raw", encode_raw_batch(raw, data[keep]), OCTETS)
+            if self.quantizer is not None:
+                quantize_and_publish(self, self.quantizer, self._seeds, headers, data, "raw")
 
     def _stopping(self) -> None:
         self.source.request_stop()  # the reader ends at the next frame and closes the source itself
@@ -82,12 +108,69 @@ class SourceNode(Node):
     def health_extra(self, sensor_id: str) -> dict:
         return {"source": self.source.stats().get(sensor_id, {})}
 
-    def _publish_health(self) -> None:
+    def _publish_health(self, part: int | None = None) -> None:
         stats = self.source.stats()
         with self._lock:
             for sid, st in stats.items():
                 self.sensor_stats(sid).drops = st.get("dropped", 0)
-        super()._publish_health()
+        super()._publish_health(part)
+
+
+OCTETS = "application/octet-stream"
+
+
+class DitherSeeds:
+    """The per-sensor dither seeds of one base seed (:func:`sensor_dither_seed`), remembered."""
+
+    def __init__(self, seed: int):
+        self.seed = seed
+        self._of: dict[str, int] = {}
+
+    def __call__(self, sensor_ids: list[str]) -> np.ndarray:
+        """(B,) uint64, one per frame."""
+        of = self._of
+        if len(of) > 65536:
+            of.clear()
+        return np.array([of.get(s) or of.setdefault(s, sensor_dither_seed(self.seed, s)) for s in sensor_ids],
+                        dtype=np.uint64)
+
+
+def take_frames(q: QuantizedFrames, index: np.ndarray) -> QuantizedFrames:
+    """The frames ``index`` of a batch (per-frame fields subset, per-batch ones kept)."""
+    def sub(v):
+        return v[index] if np.ndim(v) else v
+    return replace(q, codes=q.codes[index], delta=q.delta[index], alpha=sub(q.alpha),
+                   dither_seed=sub(q.dither_seed), seq=q.seq[index], generator=sub(q.generator))
+
+
+def quantize_and_publish(node: Node, config: QuantizerConfig, seeds: DitherSeeds, headers: FrameHeaders,
+                         data: np.ndarray, topic: str) -> None:
+    """Quantize frames (B, M, 2) of many sensors in one vectorized call, each with its
+    sensor's dither seed, and publish them on ``quantized``. Frames whose samples are not
+    finite or beyond MAX_SAMPLE are refused (``invalid_frames``); a failure of the maths
+    loses only the frames it fails on (:func:`isolate`)."""
+    bad = bad_samples(data)
+    for i in np.flatnonzero(bad).tolist():
+        node.count(headers.sensor_id[i], "invalid_frames", f"frame {int(headers.seq[i])} from "
+                   f"{node.bus.key(headers.sensor_id[i], topic)}: a sample is not finite or beyond "
+                   f"{MAX_SAMPLE:g} full scale")
+    keep = np.flatnonzero(~bad)
+    if not keep.size:
+        return
+    frames = data[keep].astype(np.complex128)
+    kept = headers.take(keep)
+    seed = seeds(kept.sensor_id)
+
+    def compute(idx):
+        return quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx])
+
+    def failed(i, exc):
+        node.count(kept.sensor_id[i], "processing_errors", f"frame {int(kept.seq[i])} from "
+                   f"{node.bus.key(kept.sensor_id[i], topic)}: {type(exc).__name__}: {exc}")
+
+    for idx, q in isolate(compute, np.arange(keep.size), failed):
+        part = kept.take(idx)
+        node.publish_many(part.sensor_id, "quantized", encode_quantized_batch(part, q), OCTETS)
 
 
 #: the largest |Re| or |Im| of a raw sample a node accepts, full-scale units (the ADC's
@@ -132,50 +215,49 @@ class FrameNode(ProcessingNode):
         return (f"{n_bytes} bytes, a length no announced radar configuration has "
                 f"({len(self._configs)} configs, {min(self._lengths)}-{max(self._lengths)} bytes)")
 
-    def decode(self, sensor: str, key: str, payload: bytes) -> QuantizedFrameMsg | RawFrameMsg | None:
-        """The frame, or None when it is counted as a decode error or an invalid frame."""
-        try:
-            msg = decode_quantized(payload, key) if self.in_topic == "quantized" else decode_raw(payload, key)
-            if msg.sensor_id != sensor:
-                raise WireError(f"frame from {key}: sensor id {msg.sensor_id!r} does not match the key")
-        except WireError as exc:
-            self.count(sensor, "decode_errors", exc)
-            return None
-        radar = self._configs.get(msg.config_id)
-        m = msg.codes.shape[0] if isinstance(msg, QuantizedFrameMsg) else msg.data.shape[0]
-        if radar is None:
-            self.count(sensor, "invalid_frames", f"frame {msg.seq} from {key}: unknown radar config id "
-                       f"{msg.config_id:#010x}")
-        elif m != radar.n_measurements:
-            self.count(sensor, "invalid_frames", f"frame {msg.seq} from {key}: M={m} but its radar config "
-                       f"has M={radar.n_measurements}")
-        else:
-            return msg
-        return None
+    def decode(self, batch) -> tuple[list, list[str]]:
+        """Decode a batch of queued (sensor, key, payload, t) in one vectorized call per
+        length: the groups of frames whose sensor id matches the key, whose config id is
+        announced and whose M is that configuration's, each with the keys of its frames
+        (in order). The others are counted (decode_errors, invalid_frames)."""
+        keys = [k for _, k, _, _ in batch]
+        decoder = decode_quantized_batch if self.in_topic == "quantized" else decode_raw_batch
+        groups, errors = decoder([p for _, _, p, _ in batch], keys)
+        for i, exc in errors:
+            self.count(batch[i][0], "decode_errors", exc)
+        out = []
+        for g in groups:
+            h = g.headers
+            m = g.frames.codes.shape[1] if self.in_topic == "quantized" else g.data.shape[1]
+            ok = np.ones(len(h), dtype=bool)
+            for j, (i, sid) in enumerate(zip(g.index.tolist(), h.sensor_id)):
+                if sid != batch[i][0]:
+                    ok[j] = False
+                    self.count(batch[i][0], "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
+                               "not match the key")
+            for cid in np.unique(h.config_id).tolist():
+                radar = self._configs.get(cid)
+                if radar is not None and radar.n_measurements == m:
+                    continue
+                why = (f"unknown radar config id {cid:#010x}" if radar is None else
+                       f"M={m} but its radar config has M={radar.n_measurements}")
+                for j in np.flatnonzero(ok & (h.config_id == cid)).tolist():
+                    ok[j] = False
+                    self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from "
+                               f"{keys[g.index[j]]}: {why}")
+            if ok.all():
+                out.append(g)
+            elif ok.any():
+                keep = np.flatnonzero(ok)
+                frames = take_frames(g.frames, keep) if self.in_topic == "quantized" else g.data[keep]
+                out.append(replace(g, headers=h.take(keep), index=g.index[keep],
+                                   **({"frames": frames} if self.in_topic == "quantized" else {"data": frames})))
+        return out, keys
 
-    def valid_raw(self, msgs: list[RawFrameMsg]) -> tuple[list[RawFrameMsg], np.ndarray | None]:
-        """The frames whose samples are finite and within MAX_SAMPLE, stacked (B, M, 2)
-        complex128; the others are counted as invalid."""
-        frames = np.stack([m.data for m in msgs])
-        bad = bad_samples(frames)
-        if bad.any():
-            for i in np.flatnonzero(bad):
-                m = msgs[i]
-                self.count(m.sensor_id, "invalid_frames", f"frame {m.seq} from "
-                           f"{self.bus.key(m.sensor_id, self.in_topic)}: a sample is not finite or beyond "
-                           f"{MAX_SAMPLE:g} full scale")
-            keep = np.flatnonzero(~bad)
-            msgs, frames = [msgs[i] for i in keep], frames[keep]
-        return msgs, (frames.astype(np.complex128) if msgs else None)
 
-    def publish_each(self, items) -> None:
-        """Publish (sensor, topic, payload-maker, encoding) one by one; a failure loses that
-        message only (processing_errors)."""
-        for sensor, topic, make, encoding in items:
-            try:
-                self.publish(sensor, topic, make(), encoding)
-            except (PipelineError, zenoh.ZError) as exc:
-                self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {exc}")
+def take_detections(det: Detections, index) -> Detections:
+    """The detections of frames ``index`` of a batch."""
+    return Detections(*(getattr(det, f.name)[index] for f in fields(Detections)))
 
 
 def isolate(compute: Callable[[list], Any], items: list, on_error: Callable[[Any, Exception], None]) -> list:
@@ -208,40 +290,12 @@ class QuantizeNode(FrameNode):
                  radar: RadarConfig | None = None, max_ramps: int = 16, **kw):
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
+        self._seeds = DitherSeeds(config.dither_seed)
 
     def process(self, batch) -> None:
-        by_m: dict[int, list[RawFrameMsg]] = defaultdict(list)
-        for sensor, key, payload, _ in batch:
-            msg = self.decode(sensor, key, payload)
-            if msg is not None:
-                by_m[msg.data.shape[0]].append(msg)
-        for msgs in by_m.values():
-            msgs, frames = self.valid_raw(msgs)
-            if not msgs:
-                continue
-            # one dither seed per sensor: quantize per sensor group, vectorized inside
-            by_sensor: dict[str, list[int]] = defaultdict(list)
-            for i, m in enumerate(msgs):
-                by_sensor[m.sensor_id].append(i)
-            for sensor, idx in by_sensor.items():
-                group = [(msgs[i], frames[i]) for i in idx]
-                seed = sensor_dither_seed(self.config.dither_seed, sensor)
-
-                def compute(g, seed=seed):
-                    return quantize_frames(np.stack([f for _, f in g]), self.config, [m.seq for m, _ in g],
-                                           dither_seed=seed)
-
-                for part, q in isolate(compute, group, self._failed):
-                    self.publish_each(
-                        (sensor, "quantized", functools.partial(encode_quantized, QuantizedFrameMsg(
-                            sensor, m.seq, m.timestamp_ns, m.config_id, q.bits, q.alpha, float(q.delta[j]),
-                            int(q.dither_seed), q.codes[j])), "application/octet-stream")
-                        for j, (m, _) in enumerate(part))
-
-    def _failed(self, item, exc: Exception) -> None:
-        m = item[0]
-        self.count(m.sensor_id, "processing_errors", f"frame {m.seq} from "
-                   f"{self.bus.key(m.sensor_id, 'raw')}: {type(exc).__name__}: {exc}")
+        groups, _ = self.decode(batch)
+        for g in groups:  # frames of one M, of any sensors: one vectorized quantization
+            quantize_and_publish(self, self.config, self._seeds, g.headers, g.data, "raw")
 
 
 @dataclass(frozen=True)
@@ -293,39 +347,56 @@ class LocalizeNode(FrameNode):
         self.config = config
 
     def process(self, batch) -> None:
-        groups: dict[tuple, list] = defaultdict(list)
-        for sensor, key, payload, _ in batch:
-            msg = self.decode(sensor, key, payload)
-            if isinstance(msg, QuantizedFrameMsg):
-                groups[(msg.config_id, msg.bits, msg.dithered)].append((msg, None))
-            elif msg is not None:
-                groups[(msg.config_id, 0, False)].append((msg, None))
-        for (config_id, bits, _), items in groups.items():
-            if not bits:  # raw frames: finite samples only
-                msgs, frames = self.valid_raw([m for m, _ in items])
-                items = list(zip(msgs, frames)) if msgs else []
-            if not items:
-                continue
-            radar = self._configs[config_id]
+        groups, keys = self.decode(batch)
+        quantized = self.in_topic == "quantized"
+        for g in groups:
+            h = g.headers
+            if quantized:
+                dithered = np.broadcast_to(np.asarray(g.frames.alpha) > 0, (len(h),))
+                frames = g.frames
+            else:  # raw frames: finite samples only
+                bad = bad_samples(g.data)
+                for j in np.flatnonzero(bad).tolist():
+                    self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from {keys[g.index[j]]}: "
+                               f"a sample is not finite or beyond {MAX_SAMPLE:g} full scale")
+                dithered = np.zeros(len(h), dtype=bool)
+                frames = g.data.astype(np.complex128)
+            # one decoder call per configuration (and dither), whatever the sensors
+            for cid, dith in {(c, d) for c, d in zip(h.config_id.tolist(), dithered.tolist())}:
+                sel = (h.config_id == cid) & (dithered == dith)
+                if not quantized:
+                    sel &= ~bad
+                idx = np.flatnonzero(sel)
+                if idx.size:
+                    self._localize(self._configs[cid], h.take(idx), take_frames(frames, idx) if quantized
+                                   else frames[idx], [keys[i] for i in g.index[idx].tolist()])
 
-            def compute(g, radar=radar, bits=bits):
-                frames = quantized_batch([m for m, _ in g]) if bits else np.stack([f for _, f in g])
-                return decode_batch(frames, radar, self.config.k, self.config.decoder())
+    def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
+        cfg = self.config
 
-            for part, det in isolate(compute, items, self._failed):
-                for i, (m, _) in enumerate(part):
-                    now = time.time_ns()
-                    out = TargetsMsg(m.sensor_id, m.seq, m.timestamp_ns, config_id, str(self.config.algo),
-                                     self.config.k, self.config.source, det.frame(i), published_ns=now,
-                                     auto_k=self.config.auto_k)
-                    self.publish_each([(m.sensor_id, "targets", out.to_json, "application/json")])
-                    self.record_latency(m.sensor_id, (now - m.timestamp_ns) / 1e6)
+        def compute(idx):
+            return decode_batch(take_frames(frames, idx) if isinstance(frames, QuantizedFrames) else frames[idx],
+                                radar, cfg.k, cfg.decoder())
 
-    def _failed(self, item, exc: Exception) -> None:
-        m = item[0]
-        key = self.bus.key(m.sensor_id, self.in_topic)
+        def failed(i, exc):
+            self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)
+
+        for idx, det in isolate(compute, np.arange(len(headers)), failed):
+            idx = np.atleast_1d(np.asarray(idx))
+            now = time.time_ns()
+
+            def encode(j):  # j: positions in idx
+                return encode_targets_batch(headers.take(idx[j]), take_detections(det, j), str(cfg.algo), cfg.k,
+                                            cfg.source, now, cfg.auto_k)
+
+            for j, payloads in isolate(encode, np.arange(idx.size), lambda j, exc: failed(idx[j], exc)):
+                part = headers.take(idx[j])  # a non-finite target loses its own frame only
+                self.publish_many(part.sensor_id, "targets", payloads, "application/json")
+                self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
+
+    def _failed(self, sensor: str, seq: int, key: str, exc: Exception) -> None:
         if isinstance(exc, DitherUnavailable):
-            self.count(m.sensor_id, "invalid_frames", f"frame {m.seq} from {key}: {exc}; run the localizer "
+            self.count(sensor, "invalid_frames", f"frame {seq} from {key}: {exc}; run the localizer "
                        "with --fallback-pbp to decode such frames with PBP")
         else:
-            self.count(m.sensor_id, "processing_errors", f"frame {m.seq} from {key}: {type(exc).__name__}: {exc}")
+            self.count(sensor, "processing_errors", f"frame {seq} from {key}: {type(exc).__name__}: {exc}")

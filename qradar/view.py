@@ -412,8 +412,10 @@ class FoxgloveView(ProcessingNode):
                                         rotation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)))
 
     # -- health ---------------------------------------------------------------------------------
-    def _publish_health(self) -> None:
-        super()._publish_health()
+    def _publish_health(self, part: int | None = None) -> None:
+        super()._publish_health(part)
+        if part not in (None, 0):
+            return
         for sensor in list(self._sensors):  # late clients get the transforms within a second
             self._log_transform(sensor)
 

@@ -95,6 +95,21 @@ class StoppableSource:
         return self.frames()
 
 
+def frame_batches(source: FrameSource, limit: int | None = None) -> Iterator[list[RawFrame]]:
+    """The frames of any source in the groups it makes them (one tick of many simulated
+    sensors at once: a batch for vectorized work downstream), or one by one."""
+    batches = getattr(source, "frame_batches", None)
+    if batches is not None:
+        return batches(limit)
+    return ([f] for f in source.frames(limit))
+
+
+#: how simulated sensors send: all in one burst per frame period, or spread evenly over it
+SEND_MODES = ("burst", "spread")
+#: with ``send="spread"``, the sensors are sent in groups this far apart (at most), s
+SPREAD_SLOT_S = 1e-3
+
+
 @dataclass(frozen=True)
 class SimSourceConfig:
     """In-process simulated sensors.
@@ -104,7 +119,9 @@ class SimSourceConfig:
     per sensor (0 = as fast as they are read; moving targets then move on the
     simulated K-MD2's nominal time base). seed: sensor i draws its noise as a simulated
     K-MD2 with seed ``seed + i`` does. frames: frames per sensor, then the source ends
-    (None = never)."""
+    (None = never). send: "burst" (every sensor's frame of a period at its start, as
+    sensors on one clock) or "spread" (sensor i's frames offset by i/sensors of the
+    period, sent in groups at most SPREAD_SLOT_S apart, as independent sensors)."""
 
     scene: SimScene
     sensors: int = 1
@@ -112,8 +129,11 @@ class SimSourceConfig:
     rate_hz: float = 20.0
     seed: int = 0
     frames: int | None = None
+    send: str = "burst"
 
     def __post_init__(self) -> None:
+        if self.send not in SEND_MODES:
+            raise ConfigError(f"send={self.send!r} must be one of {list(SEND_MODES)}")
         if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 4096):
             raise ConfigError(f"sensors={self.sensors!r} must be an integer in [1, 4096]")
         if not (np.isfinite(self.rate_hz) and self.rate_hz >= 0):
@@ -135,10 +155,12 @@ class _SimSensorStats:
 
 
 class SimulatedSource(StoppableSource):
-    """Simulated sensors in this process (see :class:`SimSourceConfig`): every tick,
-    one frame per sensor of the scene's ramps through the paper's model, with sensor
-    noise and the 12-bit ADC of the simulated K-MD2. Paced on the monotonic clock; a
-    tick that comes more than a frame period late is counted in ``late_ticks``."""
+    """Simulated sensors in this process (see :class:`SimSourceConfig`): every frame
+    period, one frame per sensor of the scene's ramps through the paper's model, with
+    sensor noise and the 12-bit ADC of the simulated K-MD2, made for a group of sensors at
+    once (:meth:`frame_batches`). Paced on the monotonic clock; a period whose first group
+    comes more than a frame period late is counted in ``late_ticks``. A frame's timestamp
+    is the time its group was due (or made, when late)."""
 
     def __init__(self, config: SimSourceConfig):
         super().__init__()
@@ -149,48 +171,83 @@ class SimulatedSource(StoppableSource):
         self._stats = {sid: _SimSensorStats() for sid in config.sensor_ids}
         self._rngs = [np.random.default_rng(np.random.SeedSequence(config.seed + i, spawn_key=(0,)))
                       for i in range(config.sensors)]
-        self._tick = 0  # frames made per sensor
-        self._next_sensor = 0  # where a read that stopped mid-tick resumes
-        self._tick_data: tuple | None = None
+        self._tick = 0  # the frame period being made
+        self._slot = 0  # its next group of sensors
+        self._pending: list[RawFrame] = []  # made, not yet handed out (a read stopped at a limit)
+        self._clean: tuple[int, np.ndarray] | None = None  # the tick's noiseless ramps
+        n = config.sensors
+        slots = 1 if config.send == "burst" or not config.rate_hz else \
+            max(1, min(n, int(round(1.0 / (config.rate_hz * SPREAD_SLOT_S)))))
+        self._slots = [range(j * n // slots, (j + 1) * n // slots) for j in range(slots)]
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {sid: {"frames": st.frames, "dropped": st.dropped} for sid, st in self._stats.items()}
 
-    def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
+    def _make(self, k: int, sensors: range, ts: int) -> list[RawFrame]:
+        """Frame ``k`` of ``sensors``: the tick's clean ramps plus each sensor's noise (drawn
+        from its own generator), through the ADC in one vectorized call."""
         cfg, scene = self.config, self.config.scene
         rpf, n = self.radar.ramps_per_frame, self.radar.samples_per_ramp
-        ramp_rate_hz = cfg.rate_hz * rpf
-        config_id = self.radar.config_id()
-        ids = cfg.sensor_ids
-        t0 = time.monotonic() - (self._tick / cfg.rate_hz if cfg.rate_hz else 0.0)
-        yielded = 0
+        ramp_index = k * rpf + np.arange(rpf)
+        if self._clean is None or self._clean[0] != k:
+            self._clean = (k, scene.clean_ramps(ramp_time_s(ramp_index, cfg.rate_hz * rpf)))  # (R, N, 2)
+        noise = np.stack([scene.noise(rpf, self._rngs[i]) for i in sensors])  # (S, R, N, 2)
+        data = DEFAULT_PROFILE.radc.round_trip(self._clean[1][None] + noise).reshape(len(sensors), rpf * n, 2)
+        data = data.astype(np.complex64)
+        counters = tuple(int(c) for c in ramp_index)
+        config_id, ids = self.radar.config_id(), self.config.sensor_ids
+        return [RawFrame(ids[i], k, ts, data[j], counters, config_id) for j, i in enumerate(sensors)]
+
+    def _groups(self) -> Iterator[list[RawFrame]]:
+        """Groups of frames as they fall due, until the frame budget or a stop."""
+        cfg = self.config
+        period = 1.0 / cfg.rate_hz if cfg.rate_hz else 0.0
+        t0 = time.monotonic() - self._tick * period
+        t0_ns = time.time_ns() - int((time.monotonic() - t0) * 1e9)  # the wall clock of t0
         try:
             while not self._stop.is_set():
-                if self._next_sensor >= len(ids):  # the tick is done for every sensor
-                    self._tick, self._next_sensor, self._tick_data = self._tick + 1, 0, None
-                k = self._tick
+                if self._slot >= len(self._slots):
+                    self._tick, self._slot = self._tick + 1, 0
+                k, j = self._tick, self._slot
                 if cfg.frames is not None and k >= cfg.frames:
                     return
-                if self._tick_data is None:  # a new tick: wait for its time, then the scene's ramps
-                    if cfg.rate_hz:
-                        delay = t0 + k / cfg.rate_hz - time.monotonic()
-                        if delay > 0:
-                            if self._stop.wait(delay):
-                                return
-                        elif delay < -1.0 / cfg.rate_hz:
-                            self.late_ticks += 1
-                    ramp_index = k * rpf + np.arange(rpf)
-                    clean = scene.clean_ramps(ramp_time_s(ramp_index, ramp_rate_hz))  # (R, N, 2)
-                    self._tick_data = (tuple(int(c) for c in ramp_index), clean, time.time_ns())
-                counters, clean, ts = self._tick_data
-                i = self._next_sensor
-                data = DEFAULT_PROFILE.radc.round_trip(clean + scene.noise(rpf, self._rngs[i])).reshape(rpf * n, 2)
-                self._stats[ids[i]].frames += 1
-                self._next_sensor = i + 1
-                yield RawFrame(ids[i], k, ts, data.astype(np.complex64), counters, config_id)
-                yielded += 1
-                if limit is not None and yielded >= limit:
-                    return
+                due = t0 + (k + j / len(self._slots)) * period
+                delay = due - time.monotonic()
+                if period and delay > 0:
+                    if self._stop.wait(delay):
+                        return
+                    ts = t0_ns + int((due - t0) * 1e9)
+                else:
+                    if period and j == 0 and delay < -period:
+                        self.late_ticks += 1
+                    ts = time.time_ns()
+                self._slot = j + 1
+                yield self._make(k, self._slots[j], ts)
         finally:
             self.elapsed_s = time.monotonic() - t0
 
+    def frame_batches(self, limit: int | None = None) -> Iterator[list[RawFrame]]:
+        """The frames in the groups they are made (see :class:`SimSourceConfig` ``send``),
+        at most ``limit`` frames in all (a cut group's rest is handed out by the next read)."""
+        yielded = 0
+        groups = self._groups()
+        try:
+            while limit is None or yielded < limit:
+                if self._pending:
+                    batch, self._pending = self._pending, []
+                else:
+                    batch = next(groups, None)
+                    if batch is None:
+                        return
+                if limit is not None and yielded + len(batch) > limit:
+                    batch, self._pending = batch[:limit - yielded], batch[limit - yielded:]
+                for f in batch:
+                    self._stats[f.sensor_id].frames += 1
+                yielded += len(batch)
+                yield batch
+        finally:
+            groups.close()  # sets elapsed_s
+
+    def frames(self, limit: int | None = None) -> Iterator[RawFrame]:
+        for batch in self.frame_batches(limit):
+            yield from batch

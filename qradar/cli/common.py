@@ -6,7 +6,7 @@ import argparse
 import signal
 from pathlib import Path
 
-from pipeline.bus import BusConfig
+from pipeline.bus import BusConfig, Shard, check_sensor_pattern
 from pipeline.security import SecureConfig
 from pipeline.decode import ALGOS, Algo
 from pipeline.errors import ParameterError
@@ -44,6 +44,20 @@ class DefaultsFormatter(argparse.RawDescriptionHelpFormatter):
                 or action.option_strings == [] or isinstance(action, argparse._HelpAction)):
             return text
         return f"{text} (default: %(default)s)"
+
+
+def sensor_pattern_arg(text: str) -> str:
+    try:
+        return check_sensor_pattern(text)
+    except ParameterError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def shard_arg(text: str) -> Shard:
+    try:
+        return Shard.parse(text)
+    except ParameterError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def prob(text: str) -> float:
@@ -173,15 +187,41 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
                      config_file=args.zenoh_config, prefix=args.prefix, secure=secure)
 
 
-def quantizer_options(p: argparse.ArgumentParser, alpha_default: float | None, alpha_help: str) -> None:
-    """--bits, --alpha, --delta, --delta-margin, --seed."""
+def quantizer_options(p, alpha_default: float | None, alpha_help: str,
+                      seed_flags: tuple[str, ...] = ("--seed", "--dither-seed")) -> None:
+    """--bits, --alpha, --delta, --delta-margin and the dither seed (``seed_flags``: a
+    command whose --seed is another seed, e.g. the simulated sensors' noise, takes
+    --dither-seed only)."""
     p.add_argument("--bits", type=pos_int, default=1)
     p.add_argument("--alpha", type=float, default=alpha_default, help=alpha_help)
     p.add_argument("--delta", type=delta_arg, default="auto", help="'auto' (smallest 1-bit step per frame) or a step in full-scale units")
     p.add_argument("--delta-margin", type=nonneg_float, default=0.0, help="auto delta x (1 + margin)")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="dither seed (per sensor: seed * 2^32 + crc32(id))")
+    p.add_argument(*seed_flags, dest="dither_seed", type=nonneg_int, default=0,
+                   help="dither seed (per sensor: seed * 2^32 + crc32(id))")
 
 
 def quantizer_config(args, alpha: float | None = None) -> QuantizerConfig:
     return QuantizerConfig(bits=args.bits, alpha=args.alpha if alpha is None else alpha, delta=args.delta,
-                           delta_margin=args.delta_margin, dither_seed=args.seed)
+                           delta_margin=args.delta_margin, dither_seed=args.dither_seed)
+
+
+def edge_quantizer_options(p, switch: str) -> None:
+    """``switch`` (--quantized / --quantize), the quantizer's options and --raw-every, for a
+    sensor's own process that quantizes its frames (edge quantization)."""
+    g = p.add_argument_group("edge quantization", "quantize in this process, with the quantize node's dither "
+                             "seed rule and options, and publish 1-bit frames on <prefix>/<id>/quantized")
+    g.add_argument(switch, dest="edge_quantize", action="store_true",
+                   help="publish quantized frames (raw ones only with --raw-every)")
+    quantizer_options(g, 1.0, "dither scale in [0, 1] (default 1)", ("--dither-seed",))
+    g.add_argument("--raw-every", type=nonneg_int, default=None, metavar="N",
+                   help=f"with {switch}: also publish the raw frames whose seq is a multiple of N (e.g. for "
+                   "recording; default 0 = none)")
+
+
+def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
+    """(quantizer or None, raw_every) of edge_quantizer_options."""
+    if not args.edge_quantize:
+        if args.raw_every is not None:
+            raise ParameterError("--raw-every is for edge quantization (--quantized / --quantize)")
+        return None, None
+    return quantizer_config(args), args.raw_every

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.errors import ParameterError
 from pipeline.nodes import SourceNode
 from pipeline.wire import check_sensor_id
 from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, packaged_profiles, resolve_profile
@@ -19,7 +20,18 @@ from radar_driver.scene import resolve_scene
 from radar_driver.session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig, save_frames_npz
 from radar_driver.simulator import SimFaults, SimulatorServer
 
-from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, nonneg_int, pos_float, pos_int, prob
+from .common import (
+    bus_from_args,
+    bus_options,
+    edge_quantizer,
+    edge_quantizer_options,
+    install_sigterm,
+    nonneg_float,
+    nonneg_int,
+    pos_float,
+    pos_int,
+    prob,
+)
 
 
 #: at most this long, ``drive --linger-stdin`` keeps its zenoh session open after the counters, s
@@ -82,6 +94,7 @@ def add_commands(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no line per frame")
     p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys")
     p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
+    edge_quantizer_options(p, "--quantize")
     p.add_argument("--linger-stdin", action="store_true",
                    help="after a stop, print the counters and keep the zenoh session open until stdin closes "
                    f"(at most {LINGER_S:g} s): a parent that reads the counters closes stdin once it has received "
@@ -130,6 +143,9 @@ def cmd_drive(args) -> int:
     cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
                         sensor_id=check_sensor_id(args.sensor_id), profile=args.profile,
                         chirp_select=args.chirp_select, outstanding=args.outstanding)
+    quantizer, raw_every = edge_quantizer(args)
+    if quantizer is not None and args.no_publish:
+        raise ParameterError("--quantize publishes quantized frames; it cannot go with --no-publish")
     lines = sys.stderr if args.json else sys.stdout
     frames = []
 
@@ -154,7 +170,8 @@ def cmd_drive(args) -> int:
         else:
             bus = bus_from_args(args)
             bus_session = bus.open()
-            node = SourceNode(bus, session, session=bus_session, frames=args.frames, on_frame=show)
+            node = SourceNode(bus, session, session=bus_session, frames=args.frames, on_frame=show,
+                              quantizer=quantizer, raw_every=raw_every)
             try:
                 node.start()
                 while not node.done.wait(0.2):

@@ -15,7 +15,7 @@ from pipeline.errors import ParameterError
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
-from radar_driver.source import SimSourceConfig, SimulatedSource
+from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
 from replay.source import RecordingSource
 
 from ..run import RunConfig, format_summary, print_json, run
@@ -25,6 +25,8 @@ from .common import (
     count_from_args,
     count_options,
     bus_options,
+    edge_quantizer,
+    edge_quantizer_options,
     install_sigterm,
     nonneg_float,
     nonneg_int,
@@ -32,6 +34,8 @@ from .common import (
     pos_int,
     quantizer_config,
     quantizer_options,
+    sensor_pattern_arg,
+    shard_arg,
 )
 from .record import write_error_options
 from .view import foxglove_arg
@@ -41,6 +45,7 @@ def add_commands(sub) -> None:
     p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
     quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
     queue_options(p)
+    serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p)
     p.set_defaults(func=cmd_quantize)
@@ -52,6 +57,7 @@ def add_commands(sub) -> None:
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
     queue_options(p)
+    serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p)
     p.set_defaults(func=cmd_localize)
@@ -68,7 +74,11 @@ def add_commands(sub) -> None:
     p.add_argument("--id-prefix", default="sim", help="sensor ids are <prefix>0, <prefix>1, ...")
     p.add_argument("--frames", type=pos_int, default=None,
                    help="frames per sensor, then stop (with --recording: frames in all)")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=nonneg_int, default=0, help="noise seed (sensor i draws as a K-MD2 of seed + i)")
+    p.add_argument("--send", choices=list(SEND_MODES), default="burst",
+                   help="burst: every sensor's frame at the start of each period (sensors on one clock); spread: "
+                   "sensor i offset by i/sensors of the period (independent sensors)")
+    edge_quantizer_options(p, "--quantized")
     p.add_argument("--recording", type=Path, default=None,
                    help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
     p.add_argument("--duration", type=float, default=None)
@@ -124,9 +134,21 @@ def queue_options(p) -> None:
                    help="forget a sensor silent this many seconds (its counters stay in the totals)")
 
 
+def serve_options(p) -> None:
+    """Which sensors a processing node serves: by key pattern and/or by shard."""
+    g = p.add_argument_group("sensors served", "several processes (on one host or many) share the sensors")
+    g.add_argument("--sensors", type=sensor_pattern_arg, default="*", metavar="PATTERN",
+                   help="only the sensors whose id matches this key chunk, e.g. 'b1*' (zenoh filters the others "
+                   "before they reach this process; default *)")
+    g.add_argument("--shard", type=shard_arg, default=None, metavar="I/N",
+                   help="only the sensors with crc32(id) mod N == I: N processes with 0/N .. N-1/N serve each "
+                   "sensor exactly once (the others' frames still arrive and are dropped unread)")
+
+
 def queue_kwargs(args) -> dict:
     return {"queue_size": args.queue, "sensor_queue_size": min(args.sensor_queue, args.queue),
-            "queue_bytes": int(args.queue_mb * 1e6), "sensor_expiry_s": args.sensor_expiry}
+            "queue_bytes": int(args.queue_mb * 1e6), "sensor_expiry_s": args.sensor_expiry,
+            "sensors": args.sensors, "shard": args.shard}
 
 
 def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
@@ -158,12 +180,14 @@ def cmd_source(args) -> int:
         limit = args.frames
     else:
         cfg = SimSourceConfig(resolve_scene(args.scene), sensors=args.sensors, id_prefix=args.id_prefix,
-                              rate_hz=20.0 if args.rate is None else args.rate, seed=args.seed, frames=args.frames)
+                              rate_hz=20.0 if args.rate is None else args.rate, seed=args.seed, frames=args.frames,
+                              send=args.send)
         for sid in cfg.sensor_ids:
             check_sensor_id(sid)
         source = SimulatedSource(cfg)
         limit = None
-    node = SourceNode(bus_from_args(args), source, frames=limit)
+    quantizer, raw_every = edge_quantizer(args)
+    node = SourceNode(bus_from_args(args), source, frames=limit, quantizer=quantizer, raw_every=raw_every)
     stop = threading.Event()
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
     install_sigterm()

@@ -1,0 +1,228 @@
+"""Issue 13, the paper's IoT case at scale: edge quantization (the sensor's process
+publishes 1-bit frames), nodes that batch across sensors, sensors shared among several
+processes (--shard, --sensors), spread sources and health in slices. Real zenoh
+sessions, in process and across processes over 127.0.0.1; every wait bounded."""
+
+import json
+import subprocess
+import sys
+import threading
+import time
+import zlib
+
+import numpy as np
+import pytest
+
+from pipeline.bus import BusConfig, Shard
+from pipeline.errors import ParameterError
+from pipeline.node import HEALTH_SLICES
+from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.quantize import QuantizerConfig
+from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
+from radar_driver.scene import resolve_scene
+from radar_driver.source import SimSourceConfig, SimulatedSource
+from zenoh_helpers import Collector, wait_until
+
+CHAMBER = resolve_scene("chamber")
+QUANT = QuantizerConfig(alpha=1.0, dither_seed=9)
+
+
+def sim(sensors=4, frames=6, rate=50.0, prefix="e", send="burst", seed=3):
+    return SimulatedSource(SimSourceConfig(CHAMBER, sensors=sensors, rate_hz=rate, id_prefix=prefix, frames=frames,
+                                           seed=seed, send=send))
+
+
+def run_until_done(nodes, source_node, extra_s=0.6, timeout_s=20.0):
+    stop = threading.Event()
+    threading.Thread(target=lambda: (source_node.done.wait(timeout_s), time.sleep(extra_s), stop.set()),
+                     daemon=True).start()
+    run_nodes(nodes, timeout_s + extra_s + 5, stop)
+
+
+def by_frame(payloads, decode):
+    out = {}
+    for p in payloads:
+        m = decode(p)
+        assert (m.sensor_id, m.seq) not in out, "a frame came twice"
+        out[(m.sensor_id, m.seq)] = m
+    return out
+
+
+# -- sources -----------------------------------------------------------------------------------
+def test_spread_sensors_send_the_same_frames_in_groups_over_the_period():
+    burst, spread = sim(sensors=40, frames=3, rate=20.0), sim(sensors=40, frames=3, rate=20.0, send="spread")
+    b = list(burst.frame_batches())
+    s = list(spread.frame_batches())
+    assert [len(g) for g in b] == [40, 40, 40]  # one burst per period
+    assert len(s) == 3 * 40 and all(len(g) == 1 for g in s)  # 50 ms period / 1 ms slots > 40 sensors: one each
+    fb = [f for g in b for f in g]
+    fs = [f for g in s for f in g]
+    assert [(f.sensor_id, f.seq) for f in fb] == [(f.sensor_id, f.seq) for f in fs]
+    assert all(np.array_equal(x.data, y.data) for x, y in zip(fb, fs))  # the same frames, sent at other times
+    # sensor i of a period is sent i/40 of the period after sensor 0 (timestamps of the due times)
+    t = np.array([f.timestamp_ns for f in fs[:40]]) - fs[0].timestamp_ns
+    assert np.allclose(t, np.arange(40) * 50e6 / 40, atol=1e5)
+    assert len({f.timestamp_ns for f in fb[:40]}) == 1
+    assert burst.stats()["e0"]["frames"] == 3 and spread.stats()["e39"]["frames"] == 3
+
+
+def test_a_limit_cuts_a_group_and_the_next_read_resumes_it():
+    src = sim(sensors=5, frames=2, rate=0.0)
+    with src:
+        first = [(f.sensor_id, f.seq) for f in src.frames(3)]
+        rest = [(f.sensor_id, f.seq) for f in src.frames()]
+    assert first == [("e0", 0), ("e1", 0), ("e2", 0)]
+    assert rest[:2] == [("e3", 0), ("e4", 0)] and len(rest) == 7
+    with pytest.raises(Exception, match="send"):
+        SimSourceConfig(CHAMBER, send="random")
+
+
+# -- edge quantization ---------------------------------------------------------------------------
+def test_edge_frames_are_the_central_quantizers_frames_and_decode_to_the_same_targets(zenoh_session):
+    """The same sensors (same noise seed) quantized in the source's process and by a quantize
+    node give byte-identical 1-bit frames, and the localizer finds the same targets."""
+    session = zenoh_session
+    edge, central = BusConfig(prefix="edge"), BusConfig(prefix="central")
+    col = Collector(session, "*/*/*")
+    loc_cfg = LocalizerConfig(k=2, algo="qiht", radar=CHAMBER.radar)
+    e_src = SourceNode(edge, sim(), session=session, quantizer=QUANT, raw_every=2)
+    c_src = SourceNode(central, sim(), session=session)
+    nodes = [LocalizeNode(edge, loc_cfg, session=session), LocalizeNode(central, loc_cfg, session=session),
+             QuantizeNode(central, QUANT, session=session), e_src, c_src]
+    stop = threading.Event()
+    threading.Thread(target=lambda: (e_src.done.wait(20), c_src.done.wait(20), time.sleep(0.8), stop.set()),
+                     daemon=True).start()
+    run_nodes(nodes, 30, stop)
+    with col.lock:
+        items = list(col.items)
+    of = lambda prefix, topic: [p for k, p in items if k.startswith(prefix + "/") and k.endswith("/" + topic)]  # noqa: E731
+    eq, cq = by_frame(of("edge", "quantized"), decode_quantized), by_frame(of("central", "quantized"), decode_quantized)
+    assert len(eq) == len(cq) == 4 * 6
+    for f, m in eq.items():
+        assert m.header()[:1] + m.header()[3:] == cq[f].header()[:1] + cq[f].header()[3:]  # all but seq/timestamp order
+        assert np.array_equal(m.codes, cq[f].codes) and m.dither_seed == cq[f].dither_seed
+    # raw frames only every 2nd seq at the edge
+    assert sorted({m.seq for m in map(decode_raw, of("edge", "raw"))}) == [0, 2, 4]
+    et, ct = by_frame(of("edge", "targets"), decode_targets), by_frame(of("central", "targets"), decode_targets)
+    assert set(et) == set(ct) == set(eq)
+    for f, t in et.items():
+        assert [round(x["range_m"], 9) for x in t.targets] == [round(x["range_m"], 9) for x in ct[f].targets]
+        assert [x["angle_deg"] for x in t.targets] == pytest.approx([x["angle_deg"] for x in ct[f].targets])
+
+
+def test_edge_quantization_options_are_checked():
+    with pytest.raises(ParameterError, match="raw_every"):
+        SourceNode(BusConfig(), sim(), session=object(), raw_every=0)  # neither raw nor quantized: nothing
+
+
+# -- sharing the sensors -----------------------------------------------------------------------------
+def test_shards_serve_exactly_their_sensors_and_together_every_one(bus, zenoh_session):
+    session = zenoh_session
+    col = Collector(session, "radar/*/targets")
+    shards = [Shard(i, 3) for i in range(3)]
+    locs = [LocalizeNode(bus, LocalizerConfig(k=2, radar=CHAMBER.radar), session=session, shard=sh) for sh in shards]
+    src = SourceNode(bus, sim(sensors=12, frames=5, prefix="sh"), session=session, quantizer=QUANT)
+    run_until_done(locs + [src], src)
+    ids = [f"sh{i}" for i in range(12)]
+    for sh, loc in zip(shards, locs):
+        mine = {s for s in ids if zlib.crc32(s.encode()) % 3 == sh.index}
+        assert set(loc.stats) == mine, sh  # state and targets for its own sensors only
+        t = loc.totals()
+        assert t["frames_out"] == 5 * len(mine) and t["foreign_frames"] == 5 * (12 - len(mine))
+    got = by_frame(col.of("/targets"), decode_targets)  # each frame's targets exactly once
+    assert set(got) == {(s, q) for s in ids for q in range(5)}
+
+
+def test_a_sensor_pattern_is_filtered_by_zenoh(bus, zenoh_session):
+    session = zenoh_session
+    loc = LocalizeNode(bus, LocalizerConfig(k=1, radar=CHAMBER.radar), session=session, sensors="a1*")
+    src_a = SourceNode(bus, sim(sensors=12, frames=3, prefix="a"), session=session, quantizer=QUANT)
+    run_until_done([loc, src_a], src_a)
+    assert set(loc.stats) == {"a1", "a10", "a11"} and loc.totals()["frames_in"] == 9
+    with pytest.raises(ParameterError, match="pattern"):
+        LocalizeNode(bus, LocalizerConfig(k=1), session=session, sensors="a/b")
+    for bad in ("2/2", "x", "-1/2", "1/0"):
+        with pytest.raises(ParameterError, match="shard"):
+            Shard.parse(bad)
+
+
+# -- health in slices --------------------------------------------------------------------------------
+def test_health_of_many_sensors_comes_in_slices_once_a_period(bus, zenoh_session):
+    session = zenoh_session
+    period = 0.5
+    loc = LocalizeNode(bus, LocalizerConfig(k=1, radar=CHAMBER.radar), session=session, health_period_s=period)
+    src = SourceNode(bus, sim(sensors=30, frames=2, rate=20.0, prefix="h"), session=session, quantizer=QUANT,
+                     health_period_s=60)
+    col = Collector(session, "radar/*/health")
+    loc.start()
+    src.start()
+    try:
+        wait_until(lambda: src.done.is_set(), 10, "the source")
+        wait_until(lambda: loc.totals()["frames_out"] == 60, 10, "every frame localized")
+        with col.lock:
+            col.items.clear()
+        time.sleep(2 * period + 0.05)
+        health = [decode_health(p) for p in col.of("/health")]
+    finally:
+        src.stop()
+        loc.stop()
+    mine = [h for h in health if h.node == "localize"]
+    per_sensor = {}
+    for h in mine:
+        per_sensor.setdefault(h.sensor_id, []).append(h.timestamp_ns)
+    assert set(per_sensor) == {f"h{i}" for i in range(30)}
+    assert all(len(v) in (2, 3) for v in per_sensor.values()), {k: len(v) for k, v in per_sensor.items()}
+    # the 30 sensors are spread over the slices of the period, not published at one instant
+    assert len({round(t[0] / 1e6 / (period * 1e3 / HEALTH_SLICES)) for t in per_sensor.values()}) >= 5
+    assert all(h.frames_out == 2 and h.latency_ms["p99"] is not None for h in mine)
+
+
+# -- the commands, across processes ---------------------------------------------------------------------
+def cli(*args):
+    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def test_edge_source_and_two_sharded_localizers_across_processes(free_port, connect_when_ready):
+    ep = f"tcp/127.0.0.1:{free_port}"
+    router = cli("router", "--listen", ep, "--duration", "40")
+    locs = []
+    try:
+        session = connect_when_ready(ep, mode="client")
+        locs = [cli("localize", "--mode", "client", "--connect", ep, "--shard", f"{i}/2", "--duration", "30")
+                for i in range(2)]
+        col = Collector(session, "radar/*/targets")
+        quant = Collector(session, "radar/*/quantized")
+        wait_until(lambda: sum(1 for r in session.liveliness().get("radar/alive/localize/**", timeout=1.0)
+                               if r.ok is not None) == 2, 30, "both localizers up")
+        src = cli("source", "--mode", "client", "--connect", ep, "--sensors", "6", "--frames", "10", "--rate", "40", "--send", "spread",
+                  "--quantized", "--dither-seed", "4", "--id-prefix", "x")
+        out, err = src.communicate(timeout=60)
+        assert src.returncode == 0, err
+        report = json.loads(out.strip().splitlines()[-1])
+        assert report["frames_out"] == 60  # quantized frames only: no raw
+        wait_until(lambda: len(col.of("/targets")) >= 60, 20, "targets of every frame")
+        got = by_frame(col.of("/targets"), decode_targets)
+        assert set(got) == {(f"x{i}", q) for i in range(6) for q in range(10)}
+        q = decode_quantized(quant.of("/quantized")[0])
+        assert q.bits == 1 and q.alpha == 1.0
+    finally:
+        totals = []
+        for p in locs:
+            p.terminate()
+            out, err = p.communicate(timeout=30)
+            totals.append(json.loads(out.strip().splitlines()[-1]))
+        router.terminate()
+        router.communicate(timeout=30)
+    assert sum(t["frames_out"] for t in totals) == 60 and all(t["frames_out"] > 0 for t in totals)
+    assert sum(t["foreign_frames"] for t in totals) == 60
+    assert all(t["drops"] == 0 and t["decode_errors"] == 0 for t in totals)
+
+
+def test_edge_options_are_refused_where_they_make_no_sense():
+    r = subprocess.run([sys.executable, "-m", "qradar", "source", "--raw-every", "2", "--frames", "1"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "--raw-every is for edge quantization" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "qradar", "localize", "--shard", "3/2", "--duration", "0.1"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "shard" in r.stderr
