@@ -88,13 +88,16 @@ def check_frames(frames: np.ndarray, name: str = "frames") -> np.ndarray:
     return f
 
 
+def as_int_array(values) -> np.ndarray:
+    """``values`` as an array, lists and tuples as Python objects (numpy would turn a list
+    mixing ints beyond int64 with others into floats)."""
+    return np.array(values, dtype=object) if isinstance(values, (list, tuple)) else np.asarray(values)
+
+
 def check_uint64(values, name: str) -> np.ndarray:
     """An int or a 1-D sequence of ints as a (B,) uint64 array; each must be in
     [0, 2**64), the wire format's range."""
-    try:
-        a = np.asarray(values)
-    except OverflowError:  # numpy 2: a list mixing ints beyond int64 with negative ones
-        a = np.asarray(values, dtype=object)
+    a = as_int_array(values)
     if a.ndim > 1:
         ok = False
     elif np.issubdtype(a.dtype, np.signedinteger):
@@ -196,6 +199,7 @@ _U64 = np.uint64
 _GAMMA, _C1, _C2 = _U64(SPLITMIX_GAMMA), _U64(SPLITMIX_C1), _U64(SPLITMIX_C2)
 #: 64-bit words per block of the counter generator (a block stays in the CPU cache)
 _BLOCK = 1 << 15
+_HALVES = _U64(0x8000000080000000)
 
 
 def _mix64(z: np.ndarray, tmp: np.ndarray) -> np.ndarray:
@@ -247,10 +251,10 @@ def _counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) ->
         zz, tt, oo = z[:k.size], tmp[:k.size], out[start:start + rows]
         np.add(k[:, None], offsets, out=zz)
         _mix64(zz, tt)
-        v = zz.view("<u4")  # (rows, 4M) 32-bit values v_i
+        zz ^= _HALVES  # v_i - 2**31 as int32: (v_i - 2**31) 2**-32 = u_i, exactly
+        v = zz.view("<i4")  # (rows, 4M) 32-bit values
         np.multiply(v[:, :n], 2.0**-32, out=oo[:, 0::2])
         np.multiply(v[:, n:], 2.0**-32, out=oo[:, 1::2])
-        oo -= 0.5
     return out.view(complex).reshape(keys.size, n_measurements, 2)
 
 

@@ -20,6 +20,7 @@ one bit depth), and :func:`encode_quantized_batch`, :func:`encode_raw_batch`,
 from __future__ import annotations
 
 import json
+import re
 import struct
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -28,8 +29,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .errors import ParameterError, WireError
-from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_BITS, QuantizedFrames, check_alpha, check_bits,
-                       check_generator, check_uint64, pack_codes, packed_size, unpack_codes)
+from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_BITS, QuantizedFrames, as_int_array, check_alpha,
+                       check_bits, check_generator, check_uint64, pack_codes, packed_size, unpack_codes)
 
 MAGIC = b"QRDR"
 #: format version of each dither generator (quantized frames); raw frames are written as 1
@@ -135,15 +136,15 @@ class QuantizedFrameMsg:
 def _int_field(values, name: str, dtype: str, n: int | None) -> np.ndarray:
     """A header field of B frames as a (B,) array of ``dtype`` (an integer type); every
     value must fit in it."""
-    info = np.iinfo(dtype)
-    try:
-        a = np.asarray(values)
-    except OverflowError:  # numpy 2: a list mixing ints beyond int64 with negative ones
-        a = np.asarray(values, dtype=object)
+    a = as_int_array(values)
     if a.ndim != 1 or (n is not None and a.shape[0] != n):
         raise WireError(f"{name} must have shape ({'B' if n is None else n},), got {a.shape}")
-    if a.dtype == object or not np.issubdtype(a.dtype, np.integer):
-        bad = [x for x in a.tolist() if isinstance(x, bool) or not isinstance(x, int) or not info.min <= x <= info.max]
+    if a.dtype == dtype:
+        return a
+    info = np.iinfo(dtype)
+    if a.dtype.kind not in "iu":
+        bad = [x for x in a.tolist()
+               if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or not info.min <= x <= info.max]
     elif a.size and (a.min() < info.min or a.max() > info.max):
         bad = a[(a < info.min) | (a > info.max)].tolist()
     else:
@@ -257,12 +258,29 @@ def encode_raw_batch(headers: FrameHeaders, data: np.ndarray) -> list[bytes]:
     return _split(head, data.astype("<c8", copy=False).view(np.uint8))
 
 
+def _common(kind: int, version: int, bits: int, flags: int, sensor_id: str, seq: int, ts: int, config_id: int,
+            m: int) -> bytes:
+    """The common header of one frame (the single-frame encoders)."""
+    check_sensor_id(sensor_id)
+    if not 0 <= seq < 2**64:
+        raise WireError(f"seq={seq} does not fit in uint64")
+    if not -2**63 <= ts < 2**63:
+        raise WireError(f"timestamp_ns={ts} does not fit in int64")
+    if not 0 <= config_id < 2**32:
+        raise WireError(f"config_id={config_id} does not fit in uint32")
+    if not 1 <= m <= MAX_M:
+        raise WireError(f"M={m} must be in [1, {MAX_M}]")
+    return COMMON.pack(MAGIC, version, kind, bits, flags, seq, ts, config_id, m, sensor_id.encode("ascii"))
+
+
 def encode_raw(msg: RawFrameMsg) -> bytes:
+    """One raw frame payload (format version 1); :func:`encode_raw_batch` for many."""
     data = np.asarray(msg.data)
     if data.ndim != 2 or data.shape[1] != 2:
         raise WireError(f"raw frame data must have shape (M, 2), got {data.shape}")
-    return encode_raw_batch(FrameHeaders([msg.sensor_id], [msg.seq], [msg.timestamp_ns], [msg.config_id]),
-                            data[None])[0]
+    head = _common(KIND_RAW, RAW_VERSION, 0, 0, msg.sensor_id, msg.seq, msg.timestamp_ns, msg.config_id,
+                   data.shape[0])
+    return head + data.astype("<c8", copy=False).tobytes()
 
 
 def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
@@ -313,18 +331,140 @@ def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[by
 
 
 def encode_quantized(msg: QuantizedFrameMsg) -> bytes:
+    """One quantized frame payload, format version 1 or 2 after ``msg.generator``;
+    :func:`encode_quantized_batch` for many."""
     codes = np.asarray(msg.codes)
+    try:
+        bits = check_bits(msg.bits)
+        check_alpha(msg.alpha)
+        version = GENERATOR_VERSIONS[check_generator(msg.generator)]
+    except ParameterError as exc:
+        raise WireError(str(exc)) from None
     if codes.ndim != 3 or codes.shape[1:] != (2, 2):
         raise WireError(f"codes must have shape (M, 2, 2), got {codes.shape}")
+    with np.errstate(over="ignore"):
+        d32 = np.float32(msg.delta)
+    if not (np.isfinite(d32) and d32 > 0):
+        raise WireError(f"delta={msg.delta!r} must be finite and > 0 (as a float32)")
     if not 0 <= msg.dither_seed < 2**64:
         raise WireError(f"dither_seed={msg.dither_seed} does not fit in uint64")
-    q = QuantizedFrames(codes[None], np.array([msg.delta], dtype=float), msg.bits, msg.alpha, int(msg.dither_seed),
-                        np.array([msg.seq]), msg.generator)
-    return encode_quantized_batch(FrameHeaders([msg.sensor_id], [msg.seq], [msg.timestamp_ns], [msg.config_id]), q)[0]
+    flags = FLAG_DITHERED if msg.alpha > 0 else 0
+    head = _common(KIND_QUANTIZED, version, bits, flags, msg.sensor_id, msg.seq, msg.timestamp_ns, msg.config_id,
+                   codes.shape[0])
+    ext = QUANT_EXT.pack(msg.dither_seed, msg.alpha, msg.delta)
+    return head + ext + pack_codes(codes[None], bits)[0].tobytes()
 
 
 # -- decoding ---------------------------------------------------------------------------------
+# One list of checks and messages serves the single-frame decoders (header fields as Python
+# scalars, read with struct) and the batch decoders (fields as (n,) arrays, read through the
+# structured dtypes): the checks use only operators both understand.
 _NAMES = {KIND_RAW: "raw frame", KIND_QUANTIZED: "quantized frame"}
+_MAGIC_BYTES = np.frombuffer(MAGIC, dtype=np.uint8)
+_VERSION_BAD = np.ones(256, dtype=bool)
+_VERSION_BAD[list(VERSIONS)] = False
+#: a valid NUL-padded sensor id field (the rule of :func:`check_sensor_id`, in bytes)
+_SENSOR_ID_FIELD = re.compile(rb"[A-Za-z0-9_-]{1,16}\0*")
+
+
+def _sensor_id_bad(sid) -> bool | np.ndarray:
+    """Whether a NUL-padded 16-byte sensor id field is not a valid id: bytes, or (n, 16)
+    uint8 -> (n,) bool (valid: 1-16 bytes of [A-Za-z0-9_-], then NULs only)."""
+    if isinstance(sid, bytes):
+        return _SENSOR_ID_FIELD.fullmatch(sid) is None
+    nonzero = sid != 0
+    length = np.where(nonzero.any(axis=1), SENSOR_ID_MAX - np.argmax(nonzero[:, ::-1], axis=1), 0)
+    inside = np.arange(SENSOR_ID_MAX) < length[:, None]
+    return (length < 1) | np.any(~_ID_BYTES[sid] & inside, axis=1)
+
+
+def _faults(f: dict, kind: int, size: int):
+    """The checks of a frame's header ``f`` (fields by name: scalars, or (n,) arrays for a
+    batch, with ``magic_bad`` and ``sensor_id_bad`` computed) and length ``size``, in the
+    order they apply: yields 'bad' (a bool, or (n,) bools). The number of a check (from 1)
+    selects its message in :func:`_fault_text`; a quantized frame shorter than its header
+    yields no checks of the extension."""
+    m = f["m"]
+    yield f["magic_bad"]
+    yield _VERSION_BAD[f["version"]]
+    yield f["kind"] != kind
+    yield (m < 1) | (m > MAX_M)
+    yield f["sensor_id_bad"]
+    if kind == KIND_RAW:
+        yield size != HEADER_LEN + m * 16
+        return
+    yield size < QUANT_HEADER_LEN
+    if size < QUANT_HEADER_LEN:
+        return
+    bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
+    yield (bits < 1) | (bits > MAX_BITS)
+    yield (delta != delta) | (delta <= 0) | (delta == np.inf) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
+    yield ((f["flags"] & FLAG_DITHERED) != 0) != (alpha > 0)
+    yield size != QUANT_HEADER_LEN + (m * 4 * bits + 7) // 8
+
+
+def _fault_text(number: int, f: dict, kind: int, size: int, source: str) -> str:
+    """The message of check ``number`` of :func:`_faults` failing for one frame (fields as
+    Python scalars; magic and sensor_id as bytes)."""
+    name = _NAMES[kind]
+    texts = [f"magic {f['magic']!r}, expected {MAGIC!r} (not a qradar frame)",
+             f"format version {f['version']} unsupported (this build reads {' and '.join(map(str, VERSIONS))})",
+             f"message kind {f['kind']}, expected {kind}",
+             f"M={f['m']} outside [1, {MAX_M}]",
+             f"sensor id {f['sensor_id']!r} is not valid"]
+    if kind == KIND_RAW:
+        texts.append(f"{size} bytes, expected {HEADER_LEN + f['m'] * 16} for M={f['m']}")
+    else:
+        texts.append(f"{size} bytes, shorter than its {QUANT_HEADER_LEN}-byte header")
+        if number > len(texts):
+            bits, alpha, delta = f["bits"], float(f["alpha"]), float(f["delta"])
+            texts += [f"bits={bits} outside [1, {MAX_BITS}]",
+                      f"delta={delta!r} or alpha={alpha!r} out of range",
+                      f"dithered flag {f['flags'] & FLAG_DITHERED} contradicts alpha={alpha}",
+                      f"{size} bytes, expected {QUANT_HEADER_LEN + (f['m'] * 4 * bits + 7) // 8} "
+                      f"for M={f['m']} and {bits} bits"]
+    return f"{name} from {source}: {texts[number - 1]}"
+
+
+def _short(kind: int, source: str, size: int) -> WireError:
+    return WireError(f"{_NAMES[kind]} from {source}: {size} bytes, shorter than the {HEADER_LEN}-byte header")
+
+
+def _parse_one(payload: bytes, source: str, kind: int) -> dict:
+    """The header fields of one frame as Python scalars, every check passed."""
+    size = len(payload)
+    if size < HEADER_LEN:
+        raise _short(kind, source, size)
+    names = [n for n, _, _ in COMMON_FIELDS]
+    f = dict(zip(names, COMMON.unpack_from(payload)))
+    if kind == KIND_QUANTIZED and size >= QUANT_HEADER_LEN:
+        f.update(zip([n for n, _, _ in QUANT_EXT_FIELDS], QUANT_EXT.unpack_from(payload, HEADER_LEN)))
+    f["magic_bad"], f["sensor_id_bad"] = f["magic"] != MAGIC, _sensor_id_bad(f["sensor_id"])
+    for number, bad in enumerate(_faults(f, kind, size), 1):
+        if bad:
+            raise WireError(_fault_text(number, f, kind, size, source))
+    f["sensor_id"] = f["sensor_id"].rstrip(b"\0").decode("ascii")
+    return f
+
+
+def decode_raw(payload: bytes, source: str = "<bytes>") -> RawFrameMsg:
+    payload = bytes(payload)
+    f = _parse_one(payload, source, KIND_RAW)
+    data = np.frombuffer(payload, dtype="<c8", offset=HEADER_LEN).reshape(f["m"], 2).astype(np.complex64)
+    return RawFrameMsg(f["sensor_id"], f["seq"], f["timestamp_ns"], f["config_id"], data)
+
+
+def decode_quantized(payload: bytes, source: str = "<bytes>") -> QuantizedFrameMsg:
+    payload = bytes(payload)
+    f = _parse_one(payload, source, KIND_QUANTIZED)
+    m, bits = f["m"], f["bits"]
+    packed = np.frombuffer(payload, dtype=np.uint8, offset=QUANT_HEADER_LEN)[None]
+    codes = unpack_codes(packed, bits, m * 4)[0].reshape(m, 2, 2)
+    return QuantizedFrameMsg(f["sensor_id"], f["seq"], f["timestamp_ns"], f["config_id"], bits, float(f["alpha"]),
+                             float(f["delta"]), f["dither_seed"], codes, _GENERATOR_OF_VERSION[f["version"]])
+
+
+_GENERATOR_OF_VERSION = {v: g for g, v in GENERATOR_VERSIONS.items()}
 
 
 def _by_length(payloads: Sequence[bytes], sources: Sequence[str]):
@@ -333,55 +473,54 @@ def _by_length(payloads: Sequence[bytes], sources: Sequence[str]):
     if len(sources) != len(payloads):
         raise WireError(f"{len(payloads)} payloads but {len(sources)} sources")
     lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=len(payloads))
-    order = np.argsort(lengths, kind="stable")
-    sizes, starts = np.unique(lengths[order], return_index=True)
-    for size, idx in zip(sizes.tolist(), np.split(order, starts[1:])):
+    if not lengths.size:
+        return
+    if lengths.min() == lengths.max():  # the usual case: one length
+        split = [(int(lengths[0]), np.arange(lengths.size))]
+    else:
+        order = np.argsort(lengths, kind="stable")
+        sizes, starts = np.unique(lengths[order], return_index=True)
+        split = zip(sizes.tolist(), np.split(order, starts[1:]))
+    for size, idx in split:
         buf = np.frombuffer(b"".join([payloads[i] for i in idx.tolist()]), dtype=np.uint8)
         yield size, idx, buf.reshape(idx.size, size)
 
 
-def _record_view(rows: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """The leading bytes of each row (n, L) read as one record of ``dtype``: (n,)."""
-    padded = np.dtype({"names": dtype.names, "formats": [dtype.fields[n][0] for n in dtype.names],
-                       "offsets": [dtype.fields[n][1] for n in dtype.names], "itemsize": rows.shape[1]})
-    return rows.reshape(-1).view(padded)
+@lru_cache(maxsize=64)
+def _padded(dtype: np.dtype, itemsize: int) -> np.dtype:
+    """``dtype`` followed by padding up to ``itemsize`` bytes."""
+    return np.dtype({"names": dtype.names, "formats": [dtype.fields[n][0] for n in dtype.names],
+                     "offsets": [dtype.fields[n][1] for n in dtype.names], "itemsize": itemsize})
 
 
-def _first_failure(checks: list[np.ndarray], n: int) -> np.ndarray:
-    """For n frames and boolean 'bad' masks in the order they are checked: the number
-    (1-based) of the first check each frame fails, 0 when it passes every one."""
-    failed = np.zeros(n, dtype=np.int64)
-    for number, bad in enumerate(checks, 1):
-        failed[(failed == 0) & bad] = number
-    return failed
-
-
-def _sensor_ids_ok(sid: np.ndarray) -> np.ndarray:
-    """(n, 16) NUL-padded sensor id bytes -> (n,) valid: 1-16 allowed bytes, then NULs."""
-    nonzero = sid != 0
-    length = np.where(nonzero.any(axis=1), SENSOR_ID_MAX - np.argmax(nonzero[:, ::-1], axis=1), 0)
-    inside = np.arange(SENSOR_ID_MAX) < length[:, None]
-    return (length >= 1) & np.all(_ID_BYTES[sid] | ~inside, axis=1)
-
-
-def _common_checks(rec: np.ndarray, kind: int) -> list[np.ndarray]:
-    """'bad' masks of the common header, in the order the messages of :func:`_common_error` go."""
-    return [np.any(rec["magic"] != np.frombuffer(MAGIC, dtype=np.uint8), axis=1),
-            ~np.isin(rec["version"], VERSIONS), rec["kind"] != kind, (rec["m"] < 1) | (rec["m"] > MAX_M),
-            ~_sensor_ids_ok(rec["sensor_id"])]
-
-
-def _common_error(check: int, r, name: str, source: str, kind: int) -> str:
-    """The message of the common header's check number ``check`` (1-based) for record r."""
-    return [f"magic {r['magic'].tobytes()!r}, expected {MAGIC!r} (not a qradar frame)",
-            f"format version {r['version']} unsupported (this build reads {' and '.join(map(str, VERSIONS))})",
-            f"message kind {r['kind']}, expected {kind}",
-            f"M={r['m']} outside [1, {MAX_M}]",
-            f"sensor id {r['sensor_id'].tobytes()!r} is not valid"][check - 1]
-
-
-def _short(name: str, source: str, size: int) -> WireError:
-    return WireError(f"{name} from {source}: {size} bytes, shorter than the {HEADER_LEN}-byte header")
+def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
+    """Frames grouped by length, every check applied vectorized: yields (positions (n,),
+    (n,) header records, (n, length) bytes) of the good frames of each length; the bad
+    ones go to the list ``errors`` (position, WireError) returned first."""
+    errors: list[tuple[int, WireError]] = []
+    good = []
+    for size, idx, rows in _by_length(payloads, sources):
+        if size < HEADER_LEN:
+            errors += [(i, _short(kind, sources[i], size)) for i in idx.tolist()]
+            continue
+        dtype = QUANT_DTYPE if kind == KIND_QUANTIZED and size >= QUANT_HEADER_LEN else COMMON_DTYPE
+        rec = rows.reshape(-1).view(_padded(dtype, size))
+        f = {name: rec[name].astype(np.int64) for name in ("version", "kind", "bits", "flags", "m")}  # no overflow
+        f.update({name: rec[name] for name in ("alpha", "delta") if name in dtype.names})
+        f["magic_bad"] = np.any(rec["magic"] != _MAGIC_BYTES, axis=1)
+        f["sensor_id_bad"] = _sensor_id_bad(rec["sensor_id"])
+        failed = np.zeros(idx.size, dtype=np.int64)
+        for number, bad in enumerate(_faults(f, kind, size), 1):
+            failed[(failed == 0) & bad] = number
+        for j in np.flatnonzero(failed).tolist():
+            one = {name: rec[name][j].tobytes() if name in ("magic", "sensor_id") else rec[name][j].item()
+                   for name in dtype.names}
+            errors.append((int(idx[j]), WireError(_fault_text(int(failed[j]), one, kind, size, sources[idx[j]]))))
+        ok = failed == 0
+        if ok.any():
+            good.append((idx[ok], rec[ok], rows[ok]))
+    errors.sort(key=lambda e: e[0])
+    return errors, good
 
 
 def _headers_of(rec: np.ndarray) -> FrameHeaders:
@@ -391,30 +530,15 @@ def _headers_of(rec: np.ndarray) -> FrameHeaders:
 
 def decode_raw_batch(payloads: Sequence[bytes], sources: Sequence[str]) -> tuple[list[RawGroup], list[tuple[int, WireError]]]:
     """Raw frame payloads (bytes-like) with the source of each (e.g. its zenoh key): the
-    good frames in groups of one M, and (position, WireError) of each bad payload, the
-    error the single-frame :func:`decode_raw` raises for it."""
-    groups, errors = [], []
-    name = _NAMES[KIND_RAW]
-    for size, idx, rows in _by_length(payloads, sources):
-        if size < HEADER_LEN:
-            errors += [(i, _short(name, sources[i], size)) for i in idx.tolist()]
-            continue
-        rec = _record_view(rows, COMMON_DTYPE)
-        checks = _common_checks(rec, KIND_RAW)
-        need = HEADER_LEN + rec["m"].astype(np.int64) * 16
-        failed = _first_failure(checks + [need != size], idx.size)
-        for j in np.flatnonzero(failed).tolist():
-            src, c, r = sources[idx[j]], int(failed[j]), rec[j]
-            text = (_common_error(c, r, name, src, KIND_RAW) if c <= len(checks)
-                    else f"{size} bytes, expected {need[j]} for M={r['m']}")
-            errors.append((int(idx[j]), WireError(f"{name} from {src}: {text}")))
-        ok = failed == 0
-        if ok.any():
-            m = (size - HEADER_LEN) // 16
-            data = rows[ok, HEADER_LEN:].copy().view("<c8").reshape(-1, m, 2).astype(np.complex64, copy=False)
-            groups.append(RawGroup(_headers_of(rec[ok]), data, idx[ok]))
+    good frames in groups of one M (decoded as :func:`decode_raw` decodes each), and
+    (position, WireError) of each bad payload, the error :func:`decode_raw` raises for it."""
+    errors, good = _parse_batch(payloads, sources, KIND_RAW)
+    groups = []
+    for idx, rec, rows in good:
+        m = (rows.shape[1] - HEADER_LEN) // 16
+        data = rows[:, HEADER_LEN:].copy().view("<c8").reshape(-1, m, 2).astype(np.complex64, copy=False)
+        groups.append(RawGroup(_headers_of(rec), data, idx))
     groups.sort(key=lambda g: g.index[0])
-    errors.sort(key=lambda e: e[0])
     return groups, errors
 
 
@@ -422,72 +546,24 @@ def decode_quantized_batch(payloads: Sequence[bytes],
                            sources: Sequence[str]) -> tuple[list[QuantizedGroup], list[tuple[int, WireError]]]:
     """Quantized frame payloads (bytes-like) with the source of each: the good frames in
     groups of one M and one bit depth (each frame's dither generator from its format
-    version), and (position, WireError) of each bad payload, the error the single-frame
-    :func:`decode_quantized` raises for it."""
-    groups, errors = [], []
-    name = _NAMES[KIND_QUANTIZED]
-    for size, idx, rows in _by_length(payloads, sources):
-        if size < HEADER_LEN:
-            errors += [(i, _short(name, sources[i], size)) for i in idx.tolist()]
-            continue
-        long = size >= QUANT_HEADER_LEN
-        rec = _record_view(rows, QUANT_DTYPE if long else COMMON_DTYPE)
-        checks = _common_checks(rec, KIND_QUANTIZED) + [np.full(idx.size, not long)]
-        n_common = len(checks)
-        if long:
-            bits = rec["bits"].astype(np.int64)
-            alpha, delta = rec["alpha"], rec["delta"]
-            need = QUANT_HEADER_LEN + (rec["m"].astype(np.int64) * 4 * bits + 7) // 8
-            checks += [(bits < 1) | (bits > MAX_BITS),
-                       ~(np.isfinite(delta) & (delta > 0)) | ~((alpha >= 0) & (alpha <= 1)),
-                       ((rec["flags"] & FLAG_DITHERED) != 0) != (alpha > 0),
-                       need != size]
-        failed = _first_failure(checks, idx.size)
-        for j in np.flatnonzero(failed).tolist():
-            src, c, r = sources[idx[j]], int(failed[j]), rec[j]
-            if c < n_common:
-                text = _common_error(c, r, name, src, KIND_QUANTIZED)
-            elif c == n_common:
-                text = f"{size} bytes, shorter than its {QUANT_HEADER_LEN}-byte header"
-            else:
-                a, d = float(r["alpha"]), float(r["delta"])
-                text = [f"bits={r['bits']} outside [1, {MAX_BITS}]",
-                        f"delta={d!r} or alpha={a!r} out of range",
-                        f"dithered flag {r['flags'] & FLAG_DITHERED} contradicts alpha={a}",
-                        f"{size} bytes, expected {need[j]} for M={r['m']} and {r['bits']} bits"][c - n_common - 1]
-            errors.append((int(idx[j]), WireError(f"{name} from {src}: {text}")))
-        ok = np.flatnonzero(failed == 0)
-        if not ok.size:
-            continue
-        # one (M, bits) per group: one unpack call each
-        keys = rec["m"][ok].astype(np.int64) * (MAX_BITS + 1) + rec["bits"][ok]
-        for key in np.unique(keys).tolist():
-            sel = ok[keys == key]
-            m, b = divmod(key, MAX_BITS + 1)
+    version; decoded as :func:`decode_quantized` decodes each), and (position, WireError)
+    of each bad payload, the error :func:`decode_quantized` raises for it."""
+    errors, good = _parse_batch(payloads, sources, KIND_QUANTIZED)
+    groups = []
+    for idx, rec, rows in good:
+        # frames of one length may still differ in (M, bits): one group, one unpack call, each
+        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"]
+        for key in ([int(keys[0])] if keys.min() == keys.max() else np.unique(keys).tolist()):
+            sel = np.flatnonzero(keys == key)
+            m, bits = divmod(key, MAX_BITS + 1)
             r = rec[sel]
-            codes = unpack_codes(rows[sel, QUANT_HEADER_LEN:], b, 4 * m).reshape(sel.size, m, 2, 2)
+            codes = unpack_codes(rows[sel, QUANT_HEADER_LEN:], bits, 4 * m).reshape(sel.size, m, 2, 2)
             generator = np.where(r["version"] == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER)
-            frames = QuantizedFrames(codes, r["delta"].astype(float), b, r["alpha"].astype(float),
+            frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
                                      r["dither_seed"].copy(), r["seq"].copy(), generator)
             groups.append(QuantizedGroup(_headers_of(r), frames, idx[sel]))
     groups.sort(key=lambda g: g.index[0])
-    errors.sort(key=lambda e: e[0])
     return groups, errors
-
-
-def _decode_one(batch_decoder, payload: bytes, source: str):
-    groups, errors = batch_decoder([bytes(payload)], [source])
-    if errors:
-        raise errors[0][1]
-    return groups[0].messages()[0]
-
-
-def decode_raw(payload: bytes, source: str = "<bytes>") -> RawFrameMsg:
-    return _decode_one(decode_raw_batch, payload, source)
-
-
-def decode_quantized(payload: bytes, source: str = "<bytes>") -> QuantizedFrameMsg:
-    return _decode_one(decode_quantized_batch, payload, source)
 
 
 def quantized_batch(msgs: list[QuantizedFrameMsg]) -> QuantizedFrames:
@@ -549,6 +625,67 @@ class TargetsMsg:
                "K": self.k, **({"K_auto": True} if self.auto_k else {}), "source": self.source,
                "published_ns": self.published_ns, "targets": [_target(t) for t in self.targets]}
         return json.dumps(obj, separators=(",", ":")).encode()
+
+
+#: the columns of a frame's target values in :func:`encode_targets_batch`
+_TARGET_COLUMNS = TARGET_FIELDS + OPTIONAL_TARGET_FIELDS
+
+
+@lru_cache(maxsize=256)
+def _targets_template(has_statistic: tuple[bool, ...]) -> tuple[str, tuple[int, ...]]:
+    """The JSON list of targets whose ``statistic_db`` is (True) or is not given, as a
+    %-template of floats (%r: repr, as json writes them), and the columns of the values
+    (target j, field f -> j * 6 + f) it takes, in order."""
+    parts, columns = [], []
+    width = len(_TARGET_COLUMNS)
+    for j, stat in enumerate(has_statistic):
+        fields = TARGET_FIELDS + (OPTIONAL_TARGET_FIELDS if stat else ())
+        parts.append("{" + ",".join(f'"{f}":%r' for f in fields) + "}")
+        columns += [j * width + _TARGET_COLUMNS.index(f) for f in fields]
+    return "[" + ",".join(parts) + "]", tuple(columns)
+
+
+def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: str, published_ns,
+                         auto_k: bool = False) -> list[bytes]:
+    """Targets JSON of B frames: the bytes ``TargetsMsg(..., det.frame(i), ...).to_json()``
+    writes for each frame i. ``det``: pipeline.localize.Detections of (B, K) arrays (a
+    target is written where ``present``; its ``statistic_db`` when finite).
+    ``published_ns``: one int or (B,). A present target with a non-finite field is a
+    ValueError naming the field, as in :meth:`TargetsMsg.to_json`."""
+    b = len(headers)
+    cols = [np.asarray(getattr(det, f), dtype=float) for f in _TARGET_COLUMNS]
+    present = np.asarray(det.present, dtype=bool)
+    if present.ndim != 2 or present.shape[0] != b or any(c.shape != present.shape for c in cols):
+        raise WireError(f"detections must be ({b}, K) arrays for {b} frames, got {present.shape}")
+    values = np.stack(cols, axis=-1)  # (B, K, 6)
+    finite = np.isfinite(values[..., :len(TARGET_FIELDS)])
+    bad = present[..., None] & ~finite
+    if bad.any():
+        i, j, f = np.argwhere(bad)[0]
+        raise ValueError(f"target field {TARGET_FIELDS[f]}={float(values[i, j, f])} is not finite")
+    # the present targets of each frame first, in order
+    order = np.argsort(~present, axis=1, kind="stable")
+    values = np.take_along_axis(values, order[..., None], axis=1).reshape(b, -1)
+    has_stat = np.take_along_axis(present & np.isfinite(cols[-1]), order, axis=1)
+    count = present.sum(axis=1)
+    published = _int_field(np.broadcast_to(np.asarray(published_ns), (b,)), "published_ns", "int64", b).tolist()
+    quoted = {sid: json.dumps(sid).replace("%", "%%") for sid in set(headers.sensor_id)}
+    head = ('{"version":%d,"type":"targets","sensor_id":%%s,"seq":%%d,"timestamp_ns":%%d,"config_id":%%d,'
+            % JSON_VERSION + '"algo":' + json.dumps(algo).replace("%", "%%") + ',"K":%d' % int(k)
+            + (',"K_auto":true' if auto_k else "") + ',"source":' + json.dumps(source).replace("%", "%%")
+            + ',"published_ns":%d,"targets":')
+    patterns, which = np.unique(np.concatenate([count[:, None], has_stat], axis=1), axis=0, return_inverse=True)
+    out: list[bytes] = [b""] * b
+    seqs, stamps, configs = headers.seq.tolist(), headers.timestamp_ns.tolist(), headers.config_id.tolist()
+    for p, pattern in enumerate(patterns.tolist()):
+        targets, columns = _targets_template(tuple(bool(x) for x in pattern[1:pattern[0] + 1]))
+        template = head + targets + "}"
+        frames = np.flatnonzero(which.ravel() == p)
+        rows = values[np.ix_(frames, columns)].tolist() if columns else [[]] * frames.size
+        for i, row in zip(frames.tolist(), rows):
+            out[i] = (template % (quoted[headers.sensor_id[i]], seqs[i], stamps[i], configs[i], published[i],
+                                  *row)).encode()
+    return out
 
 
 def _reject_constant(name: str):
