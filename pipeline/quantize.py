@@ -26,7 +26,7 @@ wire format's version says which, docs/wire-formats.md):
   ``i = 0 .. 4M - 1`` (~6 us a frame of M = 512 in batches of 16 or more).
 * ``"seedseq"`` (:data:`DITHER_SEEDSEQ`, wire version 1, every recording made before
   the counter generator): ``numpy.random.default_rng(SeedSequence(dither_seed,
-  spawn_key=(seq,))).random(4M) - 1/2``, one generator per frame (~50 us a frame).
+  spawn_key=(seq,))).random(4M) - 1/2``, one generator per frame (~30 us a frame).
 
 Both lay the 4M values out alike: the real parts of the (M, 2) array first, then the
 imaginary parts, each in C order.

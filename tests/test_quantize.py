@@ -255,3 +255,15 @@ def test_bad_parameters_raise_clear_value_errors(call, fragment):
     with pytest.raises(ParameterError, match=fragment) as info:
         call(f)
     assert isinstance(info.value, ValueError) and isinstance(info.value, PipelineError)
+
+
+def test_counter_generator_test_vectors_of_the_docs():
+    """The test vectors of docs/wire-formats.md (version 2)."""
+    from pipeline.quantize import counter_keys
+
+    k = counter_keys(np.array([0, 655087151], np.uint64), np.array([0, 41], np.uint64))
+    assert k.tolist() == [0x48218226FF3CD4BF, 0x4B8C5DCC28E8F094]
+    assert unit_dither(0, 0, 1)[0, 0].tolist() == [-0.3977657603099942 - 0.2190026317257434j,
+                                                -0.16194754582829773 - 0.2308697288390249j]
+    assert unit_dither(655087151, 41, 1)[0, 0].tolist() == [-0.3218443572986871 - 0.2290043553803116j,
+                                                         0.06143485032953322 + 0.04329792223870754j]
