@@ -10,23 +10,48 @@ unsigned level numbers ``q + 2**(b-1)`` in ``[0, 2**b)``.
 
 Shapes: frames are (B, M, 2) complex (batch, measurement, antenna); codes are
 (B, M, 2, 2) unsigned integers (batch, measurement, antenna, I/Q); ``delta`` is a
-scalar or (B,). The dither of a frame is reproducible from ``(dither_seed, seq)``:
-:func:`unit_dither` draws ``u`` from ``numpy.random.SeedSequence(dither_seed,
-spawn_key=(seq,))``, independent of delta and alpha, so a decoder that knows the
-seed, the sequence number, delta and alpha regenerates xi exactly.
+scalar or (B,). The dither of a frame is reproducible from ``(dither_seed, seq)``,
+independent of delta and alpha, so a decoder that knows the seed, the sequence number,
+delta, alpha and the generator regenerates xi exactly. Two generators draw ``u`` (the
+wire format's version says which, docs/wire-formats.md):
+
+* ``"counter"`` (:data:`DITHER_COUNTER`, the default, wire version 2): counter-based
+  SplitMix64, vectorized over frames in uint64 arithmetic (mod 2**64). With
+  ``mix(z)``: ``z ^= z >> 30; z *= 0xBF58476D1CE4E5B9; z ^= z >> 27;
+  z *= 0x94D049BB133111EB; z ^= z >> 31`` and ``G = 0x9E3779B97F4A7C15``, frame
+  ``(seed, seq)`` has the key ``k = mix(seed ^ mix(seq + G))`` and the 2M words
+  ``x_w = mix(k + (w + 1) G)``, ``w = 0 .. 2M - 1`` (the SplitMix64 stream from state
+  ``k``); each word gives two 32-bit values, its low half ``v_2w = x_w mod 2**32`` then
+  its high half ``v_2w+1 = x_w >> 32``, and ``u_i = v_i * 2**-32 - 1/2``,
+  ``i = 0 .. 4M - 1`` (~6 us a frame of M = 512 in batches of 16 or more).
+* ``"seedseq"`` (:data:`DITHER_SEEDSEQ`, wire version 1, every recording made before
+  the counter generator): ``numpy.random.default_rng(SeedSequence(dither_seed,
+  spawn_key=(seq,))).random(4M) - 1/2``, one generator per frame (~30 us a frame).
+
+Both lay the 4M values out alike: the real parts of the (M, 2) array first, then the
+imaginary parts, each in C order.
 """
 
 from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
-from typing import Literal
+from functools import lru_cache
+from typing import Literal, Sequence
 
 import numpy as np
 
 from .errors import ParameterError
 
 MAX_BITS = 16
+DITHER_SEEDSEQ = "seedseq"
+DITHER_COUNTER = "counter"
+DITHER_GENERATORS = (DITHER_SEEDSEQ, DITHER_COUNTER)
+#: the counter generator's constants: SplitMix64's increment (2**64 / golden ratio) and
+#: the multipliers of its finalizer (Stafford's "Mix13")
+SPLITMIX_GAMMA = 0x9E3779B97F4A7C15
+SPLITMIX_C1 = 0xBF58476D1CE4E5B9
+SPLITMIX_C2 = 0x94D049BB133111EB
 
 
 # -- parameter checks ---------------------------------------------------------------
@@ -63,19 +88,48 @@ def check_frames(frames: np.ndarray, name: str = "frames") -> np.ndarray:
     return f
 
 
-def check_seq(seq) -> np.ndarray:
-    """Sequence numbers (an int or a 1-D sequence of them) as a (B,) uint64 array; each
-    must be in [0, 2**64), the wire format's range."""
-    a = np.asarray(seq)
-    if np.issubdtype(a.dtype, np.signedinteger):
+def as_int_array(values) -> np.ndarray:
+    """``values`` as an array, lists and tuples as Python objects (numpy would turn a list
+    mixing ints beyond int64 with others into floats)."""
+    return np.array(values, dtype=object) if isinstance(values, (list, tuple)) else np.asarray(values)
+
+
+def check_uint64(values, name: str) -> np.ndarray:
+    """An int or a 1-D sequence of ints as a (B,) uint64 array; each must be in
+    [0, 2**64), the wire format's range."""
+    a = as_int_array(values)
+    if a.ndim > 1:
+        ok = False
+    elif np.issubdtype(a.dtype, np.signedinteger):
         ok = not a.size or a.min() >= 0
     elif a.dtype == object:  # Python ints beyond int64
-        ok = all(isinstance(x, (int, np.integer)) and 0 <= x < 2**64 for x in a.ravel())
+        ok = all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) and 0 <= x < 2**64
+                 for x in a.ravel())
     else:
         ok = np.issubdtype(a.dtype, np.unsignedinteger)
     if not ok:
-        raise ParameterError(f"seq must be integers in [0, 2**64), got {np.ravel(a)[:4].tolist()}")
+        raise ParameterError(f"{name} must be integers in [0, 2**64), one or a 1-D array of them, "
+                             f"got {np.ravel(a)[:4].tolist()} of shape {a.shape}")
     return np.atleast_1d(a.astype(np.uint64))
+
+
+def check_seq(seq) -> np.ndarray:
+    """Sequence numbers (an int or a 1-D sequence of them) as a (B,) uint64 array."""
+    return check_uint64(seq, "seq")
+
+
+def check_generator(generator, batch: int | None = None) -> str | np.ndarray:
+    """A dither generator name, or one per frame ((B,) array of names)."""
+    if isinstance(generator, str):
+        ok = generator in DITHER_GENERATORS
+    else:
+        generator = np.asarray(generator, dtype=object)
+        ok = generator.ndim == 1 and (batch is None or generator.shape == (batch,)) and all(
+            isinstance(g, str) and g in DITHER_GENERATORS for g in set(generator.tolist()))
+    if not ok:
+        raise ParameterError(f"generator={generator!r} must be one of {DITHER_GENERATORS}, "
+                             f"or one per frame ({batch})")
+    return generator
 
 
 def _per_frame(delta: np.ndarray, ndim: int) -> np.ndarray:
@@ -141,26 +195,103 @@ def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
 
 
 # -- the dither -------------------------------------------------------------------------
-def unit_dither(dither_seed, seq, n_measurements: int) -> np.ndarray:
-    """Unit dither ``u`` of frames ``seq`` (int or (B,) ints): (B, M, 2) complex, Re and Im
-    i.i.d. U[-1/2, 1/2). Frame ``s`` draws from ``SeedSequence(dither_seed, spawn_key=(s,))``
-    (real parts of all M x 2 entries first, then imaginary parts). ``dither_seed`` is one
-    seed, or one per frame ((B,) ints, for a batch of several sensors)."""
-    seqs = np.atleast_1d(np.asarray(seq))
-    if seqs.ndim != 1 or not np.issubdtype(seqs.dtype, np.integer) or (seqs.size and seqs.min() < 0):
-        raise ParameterError(f"seq must be an integer >= 0 or a 1-D array of them, got {seq!r}")
-    if isinstance(dither_seed, bool) or not (isinstance(dither_seed, (int, np.integer)) or (
-            isinstance(dither_seed, np.ndarray) and np.issubdtype(dither_seed.dtype, np.integer))):
-        raise ParameterError(f"dither_seed={dither_seed!r} must be an integer >= 0 or one per frame")
-    seeds = np.broadcast_to(np.asarray(dither_seed), seqs.shape) if np.ndim(dither_seed) else \
-        np.full(seqs.shape, int(dither_seed), dtype=object)
-    if seeds.shape != seqs.shape or any(int(x) < 0 for x in seeds.tolist()):
-        raise ParameterError(f"dither_seed must be integers >= 0, one or one per frame ({seqs.size})")
+_U64 = np.uint64
+_GAMMA, _C1, _C2 = _U64(SPLITMIX_GAMMA), _U64(SPLITMIX_C1), _U64(SPLITMIX_C2)
+#: 64-bit words per block of the counter generator (a block stays in the CPU cache)
+_BLOCK = 1 << 15
+_HALVES = _U64(0x8000000080000000)
+
+
+def _mix64(z: np.ndarray, tmp: np.ndarray) -> np.ndarray:
+    """SplitMix64's finalizer on a uint64 array, in place (``tmp``: scratch of its shape);
+    products wrap mod 2**64."""
+    np.right_shift(z, _U64(30), out=tmp)
+    z ^= tmp
+    z *= _C1
+    np.right_shift(z, _U64(27), out=tmp)
+    z ^= tmp
+    z *= _C2
+    np.right_shift(z, _U64(31), out=tmp)
+    z ^= tmp
+    return z
+
+
+@lru_cache(maxsize=16)
+def _counter_offsets(n_words: int) -> np.ndarray:
+    """``(w + 1) G`` mod 2**64 for the words w = 0 .. n_words - 1 of a frame (read-only)."""
+    out = (np.arange(n_words, dtype=np.uint64) + _U64(1)) * _GAMMA
+    out.flags.writeable = False
+    return out
+
+
+def counter_keys(seeds: np.ndarray, seqs: np.ndarray) -> np.ndarray:
+    """Frame keys of the counter generator, ``mix(seed ^ mix(seq + G))``: (B,) uint64."""
+    key = seqs.astype(np.uint64) + _GAMMA
+    tmp = np.empty_like(key)
+    _mix64(key, tmp)
+    key ^= seeds.astype(np.uint64, copy=False)
+    return _mix64(key, tmp)
+
+
+def _counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) -> np.ndarray:
+    """The counter generator's unit dither of frames (seeds[b], seqs[b]): (B, M, 2) complex.
+
+    Words ``x_w = mix(k + (w + 1) G)``, w < 2M, give the 4M 32-bit values
+    ``v_2w = x_w mod 2**32``, ``v_2w+1 = x_w >> 32`` (the words' little-endian halves);
+    ``u_i = v_i 2**-32 - 1/2``: real parts u_0 .. u_2M-1, imaginary parts u_2M .. u_4M-1."""
+    keys = counter_keys(seeds, seqs)
+    n = 2 * n_measurements  # words per frame = entries of the (M, 2) array
+    offsets = _counter_offsets(n)
+    out = np.empty((keys.size, 2 * n), dtype=float)  # Re, Im interleaved: a complex (B, M, 2)
+    rows = max(1, _BLOCK // max(n, 1))
+    z = np.empty((min(rows, keys.size), n), dtype=np.uint64)
+    tmp = np.empty_like(z)
+    for start in range(0, keys.size, rows):  # blocks of frames, not one frame at a time
+        k = keys[start:start + rows]
+        zz, tt, oo = z[:k.size], tmp[:k.size], out[start:start + rows]
+        np.add(k[:, None], offsets, out=zz)
+        _mix64(zz, tt)
+        zz ^= _HALVES  # v_i - 2**31 as int32: (v_i - 2**31) 2**-32 = u_i, exactly
+        v = zz.view("<i4")  # (rows, 4M) 32-bit values
+        np.multiply(v[:, :n], 2.0**-32, out=oo[:, 0::2])
+        np.multiply(v[:, n:], 2.0**-32, out=oo[:, 1::2])
+    return out.view(complex).reshape(keys.size, n_measurements, 2)
+
+
+def _seedseq_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) -> np.ndarray:
+    """The SeedSequence generator's unit dither (one numpy generator per frame)."""
     out = np.empty((seqs.size, n_measurements, 2), dtype=complex)
-    for i, (seed, s) in enumerate(zip(seeds.tolist(), seqs.tolist())):  # one generator per frame
+    for i, (seed, s) in enumerate(zip(seeds.tolist(), seqs.tolist())):
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(s),)))
         u = rng.random((2, n_measurements, 2)) - 0.5
         out[i] = u[0] + 1j * u[1]
+    return out
+
+
+def unit_dither(dither_seed, seq, n_measurements: int, generator=DITHER_COUNTER) -> np.ndarray:
+    """Unit dither ``u`` of frames ``seq`` (int or (B,) ints in [0, 2**64)): (B, M, 2)
+    complex, Re and Im i.i.d. U[-1/2, 1/2), real parts of all M x 2 entries drawn first,
+    then imaginary parts. ``dither_seed``: one seed, or one per frame ((B,) uint64, for a
+    batch of several sensors). ``generator``: :data:`DITHER_COUNTER` (vectorized),
+    :data:`DITHER_SEEDSEQ` (``SeedSequence(dither_seed, spawn_key=(seq,))`` per frame), or
+    one per frame ((B,) array of names). See the module docstring for both."""
+    seqs = check_seq(seq)
+    seeds = check_uint64(dither_seed, "dither_seed")
+    if seeds.size != seqs.size:
+        if seeds.size != 1 or np.ndim(dither_seed):
+            raise ParameterError(f"dither_seed has {seeds.size} values, expected 1 or one per frame ({seqs.size})")
+        seeds = np.broadcast_to(seeds, seqs.shape)
+    if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)) or n_measurements < 0:
+        raise ParameterError(f"n_measurements={n_measurements!r} must be an integer >= 0")
+    generator = check_generator(generator, seqs.size)
+    if isinstance(generator, str):
+        gen = _counter_dither if generator == DITHER_COUNTER else _seedseq_dither
+        return gen(seeds, seqs, int(n_measurements))
+    out = np.empty((seqs.size, int(n_measurements), 2), dtype=complex)
+    for name, gen in ((DITHER_COUNTER, _counter_dither), (DITHER_SEEDSEQ, _seedseq_dither)):
+        mask = generator == name
+        if mask.any():
+            out[mask] = gen(seeds[mask], seqs[mask], int(n_measurements))
     return out
 
 
@@ -169,6 +300,14 @@ def sensor_dither_seed(seed: int, sensor_id: str) -> int:
     sensors with the same frame numbers get independent dithers. Every quantizer of a
     sensor's frames (the quantize node, offline re-processing) uses this rule."""
     return (int(seed) * 2**32 + zlib.crc32(sensor_id.encode())) % 2**64
+
+
+def sensor_dither_seeds(seed: int, sensor_ids: Sequence[str]) -> np.ndarray:
+    """:func:`sensor_dither_seed` of each of ``sensor_ids``: (B,) uint64 (one crc32 per
+    distinct id)."""
+    crc = {s: zlib.crc32(s.encode()) for s in set(sensor_ids)}
+    low = np.fromiter((crc[s] for s in sensor_ids), dtype=np.uint64, count=len(sensor_ids))
+    return low | _U64(int(seed) * 2**32 % 2**64)
 
 
 def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
@@ -256,8 +395,8 @@ class QuantizerConfig:
 @dataclass(frozen=True)
 class QuantizedFrames:
     """Quantizer output for a batch: codes (B, M, 2, 2), delta (B,), and what a decoder
-    needs to regenerate the dither (alpha, dither_seed, seq (B,)). ``alpha`` and
-    ``dither_seed`` are one value for the batch or one per frame (B,)."""
+    needs to regenerate the dither (alpha, dither_seed, seq (B,), generator). ``alpha``,
+    ``dither_seed`` and ``generator`` are one value for the batch or one per frame (B,)."""
 
     codes: np.ndarray
     delta: np.ndarray
@@ -265,6 +404,7 @@ class QuantizedFrames:
     alpha: float | np.ndarray
     dither_seed: int | np.ndarray
     seq: np.ndarray
+    generator: str | np.ndarray = DITHER_COUNTER
 
     def values(self) -> np.ndarray:
         """Z, the quantized complex values, (B, M, 2)."""
@@ -280,30 +420,41 @@ class QuantizedFrames:
         None when the frames are not all dithered (there is no dither to use)."""
         if not self.dithered:
             return None
-        u = unit_dither(self.dither_seed, self.seq, self.codes.shape[1])
+        u = unit_dither(self.dither_seed, self.seq, self.codes.shape[1], self.generator)
         alpha = np.broadcast_to(np.asarray(self.alpha, dtype=float), self.delta.shape)
         return (alpha * self.delta)[:, None, None] * u
 
 
-def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed: int | None = None) -> QuantizedFrames:
+def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed=None,
+                    generator=DITHER_COUNTER) -> QuantizedFrames:
     """Dither and quantize frames (B, M, 2) with sequence numbers ``seq`` ((B,) or int).
 
     delta and alpha are rounded to float32 first, as the wire format carries them, so a
     decoder regenerates exactly the dither used here. ``dither_seed`` overrides the
-    config's (a node derives one per sensor)."""
+    config's: one int, or one per frame ((B,) uint64: a batch of several sensors, see
+    :func:`sensor_dither_seeds`). ``generator``: the dither generator (see
+    :func:`unit_dither`)."""
     f = check_frames(frames)
     seqs = check_seq(seq)
     if seqs.shape != (f.shape[0],):
         raise ParameterError(f"seq has shape {seqs.shape}, expected ({f.shape[0]},) for {f.shape[0]} frames")
+    generator = check_generator(generator, f.shape[0])
+    seed = config.dither_seed if dither_seed is None else dither_seed
+    if np.ndim(seed):
+        seed = check_uint64(seed, "dither_seed")
+        if seed.shape != seqs.shape:
+            raise ParameterError(f"dither_seed has shape {seed.shape}, expected () or ({f.shape[0]},)")
+    else:
+        seed = int(check_uint64(seed, "dither_seed")[0])
     if config.delta == "auto":
         delta = auto_delta(f, config.delta_margin)
     else:
         delta = np.full(f.shape[0], float(config.delta))
     delta = np.maximum(delta.astype(np.float32), np.finfo(np.float32).tiny).astype(float)
     alpha = float(np.float32(config.alpha))
-    seed = config.dither_seed if dither_seed is None else dither_seed
     dither = None
     if alpha > 0:
-        dither = alpha * delta[:, None, None] * unit_dither(seed, seqs, f.shape[1])
+        dither = unit_dither(seed, seqs, f.shape[1], generator)
+        dither *= (alpha * delta)[:, None, None]
     codes = quantize(f, delta, config.bits, dither)
-    return QuantizedFrames(codes, delta, config.bits, alpha, seed, seqs)
+    return QuantizedFrames(codes, delta, config.bits, alpha, seed, seqs, generator)

@@ -4,6 +4,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from pipeline.errors import ParameterError, PipelineError
 from pipeline.quantize import (
+    DITHER_COUNTER,
+    DITHER_SEEDSEQ,
     QuantizerConfig,
     auto_delta,
     dequantize,
@@ -12,6 +14,8 @@ from pipeline.quantize import (
     quantize,
     quantize_frames,
     quantize_real,
+    sensor_dither_seed,
+    sensor_dither_seeds,
     unit_dither,
     unpack_codes,
 )
@@ -64,14 +68,138 @@ def test_auto_delta_is_smallest_one_bit_step():
 
 
 def test_dither_reproducible_from_seed_and_sequence():
-    a = unit_dither(7, [4, 5, 6], 512)
-    assert a.shape == (3, 512, 2)
-    assert_array_equal(unit_dither(7, 5, 512)[0], a[1])
-    assert not np.array_equal(unit_dither(8, 5, 512)[0], a[1])
-    assert np.abs(a.real).max() <= 0.5 and np.abs(a.imag).max() <= 0.5
-    # explicitly: SeedSequence(seed, spawn_key=(seq,)), real parts then imaginary parts
+    for gen in (DITHER_COUNTER, DITHER_SEEDSEQ):
+        a = unit_dither(7, [4, 5, 6], 512, gen)
+        assert a.shape == (3, 512, 2)
+        assert_array_equal(unit_dither(7, 5, 512, gen)[0], a[1])
+        assert not np.array_equal(unit_dither(8, 5, 512, gen)[0], a[1])
+        assert np.abs(a.real).max() <= 0.5 and np.abs(a.imag).max() <= 0.5
+    # the seedseq generator, bit for bit as before: SeedSequence(seed, spawn_key=(seq,)), real parts then imaginary
     u = np.random.default_rng(np.random.SeedSequence(7, spawn_key=(5,))).random((2, 512, 2)) - 0.5
-    assert_array_equal(a[1], u[0] + 1j * u[1])
+    assert_array_equal(unit_dither(7, [4, 5, 6], 512, DITHER_SEEDSEQ)[1], u[0] + 1j * u[1])
+    assert_array_equal(unit_dither(7, 5, 512), unit_dither(7, 5, 512, DITHER_COUNTER))  # the default
+
+
+M64 = 2**64 - 1
+G, C1, C2 = 0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB
+
+
+def counter_reference(seed: int, seq: int, m: int) -> np.ndarray:
+    """docs/wire-formats.md's counter generator in plain Python integers: (M, 2) complex."""
+    def mix(z):
+        z ^= z >> 30
+        z = z * C1 & M64
+        z ^= z >> 27
+        z = z * C2 & M64
+        return z ^ (z >> 31)
+
+    k = mix(seed ^ mix((seq + G) & M64))
+    v = []
+    for w in range(2 * m):
+        x = mix((k + (w + 1) * G) & M64)
+        v += [x & 0xFFFFFFFF, x >> 32]  # low half, then high half
+    u = np.array(v) * 2.0**-32 - 0.5
+    return (u[:2 * m] + 1j * u[2 * m:]).reshape(m, 2)
+
+
+@pytest.mark.parametrize("seed, seq", [(0, 0), (7, 5), (655087151, 12345), (M64, M64), (2**63, 2**64 - 2)])
+def test_counter_generator_is_the_documented_algorithm(seed, seq):
+    assert_array_equal(unit_dither(seed, seq, 5)[0], counter_reference(seed, seq, 5))
+    # the same in a batch of several seeds and seqs (uint64 arrays)
+    batch = unit_dither(np.array([1, seed], np.uint64), np.array([2, seq], np.uint64), 300)
+    assert_array_equal(batch[1], counter_reference(seed, seq, 300))
+    assert_array_equal(batch[0], counter_reference(1, 2, 300))
+
+
+def test_counter_generator_statistics():
+    """Over many frames: uniform on [-1/2, 1/2) (mean 0, variance 1/12, flat histogram), Re
+    and Im uncorrelated, and no correlation between frames of neighbouring seqs, of
+    neighbouring seeds (sensors), or between values next to each other in a frame."""
+    f, m = 2000, 64
+    seqs = np.arange(f, dtype=np.uint64) + np.uint64(2**64 - 1000)  # crossing the wrap of 2**64
+    u = unit_dither(np.uint64(2**40 + 17), seqs, m)  # (F, M, 2)
+    other = unit_dither(np.uint64(2**40 + 18), seqs, m)  # the next sensor's seed
+    x = np.stack([u.real, u.imag], axis=-1).reshape(f, -1)  # (F, 4M)
+    y = np.stack([other.real, other.imag], axis=-1).reshape(f, -1)
+    n = x.size
+    assert abs(x.mean()) < 5 * np.sqrt(1 / 12 / n)
+    assert abs(x.var() - 1 / 12) < 1e-3
+    assert x.min() >= -0.5 and x.max() < 0.5
+    counts = np.histogram(x, bins=32, range=(-0.5, 0.5))[0]
+    chi2 = ((counts - n / 32) ** 2 / (n / 32)).sum()
+    assert chi2 < 80  # 31 degrees of freedom: p ~ 1e-6
+
+    def corr(a, b):
+        return np.corrcoef(a.ravel(), b.ravel())[0, 1]
+
+    bound = 5 / np.sqrt(n)
+    assert abs(corr(x[:-1], x[1:])) < bound  # frame s against frame s + 1
+    assert abs(corr(x, y)) < bound  # seed against seed + 1, same seqs
+    assert abs(corr(x[:, :-1], x[:, 1:])) < bound  # neighbouring values in a frame
+    assert abs(corr(u.real, u.imag)) < bound
+    # frames are distinct streams, and no frame repeats another's values shifted by one word
+    assert len({r.tobytes() for r in x}) == f
+    assert not np.any(np.all(x[1:, :-2] == x[:-1, 2:], axis=1))
+
+
+def test_per_frame_seeds_in_one_batch_equal_one_call_per_sensor(cfg):
+    ids = ["ch0", "ch1", "kmd2-0", "ch0", "kmd2-0"]
+    seeds = sensor_dither_seeds(3, ids)
+    assert seeds.dtype == np.uint64 and seeds.tolist() == [sensor_dither_seed(3, s) for s in ids]
+    assert sensor_dither_seeds(2**40, ["a"])[0] == sensor_dither_seed(2**40, "a")  # seed * 2**32 wraps mod 2**64
+    seqs = np.array([0, 0, 5, 1, 2**64 - 1], np.uint64)
+    g = simulate_frames([[30.0]] * 5, [[10.0]] * 5, [[1.0]] * 5, cfg)
+    for gen in (DITHER_COUNTER, DITHER_SEEDSEQ):
+        batch = unit_dither(seeds, seqs, 512, gen)
+        q = quantize_frames(g, QuantizerConfig(alpha=0.7), seqs, dither_seed=seeds, generator=gen)
+        for i, (seed, seq) in enumerate(zip(seeds.tolist(), seqs.tolist())):
+            assert_array_equal(batch[i], unit_dither(seed, seq, 512, gen)[0])
+            one = quantize_frames(g[i:i + 1], QuantizerConfig(alpha=0.7), [seq], dither_seed=seed, generator=gen)
+            assert_array_equal(q.codes[i], one.codes[0])
+        assert_array_equal(quantize(g, q.delta, 1, q.dither()), q.codes)
+
+
+def test_seeds_and_seqs_span_uint64_and_nothing_beyond():
+    top = 2**64 - 1
+    for gen in (DITHER_COUNTER, DITHER_SEEDSEQ):
+        a = unit_dither(top, [top, 0], 8, gen)
+        assert a.shape == (2, 8, 2) and not np.array_equal(a[0], a[1])
+        assert_array_equal(unit_dither(np.array([top], np.uint64), np.array([top], np.uint64), 8, gen), a[:1])
+    for bad in (-1, 2**64, [1, -2], 1.5, [[1]]):
+        with pytest.raises(ParameterError, match="seq must be integers in \\[0, 2\\*\\*64\\)"):
+            unit_dither(0, bad, 8)
+        with pytest.raises(ParameterError, match="dither_seed must be integers"):
+            unit_dither(bad, 0, 8)
+    with pytest.raises(ParameterError, match="dither_seed has 2 values, expected 1 or one per frame \\(3\\)"):
+        unit_dither([1, 2], [1, 2, 3], 8)
+    with pytest.raises(ParameterError, match="generator='philox'"):
+        unit_dither(0, 0, 8, "philox")
+
+
+def test_no_numpy_warnings_on_wrapping_arithmetic():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        unit_dither(2**64 - 1, 2**64 - 1, 4)
+        unit_dither(np.array([2**64 - 1], np.uint64), np.array([2**64 - 1], np.uint64), 4)
+        sensor_dither_seeds(2**64 - 1, ["a", "b"])
+
+
+def test_a_batch_may_mix_generators(cfg):
+    """Frames of recordings of either version in one batch: each regenerates its own dither."""
+    g = simulate_frames([[30.0]] * 4, [[10.0]] * 4, [[1.0]] * 4, cfg)
+    gens = np.array([DITHER_SEEDSEQ, DITHER_COUNTER, DITHER_COUNTER, DITHER_SEEDSEQ])
+    seqs = np.array([3, 3, 4, 4], np.uint64)
+    mixed = unit_dither(9, seqs, 512, gens)
+    for i in range(4):
+        assert_array_equal(mixed[i], unit_dither(9, seqs[i], 512, gens[i])[0])
+    q = quantize_frames(g, QuantizerConfig(alpha=1.0, dither_seed=9), seqs, generator=gens)
+    assert_array_equal(quantize(g, q.delta, 1, q.dither()), q.codes)
+    for i in range(4):
+        one = quantize_frames(g[i:i + 1], QuantizerConfig(alpha=1.0, dither_seed=9), seqs[i:i + 1], generator=gens[i])
+        assert_array_equal(one.codes[0], q.codes[i])
+        assert one.generator == gens[i]
 
 
 def test_quantize_frames_regenerates_its_dither(cfg):
@@ -127,3 +255,15 @@ def test_bad_parameters_raise_clear_value_errors(call, fragment):
     with pytest.raises(ParameterError, match=fragment) as info:
         call(f)
     assert isinstance(info.value, ValueError) and isinstance(info.value, PipelineError)
+
+
+def test_counter_generator_test_vectors_of_the_docs():
+    """The test vectors of docs/wire-formats.md (version 2)."""
+    from pipeline.quantize import counter_keys
+
+    k = counter_keys(np.array([0, 655087151], np.uint64), np.array([0, 41], np.uint64))
+    assert k.tolist() == [0x48218226FF3CD4BF, 0x4B8C5DCC28E8F094]
+    assert unit_dither(0, 0, 1)[0, 0].tolist() == [-0.3977657603099942 - 0.2190026317257434j,
+                                                -0.16194754582829773 - 0.2308697288390249j]
+    assert unit_dither(655087151, 41, 1)[0, 0].tolist() == [-0.3218443572986871 - 0.2290043553803116j,
+                                                         0.06143485032953322 + 0.04329792223870754j]

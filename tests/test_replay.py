@@ -18,7 +18,9 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
 from pipeline.bus import BusConfig
-from pipeline.wire import RawFrameMsg, TargetsMsg, encode_raw
+from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize, quantize_frames,
+                               sensor_dither_seed)
+from pipeline.wire import RawFrameMsg, TargetsMsg, decode_quantized, decode_quantized_batch, decode_raw, encode_raw
 from replay.errors import NoQradarChannelsError, NotMcapError, ReplayError
 from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
@@ -240,6 +242,39 @@ def test_committed_recording_and_foxglove_channel():
     pc = json.loads(by_topic["radar/kmd2-0/pointcloud"][0].data)
     assert [fl["name"] for fl in pc["fields"]] == ["x", "y", "amplitude"] and pc["point_stride"] == 12
     assert len(base64.b64decode(pc["data"])) == 12 * 2  # two targets, three float32 each
+
+
+def test_old_recording_decodes_with_its_seedseq_dither():
+    """chamber.mcap predates the counter generator: its quantized frames are format version
+    1, decode as generator "seedseq", and re-quantizing its raw frames with that generator
+    and the recording's quantizer (metadata) and per-sensor seed reproduces every code; the
+    frames' own dither regenerates them too, in one batch and frame by frame."""
+    f = McapFile(CHAMBER)
+    payloads = per_topic((ch.topic, m.data) for ch, m in f.messages())
+    quant = payloads["radar/kmd2-0/quantized"]
+    assert {p[4] for p in quant} == {1}
+    groups, errors = decode_quantized_batch(quant, ["radar/kmd2-0/quantized"] * len(quant))
+    assert not errors and len(groups) == 1
+    q = groups[0]
+    assert set(q.frames.generator.tolist()) == {DITHER_SEEDSEQ}
+    raws = {m.seq: m for m in map(decode_raw, payloads["radar/kmd2-0/raw"])}
+    seqs = q.headers.seq
+    assert len(seqs) == 106 and set(seqs.tolist()) == set(raws)
+    frames = np.stack([raws[s].data for s in seqs.tolist()]).astype(complex)
+    md = f.metadata_dict()["qradar.quantizer"]
+    cfg = QuantizerConfig(bits=int(md["bits"]), alpha=float(md["alpha"]))
+    seed = sensor_dither_seed(int(md["dither_seed"]), "kmd2-0")
+    assert set(q.frames.dither_seed.tolist()) == {seed}
+    again = quantize_frames(frames, cfg, seqs, dither_seed=seed, generator=DITHER_SEEDSEQ)
+    np.testing.assert_array_equal(again.codes, q.frames.codes)
+    np.testing.assert_array_equal(again.delta, q.frames.delta)
+    np.testing.assert_array_equal(quantize(frames, q.frames.delta, q.frames.bits, q.frames.dither()), q.frames.codes)
+    one = decode_quantized(quant[0])
+    assert one.generator == DITHER_SEEDSEQ
+    np.testing.assert_array_equal(quantize(frames[:1], one.delta, 1, one.dither()[None]), one.codes[None])
+    # the counter generator draws another dither: new output is not the recording's
+    new = quantize_frames(frames, cfg, seqs, dither_seed=seed)
+    assert new.generator == DITHER_COUNTER and np.mean(new.codes != q.frames.codes) > 0.1
 
 
 def test_reprocess_is_deterministic_and_dither_helps_cml_on_the_off_grid_recording():
