@@ -148,6 +148,12 @@ def check_sensor_pattern(pattern: str) -> str:
     return pattern
 
 
+def pattern_chunk(pattern: str) -> str:
+    """The zenoh key chunk of a sensor pattern: ``*`` stays, a ``*`` inside a chunk
+    becomes zenoh's sub-chunk wildcard ``$*`` (``b1*`` -> ``b1$*``)."""
+    return pattern if pattern == "*" else check_sensor_pattern(pattern).replace("*", "$*")
+
+
 @dataclass(frozen=True)
 class Shard:
     """Shard ``index`` of ``count``: the sensors whose stable hash ``crc32(sensor id) mod

@@ -37,7 +37,7 @@ import zenoh
 
 from radar_driver.errors import RadarError
 
-from .bus import BusConfig, Shard, check_sensor_pattern
+from .bus import BusConfig, Shard, check_sensor_pattern, pattern_chunk
 from .errors import ParameterError, PipelineError, WireError
 from .fairqueue import FairQueue
 from .histogram import LogHistogram
@@ -413,7 +413,7 @@ class ProcessingNode(Node):
 
     def subscription(self) -> str:
         """The key expression this node listens to."""
-        return self.bus.key(self.sensors, self.in_topic)
+        return self.bus.key(pattern_chunk(self.sensors), self.in_topic)
 
     def _start(self) -> None:
         self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
