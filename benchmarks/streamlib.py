@@ -378,6 +378,7 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
             if p.name == "source":
                 p.stop(5.0 + spec.seconds)
     row.update(collect(spec, procs, window, reasons))
+    add_bare_ratio(row)
     row["logs"] = str(logdir)
     return row
 
@@ -467,6 +468,13 @@ def collect(spec: StepSpec, procs: list[Proc], window: dict | None, reasons: lis
     return {**out, "ok": not reasons, "reasons": reasons}
 
 
+def add_bare_ratio(row: dict) -> None:
+    """The chain's CPU (every process but the sink) over bare zenoh's for the same messages."""
+    bare = row.get("bare") or {}
+    if row.get("cpu_total_pct") and bare.get("cpu_total_pct"):
+        row["cpu_vs_bare"] = round(row["cpu_total_pct"] / bare["cpu_total_pct"], 1)
+
+
 # -- the bare-zenoh baseline ---------------------------------------------------------------
 def bare_sizes(spec: StepSpec) -> list[int]:
     """The sizes of the messages one frame makes on the wire in this case."""
@@ -515,8 +523,10 @@ def run_bare(spec: StepSpec, topo: Topology, logdir: Path) -> dict:
     r = sub.totals or {}
     cpu = {n: round(100 * (last[n] - c0[n]) / span, 1) if c0[n] is not None and last[n] is not None else None
            for n in c0}
+    p = pub.totals or {}
     return {"msgs_per_s": round(spec.sensors * RATE_HZ * len(sizes.split(",")), 1), "sizes": sizes,
-            "sent": (pub.totals or {}).get("sent"), "received": r.get("received"), "p99_ms": r.get("p99_ms"),
+            "sent": p.get("sent"), "achieved_msgs_per_s": round(p["sent"] / p["elapsed_s"], 1) if p.get("elapsed_s")
+            else None, "received": r.get("received"), "p99_ms": r.get("p99_ms"),
             "cpu_pct": cpu, "cpu_total_pct": round(sum(v for v in cpu.values() if v is not None), 1)}
 
 
@@ -549,8 +559,9 @@ def main_bare_pub(args) -> None:
                 body[:8] = stamp
                 pubs[i][j].put(bytes(body))
                 sent += 1
+    elapsed = time.monotonic() - t0
     session.close()
-    print(json.dumps({"sent": sent}), flush=True)
+    print(json.dumps({"sent": sent, "elapsed_s": round(elapsed, 3)}), flush=True)
 
 
 def main_bare_sub(args) -> None:
@@ -664,7 +675,7 @@ def cpu_cell(row: dict) -> str:
 
 
 STEP_COLUMNS = ("case", "sensors", "result", "sent / received", "lost", "p50 / p99 / max (ms)", "late ticks",
-                "CPU % of a core", "load avg", "bare zenoh: p99 ms, CPU %")
+                "CPU % of a core", "load avg", "bare zenoh: p99 ms, CPU % (the chain's CPU × bare's)")
 
 
 def step_cells(r: dict) -> list[str]:
@@ -672,8 +683,8 @@ def step_cells(r: dict) -> list[str]:
     if r.get("flags"):
         result += " ⚑"
     bare = r.get("bare")
-    bare_txt = f"{fmt(bare.get('p99_ms'), 2)}, {fmt(bare.get('cpu_total_pct'), 0)}" if bare and "error" not in bare \
-        else "–"
+    bare_txt = (f"{fmt(bare.get('p99_ms'), 2)}, {fmt(bare.get('cpu_total_pct'), 0)} (chain × "
+                f"{fmt(r.get('cpu_vs_bare'))})") if bare and "error" not in bare else "–"
     return [r.get("label", ""), str(r["sensors"]), result, f"{fmt(r.get('sent'))} / {fmt(r.get('received'))}",
             f"{fmt(r.get('lost'))}" + (f" (+{sum(r['node_losses'].values())} counted)" if r.get("node_losses")
                                        else ""),
@@ -696,7 +707,8 @@ def step_line(r: dict) -> str:
     return (f"{r['label']:<24} {r['sensors']:>4} sensors: {res}  sent {r.get('sent')} received {r.get('received')} "
             f"lost {r.get('lost')}  p50/p99/max {r.get('p50_ms')}/{r.get('p99_ms')}/{r.get('max_ms')} ms  "
             f"late ticks {r.get('late_ticks')}  CPU {cpu_cell(r)}  load {r['loadavg_start'][0]}"
-            + (f"  bare p99 {bare.get('p99_ms')} ms CPU {bare.get('cpu_total_pct')} %" if bare else "")
+            + (f"  bare p99 {bare.get('p99_ms')} ms CPU {bare.get('cpu_total_pct')} % (chain x{r.get('cpu_vs_bare')})"
+               if bare else "")
             + ("" if r["ok"] else f"  [{'; '.join(r['reasons'])}]")
             + (f"  flags: {'; '.join(r['flags'])}" if r.get("flags") else ""))
 
