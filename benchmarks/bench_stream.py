@@ -1,136 +1,174 @@
 #!/usr/bin/env python3
-"""Streaming throughput: source, quantize and localize nodes in three processes over
-loopback (zenoh TCP on 127.0.0.1), for 1, 10 and 100 simulated sensors.
+"""The streaming chain at 20 frames/s per sensor: the largest sensor count that loses no
+frame with latency p99 <= 20 ms, on this host, zenoh TCP on 127.0.0.1.
 
-For each sensor count the offered load (frames/s per sensor) is raised step by step;
-a step passes when every frame sent comes out as targets, no node counted a drop and
-the latency p99 stays under MAX_P99_MS (a growing backlog is not keeping up).
-The achieved aggregate rate is frames sent / the source's elapsed time (the source
-process may fall behind its schedule; its late ticks are reported). The table gives the
-highest passing step, its latency (sensor timestamp -> targets published) p50/p99, and
-the bit-rates on the wire at that rate for raw and 1-bit quantized frames.
+Cases: ``central`` (``qradar source`` raw -> ``quantize`` -> ``localize``) and ``edge``
+(``qradar source --quantized`` -> ``localize``), sensors sending in one burst per tick or
+spread over the period (``--send``), decoders ``--algo pbp qiht cml``; ``--localizers N``
+(``--shard i/N``) and ``--quantizers N``. Every step starts fresh processes (the hub, the
+nodes, a sink process on radar/*/targets, the source), runs ``--warmup`` s not counted then
+``--seconds`` measured, and stops them all. A step passes when every frame past the
+warm-up has its targets exactly once, every node's totals count no drop, error or missing
+frame, the latency p99 (sensor timestamp -> targets published) is <= 20 ms and the
+source kept its pace. Per step: p50/p99/max latency, frames sent/received, late ticks of
+the source, CPU per process over the measured window (% of one core), the load average at
+the start; with ``--baseline``, the same messages (count per second, sizes) through a bare
+zenoh publisher -> subscriber pair of processes just before the step.
 
-    .venv/bin/python benchmarks/bench_stream.py [--sensors 1 10 100] [--seconds 5]
+Steps: ``--sensors`` in order, stopping at the first failure; ``--bisect`` then halves
+the gap between the last pass and the first failure down to ``--resolution`` sensors.
+
+    .venv/bin/python benchmarks/bench_stream.py                       # the full sweep (~1-2 h)
+    .venv/bin/python benchmarks/bench_stream.py --case edge --algo pbp --sensors 300 400 500 --bisect
+    .venv/bin/python benchmarks/bench_stream.py --quick                # 5 sensors, 3 s, pbp: < 1 min
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import socket
-import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.wire import decode_health, decode_targets  # noqa: E402
-
-RATES_PER_SENSOR = {1: [20, 100, 200, 400, 800, 1600, 3200], 10: [20, 40, 80, 160, 320, 640],
-                    100: [5, 10, 20, 40, 80]}
-MAX_P99_MS = 200.0  # beyond this the pipeline is queueing, not keeping up
+import streamlib as sl  # noqa: E402
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def sweep(base: sl.StepSpec, counts: list[int], topo_factory, bisect: bool, resolution: int,
+          progress: bool, on_row) -> list[dict]:
+    """Steps of ``base`` at ``counts`` until the first failure (then bisect, if asked)."""
+    rows: list[dict] = []
+
+    def step(n: int) -> dict:
+        spec = sl.StepSpec(**{**base.__dict__, "sensors": n})
+        r = {"label": spec.label(), **sl.run_step(spec, topo_factory(), progress=progress)}
+        rows.append(r)
+        on_row(r)
+        return r
+
+    best, fail = 0, None
+    for n in counts:
+        r = step(n)
+        if r.get("skipped"):
+            return rows
+        if not r["ok"]:
+            fail = n
+            break
+        best = n
+    if bisect and fail is not None:
+        lo, hi = best, fail
+        for _ in range(12):  # bounded: 12 halvings
+            if hi - lo <= resolution:
+                break
+            mid = (lo + hi) // 2
+            if step(mid)["ok"]:
+                lo = mid
+            else:
+                hi = mid
+    return rows
 
 
-def cli(*args) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+def summary(rows: list[dict]) -> list[dict]:
+    """Per case/send/algo: the largest passing step and the first failing one."""
+    out = {}
+    for r in rows:
+        s = out.setdefault(r["label"], {"label": r["label"], "best": None, "first_fail": None})
+        if r.get("skipped"):
+            s["skipped"] = "; ".join(r["reasons"])
+        elif r["ok"] and (s["best"] is None or r["sensors"] > s["best"]["sensors"]):
+            s["best"] = r
+        elif not r["ok"] and (s["first_fail"] is None or r["sensors"] < s["first_fail"]["sensors"]):
+            s["first_fail"] = r
+    return list(out.values())
 
 
-class Sink:
-    def __init__(self, session):
-        self.lock = threading.Lock()
-        self.reset()
-        self.sub = session.declare_subscriber("radar/**", self.on)
-
-    def reset(self):
-        with getattr(self, "lock", threading.Lock()):
-            self.targets, self.latency, self.drops, self.bytes = 0, [], {}, {"raw": [], "quantized": []}
-
-    def on(self, sample):
-        key = str(sample.key_expr)
-        topic = key.rsplit("/", 1)[-1]
-        payload = sample.payload.to_bytes()
-        with self.lock:
-            if topic == "targets":
-                m = decode_targets(payload)
-                self.targets += 1
-                self.latency.append((m.published_ns - m.timestamp_ns) / 1e6)
-            elif topic == "health":
-                h = decode_health(payload)
-                self.drops[(h.node, h.sensor_id)] = h.drops
-            elif topic in self.bytes and len(self.bytes[topic]) < 10:
-                self.bytes[topic].append(len(payload))
-
-
-def trial(ep: str, sink: Sink, sensors: int, rate: float, seconds: float) -> dict:
-    frames = max(1, int(rate * seconds))
-    sink.reset()
-    src = cli("source", "--connect", ep, "--sensors", str(sensors), "--rate", str(rate), "--frames", str(frames),
-              "--scene", "chamber", "--id-prefix", f"b{sensors}x{int(rate)}s")
-    out, _ = src.communicate(timeout=seconds * 4 + 60)
-    report = json.loads(out.strip().splitlines()[-1])
-    expected = sensors * frames
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and sink.targets < expected:
-        time.sleep(0.05)
-    time.sleep(1.2)  # one more health period
-    with sink.lock:
-        lat = np.array(sink.latency)
-        drops = sum(v for (node, sid), v in sink.drops.items() if sid.startswith(f"b{sensors}x{int(rate)}s"))
-        got = sink.targets
-        sizes = {k: (v[0] if v else None) for k, v in sink.bytes.items()}
-    p99 = float(np.percentile(lat, 99)) if lat.size else float("inf")
-    ok = got == expected and drops == 0 and p99 <= MAX_P99_MS
-    return {"sensors": sensors, "rate_per_sensor": rate, "offered_fps": sensors * rate,
-            "aggregate_fps": round(expected / max(report["elapsed_s"], 1e-9), 1), "sent": expected,
-            "targets": got, "drops": drops, "late_ticks": report["late_ticks"], "ok": ok,
-            "latency_p50_ms": round(float(np.median(lat)), 2) if lat.size else None,
-            "latency_p99_ms": round(float(np.percentile(lat, 99)), 2) if lat.size else None,
-            "bytes_raw": sizes["raw"], "bytes_quantized": sizes["quantized"]}
+def summary_markdown(summ: list[dict]) -> str:
+    headers = ("case / send / decoder", "largest passing sensor count", "frames/s", "p50 / p99 (ms)",
+               "CPU % of a core (at that count)", "next step: why it failed")
+    rows = []
+    for s in summ:
+        b, f = s["best"], s["first_fail"]
+        if s.get("skipped"):
+            rows.append([s["label"], "skipped", "–", "–", "–", s["skipped"]])
+            continue
+        fail = f"{f['sensors']}: {'; '.join(f['reasons'])}" if f else "none failed"
+        if b is None:
+            rows.append([s["label"], "none", "–", "–", "–", fail])
+        else:
+            rows.append([s["label"], str(b["sensors"]), sl.fmt(b["offered_fps"], 0),
+                         f"{sl.fmt(b['p50_ms'], 2)} / {sl.fmt(b['p99_ms'], 2)}", sl.cpu_cell(b), fail])
+    return sl.markdown(headers, rows)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sensors", type=int, nargs="+", default=[1, 10, 100])
-    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--case", nargs="+", choices=["central", "edge"], default=["central", "edge"])
+    ap.add_argument("--send", nargs="+", choices=["burst", "spread"], default=["burst", "spread"])
+    ap.add_argument("--algo", nargs="+", choices=["pbp", "qiht", "cml"], default=["pbp", "qiht", "cml"])
+    ap.add_argument("--sensors", type=int, nargs="+", default=[50, 100, 200, 300, 400, 500])
+    ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds per step (default 60)")
+    ap.add_argument("--warmup", type=float, default=5.0, help="seconds of traffic not counted (default 5)")
+    ap.add_argument("--localizers", type=int, default=1, help="localize processes, each --shard i/N")
+    ap.add_argument("--quantizers", type=int, default=1, help="quantize processes (central), each --shard i/N")
+    ap.add_argument("--hub", choices=["node", "router"], default="node",
+                    help="node: the first quantize (central) or localize (edge) listens and the others connect "
+                    "to it; router: a `qradar router` listens and every node is its client")
+    ap.add_argument("--alpha", type=float, default=1.0, help="dither scale of the quantizer (default 1)")
+    ap.add_argument("--bisect", action="store_true", help="after the first failure, bisect down to --resolution")
+    ap.add_argument("--resolution", type=int, default=10)
+    ap.add_argument("--baseline", action="store_true", help="bare zenoh with the step's messages before each step")
+    ap.add_argument("--baseline-seconds", type=float, default=5.0)
+    ap.add_argument("--source-args", default=None, help="more options for `qradar source` (one string)")
+    ap.add_argument("--quantize-args", default=None)
+    ap.add_argument("--localize-args", default=None)
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run: 5 sensors, 3 s after 2 s of warm-up, pbp, burst (each unless given)")
+    ap.add_argument("--json", type=Path, default=None, help="write every step and the summary here")
     args = ap.parse_args()
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    nodes = [cli("quantize", "--listen", ep, "--queue", "4096"), cli("localize", "--connect", ep, "--queue", "4096")]
-    time.sleep(2.0)
-    session = BusConfig(mode="client", connect=(ep,)).open()  # a client: the listening quantizer routes targets to it
-    sink = Sink(session)
-    rows, best = [], {}
-    try:
-        for n in args.sensors:
-            for rate in RATES_PER_SENSOR.get(n, [20]):
-                r = trial(ep, sink, n, rate, args.seconds)
-                rows.append(r)
-                print(json.dumps(r), file=sys.stderr, flush=True)
-                if not r["ok"]:
-                    break
-                best[n] = r
-    finally:
-        session.close()
-        for p in nodes:
-            p.terminate()
-            p.wait(20)
-    table = []
-    for r in best.values():
-        table.append({**r, "raw_mbit_s": round(r["aggregate_fps"] * r["bytes_raw"] * 8 / 1e6, 3),
-                      "quantized_mbit_s": round(r["aggregate_fps"] * r["bytes_quantized"] * 8 / 1e6, 3)})
-    print(json.dumps({"best": table, "trials": rows}, indent=1))
+    if args.quick:
+        given = set(a.split("=")[0] for a in sys.argv[1:])
+        if "--sensors" not in given:
+            args.sensors = [5]
+        if "--seconds" not in given:
+            args.seconds = 3.0
+        if "--warmup" not in given:
+            args.warmup = 2.0
+        if "--algo" not in given:
+            args.algo = ["pbp"]
+        if "--send" not in given:
+            args.send = ["burst"]
+    progress = sys.stderr.isatty()
+    rows: list[dict] = []
+    for case in args.case:
+        for send in args.send:
+            for algo in args.algo:
+                base = sl.StepSpec(case=case, send=send, algo=algo, sensors=0, seconds=args.seconds,
+                                   warmup_s=args.warmup, localizers=args.localizers, quantizers=args.quantizers,
+                                   alpha=args.alpha, hub=args.hub,
+                                   baseline_s=args.baseline_seconds if args.baseline else 0.0,
+                                   source_args=sl.split_args(args.source_args),
+                                   quantize_args=sl.split_args(args.quantize_args),
+                                   localize_args=sl.split_args(args.localize_args))
+                rows += sweep(base, args.sensors, sl.Loopback, args.bisect, args.resolution, progress,
+                              lambda r: print(sl.step_line(r), file=sys.stderr, flush=True))
+    summ = summary(rows)
+    print(f"\n{len(rows)} steps, {args.seconds:g} s measured each after {args.warmup:g} s of warm-up, "
+          f"20 frames/s per sensor; pass = 0 frames lost and p99 <= {sl.MAX_P99_MS:g} ms\n")
+    print(summary_markdown(summ))
+    print()
+    print(sl.markdown(sl.STEP_COLUMNS, [sl.step_cells(r) for r in rows]))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"summary": [{"label": s["label"], "best": (s["best"] or {}).get("sensors"),
+                                                      "first_fail": (s["first_fail"] or {}).get("sensors"),
+                                                      **({"skipped": s["skipped"]} if "skipped" in s else {})}
+                                                     for s in summ],
+                                         "steps": rows}, indent=1))
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        sys.exit("interrupted: every process stopped" + (" and every namespace deleted" if "multihost" in __file__
+                                                         else ""))
