@@ -129,14 +129,11 @@ def run(args) -> dict:
             spec = sl.StepSpec(case=args.case, send=args.send, algo=args.algo, sensors=n, seconds=args.seconds,
                                warmup_s=args.warmup, localizers=n_loc, alpha=args.alpha, hub="router")
             label = f"{args.case}/{args.send}/{args.algo} {n_loc} localizer{'s' if n_loc > 1 else ''}"
-            if sl.missing_options(spec):
-                r = {"label": label, **sl.run_step(spec, sl.Topology())}  # a skipped row: no namespaces needed
-            else:
-                with Netns(args.netem_delay_ms) as topo:
-                    r = {"label": label, "namespaces": list(topo.ns.values()), "netem_delay_ms": args.netem_delay_ms,
-                         **sl.run_step(spec, topo, progress=sys.stderr.isatty())}
-                r["namespaces_left"] = topo.left()
-                left += r["namespaces_left"]
+            with Netns(args.netem_delay_ms) as topo:
+                r = {"label": label, "namespaces": list(topo.ns.values()), "netem_delay_ms": args.netem_delay_ms,
+                     **sl.run_step(spec, topo, progress=sys.stderr.isatty())}
+            r["namespaces_left"] = topo.left()
+            left += r["namespaces_left"]
             rows.append(r)
             print(sl.step_line(r), file=sys.stderr, flush=True)
     return {"steps": rows, "namespaces_left": left}

@@ -50,8 +50,6 @@ def sweep(base: sl.StepSpec, counts: list[int], topo_factory, bisect: bool, reso
     best, fail = 0, None
     for n in counts:
         r = step(n)
-        if r.get("skipped"):
-            return rows
         if not r["ok"]:
             fail = n
             break
@@ -74,9 +72,7 @@ def summary(rows: list[dict]) -> list[dict]:
     out = {}
     for r in rows:
         s = out.setdefault(r["label"], {"label": r["label"], "best": None, "first_fail": None})
-        if r.get("skipped"):
-            s["skipped"] = "; ".join(r["reasons"])
-        elif r["ok"] and (s["best"] is None or r["sensors"] > s["best"]["sensors"]):
+        if r["ok"] and (s["best"] is None or r["sensors"] > s["best"]["sensors"]):
             s["best"] = r
         elif not r["ok"] and (s["first_fail"] is None or r["sensors"] < s["first_fail"]["sensors"]):
             s["first_fail"] = r
@@ -89,9 +85,6 @@ def summary_markdown(summ: list[dict]) -> str:
     rows = []
     for s in summ:
         b, f = s["best"], s["first_fail"]
-        if s.get("skipped"):
-            rows.append([s["label"], "skipped", "–", "–", "–", s["skipped"]])
-            continue
         fail = f"{f['sensors']}: {'; '.join(f['reasons'])}" if f else "none failed"
         if b is None:
             rows.append([s["label"], "none", "–", "–", "–", fail])
@@ -161,7 +154,7 @@ def main() -> None:
     if args.json is not None:
         args.json.write_text(json.dumps({"summary": [{"label": s["label"], "best": (s["best"] or {}).get("sensors"),
                                                       "first_fail": (s["first_fail"] or {}).get("sensors"),
-                                                      **({"skipped": s["skipped"]} if "skipped" in s else {})}
+                                                      }
                                                      for s in summ],
                                          "steps": rows}, indent=1))
 

@@ -23,7 +23,6 @@ import argparse
 import functools
 import json
 import os
-import re
 import shlex
 import signal
 import socket
@@ -207,27 +206,6 @@ class Loopback(Topology):
 
 
 @functools.lru_cache(maxsize=None)
-def qradar_has(command: str, option: str) -> bool:
-    """Whether ``qradar COMMAND --help`` lists OPTION (options that land later)."""
-    out = subprocess.run([sys.executable, "-m", "qradar", command, "--help"], capture_output=True, text=True,
-                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60).stdout
-    return re.search(rf"(^|\s){re.escape(option)}([\s=,]|$)", out, re.M) is not None
-
-
-def missing_options(spec: StepSpec) -> list[str]:
-    """The qradar options this step needs that this tree does not have yet."""
-    need = []
-    if spec.case == "edge":
-        need.append(("source", "--quantized"))
-    if spec.send == "spread":
-        need.append(("source", "--spread"))
-    if spec.localizers > 1:
-        need.append(("localize", "--shard"))
-    if spec.case == "central" and spec.quantizers > 1:
-        need.append(("quantize", "--shard"))
-    return [f"qradar {c} {o}" for c, o in need if not qradar_has(c, o)]
-
-
 def frame_sizes(spec: StepSpec) -> dict[str, int]:
     """Bytes of one raw and one quantized frame of the step's scene, and a targets message."""
     from pipeline.quantize import packed_size
@@ -278,7 +256,7 @@ def node_commands(spec: StepSpec, topo: Topology, sid_prefix: str) -> tuple[list
     if spec.case == "edge":
         src += ["--quantized", *_quant_args(spec)]
     if spec.send == "spread":
-        src += ["--spread"]
+        src += ["--send", "spread"]
     src += _bus(topo, "source", False)
     return [(n, r, topo.argv(r, a)) for n, r, a in nodes], ("source", "source", topo.argv("source", src))
 
@@ -322,13 +300,10 @@ def _wait_text(proc: Proc, text: str, timeout_s: float) -> bool:
 
 def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progress: bool = False) -> dict:
     """Run one step with fresh processes; its figures (see module doc) and ``ok``."""
-    missing = missing_options(spec)
     row: dict = {"case": spec.case, "send": spec.send, "algo": spec.algo, "sensors": spec.sensors,
                  "localizers": spec.localizers, "quantizers": spec.quantizers if spec.case == "central" else 0,
                  "seconds": spec.seconds, "warmup_s": spec.warmup_s, "hub": spec.hub,
                  "offered_fps": spec.sensors * RATE_HZ, "loadavg_start": [round(x, 2) for x in os.getloadavg()]}
-    if missing:
-        return {**row, "ok": False, "skipped": True, "reasons": [f"not in this tree: {', '.join(missing)}"]}
     own_logdir = logdir is None
     logdir = Path(tempfile.mkdtemp(prefix="qr-bench-")) if own_logdir else logdir
     logdir.mkdir(parents=True, exist_ok=True)
@@ -679,7 +654,7 @@ STEP_COLUMNS = ("case", "sensors", "result", "sent / received", "lost", "p50 / p
 
 
 def step_cells(r: dict) -> list[str]:
-    result = "skipped" if r.get("skipped") else ("pass" if r["ok"] else "FAIL")
+    result = "pass" if r["ok"] else "FAIL"
     if r.get("flags"):
         result += " ⚑"
     bare = r.get("bare")
@@ -700,8 +675,6 @@ def markdown(headers, rows) -> str:
 
 def step_line(r: dict) -> str:
     """The one-line progress report of a step (stderr)."""
-    if r.get("skipped"):
-        return f"{r['label']:<24} {r['sensors']:>4} sensors: skipped ({'; '.join(r['reasons'])})"
     res = "pass" if r["ok"] else "FAIL"
     bare = r.get("bare") or {}
     return (f"{r['label']:<24} {r['sensors']:>4} sensors: {res}  sent {r.get('sent')} received {r.get('received')} "

@@ -14,12 +14,6 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "benchmarks" / "bench_stream.py"
 
 
-def qradar_has(command: str, option: str) -> bool:
-    out = subprocess.run([sys.executable, "-m", "qradar", command, "--help"], capture_output=True, text=True,
-                         cwd=ROOT, timeout=60).stdout
-    return option in out.split()
-
-
 def run_quick(tmp_path: Path, *args: str) -> dict:
     out = tmp_path / "bench.json"
     r = subprocess.run([sys.executable, str(BENCH), "--quick", "--json", str(out), *args], capture_output=True,
@@ -30,7 +24,6 @@ def run_quick(tmp_path: Path, *args: str) -> dict:
 
 
 def check_step(step: dict, nodes: set[str]) -> None:
-    assert not step.get("skipped"), step["reasons"]
     assert step["sensors"] == 5 and step["sent"] == 5 * 100  # (2 s warm-up + 3 s) x 20 frames/s
     assert step["received"] == step["sent"] and step["lost"] == 0 and step["duplicates"] == 0
     assert math.isfinite(step["p50_ms"]) and math.isfinite(step["p99_ms"]) and 0 < step["p50_ms"] <= step["p99_ms"]
@@ -57,8 +50,6 @@ def test_quick_central(tmp_path):
 
 @pytest.mark.slow
 def test_quick_edge(tmp_path):
-    if not qradar_has("source", "--quantized"):
-        pytest.skip("`qradar source --quantized` (edge quantization, issue 13) is not in this tree yet")
     res = run_quick(tmp_path, "--case", "edge")
     (step,) = res["steps"]
     check_step(step, {"localize0"})
