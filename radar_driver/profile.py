@@ -161,10 +161,18 @@ class RadcLayout:
         """What complex samples (any shape) become through this ADC and back: each of I and
         Q rounded to the nearest code and clipped, full-scale units, same shape."""
         s = np.asarray(samples)
-        fs, off = self.full_scale, self.offset
-        i = np.clip(np.rint(s.real * fs + off), self.min_word, self.max_word) - off
-        q = np.clip(np.rint(s.imag * fs + off), self.min_word, self.max_word) - off
-        return (i + 1j * q) / fs
+        return self.round_trip_parts(s.real.astype(np.float64)) + 1j * self.round_trip_parts(
+            s.imag.astype(np.float64))
+
+    def round_trip_parts(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`round_trip` of real I or Q values, float64 of any shape, in place (and returned)."""
+        x *= self.full_scale
+        x += self.offset
+        np.rint(x, out=x)
+        np.clip(x, self.min_word, self.max_word, out=x)
+        x -= self.offset
+        x /= self.full_scale
+        return x
 
     def chirp_indices(self, ramps_per_frame: int, select: str = "first") -> np.ndarray:
         """Which chirps of one RADC make a frame of ``ramps_per_frame`` ramps (R,), for a

@@ -185,15 +185,27 @@ class SimulatedSource(StoppableSource):
 
     def _make(self, k: int, sensors: range, ts: int) -> list[RawFrame]:
         """Frame ``k`` of ``sensors``: the tick's clean ramps plus each sensor's noise (drawn
-        from its own generator), through the ADC in one vectorized call."""
+        from its own generator as :meth:`SimScene.noise` draws it), through the ADC, the
+        group at once and in place on its real and imaginary parts."""
         cfg, scene = self.config, self.config.scene
         rpf, n = self.radar.ramps_per_frame, self.radar.samples_per_ramp
         ramp_index = k * rpf + np.arange(rpf)
         if self._clean is None or self._clean[0] != k:
             self._clean = (k, scene.clean_ramps(ramp_time_s(ramp_index, cfg.rate_hz * rpf)))  # (R, N, 2)
-        noise = np.stack([scene.noise(rpf, self._rngs[i]) for i in sensors])  # (S, R, N, 2)
-        data = DEFAULT_PROFILE.radc.round_trip(self._clean[1][None] + noise).reshape(len(sensors), rpf * n, 2)
-        data = data.astype(np.complex64)
+        clean = self._clean[1]
+        parts = np.empty((len(sensors), rpf, 2, n, 2))  # (S, R, re/im, N, antenna)
+        if scene.noise_std:
+            for j, i in enumerate(sensors):
+                self._rngs[i].standard_normal(out=parts[j])  # scene.noise's draw: ramp by ramp, re then im
+            parts *= scene.noise_std
+        else:
+            parts[:] = 0.0
+        parts[:, :, 0] += clean.real
+        parts[:, :, 1] += clean.imag
+        DEFAULT_PROFILE.radc.round_trip_parts(parts)
+        data = np.empty((len(sensors), rpf, n, 2), dtype=np.complex64)
+        data.real, data.imag = parts[:, :, 0], parts[:, :, 1]
+        data = data.reshape(len(sensors), rpf * n, 2)
         counters = tuple(int(c) for c in ramp_index)
         config_id, ids = self.radar.config_id(), self.config.sensor_ids
         return [RawFrame(ids[i], k, ts, data[j], counters, config_id) for j, i in enumerate(sensors)]
