@@ -278,7 +278,7 @@ def unit_dither(dither_seed, seq, n_measurements: int, generator=DITHER_COUNTER)
     seqs = check_seq(seq)
     seeds = check_uint64(dither_seed, "dither_seed")
     if seeds.size != seqs.size:
-        if seeds.size != 1 or np.ndim(dither_seed):
+        if seeds.size != 1:
             raise ParameterError(f"dither_seed has {seeds.size} values, expected 1 or one per frame ({seqs.size})")
         seeds = np.broadcast_to(seeds, seqs.shape)
     if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)) or n_measurements < 0:
