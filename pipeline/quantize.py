@@ -171,11 +171,15 @@ def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = N
         if dither.shape != f.shape:
             raise ParameterError(f"dither shape {dither.shape} does not match frames shape {f.shape}")
         f = f + dither
-    lam = np.stack([f.real, f.imag], axis=-1)  # (B, M, 2, 2)
+    lam = np.ascontiguousarray(f, dtype=np.complex128).view(np.float64).reshape(f.shape + (2,))  # (B, M, 2, 2)
+    scaled = lam / _per_frame(d, 4)
+    if bits == 1:  # floor(x) clipped to [-1, 0], plus 1: 1 exactly where x >= 0 (-0.0 included)
+        return np.greater_equal(scaled, 0.0).view(np.uint8)
     half = 1 << (bits - 1)
-    q = np.floor(lam / _per_frame(d, 4))
+    q = np.floor(scaled, out=scaled)
     np.clip(q, -half, half - 1, out=q)
-    return (q + half).astype(np.uint8 if bits <= 8 else np.uint16)
+    q += half
+    return q.astype(np.uint8 if bits <= 8 else np.uint16)
 
 
 def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
@@ -190,8 +194,17 @@ def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
     if c.size and int(c.max()) >= (1 << bits):
         raise ParameterError(f"codes hold {int(c.max())}, beyond the {1 << bits} levels of {bits} bits")
     d = check_delta(delta, c.shape[0])
-    v = (c.astype(float) - ((1 << (bits - 1)) - 0.5)) * _per_frame(d, 4)
-    return v[..., 0] + 1j * v[..., 1]
+    v = _levels(bits)[c]  # (B, M, 2, 2) float64: code - 2**(b-1) + 1/2
+    v *= _per_frame(d, 4)
+    return v.view(np.complex128).reshape(c.shape[:3])
+
+
+@lru_cache(maxsize=MAX_BITS)
+def _levels(bits: int) -> np.ndarray:
+    """The level of each code of ``bits`` bits in steps: ``code - 2**(b-1) + 1/2``, (2**b,)."""
+    lv = np.arange(1 << bits, dtype=np.float64) - ((1 << (bits - 1)) - 0.5)
+    lv.flags.writeable = False
+    return lv
 
 
 # -- the dither -------------------------------------------------------------------------

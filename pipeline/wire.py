@@ -69,12 +69,22 @@ _ID_BYTES = np.zeros(256, dtype=bool)
 _ID_BYTES[list(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")] = True
 
 
+#: valid sensor ids seen lately (checked once each; cleared when it holds _KNOWN_IDS_MAX)
+_known_ids: set[str] = set()
+_KNOWN_IDS_MAX = 1 << 16
+
+
 def check_sensor_id(sensor_id: str) -> str:
     """Sensor ids: 1-16 ASCII characters from [A-Za-z0-9_-] (they are zenoh key chunks)."""
+    if type(sensor_id) is str and sensor_id in _known_ids:
+        return sensor_id
     ok = isinstance(sensor_id, str) and 1 <= len(sensor_id) <= SENSOR_ID_MAX and all(
         c.isascii() and (c.isalnum() or c in "_-") for c in sensor_id)
     if not ok:
         raise WireError(f"sensor_id={sensor_id!r} must be 1-{SENSOR_ID_MAX} characters of [A-Za-z0-9_-]")
+    if len(_known_ids) >= _KNOWN_IDS_MAX:
+        _known_ids.clear()
+    _known_ids.add(sensor_id)
     return sensor_id
 
 

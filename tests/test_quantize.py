@@ -267,3 +267,29 @@ def test_counter_generator_test_vectors_of_the_docs():
                                                 -0.16194754582829773 - 0.2308697288390249j]
     assert unit_dither(655087151, 41, 1)[0, 0].tolist() == [-0.3218443572986871 - 0.2290043553803116j,
                                                          0.06143485032953322 + 0.04329792223870754j]
+
+
+def _reference_quantize(f, d, bits, dither=None):
+    """The quantizer as the paper writes it, step by step (before the fast paths)."""
+    f = f + dither if dither is not None else f
+    lam = np.stack([f.real, f.imag], axis=-1)
+    half = 1 << (bits - 1)
+    q = np.clip(np.floor(lam / np.reshape(d, (-1, 1, 1, 1))), -half, half - 1)
+    return (q + half).astype(np.uint8 if bits <= 8 else np.uint16)
+
+
+@pytest.mark.parametrize("bits", [1, 2, 5, 8, 12, 16])
+def test_the_fast_quantizer_and_dequantizer_equal_the_formulas_bit_for_bit(bits):
+    rng = np.random.default_rng(bits)
+    for scale in (1e-40, 1e-3, 1.0, 1e2):
+        f = (rng.standard_normal((5, 64, 2)) + 1j * rng.standard_normal((5, 64, 2))) * scale
+        f[0, :4] = [[0.0, -0.0], [1e-320, -1e-320], [-5e-324, 5e-324], [-1e-310j, -0.0j]]  # signed zeros, subnormals
+        d = np.abs(rng.standard_normal(5)) * 10.0 ** rng.integers(-3, 300, size=5) + 1e-30
+        dither = (rng.standard_normal(f.shape) + 1j * rng.standard_normal(f.shape)) * scale
+        for xi in (None, dither):
+            codes = quantize(f, d, bits, xi)
+            assert codes.dtype == (np.uint8 if bits <= 8 else np.uint16)
+            assert_array_equal(codes, _reference_quantize(f, d, bits, xi))
+            ref = (codes.astype(float) - ((1 << (bits - 1)) - 0.5)) * d[:, None, None, None]
+            z = dequantize(codes, d, bits)
+            assert_array_equal(z.view(np.uint64), (ref[..., 0] + 1j * ref[..., 1]).view(np.uint64))
