@@ -395,7 +395,7 @@ class ProcessingNode(Node):
     #: ends early, so the others' next frames do not wait behind a whole batch of its
     batch_per_sensor: int | None = 16
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 512,
+    def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 8192,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
                  queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
                  sensors: str = "*", shard: Shard | None = None):

@@ -126,7 +126,7 @@ def add_commands(sub) -> None:
 def queue_options(p) -> None:
     """The input queue and per-sensor state of a processing node."""
     g = p.add_argument_group("input queue")
-    g.add_argument("--queue", type=pos_int, default=512, help="frames waiting, in all")
+    g.add_argument("--queue", type=pos_int, default=8192, help="frames waiting, in all (the bytes bound --queue-mb holds too)")
     g.add_argument("--sensor-queue", type=pos_int, default=128,
                    help="frames waiting of one sensor (a flooding sensor loses its own frames beyond this)")
     g.add_argument("--queue-mb", type=pos_float, default=64.0, help="payload megabytes waiting, in all")
