@@ -233,7 +233,7 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
     X lives as its K amplitudes a frame: ``Phi X`` on a ramp is K atoms (an FFT for large
     K), and ``X + step`` is the step with the amplitudes added on the support."""
     b, ramps, _, n, _ = zr.shape
-    car = _carrier(config)
+    car, atoms = _carrier(config), _atoms(config)
     back = np.conj(car)
     scale = mu * (1.0 / ramps)  # mu N / M
     support = joint_support(u0, k)
@@ -248,7 +248,7 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
         lam_pos, signed = np.empty(zr.shape, dtype=bool), np.empty(zr.shape, dtype=np.int8)
     for it in range(iters):
         if k <= SPARSE_FORWARD_MAX_K:
-            g = np.matmul(amp, _atoms(config)[support])  # Phi X, one ramp: (B, 2, N)
+            g = np.matmul(amp, atoms[support])  # Phi X, one ramp: (B, 2, N)
         else:
             x = np.zeros((b, 2, n), dtype=complex)
             np.put_along_axis(x, support[:, None, :], amp, axis=2)
@@ -257,8 +257,9 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
         if bits == 1:
             np.greater_equal(gr, neg_xr, out=lam_pos)
             np.subtract(z_pos, lam_pos.view(np.int8), out=signed)  # (Z - Q(lambda)) / delta
-            bad = np.count_nonzero(signed.reshape(b, -1), axis=1)
-            folded = signed.sum(axis=1, dtype=np.int32) * d[:, 0]
+            bad = np.abs(signed).reshape(b, -1).sum(axis=1, dtype=np.int32)  # codes that disagree
+            folded = signed.sum(axis=1, dtype=np.int16).astype(float)
+            folded *= d[:, 0]
         else:
             resid = zr - _requantize(gr + xr, d, bits)
             bad = np.count_nonzero(resid.reshape(b, -1), axis=1)
@@ -291,20 +292,35 @@ def ml_refine(z: np.ndarray, xi: np.ndarray, delta, support: np.ndarray, x0: np.
     return amp.transpose(0, 2, 1)
 
 
+#: frames the likelihood stage works on at once: its work arrays (about 100 kB a frame) stay in cache
+ML_BLOCK_FRAMES = 32
+
+
 def _ml_refine(zr: np.ndarray, xr: np.ndarray, delta: np.ndarray, support: np.ndarray, amp: np.ndarray,
                config: RadarConfig, temperatures=None) -> np.ndarray:
     """:func:`ml_refine` on checked frames: zr, xr (B, R, 2, N, 2) from
     :func:`_antenna_major`; amp: starting amplitudes (B, 2, K). Returns (B, 2, K).
 
-    Both antennas at once, and the sums over the 2M real codes folded over the ramps
-    (every ramp repeats the same rows ``a`` of Phi): for a code of sign s, with
-    ``t = tanh((a.th + xi) / 2T)`` the logistic's ``s q = (s - t) / 2`` and
-    ``q (1 - q) = (1 - t^2) / 4`` (tanh is odd), so the gradient and the Hessian need
-    only the sums over the ramps of s, t and t^2."""
+    Both antennas at once, in blocks of ML_BLOCK_FRAMES frames, and the sums over the 2M
+    real codes folded over the ramps (every ramp repeats the same rows ``a`` of Phi): for
+    a code of sign s, with ``t = tanh((a.th + xi) / 2T)`` the logistic's
+    ``s q = (s - t) / 2`` and ``q (1 - q) = (1 - t^2) / 4`` (tanh is odd), so the
+    gradient and the Hessian need only the sums over the ramps of s, t and t^2."""
     b, ramps, _, n, _ = zr.shape
-    k = support.shape[1]
     if temperatures is None:
         temperatures = ml_temperatures(ramps * n)
+    out = np.empty(amp.shape, dtype=complex)
+    for lo in range(0, b, ML_BLOCK_FRAMES):
+        sl = slice(lo, lo + ML_BLOCK_FRAMES)
+        out[sl] = _ml_block(zr[sl], xr[sl], delta[sl], support[sl], amp[sl], config, temperatures)
+    return out
+
+
+def _ml_block(zr: np.ndarray, xr: np.ndarray, delta: np.ndarray, support: np.ndarray, amp: np.ndarray,
+              config: RadarConfig, temperatures) -> np.ndarray:
+    """:func:`_ml_refine` of one block of frames."""
+    b, ramps, _, n, _ = zr.shape
+    k = support.shape[1]
     cols = _atoms(config)[support]  # (B, K, N): Phi on the support, one ramp
     # a (B, 2K, 2N): rows Re x_j then Im x_j (Re x moves Phi x by phi, Im x by i phi);
     # columns (sample, re/im) as in zr, so th @ a is (Re, Im) of Phi x on a ramp
@@ -318,16 +334,13 @@ def _ml_refine(zr: np.ndarray, xr: np.ndarray, delta: np.ndarray, support: np.nd
     th = np.concatenate([amp.real, amp.imag], axis=2)  # (B, 2 antennas, 2K)
     eye = np.eye(2 * k)
     for t in temperatures:
-        sig = t * delta  # (B,)
+        sig = (t * delta)[:, None, None]  # (B, 1, 1)
         np.add(np.matmul(th, a)[:, None], o, out=v)  # a.th + xi: (B, R, 2, 2N)
-        v *= (0.5 / sig)[:, None, None, None]
+        v *= 0.5 / sig[..., None]
         np.tanh(v, out=v)
-        g_sum = s_sum - v.sum(axis=1)  # 2 sum_r s q
+        grad = np.matmul(s_sum - v.sum(axis=1), a.transpose(0, 2, 1)) * (0.5 / sig)  # sum s q a / T: (B, 2, 2K)
         np.square(v, out=v)
-        w_sum = ramps - v.sum(axis=1)  # 4 sum_r q (1 - q)
-        grad = np.matmul(g_sum * (0.5 / sig)[:, None, None], a.transpose(0, 2, 1))  # (B, 2, 2K)
-        w_sum *= (0.25 / sig**2)[:, None, None]
-        hess = np.matmul(w_sum, pairs.transpose(0, 2, 1))[..., full]  # (B, 2, 2K, 2K)
+        hess = (np.matmul(ramps - v.sum(axis=1), pairs.transpose(0, 2, 1)) * (0.25 / sig**2))[..., full]
         trace = np.trace(hess, axis1=2, axis2=3)
         hess += eye * (1e-9 * trace[:, :, None, None] + 1e-300)
         step = np.linalg.solve(hess, grad[..., None])[..., 0]
