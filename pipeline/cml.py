@@ -522,9 +522,7 @@ def _energy(y: np.ndarray, fit: _Fit, oversample: int, guard_bins: float) -> tup
     ``guard_bins`` of the live targets found, and that mask (B, L) bool."""
     b, n = y.shape[:2]
     size = oversample * n
-    padded = np.zeros((b, 2, size), dtype=complex)  # padded here: numpy's own padding (n=size) is slower
-    padded[:, :, :n] = y.transpose(0, 2, 1)
-    u = np.fft.ifft(padded, axis=2).view(float)  # (B, 2, 2L)
+    u = np.fft.ifft(np.ascontiguousarray(y.transpose(0, 2, 1)), n=size, axis=2).view(float)  # (B, 2, 2L)
     np.square(u, out=u)
     both = u[:, 0] + u[:, 1]
     energy = both[:, 0::2] + both[:, 1::2]  # (B, L): |U1|^2 + |U2|^2
