@@ -5,8 +5,8 @@ uniform over 3-150 m, |theta| <= 60 deg, K = 2), each decoder told K. Only
 ``pipeline.decode.decode`` is timed: the codes and the dither are made beforehand (the
 dither's regeneration from its seed is not counted).
 
-Each (decoder, batch) figure is the best, over ``--repeats`` calls, of the wall time of
-one call divided by the batch size; every call gets a fresh batch (its own scenes,
+Each (decoder, batch) figure is the best, over ``--repeats`` calls, of the CPU time of
+one call (process time) divided by the batch size; every call gets a fresh batch (its own scenes,
 noise and dither seeds). The best of several is the figure least disturbed by the other
 processes of a shared machine.
 
