@@ -152,9 +152,24 @@ def test_cli_rejects_a_bad_scheme(tmp_path):
     assert "scheme 'fourbit_m512' is not of the form" in proc.stderr
 
 
+def _same_figures(got, want, path: str = "summary") -> None:
+    """``got`` equals ``want`` key by key; floats to 1e-9 relative (issue 13: the likelihood
+    stage's sums are folded over the ramps, in another order: the amplitudes move by a few
+    ulp), everything else exactly."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and got.keys() == want.keys(), path
+        for key in want:
+            _same_figures(got[key], want[key], f"{path}/{key}")
+    elif isinstance(want, float):
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-300), path
+    else:
+        assert got == want, path
+
+
 def test_same_seed_same_summary_as_the_recorded_one():
     """The summary of a seed is part of the behaviour: tests/golden/montecarlo_seed7.json was
-    written by the code before the issue-9 redesign; the figures must not move."""
+    written by the code before the issue-9 redesign; the figures must not move (beyond
+    floating-point rounding, 1e-9 relative)."""
     golden = json.loads((Path(__file__).parent / "golden" / "montecarlo_seed7.json").read_text())
     r = run_montecarlo(MonteCarloConfig(ks=(1, 2), runs=300, seed=7, workers=1, algos=("pbp", "qiht"),
                                         fallback_pbp=True), progress=False)
@@ -162,7 +177,7 @@ def test_same_seed_same_summary_as_the_recorded_one():
     # the scene options came later (issue 10); with their defaults every figure stays as it was
     assert r.summary.pop("scene") == r.run_config.pop("scene") == SceneSpec().to_dict()
     assert r.summary.pop("count") == r.run_config.pop("count") == CountSpec().to_dict()  # K given (issue 10)
-    assert json.loads(json.dumps(r.summary)) == golden["summary"]
+    _same_figures(json.loads(json.dumps(r.summary)), golden["summary"])
     golden["config"]["workers"] = r.run_config["workers"]
     assert json.loads(json.dumps(r.run_config)) == golden["config"]
 
