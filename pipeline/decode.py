@@ -408,6 +408,10 @@ def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: i
     or full-resolution frames (B, M, 2) complex. What the localizer node and offline
     re-processing call; see :func:`decode` for the rules."""
     if isinstance(frames, QuantizedFrames):
+        n = config.samples_per_ramp
+        if decoder.algo == Algo.PBP and frames.codes.shape[1] % n == 0:
+            # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
+            return decode(frames.ramp_mean(n), None, frames.delta, frames.bits, config, k, decoder)
         xi = None if decoder.algo == Algo.PBP else frames.dither()  # PBP does not use it: skip regenerating it
         return decode(frames.values(), xi, frames.delta, frames.bits, config, k, decoder)
     return decode(np.asarray(frames).astype(np.complex128), None, None, None, config, k, decoder)

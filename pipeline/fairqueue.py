@@ -83,10 +83,13 @@ class FairQueue:
             except ValueError:
                 pass
 
-    def get_batch(self, max_items: int, timeout_s: float, per_sensor: int | None = None) -> list[Any]:
+    def get_batch(self, max_items: int, timeout_s: float, per_sensor: int | None = None,
+                  linger_s: float = 0.0) -> list[Any]:
         """Up to ``max_items`` frames, one per waiting sensor in turn, at most ``per_sensor``
         of one sensor (a flooding sensor cannot fill a batch and so delay the others' next
-        frames by a whole batch); waits at most ``timeout_s`` for the first; [] if none came."""
+        frames by a whole batch); waits at most ``timeout_s`` for the first; [] if none came.
+        ``linger_s``: once a frame waits, wait up to this long for ``max_items`` (frames of
+        sensors sending at their own times then share one vectorized call)."""
         deadline = time.monotonic() + timeout_s
         out: list[Any] = []
         with self._cond:
@@ -95,6 +98,10 @@ class FairQueue:
                 if left <= 0 or not self._cond.wait(left):
                     if not self._frames:
                         return out
+            if linger_s > 0 and self._frames < max_items:
+                until = time.monotonic() + linger_s
+                while self._frames < max_items and (left := until - time.monotonic()) > 0:
+                    self._cond.wait(left)
             taken: dict[Hashable, int] = {}
             full: list[Hashable] = []  # sensors whose share of this batch is taken
             while self._ring and len(out) < max_items:

@@ -394,6 +394,10 @@ class ProcessingNode(Node):
     #: the most frames of one sensor in a batch (None: no limit): a flooding sensor's batch
     #: ends early, so the others' next frames do not wait behind a whole batch of its
     batch_per_sensor: int | None = 16
+    #: once a frame waits, the worker waits this long (s) for a full batch: frames of many
+    #: sensors sending at their own times then share one vectorized call, whose fixed cost
+    #: dominates a batch of one
+    batch_linger_s: float = 0.0
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 8192,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
@@ -498,7 +502,7 @@ class ProcessingNode(Node):
     def _work_loop(self) -> None:
         # after stop, drain what was queued before the subscriber went away
         while not (self._stop.is_set() and self._queue.empty()):
-            batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor)
+            batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor, self.batch_linger_s)
             if not batch:
                 self.on_idle()
                 continue

@@ -173,6 +173,9 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, seeds: DitherSeeds
         node.publish_many(part.sensor_id, "quantized", encode_quantized_batch(part, q), OCTETS)
 
 
+#: how long a frame node's worker waits, once a frame is queued, for a full batch, s
+BATCH_LINGER_S = 0.002
+
 #: the largest |Re| or |Im| of a raw sample a node accepts, full-scale units (the ADC's
 #: full scale is 1; beyond this a frame is refused as invalid, not quantized)
 MAX_SAMPLE = 1e4
@@ -202,7 +205,11 @@ def bad_samples(frames: np.ndarray) -> np.ndarray:
 class FrameNode(ProcessingNode):
     """A processing node of radar frames: it refuses, before copying, payloads whose
     length no announced configuration (``radar`` with 1..max_ramps ramps) has, and
-    checks each decoded frame's sensor id, config id and M."""
+    checks each decoded frame's sensor id, config id and M. Its worker waits up to
+    BATCH_LINGER_S after a frame for others, so sensors sending at their own times share
+    a vectorized call."""
+
+    batch_linger_s = BATCH_LINGER_S
 
     def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | None, **kw):
         super().__init__(bus, session, **kw)

@@ -423,6 +423,20 @@ class QuantizedFrames:
         """Z, the quantized complex values, (B, M, 2)."""
         return dequantize(self.codes, self.delta, self.bits)
 
+    def ramp_mean(self, n: int) -> np.ndarray:
+        """The mean of Z over the frame's ramps of ``n`` measurements (M = R n), (B, n, 2)
+        complex: the codes are summed over the ramps as integers first, so only n x 2
+        values per frame are made (what back projection on whole ramps needs)."""
+        b, m = self.codes.shape[:2]
+        if m % n:
+            raise ParameterError(f"M={m} is not a whole number of ramps of {n}")
+        r = m // n
+        total = self.codes.reshape(b, r, n, 2, 2).sum(axis=1, dtype=np.int64).astype(np.float64)  # (B, n, 2, 2)
+        total *= 1.0 / r
+        total -= (1 << (self.bits - 1)) - 0.5
+        total *= _per_frame(check_delta(self.delta, b), 4)
+        return total.view(np.complex128).reshape(b, n, 2)
+
     @property
     def dithered(self) -> bool:
         """True when every frame is dithered (alpha > 0); a decoder can then regenerate xi."""

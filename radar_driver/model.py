@@ -19,7 +19,10 @@ Arrays put the batch axis first: a scene batch has shape ``(B, K)``, a frame bat
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -118,11 +121,7 @@ class RadarConfig:
     def config_id(self) -> int:
         """Stable 32-bit identifier of this configuration (first 4 bytes of the SHA-256
         of its sorted JSON), carried by every message made with it."""
-        import hashlib
-        import json
-
-        blob = json.dumps(self.to_dict(), sort_keys=True).encode()
-        return int.from_bytes(hashlib.sha256(blob).digest()[:4], "little")
+        return _config_id(self)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -282,3 +281,10 @@ def snap_to_range_grid(range_m: np.ndarray, config: RadarConfig) -> np.ndarray:
     dr = config.range_resolution_m
     n = np.clip(np.rint(np.asarray(range_m, dtype=float) / dr), 0, config.samples_per_ramp - 1)
     return n * dr
+
+
+@lru_cache(maxsize=1024)
+def _config_id(config: RadarConfig) -> int:
+    """:meth:`RadarConfig.config_id`, computed once per configuration."""
+    blob = json.dumps(config.to_dict(), sort_keys=True).encode()
+    return int.from_bytes(hashlib.sha256(blob).digest()[:4], "little")

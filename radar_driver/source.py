@@ -107,7 +107,7 @@ def frame_batches(source: FrameSource, limit: int | None = None) -> Iterator[lis
 #: how simulated sensors send: all in one burst per frame period, or spread evenly over it
 SEND_MODES = ("burst", "spread")
 #: with ``send="spread"``, the sensors are sent in groups this far apart (at most), s
-SPREAD_SLOT_S = 1e-3
+SPREAD_SLOT_S = 2e-3
 
 
 @dataclass(frozen=True)
@@ -168,7 +168,9 @@ class SimulatedSource(StoppableSource):
         self.radar = config.scene.radar
         self.late_ticks = 0
         self.elapsed_s = 0.0
-        self._stats = {sid: _SimSensorStats() for sid in config.sensor_ids}
+        self._ids = config.sensor_ids
+        self._config_id = self.radar.config_id()
+        self._stats = {sid: _SimSensorStats() for sid in self._ids}
         self._rngs = [np.random.default_rng(np.random.SeedSequence(config.seed + i, spawn_key=(0,)))
                       for i in range(config.sensors)]
         self._tick = 0  # the frame period being made
@@ -207,7 +209,7 @@ class SimulatedSource(StoppableSource):
         data.real, data.imag = parts[:, :, 0], parts[:, :, 1]
         data = data.reshape(len(sensors), rpf * n, 2)
         counters = tuple(int(c) for c in ramp_index)
-        config_id, ids = self.radar.config_id(), self.config.sensor_ids
+        ids, config_id = self._ids, self._config_id
         return [RawFrame(ids[i], k, ts, data[j], counters, config_id) for j, i in enumerate(sensors)]
 
     def _groups(self) -> Iterator[list[RawFrame]]:

@@ -137,3 +137,23 @@ def test_montecarlo_decodes_the_32bit_reference_with_the_same_decoder():
     assert k1["dither_m512@cml"]["median_m"] < k1["dither_m512"]["median_m"] / 4
     with pytest.raises(ParameterError, match="32bit_m16.*subset"):
         MonteCarloConfig(algos=("cml",), schemes=("32bit_m16",))
+
+
+def test_pbp_on_the_ramps_mean_of_the_codes_is_pbp_on_every_measurement():
+    """decode_batch folds 1-bit codes over the ramps before PBP's back projection; the
+    targets are those of PBP on every measurement."""
+    from numpy.testing import assert_allclose
+
+    from pipeline.decode import decode_batch
+    from radar_driver.scene import resolve_scene
+    scene = resolve_scene("chamber")
+    rng = np.random.default_rng(4)
+    g = np.stack([np.tile(scene.clean_ramp(0.0), (2, 1))] * 16)
+    g = g + scene.noise_std * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    for bits in (1, 3):
+        q = quantize_frames(g, QuantizerConfig(bits=bits, alpha=1.0, dither_seed=2), seq=np.arange(16))
+        fast = decode_batch(q, scene.radar, 2, DecoderConfig(algo="pbp"))
+        full = localize(q.values(), scene.radar, 2)
+        assert np.array_equal(fast.bin, full.bin)
+        for f in ("range_m", "angle_deg", "amplitude", "statistic_db"):
+            assert_allclose(getattr(fast, f), getattr(full, f), rtol=1e-12, atol=1e-12)

@@ -54,15 +54,16 @@ def test_spread_sensors_send_the_same_frames_in_groups_over_the_period():
     b = list(burst.frame_batches())
     s = list(spread.frame_batches())
     assert [len(g) for g in b] == [40, 40, 40]  # one burst per period
-    assert len(s) == 3 * 40 and all(len(g) == 1 for g in s)  # 50 ms period / 1 ms slots > 40 sensors: one each
+    assert len(s) == 3 * 25 and {len(g) for g in s} == {1, 2}  # 50 ms period / 2 ms slots: 25 groups of 40
     fb = [f for g in b for f in g]
     fs = [f for g in s for f in g]
     assert [(f.sensor_id, f.seq) for f in fb] == [(f.sensor_id, f.seq) for f in fs]
     assert all(np.array_equal(x.data, y.data) for x, y in zip(fb, fs))  # the same frames, sent at other times
-    # sensor i of a period is sent i/40 of the period after sensor 0: stamped at its due
-    # time, or later when this process was late making it
+    # group j of a period (sensors j*40//25 ..) is sent j/25 of the period after the first:
+    # stamped at its due time, or later when this process was late making it
     t = np.array([f.timestamp_ns for f in fs[:40]]) - fs[0].timestamp_ns
-    assert np.all(t >= np.arange(40) * 50e6 / 40 - 2e5) and np.all(np.diff(t) >= 0), t
+    due = np.array([j for j in range(25) for _ in range(j * 40 // 25, (j + 1) * 40 // 25)]) * 2e6
+    assert np.all(t >= due - 2e5) and np.all(np.diff(t) >= 0), t
     assert len({f.timestamp_ns for f in fb[:40]}) == 1
     assert burst.stats()["e0"]["frames"] == 3 and spread.stats()["e39"]["frames"] == 3
 
