@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ParameterError, WireError
 from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_BITS, QuantizedFrames, as_int_array, check_alpha,
-                       check_bits, check_generator, check_uint64, pack_codes, packed_size, unpack_codes)
+                       check_bits, check_generator, check_uint64, pack_codes, unpack_codes)
 
 MAGIC = b"QRDR"
 #: format version of each dither generator (quantized frames); raw frames are written as 1
