@@ -120,8 +120,8 @@ class SimSourceConfig:
     simulated K-MD2's nominal time base). seed: sensor i draws its noise as a simulated
     K-MD2 with seed ``seed + i`` does. frames: frames per sensor, then the source ends
     (None = never). send: "burst" (every sensor's frame of a period at its start, as
-    sensors on one clock) or "spread" (sensor i's frames offset by i/sensors of the
-    period, sent in groups at most SPREAD_SLOT_S apart, as independent sensors)."""
+    sensors on one clock) or "spread" (the sensors' send times spread evenly over the
+    period, in groups SPREAD_SLOT_S apart, as independent sensors send)."""
 
     scene: SimScene
     sensors: int = 1

@@ -77,7 +77,7 @@ def add_commands(sub) -> None:
     p.add_argument("--seed", type=nonneg_int, default=0, help="noise seed (sensor i draws as a K-MD2 of seed + i)")
     p.add_argument("--send", choices=list(SEND_MODES), default="burst",
                    help="burst: every sensor's frame at the start of each period (sensors on one clock); spread: "
-                   "sensor i offset by i/sensors of the period (independent sensors)")
+                   "the sensors' send times spread evenly over the period, in groups 2 ms apart (independent sensors)")
     edge_quantizer_options(p, "--quantized")
     p.add_argument("--recording", type=Path, default=None,
                    help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
