@@ -84,12 +84,14 @@ class FairQueue:
                 pass
 
     def get_batch(self, max_items: int, timeout_s: float, per_sensor: int | None = None,
-                  linger_s: float = 0.0) -> list[Any]:
+                  linger_s: float = 0.0, lull_s: float = 0.001) -> list[Any]:
         """Up to ``max_items`` frames, one per waiting sensor in turn, at most ``per_sensor``
         of one sensor (a flooding sensor cannot fill a batch and so delay the others' next
         frames by a whole batch); waits at most ``timeout_s`` for the first; [] if none came.
-        ``linger_s``: once a frame waits, wait up to this long for ``max_items`` (frames of
-        sensors sending at their own times then share one vectorized call)."""
+        ``linger_s``: once a frame waits, wait up to this long for ``max_items`` while
+        frames keep coming (a lull of ``lull_s`` without one ends the wait), so frames of
+        sensors sending at their own times share one vectorized call and a lone sensor
+        waits at most ``lull_s``."""
         deadline = time.monotonic() + timeout_s
         out: list[Any] = []
         with self._cond:
@@ -101,7 +103,10 @@ class FairQueue:
             if linger_s > 0 and self._frames < max_items:
                 until = time.monotonic() + linger_s
                 while self._frames < max_items and (left := until - time.monotonic()) > 0:
-                    self._cond.wait(left)
+                    before = self._frames
+                    self._cond.wait(min(left, lull_s))
+                    if self._frames == before:  # a lull: no one else is sending now
+                        break
             taken: dict[Hashable, int] = {}
             full: list[Hashable] = []  # sensors whose share of this batch is taken
             while self._ring and len(out) < max_items:

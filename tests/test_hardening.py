@@ -5,6 +5,7 @@ across processes over 127.0.0.1; every wait bounded."""
 import json
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -341,3 +342,25 @@ def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, zenoh_se
     with open(tmp_path / "r.mcap", "rb") as f:
         topics = {ch.topic for ch in make_reader(f).get_summary().channels.values()}
     assert "radar/s6/raw" in topics and not [t for t in topics if "junk" in t]
+
+
+def test_a_batch_lingers_while_frames_keep_coming_and_not_for_a_lone_frame():
+    q = FairQueue(max_frames=100)
+    q.put("a", "a0", 1)
+    t0 = time.monotonic()
+    assert q.get_batch(64, 1.0, linger_s=10.0, lull_s=0.01) == ["a0"]  # a lull ends the wait, not the 10 s
+    assert time.monotonic() - t0 < 5.0
+    stop = threading.Event()
+
+    def send():
+        for i in range(200):  # every 2 ms, well inside the lull
+            if stop.wait(0.002):
+                return
+            q.put(f"s{i % 50}", i, 1)
+    t = threading.Thread(target=send, daemon=True)
+    q.put("first", "x", 1)
+    t.start()
+    batch = q.get_batch(20, 1.0, linger_s=5.0, lull_s=0.05)
+    stop.set()
+    t.join(5)
+    assert len(batch) == 20  # it waited for a full batch while frames came
