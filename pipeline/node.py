@@ -398,12 +398,18 @@ class ProcessingNode(Node):
     #: sensors sending at their own times then share one vectorized call, whose fixed cost
     #: dominates a batch of one
     batch_linger_s: float = 0.0
+    #: a lull this long without a new frame ends the wait for a full batch (s)
+    batch_lull_s: float = 0.003
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 8192,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
                  queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
-                 sensors: str = "*", shard: Shard | None = None):
+                 sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None):
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
+        if batch_linger_s is not None:
+            if not 0 <= batch_linger_s <= 1.0:
+                raise ParameterError(f"batch linger {batch_linger_s!r} s must be in [0, 1]")
+            self.batch_linger_s = batch_linger_s
         self.sensors = check_sensor_pattern(sensors)
         self.shard = shard
         self.foreign_frames = 0
@@ -502,7 +508,8 @@ class ProcessingNode(Node):
     def _work_loop(self) -> None:
         # after stop, drain what was queued before the subscriber went away
         while not (self._stop.is_set() and self._queue.empty()):
-            batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor, self.batch_linger_s)
+            batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor, self.batch_linger_s,
+                                         self.batch_lull_s)
             if not batch:
                 self.on_idle()
                 continue
