@@ -84,7 +84,7 @@ class FairQueue:
                 pass
 
     def get_batch(self, max_items: int, timeout_s: float, per_sensor: int | None = None,
-                  linger_s: float = 0.0, lull_s: float = 0.003) -> list[Any]:
+                  linger_s: float = 0.0, lull_s: float = 0.001) -> list[Any]:
         """Up to ``max_items`` frames, one per waiting sensor in turn, at most ``per_sensor``
         of one sensor (a flooding sensor cannot fill a batch and so delay the others' next
         frames by a whole batch); waits at most ``timeout_s`` for the first; [] if none came.

@@ -399,7 +399,7 @@ class ProcessingNode(Node):
     #: dominates a batch of one
     batch_linger_s: float = 0.0
     #: a lull this long without a new frame ends the wait for a full batch (s)
-    batch_lull_s: float = 0.003
+    batch_lull_s: float = 0.001
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 8192,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,

@@ -133,8 +133,8 @@ def queue_options(p) -> None:
     g.add_argument("--sensor-expiry", type=pos_float, default=60.0,
                    help="forget a sensor silent this many seconds (its counters stay in the totals)")
     g.add_argument("--batch-linger", type=nonneg_float, default=None, metavar="MS",
-                   help="once a frame waits, wait up to MS ms for a full batch while frames keep coming (default 5; "
-                   "10 for qiht and cml, whose call costs ~1 ms however few its frames)")
+                   help="once a frame waits, wait up to MS ms for a full batch while frames keep coming (default 2): "
+                   "longer saves CPU on a busy host (a call costs ~1 ms however few its frames) but adds latency")
 
 
 def serve_options(p) -> None:
