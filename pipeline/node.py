@@ -242,10 +242,6 @@ class Node:
         """A payload that does not decode (``decode_errors``)."""
         self.count(sensor_id, "decode_errors", exc)
 
-    def record_latency(self, sensor_id: str, latency_ms: float) -> None:
-        with self._lock:
-            self.sensor_stats(sensor_id).latency.add(latency_ms)
-
     def record_latencies(self, sensor_ids: list[str], latency_ms) -> None:
         """One latency (ms) per sensor id, under one lock (a batch of frames)."""
         with self._lock:
@@ -372,8 +368,6 @@ class Node:
                     out[k] += getattr(st, k)
             out["worker_restarts"] = self.worker_restarts
             out["sensors_expired"] = self.sensors_expired
-            if isinstance(self, ProcessingNode) and self.shard is not None:
-                out["foreign_frames"] = self.foreign_frames
             return out
 
 
@@ -420,6 +414,14 @@ class ProcessingNode(Node):
         self._queue = FairQueue(queue_size, per_sensor, queue_bytes)
         self.batch_max = batch_max
         self._subscriber = None
+
+    def totals(self) -> dict[str, int]:
+        """:meth:`Node.totals`, plus ``foreign_frames`` (other shards' frames) with a shard."""
+        out = super().totals()
+        if self.shard is not None:
+            with self._lock:
+                out["foreign_frames"] = self.foreign_frames
+        return out
 
     def subscription(self) -> str:
         """The key expression this node listens to."""

@@ -25,12 +25,11 @@ from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
 from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
-from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seed
+from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seeds
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,
     FrameHeaders,
-    check_sensor_id,
     decode_quantized_batch,
     decode_raw_batch,
     encode_quantized_batch,
@@ -70,7 +69,6 @@ class SourceNode(Node):
         self.on_frame = on_frame
         self.quantizer = quantizer
         self.raw_every = raw_every
-        self._seeds = DitherSeeds(quantizer.dither_seed if quantizer is not None else 0)
         self._source_stats: dict[str, dict[str, int]] = {}
         self.done = threading.Event()
 
@@ -90,7 +88,7 @@ class SourceNode(Node):
         for f in batch:
             by_m[f.data.shape[0]].append(f)
         for group in by_m.values():
-            headers = FrameHeaders([check_sensor_id(f.sensor_id) for f in group],
+            headers = FrameHeaders([f.sensor_id for f in group],  # ids checked by the encoders
                                    np.array([f.seq for f in group], dtype=np.uint64),
                                    np.array([f.timestamp_ns for f in group], dtype=np.int64),
                                    np.array([f.config_id for f in group], dtype=np.uint32))
@@ -101,7 +99,7 @@ class SourceNode(Node):
                     raw = headers.take(keep)
                     self.publish_many(raw.sensor_id, "raw", encode_raw_batch(raw, data[keep]), OCTETS)
             if self.quantizer is not None:
-                quantize_and_publish(self, self.quantizer, self._seeds, headers, data, "raw")
+                quantize_and_publish(self, self.quantizer, headers, data, "raw")
 
     def _stopping(self) -> None:
         self.source.request_stop()  # the reader ends at the next frame and closes the source itself
@@ -120,32 +118,8 @@ class SourceNode(Node):
 OCTETS = "application/octet-stream"
 
 
-class DitherSeeds:
-    """The per-sensor dither seeds of one base seed (:func:`sensor_dither_seed`), remembered."""
-
-    def __init__(self, seed: int):
-        self.seed = seed
-        self._of: dict[str, int] = {}
-
-    def __call__(self, sensor_ids: list[str]) -> np.ndarray:
-        """(B,) uint64, one per frame."""
-        of = self._of
-        if len(of) > 65536:
-            of.clear()
-        return np.array([of.get(s) or of.setdefault(s, sensor_dither_seed(self.seed, s)) for s in sensor_ids],
-                        dtype=np.uint64)
-
-
-def take_frames(q: QuantizedFrames, index: np.ndarray) -> QuantizedFrames:
-    """The frames ``index`` of a batch (per-frame fields subset, per-batch ones kept)."""
-    def sub(v):
-        return v[index] if np.ndim(v) else v
-    return replace(q, codes=q.codes[index], delta=q.delta[index], alpha=sub(q.alpha),
-                   dither_seed=sub(q.dither_seed), seq=q.seq[index], generator=sub(q.generator))
-
-
-def quantize_and_publish(node: Node, config: QuantizerConfig, seeds: DitherSeeds, headers: FrameHeaders,
-                         data: np.ndarray, topic: str) -> None:
+def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHeaders, data: np.ndarray,
+                         topic: str) -> None:
     """Quantize frames (B, M, 2) of many sensors in one vectorized call, each with its
     sensor's dither seed, and publish them on ``quantized``. Frames whose samples are not
     finite or beyond MAX_SAMPLE are refused (``invalid_frames``); a failure of the maths
@@ -160,7 +134,7 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, seeds: DitherSeeds
         return
     frames = data[keep].astype(np.complex128)
     kept = headers.take(keep)
-    seed = seeds(kept.sensor_id)
+    seed = sensor_dither_seeds(config.dither_seed, kept.sensor_id)
 
     def compute(idx):
         return quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx])
@@ -261,7 +235,7 @@ class FrameNode(ProcessingNode):
                 out.append(g)
             elif ok.any():
                 keep = np.flatnonzero(ok)
-                frames = take_frames(g.frames, keep) if self.in_topic == "quantized" else g.data[keep]
+                frames = g.frames.take(keep) if self.in_topic == "quantized" else g.data[keep]
                 out.append(replace(g, headers=h.take(keep), index=g.index[keep],
                                    **({"frames": frames} if self.in_topic == "quantized" else {"data": frames})))
         return out, keys
@@ -302,12 +276,11 @@ class QuantizeNode(FrameNode):
                  radar: RadarConfig | None = None, max_ramps: int = 16, **kw):
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
-        self._seeds = DitherSeeds(config.dither_seed)
 
     def process(self, batch) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
-            quantize_and_publish(self, self.config, self._seeds, g.headers, g.data, "raw")
+            quantize_and_publish(self, self.config, g.headers, g.data, "raw")
 
 
 @dataclass(frozen=True)
@@ -380,14 +353,14 @@ class LocalizeNode(FrameNode):
                     sel &= ~bad
                 idx = np.flatnonzero(sel)
                 if idx.size:
-                    self._localize(self._configs[cid], h.take(idx), take_frames(frames, idx) if quantized
+                    self._localize(self._configs[cid], h.take(idx), frames.take(idx) if quantized
                                    else frames[idx], [keys[i] for i in g.index[idx].tolist()])
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
 
         def compute(idx):
-            return decode_batch(take_frames(frames, idx) if isinstance(frames, QuantizedFrames) else frames[idx],
+            return decode_batch(frames.take(idx) if isinstance(frames, QuantizedFrames) else frames[idx],
                                 radar, cfg.k, cfg.decoder())
 
         def failed(i, exc):

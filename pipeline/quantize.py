@@ -35,7 +35,7 @@ imaginary parts, each in C order.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Literal, Sequence
 
@@ -422,6 +422,14 @@ class QuantizedFrames:
     def values(self) -> np.ndarray:
         """Z, the quantized complex values, (B, M, 2)."""
         return dequantize(self.codes, self.delta, self.bits)
+
+    def take(self, index) -> "QuantizedFrames":
+        """The frames ``index`` of the batch (an int index array): per-frame fields are
+        subset, per-batch ones (a scalar alpha, seed or generator) kept."""
+        def sub(v):
+            return v[index] if np.ndim(v) else v
+        return replace(self, codes=self.codes[index], delta=self.delta[index], alpha=sub(self.alpha),
+                       dither_seed=sub(self.dither_seed), seq=self.seq[index], generator=sub(self.generator))
 
     def ramp_mean(self, n: int) -> np.ndarray:
         """The mean of Z over the frame's ramps of ``n`` measurements (M = R n), (B, n, 2)

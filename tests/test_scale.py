@@ -228,3 +228,9 @@ def test_edge_options_are_refused_where_they_make_no_sense():
     r = subprocess.run([sys.executable, "-m", "qradar", "localize", "--shard", "3/2", "--duration", "0.1"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode != 0 and "shard" in r.stderr
+    for args, says in ((["localize", "--sensors", "a/b"], "sensor pattern 'a/b' must be one key chunk"),
+                       (["localize", "--batch-linger", "-1"], "--batch-linger"),
+                       (["drive", "--port", "/dev/null", "--quantize", "--no-publish"], "cannot go with --no-publish")):
+        r = subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and says in r.stderr.strip().splitlines()[-1], r.stderr
+        assert "Traceback" not in r.stderr
