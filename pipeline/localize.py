@@ -46,10 +46,21 @@ def back_project_ramps(z: np.ndarray, config: RadarConfig) -> np.ndarray:
     b, m, _ = z.shape
     if m == 0 or m % n:
         raise ParameterError(f"M={m} is not a whole number of ramps of N={n} samples")
-    folded = z.reshape(b, m // n, n, 2).sum(axis=1)  # (B, N, 2)
+    folded = z if m == n else z.reshape(b, m // n, n, 2).sum(axis=1)  # (B, N, 2)
     # sum_k folded_k exp(+i 2 pi k n / N) = N * ifft; the f0 term exp(+i 4 pi f0 R_n / c)
-    spectrum = np.fft.ifft(folded, axis=1) * (n / m)
-    return spectrum * np.conj(carrier(config))[None, :, None].astype(spectrum.dtype)
+    spectrum = np.fft.ifft(folded, axis=1)
+    if m != n:
+        spectrum *= n / m
+    spectrum *= _conj_carrier(config)[None, :, None]
+    return spectrum
+
+
+@lru_cache(maxsize=32)
+def _conj_carrier(config: RadarConfig) -> np.ndarray:
+    """``conj(carrier(config))``, (N,) complex128, read-only."""
+    c = np.conj(carrier(config)).astype(np.complex128)
+    c.flags.writeable = False
+    return c
 
 
 def back_project_dense(z: np.ndarray, config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
@@ -89,17 +100,28 @@ def back_project(z: np.ndarray, config: RadarConfig, indices: np.ndarray | None 
     return back_project_dense(z, config, indices)
 
 
-def joint_support(u: np.ndarray, k: int) -> np.ndarray:
+def joint_energy(u: np.ndarray) -> np.ndarray:
+    """``|U_n1|^2 + |U_n2|^2``, the squared joint norm of each bin: (B, N, 2) complex ->
+    (B, N) float (squares of the real and imaginary parts; no reduction over the short
+    antenna axis, which numpy does slowly)."""
+    u = np.ascontiguousarray(u, dtype=np.complex128)
+    p = np.square(u.view(np.float64)).reshape(u.shape[:-1] + (4,))  # Re, Im of antenna 1, then 2
+    return (p[..., 0] + p[..., 1]) + (p[..., 2] + p[..., 3])
+
+
+def joint_support(u: np.ndarray, k: int, energy: np.ndarray | None = None) -> np.ndarray:
     """Indices of the K bins with the largest ``(|U_n1|^2 + |U_n2|^2)^(1/2)``,
-    strongest first: (B, N, 2) -> (B, K) int."""
+    strongest first: (B, N, 2) -> (B, K) int. ``energy``: :func:`joint_energy` of U
+    when already known."""
     u = np.asarray(u)
     n = u.shape[1]
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
         raise ParameterError(f"K={k!r} must be an integer in [1, N={n}]")
-    energy = (np.abs(u) ** 2).sum(axis=2)  # monotone in the joint norm
+    energy = joint_energy(u) if energy is None else energy  # monotone in the joint norm
     top = np.argpartition(-energy, k - 1, axis=1)[:, :k]
-    order = np.argsort(-np.take_along_axis(energy, top, axis=1), axis=1, kind="stable")
-    return np.take_along_axis(top, order, axis=1)
+    frames = np.arange(top.shape[0])[:, None]
+    order = np.argsort(-energy[frames, top], axis=1, kind="stable")
+    return top[frames, order]
 
 
 def project_theta_k(u: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,13 +183,14 @@ def to_db(ratio: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(db, nan=-STATISTIC_CAP_DB), -STATISTIC_CAP_DB, STATISTIC_CAP_DB)
 
 
-def grid_statistic_db(u: np.ndarray, support: np.ndarray) -> np.ndarray:
+def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | None = None) -> np.ndarray:
     """Cell-averaging statistic of the support bins of a back projection U (B, N, 2),
     support (B, K) strongest first: dB, (B, K). Target t: its joint energy
-    ``|U1|^2 + |U2|^2`` over the mean of the bins outside ``support[:, :t + 1]``."""
-    energy = (np.abs(u) ** 2).sum(axis=2)  # (B, N)
+    ``|U1|^2 + |U2|^2`` over the mean of the bins outside ``support[:, :t + 1]``.
+    ``energy``: :func:`joint_energy` of U when already known."""
+    energy = joint_energy(u) if energy is None else energy  # (B, N)
     n = energy.shape[1]
-    e_t = np.take_along_axis(energy, support, axis=1)
+    e_t = energy[np.arange(energy.shape[0])[:, None], support]
     rest = (energy.sum(axis=1, keepdims=True) - np.cumsum(e_t, axis=1)) / np.maximum(
         n - 1 - np.arange(support.shape[1]), 1)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -233,11 +256,11 @@ class Detections:
 def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarConfig,
                             statistic_db: np.ndarray | None = None) -> Detections:
     """Range, angle and position of each support bin of U (B, N, 2); support (B, K)."""
-    rows = np.take_along_axis(u, support[:, :, None], axis=1)  # (B, K, 2)
+    rows = u[np.arange(u.shape[0])[:, None], support]  # (B, K, 2)
     angle = angle_from_antennas_rad(rows[..., 0], rows[..., 1], config)
     rng_m = config.range_grid_m()[support]
     x, y = polar_to_xy(rng_m, angle)
-    amp = np.sqrt((np.abs(rows) ** 2).sum(axis=2) / 2.0)
+    amp = np.sqrt(joint_energy(rows) / 2.0)
     return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
 
 
@@ -248,8 +271,9 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     most ``k``) by a sequential CFAR test with this false-alarm probability per frame
     and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets."""
     u = back_project(z, config, indices)
-    support = joint_support(u, k)
-    det = detections_from_support(u, support, config, grid_statistic_db(u, support))
+    energy = joint_energy(u)
+    support = joint_support(u, k, energy)
+    det = detections_from_support(u, support, config, grid_statistic_db(u, support, energy))
     if pfa is None:
         return det
     threshold_db = 10 * np.log10(cfar_threshold(pfa, config.samples_per_ramp))

@@ -439,7 +439,12 @@ class QuantizedFrames:
         if m % n:
             raise ParameterError(f"M={m} is not a whole number of ramps of {n}")
         r = m // n
-        total = self.codes.reshape(b, r, n, 2, 2).sum(axis=1, dtype=np.int64).astype(np.float64)  # (B, n, 2, 2)
+        ramps = self.codes.reshape(b, r, n, 2, 2)
+        acc = np.uint16 if r * ((1 << self.bits) - 1) < 1 << 16 else np.int64  # exact integer sums
+        total = ramps[:, 0].astype(acc)
+        for j in range(1, r):  # ramps, not frames: one add over the batch each
+            total += ramps[:, j]
+        total = total.astype(np.float64)  # (B, n, 2, 2)
         total *= 1.0 / r
         total -= (1 << (self.bits - 1)) - 0.5
         total *= _per_frame(check_delta(self.delta, b), 4)

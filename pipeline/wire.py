@@ -684,15 +684,16 @@ def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: 
             % JSON_VERSION + '"algo":' + json.dumps(algo).replace("%", "%%") + ',"K":%d' % int(k)
             + (',"K_auto":true' if auto_k else "") + ',"source":' + json.dumps(source).replace("%", "%%")
             + ',"published_ns":%d,"targets":')
-    patterns, which = np.unique(np.concatenate([count[:, None], has_stat], axis=1), axis=0, return_inverse=True)
+    by_pattern: dict[tuple, list[int]] = {}  # (count, has_stat of the present targets) -> frames
+    for i, (c, stats) in enumerate(zip(count.tolist(), has_stat.tolist())):
+        by_pattern.setdefault((c, *stats[:c]), []).append(i)
     out: list[bytes] = [b""] * b
     seqs, stamps, configs = headers.seq.tolist(), headers.timestamp_ns.tolist(), headers.config_id.tolist()
-    for p, pattern in enumerate(patterns.tolist()):
-        targets, columns = _targets_template(tuple(bool(x) for x in pattern[1:pattern[0] + 1]))
+    for pattern, frames in by_pattern.items():
+        targets, columns = _targets_template(tuple(bool(x) for x in pattern[1:]))
         template = head + targets + "}"
-        frames = np.flatnonzero(which.ravel() == p)
-        rows = values[np.ix_(frames, columns)].tolist() if columns else [[]] * frames.size
-        for i, row in zip(frames.tolist(), rows):
+        rows = values[np.ix_(frames, columns)].tolist() if columns else [[]] * len(frames)
+        for i, row in zip(frames, rows):
             out[i] = (template % (quoted[headers.sensor_id[i]], seqs[i], stamps[i], configs[i], published[i],
                                   *row)).encode()
     return out
