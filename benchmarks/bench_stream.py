@@ -15,11 +15,19 @@ the source, CPU per process over the measured window (% of one core), the load a
 the start; with ``--baseline``, the same messages (count per second, sizes) through a bare
 zenoh publisher -> subscriber pair of processes just before the step.
 
+``--premade`` (edge only) separates the sensors from the host under test: every frame of
+the sweep is simulated and quantized first, exactly as ``qradar source --quantized`` makes
+it (``streamlib.make_premade``, ~70 µs a frame, with a progress bar), and a player process
+sends them with the same pacing, each timestamp rewritten to its send time. The two cores
+then carry the localizer, the sink and the sending alone, as a localizer host does whose
+sensors quantize on their own hardware.
+
 Steps: ``--sensors`` in order, stopping at the first failure; ``--bisect`` then halves
 the gap between the last pass and the first failure down to ``--resolution`` sensors.
 
     .venv/bin/python benchmarks/bench_stream.py                       # the full sweep (~1-2 h)
     .venv/bin/python benchmarks/bench_stream.py --case edge --algo pbp --sensors 300 400 500 --bisect
+    .venv/bin/python benchmarks/bench_stream.py --case edge --send spread --premade --sensors 300 500 --bisect
     .venv/bin/python benchmarks/bench_stream.py --quick                # 5 sensors, 3 s, pbp: < 1 min
 """
 
@@ -27,7 +35,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -115,6 +125,10 @@ def main() -> None:
     ap.add_argument("--source-args", default=None, help="more options for `qradar source` (one string)")
     ap.add_argument("--quantize-args", default=None)
     ap.add_argument("--localize-args", default=None)
+    ap.add_argument("--premade", action="store_true",
+                    help="edge only: the sensors' frames are made (simulated and quantized) before the sweep "
+                    "and a player sends them, timestamps rewritten: the host's cores carry only the sending, "
+                    "the localizer and the sink, as with sensors on their own hardware")
     ap.add_argument("--quick", action="store_true",
                     help="a smoke run: 5 sensors, 3 s after 2 s of warm-up, pbp, burst (each unless given)")
     ap.add_argument("--json", type=Path, default=None, help="write every step and the summary here")
@@ -132,7 +146,25 @@ def main() -> None:
         if "--send" not in given:
             args.send = ["burst"]
     progress = sys.stderr.isatty()
+    if args.premade and args.case != ["edge"]:
+        ap.error("--premade sends 1-bit frames: use it with --case edge")
     rows: list[dict] = []
+    premade_dir = Path(tempfile.mkdtemp(prefix="qr-premade-")) if args.premade else None
+    try:
+        rows = run_sweeps(args, premade_dir, progress)
+    finally:
+        if premade_dir is not None:
+            shutil.rmtree(premade_dir, ignore_errors=True)
+    report(args, rows)
+
+
+def run_sweeps(args, premade_dir: Path | None, progress: bool) -> list[dict]:
+    rows: list[dict] = []
+    premade = ""
+    if premade_dir is not None:
+        frames = int(round((args.warmup + args.seconds) * sl.RATE_HZ))
+        premade = str(sl.make_premade(premade_dir / "frames.npy", "chamber", max(args.sensors), frames, args.alpha,
+                                      1, "b", progress=True))
     for case in args.case:
         for send in args.send:
             for algo in args.algo:
@@ -142,9 +174,13 @@ def main() -> None:
                                    baseline_s=args.baseline_seconds if args.baseline else 0.0,
                                    source_args=sl.split_args(args.source_args),
                                    quantize_args=sl.split_args(args.quantize_args),
-                                   localize_args=sl.split_args(args.localize_args))
+                                   localize_args=sl.split_args(args.localize_args), premade=premade)
                 rows += sweep(base, args.sensors, sl.Loopback, args.bisect, args.resolution, progress,
                               lambda r: print(sl.step_line(r), file=sys.stderr, flush=True))
+    return rows
+
+
+def report(args, rows: list[dict]) -> None:
     summ = summary(rows)
     print(f"\n{len(rows)} steps, {args.seconds:g} s measured each after {args.warmup:g} s of warm-up, "
           f"20 frames/s per sensor; pass = 0 frames lost and p99 <= {sl.MAX_P99_MS:g} ms\n")

@@ -153,6 +153,9 @@ class StepSpec:
     hub: str = "node"  # node: the first downstream node listens; router: a qradar router
     baseline_s: float = 0.0  # > 0: the bare-zenoh baseline first, that long
     source_args: tuple[str, ...] = ()
+    #: edge only: a file of frames made before the step (:func:`make_premade`), sent by a
+    #: ``player`` instead of ``qradar source`` (the sensors' work done off this host)
+    premade: str = ""
     quantize_args: tuple[str, ...] = ()
     localize_args: tuple[str, ...] = ()
 
@@ -167,7 +170,7 @@ class StepSpec:
     def label(self) -> str:
         shards = (f" {self.quantizers}q" if self.case == "central" and self.quantizers > 1 else "") + \
             (f" {self.localizers}l" if self.localizers > 1 else "")
-        return f"{self.case}/{self.send}/{self.algo}{shards}"
+        return f"{self.case}/{self.send}/{self.algo}{shards}" + (" premade" if self.premade else "")
 
 
 class Topology:
@@ -257,6 +260,11 @@ def node_commands(spec: StepSpec, topo: Topology, sid_prefix: str) -> tuple[list
         src += ["--quantized", *_quant_args(spec)]
     if spec.send == "spread":
         src += ["--send", "spread"]
+    if spec.premade:
+        if spec.case != "edge":
+            raise ValueError("premade frames are 1-bit frames: the edge case only")
+        src = [str(Path(__file__).resolve()), "player", "--file", spec.premade, "--sensors", str(spec.sensors),
+               "--frames", str(spec.frames), "--id-prefix", sid_prefix, "--send", spec.send]
     src += _bus(topo, "source", False)
     return [(n, r, topo.argv(r, a)) for n, r, a in nodes], ("source", "source", topo.argv("source", src))
 
@@ -566,6 +574,93 @@ def install_stop(event: threading.Event) -> None:
     signal.signal(signal.SIGINT, lambda *_: event.set())
 
 
+# -- pre-made edge frames: the sensors' work done before the step -----------------------------
+def make_premade(path: Path, scene: str, sensors: int, frames: int, alpha: float, bits: int, id_prefix: str,
+                 progress: bool = False) -> Path:
+    """The 1-bit frames ``qradar source --quantized --rate 0`` publishes (same simulation,
+    noise, dither seed rule and quantizer), for ``sensors`` x ``frames``, into a ``.npy``
+    of shape (frames, sensors, payload bytes): a player sends them later with only the
+    timestamp rewritten, so a step measures the localizer's host without the sensors'
+    simulation and quantization on its cores."""
+    import numpy as np
+    from pipeline.progress import Progress
+    from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+    from pipeline.wire import FrameHeaders, encode_quantized_batch
+    from radar_driver.scene import resolve_scene
+    from radar_driver.source import SimSourceConfig, SimulatedSource
+    cfg = QuantizerConfig(bits=bits, alpha=alpha)
+    size = frame_sizes(StepSpec("edge", "burst", "pbp", sensors, 0.0, bits=bits, scene=scene))["quantized"]
+    tmp = path.with_suffix(".part.npy")
+    out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(frames, sensors, size))
+    src = SimulatedSource(SimSourceConfig(resolve_scene(scene), sensors=sensors, rate_hz=0.0, frames=frames,
+                                          id_prefix=id_prefix))
+    seeds = None
+    with Progress(frames, f"pre-made frames, {sensors} sensors", "frames per sensor", enabled=progress) as bar:
+        for k, batch in enumerate(src.frame_batches()):  # burst: one batch per tick, every sensor
+            headers = FrameHeaders([f.sensor_id for f in batch], [f.seq for f in batch],
+                                   [f.timestamp_ns for f in batch], [f.config_id for f in batch])
+            if seeds is None:
+                seeds = sensor_dither_seeds(cfg.dither_seed, headers.sensor_id)
+            data = np.stack([f.data for f in batch]).astype(np.complex128)
+            q = quantize_frames(data, cfg, headers.seq, dither_seed=seeds)
+            out[k] = np.frombuffer(b"".join(encode_quantized_batch(headers, q)), dtype=np.uint8).reshape(-1, size)
+            bar.update(1)
+    out.flush()
+    del out
+    os.replace(tmp, path)
+    return path
+
+
+def main_player(args) -> None:
+    """Send pre-made 1-bit frames on <prefix>/<id>/quantized at 20 frames/s per sensor,
+    paced as ``qradar source`` paces (burst or spread groups, the same late-tick rule), each
+    frame's timestamp rewritten to the time its group is due; then the source's totals."""
+    import numpy as np
+    import zenoh
+    from pipeline.wire import COMMON_DTYPE
+    from radar_driver.source import SPREAD_SLOT_S
+    frames = np.load(args.file, mmap_mode="r")
+    n, k_max = args.sensors, min(args.frames, frames.shape[0])
+    if n > frames.shape[1]:
+        sys.exit(f"player: {args.file} holds {frames.shape[1]} sensors, fewer than --sensors {n}")
+    session = _open(args, False)
+    octets = zenoh.Encoding("application/octet-stream")
+    pubs = [session.declare_publisher(f"{args.prefix}/{args.id_prefix}{i}/quantized", encoding=octets,
+                                      congestion_control=zenoh.CongestionControl.BLOCK) for i in range(n)]
+    stop = threading.Event()
+    install_stop(stop)
+    ts_at = COMMON_DTYPE.fields["timestamp_ns"][1]
+    period = 1.0 / RATE_HZ
+    slots = 1 if args.send == "burst" else max(1, min(n, int(round(1.0 / (RATE_HZ * SPREAD_SLOT_S)))))
+    groups = [range(j * n // slots, (j + 1) * n // slots) for j in range(slots)]
+    sent = late = 0
+    t0 = time.monotonic()
+    t0_ns = time.time_ns()
+    for k in range(k_max):
+        if stop.is_set():
+            break
+        tick = np.array(frames[k, :n])  # writable, in memory
+        stamps = tick[:, ts_at:ts_at + 8].view("<i8")
+        for j, group in enumerate(groups):
+            due = t0 + (k + j / slots) * period
+            delay = due - time.monotonic()
+            if delay > 0:
+                if stop.wait(delay):
+                    break
+                ts = t0_ns + int((due - t0) * 1e9)
+            else:
+                if j == 0 and delay < -period:
+                    late += 1
+                ts = time.time_ns()
+            stamps[group.start:group.stop] = ts
+            for i in group:
+                pubs[i].put(tick[i].tobytes())
+            sent += len(group)
+    elapsed = time.monotonic() - t0
+    session.close()
+    print(json.dumps({"frames_out": sent, "late_ticks": late, "elapsed_s": round(elapsed, 3)}), flush=True)
+
+
 # -- the sink -------------------------------------------------------------------------------
 def main_sink(args) -> None:
     """Subscribe <prefix>/*/targets; report once every expected frame has its targets, or
@@ -703,6 +798,16 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=0)
     p.add_argument("--ready-timeout", type=float, default=45.0)
     p.set_defaults(func=main_sink)
+    p = sub.add_parser("player")
+    p.add_argument("--connect", required=True)
+    p.add_argument("--mode", default="client")
+    p.add_argument("--prefix", default="radar")
+    p.add_argument("--file", required=True)
+    p.add_argument("--sensors", type=int, required=True)
+    p.add_argument("--frames", type=int, required=True)
+    p.add_argument("--id-prefix", required=True)
+    p.add_argument("--send", choices=["burst", "spread"], default="burst")
+    p.set_defaults(func=main_player)
     p = sub.add_parser("bare-pub")
     p.add_argument("--connect", required=True)
     p.add_argument("--sensors", type=int, required=True)
