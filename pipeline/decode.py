@@ -187,7 +187,8 @@ def _strongest(u: np.ndarray, k: int) -> np.ndarray:
     the K bins of largest ``|U1|^2 + |U2|^2``, strongest first."""
     if k > SMALL_K:
         return joint_support(u.transpose(0, 2, 1), k)
-    energy = (np.abs(u) ** 2).sum(axis=1)  # the same sums as joint_support's
+    p = np.square(np.ascontiguousarray(u, dtype=complex).view(float)).reshape(u.shape + (2,))  # (B, 2, N, re/im)
+    energy = (p[:, 0, :, 0] + p[:, 0, :, 1]) + (p[:, 1, :, 0] + p[:, 1, :, 1])  # joint_energy's sums, in its order
     b = energy.shape[0]
     rows = np.arange(b)
     top = np.empty((b, k), dtype=np.int64)
