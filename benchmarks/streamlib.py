@@ -12,6 +12,8 @@ drop (the localizers publish with BLOCK: a slow sink would slow them, which its 
 figure shows). It counts targets per (sensor, seq) and the latency published_ns -
 timestamp_ns of frames past the warm-up. ``bare-pub`` / ``bare-sub`` are the bare-zenoh
 baseline: the step's messages (same count per second, same sizes) between two processes.
+``player`` sends frames made before the step (:func:`make_premade`) in place of ``qradar
+source``, with the same pacing, each timestamp rewritten to its send time.
 
 CPU per process: utime + stime from /proc/<pid>/stat over the measured window (the
 source's warm-up excluded), as % of one core.

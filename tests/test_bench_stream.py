@@ -113,3 +113,30 @@ def test_premade_frames_are_what_an_edge_source_publishes(tmp_path, bus, zenoh_s
         seq = int.from_bytes(payload[COMMON_DTYPE.fields["seq"][1]:][:8], "little")
         row = premade[seq, sensor].tobytes()
         assert row[:ts.start] == payload[:ts.start] and row[ts.stop:] == payload[ts.stop:], (key, seq)
+
+
+@pytest.mark.slow
+def test_bench_receive_counts_every_message_in_each_hand_off():
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_receive.py"), "--messages", "1500",
+                        "--rate", "3000", "--rounds", "1"], capture_output=True, text=True, cwd=ROOT, timeout=180,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [json.loads(line) for line in r.stderr.splitlines() if line.startswith("{")]
+    assert [row["mode"] for row in rows] == ["poll", "notify", "fifo"]
+    for row in rows:
+        assert row["complete"] and row["received"] >= 1500 and row["cpu_us_per_msg"] > 0, row
+    assert "| 0 | fifo |" in r.stdout
+
+
+def test_bench_localize_steps_times_every_step():
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_localize_steps.py"), "--frames", "64",
+                        "--batches", "1,16", "--passes", "1"], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| 1") or
+            line.startswith("| 16")]
+    assert [int(row[0]) for row in rows] == [1, 16]
+    for row in rows:
+        steps = [float(c) for c in row[1:7]]
+        assert all(v >= 0 for v in steps) and steps[2] > 0  # decode takes time
+        assert abs(sum(steps) - float(row[7])) <= 6  # the batch is the sum of its steps (rounding)
