@@ -73,6 +73,8 @@ def main() -> None:
         print("|---" * (len(STEPS) + 3) + "|")
         for b in (int(x) for x in args.batches.split(",")):
             batches = [items[i:i + b] for i in range(0, len(items) - b + 1, b)]
+            if not batches:
+                sys.exit(f"--frames {args.frames} is fewer than a batch of {b}")
             one_pass(node, batches[:2])  # warm caches and publishers
             best = min((one_pass(node, batches) for _ in range(args.passes)), key=lambda r: sum(r.values()))
             per_batch = sum(best.values()) * 1e6

@@ -148,6 +148,8 @@ def main() -> None:
     progress = sys.stderr.isatty()
     if args.premade and args.case != ["edge"]:
         ap.error("--premade sends 1-bit frames: use it with --case edge")
+    if args.premade and args.source_args:
+        ap.error("--premade replaces `qradar source` (chamber scene, 1 bit): --source-args would be ignored")
     rows: list[dict] = []
     premade_dir = Path(tempfile.mkdtemp(prefix="qr-premade-")) if args.premade else None
     try:
@@ -164,7 +166,7 @@ def run_sweeps(args, premade_dir: Path | None, progress: bool) -> list[dict]:
     if premade_dir is not None:
         frames = int(round((args.warmup + args.seconds) * sl.RATE_HZ))
         premade = str(sl.make_premade(premade_dir / "frames.npy", "chamber", max(args.sensors), frames, args.alpha,
-                                      1, "b", progress=True))
+                                      1, sl.SENSOR_ID_PREFIX, progress=True))
     for case in args.case:
         for send in args.send:
             for algo in args.algo:

@@ -52,6 +52,8 @@ SINK_CPU_FLAG = 80.0
 #: the source must send at least this fraction of the offered frames per second
 PACE_MIN = 0.98
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+#: the simulated sensors' ids are <prefix>0, <prefix>1, ...
+SENSOR_ID_PREFIX = "b"
 TARGETS_BYTES = 330  # a targets message of K = 2 (JSON), for the bare baseline
 
 
@@ -319,7 +321,7 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
     logdir.mkdir(parents=True, exist_ok=True)
     if spec.baseline_s > 0:
         row["bare"] = run_bare(spec, topo, logdir)
-    sid_prefix = "b"
+    sid_prefix = SENSOR_ID_PREFIX
     node_cmds, src_cmd = node_commands(spec, topo, sid_prefix)
     procs: list[Proc] = []
     reasons: list[str] = []
@@ -622,9 +624,10 @@ def main_player(args) -> None:
     from pipeline.wire import COMMON_DTYPE
     from radar_driver.source import SPREAD_SLOT_S
     frames = np.load(args.file, mmap_mode="r")
-    n, k_max = args.sensors, min(args.frames, frames.shape[0])
-    if n > frames.shape[1]:
-        sys.exit(f"player: {args.file} holds {frames.shape[1]} sensors, fewer than --sensors {n}")
+    n, k_max = args.sensors, args.frames
+    if n > frames.shape[1] or k_max > frames.shape[0]:
+        sys.exit(f"player: {args.file} holds {frames.shape[1]} sensors x {frames.shape[0]} frames, fewer than "
+                 f"--sensors {n} x --frames {k_max}")
     session = _open(args, False)
     octets = zenoh.Encoding("application/octet-stream")
     pubs = [session.declare_publisher(f"{args.prefix}/{args.id_prefix}{i}/quantized", encoding=octets,

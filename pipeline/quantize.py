@@ -439,12 +439,12 @@ class QuantizedFrames:
         if m % n:
             raise ParameterError(f"M={m} is not a whole number of ramps of {n}")
         r = m // n
-        ramps = self.codes.reshape(b, r, n, 2, 2)
-        acc = np.uint16 if r * ((1 << self.bits) - 1) < 1 << 16 else np.int64  # exact integer sums
-        total = ramps[:, 0].astype(acc)
+        ramps = np.asarray(self.codes).reshape(b, r, n, 2, 2)
+        small = ramps.dtype in (np.uint8, np.bool_) and r * 255 < 1 << 16  # uint16 sums then exact, any codes
+        total = ramps[:, 0].astype(np.uint16 if small else np.int64)
         for j in range(1, r):  # ramps, not frames: one add over the batch each
-            total += ramps[:, j]
-        total = total.astype(np.float64)  # (B, n, 2, 2)
+            np.add(total, ramps[:, j], out=total, casting="unsafe")
+        total = np.ascontiguousarray(total, dtype=np.float64)  # (B, n, 2, 2)
         total *= 1.0 / r
         total -= (1 << (self.bits - 1)) - 0.5
         total *= _per_frame(check_delta(self.delta, b), 4)

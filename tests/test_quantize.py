@@ -6,6 +6,7 @@ from pipeline.errors import ParameterError, PipelineError
 from pipeline.quantize import (
     DITHER_COUNTER,
     DITHER_SEEDSEQ,
+    QuantizedFrames,
     QuantizerConfig,
     auto_delta,
     dequantize,
@@ -293,3 +294,17 @@ def test_the_fast_quantizer_and_dequantizer_equal_the_formulas_bit_for_bit(bits)
             ref = (codes.astype(float) - ((1 << (bits - 1)) - 0.5)) * d[:, None, None, None]
             z = dequantize(codes, d, bits)
             assert_array_equal(z.view(np.uint64), (ref[..., 0] + 1j * ref[..., 1]).view(np.uint64))
+
+
+@pytest.mark.parametrize("dtype,bits", [(np.uint8, 1), (np.uint8, 8), (np.uint16, 12), (np.int64, 1), (np.int8, 1)])
+@pytest.mark.parametrize("ramps", [1, 2, 7, 300])
+def test_ramp_mean_sums_codes_of_any_integer_type_and_layout_exactly(dtype, bits, ramps):
+    """The per-ramp integer adds give the sum over the ramps exactly (no wrap, even with
+    300 ramps of 8-bit codes), for C and Fortran order alike."""
+    rng = np.random.default_rng(ramps)
+    codes = rng.integers(0, 1 << bits, (3, ramps * 8, 2, 2)).astype(dtype)
+    want = (codes.reshape(3, ramps, 8, 2, 2).sum(axis=1, dtype=np.int64).astype(float) * (1.0 / ramps)
+            - ((1 << (bits - 1)) - 0.5)) * np.array([0.5, 1.0, 2.0])[:, None, None, None]
+    for c in (codes, np.asfortranarray(codes)):
+        q = QuantizedFrames(c, np.array([0.5, 1.0, 2.0]), bits, 1.0, 1, np.arange(3, dtype=np.uint64))
+        assert np.array_equal(q.ramp_mean(8), want.view(complex).reshape(3, 8, 2))
