@@ -622,7 +622,7 @@ def main_player(args) -> None:
     import numpy as np
     import zenoh
     from pipeline.wire import COMMON_DTYPE
-    from radar_driver.source import SPREAD_SLOT_S
+    from radar_driver.source import send_groups
     frames = np.load(args.file, mmap_mode="r")
     n, k_max = args.sensors, args.frames
     if n > frames.shape[1] or k_max > frames.shape[0]:
@@ -636,8 +636,8 @@ def main_player(args) -> None:
     install_stop(stop)
     ts_at = COMMON_DTYPE.fields["timestamp_ns"][1]
     period = 1.0 / RATE_HZ
-    slots = 1 if args.send == "burst" else max(1, min(n, int(round(1.0 / (RATE_HZ * SPREAD_SLOT_S)))))
-    groups = [range(j * n // slots, (j + 1) * n // slots) for j in range(slots)]
+    groups = send_groups(n, RATE_HZ, args.send)
+    slots = len(groups)
     sent = late = 0
     t0 = time.monotonic()
     t0_ns = time.time_ns()

@@ -110,6 +110,14 @@ SEND_MODES = ("burst", "spread")
 SPREAD_SLOT_S = 2e-3
 
 
+def send_groups(sensors: int, rate_hz: float, send: str) -> list[range]:
+    """The groups of sensor indices sent together in a frame period: all at once
+    (``burst``, or ``rate_hz`` 0), or ``spread`` over the period in groups SPREAD_SLOT_S
+    apart (group j due j / len(groups) of a period after the first)."""
+    slots = 1 if send == "burst" or not rate_hz else max(1, min(sensors, int(round(1.0 / (rate_hz * SPREAD_SLOT_S)))))
+    return [range(j * sensors // slots, (j + 1) * sensors // slots) for j in range(slots)]
+
+
 @dataclass(frozen=True)
 class SimSourceConfig:
     """In-process simulated sensors.
@@ -177,10 +185,7 @@ class SimulatedSource(StoppableSource):
         self._slot = 0  # its next group of sensors
         self._pending: list[RawFrame] = []  # made, not yet handed out (a read stopped at a limit)
         self._clean: tuple[int, np.ndarray] | None = None  # the tick's noiseless ramps
-        n = config.sensors
-        slots = 1 if config.send == "burst" or not config.rate_hz else \
-            max(1, min(n, int(round(1.0 / (config.rate_hz * SPREAD_SLOT_S)))))
-        self._slots = [range(j * n // slots, (j + 1) * n // slots) for j in range(slots)]
+        self._slots = send_groups(config.sensors, config.rate_hz, config.send)
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {sid: {"frames": st.frames, "dropped": st.dropped} for sid, st in self._stats.items()}
