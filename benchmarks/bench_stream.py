@@ -20,7 +20,8 @@ the sweep is simulated and quantized first, exactly as ``qradar source --quantiz
 it (``streamlib.make_premade``, ~70 µs a frame, with a progress bar), and a player process
 sends them with the same pacing, each timestamp rewritten to its send time. The two cores
 then carry the localizer, the sink and the sending alone, as a localizer host does whose
-sensors quantize on their own hardware.
+sensors quantize on their own hardware. ``--busy N`` runs N processes spinning on the CPU
+through every step (started first, killed last): a host busy with other work.
 
 Steps: ``--sensors`` in order, stopping at the first failure; ``--bisect`` then halves
 the gap between the last pass and the first failure down to ``--resolution`` sensors.
@@ -129,6 +130,8 @@ def main() -> None:
                     help="edge only: the sensors' frames are made (simulated and quantized) before the sweep "
                     "and a player sends them, timestamps rewritten: the host's cores carry only the sending, "
                     "the localizer and the sink, as with sensors on their own hardware")
+    ap.add_argument("--busy", type=int, default=0,
+                    help="this many processes spinning on the CPU through every step (a busy host)")
     ap.add_argument("--quick", action="store_true",
                     help="a smoke run: 5 sensors, 3 s after 2 s of warm-up, pbp, burst (each unless given)")
     ap.add_argument("--json", type=Path, default=None, help="write every step and the summary here")
@@ -176,7 +179,8 @@ def run_sweeps(args, premade_dir: Path | None, progress: bool) -> list[dict]:
                                    baseline_s=args.baseline_seconds if args.baseline else 0.0,
                                    source_args=sl.split_args(args.source_args),
                                    quantize_args=sl.split_args(args.quantize_args),
-                                   localize_args=sl.split_args(args.localize_args), premade=premade)
+                                   localize_args=sl.split_args(args.localize_args), premade=premade,
+                                   busy=args.busy)
                 rows += sweep(base, args.sensors, sl.Loopback, args.bisect, args.resolution, progress,
                               lambda r: print(sl.step_line(r), file=sys.stderr, flush=True))
     return rows

@@ -160,6 +160,8 @@ class StepSpec:
     #: edge only: a file of frames made before the step (:func:`make_premade`), sent by a
     #: ``player`` instead of ``qradar source`` (the sensors' work done off this host)
     premade: str = ""
+    #: processes that spin on the CPU for the whole step (a busy host), started first
+    busy: int = 0
     quantize_args: tuple[str, ...] = ()
     localize_args: tuple[str, ...] = ()
 
@@ -174,7 +176,8 @@ class StepSpec:
     def label(self) -> str:
         shards = (f" {self.quantizers}q" if self.case == "central" and self.quantizers > 1 else "") + \
             (f" {self.localizers}l" if self.localizers > 1 else "")
-        return f"{self.case}/{self.send}/{self.algo}{shards}" + (" premade" if self.premade else "")
+        return (f"{self.case}/{self.send}/{self.algo}{shards}" + (" premade" if self.premade else "")
+                + (f" +{self.busy} busy" if self.busy else ""))
 
 
 class Topology:
@@ -312,7 +315,7 @@ def _wait_text(proc: Proc, text: str, timeout_s: float) -> bool:
 
 def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progress: bool = False) -> dict:
     """Run one step with fresh processes; its figures (see module doc) and ``ok``."""
-    row: dict = {"case": spec.case, "send": spec.send, "algo": spec.algo, "sensors": spec.sensors,
+    row: dict = {"case": spec.case, "send": spec.send, "algo": spec.algo, "sensors": spec.sensors, "busy": spec.busy,
                  "localizers": spec.localizers, "quantizers": spec.quantizers if spec.case == "central" else 0,
                  "seconds": spec.seconds, "warmup_s": spec.warmup_s, "hub": spec.hub,
                  "offered_fps": spec.sensors * RATE_HZ, "loadavg_start": [round(x, 2) for x in os.getloadavg()]}
@@ -325,6 +328,7 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
     node_cmds, src_cmd = node_commands(spec, topo, sid_prefix)
     procs: list[Proc] = []
     reasons: list[str] = []
+    busy = [Proc(f"busy{i}", [sys.executable, "-c", "while True: pass"], logdir) for i in range(spec.busy)]
     try:
         for i, (name, role, argv) in enumerate(node_cmds):
             procs.append(Proc(name, argv, logdir))
@@ -364,6 +368,8 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
         for p in procs:
             if p.name == "source":
                 p.stop(5.0 + spec.seconds)
+        for p in busy:
+            p.stop(2.0)
     row.update(collect(spec, procs, window, reasons))
     add_bare_ratio(row)
     row["logs"] = str(logdir)

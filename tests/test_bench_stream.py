@@ -73,6 +73,17 @@ def test_quick_edge_premade(tmp_path):
     assert set(Path(tempfile.gettempdir()).glob("qr-premade-*")) == before
 
 
+@pytest.mark.slow
+def test_quick_edge_on_a_busy_host(tmp_path):
+    """--busy 1: a spinning process runs through the step and is gone after it."""
+    res = run_quick(tmp_path, "--case", "edge", "--busy", "1")
+    (step,) = res["steps"]
+    check_step(step, {"localize0"})
+    assert step["busy"] == 1 and res["summary"][0]["label"] == "edge/burst/pbp +1 busy"
+    spinning = subprocess.run(["pgrep", "-f", "while True: pass"], capture_output=True, text=True).stdout.split()
+    assert not spinning
+
+
 def test_premade_refuses_the_central_case(tmp_path):
     r = subprocess.run([sys.executable, str(BENCH), "--quick", "--case", "central", "--premade"], capture_output=True,
                        text=True, cwd=ROOT, timeout=60, env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -143,3 +154,19 @@ def test_bench_localize_steps_times_every_step():
         steps = [float(c) for c in row[1:7]]
         assert all(v >= 0 for v in steps) and steps[2] > 0  # decode takes time
         assert abs(sum(steps) - float(row[7])) <= 6  # the batch is the sum of its steps (rounding)
+
+
+def test_benchmark_helpers_refuse_what_they_cannot_measure_in_one_line(tmp_path):
+    """A player whose file holds fewer frames than asked, and a batch larger than the
+    frames, exit with one line naming the numbers (no traceback, no session opened)."""
+    np.save(tmp_path / "f.npy", np.zeros((3, 2, 320), dtype=np.uint8))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "streamlib.py"), "player", "--connect",
+                        "tcp/127.0.0.1:9", "--file", str(tmp_path / "f.npy"), "--sensors", "2", "--frames", "5",
+                        "--id-prefix", "b"], capture_output=True, text=True, cwd=ROOT, timeout=60, env=env)
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [f"player: {tmp_path / 'f.npy'} holds 2 sensors x 3 frames, fewer than "
+                                             "--sensors 2 x --frames 5"]
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_localize_steps.py"), "--frames", "8",
+                        "--batches", "16"], capture_output=True, text=True, cwd=ROOT, timeout=60, env=env)
+    assert r.returncode == 1 and r.stderr.strip().splitlines()[-1] == "--frames 8 is fewer than a batch of 16"
