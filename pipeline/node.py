@@ -2,8 +2,12 @@
 and the subscribe -> bounded fair queue -> batch -> process loop of processing nodes.
 
 A processing node subscribes with a wildcard (``<prefix>/*/raw``, ...) and so serves
-many sensors at once. zenoh's callback checks the key and the payload's length before
-copying anything (a frame whose length no announced configuration has is refused
+many sensors at once. Its input is pulled: zenoh queues the messages in its own FIFO
+(Rust, no Python thread woken per message) and the worker thread drains it between
+batches (``input_mode="callback"``: zenoh's callback thread takes each message, as before;
+that hands the GIL between two threads once per message, which at thousands of messages
+a second costs more than the message). Each message's key and length are checked before
+anything is copied (a frame whose length no announced configuration has is refused
 there), notes the frame's sequence number (a gap is counted in ``frames_missing``) and
 puts the payload into a :class:`~pipeline.fairqueue.FairQueue`: one FIFO per sensor,
 bounded per sensor, in frames and in bytes, served round-robin, so a flooding sensor
@@ -64,6 +68,15 @@ DEFAULT_QUEUE_BYTES = 64 << 20
 HEALTH_SLICES = 10
 #: the most keys whose classification (sensor id, served or not) a node remembers
 KEY_CACHE_SIZE = 8192
+#: how a processing node's worker gets its input: drains zenoh's FIFO itself, or is handed
+#: each message by zenoh's callback thread
+INPUT_MODES = ("pull", "callback")
+#: a pulling worker with nothing to do looks at its input this often (s) while frames came
+#: in the last second, else every IDLE_POLL_S: ~1 % of a core while idle
+POLL_S = 0.0005
+IDLE_POLL_S = 0.002
+#: on_idle() is called when no message came for this long (s)
+IDLE_S = 0.1
 
 
 @dataclass
@@ -379,8 +392,10 @@ class ProcessingNode(Node):
     min(queue_size, 128)); queue_bytes: payload bytes waiting in all. ``sensors``: the
     sensors served, a key chunk with ``*`` wildcards (zenoh filters the others before they
     reach this process); ``shard``: serve only the sensors of this :class:`~pipeline.bus.Shard`
-    (the others' frames are counted in ``foreign_frames`` and dropped in the callback,
-    before any copy)."""
+    (the others' frames are counted in ``foreign_frames`` and dropped on arrival, before
+    any copy). ``input_mode``: "pull" (zenoh's FIFO of ``queue_size`` messages, drained by
+    the worker; when it is full zenoh holds the next messages back in the transport) or
+    "callback" (zenoh's callback thread queues each message)."""
 
     in_topic = "raw"
     #: True: messages on keys without a valid sensor chunk are processed too (the recorder)
@@ -398,8 +413,13 @@ class ProcessingNode(Node):
     def __init__(self, bus: BusConfig, session: zenoh.Session | None = None, queue_size: int = 8192,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
                  queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
-                 sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None):
+                 sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None,
+                 input_mode: str = "pull"):
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
+        if input_mode not in INPUT_MODES:
+            raise ParameterError(f"input mode {input_mode!r} must be one of {INPUT_MODES}")
+        self.input_mode = input_mode
+        self._input_lock = threading.Lock()  # the pulled subscriber: the worker drains it, stop undeclares it
         if batch_linger_s is not None:
             if not 0 <= batch_linger_s <= 1.0:
                 raise ParameterError(f"batch linger {batch_linger_s!r} s must be in [0, 1]")
@@ -428,12 +448,62 @@ class ProcessingNode(Node):
         return self.bus.key(pattern_chunk(self.sensors), self.in_topic)
 
     def _start(self) -> None:
-        self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
-        self._spawn_supervised(self._work_loop, "worker")
+        if self.input_mode == "pull":
+            self._subscriber = self.session.declare_subscriber(
+                self.subscription(), zenoh.handlers.FifoChannel(self._queue.max_frames))
+            self._spawn_supervised(self._pull_loop, "worker")
+        else:
+            self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
+            self._spawn_supervised(self._work_loop, "worker")
 
     def _stopping(self) -> None:
-        if self._subscriber is not None:
-            self._subscriber.undeclare()
+        with self._input_lock:  # not while the worker drains it; what zenoh holds is queued first
+            if self._subscriber is not None:
+                if self.input_mode == "pull":
+                    self._drain_locked()
+                self._subscriber.undeclare()
+                self._subscriber = None
+
+    def _drain(self) -> int:
+        """Pull input: move every message zenoh holds into the fair queue; how many."""
+        with self._input_lock:
+            return self._drain_locked()
+
+    def _drain_locked(self) -> int:
+        sub, n = self._subscriber, 0
+        if sub is None:
+            return 0
+        for n in range(self._queue.max_frames):  # bounded: zenoh's FIFO holds no more
+            sample = sub.try_recv()
+            if sample is None:
+                return n
+            self._on_sample(sample)
+        return self._queue.max_frames
+
+    def _pull_loop(self) -> None:
+        """The worker with pulled input: drain, linger for a fuller batch, process; poll
+        every POLL_S when there is nothing to do; after stop, finish what was queued."""
+        last_input = last_idle = time.monotonic()
+        while True:
+            got = self._drain()
+            now = time.monotonic()
+            if got:
+                last_input = now
+            if self._queue.empty():
+                if self._stop.is_set() and self._subscriber is None:
+                    return
+                if now - max(last_input, last_idle) >= IDLE_S:
+                    last_idle = now
+                    self.on_idle()
+                time.sleep(POLL_S if now - last_input < 1.0 else IDLE_POLL_S)
+                continue
+            if self.batch_linger_s > 0:
+                until = now + self.batch_linger_s
+                while len(self._queue) < self.batch_max and (left := until - time.monotonic()) > 0:
+                    time.sleep(min(left, self.batch_lull_s))
+                    if not self._drain():  # a lull: no one else is sending now
+                        break
+            self._process_batch(self._queue.get_batch(self.batch_max, 0.0, self.batch_per_sensor))
 
     def admit(self, key: str, n_bytes: int) -> str | None:
         """Why a payload of ``n_bytes`` on ``key`` is refused before it is copied (None:
@@ -451,7 +521,8 @@ class ProcessingNode(Node):
             return NO_SENSOR
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        """zenoh's thread: check the key and the length, note the sequence number, enqueue."""
+        """The worker's drain (pull) or zenoh's callback thread: check the key and the length,
+        note the sequence number, enqueue."""
         try:
             self._admit_sample(sample)
         except Exception as exc:  # nothing a sender does may kill zenoh's callback thread
@@ -515,12 +586,15 @@ class ProcessingNode(Node):
             if not batch:
                 self.on_idle()
                 continue
-            try:
-                self.process(batch)
-            except Exception as exc:  # a failure process() did not isolate: the batch is lost, counted
-                log.debug("%s: batch failed", self.name, exc_info=True)
-                for sensor, key, _, _ in batch:
-                    self.count(sensor, "processing_errors", f"{key}: {type(exc).__name__}: {exc}")
+            self._process_batch(batch)
+
+    def _process_batch(self, batch: list[tuple[str, str, bytes, int]]) -> None:
+        try:
+            self.process(batch)
+        except Exception as exc:  # a failure process() did not isolate: the batch is lost, counted
+            log.debug("%s: batch failed", self.name, exc_info=True)
+            for sensor, key, _, _ in batch:
+                self.count(sensor, "processing_errors", f"{key}: {type(exc).__name__}: {exc}")
 
     def on_idle(self) -> None:
         """Called by the worker when no sample came for 0.1 s."""

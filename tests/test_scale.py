@@ -185,6 +185,42 @@ def cli(*args):
                             text=True)
 
 
+def test_pulled_and_callback_input_give_the_same_targets(zenoh_session):
+    """A localizer that drains zenoh's FIFO itself (the default) and one handed each message
+    by zenoh's callback thread find the same targets in the same frames, and stop with
+    every frame accounted for."""
+    session = zenoh_session
+    col = Collector(session, "*/*/targets")
+    cfg = LocalizerConfig(k=2, radar=CHAMBER.radar)
+    buses = {mode: BusConfig(prefix=mode) for mode in ("pull", "callback")}
+    locs = {mode: LocalizeNode(bus, cfg, session=session, input_mode=mode) for mode, bus in buses.items()}
+    srcs = {mode: SourceNode(bus, sim(sensors=5, frames=8, prefix="m", send="spread"), session=session,
+                             quantizer=QUANT) for mode, bus in buses.items()}
+    stop = threading.Event()
+    threading.Thread(target=lambda: ([s.done.wait(20) for s in srcs.values()], time.sleep(0.8), stop.set()),
+                     daemon=True).start()
+    run_nodes(list(locs.values()) + list(srcs.values()), 30, stop)
+    with col.lock:
+        items = list(col.items)
+    got = {mode: by_frame([p for k, p in items if k.startswith(mode + "/")], decode_targets) for mode in buses}
+    frames = {(f"m{i}", q) for i in range(5) for q in range(8)}
+    assert set(got["pull"]) == set(got["callback"]) == frames
+    for f in frames:
+        assert got["pull"][f].targets == got["callback"][f].targets
+    for mode, loc in locs.items():
+        t = loc.totals()
+        assert loc.input_mode == mode and t["frames_in"] == t["frames_out"] == 40, (mode, t)
+        assert not loc.errors and t["drops"] == t["processing_errors"] == 0
+
+
+def test_the_input_mode_is_checked(bus):
+    with pytest.raises(ParameterError, match="input mode 'push' must be one of"):
+        LocalizeNode(bus, LocalizerConfig(), session=object(), input_mode="push")
+    r = subprocess.run([sys.executable, "-m", "qradar", "localize", "--input", "push"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and "--input: invalid choice: 'push'" in r.stderr.strip().splitlines()[-1]
+
+
 def test_edge_source_and_two_sharded_localizers_across_processes(free_port, connect_when_ready):
     ep = f"tcp/127.0.0.1:{free_port}"
     router = cli("router", "--listen", ep, "--duration", "40")

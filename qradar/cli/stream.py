@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pipeline.decode import Algo, default_alpha
 from pipeline.errors import ParameterError
+from pipeline.node import INPUT_MODES
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
@@ -135,6 +136,9 @@ def queue_options(p) -> None:
     g.add_argument("--batch-linger", type=nonneg_float, default=None, metavar="MS",
                    help="once a frame waits, wait up to MS ms for a full batch while frames keep coming (default 2): "
                    "longer saves CPU on a busy host (a call costs ~1 ms however few its frames) but adds latency")
+    g.add_argument("--input", choices=INPUT_MODES, default="pull",
+                   help="pull: the worker drains zenoh's queue itself (default); callback: zenoh's callback thread "
+                   "hands over each message (the GIL changes hands once per message: slower past ~100 sensors)")
 
 
 def serve_options(p) -> None:
@@ -152,7 +156,8 @@ def queue_kwargs(args) -> dict:
     return {"queue_size": args.queue, "sensor_queue_size": min(args.sensor_queue, args.queue),
             "queue_bytes": int(args.queue_mb * 1e6), "sensor_expiry_s": args.sensor_expiry,
             "sensors": args.sensors, "shard": args.shard,
-            "batch_linger_s": None if args.batch_linger is None else args.batch_linger / 1e3}
+            "batch_linger_s": None if args.batch_linger is None else args.batch_linger / 1e3,
+            "input_mode": args.input}
 
 
 def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
