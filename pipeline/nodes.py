@@ -352,30 +352,39 @@ class LocalizeNode(FrameNode):
                 if not quantized:
                     sel &= ~bad
                 idx = np.flatnonzero(sel)
-                if idx.size:
+                if idx.size == len(h):  # the usual batch: one configuration, nothing to copy
+                    self._localize(self._configs[cid], h, frames, [keys[i] for i in g.index.tolist()])
+                elif idx.size:
                     self._localize(self._configs[cid], h.take(idx), frames.take(idx) if quantized
                                    else frames[idx], [keys[i] for i in g.index[idx].tolist()])
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
 
+        n = len(headers)
+
         def compute(idx):
+            if len(idx) == n:
+                return decode_batch(frames, radar, cfg.k, cfg.decoder())
             return decode_batch(frames.take(idx) if isinstance(frames, QuantizedFrames) else frames[idx],
                                 radar, cfg.k, cfg.decoder())
 
         def failed(i, exc):
             self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)
 
-        for idx, det in isolate(compute, np.arange(len(headers)), failed):
+        for idx, det in isolate(compute, np.arange(n), failed):
             idx = np.atleast_1d(np.asarray(idx))
             now = time.time_ns()
 
+            def part_of(j):  # the headers of positions j in idx (all of them: no copy)
+                return headers if len(j) == n else headers.take(idx[j])
+
             def encode(j):  # j: positions in idx
-                return encode_targets_batch(headers.take(idx[j]), take_detections(det, j), str(cfg.algo), cfg.k,
-                                            cfg.source, now, cfg.auto_k)
+                return encode_targets_batch(part_of(j), det if len(j) == len(idx) else take_detections(det, j),
+                                            str(cfg.algo), cfg.k, cfg.source, now, cfg.auto_k)
 
             for j, payloads in isolate(encode, np.arange(idx.size), lambda j, exc: failed(idx[j], exc)):
-                part = headers.take(idx[j])  # a non-finite target loses its own frame only
+                part = part_of(j)  # a non-finite target loses its own frame only
                 self.publish_many(part.sensor_id, "targets", payloads, "application/json")
                 self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
 
