@@ -488,6 +488,17 @@ def test_targets_batch_writes_what_to_json_writes(auto_k):
     assert any("statistic_db" not in t for p in out for t in json.loads(p)["targets"])
 
 
+def test_target_values_are_written_with_nine_significant_digits():
+    values = {"range_m": 15.103920892263679, "angle_deg": -20.0, "x_m": 1e-5, "y_m": 123456789012.5,
+              "amplitude": 0.30073023850161784, "statistic_db": -0.0}
+    raw = TargetsMsg("s", 0, 0, 0, "pbp", 1, "quantized", [values]).to_json()
+    assert raw.endswith(b'"targets":[{"range_m":15.1039209,"angle_deg":-20,"x_m":1e-05,"y_m":1.23456789e+11,'
+                        b'"amplitude":0.300730239,"statistic_db":-0}]}')
+    back = decode_targets(raw).targets[0]
+    assert back == pytest.approx(values, rel=1e-8)  # json reads every one of them
+    assert all(isinstance(v, float) for v in back.values())
+
+
 def test_targets_batch_refuses_non_finite_present_targets():
     rng = np.random.default_rng(8)
     det = detections(4, 2, rng)
