@@ -148,12 +148,14 @@ class Node:
         self._retiring: list[zenoh.Publisher] = []
         self._token = None
         self._last_log: dict[str, float] = {}
+        self._health_ticks = 0
         self.errors: list[BaseException] = []
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> "Node":
         self._token = self.session.liveliness().declare_token(self.bus.liveliness_key(self.name))
-        self._spawn(self._health_loop, "health")
+        if self.health_thread:
+            self._spawn(self._health_loop, "health")
         self._start()
         return self
 
@@ -263,14 +265,16 @@ class Node:
 
     # -- publishing -----------------------------------------------------------------------------
     def _publisher(self, sensor_id: str, topic: str, encoding: str) -> zenoh.Publisher:
-        """The data publisher of ``<prefix>/<sensor_id>/<topic>``, declared on first use; a
-        sensor id that is not a plain key chunk (a wildcard, ...) is a WireError, never a key."""
+        """The publisher of ``<prefix>/<sensor_id>/<topic>``, declared on first use (a put
+        through it skips the key's parsing and routing that each ``session.put`` does); a
+        sensor id that is not a plain key chunk (a wildcard, ...) is a WireError, never a
+        key. Data waits when the network is slow (BLOCK), health is dropped (DROP)."""
         pubs = self._publishers.get(sensor_id)
         pub = None if pubs is None else pubs.get(topic)
         if pub is None:
             key = self.bus.key(check_sensor_id(sensor_id), topic)
-            pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(encoding),
-                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+            pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(encoding), congestion_control=(
+                zenoh.CongestionControl.DROP if topic == "health" else zenoh.CongestionControl.BLOCK))
             with self._lock:
                 self._publishers.setdefault(sensor_id, {})[topic] = pub
         return pub
@@ -303,16 +307,26 @@ class Node:
                 st.last_seen = now
 
     # -- health ------------------------------------------------------------------------------------
+    @property
+    def health_thread(self) -> bool:
+        """Whether a thread of its own publishes the health (else the node's worker does,
+        calling :meth:`_health_tick` every ``health_period_s / HEALTH_SLICES``)."""
+        return True
+
     def _health_loop(self) -> None:
-        tick = 0
         while not self._stop.wait(self.health_period_s / HEALTH_SLICES):
-            tick += 1
-            try:
-                self._publish_health(tick % HEALTH_SLICES)
-                if tick % HEALTH_SLICES == 0:
-                    self._expire()
-            except Exception as exc:  # health must not die either
-                self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
+            self._health_tick()
+
+    def _health_tick(self) -> None:
+        """The health of the next slice of sensors; once a period, forget silent sensors."""
+        self._health_ticks += 1
+        part = self._health_ticks % HEALTH_SLICES
+        try:
+            self._publish_health(part)
+            if part == 0:
+                self._expire()
+        except Exception as exc:  # health must not die either
+            self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
 
     def _expire(self) -> None:
         """Forget sensors silent for sensor_expiry_s; their publishers are undeclared one
@@ -365,9 +379,7 @@ class Node:
         for msg in snapshot:
             try:
                 msg.extra = self.health_extra(msg.sensor_id)
-                self.session.put(self.bus.key(check_sensor_id(msg.sensor_id), "health"), msg.to_json(),
-                                 encoding=zenoh.Encoding.APPLICATION_JSON,
-                                 congestion_control=zenoh.CongestionControl.DROP)
+                self._publisher(msg.sensor_id, "health", "application/json").put(msg.to_json())
             except (zenoh.ZError, WireError) as exc:
                 log.debug("health publish failed: %s", exc)
 
@@ -480,13 +492,22 @@ class ProcessingNode(Node):
             self._on_sample(sample)
         return self._queue.max_frames
 
+    @property
+    def health_thread(self) -> bool:
+        return self.input_mode != "pull"  # a pulling worker publishes the health between batches
+
     def _pull_loop(self) -> None:
-        """The worker with pulled input: drain, linger for a fuller batch, process; poll
+        """The worker with pulled input: drain, linger for a fuller batch, process, and the
+        health when a slice is due (one Python thread: no GIL handed back and forth); poll
         every POLL_S when there is nothing to do; after stop, finish what was queued."""
-        last_input = last_idle = time.monotonic()
+        last_input = last_idle = next_health = time.monotonic()
+        slice_s = self.health_period_s / HEALTH_SLICES
         while True:
             got = self._drain()
             now = time.monotonic()
+            if now >= next_health and not self._stop.is_set():
+                next_health = max(next_health + slice_s, now)  # a late slice does not bunch the next
+                self._health_tick()
             if got:
                 last_input = now
             if self._queue.empty():
