@@ -138,7 +138,8 @@ def queue_options(p) -> None:
                    "longer saves CPU on a busy host (a call costs ~1 ms however few its frames) but adds latency")
     g.add_argument("--input", choices=INPUT_MODES, default="pull",
                    help="pull: the worker drains zenoh's queue itself (default); callback: zenoh's callback thread "
-                   "hands over each message (the GIL changes hands once per message: slower past ~100 sensors)")
+                   "hands over each message (the GIL changes hands once per message: at 450 sensors 81 %% of a core "
+                   "against 69 %% pulling)")
 
 
 def serve_options(p) -> None:
