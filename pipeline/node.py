@@ -2,12 +2,13 @@
 and the subscribe -> bounded fair queue -> batch -> process loop of processing nodes.
 
 A processing node subscribes with a wildcard (``<prefix>/*/raw``, ...) and so serves
-many sensors at once. Its input is pulled: zenoh queues the messages in its own FIFO
-(Rust, no Python thread woken per message) and the worker thread drains it between
-batches (``input_mode="callback"``: zenoh's callback thread takes each message, as before;
-that hands the GIL between two threads once per message, which at thousands of messages
-a second costs more than the message). Each message's key and length are checked before
-anything is copied (a frame whose length no announced configuration has is refused
+many sensors at once. zenoh's callback thread hands over each message (the default); with
+``input_mode="pull"`` zenoh queues the messages in a FIFO of its own (Rust, no Python
+thread woken per message) and the worker drains it between batches, which saves the GIL
+changing hands once a message (at thousands a second a sixth of a core) but, when that
+FIFO is full, makes zenoh wait (back-pressure through the transport to the senders, and
+to other subscribers of the same session): for a node with its process to itself. Each
+message's key and length are checked before anything is copied (a frame whose length no announced configuration has is refused
 there), notes the frame's sequence number (a gap is counted in ``frames_missing``) and
 puts the payload into a :class:`~pipeline.fairqueue.FairQueue`: one FIFO per sensor,
 bounded per sensor, in frames and in bytes, served round-robin, so a flooding sensor
@@ -68,9 +69,12 @@ DEFAULT_QUEUE_BYTES = 64 << 20
 HEALTH_SLICES = 10
 #: the most keys whose classification (sensor id, served or not) a node remembers
 KEY_CACHE_SIZE = 8192
-#: how a processing node's worker gets its input: drains zenoh's FIFO itself, or is handed
-#: each message by zenoh's callback thread
-INPUT_MODES = ("pull", "callback")
+#: how a processing node's worker gets its input: is handed each message by zenoh's callback
+#: thread (the default), or drains zenoh's FIFO itself
+INPUT_MODES = ("callback", "pull")
+#: the most messages zenoh's FIFO holds for a pulling node (before their length is checked;
+#: when it is full zenoh waits, holding the transport: back-pressure to the senders)
+PULL_FIFO = 1024
 #: a pulling worker with nothing to do looks at its input this often (s) while frames came
 #: in the last second, else every IDLE_POLL_S: ~1 % of a core while idle
 POLL_S = 0.0005
@@ -154,8 +158,7 @@ class Node:
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> "Node":
         self._token = self.session.liveliness().declare_token(self.bus.liveliness_key(self.name))
-        if self.health_thread:
-            self._spawn(self._health_loop, "health")
+        self._spawn(self._health_loop, "health")
         self._start()
         return self
 
@@ -307,12 +310,6 @@ class Node:
                 st.last_seen = now
 
     # -- health ------------------------------------------------------------------------------------
-    @property
-    def health_thread(self) -> bool:
-        """Whether a thread of its own publishes the health (else the node's worker does,
-        calling :meth:`_health_tick` every ``health_period_s / HEALTH_SLICES``)."""
-        return True
-
     def _health_loop(self) -> None:
         while not self._stop.wait(self.health_period_s / HEALTH_SLICES):
             self._health_tick()
@@ -405,9 +402,9 @@ class ProcessingNode(Node):
     sensors served, a key chunk with ``*`` wildcards (zenoh filters the others before they
     reach this process); ``shard``: serve only the sensors of this :class:`~pipeline.bus.Shard`
     (the others' frames are counted in ``foreign_frames`` and dropped on arrival, before
-    any copy). ``input_mode``: "pull" (zenoh's FIFO of ``queue_size`` messages, drained by
-    the worker; when it is full zenoh holds the next messages back in the transport) or
-    "callback" (zenoh's callback thread queues each message)."""
+    any copy). ``input_mode``: "callback" (zenoh's callback thread queues each message) or
+    "pull" (zenoh's FIFO of at most PULL_FIFO messages, drained by the worker; when it is
+    full zenoh holds the next messages back in the transport)."""
 
     in_topic = "raw"
     #: True: messages on keys without a valid sensor chunk are processed too (the recorder)
@@ -426,12 +423,12 @@ class ProcessingNode(Node):
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
                  queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
                  sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None,
-                 input_mode: str = "pull"):
+                 input_mode: str = "callback"):
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
         if input_mode not in INPUT_MODES:
             raise ParameterError(f"input mode {input_mode!r} must be one of {INPUT_MODES}")
         self.input_mode = input_mode
-        self._input_lock = threading.Lock()  # the pulled subscriber: the worker drains it, stop undeclares it
+        self._input = None  # pull: the subscriber's FIFO, drained by the worker
         if batch_linger_s is not None:
             if not 0 <= batch_linger_s <= 1.0:
                 raise ParameterError(f"batch linger {batch_linger_s!r} s must be in [0, 1]")
@@ -462,56 +459,48 @@ class ProcessingNode(Node):
     def _start(self) -> None:
         if self.input_mode == "pull":
             self._subscriber = self.session.declare_subscriber(
-                self.subscription(), zenoh.handlers.FifoChannel(self._queue.max_frames))
+                self.subscription(), zenoh.handlers.FifoChannel(min(self._queue.max_frames, PULL_FIFO)))
+            self._input = self._subscriber.handler  # still yields what it holds after undeclare
             self._spawn_supervised(self._pull_loop, "worker")
         else:
             self._subscriber = self.session.declare_subscriber(self.subscription(), self._on_sample)
             self._spawn_supervised(self._work_loop, "worker")
 
     def _stopping(self) -> None:
-        with self._input_lock:  # not while the worker drains it; what zenoh holds is queued first
-            if self._subscriber is not None:
-                if self.input_mode == "pull":
-                    self._drain_locked()
-                self._subscriber.undeclare()
-                self._subscriber = None
+        if self._subscriber is not None:  # a pulling worker then drains what zenoh holds, and ends
+            self._subscriber.undeclare()
+            self._subscriber = None
 
     def _drain(self) -> int:
-        """Pull input: move every message zenoh holds into the fair queue; how many."""
-        with self._input_lock:
-            return self._drain_locked()
-
-    def _drain_locked(self) -> int:
-        sub, n = self._subscriber, 0
-        if sub is None:
+        """Pull input: move the messages zenoh holds into the fair queue (at most its FIFO's
+        capacity); how many frames the fair queue gained. Once the subscriber is undeclared
+        and its FIFO empty, the input is closed (``_input`` None)."""
+        h, before = self._input, len(self._queue)
+        if h is None:
             return 0
-        for n in range(self._queue.max_frames):  # bounded: zenoh's FIFO holds no more
-            sample = sub.try_recv()
+        for _ in range(PULL_FIFO):
+            try:
+                sample = h.try_recv()
+            except zenoh.ZError:  # undeclared and empty: nothing more will come
+                self._input = None
+                break
             if sample is None:
-                return n
+                break
             self._on_sample(sample)
-        return self._queue.max_frames
-
-    @property
-    def health_thread(self) -> bool:
-        return self.input_mode != "pull"  # a pulling worker publishes the health between batches
+        return max(len(self._queue) - before, 0)
 
     def _pull_loop(self) -> None:
-        """The worker with pulled input: drain, linger for a fuller batch, process, and the
-        health when a slice is due (one Python thread: no GIL handed back and forth); poll
-        every POLL_S when there is nothing to do; after stop, finish what was queued."""
-        last_input = last_idle = next_health = time.monotonic()
-        slice_s = self.health_period_s / HEALTH_SLICES
+        """The worker with pulled input: drain, linger for a fuller batch, process; poll
+        every POLL_S when there is nothing to do; after stop, drain to the end and finish
+        what was queued."""
+        last_input = last_idle = time.monotonic()
         while True:
             got = self._drain()
             now = time.monotonic()
-            if now >= next_health and not self._stop.is_set():
-                next_health = max(next_health + slice_s, now)  # a late slice does not bunch the next
-                self._health_tick()
             if got:
                 last_input = now
             if self._queue.empty():
-                if self._stop.is_set() and self._subscriber is None:
+                if self._input is None:  # closed and drained (after stop)
                     return
                 if now - max(last_input, last_idle) >= IDLE_S:
                     last_idle = now

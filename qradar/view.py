@@ -254,8 +254,7 @@ class FoxgloveView(ProcessingNode):
 
     def __init__(self, bus: BusConfig, config: ViewConfig = ViewConfig(), session: zenoh.Session | None = None,
                  health_period_s: float = 1.0):
-        super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s,
-                         input_mode="callback")  # three subscribers, each with its callback
+        super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s)
         self.config = config
         self._configs = config.known_configs()
         self._context = foxglove.Context()  # channels and server of this view only

@@ -133,14 +133,18 @@ def test_a_node_survives_garbage_and_reports_it_in_health(bus, zenoh_session):
     loc.stop()
 
 
-def test_a_full_queue_drops_are_counted_never_silent(bus, zenoh_session):
+@pytest.mark.parametrize("input_mode", ["callback", "pull"])
+def test_a_full_queue_drops_are_counted_never_silent(bus, zenoh_session, input_mode):
+    """Stopped right after the last put: what zenoh still holds is queued and processed or
+    counted (pull: drained after the undeclare)."""
     session = zenoh_session
     class SlowQuantize(QuantizeNode):
         def process(self, batch):
             time.sleep(0.01)
             super().process(batch)
 
-    q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1).start()
+    q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1,
+                     input_mode=input_mode).start()
     frame = np.zeros((512, 2), np.complex64)
     pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
     for i in range(100):

@@ -186,9 +186,8 @@ def cli(*args):
 
 
 def test_pulled_and_callback_input_give_the_same_targets(zenoh_session):
-    """A localizer that drains zenoh's FIFO itself (the default) and one handed each message
-    by zenoh's callback thread find the same targets in the same frames, and stop with
-    every frame accounted for."""
+    """A localizer that drains zenoh's FIFO itself and one handed each message by zenoh's
+    callback thread (the default) find the same targets in the same frames, each frame once."""
     session = zenoh_session
     col = Collector(session, "*/*/targets")
     cfg = LocalizerConfig(k=2, radar=CHAMBER.radar)

@@ -136,10 +136,11 @@ def queue_options(p) -> None:
     g.add_argument("--batch-linger", type=nonneg_float, default=None, metavar="MS",
                    help="once a frame waits, wait up to MS ms for a full batch while frames keep coming (default 2): "
                    "longer saves CPU on a busy host (a call costs ~1 ms however few its frames) but adds latency")
-    g.add_argument("--input", choices=INPUT_MODES, default="pull",
-                   help="pull: the worker drains zenoh's queue itself (default); callback: zenoh's callback thread "
-                   "hands over each message (the GIL changes hands once per message: at 450 sensors 81 %% of a core "
-                   "against 69 %% pulling)")
+    g.add_argument("--input", choices=INPUT_MODES, default="callback",
+                   help="callback: zenoh's callback thread hands over each message (default); pull: the worker "
+                   "drains zenoh's FIFO of up to 1024 messages itself, saving the GIL changing hands per message "
+                   "(at 450 sensors 69 %% of a core against 81 %%), but a full FIFO makes zenoh wait: for a "
+                   "node with its process to itself")
 
 
 def serve_options(p) -> None:
