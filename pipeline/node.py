@@ -152,7 +152,6 @@ class Node:
         self._retiring: list[zenoh.Publisher] = []
         self._token = None
         self._last_log: dict[str, float] = {}
-        self._health_ticks = 0
         self.errors: list[BaseException] = []
 
     # -- life cycle -----------------------------------------------------------------------
@@ -311,19 +310,15 @@ class Node:
 
     # -- health ------------------------------------------------------------------------------------
     def _health_loop(self) -> None:
+        tick = 0
         while not self._stop.wait(self.health_period_s / HEALTH_SLICES):
-            self._health_tick()
-
-    def _health_tick(self) -> None:
-        """The health of the next slice of sensors; once a period, forget silent sensors."""
-        self._health_ticks += 1
-        part = self._health_ticks % HEALTH_SLICES
-        try:
-            self._publish_health(part)
-            if part == 0:
-                self._expire()
-        except Exception as exc:  # health must not die either
-            self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
+            tick += 1
+            try:
+                self._publish_health(tick % HEALTH_SLICES)
+                if tick % HEALTH_SLICES == 0:
+                    self._expire()
+            except Exception as exc:  # health must not die either
+                self.log_limited("health", "%s: health failed (%s: %s)", self.name, type(exc).__name__, exc)
 
     def _expire(self) -> None:
         """Forget sensors silent for sensor_expiry_s; their publishers are undeclared one
