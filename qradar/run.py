@@ -10,6 +10,7 @@ temporary directory (zenoh client mode): no network port is opened."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -268,7 +269,8 @@ class DriverProcess:
                  received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0):
         self.sensor_id = sensor_id
         self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
-                    "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix]
+                    "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix,
+                    "--parent-pid", str(os.getpid())]  # it stops when this process dies, however
         self.cmd += [a for ep in bus.connect for a in ("--connect", ep)]
         if bus.config_file is not None:
             self.cmd += ["--zenoh-config", str(bus.config_file)]

@@ -38,7 +38,9 @@ from __future__ import annotations
 
 import errno
 import logging
+import os
 import queue
+import stat
 import termios
 import threading
 import time
@@ -112,7 +114,8 @@ class DriverCounters:
     (ramps in the default profile); ``incomplete``: RADCs that never arrived whole;
     ``discarded_ramps``: RADCs thrown away with a partial frame; ``timeouts``: GNFDs sent
     again after ``timeout_s`` of silence; ``repeated``: answers with the last counter
-    again (not a new measurement: skipped)."""
+    again (not a new measurement: skipped); ``wrong_device``: reconnect attempts refused
+    because the port's path now names another device than the one first opened."""
 
     frames: int = 0
     ramps: int = 0
@@ -127,6 +130,7 @@ class DriverCounters:
     timeouts: int = 0
     resp_errors: int = 0
     repeated: int = 0
+    wrong_device: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -208,6 +212,122 @@ class SessionConfig:
         return RadarConfig(samples_per_ramp=self.profile.radc.samples, ramps_per_frame=self.ramps_per_frame)
 
 
+#: majors of Unix 98 pty slaves (/dev/pts/N)
+PTY_SLAVE_MAJORS = range(136, 144)
+
+
+def device_identity(path: str) -> tuple | None:
+    """The device a local path names now, as a reconnect compares it with the first
+    open's, or None if it names no character device:
+
+    - a pty slave (``/dev/pts/N``): ("pty", pid of the process holding its master), since
+      the kernel hands a freed pty number to the next program, and the program on the
+      other end is the device (a simulator that re-opens its link stays the same);
+    - another device: ("device", its hardware's sysfs path: e.g. the USB interface an
+      adapter sits in, which stays when it comes back as another ttyUSB number), or its
+      real path and number when sysfs has no hardware behind it."""
+    try:
+        real = os.path.realpath(path)
+        st = os.stat(real)
+    except OSError:
+        return None
+    if not stat.S_ISCHR(st.st_mode):
+        return None
+    major, minor = os.major(st.st_rdev), os.minor(st.st_rdev)
+    if major in PTY_SLAVE_MAJORS:
+        return "pty", pty_master_pid(minor)
+    hw = os.path.realpath(f"/sys/dev/char/{major}:{minor}/device")
+    if os.path.exists(hw):
+        return "device", os.path.dirname(hw) if os.path.basename(hw).startswith("tty") else hw
+    return "device", real, st.st_rdev
+
+
+def pty_master_pid(index: int) -> int | None:
+    """The pid of a process holding the master of pty ``index`` open (its ``tty-index``
+    in /proc/PID/fdinfo), or None if none this user may see."""
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fds = os.listdir(f"/proc/{entry}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f"/proc/{entry}/fd/{fd}") != "/dev/ptmx":
+                    continue
+                with open(f"/proc/{entry}/fdinfo/{fd}") as f:
+                    if f"tty-index:\t{index}\n" in f.read():
+                        return int(entry)
+            except OSError:
+                continue
+    return None
+
+
+def port_holders(path: str, limit: int = 4) -> list[tuple[int, str]]:
+    """(pid, command line) of the processes that hold the character device ``path`` open
+    (from /proc: those this user may read), at most ``limit``."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return []
+    if not stat.S_ISCHR(st.st_mode):
+        return []
+    out: list[tuple[int, str]] = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or len(out) >= limit:
+            continue
+        try:
+            fds = os.listdir(f"/proc/{entry}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                held = os.stat(f"/proc/{entry}/fd/{fd}")
+            except OSError:
+                continue
+            if stat.S_ISCHR(held.st_mode) and held.st_rdev == st.st_rdev:
+                out.append((int(entry), cmdline(int(entry))))
+                break
+    return out
+
+
+def describe_device(ident: tuple) -> str:
+    """``device_identity`` in words."""
+    if ident[0] == "pty":
+        return f"(a pty served by process {ident[1]})" if ident[1] else "(a pty whose other end is unknown)"
+    return f"({', '.join(str(x) for x in ident[1:])})"
+
+
+def lock_holders(path: str) -> list[int]:
+    """Pids holding a ``flock`` on ``path`` (from /proc/locks), e.g. another driver."""
+    try:
+        st = os.stat(path)
+        with open("/proc/locks") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return []
+    where = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    return [int(p[4]) for p in (line.split() for line in lines) if len(p) > 5 and p[1] == "FLOCK" and p[5] == where]
+
+
+def cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace").strip()[:120]
+    except OSError:
+        return "?"
+
+
+def busy_text(url: str) -> str:
+    """Who holds ``url``: "process 1234 (python -m qradar drive ...)", or why unknown."""
+    me = os.getpid()
+    lockers = lock_holders(url)
+    found = [(pid, cmdline(pid)) for pid in lockers] if lockers else port_holders(url)
+    holders = [f"{'this process' if pid == me else 'process'} {pid} ({cmd})" for pid, cmd in found]
+    return ", ".join(holders) if holders else "a process this user cannot see (`fuser -v` as root names it)"
+
+
 def open_error(url: str, exc: BaseException) -> str:
     """One line for a port that would not open, with what to check."""
     code = getattr(exc, "errno", None)
@@ -221,6 +341,8 @@ def open_error(url: str, exc: BaseException) -> str:
     if code == errno.EACCES or code == errno.EPERM:
         return (f"cannot open {url}: permission denied (add yourself to the dialout group: "
                 f"`sudo usermod -aG dialout $USER`, then log in again)")
+    if code in (errno.EAGAIN, errno.EWOULDBLOCK) or "exclusively lock" in str(exc):
+        return f"cannot open {url}: the port is in use by {busy_text(url)}; a serial port has one owner"
     if code == errno.EBUSY:
         return f"cannot open {url}: the device is busy (another program has it open: `fuser {url}`)"
     if isinstance(exc, termios.error):
@@ -267,6 +389,7 @@ class SensorSession:
         self._seq = 0
         self._closed = False
         self._ever_connected = False
+        self._device: tuple | None = None  # device_identity of the first open (device paths)
         self._config_id = config.radar().config_id()
         self._chirps = (self.profile.radc.chirp_indices(config.ramps_per_frame, config.chirp_select)
                         if self.profile.radc.chirps > 1 else None)
@@ -336,10 +459,17 @@ class SensorSession:
     def _connect(self) -> None:
         cfg = self.config
         url = port_url(cfg.url)
+        ident = device_identity(cfg.url) if cfg.kind is LinkKind.DEVICE else None
+        if self._device is not None and ident is not None and ident != self._device:
+            self.counters.wrong_device += 1
+            raise LinkError(f"{cfg.url} now names another device {describe_device(ident)} than the "
+                            f"{describe_device(self._device)} first opened: not reconnecting to it")
         try:
             port = self._open_port(url)
         except (serial.SerialException, OSError, ValueError, termios.error) as exc:
             raise LinkError(open_error(cfg.url, exc)) from exc
+        if self._device is None:
+            self._device = ident
         self._port = port
         self._decoder.reset()
         self._inbox.clear()
@@ -396,6 +526,8 @@ class SensorSession:
         speed the first left: then it opens at another speed and switches."""
         kw = dict(bytesize=serial.EIGHTBITS, parity=serial.PARITY_EVEN, stopbits=serial.STOPBITS_ONE,
                   timeout=self.READ_TIMEOUT_S)
+        if self.config.kind is LinkKind.DEVICE:
+            kw["exclusive"] = True  # flock: a second opener is refused (open_error names the holder)
         start = self.profile.startup_baud
         try:
             return self._port_factory(url, baudrate=start, **kw)

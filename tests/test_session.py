@@ -496,3 +496,48 @@ def test_the_simulated_sensor_keeps_recent_events_and_counts_all_of_them():
     assert dev.radcs_sent == 2 and dev.counter == 1
     assert dev.events[-1] == ("GBYE", None) and dev.events[:-1] == [("GNFD", None)] * (dev.EVENTS_KEPT - 1)
     assert ("INIT", None) not in dev.events  # the oldest are gone, but counted
+
+
+def test_a_serial_port_has_one_owner_and_a_second_opener_is_told_who(link):
+    """A driver process holds the pty (flock); a second opener gets one line naming the
+    port and the holder's pid and command, and the first keeps its frames."""
+    with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
+        first = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--no-publish"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        try:
+            assert first.stdout.readline().startswith("frame")  # it holds the port
+            second = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--no-publish",
+                                     "--frames", "1"], capture_output=True, text=True, timeout=60)
+            assert second.returncode != 0
+            line = second.stderr.strip()
+            assert "\n" not in line and str(link) in line and f"in use by process {first.pid}" in line, line
+            assert "qradar drive" in line
+            assert first.stdout.readline().startswith("frame") and first.poll() is None  # undisturbed
+        finally:
+            first.terminate()
+            first.wait(10)
+        assert sim.devices[0].event_counts["INIT"] == 1  # the second never spoke to the sensor
+
+
+def test_a_reconnect_does_not_follow_the_path_to_another_device(link):
+    """The sensor goes away and the link path comes back naming a pty that another
+    program serves: the driver does not INIT it; it counts and says so, then gives up."""
+    sim = SimulatorServer(SCENE, link_path=link, rate_hz=0).start()
+    s = session(link, reconnect_timeout_s=2.0)
+    other = None
+    try:
+        s.open()
+        assert len(list(s.frames(2))) == 2
+        sim.stop()  # the device is gone (its link too) ...
+        other = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--link", str(link), "--rate", "0"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        assert "simulated K-MD2" in other.stdout.readline()  # ... and the path names another program's pty
+        with pytest.raises(LinkError, match="another device"):
+            list(s.frames(3))
+        assert s.counters.wrong_device >= 1 and s.counters.reconnects == 0
+    finally:
+        s.close()
+        sim.stop()
+        if other is not None:
+            other.terminate()
+            other.wait(10)

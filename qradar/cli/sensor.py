@@ -31,6 +31,7 @@ from .common import (
     pos_float,
     pos_int,
     prob,
+    watch_parent,
 )
 
 
@@ -99,6 +100,9 @@ def add_commands(sub) -> None:
                    help="after a stop, print the counters and keep the zenoh session open until stdin closes "
                    f"(at most {LINGER_S:g} s): a parent that reads the counters closes stdin once it has received "
                    "every frame they count (a put just before a session closes can be lost)")
+    p.add_argument("--parent-pid", type=pos_int, default=None, metavar="PID",
+                   help="stop (GBYE, counters) within a second once process PID is no longer this one's parent, "
+                   "however it died (qradar run sets it for its drivers)")
     bus_options(p)
     p.set_defaults(func=cmd_drive)
 
@@ -159,6 +163,8 @@ def cmd_drive(args) -> int:
               f"peak {peak:.3f} FS", file=lines, flush=True)
 
     install_sigterm()
+    if args.parent_pid is not None:
+        watch_parent(args.parent_pid, "drive")
     session = SensorSession(cfg)
     bus_session = None  # the zenoh session, closed last: after the counters (and the parent's ack)
     try:

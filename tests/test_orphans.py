@@ -1,0 +1,122 @@
+"""Nothing qradar starts outlives its parent: a driver process ends by itself (GBYE to
+its sensor) once the process that started it is gone, however it died (SIGKILL of the
+run, of its whole process group, the OOM killer)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from radar_driver.scene import resolve_scene
+from radar_driver.simulator import SimulatorServer
+
+QRADAR = [sys.executable, "-m", "qradar"]
+
+
+def cmdline(pid: int) -> list[str]:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
+def drivers_of(parent_pid: int) -> list[int]:
+    """Pids of the ``qradar drive`` processes started with ``--parent-pid parent_pid``."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            cmd = cmdline(int(entry))
+            if "drive" in cmd and "--parent-pid" in cmd and cmd[cmd.index("--parent-pid") + 1] == str(parent_pid):
+                out.append(int(entry))
+    return out
+
+
+def alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def wait_for(cond, timeout_s: float, step_s: float = 0.05):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        time.sleep(step_s)
+    return cond()
+
+
+def kill_all(pids) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.mark.parametrize("how", ["process", "group"])
+def test_a_killed_run_leaves_no_driver_behind(how, tmp_path):
+    run = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json", "--sensors", "2"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           start_new_session=True, cwd=tmp_path)
+    drivers: list[int] = []
+    try:
+        drivers = wait_for(lambda: (d := drivers_of(run.pid)) and len(d) == 2 and d, 30.0)
+        assert drivers and len(drivers) == 2, "qradar run started no driver processes"
+        time.sleep(2.0)
+        assert all(alive(p) for p in drivers), "a driver ended before the run was killed"
+        if how == "group":
+            os.killpg(run.pid, signal.SIGKILL)
+        else:
+            run.kill()
+        run.wait(10)
+        t0 = time.monotonic()
+        left = wait_for(lambda: not any(alive(p) for p in drivers), 5.0)
+        gone_s = time.monotonic() - t0
+        assert left, f"driver processes {[p for p in drivers if alive(p)]} outlived the SIGKILLed run"
+        assert gone_s < 4.0
+    finally:
+        kill_all([run.pid, *drivers])
+        run.wait(10)
+
+
+def test_a_driver_whose_parent_dies_says_gbye_and_exits(tmp_path):
+    """The driver's parent is a small process we SIGKILL: the driver notices, says GBYE
+    to the (in-process) simulated sensor and exits 0 with its counters."""
+    sim = SimulatorServer(resolve_scene("chamber"), link_path=tmp_path / "kmd2", rate_hz=20.0)
+    sim.start()
+    out, err = tmp_path / "drive.out", tmp_path / "drive.err"
+    drive_cmd = [*QRADAR, "drive", "--port", str(tmp_path / "kmd2"), "--no-publish", "--json", "--quiet"]
+    parent = subprocess.Popen([sys.executable, "-c", (
+        "import os, subprocess, sys, time\n"
+        f"p = subprocess.Popen({drive_cmd!r} + ['--parent-pid', str(os.getpid())], stdin=subprocess.DEVNULL, "
+        f"stdout=open({str(out)!r}, 'w'), stderr=open({str(err)!r}, 'w'))\n"
+        "print(p.pid, flush=True)\n"
+        "time.sleep(120)\n")], stdout=subprocess.PIPE, text=True)
+    drive_pid = None
+    try:
+        drive_pid = int(parent.stdout.readline())
+        dev = sim.devices[0]
+        assert wait_for(lambda: dev.radcs_sent >= 10, 20.0), "the driver read no frames"
+        assert dev.event_counts["GBYE"] == 0
+        parent.kill()
+        parent.wait(5)
+        t0 = time.monotonic()
+        assert wait_for(lambda: not alive(drive_pid), 5.0), "the driver outlived its parent"
+        assert time.monotonic() - t0 < 4.0
+        assert "parent process" in err.read_text() and "is gone" in err.read_text()
+        assert '"frames"' in out.read_text().splitlines()[-1]
+        assert dev.event_counts["GBYE"] == 1
+    finally:
+        kill_all([parent.pid] + ([drive_pid] if drive_pid else []))
+        parent.wait(5)
+        sim.stop()
