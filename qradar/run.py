@@ -430,7 +430,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
 def format_summary(s: dict) -> str:
     lat, err = s["latency_ms"], s["position_error_m"]
     lines = [
-        f"qradar run: scene {s['scene']}, {s['sensors']} sensor(s), {s['seconds']} s",
+        f"qradar run: scene {s['scene']}, {s['sensors']} sensor(s), {s['seconds']} s"
+        + (", ended by Ctrl-C / SIGTERM" if s.get("interrupted") else ""),
         f"  frames      raw {s['frames_raw']}, quantized {s['frames_quantized']}, targets {s['frames_targets']}",
         f"  drops       {s['drops']} ({s['drops_detail']})",
         f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",

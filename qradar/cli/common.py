@@ -138,6 +138,33 @@ def install_sigterm() -> None:
     signal.signal(signal.SIGINT, handler)
 
 
+class StopOnSignals:
+    """SIGINT and SIGTERM end a live command normally: the first sets ``stop`` (the
+    command then stops its nodes in order and prints its summary) and ``interrupted``; a
+    second, while it is stopping, ends the process at once with status 130 and one line
+    (its children stop by themselves: :func:`watch_parent`)."""
+
+    def __init__(self, stop: threading.Event, name: str):
+        self.stop, self.name = stop, name
+        self.interrupted: str | None = None  # the signal's name, once one came
+        signal.signal(signal.SIGINT, self._handler)
+        signal.signal(signal.SIGTERM, self._handler)
+
+    def _handler(self, signum, frame) -> None:
+        if self.interrupted is not None:
+            try:
+                print(f"qradar {self.name}: {signal.Signals(signum).name} again while stopping: exiting at once "
+                      f"(status 130)", file=sys.stderr, flush=True)
+            finally:
+                os._exit(130)
+        self.interrupted = signal.Signals(signum).name
+        try:
+            print(f"qradar {self.name}: {self.interrupted}: stopping (again to force)", file=sys.stderr, flush=True)
+        except (OSError, ValueError):
+            pass
+        self.stop.set()
+
+
 #: how often a child process looks whether its parent is still there, s
 PARENT_POLL_S = 0.2
 #: after its parent's death, how long a child may take to stop cleanly before it exits anyway, s

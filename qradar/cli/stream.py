@@ -37,6 +37,7 @@ from .common import (
     quantizer_options,
     sensor_pattern_arg,
     shard_arg,
+    StopOnSignals,
 )
 from .record import write_error_options
 from .view import foxglove_arg
@@ -100,7 +101,7 @@ def add_commands(sub) -> None:
                        "then a summary.")
     p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
     p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
-    p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15; Ctrl-C stops earlier)")
+    p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
     quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
                       "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
@@ -253,8 +254,11 @@ def cmd_run(args) -> int:
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size)
-    install_sigterm()
-    summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=threading.Event())
+    stop = threading.Event()
+    signals = StopOnSignals(stop, "run")
+    summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
+    if signals.interrupted is not None:  # Ctrl-C or SIGTERM: the normal end of a live run
+        summary["interrupted"] = True
     if args.json:
         print_json(summary)
     else:

@@ -1,0 +1,87 @@
+"""Ctrl-C (SIGINT) and SIGTERM are the normal end of a live ``qradar run``: the same
+summary as ``--duration`` (``"interrupted": true`` in ``--json``), status 0; a second
+signal while it stops exits at once with 130, one line and no traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from test_orphans import alive, drivers_of, kill_all, wait_for
+
+
+def start_run(tmp_path, *extra) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "60", "--no-record", *extra],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+
+
+def wait_for_targets(proc: subprocess.Popen, stream) -> list[str]:
+    """Lines of ``stream`` up to the first live targets line (bounded: 60 lines)."""
+    seen = []
+    for _ in range(60):
+        line = stream.readline()
+        seen.append(line)
+        if " targets " in line or not line:
+            break
+    assert any(" targets " in line for line in seen), seen
+    return seen
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_run_with_its_summary(tmp_path, sig):
+    proc = start_run(tmp_path, "--json")
+    try:
+        wait_for_targets(proc, proc.stderr)
+        time.sleep(1.0)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err[-2000:]
+        objects = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+        assert len(objects) == 1 and len(out.strip().splitlines()) == 1
+        summary = objects[0]
+        assert summary["interrupted"] is True and "error" not in summary
+        assert summary["frames_raw"] > 0 and summary["frames_targets"] > 0
+        assert summary["drops"] == 0 and summary["driver"]["kmd2-0"]["frames"] > 0
+        assert "Traceback" not in err
+    finally:
+        proc.kill()
+        proc.wait(10)
+
+
+def test_the_text_summary_says_it_was_interrupted(tmp_path):
+    proc = start_run(tmp_path)
+    try:
+        wait_for_targets(proc, proc.stdout)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err[-2000:]
+        assert "ended by Ctrl-C / SIGTERM" in out and "frames      raw" in out
+    finally:
+        proc.kill()
+        proc.wait(10)
+
+
+def test_a_second_signal_forces_the_exit(tmp_path):
+    proc = start_run(tmp_path, "--json")
+    drivers = []
+    try:
+        wait_for_targets(proc, proc.stderr)
+        drivers = drivers_of(proc.pid)
+        assert drivers
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 130
+        assert "again while stopping: exiting at once" in err and "Traceback" not in err
+        assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)  # its driver stopped by itself
+    finally:
+        kill_all([proc.pid, *drivers])
+        proc.wait(10)
