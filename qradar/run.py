@@ -37,6 +37,7 @@ from radar_driver.errors import RadarError
 from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
+from replay.mcapio import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
 from .view import FoxgloveView, ViewConfig
@@ -151,6 +152,7 @@ class RunConfig:
     record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
     record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
+    record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -169,6 +171,8 @@ class RunConfig:
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
     """Run the pipeline; returns the summary dict."""
     scene = resolve_scene(cfg.scene)
+    if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
+        raise RecordingExists.at(cfg.record)  # before anything starts
     k = cfg.k or max(1, len(scene.targets))
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
@@ -203,7 +207,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
-                                         split_size_mb=cfg.record_split_mb)]
+                                         split_size_mb=cfg.record_split_mb,
+                                         new_name_if_taken=cfg.record_new_name_if_taken)]
             view = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=scene.radar), session=session).start()

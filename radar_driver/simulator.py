@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .devices import cmdline, pty_master_pid
 from .errors import ConfigError, LinkDown
 from .profile import DEFAULT_PROFILE, SensorProfile
 from .protocol import (
@@ -327,31 +328,64 @@ _SPEED_TO_BAUD = {getattr(termios, f"B{b}"): b for b in (9600, 19200, 38400, 576
 
 
 class PtyLink:
-    """A pseudo-terminal whose slave end is reachable at a stable symlink ``link_path``."""
+    """A pseudo-terminal whose slave end is reachable at a stable symlink ``link_path``.
+
+    The link replaces nothing that is not its own: a path that does not exist is
+    created (exclusively); an existing path is replaced only if it is a stale link of a
+    simulator: a symlink to a ``/dev/pts/N`` that no longer exists or whose master no
+    process holds (left by a killed ``qradar sim``). Anything else (a file, a folder, a
+    link elsewhere, a live simulator's link) is a ConfigError naming it. On close the
+    link is removed only if it still points to this pty."""
 
     def __init__(self, link_path: str | Path):
         self.link_path = Path(link_path)
         self.master: int | None = None
         self.slave: int | None = None
+        self._target: str | None = None
+
+    def check_free(self) -> None:
+        """ConfigError unless ``link_path`` is free or a stale simulator link."""
+        path = self.link_path
+        if not os.path.lexists(path):
+            return
+        if not path.is_symlink():
+            kind = "folder" if path.is_dir() else "file"
+            raise ConfigError(f"refusing to replace {path}: it is a {kind}, not a simulator's pty link; "
+                              f"give --link a new path")
+        target = os.readlink(path)
+        index = target.removeprefix("/dev/pts/")
+        if not (target.startswith("/dev/pts/") and index.isdigit()):
+            raise ConfigError(f"refusing to replace {path}: it links to {target}, not to a pty; give --link a new path")
+        holder = pty_master_pid(int(index)) if os.path.exists(target) else None
+        if holder is not None:
+            raise ConfigError(f"refusing to replace {path}: its pty {target} is served by process {holder} "
+                              f"({cmdline(holder)}); stop that simulator or give --link a new path")
 
     def open(self) -> None:
+        self.check_free()
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo, no line editing, before any host opens it
         os.set_blocking(master, False)
         self.master, self.slave = master, slave
-        tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
+        self._target = os.ttyname(slave)
         try:
-            tmp.unlink(missing_ok=True)
-            os.symlink(os.ttyname(slave), tmp)
-            os.replace(tmp, self.link_path)
+            if os.path.lexists(self.link_path):  # a stale link (check_free): replaced atomically
+                tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
+                os.symlink(self._target, tmp)  # exclusive: fails if something is there
+                os.replace(tmp, self.link_path)
+            else:
+                os.symlink(self._target, self.link_path)  # exclusive: a path made meanwhile is not replaced
         except OSError as exc:
             self.close()
             raise ConfigError(f"cannot make the pty link {self.link_path}: {exc.strerror or exc}") from None
-        log.info("simulated K-MD2 on %s -> %s", self.link_path, os.ttyname(slave))
+        log.info("simulated K-MD2 on %s -> %s", self.link_path, self._target)
 
     def close(self) -> None:
-        if self.link_path.is_symlink():
-            self.link_path.unlink(missing_ok=True)
+        try:
+            if self._target is not None and os.readlink(self.link_path) == self._target:
+                self.link_path.unlink()
+        except OSError:  # gone, or not a link: not ours to remove
+            pass
         for fd in (self.master, self.slave):
             if fd is not None:
                 try:

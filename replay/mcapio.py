@@ -111,13 +111,22 @@ def describe_os_error(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
+class RecordingExists(ReplayError):
+    """A recording's path exists already (files are created exclusively)."""
+
+    @classmethod
+    def at(cls, path: Path) -> "RecordingExists":
+        return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it")
+
+
 class _RecordFile:
     """The file below an MCAP Writer: each ``write`` goes to the OS at once (no user-space
     buffer), and ``pos`` is the byte count the OS took, so after a write error the file
     can be cut back to a record boundary with nothing left behind in a buffer."""
 
-    def __init__(self, path: Path):
-        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+    def __init__(self, path: Path, overwrite: bool = False):
+        mode = os.O_TRUNC if overwrite else os.O_EXCL  # exclusive: FileExistsError if the path exists
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | mode | os.O_CLOEXEC, 0o644)
         self.pos = 0
 
     def write(self, data) -> int:
@@ -156,13 +165,19 @@ class McapSink:
 
     ``kept_bytes`` / ``kept_messages``: what the file holds up to its last :meth:`flush`
     (what survives a write error); ``pending_by_topic``: messages written since, by topic.
-    Writing methods raise OSError on a write error; then :meth:`abort` closes the file."""
+    Writing methods raise OSError on a write error; then :meth:`abort` closes the file.
 
-    def __init__(self, path: Path, chunk_size: int = 1 << 20):
+    The file is created exclusively: an existing ``path`` is a :class:`RecordingExists`
+    (qradar does not overwrite a recording), unless ``overwrite`` (for qradar's own
+    outputs in a folder of its own, e.g. ``reprocess --out``)."""
+
+    def __init__(self, path: Path, chunk_size: int = 1 << 20, overwrite: bool = False):
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh = _RecordFile(self.path)
+            self._fh = _RecordFile(self.path, overwrite)
+        except FileExistsError:
+            raise RecordingExists.at(self.path) from None
         except OSError as exc:
             raise ReplayError(f"cannot write {self.path}: {describe_os_error(exc)}") from None
         self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)

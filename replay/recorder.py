@@ -38,9 +38,18 @@ from pipeline.node import NO_SENSOR, ProcessingNode
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
 from .errors import ReplayError
-from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
+from .mcapio import McapSink, RecordingExists, describe_os_error, pointcloud_json, topic_of
 
 log = logging.getLogger("qradar.record")
+
+
+def default_recording_path(folder: Path = Path("recordings"), now_ns: int | None = None) -> Path:
+    """``<folder>/run-YYYYmmdd-HHMMSS-mmm.mcap`` (local time, to the millisecond); a
+    recorder given it with ``new_name_if_taken`` goes on to ``-1``, ``-2``, ... if that
+    name is taken (two runs in the same millisecond)."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now_ns // 1_000_000_000))
+    return Path(folder) / f"run-{stamp}-{now_ns // 1_000_000 % 1000:03d}.mcap"
 
 FLUSH_PERIOD_S = 1.0
 
@@ -107,12 +116,14 @@ class RecorderNode(ProcessingNode):
                  session: zenoh.Session | None = None, split_size_mb: float | None = None,
                  split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
                  queue_size: int = 20000, on_write_error: OnWriteError | str = OnWriteError.RESUME,
-                 retry_s: float = 5.0, resume_free_mb: float = 1.0, **kw):
+                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False, **kw):
         kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
         super().__init__(bus, session, queue_size=queue_size, batch_max=512, **kw)
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
             raise ReplayError(f"recording path {self.base_path} must end in .mcap")
+        if not new_name_if_taken and os.path.lexists(self.base_path):
+            raise RecordingExists.at(self.base_path)  # at once (and again, exclusively, at the start)
         if split_size_mb is not None and not split_size_mb > 0:
             raise ReplayError(f"split size {split_size_mb!r} MB must be > 0")
         if split_duration_s is not None and not split_duration_s > 0:
@@ -137,6 +148,8 @@ class RecorderNode(ProcessingNode):
         self.retry_s = float(retry_s)
         self.resume_free_bytes = int(resume_free_mb * 1e6)
         self.paths: list[Path] = []
+        self.new_name_if_taken = new_name_if_taken  # a default name: -1, -2, ... when taken (else refused)
+        self._part = 0  # the number of the next split file (names taken by others are skipped)
         self.written = 0  # messages kept in the files (not those cut off by a write error)
         self.unparsed = 0
         self.state = RecordingState.WRITING
@@ -173,18 +186,36 @@ class RecorderNode(ProcessingNode):
         return self.topics
 
     # -- files ------------------------------------------------------------------------------
+    #: names tried for one file before giving up (another program taking them all)
+    MAX_NAME_TRIES = 1000
+
     def _next_path(self) -> Path:
+        """The next file's name: the base path (or, for a default name, -1, -2, ... after
+        it), then ``<stem>_0001.mcap``, ... for the files after it."""
         if not self.paths:
-            return self.base_path
-        return self.base_path.with_name(f"{self.base_path.stem}_{len(self.paths):04d}.mcap")
+            if not self.new_name_if_taken or self._part == 0:
+                return self.base_path
+            return self.base_path.with_name(f"{self.base_path.stem}-{self._part}.mcap")
+        return self.base_path.with_name(f"{self.paths[0].stem}_{self._part:04d}.mcap")
 
     def _open(self) -> str | None:
-        """Start the next file; None on success, else why not (nothing is left on disk)."""
-        path = self._next_path()
-        try:
-            sink = McapSink(path)  # creates the folder; ReplayError naming the path if it cannot
-        except ReplayError as exc:
-            return str(exc)
+        """Start the next file; None on success, else why not (nothing is left on disk).
+        A file is created exclusively: a name another program took is skipped (files after
+        the first, and a default first name), or refused (a first name the user gave)."""
+        for _ in range(self.MAX_NAME_TRIES):
+            path = self._next_path()
+            self._part += 1
+            try:
+                sink = McapSink(path)  # creates the folder; ReplayError naming the path if it cannot
+                break
+            except RecordingExists as exc:
+                if not self.paths and not self.new_name_if_taken:
+                    return str(exc)
+                log.info("%s exists (not ours): the recording goes on in the next free name", path)
+            except ReplayError as exc:
+                return str(exc)
+        else:
+            return f"no free file name after {self.base_path} ({self.MAX_NAME_TRIES} tried)"
         try:
             sink.metadata("qradar.versions", versions())
             sink.metadata("qradar.recorder", {"topics": self.topics, "prefix": self.bus.prefix,
@@ -195,7 +226,8 @@ class RecorderNode(ProcessingNode):
         except OSError as exc:
             sink.abort()
             try:
-                path.unlink()  # no message in it: nothing worth keeping
+                path.unlink()  # ours, with no message in it: nothing worth keeping (its name is free again)
+                self._part -= 1
             except OSError:
                 pass
             return f"cannot write {path}: {describe_os_error(exc)}"

@@ -304,7 +304,7 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
     """The re-processed targets of one alpha as an MCAP (targets + foxglove.PointCloud)."""
     r = result.results[index]
     rec = result.rec
-    sink = McapSink(path)
+    sink = McapSink(path, overwrite=True)  # an output in reprocess's own --out folder
     try:
         sink.metadata("qradar.reprocess", {"alpha": str(r.alpha), **{k: str(v) for k, v in result.params.items()}})
         for i in range(rec.frames.shape[0]):

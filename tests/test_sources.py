@@ -33,7 +33,7 @@ def in_process(scene: SimScene, seed: int, frames: int | None = None) -> Simulat
 
 
 def write_recording(path: Path, frames: list[RawFrame], prefix: str = "radar") -> Path:
-    sink = McapSink(path)
+    sink = McapSink(path, overwrite=True)  # a test may write the same scene twice
     try:
         for f in frames:
             msg = RawFrameMsg(f.sensor_id, f.seq, f.timestamp_ns, f.config_id, f.data)

@@ -17,6 +17,7 @@ from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNo
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
+from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
 from ..run import RunConfig, format_summary, print_json, run
@@ -109,7 +110,7 @@ def add_commands(sub) -> None:
     algo_option(p, "decoder of the localizer", Algo.CML)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
-                   help="MCAP file to record to (default recordings/run-<time>.mcap)")
+                   help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--split-size", type=pos_float, default=None, metavar="MB",
                    help="record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps "
@@ -242,7 +243,7 @@ def cmd_router(args) -> int:
 def cmd_run(args) -> int:
     record = None
     if not args.no_record:
-        record = args.record or Path("recordings") / time.strftime("run-%Y%m%d-%H%M%S.mcap")
+        record = args.record or default_recording_path()
     if args.secure is not None and args.mode == "client":
         raise ParameterError("qradar run --secure runs as a peer (its drivers join it over a private unix socket); "
                              "drop --mode client, and give --listen tls/... to serve other nodes")
@@ -253,7 +254,7 @@ def cmd_run(args) -> int:
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
-                    record_split_mb=args.split_size)
+                    record_split_mb=args.split_size, record_new_name_if_taken=args.record is None)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run")
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)

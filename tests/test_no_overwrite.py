@@ -1,0 +1,136 @@
+"""No file is replaced that qradar did not make: the simulator's pty link replaces only
+its own stale link; recordings are created exclusively, default names do not collide,
+and a split file whose name another program took is skipped, never overwritten."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.wire import RawFrameMsg, encode_raw
+from radar_driver.errors import ConfigError
+from radar_driver.scene import resolve_scene
+from radar_driver.simulator import PtyLink, SimulatorServer
+from replay.errors import ReplayError
+from replay.mcapio import McapFile
+from replay.recorder import RecorderNode, default_recording_path
+from zenoh_helpers import wait_until
+
+QRADAR = [sys.executable, "-m", "qradar"]
+
+
+def sim(link: Path, timeout_s: float = 30, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([*QRADAR, "sim", "--link", str(link)], capture_output=True, text=True,
+                          timeout=timeout_s, stdin=subprocess.DEVNULL, **kw)
+
+
+def test_sim_link_refuses_a_file_it_did_not_make(tmp_path):
+    precious = tmp_path / "README.md"
+    precious.write_text("the lab's notes\n")
+    out = sim(precious)
+    assert out.returncode == 2
+    line = out.stderr.strip()
+    assert "\n" not in line and str(precious) in line and "refusing to replace" in line and "a file" in line
+    assert precious.read_text() == "the lab's notes\n" and not precious.is_symlink()
+
+
+def test_sim_link_refuses_a_folder_and_a_link_to_something_else(tmp_path):
+    (tmp_path / "dir").mkdir()
+    (tmp_path / "other").symlink_to(tmp_path / "dir")
+    for path, what in ((tmp_path / "dir", "a folder"), (tmp_path / "other", "not to a pty")):
+        with pytest.raises(ConfigError, match=what):
+            PtyLink(path).open()
+    assert (tmp_path / "dir").is_dir() and os.readlink(tmp_path / "other") == str(tmp_path / "dir")
+
+
+def test_a_stale_link_of_a_killed_simulator_is_replaced(tmp_path):
+    link = tmp_path / "kmd2"
+    proc = subprocess.Popen([*QRADAR, "sim", "--link", str(link)], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert "simulated K-MD2" in proc.stdout.readline()
+        old = os.readlink(link)
+        live = sim(link)  # a live simulator's link: refused, naming it
+        assert live.returncode == 2 and f"served by process {proc.pid}" in live.stderr
+    finally:
+        proc.kill()  # SIGKILL: its link stays behind, stale
+        proc.wait(10)
+    assert link.is_symlink() and os.readlink(link) == old
+    with SimulatorServer(resolve_scene("chamber"), link_path=link, rate_hz=0):
+        assert os.readlink(link).startswith("/dev/pts/")
+    assert not os.path.lexists(link)  # its own link, removed at the end
+
+
+def test_a_link_replaced_by_someone_else_is_not_removed_at_close(tmp_path):
+    link = tmp_path / "kmd2"
+    pty = PtyLink(link)
+    pty.open()
+    link.unlink()
+    link.write_text("somebody else's now")
+    pty.close()
+    assert link.read_text() == "somebody else's now"
+
+
+def test_default_recording_names_are_to_the_millisecond():
+    t = 1_790_000_000_123_456_789
+    a, b = default_recording_path(Path("r"), t), default_recording_path(Path("r"), t + 1_000_000)
+    assert a != b and a.name.startswith("run-") and a.name.endswith("-123.mcap") and b.name.endswith("-124.mcap")
+
+
+def put_frames(session, n: int, sensor: str = "nw") -> None:
+    for i in range(n):
+        session.put(f"radar/{sensor}/raw", encode_raw(RawFrameMsg(sensor, i, i, 7, np.zeros((4, 2), np.complex64))))
+
+
+def test_an_explicit_recording_path_that_exists_is_refused(tmp_path, bus, zenoh_session):
+    path = tmp_path / "lab.mcap"
+    path.write_bytes(b"an older recording")
+    with pytest.raises(ReplayError, match="exists: qradar does not overwrite a recording"):
+        RecorderNode(bus, path, session=zenoh_session)
+    assert path.read_bytes() == b"an older recording"
+
+
+def test_a_taken_default_name_and_a_taken_split_name_are_skipped(tmp_path, bus, zenoh_session):
+    base = tmp_path / "run-x.mcap"
+    base.write_bytes(b"another run's")
+    (tmp_path / "run-x-1_0001.mcap").write_bytes(b"not ours either")
+    rec = RecorderNode(bus, base, session=zenoh_session, split_duration_s=0.3, health_period_s=60,
+                       new_name_if_taken=True).start()
+    try:
+        for i in range(3):
+            put_frames(zenoh_session, 10, f"s{i}")
+            time.sleep(0.4)
+        wait_until(lambda: rec.written == 30, 10)
+    finally:
+        rec.stop()
+    names = [p.name for p in rec.paths]
+    assert names[0] == "run-x-1.mcap" and "run-x-1_0001.mcap" not in names and len(names) >= 2
+    assert names[1] == "run-x-1_0002.mcap"
+    assert base.read_bytes() == b"another run's"
+    assert (tmp_path / "run-x-1_0001.mcap").read_bytes() == b"not ours either"
+    assert sum(McapFile(p).scan() for p in rec.paths) == 30 and rec.lost == 0
+
+
+def test_two_runs_started_together_write_two_whole_recordings(tmp_path):
+    cmd = [*QRADAR, "run", "--frames", "30", "--json"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                              stdin=subprocess.DEVNULL) for _ in range(2)]
+    try:
+        outs = [json.loads(p.communicate(timeout=120)[0].strip().splitlines()[-1]) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait(10)
+    files = [Path(tmp_path / o["recording"]["files"][0]) for o in outs]
+    assert files[0] != files[1]
+    for o, f in zip(outs, files):
+        assert o["recording"]["lost"] == 0 and o["recording"]["written"] > 0
+        raw = sum(1 for ch, _ in McapFile(f).messages() if ch.topic.endswith("/raw"))
+        assert raw == o["frames_raw"] == 30
