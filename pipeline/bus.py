@@ -19,9 +19,13 @@ Keys: ``<prefix>/<sensor>/{raw,quantized,targets,health}``; liveliness tokens at
 from __future__ import annotations
 
 import json
+import sys
+import threading
+import time
 import uuid
 import zlib
 from dataclasses import dataclass
+from typing import TextIO
 from pathlib import Path
 
 import zenoh
@@ -44,6 +48,9 @@ class BusConfig:
     prefix: str = "radar"
     multicast_scouting: bool = False
     secure: SecureConfig | None = None
+    #: a stand-alone command's name: its session says so once on stderr if it reaches no
+    #: other process within ALONE_AFTER_S (None: no such check, e.g. in-process sessions)
+    alone_warning: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -110,11 +117,27 @@ class BusConfig:
     def open(self) -> zenoh.Session:
         conf = self.zenoh_config()
         try:
-            return zenoh.open(conf)
+            session = zenoh.open(conf)
         except zenoh.ZError as exc:
             who = "" if self.secure is None else f", secure as {self.secure.identity!r} from {self.secure.directory}"
             raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
                            f"listen={self.listen_endpoints()}{who}): {exc}") from None
+        if self.alone_warning is not None:
+            warn_if_alone(session, self)
+        return session
+
+    def alone_text(self, after_s: float) -> str:
+        """The one line a session that has reached no other process says: where it
+        looked and what to do."""
+        where = f"mode {self.mode}, connect {list(self.connect)}, listen {self.listen_endpoints()}"
+        head = f"{self.alone_warning}: no zenoh peer or router reached in {after_s:g} s ({where})"
+        if self.connect:
+            return (f"{head}: nothing answers at {', '.join(self.connect)}; is `qradar router --listen ...` (or "
+                    f"the node listening there) running, and the address right?")
+        if self.listen_endpoints():
+            return f"{head}: no process has connected yet; give the others --connect {self.listen_endpoints()[0]}"
+        return (f"{head}: this process is alone; separate processes meet through a router: start `qradar router "
+                f"--listen tcp/127.0.0.1:7447` and give each command --mode client --connect tcp/127.0.0.1:7447")
 
     # -- keys ------------------------------------------------------------------------------
     def key(self, sensor_id: str, topic: str) -> str:
@@ -135,6 +158,39 @@ class BusConfig:
 
     def liveliness_key(self, node: str) -> str:
         return f"{self.prefix}/alive/{node}/{uuid.uuid4().hex[:12]}"
+
+
+#: a stand-alone command whose session reaches no other process within this says so, s
+ALONE_AFTER_S = 3.0
+
+
+def reaches_anyone(session: zenoh.Session) -> bool:
+    """The session has an open transport to another zenoh process (a router, a peer, or
+    a client connected to it)."""
+    info = session.info
+    if hasattr(info, "transports"):  # zenoh-python >= 1.6: clients connected to this one count too
+        return bool(info.transports())
+    return bool(info.routers_zid() or info.peers_zid())
+
+
+def warn_if_alone(session: zenoh.Session, bus: BusConfig, after_s: float = ALONE_AFTER_S,
+                  stream: TextIO | None = None) -> threading.Thread:
+    """After ``after_s``, once: if ``session`` reaches no other process, write
+    :meth:`BusConfig.alone_text` to ``stream`` (stderr). A daemon thread; a session closed
+    meanwhile says nothing."""
+
+    def check() -> None:
+        time.sleep(after_s)
+        try:
+            if session.is_closed() or reaches_anyone(session):
+                return
+            print(bus.alone_text(after_s), file=stream or sys.stderr, flush=True)
+        except (zenoh.ZError, OSError, ValueError):  # closed under us, or stderr gone
+            pass
+
+    t = threading.Thread(target=check, name="zenoh-alone-check", daemon=True)
+    t.start()
+    return t
 
 
 def check_sensor_pattern(pattern: str) -> str:

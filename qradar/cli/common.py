@@ -245,7 +245,8 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
     elif args.identity is not None:
         raise ParameterError("--identity is for --secure DIR")
     return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                     config_file=args.zenoh_config, prefix=args.prefix, secure=secure)
+                     config_file=args.zenoh_config, prefix=args.prefix, secure=secure,
+                     alone_warning=f"qradar {args.command}")  # a stand-alone command says if it reaches nobody
 
 
 def quantizer_options(p, alpha_default: float | None, alpha_help: str,

@@ -10,6 +10,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from pipeline.bus import BusConfig
 from pipeline.decode import Algo, default_alpha
 from pipeline.errors import ParameterError
 from pipeline.node import INPUT_MODES
@@ -219,7 +220,7 @@ ROUTER_LISTEN_SECURE = "tls/0.0.0.0:7447"
 
 
 def cmd_router(args) -> int:
-    bus = bus_from_args(args)
+    bus = replace(bus_from_args(args), alone_warning=None)  # a router waiting for its clients is normal
     if not bus.listen_endpoints():  # neither --listen nor the config file says where
         bus = replace(bus, listen=(ROUTER_LISTEN_SECURE if bus.secure is not None else ROUTER_LISTEN,))
     install_sigterm()
@@ -240,6 +241,13 @@ def cmd_router(args) -> int:
     return 0
 
 
+def run_bus(args) -> BusConfig:
+    """run's bus: its nodes share one in-process session, alone on purpose unless given
+    endpoints (then it says if it reaches nobody, as every stand-alone command)."""
+    bus = bus_from_args(args)
+    return bus if bus.connect or bus.listen_endpoints() else replace(bus, alone_warning=None)
+
+
 def cmd_run(args) -> int:
     record = None
     if not args.no_record:
@@ -250,7 +258,7 @@ def cmd_run(args) -> int:
     alpha = default_alpha(args.algo) if args.alpha is None else args.alpha
     k, auto = count_from_args(args)
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
-                    quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=bus_from_args(args),
+                    quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=run_bus(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,

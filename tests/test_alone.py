@@ -1,0 +1,41 @@
+"""No silent emptiness: a stand-alone command whose zenoh session reaches no other
+process within ALONE_AFTER_S says so once on stderr, naming where it looked and the fix,
+and keeps running; ``qradar run`` (one in-process session on purpose) does not."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from pipeline.bus import ALONE_AFTER_S
+
+WARNING = "no zenoh peer or router reached"
+
+
+def qradar(*args, timeout_s: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
+                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+
+
+def test_a_command_alone_says_so_once_with_the_fix():
+    out = qradar("view", "--port", "0", "--duration", str(ALONE_AFTER_S + 3))
+    assert out.returncode == 0, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if WARNING in ln]
+    assert len(lines) == 1, out.stderr
+    assert lines[0].startswith("qradar view: ") and "mode peer, connect [], listen []" in lines[0]
+    assert "qradar router --listen tcp/127.0.0.1:7447" in lines[0] and "--mode client --connect" in lines[0]
+    assert '"node": "view"' in out.stdout  # it kept running to its end
+
+
+def test_a_connect_endpoint_that_answers_nothing_is_named(free_port):
+    ep = f"tcp/127.0.0.1:{free_port}"
+    out = qradar("localize", "--connect", ep, "--duration", str(ALONE_AFTER_S + 2))
+    lines = [ln for ln in out.stderr.splitlines() if WARNING in ln]
+    assert out.returncode == 0 and len(lines) == 1, out.stderr
+    assert f"nothing answers at {ep}" in lines[0]
+
+
+def test_the_main_job_alone_on_purpose_does_not_warn():
+    out = qradar("run", "--duration", str(ALONE_AFTER_S + 2), "--no-record")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert WARNING not in out.stderr and WARNING not in out.stdout

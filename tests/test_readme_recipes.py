@@ -1,0 +1,136 @@
+"""The README's multi-terminal recipes, run as written: each block marked
+``<!-- recipe: NAME -->`` is read from README.md and each of its lines started as a
+process of its own (a terminal), with only what a test must change substituted: the
+ports (free ones), /tmp/kmd2 and out/ (a temporary folder), the committed recording's
+path. Every process is stopped at the end."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from replay.mcapio import McapFile
+from zenoh_helpers import free_port
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+
+
+def recipe(name: str) -> list[str]:
+    """The command lines of README's block marked ``<!-- recipe: name -->`` (comments cut)."""
+    m = re.search(rf"<!-- recipe: {re.escape(name)} -->\n```sh\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no recipe {name!r}"
+    return [re.sub(r"\s+#.*$", "", line).strip() for line in m.group(1).splitlines() if line.strip()]
+
+
+def substitute(line: str, tmp: Path, ports: dict[str, int]) -> str:
+    for old, new in ports.items():
+        line = line.replace(old, str(new))
+    line = line.replace("/tmp/kmd2", str(tmp / "kmd2")).replace(" out/", f" {tmp}/out/")
+    return line.replace("recordings/chamber.mcap", str(ROOT / "recordings" / "chamber.mcap"))
+
+
+class Terminals:
+    """Each line a process (``bash -c``, with the block's variable assignments before it)."""
+
+    def __init__(self, tmp: Path):
+        self.tmp, self.env_lines, self.procs = tmp, [], {}
+        self.env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+
+    def run(self, line: str) -> subprocess.Popen | None:
+        if re.match(r"^[A-Z_]+=", line):
+            self.env_lines.append(line)
+            return None
+        script = "; ".join([*self.env_lines, f"exec {line}"])
+        proc = subprocess.Popen(["bash", "-c", script], cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.procs[line.split()[1]] = proc
+        return proc
+
+    def stop(self, command: str, timeout_s: float = 20) -> tuple[str, str]:
+        proc = self.procs[command]
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=timeout_s)
+        return out, err
+
+    def close(self) -> None:
+        for proc in reversed(list(self.procs.values())):
+            if proc.poll() is None:
+                proc.kill()
+            proc.communicate(timeout=10)
+
+
+def wait_port(port: int, timeout_s: float = 20) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise AssertionError(f"nothing listens on 127.0.0.1:{port}")
+
+
+def start_all(lines: list[str], t: Terminals, ports: dict[str, int]) -> None:
+    for line in lines:
+        proc = t.run(substitute(line, t.tmp, ports))
+        if proc is None:
+            continue
+        command = line.split()[1]
+        if command == "router":
+            wait_port(ports["7447"])
+        elif command == "sim":
+            deadline = time.monotonic() + 20
+            while not (t.tmp / "kmd2").exists() and time.monotonic() < deadline:
+                time.sleep(0.1)
+        else:
+            time.sleep(1.0)  # the node is up (a person types the next line)
+        assert proc.poll() is None, f"{line!r} exited: {proc.communicate()[1][-2000:]}"
+
+
+@pytest.mark.slow
+def test_the_chain_by_hand_works_as_written(tmp_path):
+    ports = {"7447": free_port()}
+    t = Terminals(tmp_path)
+    try:
+        start_all(recipe("chain"), t, ports)
+        time.sleep(6.0)
+        for command in ("record", "drive", "sim", "localize", "quantize", "router"):
+            out, err = t.stop(command)
+            assert "Traceback" not in err, (command, err[-3000:])
+            if command == "record":
+                recorded = json.loads(out.strip().splitlines()[-1])
+    finally:
+        t.close()
+    assert recorded["written"] > 0
+    topics = [ch.topic for ch, _ in McapFile(tmp_path / "out" / "lab.mcap").messages()]
+    for topic in ("raw", "quantized", "targets"):
+        assert topics.count(f"radar/lab1/{topic}") >= 40, (topic, len(topics))
+
+
+@pytest.mark.slow
+def test_replay_and_view_work_as_written(tmp_path):
+    ports = {"7447": free_port(), "8765": free_port()}
+    t = Terminals(tmp_path)
+    try:
+        start_all(recipe("replay-view"), t, ports)
+        replay_out, replay_err = t.procs["replay"].communicate(timeout=60)
+        assert t.procs["replay"].returncode == 0, replay_err[-2000:]
+        published = json.loads(replay_out.strip().splitlines()[-1])["published"]
+        time.sleep(0.5)
+        view_out, view_err = t.stop("view")
+        t.stop("router")
+    finally:
+        t.close()
+    seen = json.loads(view_out.strip().splitlines()[-1])
+    assert published > 0 and seen["frames_in"] > 0 and seen["sensors"], seen
+    assert "no zenoh peer or router reached" not in view_err
