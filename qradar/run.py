@@ -37,7 +37,7 @@ from radar_driver.errors import RadarError
 from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
-from replay.mcapio import RecordingExists
+from replay.errors import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
 from .view import FoxgloveView, ViewConfig

@@ -11,3 +11,11 @@ class NotMcapError(ReplayError):
 
 class NoQradarChannelsError(ReplayError):
     """The MCAP file holds no qradar channels."""
+
+
+class RecordingExists(ReplayError):
+    """A recording's path exists already (recordings are created exclusively)."""
+
+    @classmethod
+    def at(cls, path) -> "RecordingExists":
+        return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it")

@@ -36,7 +36,7 @@ from zstandard import ZstdError
 
 from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TargetsMsg
 
-from .errors import NotMcapError, ReplayError
+from .errors import NotMcapError, RecordingExists, ReplayError
 
 WIRE_ENCODING = "qradar/wire-v1"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
@@ -109,14 +109,6 @@ def describe_os_error(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.errno is not None:
         return f"{exc.strerror or exc} ({errno.errorcode.get(exc.errno, exc.errno)})"
     return str(exc) or type(exc).__name__
-
-
-class RecordingExists(ReplayError):
-    """A recording's path exists already (files are created exclusively)."""
-
-    @classmethod
-    def at(cls, path: Path) -> "RecordingExists":
-        return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it")
 
 
 class _RecordFile:

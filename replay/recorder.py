@@ -37,8 +37,8 @@ from pipeline.bus import BusConfig
 from pipeline.node import NO_SENSOR, ProcessingNode
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
-from .errors import ReplayError
-from .mcapio import McapSink, RecordingExists, describe_os_error, pointcloud_json, topic_of
+from .errors import RecordingExists, ReplayError
+from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
 
 log = logging.getLogger("qradar.record")
 
