@@ -19,6 +19,7 @@ Keys: ``<prefix>/<sensor>/{raw,quantized,targets,health}``; liveliness tokens at
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 import time
@@ -33,6 +34,15 @@ import zenoh
 from .errors import BusError, ParameterError
 from .security import SecureConfig, check_secure_endpoint
 from .wire import TOPICS
+
+_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?\s*$")
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """zenoh's message of ``exc`` on one line, without the Rust source path it ends in
+    (`` at /root/.cargo/.../orchestrator.rs:447.``), which tells a user nothing."""
+    return " ".join(_RUST_SOURCE.sub("", str(exc)).split())
+
 
 _DEFAULT_ENDPOINTS = {key: zenoh.Config().get_json(key) for key in ("listen/endpoints", "connect/endpoints")}
 
@@ -74,7 +84,7 @@ class BusConfig:
         try:
             return zenoh.Config.from_file(str(self.config_file))
         except zenoh.ZError as exc:  # missing, unreadable or unparsable: the parser's message
-            raise BusError(f"zenoh config file {self.config_file}: {exc}") from None
+            raise BusError(f"zenoh config file {self.config_file}: {zenoh_reason(exc)}") from None
 
     def _endpoints(self, conf: zenoh.Config, what: str) -> list[str]:
         """``what`` (listen or connect) endpoints of ``conf`` for this mode; zenoh's
@@ -121,7 +131,7 @@ class BusConfig:
         except zenoh.ZError as exc:
             who = "" if self.secure is None else f", secure as {self.secure.identity!r} from {self.secure.directory}"
             raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
-                           f"listen={self.listen_endpoints()}{who}): {exc}") from None
+                           f"listen={self.listen_endpoints()}{who}): {zenoh_reason(exc)}") from None
         if self.alone_warning is not None:
             warn_if_alone(session, self)
         return session

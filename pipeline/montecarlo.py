@@ -192,7 +192,8 @@ class MonteCarloConfig:
             object.__setattr__(self, "scene", replace(self.scene, ranges="cells"))
         object.__setattr__(self, "off_grid", self.scene.ranges != "grid")
         if not self.ks or any(isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= GRID_CELLS for k in self.ks):
-            raise ParameterError(f"K values {self.ks!r} must be integers in [1, {GRID_CELLS}]")
+            raise ParameterError(f"K values {self.ks!r} must be integers in [1, {GRID_CELLS}]: the targets of a "
+                                 f"run sit in distinct range cells of the {GRID_CELLS} x {GRID_CELLS} grid")
         if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
             raise ParameterError(f"runs={self.runs!r} must be an integer >= 1")
         if not self.schemes:

@@ -42,7 +42,7 @@ import zenoh
 
 from radar_driver.errors import RadarError
 
-from .bus import BusConfig, Shard, check_sensor_pattern, pattern_chunk
+from .bus import BusConfig, Shard, check_sensor_pattern, pattern_chunk, zenoh_reason
 from .errors import ParameterError, PipelineError, WireError
 from .fairqueue import FairQueue
 from .histogram import LogHistogram
@@ -299,7 +299,8 @@ class Node:
                 self._publisher(sensor, topic, encoding).put(payload)
                 sent.append((sensor, len(payload)))
             except (PipelineError, zenoh.ZError) as exc:
-                self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {exc}")
+                why = zenoh_reason(exc) if isinstance(exc, zenoh.ZError) else exc
+                self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {why}")
         now = time.monotonic()
         with self._lock:
             for sensor, n in sent:

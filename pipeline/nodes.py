@@ -301,11 +301,13 @@ class LocalizerConfig:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
-            raise ParameterError(f"K={self.k!r} must be an integer in [1, {self.radar.samples_per_ramp}]")
+            raise ParameterError(f"K={self.k!r} must be an integer in [1, N = {self.radar.samples_per_ramp}]: a "
+                                 f"frame has N range bins a ramp and a target takes one")
         object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
         if self.algo == Algo.CML and self.k > self.radar.samples_per_ramp // 2:
             raise ParameterError(f"K={self.k} (or --max-targets) must be at most N/2 = "
-                                 f"{self.radar.samples_per_ramp // 2} for cml")
+                                 f"{self.radar.samples_per_ramp // 2} for cml: its fit of K tones to N samples a "
+                                 f"ramp needs at least two samples a tone")
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
         if self.source == "raw" and self.algo == Algo.QIHT:

@@ -174,6 +174,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
         raise RecordingExists.at(cfg.record)  # before anything starts
     k = cfg.k or max(1, len(scene.targets))
+    localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar, fallback_pbp=cfg.quantizer.alpha == 0,
+                                    auto_k=cfg.auto_k, pfa=cfg.pfa)  # checked before anything starts
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
         sims = [SimulatorServer(scene, link_path=Path(tmp) / f"kmd2-{i}", rate_hz=cfg.rate_hz, seed=i)
@@ -185,10 +187,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
             monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
-            localizer = LocalizeNode(cfg.bus, LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar,
-                                                              fallback_pbp=cfg.quantizer.alpha == 0,
-                                                              auto_k=cfg.auto_k, pfa=cfg.pfa),
-                                     session=session)
+            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=scene.radar)
             links = [str(sim.links[0].link_path) for sim in sims]
             if cfg.driver_process:

@@ -52,11 +52,11 @@ from foxglove.messages import (
 from pipeline.bus import BusConfig
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.localize import back_project
-from pipeline.node import ProcessingNode
+from pipeline.node import SEQ, SEQ_OFFSET, ProcessingNode
 from pipeline.quantize import dequantize
 from pipeline.wire import (
-    OPTIONAL_TARGET_FIELDS,
-    TARGET_FIELDS,
+    HEADER_LEN,
+    MAGIC,
     QuantizedFrameMsg,
     TargetsMsg,
     check_sensor_id,
@@ -320,6 +320,11 @@ class FoxgloveView(ProcessingNode):
                 last = self._last_profile.get(sensor)
                 if last is not None and now - last < self._profile_period_s:
                     self._profiles_skipped[sensor] = self._profiles_skipped.get(sensor, 0) + 1
+                    st = self.stats.get(sensor)
+                    if st is not None:  # skipped on purpose is not missing: its seq moves the count on
+                        head = sample.payload.to_bytes()[:HEADER_LEN]
+                        if len(head) == HEADER_LEN and head[:4] == MAGIC:
+                            st.note_seq("quantized", SEQ.unpack_from(head, SEQ_OFFSET)[0])
                     return
                 if len(self._last_profile) >= 4 * self.config.max_sensors:  # keys of garbage: bounded
                     self._last_profile.clear()

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import zenoh
 
-from pipeline.bus import BusConfig
+from pipeline.bus import BusConfig, zenoh_reason
 from pipeline.node import NO_SENSOR, ProcessingNode
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
@@ -141,7 +141,7 @@ class RecorderNode(ProcessingNode):
         try:
             zenoh.KeyExpr(self.topics)
         except zenoh.ZError as exc:
-            raise ReplayError(f"--topics {self.topics!r} is not a key expression: {exc}") from None
+            raise ReplayError(f"--topics {self.topics!r} is not a key expression: {zenoh_reason(exc)}") from None
         self.split_size = None if split_size_mb is None else int(split_size_mb * 1e6)
         self.split_duration_s = split_duration_s
         self.extra_metadata = metadata or {}

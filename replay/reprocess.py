@@ -31,20 +31,31 @@ log = logging.getLogger("qradar.reprocess")
 
 
 def parse_alphas(text: str) -> np.ndarray:
-    """``0:1:0.05`` (start:stop:step, stop included), ``0,0.5,1`` or ``0.55``."""
-    try:
-        if ":" in text:
-            start, stop, step = (float(x) for x in text.split(":"))
-            if not step > 0:
-                raise ValueError("step must be > 0")
-            vals = np.arange(start, stop + step / 2, step)
-        else:
+    """``0:1:0.05`` (start:stop:step, stop included), ``0,0.5,1`` or ``0.55``; each
+    mistake gets its own one-line ReplayError."""
+    if ":" in text:
+        parts = text.split(":")
+        if len(parts) != 3:
+            raise ReplayError(f"--alpha {text!r}: a sweep is START:STOP:STEP, three numbers (e.g. 0:1:0.1)")
+        try:
+            start, stop, step = (float(x) for x in parts)
+        except ValueError:
+            raise ReplayError(f"--alpha {text!r}: START:STOP:STEP must be three numbers (e.g. 0:1:0.1)") from None
+        if not step > 0:
+            raise ReplayError(f"--alpha {text!r}: step {step:g} must be > 0 (e.g. 0:1:0.1)")
+        if start > stop:
+            raise ReplayError(f"--alpha {text!r}: start {start:g} is above stop {stop:g}; write START:STOP:STEP "
+                              f"with START <= STOP (e.g. {stop:g}:{start:g}:{step:g})")
+        vals = np.arange(start, stop + step / 2, step)
+    else:
+        try:
             vals = np.array([float(x) for x in text.split(",")])
-    except ValueError as exc:
-        raise ReplayError(f"--alpha {text!r}: expected start:stop:step, a list a,b,c or one value ({exc})") from None
+        except ValueError:
+            raise ReplayError(f"--alpha {text!r}: expected START:STOP:STEP, a list a,b,c or one value") from None
     vals = np.round(vals, 10)
-    if vals.size == 0 or np.any(vals < 0) or np.any(vals > 1):
-        raise ReplayError(f"--alpha {text!r}: every alpha must lie in [0, 1]")
+    bad = vals[~((vals >= 0) & (vals <= 1))]
+    if bad.size:
+        raise ReplayError(f"--alpha {text!r}: every alpha must lie in [0, 1], not {bad[0]:g}")
     return vals
 
 

@@ -14,7 +14,7 @@ from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
-from .common import count_from_args, count_options, nonneg_float, nonneg_int, pfa_arg, pos_int
+from .common import BITS_HELP, count_from_args, count_options, nonneg_float, nonneg_int, pfa_arg, pos_int
 
 
 def add_montecarlo(sub) -> None:
@@ -29,7 +29,7 @@ def add_montecarlo(sub) -> None:
                    help="runs per scheme and K (default: the paper's 320000 x K)")
     p.add_argument("--schemes", nargs="+", default=list(DEFAULT_SCHEMES),
                    help="dither_m<M>, nodither_m<M>, 32bit_m<M> (default: the paper's four)")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--algos", nargs="+", default=[Algo.PBP.value],
                    help=f"decoders: {', '.join(ALGOS)} (default {Algo.PBP}); "
                    "non-PBP results appear as <scheme>@<algo>")
@@ -72,17 +72,17 @@ def add_reprocess(sub) -> None:
     p = sub.add_parser("reprocess", help="re-quantize and re-localize a recording's raw frames offline (alpha sweep)")
     p.add_argument("file", type=Path)
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
-    p.add_argument("--bits", type=pos_int, default=1)
+    p.add_argument("--bits", type=pos_int, default=1, help=BITS_HELP)
     count_options(p, None, "targets (default: the truth's count)")
     p.add_argument("--algos", "--algo", dest="algos", nargs="+", choices=list(ALGOS), default=[Algo.PBP.value],
                    help="decoders, one alpha sweep and one curve each (default pbp); qiht decodes alpha = 0 with "
                    "PBP (there is no dither to use)")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
     p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
     p.add_argument("--out", type=Path, default=Path("out/reprocess"), help="folder for results.json and the plots")
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_reprocess)
 
 

@@ -249,12 +249,17 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
                      alone_warning=f"qradar {args.command}")  # a stand-alone command says if it reaches nobody
 
 
+#: --bits, wherever a quantizer is set
+BITS_HELP = ("bits per real value (I and Q each) of the dithered quantizer, 1 to 16: 1 = the paper's one bit "
+             "(the sign, with delta auto)")
+
+
 def quantizer_options(p, alpha_default: float | None, alpha_help: str,
                       seed_flags: tuple[str, ...] = ("--seed", "--dither-seed")) -> None:
     """--bits, --alpha, --delta, --delta-margin and the dither seed (``seed_flags``: a
     command whose --seed is another seed, e.g. the simulated sensors' noise, takes
     --dither-seed only)."""
-    p.add_argument("--bits", type=pos_int, default=1)
+    p.add_argument("--bits", type=pos_int, default=1, help=BITS_HELP)
     p.add_argument("--alpha", type=float, default=alpha_default, help=alpha_help)
     p.add_argument("--delta", type=delta_arg, default="auto", help="'auto' (smallest 1-bit step per frame) or a step in full-scale units")
     p.add_argument("--delta-margin", type=nonneg_float, default=0.0, help="auto delta x (1 + margin)")

@@ -32,7 +32,7 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
     p.add_argument("file", type=Path)
-    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
@@ -40,7 +40,7 @@ def add_commands(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rate", type=float, default=1.0, help="speed factor of the original timing (default 1)")
     g.add_argument("--fast", action="store_true", help="as fast as subscribers take it (publishers block, no drops)")
-    p.add_argument("--loop", action="store_true")
+    p.add_argument("--loop", action="store_true", help="play the file again from its start, until Ctrl-C")
     p.add_argument("--start", type=float, default=None, help="seconds from the start of the file")
     p.add_argument("--end", type=float, default=None, help="seconds from the start of the file")
     p.add_argument("--topics", default=None, help="key expression of the channels to play")

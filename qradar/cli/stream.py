@@ -45,6 +45,10 @@ from .record import write_error_options
 from .view import foxglove_arg
 
 
+#: run's decoder unless --algo names another: the most accurate off the range grid
+RUN_ALGO = Algo.CML
+
+
 def add_commands(sub) -> None:
     p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
     quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
@@ -70,8 +74,8 @@ def add_commands(sub) -> None:
                        description="Simulated sensors that publish raw frames of a scene directly, bypassing "
                        "the serial protocol: for benchmarks and many-sensor set-ups. With --recording, the raw "
                        "frames of an MCAP file instead.")
-    p.add_argument("--scene", default="chamber")
-    p.add_argument("--sensors", type=pos_int, default=1)
+    p.add_argument("--scene", default="chamber", help="scene file or packaged name")
+    p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
     p.add_argument("--rate", type=nonneg_float, default=None,
                    help="frames per second per sensor (default 20; 0 = as fast as read); with --recording, "
                    "the speed factor of the recorded pace (default 1; 0 = as fast as read)")
@@ -85,7 +89,7 @@ def add_commands(sub) -> None:
     edge_quantizer_options(p, "--quantized")
     p.add_argument("--recording", type=Path, default=None,
                    help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
-    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p)
     p.set_defaults(func=cmd_source)
 
@@ -93,14 +97,14 @@ def add_commands(sub) -> None:
                        description="A zenoh router the nodes join as clients (--mode client --connect ...). It "
                        f"listens on --listen, else on the --zenoh-config file's listen/endpoints, else on "
                        f"{ROUTER_LISTEN} ({ROUTER_LISTEN_SECURE} with --secure).")
-    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     bus_options(p, modes=("router",))
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("run", help="the main job: simulated K-MD2 -> driver -> quantize -> localize over zenoh",
                        description="Simulated K-MD2(s) on ptys, the serial driver, the 1-bit dithered quantizer "
-                       "and the PBP localizer over an embedded zenoh peer; live targets beside the truth, "
-                       "then a summary.")
+                       f"and the localizer (--algo, default {RUN_ALGO}) over an embedded zenoh peer; live targets "
+                       "beside the truth, then a summary.")
     p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
     p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
@@ -108,7 +112,7 @@ def add_commands(sub) -> None:
     quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
                       "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
     count_options(p, None, "targets per frame (default: the scene's count)")
-    algo_option(p, "decoder of the localizer", Algo.CML)
+    algo_option(p, "decoder of the localizer", RUN_ALGO)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")

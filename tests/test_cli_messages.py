@@ -1,0 +1,85 @@
+"""The smaller promises of the command line: every option has a help text, run's help
+names its real default decoder, refusals come before anything starts and say why, and
+zenoh's errors read as one line without Rust source paths."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.bus import zenoh_reason
+from qradar.cli import build_parser
+from replay.errors import ReplayError
+from replay.reprocess import parse_alphas
+
+
+def qradar(*args, timeout_s=60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
+                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+
+
+def subcommands() -> dict[str, argparse.ArgumentParser]:
+    parser = build_parser()
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def test_every_option_of_every_command_has_a_help_text():
+    missing = [(name, a.option_strings) for name, p in subcommands().items() for a in p._actions
+               if a.option_strings and a.help is not argparse.SUPPRESS and not (a.help or "").strip()]
+    assert missing == []
+
+
+def test_run_help_names_its_default_decoder():
+    run = subcommands()["run"]
+    default = next(a.default for a in run._actions if a.dest == "algo")
+    text = run.format_help()
+    assert f"default {default}" in " ".join(text.split()) and "the PBP localizer" not in text
+
+
+@pytest.mark.parametrize("spec, words", [
+    ("1:0:0.1", "start 1 is above stop 0"),
+    ("0:1:0", "step 0 must be > 0"),
+    ("0:1", "three numbers"),
+    ("0:x:0.1", "must be three numbers"),
+    ("0.2,1.5", "not 1.5"),
+    ("a,b", "expected START:STOP:STEP"),
+])
+def test_an_alpha_sweep_says_what_is_wrong(spec, words):
+    with pytest.raises(ReplayError, match=words):
+        parse_alphas(spec)
+
+
+def test_an_alpha_sweep_in_order_is_fine():
+    assert parse_alphas("0:1:0.25").tolist() == [0.0, 0.25, 0.5, 0.75, 1.0]
+
+
+def test_run_refuses_a_bad_k_before_starting_anything():
+    out = qradar("run", "--K", "999", "--no-record")
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "K=999" in lines[0] and "range bins" in lines[0]
+    assert "simulated K-MD2" not in out.stderr  # no simulator was started
+
+
+def test_the_limits_on_k_say_why():
+    assert "distinct range cells" in qradar("montecarlo", "--K", "41", "--runs", "10").stderr
+    assert "two samples a tone" in qradar("run", "--K", "200", "--algo", "cml", "--no-record").stderr
+
+
+@pytest.mark.parametrize("args", [
+    ("localize", "--listen", "tcp/127.0.0.1:99999", "--duration", "1"),
+    ("localize", "--mode", "client", "--connect", "tcp/127.0.0.1:1", "--duration", "1"),
+])
+def test_zenoh_errors_are_one_line_without_rust_paths(args):
+    out = qradar(*args)
+    assert out.returncode == 2
+    line = out.stderr.strip()
+    assert "\n" not in line and ".rs:" not in line and "cannot open zenoh session" in line
+
+
+def test_zenoh_reason_cuts_the_source_path_and_joins_lines():
+    exc = Exception("--> 1:1\n  | {bad\n  = expected array at /root/.cargo/git/x/zenoh-config/src/lib.rs:1486.")
+    assert zenoh_reason(exc) == "--> 1:1 | {bad = expected array"
