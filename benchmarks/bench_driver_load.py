@@ -63,6 +63,9 @@ DEFAULT_STEPS = ("pty:before", "pty:after", "ser2net:before", "ser2net:after", "
 BEFORE_COMMIT = "28790cf"
 PROBE = Path(__file__).resolve().parent / "load_probe"
 BUSY = "while True: pass"
+#: --busy numpy: a matrix product loop (one BLAS thread each), the load of a lab laptop's other work
+BUSY_NUMPY = ("import os; os.environ['OPENBLAS_NUM_THREADS'] = '1'\nimport numpy as np\n"
+              "a = np.random.rand(300, 300)\nwhile True: a @ a")
 PROGRESS_S = 20.0
 #: each process in a session of its own (and so, with CONFIG_SCHED_AUTOGROUP, a scheduling
 #: group of its own, like programs started from different terminals); --same-session: all
@@ -179,8 +182,9 @@ class Child:
 class BusyLoops:
     """``n`` busy-loop processes; ``share()`` is each one's CPU s / wall s."""
 
-    def __init__(self, n: int):
-        self.procs = [subprocess.Popen([sys.executable, "-c", BUSY], stdin=subprocess.DEVNULL,
+    def __init__(self, n: int, code: str = BUSY):
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+        self.procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, env=env,
                                        start_new_session=NEW_SESSION) for _ in range(n)]
         self.t0 = time.monotonic()
         self.cpu_s: list[float] = []
@@ -248,7 +252,7 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
                  "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
     busy_before = machine_busy_s()
     t_trial = time.monotonic()
-    busy = BusyLoops(args.load)
+    busy = BusyLoops(args.load, BUSY_NUMPY if args.busy == "numpy" else BUSY)
     sim = s2n = driver = lat = None
     other = None
     if args.other:
@@ -311,7 +315,8 @@ def trial(step: str, args, trees: dict[str, Path], ser2net_cls) -> dict:
             if link_kind.startswith("run"):
                 counters = next(iter(result.get("driver", {}).values()), {})
                 out["run"] = {k: result.get(k) for k in ("seconds", "frames_raw", "frames_quantized",
-                                                          "frames_targets", "drops", "drops_detail", "latency_ms")}
+                                                          "frames_targets", "drops", "drops_detail", "latency_ms",
+                                                          "frames_missing", "simulator")}
                 out["run_sensor_frames_reported"] = (result.get("drops_detail") or {}).get("sensor_frames")
             else:
                 counters = {k: v for k, v in result.items() if isinstance(v, int)}
@@ -445,7 +450,8 @@ def analyze_trace(trace_dir: Path, radc_rate_hz: float) -> dict:
 # -- the report -------------------------------------------------------------------------------
 def table(rows: list[dict]) -> str:
     head = ("| step | link | code | frames | dropped frames | dropped RADCs | timeouts | reconnects | wall s "
-            "| busy-loop CPU share | other CPU s | lost RADCs at sim / host | wake-up late > 25 ms |")
+            "| busy-loop CPU share | other CPU s | lost RADCs at sim / host | wake-up late > 25 ms "
+            "| run: sim late writes / driver drops / node queue drops |")
     lines = [head, "|" + "|".join("---" for _ in range(head.count("|") - 1)) + "|"]
     for r in rows:
         c = r.get("counters", {})
@@ -458,9 +464,16 @@ def table(rows: list[dict]) -> str:
         by = (r.get("trace") or {}).get("lost_radcs_by")
         where = (f"{by['sim']} / {by['host']}" + (f" (+{by['?']} ?)" if by.get("?") else "")) if by else "–"
         late = (r.get("wake_late_ms") or {}).get("over_25ms", "–")
+        run = r.get("run") or {}
+        by_where = "–"
+        if run:
+            sim_late = (run.get("simulator") or {}).get("late_writes", "– (no hold)")
+            d = run.get("drops_detail") or {}
+            by_where = f"{sim_late} / {d.get('sensor_frames', '–')} / {d.get('node_queues', '–')}"
         lines.append(f"| {r['step']}{note} | {r['link']} | {r['code']} | {frames} | {dropped} | "
                      f"{r.get('dropped_radcs', '–')} | {c.get('timeouts', '–')} | {c.get('reconnects', '–')} | "
-                     f"{r.get('wall_s', '–')} | {share} | {r.get('others_cpu_s', '–')} | {where} | {late} |")
+                     f"{r.get('wall_s', '–')} | {share} | {r.get('others_cpu_s', '–')} | {where} | {late} "
+                     f"| {by_where} |")
     return "\n".join(lines)
 
 
@@ -481,6 +494,8 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=20.0, help="the simulated sensor's frames/s")
     ap.add_argument("--scene", default="chamber")
     ap.add_argument("--load", type=int, default=2, help="busy-loop processes (0: a quiet baseline)")
+    ap.add_argument("--busy", choices=("python", "numpy"), default="python",
+                    help="what a busy loop runs: a bare Python loop, or numpy matrix products (one BLAS thread)")
     ap.add_argument("--steps", nargs="+", default=list(DEFAULT_STEPS),
                     help=f"LINK[:CODE], LINK in {', '.join(LINKS)}; CODE before|after (both if omitted)")
     ap.add_argument("--before", type=Path, default=Path("/work/wt-before"),
@@ -535,7 +550,7 @@ def main() -> None:
               f"{r.get('dropped_frames')}, dropped RADCs {r.get('dropped_radcs')}, wall {r.get('wall_s')} s, "
               f"busy {r.get('busy_share')}{' TIMED OUT' if r.get('timed_out') else ''}"
               f"{' error: ' + r['error'] if r.get('error') else ''}", file=sys.stderr, flush=True)
-    result = {"frames": args.frames, "rate_hz": args.rate, "load": args.load, "scene": args.scene,
+    result = {"frames": args.frames, "rate_hz": args.rate, "load": args.load, "busy": args.busy, "scene": args.scene,
               "other": args.other, "chrt": args.chrt, "same_session": args.same_session, "sim_after": args.sim_after,
               "sim_args": args.sim_args, "drive_args": args.drive_args,
               "cpus": os.cpu_count(), "before_tree": str(trees["before"]), "after_tree": str(trees["after"]),
