@@ -153,6 +153,9 @@ class RunConfig:
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
     record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
+    # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
+    # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer
+    outstanding: int = 2
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -166,6 +169,8 @@ class RunConfig:
             raise ParameterError(f"record_on_error={self.record_on_error!r} must be one of "
                                  f"{[m.value for m in OnWriteError]} and record_retry_s={self.record_retry_s!r} > 0")
         object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
+        if self.outstanding not in (1, 2):
+            raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
 
 
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
@@ -194,12 +199,13 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             links = [str(sim.links[0].link_path) for sim in sims]
             if cfg.driver_process:
                 drivers = [DriverProcess(link, f"kmd2-{i}", cfg.baud, scene.radar.ramps_per_frame, bus,
-                                         frames=cfg.frames, log=sys.stderr if live is not None else None,
+                                         frames=cfg.frames, outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
                                          received=lambda sid=f"kmd2-{i}": monitor.raw_by_sensor.get(sid, 0))
                            for i, link in enumerate(links)]
             else:
                 drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
-                    link, baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame, sensor_id=f"kmd2-{i}")),
+                    link, baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame, sensor_id=f"kmd2-{i}",
+                    outstanding=cfg.outstanding)),
                     session=session, frames=cfg.frames) for i, link in enumerate(links)]
             if cfg.frames is not None:
                 stop = stop or threading.Event()
@@ -273,7 +279,7 @@ class DriverProcess:
 
     def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
                  frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None,
-                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0):
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1):
         self.sensor_id = sensor_id
         self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
                     "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix,
@@ -285,6 +291,8 @@ class DriverProcess:
             self.cmd += ["--baud", str(baud)]
         if frames is not None:
             self.cmd += ["--frames", str(frames)]
+        if outstanding != 1:
+            self.cmd += ["--outstanding", str(outstanding)]
         if profile is not None:
             self.cmd += ["--profile", profile]
         if received is not None:

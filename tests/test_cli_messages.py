@@ -83,3 +83,12 @@ def test_zenoh_errors_are_one_line_without_rust_paths(args):
 def test_zenoh_reason_cuts_the_source_path_and_joins_lines():
     exc = Exception("--> 1:1\n  | {bad\n  = expected array at /root/.cargo/git/x/zenoh-config/src/lib.rs:1486.")
     assert zenoh_reason(exc) == "--> 1:1 | {bad = expected array"
+
+
+def test_run_checks_the_requests_in_flight():
+    from pipeline.errors import ParameterError
+    from qradar.run import RunConfig
+
+    assert RunConfig().outstanding == 2
+    with pytest.raises(ParameterError, match="outstanding=3 must be 1 or 2"):
+        RunConfig(outstanding=3)

@@ -109,6 +109,9 @@ def add_commands(sub) -> None:
     p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
+    p.add_argument("--outstanding", type=int, choices=(1, 2), default=2,
+                   help="GNFD requests each driver keeps in flight: 2 lets the sensor hold one while its driver is "
+                   "late on a busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to)")
     quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
                       "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
     count_options(p, None, "targets per frame (default: the scene's count)")
@@ -266,7 +269,8 @@ def cmd_run(args) -> int:
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
-                    record_split_mb=args.split_size, record_new_name_if_taken=args.record is None)
+                    record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
+                    outstanding=args.outstanding)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run")
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
