@@ -36,9 +36,8 @@ def device_identity(path: str) -> tuple | None:
     return "device", real, st.st_rdev
 
 
-def pty_master_pid(index: int) -> int | None:
-    """The pid of a process holding the master of pty ``index`` open (its ``tty-index``
-    in /proc/PID/fdinfo), or None if none this user may see."""
+def open_fds():
+    """(pid, path of the fd in /proc) of every open file descriptor this user may see."""
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
@@ -47,14 +46,21 @@ def pty_master_pid(index: int) -> int | None:
         except OSError:
             continue
         for fd in fds:
-            try:
-                if os.readlink(f"/proc/{entry}/fd/{fd}") != "/dev/ptmx":
-                    continue
-                with open(f"/proc/{entry}/fdinfo/{fd}") as f:
-                    if f"tty-index:\t{index}\n" in f.read():
-                        return int(entry)
-            except OSError:
+            yield int(entry), f"/proc/{entry}/fd/{fd}"
+
+
+def pty_master_pid(index: int) -> int | None:
+    """The pid of a process holding the master of pty ``index`` open (its ``tty-index``
+    in /proc/PID/fdinfo), or None if none this user may see."""
+    for pid, fd_path in open_fds():
+        try:
+            if os.readlink(fd_path) != "/dev/ptmx":
                 continue
+            with open(fd_path.replace("/fd/", "/fdinfo/")) as f:
+                if f"tty-index:\t{index}\n" in f.read():
+                    return pid
+        except OSError:
+            continue
     return None
 
 
@@ -67,23 +73,17 @@ def port_holders(path: str, limit: int = 4) -> list[tuple[int, str]]:
         return []
     if not stat.S_ISCHR(st.st_mode):
         return []
-    out: list[tuple[int, str]] = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or len(out) >= limit:
-            continue
+    pids: list[int] = []
+    for pid, fd_path in open_fds():
+        if len(pids) >= limit:
+            break
         try:
-            fds = os.listdir(f"/proc/{entry}/fd")
+            held = os.stat(fd_path)
         except OSError:
             continue
-        for fd in fds:
-            try:
-                held = os.stat(f"/proc/{entry}/fd/{fd}")
-            except OSError:
-                continue
-            if stat.S_ISCHR(held.st_mode) and held.st_rdev == st.st_rdev:
-                out.append((int(entry), cmdline(int(entry))))
-                break
-    return out
+        if pid not in pids and stat.S_ISCHR(held.st_mode) and held.st_rdev == st.st_rdev:
+            pids.append(pid)
+    return [(pid, cmdline(pid)) for pid in pids]
 
 
 def lock_holders(path: str) -> list[int]:

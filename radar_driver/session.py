@@ -51,7 +51,7 @@ from typing import Callable, Iterator
 import numpy as np
 import serial
 
-from .devices import device_identity, lock_holders, cmdline, port_holders
+from .devices import cmdline, device_identity, lock_holders, port_holders
 from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout
 from .model import RadarConfig
 from .profile import CHIRP_SELECT, DEFAULT_PROFILE, SensorProfile, resolve_profile

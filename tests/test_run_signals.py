@@ -5,7 +5,6 @@ signal while it stops exits at once with 130, one line and no traceback."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
