@@ -58,6 +58,10 @@ class BusConfig:
     prefix: str = "radar"
     multicast_scouting: bool = False
     secure: SecureConfig | None = None
+    #: zenoh's shared-memory transport; off: with it (zenoh's default) each new publisher
+    #: session left a 16 MB pool mapped in the router and every subscriber for as long as
+    #: they ran (16-20 MB more a restart, tests/test_restarts.py). It overrides the config file.
+    shared_memory: bool = False
     #: a stand-alone command's name: its session says so once on stderr if it reaches no
     #: other process within ALONE_AFTER_S (None: no such check, e.g. in-process sessions)
     alone_warning: str | None = None
@@ -110,6 +114,7 @@ class BusConfig:
         file_listen = self._endpoints(conf, "listen")
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         if self.listen or not file_listen:  # no implicit listener on every interface
