@@ -83,6 +83,11 @@ IDLE_POLL_S = 0.002
 IDLE_S = 0.1
 
 
+#: the largest sequence gap counted as frames missing (50 s at 20 frames/s); a larger jump
+#: ahead counts as a reset of the sequence (seq_resets)
+MAX_SEQ_GAP = 1000
+
+
 @dataclass
 class SensorStats:
     """Counters of one sensor at one node; ``latency`` in ms (a fixed-size histogram)."""
@@ -111,14 +116,17 @@ class SensorStats:
             setattr(self, k, getattr(self, k) + getattr(other, k))
 
     def note_seq(self, topic: str, seq: int) -> None:
-        """Count a gap (frames_missing) or a restart of the sequence (seq_resets)."""
+        """Count a gap (frames_missing) or a restart of the sequence (seq_resets). A jump
+        ahead by more than MAX_SEQ_GAP frames is no loss a transport makes (a sender
+        restarted with another count, or a forged sequence number): a reset, so that one
+        frame cannot make the count of missing frames implausible."""
         last = self.last_seq.get(topic)
         self.last_seq[topic] = seq
         if last is None or seq == last + 1:
             return
-        if seq > last + 1:
+        if last + 1 < seq <= last + 1 + MAX_SEQ_GAP:
             self.frames_missing += seq - last - 1
-        else:  # the sender restarted its count (or repeated a frame)
+        else:  # the sender restarted its count (or repeated a frame), or an implausible jump
             self.seq_resets += 1
 
 

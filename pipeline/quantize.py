@@ -61,6 +61,12 @@ def check_bits(bits: int) -> int:
     return int(bits)
 
 
+#: the largest quantizer step a quantized frame may carry, in full-scale units: a sensor's
+#: frames lie within +-1 a part (12-bit ADC), a simulated scene's within its summed
+#: amplitudes, so 1-bit steps stay far below; beyond is a forged or corrupt frame
+MAX_DELTA = 1000.0
+
+
 def check_alpha(alpha: float) -> float:
     if not (isinstance(alpha, (int, float, np.floating)) and 0.0 <= float(alpha) <= 1.0):
         raise ParameterError(f"alpha={alpha!r} must be a number in [0, 1]")
@@ -399,6 +405,8 @@ class QuantizerConfig:
             if isinstance(self.delta, str):
                 raise ParameterError(f"delta={self.delta!r} must be 'auto' or a number > 0")
             check_delta(self.delta)
+            if self.delta > MAX_DELTA:
+                raise ParameterError(f"delta={self.delta!r} must be at most {MAX_DELTA:g} (full-scale units)")
         if not (np.isfinite(self.delta_margin) and self.delta_margin >= 0):
             raise ParameterError(f"delta_margin={self.delta_margin!r} must be finite and >= 0")
         if isinstance(self.dither_seed, bool) or not isinstance(self.dither_seed, int) or self.dither_seed < 0:

@@ -29,8 +29,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .errors import ParameterError, WireError
-from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_BITS, QuantizedFrames, as_int_array, check_alpha,
-                       check_bits, check_generator, check_uint64, pack_codes, unpack_codes)
+from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_BITS, MAX_DELTA, QuantizedFrames, as_int_array,
+                       check_alpha, check_bits, check_generator, check_uint64, pack_codes, unpack_codes)
 
 MAGIC = b"QRDR"
 #: format version of each dither generator (quantized frames); raw frames are written as 1
@@ -317,9 +317,9 @@ def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[by
         delta = _per_frame_floats(q.delta, "delta", b)
         with np.errstate(over="ignore"):
             d32 = delta.astype(np.float32)
-        bad = delta[~(np.isfinite(d32) & (d32 > 0))]
+        bad = delta[~(np.isfinite(d32) & (d32 > 0) & (d32 <= MAX_DELTA))]
         if bad.size:
-            raise WireError(f"delta={float(bad[0])!r} must be finite and > 0 (as a float32)")
+            raise WireError(f"delta={float(bad[0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
         seeds = check_uint64(q.dither_seed, "dither_seed")
         generator = check_generator(q.generator, b)
         packed = pack_codes(codes, bits)
@@ -354,8 +354,8 @@ def encode_quantized(msg: QuantizedFrameMsg) -> bytes:
         raise WireError(f"codes must have shape (M, 2, 2), got {codes.shape}")
     with np.errstate(over="ignore"):
         d32 = np.float32(msg.delta)
-    if not (np.isfinite(d32) and d32 > 0):
-        raise WireError(f"delta={msg.delta!r} must be finite and > 0 (as a float32)")
+    if not (np.isfinite(d32) and 0 < d32 <= MAX_DELTA):
+        raise WireError(f"delta={msg.delta!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
     if not 0 <= msg.dither_seed < 2**64:
         raise WireError(f"dither_seed={msg.dither_seed} does not fit in uint64")
     flags = FLAG_DITHERED if msg.alpha > 0 else 0
@@ -408,7 +408,7 @@ def _faults(f: dict, kind: int, size: int):
         return
     bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
     yield (bits < 1) | (bits > MAX_BITS)
-    yield (delta != delta) | (delta <= 0) | (delta == np.inf) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
+    yield (delta != delta) | (delta <= 0) | (delta > MAX_DELTA) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
     yield ((f["flags"] & FLAG_DITHERED) != 0) != (alpha > 0)
     yield size != QUANT_HEADER_LEN + (m * 4 * bits + 7) // 8
 
@@ -429,7 +429,8 @@ def _fault_text(number: int, f: dict, kind: int, size: int, source: str) -> str:
         if number > len(texts):
             bits, alpha, delta = f["bits"], float(f["alpha"]), float(f["delta"])
             texts += [f"bits={bits} outside [1, {MAX_BITS}]",
-                      f"delta={delta!r} or alpha={alpha!r} out of range",
+                      f"delta={delta!r} or alpha={alpha!r} out of range (0 < delta <= {MAX_DELTA:g}, "
+                      f"0 <= alpha <= 1)",
                       f"dithered flag {f['flags'] & FLAG_DITHERED} contradicts alpha={alpha}",
                       f"{size} bytes, expected {QUANT_HEADER_LEN + (f['m'] * 4 * bits + 7) // 8} "
                       f"for M={f['m']} and {bits} bits"]

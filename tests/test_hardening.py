@@ -14,7 +14,7 @@ import zenoh
 
 from pipeline.errors import ParameterError
 from pipeline.fairqueue import FairQueue
-from pipeline.node import NO_SENSOR
+from pipeline.node import MAX_SEQ_GAP, NO_SENSOR
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
@@ -216,6 +216,26 @@ def test_sequence_gaps_are_counted_at_every_stage(bus, zenoh_session):
 
         wait_until(lambda: last("localize") is not None and last("localize").frames_missing == 10
                    and last("localize").seq_resets == 1, 10, "the gap in the localizer's health")
+    finally:
+        q.stop()
+        loc.stop()
+
+
+def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, zenoh_session):
+    """One frame with seq 2^63 on an honest key is a reset, not 2^63 frames missing; the
+    honest frames after it are a reset again, and a real gap is still counted."""
+    q, loc = chain(bus, zenoh_session)
+    try:
+        for s in [0, 1, 2, 2**63, 3, 4, 6]:
+            zenoh_session.put("radar/h0/raw", raw("h0", s))
+        wait_until(lambda: loc.totals()["frames_out"] == 7, 10, "7 targets")
+        for node in (q, loc):
+            t = node.totals()
+            assert (t["frames_missing"], t["seq_resets"]) == (1, 2), (node.name, t)
+        gap = MAX_SEQ_GAP + 7  # the largest gap that still counts, from 6
+        zenoh_session.put("radar/h0/raw", raw("h0", gap))
+        wait_until(lambda: loc.totals()["frames_out"] == 8, 10, "8 targets")
+        assert q.totals()["frames_missing"] == 1 + MAX_SEQ_GAP
     finally:
         q.stop()
         loc.stop()

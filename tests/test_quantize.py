@@ -308,3 +308,11 @@ def test_ramp_mean_sums_codes_of_any_integer_type_and_layout_exactly(dtype, bits
     for c in (codes, np.asfortranarray(codes)):
         q = QuantizedFrames(c, np.array([0.5, 1.0, 2.0]), bits, 1.0, 1, np.arange(3, dtype=np.uint64))
         assert np.array_equal(q.ramp_mean(8), want.view(complex).reshape(3, 8, 2))
+
+
+def test_a_step_beyond_what_a_frame_may_carry_is_refused_at_the_config():
+    from pipeline.quantize import MAX_DELTA
+
+    assert QuantizerConfig(delta=MAX_DELTA).delta == MAX_DELTA
+    with pytest.raises(ParameterError, match="at most 1000"):
+        QuantizerConfig(delta=2 * MAX_DELTA)

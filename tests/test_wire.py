@@ -305,6 +305,7 @@ def bad_payloads():
         (at(q, 32, b"\xff"), "non-ASCII id"), (q[:60], "short ext"), (at(q, 6, b"\x00"), "bits=0"),
         (at(q, 6, b"\x11"), "bits=17"), (at(q, 60, struct.pack("<f", np.nan)), "delta NaN"),
         (at(q, 60, struct.pack("<f", np.inf)), "delta inf"), (at(q, 60, struct.pack("<f", -1.0)), "delta < 0"),
+        (at(q, 60, struct.pack("<f", 1e30)), "delta huge"),
         (at(q, 56, struct.pack("<f", 2.0)), "alpha > 1"), (at(q, 56, struct.pack("<f", np.nan)), "alpha NaN"),
         (at(q, 7, b"\x00"), "flag"), (q[:-1], "length"), (q + b"\0", "longer"),
         (r[:47], "raw short"), (at(r, 0, b"QRDX"), "raw magic"), (at(r, 4, b"\x03"), "raw version"),
@@ -396,7 +397,8 @@ def test_every_kind_of_bad_payload_gets_its_own_message():
                 "NUL inside": "sensor id b'km\\\\x00", "non-ASCII id": "sensor id b'\\\\xff",
                 "short ext": "shorter than its 64-byte header", "bits=0": "bits=0 outside",
                 "bits=17": "bits=17 outside", "delta NaN": "delta=nan", "delta inf": "delta=inf",
-                "delta < 0": "delta=-1.0", "alpha > 1": "alpha=2.0 out of range", "alpha NaN": "alpha=nan",
+                "delta < 0": "delta=-1.0",
+                "delta huge": "delta=1.0000000150474662e\\+30 or alpha=0.5 out of range \\(0 < delta <= 1000", "alpha > 1": "alpha=2.0 out of range", "alpha NaN": "alpha=nan",
                 "flag": "dithered flag 0 contradicts alpha=0.5", "length": "319 bytes, expected 320",
                 "longer": "321 bytes, expected 320 for M=512 and 1 bits", "raw short": "47 bytes, shorter",
                 "raw magic": "magic b'QRDX'", "raw version": "format version 3", "raw kind": "message kind 2",
@@ -442,7 +444,7 @@ def test_batch_encoders_write_the_bytes_of_the_single_ones():
         FrameHeaders(["a"], [-1], [0], [0])
     with pytest.raises(WireError, match="config_id=4294967296 does not fit in uint32"):
         FrameHeaders(["a", "b"], [0, 1], [0, 0], [0, 2**32])
-    with pytest.raises(WireError, match="delta=1e\\+300 must be finite and > 0"):
+    with pytest.raises(WireError, match="delta=1e\\+300 must be in \\(0, 1000\\]"):
         encode_quantized_batch(heads.take([0]), QuantizedFrames(q.codes[:1], np.array([1e300]), bits, 0.5, 3, [0]))
     with pytest.raises(WireError, match="alpha=1.5"):
         encode_quantized_batch(heads.take([0]), QuantizedFrames(q.codes[:1], np.array([1.0]), bits, 1.5, 3, [0]))
