@@ -135,8 +135,13 @@ class BusConfig:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
             who = "" if self.secure is None else f", secure as {self.secure.identity!r} from {self.secure.directory}"
+            hint = ""
+            if self.secure is not None and self.connect:
+                hint = ("; under --secure only the router's own certificate, naming the host dialled, is accepted: "
+                        "is the router running with its identity (`qradar router --secure DIR`) and its certificate "
+                        "made for that host (`qradar security init --host HOST`)?")
             raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
-                           f"listen={self.listen_endpoints()}{who}): {zenoh_reason(exc)}") from None
+                           f"listen={self.listen_endpoints()}{who}): {zenoh_reason(exc)}{hint}") from None
         if self.alone_warning is not None:
             warn_if_alone(session, self)
         return session

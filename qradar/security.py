@@ -9,8 +9,11 @@ directory; the CA key never needs to leave the machine that issues certificates:
 gets ``ca.pem``, ``identities.json`` and its own ``<name>.pem`` / ``<name>.key``.
 
 A certificate names its hosts (subjectAltName: DNS names and IP addresses) so that a
-node connecting to a listener can check the listener's name; every certificate also
-names ``localhost`` and ``127.0.0.1``.
+node connecting to a listener can check the listener's name. Only the router's names
+hosts by default (``--host`` and ``localhost``, ``127.0.0.1``): a node dials the router and
+checks that its certificate names the host dialled, so no other identity's key (a stolen
+sensor's, the viewer's) can pose as the router. Another identity names hosts only when
+given some (``security add --host``), for a node that listens itself.
 """
 
 from __future__ import annotations
@@ -98,7 +101,7 @@ def issue(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identit
         "extendedKeyUsage=serverAuth,clientAuth",
         "subjectKeyIdentifier=hash",
         "authorityKeyIdentifier=keyid",
-        "subjectAltName=" + ",".join(san_entry(h) for h in ident.hosts),
+        *(["subjectAltName=" + ",".join(san_entry(h) for h in ident.hosts)] if ident.hosts else []),
     ]) + "\n"
     _new_key(directory / f"{name}.key")
     with tempfile.TemporaryDirectory(prefix="qradar-csr-") as tmp:
@@ -115,11 +118,10 @@ def issue(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identit
 def default_identities(sensors, hosts=()) -> list[Identity]:
     """The identities of one pipeline: a router, a sensor per id, one quantizer and one
     localizer serving every sensor, a recorder and a viewer."""
-    h = _hosts(hosts)
-    return [Identity("router", "router", hosts=h),
-            *(Identity(f"sensor-{s}", "sensor", (s,), h) for s in sensors),
-            Identity("quantizer", "quantizer", hosts=h), Identity("localizer", "localizer", hosts=h),
-            Identity("recorder", "recorder", hosts=h), Identity("viewer", "viewer", hosts=h)]
+    return [Identity("router", "router", hosts=_hosts(hosts)),  # the only one naming the router's hosts
+            *(Identity(f"sensor-{s}", "sensor", (s,)) for s in sensors),
+            Identity("quantizer", "quantizer"), Identity("localizer", "localizer"),
+            Identity("recorder", "recorder"), Identity("viewer", "viewer")]
 
 
 def init(directory: Path, sensors, hosts=(), days: int = DEFAULT_DAYS, ca_days: int = CA_DAYS) -> Policy:
@@ -149,7 +151,8 @@ def add(directory: Path, ident: Identity, days: int = DEFAULT_DAYS) -> Identity:
     _check_days(days, days)
     policy = Policy.load(directory)
     policy.with_identity(ident)  # refuses an existing name before a key is overwritten
-    ident = Identity(ident.name, ident.role, ident.sensors, _hosts(ident.hosts))
+    hosts = _hosts(ident.hosts) if ident.role == "router" or ident.hosts else ()  # see the module's docstring
+    ident = Identity(ident.name, ident.role, ident.sensors, hosts)
     issued = issue(directory, ident, days)
     policy.with_identity(issued).save(directory)
     return issued

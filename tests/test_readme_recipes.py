@@ -10,7 +10,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from replay.mcapio import McapFile
-from zenoh_helpers import free_port
+from zenoh_helpers import free_port, wait_port
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -68,16 +67,6 @@ class Terminals:
             if proc.poll() is None:
                 proc.kill()
             proc.communicate(timeout=10)
-
-
-def wait_port(port: int, timeout_s: float = 20) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.1)
-    raise AssertionError(f"nothing listens on 127.0.0.1:{port}")
 
 
 def start_all(lines: list[str], t: Terminals, ports: dict[str, int]) -> None:

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from test_readme_recipes import wait_port
-from zenoh_helpers import free_port
+from zenoh_helpers import free_port, wait_port
 
 QRADAR = [sys.executable, "-m", "qradar"]
 RESTARTS = 20

@@ -30,7 +30,7 @@ from pipeline.wire import (
 from qradar.cli import main
 from radar_driver.scene import resolve_scene
 from test_nodes import truth_error
-from zenoh_helpers import Collector, free_port, listening_sockets, wait_until
+from zenoh_helpers import Collector, free_port, listening_sockets, wait_port, wait_until
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/net/tcp").exists() or shutil.which("openssl") is None,
                                 reason="reads listening sockets from /proc; makes certificates with openssl")
@@ -361,3 +361,30 @@ def test_run_secure_serves_other_nodes_over_tls_only(pki, free_port, connect_whe
     seen = [decode_targets(p) for p in col.of("kmd2-0/targets")]
     assert seen and all(t.seq < FAKE_SEQ and t.sensor_id == "kmd2-0" for t in seen)
     assert not any(k.endswith("evil/targets") for k, _ in col.items)
+
+
+def test_only_the_router_is_the_router(pki, free_port):
+    """A router started with another identity's key (the viewer's, a sensor's) is refused
+    by every node that dials it, in one line: only the router's certificate names the
+    router's hosts, and a node checks the name of the host it dials."""
+    lab, _ = pki
+    for name in ("viewer", "sensor-s0", "quantizer"):
+        san = subprocess.run(["openssl", "x509", "-in", str(lab / f"{name}.pem"), "-noout", "-ext", "subjectAltName"],
+                             capture_output=True, text=True, timeout=30)
+        assert "127.0.0.1" not in san.stdout and "localhost" not in san.stdout, (name, san.stdout)
+    ep = f"tls/127.0.0.1:{free_port}"
+    impostor = qradar("router", "--secure", lab, "--identity", "viewer", "--listen", ep, "--duration", "60")
+    try:
+        wait_port(free_port)
+        nodes = [("localize", "--secure", lab, "--mode", "client", "--connect", ep, "--duration", "5"),
+                 ("quantize", "--secure", lab, "--mode", "client", "--connect", ep, "--duration", "5"),
+                 ("source", "--secure", lab, "--mode", "client", "--connect", ep, "--id-prefix", "s",
+                  "--frames", "3")]
+        for args in nodes:
+            out = subprocess.run([sys.executable, "-m", "qradar", *map(str, args)], capture_output=True, text=True,
+                                 timeout=60)
+            line = out.stderr.strip()
+            assert out.returncode == 2 and "\n" not in line, (args[0], out.stderr)
+            assert "only the router's own certificate" in line and "cannot open zenoh session" in line
+    finally:
+        stop([impostor])

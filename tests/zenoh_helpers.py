@@ -65,3 +65,14 @@ def listening_sockets(pid: int) -> set[tuple[str, str, int]]:
         if target.startswith("socket:[") and target[8:-1] in table:
             out.add(table[target[8:-1]])
     return out
+
+
+def wait_port(port: int, timeout_s: float = 20) -> None:
+    """Until something accepts TCP connections on 127.0.0.1:port (AssertionError after timeout_s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise AssertionError(f"nothing listens on 127.0.0.1:{port}")
