@@ -233,6 +233,8 @@ class RecorderNode(ProcessingNode):
             return f"cannot write {path}: {describe_os_error(exc)}"
         self._sink = sink
         self.paths.append(path)
+        if len(self.paths) == 1:
+            self._part = 1  # the files after the first are <its stem>_0001, _0002, ...
         self._opened_at = self._last_flush = time.monotonic()
         log.info("recording to %s", path)
         return None

@@ -134,3 +134,17 @@ def test_two_runs_started_together_write_two_whole_recordings(tmp_path):
         assert o["recording"]["lost"] == 0 and o["recording"]["written"] > 0
         raw = sum(1 for ch, _ in McapFile(f).messages() if ch.topic.endswith("/raw"))
         assert raw == o["frames_raw"] == 30
+
+
+def test_the_files_after_a_renamed_first_one_are_numbered_from_one(tmp_path, bus, zenoh_session):
+    (tmp_path / "run-y.mcap").write_bytes(b"another run's")
+    rec = RecorderNode(bus, tmp_path / "run-y.mcap", session=zenoh_session, split_duration_s=0.3,
+                       health_period_s=60, new_name_if_taken=True).start()
+    try:
+        for i in range(2):
+            put_frames(zenoh_session, 5, f"y{i}")
+            time.sleep(0.4)
+        wait_until(lambda: rec.written == 10, 10)
+    finally:
+        rec.stop()
+    assert [p.name for p in rec.paths][:2] == ["run-y-1.mcap", "run-y-1_0001.mcap"]

@@ -169,7 +169,9 @@ def test_security_init_and_add_make_a_ca_and_certificates(pki, tmp_path, capsys,
         assert openssl("verify", "-CAfile", lab / "ca.pem", lab / f"{name}.pem").returncode == 0
     assert openssl("verify", "-CAfile", other / "ca.pem", lab / "sensor-s0.pem").returncode != 0  # another CA
     text = openssl("x509", "-in", lab / "sensor-s0.pem", "-noout", "-subject", "-ext", "subjectAltName").stdout
-    assert "CN = sensor-s0" in text and "DNS:localhost" in text and "IP Address:127.0.0.1" in text
+    assert "CN = sensor-s0" in text and "DNS:" not in text and "IP Address" not in text  # only the router names hosts
+    text = openssl("x509", "-in", lab / "router.pem", "-noout", "-subject", "-ext", "subjectAltName").stdout
+    assert "CN = router" in text and "DNS:localhost" in text and "IP Address:127.0.0.1" in text
 
     # a sensor on another host, with its own SANs; the CA's copy of the directory
     copy = tmp_path / "lab"
