@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -44,6 +45,17 @@ from .view import FoxgloveView, ViewConfig
 
 #: topics the monitor counts by name (``other`` for the rest)
 MONITORED_TOPICS = frozenset(TOPICS)
+
+#: the temporary directories of the runs in progress (pty links, the zenoh socket)
+_RUN_DIRS: set[str] = set()
+
+
+def remove_run_dirs() -> None:
+    """For an exit at once (a second Ctrl-C while a run stops, no time to stop in order):
+    the runs' temporary directories removed, pty links and zenoh socket (their driver
+    processes stop by themselves). Quick, and raises nothing."""
+    for path in list(_RUN_DIRS):
+        shutil.rmtree(path, ignore_errors=True)
 
 
 class Monitor:
@@ -183,6 +195,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                     auto_k=cfg.auto_k, pfa=cfg.pfa)  # checked before anything starts
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
+        _RUN_DIRS.add(tmp)
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
         sims = [SimulatorServer(scene, link_path=Path(tmp) / f"kmd2-{i}", rate_hz=cfg.rate_hz, seed=i,
@@ -231,6 +244,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             session.close()
             for sim in sims:
                 sim.stop()
+            _RUN_DIRS.discard(tmp)
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
                         simulator=simulator_lateness(sims))
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error

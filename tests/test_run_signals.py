@@ -5,10 +5,12 @@ signal while it stops exits at once with 130, one line and no traceback."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -81,6 +83,33 @@ def test_a_second_signal_forces_the_exit(tmp_path):
         assert proc.returncode == 130
         assert "again while stopping: exiting at once" in err and "Traceback" not in err
         assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)  # its driver stopped by itself
+    finally:
+        kill_all([proc.pid, *drivers])
+        proc.wait(10)
+
+
+def test_a_forced_exit_leaves_no_temporary_directory_and_says_so_in_json(tmp_path):
+    """The second SIGINT comes while the run stops: with --json the run still ends its
+    output with one JSON object (the error, status 130), and its temporary directory (the
+    simulator's pty link, the zenoh socket) is gone with it."""
+    proc = start_run(tmp_path, "--json")
+    drivers = []
+    try:
+        seen = wait_for_targets(proc, proc.stderr)
+        drivers = drivers_of(proc.pid)
+        run_dir = re.search(r"simulated K-MD2 on (\S+)/kmd2-0", "".join(seen))
+        assert drivers and run_dir, seen
+        assert Path(run_dir.group(1)).is_dir()
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 130, err[-2000:]
+        assert [json.loads(line) for line in out.splitlines()] == [
+            {"error": "interrupted", "exit_code": 130, "command": "run"}]
+        assert err.count("again while stopping: exiting at once") == 1 and "Traceback" not in err
+        assert not Path(run_dir.group(1)).exists()
+        assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)
     finally:
         kill_all([proc.pid, *drivers])
         proc.wait(10)

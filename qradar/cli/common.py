@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 from pipeline.bus import BusConfig, Shard, check_sensor_pattern
 from pipeline.security import SecureConfig
@@ -127,42 +129,83 @@ def algo_option(p: argparse.ArgumentParser, help: str, default: Algo = Algo.PBP)
     p.add_argument("--algo", choices=list(ALGOS), default=default.value, help=f"{help} (default {default})")
 
 
-def install_sigterm() -> None:
-    """Turn SIGTERM and SIGINT into KeyboardInterrupt so that every command ends
-    cleanly, also when started in the background (where a shell ignores SIGINT)."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, handler)
-    signal.signal(signal.SIGINT, handler)
+def install_sigterm(name: str) -> "StopOnSignals":
+    """SIGTERM and SIGINT end command ``name`` cleanly, also when started in the background
+    (where a shell ignores SIGINT): the first raises KeyboardInterrupt in the main thread,
+    a second one while the command stops exits at once (:class:`StopOnSignals`)."""
+    return StopOnSignals(None, name)
 
 
 class StopOnSignals:
-    """SIGINT and SIGTERM end a live command normally: the first sets ``stop`` (the
-    command then stops its nodes in order and prints its summary) and ``interrupted``; a
-    second, while it is stopping, ends the process at once with status 130 and one line
-    (its children stop by themselves: :func:`watch_parent`)."""
+    """SIGINT and SIGTERM end a live command normally. The first sets ``stop`` (the
+    command then stops its nodes in order and prints its summary) or, for a command
+    without such an event, raises KeyboardInterrupt in its main thread; ``interrupted``
+    names it. A second, while it is stopping, ends the process at once with status 130:
+    one line on stderr (with ``json_error`` also the error object on stdout), then
+    ``on_force`` (a quick clean-up; its children stop by themselves: :func:`watch_parent`).
 
-    def __init__(self, stop: threading.Event, name: str):
-        self.stop, self.name = stop, name
+    The signals reach a thread of their own through ``signal.set_wakeup_fd``, which sets
+    the event, prints and forces the exit however busy the main thread is: in a signal
+    handler, Event.set can deadlock on the lock the interrupted main thread holds (in
+    Event.wait), and a print fail on the stream it was writing. A process has one set of
+    handlers, so the newest instance is the one in charge."""
+
+    _current: "StopOnSignals | None" = None
+    _wakeup: tuple[int, int] | None = None  # the pipe the signals' numbers come through (read, write)
+
+    def __init__(self, stop: threading.Event | None, name: str, json_error: bool = False,
+                 on_force: Callable[[], None] | None = None):
+        self.stop, self.name, self.json_error, self.on_force = stop, name, json_error, on_force
         self.interrupted: str | None = None  # the signal's name, once one came
+        self._received = 0
+        self._raised = False
+        if StopOnSignals._wakeup is None:
+            r, w = os.pipe()
+            os.set_blocking(w, False)
+            StopOnSignals._wakeup = (r, w)
+            threading.Thread(target=StopOnSignals._watch, name="signals", daemon=True).start()
+        StopOnSignals._current = self
+        signal.set_wakeup_fd(StopOnSignals._wakeup[1], warn_on_full_buffer=False)
         signal.signal(signal.SIGINT, self._handler)
         signal.signal(signal.SIGTERM, self._handler)
 
     def _handler(self, signum, frame) -> None:
-        if self.interrupted is not None:
+        """In the main thread; the watcher does the rest."""
+        if self.stop is None and not self._raised:
+            self._raised = True
+            raise KeyboardInterrupt
+
+    @staticmethod
+    def _watch() -> None:
+        while True:
+            for signum in os.read(StopOnSignals._wakeup[0], 64):
+                current = StopOnSignals._current
+                if current is not None and signum in (signal.SIGINT, signal.SIGTERM):
+                    current._on_signal(signal.Signals(signum).name)
+
+    def _on_signal(self, name: str) -> None:
+        self._received += 1
+        if self._received > 1:
+            self.force(name)
+        self.interrupted = name
+        if self.stop is not None:
             try:
-                print(f"qradar {self.name}: {signal.Signals(signum).name} again while stopping: exiting at once "
-                      f"(status 130)", file=sys.stderr, flush=True)
-            finally:
-                os._exit(130)
-        self.interrupted = signal.Signals(signum).name
+                print(f"qradar {self.name}: {name}: stopping (again to force)", file=sys.stderr, flush=True)
+            except (OSError, ValueError):
+                pass
+            self.stop.set()
+
+    def force(self, name: str) -> None:
+        """Exit at once, status 130, after one line and ``on_force``."""
         try:
-            print(f"qradar {self.name}: {self.interrupted}: stopping (again to force)", file=sys.stderr, flush=True)
-        except (OSError, ValueError):
-            pass
-        self.stop.set()
+            os.write(2, f"qradar {self.name}: {name} again while stopping: exiting at once (status 130)\n".encode())
+            if self.json_error:
+                os.write(1, (json.dumps({"error": "interrupted", "exit_code": 130, "command": self.name})
+                             + "\n").encode())
+            if self.on_force is not None:
+                self.on_force()
+        finally:
+            os._exit(130)
 
 
 #: how often a child process looks whether its parent is still there, s

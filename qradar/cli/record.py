@@ -15,7 +15,7 @@ from replay.mcapio import recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
-from .common import bus_from_args, bus_options, install_sigterm, pos_float
+from .common import StopOnSignals, bus_from_args, bus_options, install_sigterm, pos_float
 
 
 def add_commands(sub) -> None:
@@ -69,7 +69,7 @@ def cmd_record(args) -> int:
                         split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
                         retry_s=args.write_retry)
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
-    install_sigterm()
+    install_sigterm("record")
     try:
         run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
@@ -89,11 +89,9 @@ def cmd_recover(args) -> int:
 def cmd_replay(args) -> int:
     cfg = PlayConfig(rate=args.rate, fast=args.fast, loop=args.loop, start_s=args.start, end_s=args.end,
                      topics=args.topics, prefix=args.replay_prefix)
-    install_sigterm()
-    try:
-        result = play(args.file, bus_from_args(args), cfg, stop=threading.Event())
-    except KeyboardInterrupt:
-        return 0
+    stop = threading.Event()
+    signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
+    result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
-                      "seconds": round(result.seconds, 3)}))
+                      "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None}))
     return 0

@@ -113,7 +113,7 @@ def cmd_sim(args) -> int:
     scene = resolve_scene(args.scene)
     faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
                        disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
-    install_sigterm()
+    install_sigterm("sim")
     profile = resolve_profile(args.profile)
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
                              faults=faults, seed=args.seed, profile=profile, line_rate=args.line_rate,
@@ -131,10 +131,10 @@ def cmd_sim(args) -> int:
                     raise server.errors[0]
         except KeyboardInterrupt:
             pass
-    late = [(d.late_writes, d.late_s) for d in server.devices]
-    if any(n for n, _ in late):
-        print("simulator: " + "; ".join(f"{n} late writes, {s * 1e3:.1f} ms in all (device clock held)"
-                                        for n, s in late), flush=True)
+    late = [(d.late_writes, d.late_reads, d.late_s) for d in server.devices]
+    if any(w or r for w, r, _ in late):
+        print("simulator: " + "; ".join(f"{w} late writes, {r} late reads, {s * 1e3:.1f} ms in all (device clock "
+                                        "held)" for w, r, s in late), flush=True)
     return 0
 
 
@@ -162,7 +162,7 @@ def cmd_drive(args) -> int:
         print(f"frame {frame.seq:6d}  counters {frame.counters}  t {frame.timestamp_ns}  "
               f"peak {peak:.3f} FS", file=lines, flush=True)
 
-    install_sigterm()
+    install_sigterm("drive")
     if args.parent_pid is not None:
         watch_parent(args.parent_pid, "drive")
     session = SensorSession(cfg)

@@ -21,7 +21,7 @@ from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
 from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
-from ..run import RunConfig, format_summary, print_json, run
+from ..run import RunConfig, format_summary, print_json, remove_run_dirs, run
 from .common import (
     algo_option,
     bus_from_args,
@@ -174,7 +174,7 @@ def queue_kwargs(args) -> dict:
 
 def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
     """Run one node until ``duration``, ``stop`` or Ctrl-C; print its totals as JSON."""
-    install_sigterm()
+    install_sigterm(node.name)
     try:
         run_nodes([node], duration, stop)
     except KeyboardInterrupt:
@@ -211,7 +211,7 @@ def cmd_source(args) -> int:
     node = SourceNode(bus_from_args(args), source, frames=limit, quantizer=quantizer, raw_every=raw_every)
     stop = threading.Event()
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
-    install_sigterm()
+    install_sigterm("source")
     try:
         run_nodes([node], args.duration, stop)
     except KeyboardInterrupt:
@@ -230,7 +230,7 @@ def cmd_router(args) -> int:
     bus = replace(bus_from_args(args), alone_warning=None)  # a router waiting for its clients is normal
     if not bus.listen_endpoints():  # neither --listen nor the config file says where
         bus = replace(bus, listen=(ROUTER_LISTEN_SECURE if bus.secure is not None else ROUTER_LISTEN,))
-    install_sigterm()
+    install_sigterm("router")
     session = None
     try:
         session = bus.open()  # (a router takes a moment to open: a SIGTERM meanwhile is a clean stop too)
@@ -272,7 +272,7 @@ def cmd_run(args) -> int:
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding)
     stop = threading.Event()
-    signals = StopOnSignals(stop, "run")
+    signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
     if signals.interrupted is not None:  # Ctrl-C or SIGTERM: the normal end of a live run
         summary["interrupted"] = True

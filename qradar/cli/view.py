@@ -51,7 +51,7 @@ def add_commands(sub) -> None:
 def cmd_view(args) -> int:
     cfg = ViewConfig(host=args.host, port=args.port, profile_rate_hz=args.profile_rate, queue_size=args.queue)
     view = FoxgloveView(bus_from_args(args), cfg)
-    install_sigterm()
+    install_sigterm("view")
     view.start()  # a busy port or an unknown host: ViewError, one line
     try:
         print(f"qradar view: Foxglove WebSocket server on {view.url}; in Foxglove: Open connection -> Foxglove "

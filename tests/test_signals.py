@@ -1,0 +1,68 @@
+"""The live commands besides ``run`` share its rule for SIGINT and SIGTERM: the first
+ends them normally, with what they print at their normal end; a second one while they
+stop exits at once with status 130 and one line. Real processes and real signals;
+every wait is bounded."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from radar_driver.scene import resolve_scene
+from radar_driver.simulator import SimulatorServer
+from zenoh_helpers import Collector, free_port, wait_until
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ctrl_c_ends_a_replay_which_says_what_it_published(connect_when_ready):
+    """``qradar replay --loop`` stopped by Ctrl-C prints its counters (as record, quantize,
+    localize, view, source, drive and sim do), with ``"interrupted": true``."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "replay", str(ROOT / "recordings" / "chamber.mcap"),
+                             "--loop", "--rate", "4", "--listen", endpoint], cwd=ROOT, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        col = Collector(connect_when_ready(endpoint, timeout_s=60), "radar/**")
+        wait_until(lambda: len(col.items) >= 20 or proc.poll() is not None, 60, "20 replayed messages")
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["interrupted"] is True and result["published"] >= 20 and "Traceback" not in err
+
+
+def test_a_second_signal_while_a_driver_stops_exits_at_once(tmp_path):
+    """``qradar drive --linger-stdin`` (how ``run`` starts its drivers) stopped by SIGTERM
+    says GBYE, prints its counters and keeps its zenoh session open until stdin closes;
+    a second SIGTERM meanwhile ends it at once with status 130 and one line."""
+    link = tmp_path / "kmd2"
+    with SimulatorServer(resolve_scene("single"), link_path=link, rate_hz=20) as sim:
+        drive = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--json", "--quiet",
+                                  "--linger-stdin"], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        try:
+            wait_until(lambda: sim.devices[0].event_counts["GNFD"] >= 10 or drive.poll() is not None, 60,
+                       "the driver polling")
+            drive.send_signal(signal.SIGTERM)
+            counters = json.loads(drive.stdout.readline())  # after its stop: it lingers now
+            assert counters["frames"] >= 1 and drive.poll() is None
+            drive.send_signal(signal.SIGTERM)
+            out, err = drive.communicate(timeout=10)
+        finally:
+            if drive.poll() is None:
+                drive.kill()
+                drive.communicate(timeout=10)
+        assert sim.devices[0].event_counts["GBYE"] >= 1  # the first signal's stop, in order
+    assert drive.returncode == 130, err
+    assert [ln for ln in err.splitlines() if "while stopping" in ln] == [
+        "qradar drive: SIGTERM again while stopping: exiting at once (status 130)"]
+    assert "Traceback" not in err and out == ""
