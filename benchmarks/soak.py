@@ -632,6 +632,14 @@ def table(r: dict) -> str:
     return "\n".join(lines)
 
 
+def isolation_cases(args) -> int:
+    """The flood-beside-honest and restart cases, run by benchmarks/bench_isolation.py."""
+    cases = ["quantized", "raw", "new-ids"] if args.case == "flood-beside-honest" else ["restarts"]
+    argv = [args.python, str(Path(__file__).resolve().parent / "bench_isolation.py"), "--case", *cases,
+            "--seconds", str(min(args.duration, 600.0))]
+    return subprocess.run(argv, cwd=HERE).returncode
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=1800.0, help="seconds of the run (default 1800)")
@@ -660,7 +668,14 @@ def main() -> None:
                     help="the run records nothing (tells the recorder's memory from the rest's)")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--case", choices=("soak", "flood-beside-honest", "restarts"), default="soak",
+                    help="soak: the run above (default); flood-beside-honest: an honest sensor at 20 Hz beside "
+                    "5 000 valid frames/s of one sensor (quantized, then raw) and 10 000 new ids at 1 000/s, "
+                    "--duration s each (benchmarks/bench_isolation.py); restarts: 20 publisher restarts against "
+                    "one router and quantize, their RSS")
     args = ap.parse_args()
+    if args.case != "soak":
+        sys.exit(isolation_cases(args))
     if args.flood_mix is None:
         sys.path.insert(0, str(FLOOD.parent))
         from soak_flood import DEFAULT_MIX

@@ -46,6 +46,7 @@ RATE_HZ = 20.0
 MAX_P99_MS = 20.0
 #: node totals that must stay 0 for a step to pass
 LOSS_COUNTERS = ("drops", "decode_errors", "invalid_frames", "processing_errors", "frames_missing", "seq_resets",
+                 "over_budget", "refused",
                  "worker_restarts")
 #: a sink above this CPU (% of one core) may be holding the chain back: the step is flagged
 SINK_CPU_FLAG = 80.0

@@ -737,7 +737,8 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
 
 
 #: health counters added in this version of the JSON (0 when a message lacks them)
-HEALTH_LOSS_FIELDS = ("invalid_frames", "processing_errors", "frames_missing", "seq_resets", "worker_restarts")
+HEALTH_LOSS_FIELDS = ("invalid_frames", "processing_errors", "frames_missing", "seq_resets", "worker_restarts",
+                      "over_budget", "refused")
 
 
 @dataclass
@@ -761,6 +762,8 @@ class HealthMsg:
     frames_missing: int = 0
     seq_resets: int = 0
     worker_restarts: int = 0
+    over_budget: int = 0
+    refused: int = 0
 
     def to_json(self) -> bytes:
         obj = {"version": JSON_VERSION, "type": "health", "node": self.node, "sensor_id": self.sensor_id,

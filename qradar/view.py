@@ -49,6 +49,7 @@ from foxglove.messages import (
     Vector3,
 )
 
+from pipeline.budget import IntakeBudget
 from pipeline.bus import BusConfig
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.localize import back_project
@@ -253,8 +254,9 @@ class FoxgloveView(ProcessingNode):
     name = "view"
 
     def __init__(self, bus: BusConfig, config: ViewConfig = ViewConfig(), session: zenoh.Session | None = None,
-                 health_period_s: float = 1.0):
-        super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s)
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
+        super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s,
+                         intake=intake)
         self.config = config
         self._configs = config.known_configs()
         self._context = foxglove.Context()  # channels and server of this view only

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from pipeline.budget import IntakeBudget
 from pipeline.errors import WireError
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode
 from pipeline.quantize import QuantizerConfig, quantize_frames
@@ -111,8 +112,9 @@ def test_decoders_raise_only_wire_errors(topic):
 
 def test_nodes_fed_mutations_keep_running_and_count_each(bus, zenoh_session):
     col = Collector(zenoh_session, "radar/*/targets")
-    q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session).start()
-    loc = LocalizeNode(bus, LocalizerConfig(k=1), session=zenoh_session).start()
+    # no intake budget: every mutation is to reach the decoders (the budgets have tests of their own)
+    q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session, intake=IntakeBudget.unlimited()).start()
+    loc = LocalizeNode(bus, LocalizerConfig(k=1), session=zenoh_session, intake=IntakeBudget.unlimited()).start()
     try:
         payloads = valid_payloads()
         rng = np.random.default_rng(5)
@@ -134,7 +136,7 @@ def test_nodes_fed_mutations_keep_running_and_count_each(bus, zenoh_session):
         def accounted(node):  # every payload published, dropped or counted as an error
             t = node.totals()
             return t["frames_out"] + t["drops"] + t["decode_errors"] + t["invalid_frames"] \
-                + t["processing_errors"] == t["frames_in"]
+                + t["processing_errors"] + t["over_budget"] + t["refused"] == t["frames_in"]
 
         for node in (q, loc):  # (the localizer's input also holds the quantizer's outputs)
             wait_until(lambda: accounted(node), 20, f"{node.name} to account for every payload")

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import zenoh
 
+from pipeline.budget import IntakeBudget
 from pipeline.errors import ParameterError
 from pipeline.fairqueue import FairQueue
-from pipeline.node import MAX_SEQ_GAP, NO_SENSOR
+from pipeline.node import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
@@ -132,7 +133,10 @@ def test_a_dead_worker_is_restarted_and_counted(bus, zenoh_session):
 
 
 # -- exhaustion and strangers ---------------------------------------------------------------
-def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_session):
+@pytest.mark.parametrize("intake", ["default", "unlimited"])
+def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_session, intake):
+    """With the intake budgets (the default) the flood's excess is dropped where it arrives
+    (over_budget); without them, the fair queue still makes the flood lose its own frames."""
     class Slow(QuantizeNode):
         def process(self, batch):
             time.sleep(0.002 * len(batch))  # a busy node: 2 ms a frame
@@ -140,7 +144,7 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_sessio
 
     col = Collector(zenoh_session, "radar/*/quantized")
     q = Slow(bus, QuantizerConfig(), session=zenoh_session, queue_size=64, sensor_queue_size=16,
-             batch_max=8).start()
+             batch_max=8, intake=IntakeBudget() if intake == "default" else IntakeBudget.unlimited()).start()
     try:
         evil = zenoh_session.declare_publisher("radar/evil/raw", congestion_control=zenoh.CongestionControl.BLOCK)
         payload = raw("evil", 0)
@@ -151,12 +155,16 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_sessio
             time.sleep(0.02)
         wait_until(lambda: len(col.of("real/quantized")) == 40, 20, "every frame of the real sensor")
         with q._lock:
-            assert q.stats["real"].drops == 0 and q.stats["evil"].drops > 1000
+            real, evil = q.stats["real"], q.stats["evil"]
+            assert real.drops == real.over_budget == 0 and evil.drops + evil.over_budget > 1000
+            assert (evil.over_budget > 1000) == (intake == "default")
+            assert evil.frames_in == 2000
     finally:
         q.stop()
 
 
 def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, zenoh_session):
+    health = Collector(zenoh_session, "radar/*/health")
     q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session, health_period_s=0.1,
                      sensor_expiry_s=0.5).start()
     try:
@@ -167,10 +175,15 @@ def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, zenoh_session)
         wait_until(lambda: q.totals()["frames_out"] == 20, 10, "the valid frames")
         with q._lock:
             assert set(q.stats) <= {NO_SENSOR} | {f"v{i}" for i in range(20)}
-        wait_until(lambda: not (set(q.stats) - {NO_SENSOR}) and not q._publishers, 10, "the sensors to expire")
+        wait_until(lambda: not (set(q.stats) - {NO_SENSOR}) and not (set(q._publishers) - {UNKNOWN_SENSOR}), 10,
+                   "the sensors to expire")
         t = q.totals()
         assert t["frames_in"] == 1020 and t["frames_out"] == 20 and t["invalid_frames"] == 1000
         assert t["sensors_expired"] == 20
+        # the garbage is in health, in one bounded aggregate: the unknown senders'
+        wait_until(lambda: any(decode_health(p).invalid_frames == 1000 for p in health.of("_unknown/health")), 5,
+                   "the unknown senders' health")
+        assert {k.split("/")[1] for k, _ in health.items} <= {"_unknown"} | {f"v{i}" for i in range(20)}
     finally:
         q.stop()
 

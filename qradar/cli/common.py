@@ -12,6 +12,13 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from pipeline.budget import (
+    DEFAULT_BYTES_PER_S,
+    DEFAULT_NEW_SENSORS_BURST,
+    DEFAULT_NEW_SENSORS_PER_S,
+    DEFAULT_RATE_HZ,
+    IntakeBudget,
+)
 from pipeline.bus import BusConfig, Shard, check_sensor_pattern
 from pipeline.security import SecureConfig
 from pipeline.decode import ALGOS, Algo
@@ -335,3 +342,23 @@ def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
             raise ParameterError("--raw-every is for edge quantization (--quantized / --quantize)")
         return None, None
     return quantizer_config(args), args.raw_every
+
+
+def intake_options(p) -> None:
+    """The intake budgets of a node that subscribes (pipeline.budget)."""
+    g = p.add_argument_group("intake budgets", "checked where each message arrives, before any work; a message "
+                             "over a budget is dropped and counted (over_budget, refused), so a flooding sender "
+                             "cannot delay the others (0: no limit)")
+    g.add_argument("--budget-rate", type=nonneg_float, default=DEFAULT_RATE_HZ, metavar="HZ",
+                   help=f"messages a second per key <prefix>/<sensor>/<topic> (default {DEFAULT_RATE_HZ:g}: 5 x a "
+                   "K-MD2's 20 frames/s), with a burst of one second")
+    g.add_argument("--budget-mb", type=nonneg_float, default=DEFAULT_BYTES_PER_S / 1e6, metavar="MB",
+                   help=f"payload megabytes a second per key (default {DEFAULT_BYTES_PER_S / 1e6:g})")
+    g.add_argument("--admit-rate", type=nonneg_float, default=DEFAULT_NEW_SENSORS_PER_S, metavar="N",
+                   help=f"new sensor ids admitted a second (default {DEFAULT_NEW_SENSORS_PER_S:g}, after a burst of "
+                   f"{DEFAULT_NEW_SENSORS_BURST}); the frames of ids not admitted count as refused")
+
+
+def intake_budget(args) -> IntakeBudget:
+    """The IntakeBudget of the options of :func:`intake_options`."""
+    return IntakeBudget(rate_hz=args.budget_rate, bytes_per_s=args.budget_mb * 1e6, new_sensors_per_s=args.admit_rate)

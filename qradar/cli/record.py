@@ -15,7 +15,7 @@ from replay.mcapio import recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
-from .common import StopOnSignals, bus_from_args, bus_options, install_sigterm, pos_float
+from .common import StopOnSignals, bus_from_args, bus_options, install_sigterm, intake_budget, intake_options, pos_float
 
 
 def add_commands(sub) -> None:
@@ -27,6 +27,7 @@ def add_commands(sub) -> None:
     p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     write_error_options(p, "exit with status 2 (a recorder with nothing left to record ends)")
+    intake_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_record)
 
@@ -67,7 +68,7 @@ def cmd_record(args) -> int:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
     node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
                         split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
-                        retry_s=args.write_retry)
+                        retry_s=args.write_retry, intake=intake_budget(args))
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
     install_sigterm("record")
     try:

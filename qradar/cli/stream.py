@@ -31,6 +31,8 @@ from .common import (
     edge_quantizer,
     edge_quantizer_options,
     install_sigterm,
+    intake_budget,
+    intake_options,
     nonneg_float,
     nonneg_int,
     pos_float,
@@ -151,6 +153,7 @@ def queue_options(p) -> None:
                    "drains zenoh's FIFO of up to 1024 messages itself, saving the GIL changing hands per message "
                    "(at 450 sensors 69 %% of a core against 81 %%), but a full FIFO makes zenoh wait: for a "
                    "node with its process to itself")
+    intake_options(p)
 
 
 def serve_options(p) -> None:
@@ -169,7 +172,8 @@ def queue_kwargs(args) -> dict:
             "queue_bytes": int(args.queue_mb * 1e6), "sensor_expiry_s": args.sensor_expiry,
             "sensors": args.sensors, "shard": args.shard,
             "batch_linger_s": None if args.batch_linger is None else args.batch_linger / 1e3,
-            "input_mode": args.input}
+            "input_mode": args.input, "intake": intake_budget(args)}
+
 
 
 def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:

@@ -10,7 +10,7 @@ import time
 from pipeline.errors import ParameterError, PipelineError
 
 from ..view import FoxgloveView, ViewConfig, parse_endpoint
-from .common import bus_from_args, bus_options, install_sigterm, nonneg_float, pos_int
+from .common import bus_from_args, bus_options, install_sigterm, intake_budget, intake_options, nonneg_float, pos_int
 
 LAYOUT = "docs/foxglove-layout.json"
 
@@ -44,13 +44,14 @@ def add_commands(sub) -> None:
                    help="range profiles per second and sensor at most (default 2; 0: none)")
     p.add_argument("--queue", type=pos_int, default=256, help="bounded input queue (messages)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    intake_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_view)
 
 
 def cmd_view(args) -> int:
     cfg = ViewConfig(host=args.host, port=args.port, profile_rate_hz=args.profile_rate, queue_size=args.queue)
-    view = FoxgloveView(bus_from_args(args), cfg)
+    view = FoxgloveView(bus_from_args(args), cfg, intake=intake_budget(args))
     install_sigterm("view")
     view.start()  # a busy port or an unknown host: ViewError, one line
     try:
