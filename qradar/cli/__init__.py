@@ -32,7 +32,7 @@ from pipeline.errors import PipelineError
 from radar_driver.errors import RadarError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, record, security, sensor, stream, view
+from . import analysis, bringup, calibrate, record, security, sensor, stream, view
 from .common import DefaultsFormatter
 
 log = logging.getLogger("qradar")
@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_commands(sub)
     bringup.add_commands(sub)
     security.add_commands(sub)
+    calibrate.add_commands(sub)
     for p in sub.choices.values():
         p.formatter_class = DefaultsFormatter
         p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,

@@ -1,0 +1,59 @@
+"""``qradar calibrate``: a front-end calibration from recordings of the empty scene and of
+one reflector at a known position (the estimates are :mod:`pipeline.calibration`'s)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.calibration import FrontEndCorrection, estimate_front_end, save
+from radar_driver.model import RadarConfig
+
+from .errors import ReplayError
+from .reprocess import load_raw, radar_for
+
+
+@dataclass(frozen=True)
+class CalibrateConfig:
+    """empty: recording of the empty scene; reflector: of one reflector at ``range_m`` (m)
+    and ``angle_deg`` (deg, positive towards receiver 2), or None (background only);
+    sensors: the sensor ids to calibrate (None: every sensor of the empty recording)."""
+
+    empty: Path
+    out: Path
+    reflector: Path | None = None
+    range_m: float | None = None
+    angle_deg: float = 0.0
+    sensors: tuple[str, ...] | None = None
+    radar: RadarConfig = RadarConfig()
+
+    def __post_init__(self) -> None:
+        if self.reflector is not None and self.range_m is None:
+            raise ReplayError("--reflector needs --range-m (the reflector's measured range, m)")
+        if self.reflector is None and self.range_m is not None:
+            raise ReplayError("--range-m is the reflector's range: give --reflector REF.mcap too")
+        if self.out.exists():
+            raise ReplayError(f"{self.out} exists; qradar writes a new calibration file (choose another --out)")
+
+
+def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:
+    """The calibration of every sensor (and its radar config) of the recordings, written to
+    ``cfg.out``; a sensor of the empty recording missing from the reflector's is an error."""
+    first = load_raw(cfg.empty)
+    sensors = list(cfg.sensors or first.sensors)
+    entries = []
+    for sid in sensors:
+        empty = load_raw(cfg.empty, sid)
+        radar = radar_for(empty, cfg.radar)
+        refl = None
+        if cfg.reflector is not None:
+            refl = load_raw(cfg.reflector, sid)
+            if refl.config_id != empty.config_id or refl.frames.shape[1:] != empty.frames.shape[1:]:
+                raise ReplayError(f"{cfg.reflector}: sensor {sid}'s frames (config id {refl.config_id:#010x}, "
+                                  f"M = {refl.frames.shape[1]}) are not those of {cfg.empty} (config id "
+                                  f"{empty.config_id:#010x}, M = {empty.frames.shape[1]})")
+        entries.append(estimate_front_end(empty.frames, None if refl is None else refl.frames, radar,
+                                          cfg.range_m, cfg.angle_deg, sid, empty.config_id))
+    recordings = {"empty": str(cfg.empty), **({"reflector": str(cfg.reflector)} if cfg.reflector else {})}
+    save(cfg.out, entries, {"recordings": recordings})
+    return entries

@@ -1,0 +1,135 @@
+"""Front-end calibration: every estimate against injected values, the removal, the file and
+its refusal paths."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.calibration import (
+    Calibration,
+    CalibrationError,
+    FrontEndCorrection,
+    correct_frames,
+    estimate_front_end,
+    load,
+    save,
+)
+from radar_driver.model import RadarConfig, simulate_frames
+
+CFG = RadarConfig()
+B = 40
+NOISE = 0.01  # full scale, per real component
+
+
+def impair(x, rx2_gain_db=0.0, rx2_phase_deg=0.0, iq_gain_db=0.0, iq_phase_deg=0.0, leak=0.0, dc=(0j, 0j)):
+    """The front end in the order of the issue, by hand: receiver 2's gain and phase, the
+    leakage, then the I/Q imbalance ``Q' = g (Q cos(phi) + I sin(phi))``, then DC."""
+    x = np.array(x, dtype=complex)
+    x[..., 1] *= 10 ** (rx2_gain_db / 20) * np.exp(1j * np.deg2rad(rx2_phase_deg))
+    x = x + leak
+    g, ph = 10 ** (iq_gain_db / 20), np.deg2rad(iq_phase_deg)
+    x = x.real + 1j * g * (x.imag * np.cos(ph) + x.real * np.sin(ph))
+    return x + np.asarray(dc)
+
+
+def recordings(rng, range_m=3.13, angle_deg=12.0, **imp):
+    leak = simulate_frames(np.array([0.2]), np.array([0.0]), np.array([0.5 * np.exp(0.3j)]), CFG)[0]
+    target = simulate_frames(np.array([range_m]), np.array([angle_deg]), np.array([0.2]), CFG)[0]
+    noise = lambda: NOISE * (rng.standard_normal((B, *target.shape)) + 1j * rng.standard_normal((B, *target.shape)))  # noqa: E731
+    dc = np.array([0.03 + 0.02j, -0.01 + 0.04j])
+    empty = impair(np.zeros((B, *target.shape)), leak=leak, dc=dc, **imp) + noise()
+    refl = impair(np.broadcast_to(target, (B, *target.shape)), leak=leak, dc=dc, **imp) + noise()
+    return empty, refl, target
+
+
+@pytest.mark.parametrize("rx2_gain_db, rx2_phase_deg, iq_gain_db, iq_phase_deg",
+                         [(1.0, 25.0, 0.5, 3.0), (-2.0, -40.0, -0.8, -5.0), (0.0, 0.0, 0.0, 0.0), (0.3, 170.0, 1.5, 8.0)])
+def test_each_estimate_is_within_its_bound_over_a_range_of_injected_values(rx2_gain_db, rx2_phase_deg, iq_gain_db,
+                                                                           iq_phase_deg):
+    """Receiver-2 phase within 1 deg, gain within 0.2 dB, I/Q phase within 0.5 deg (the
+    issue's bounds), from 40 frames of each recording, the reflector's range off by 3 cm."""
+    rng = np.random.default_rng(7)
+    empty, refl, target = recordings(rng, rx2_gain_db=rx2_gain_db, rx2_phase_deg=rx2_phase_deg,
+                                     iq_gain_db=iq_gain_db, iq_phase_deg=iq_phase_deg)
+    c = estimate_front_end(empty, refl, CFG, range_m=3.10, angle_deg=12.0, sensor_id="s0")
+    assert abs(c.rx2_phase_deg - rx2_phase_deg) < 1.0 and abs(c.rx2_gain_db - rx2_gain_db) < 0.2
+    assert abs(c.iq_phase_deg - iq_phase_deg) < 0.5 and abs(c.iq_gain_db - iq_gain_db) < 0.2
+    assert abs(c.info["reflector_range_fit_m"] - 3.13) < 0.005
+    # the removal gives back the ideal frame (to the noise of the mean of 40 frames)
+    z = correct_frames(refl, c.background, c.iq_alpha, c.iq_beta, c.rx2).mean(axis=0)
+    assert np.abs(z - target).max() < 6 * NOISE
+
+
+def test_without_a_reflector_only_the_background_is_removed():
+    rng = np.random.default_rng(3)
+    empty, refl, target = recordings(rng)
+    c = estimate_front_end(empty, None, CFG, sensor_id="s0")
+    assert (c.iq_alpha, c.iq_beta, c.rx2) == (0.0, 1.0, 1.0)
+    z = correct_frames(empty, c.background, c.iq_alpha, c.iq_beta, c.rx2)
+    assert np.abs(z.mean(axis=0)).max() < 6 * NOISE / np.sqrt(B) * 3  # DC and leakage gone
+
+
+def test_a_batch_of_many_sensors_is_corrected_frame_by_frame():
+    rng = np.random.default_rng(4)
+    e1, r1, t = recordings(rng, rx2_phase_deg=30.0)
+    e2, r2, _ = recordings(rng, rx2_phase_deg=-20.0, iq_phase_deg=4.0)
+    c1 = estimate_front_end(e1, r1, CFG, 3.1, 12.0, "a")
+    c2 = estimate_front_end(e2, r2, CFG, 3.1, 12.0, "b")
+    cal = Calibration([c1, c2])
+    frames = np.stack([r1[0], r2[0], r1[1]])
+    out, ok = cal.apply(frames, ["a", "b", "x"], np.full(3, CFG.config_id()))
+    assert ok.tolist() == [True, True, False]
+    np.testing.assert_allclose(out[0], correct_frames(r1[:1], c1.background, c1.iq_alpha, c1.iq_beta, c1.rx2)[0])
+    np.testing.assert_allclose(out[1], correct_frames(r2[:1], c2.background, c2.iq_alpha, c2.iq_beta, c2.rx2)[0])
+    np.testing.assert_array_equal(out[2], r1[1])  # no entry: returned as it came, for the caller to count
+    _, ok = cal.apply(frames[:1], ["a"], np.array([CFG.config_id() ^ 1]))  # another config: no entry
+    assert not ok.any()
+
+
+def test_the_file_round_trips_and_refuses_what_it_cannot_use(tmp_path):
+    rng = np.random.default_rng(5)
+    empty, refl, _ = recordings(rng, rx2_phase_deg=10.0)
+    c = estimate_front_end(empty, refl, CFG, 3.1, 12.0, "kmd2-0")
+    path = save(tmp_path / "cal.json", [c], {"recordings": {"empty": "e.mcap"}})
+    with pytest.raises(FileExistsError):
+        save(path, [c])  # never replaces a file
+    cal = load(path)
+    back = cal.lookup("kmd2-0", CFG.config_id())
+    np.testing.assert_allclose(back.background, c.background, atol=1e-8)
+    assert back.rx2 == pytest.approx(c.rx2) and back.iq_alpha == pytest.approx(c.iq_alpha)
+    with pytest.raises(CalibrationError, match=r"is for sensor\(s\) \['kmd2-0'\], not 'kmd2-1'"):
+        cal.check_sensor("kmd2-1")
+    obj = json.loads(path.read_text())
+    for mutate, match in [(lambda o: o.update(type="x"), "not a qradar calibration"),
+                          (lambda o: o.update(version=9), "version 9"),
+                          (lambda o: o.update(entries=[]), "no entries"),
+                          (lambda o: o["entries"][0].update(m=3), "entry 0: missing or bad field"),
+                          (lambda o: o["entries"][0]["rx2"].update(re=50.0), "entry 0: .*implausible"),
+                          (lambda o: o["entries"][0]["iq"].update(beta=-1.0), "entry 0: .*implausible")]:
+        bad = json.loads(json.dumps(obj))
+        mutate(bad)
+        p = tmp_path / "bad.json"
+        p.write_text(json.dumps(bad))
+        with pytest.raises(CalibrationError, match=match):
+            load(p)
+    (tmp_path / "junk.json").write_text("{")
+    with pytest.raises(CalibrationError, match="not JSON"):
+        load(tmp_path / "junk.json")
+    with pytest.raises(CalibrationError, match="cannot read"):
+        load(tmp_path / "missing.json")
+
+
+def test_estimates_refuse_impossible_inputs():
+    rng = np.random.default_rng(6)
+    empty, refl, _ = recordings(rng)
+    with pytest.raises(CalibrationError, match="range"):
+        estimate_front_end(empty, refl, CFG, range_m=500.0)
+    with pytest.raises(CalibrationError, match="angle"):
+        estimate_front_end(empty, refl, CFG, range_m=3.0, angle_deg=95.0)
+    with pytest.raises(CalibrationError, match="do not match"):
+        estimate_front_end(empty, refl[:, :10], CFG, range_m=3.0)
+    with pytest.raises(CalibrationError, match="background"):
+        FrontEndCorrection("s", 1, np.zeros((4, 3)))
