@@ -31,6 +31,7 @@ from pathlib import Path
 
 import zenoh
 
+from . import audit
 from .errors import BusError, ParameterError
 from .security import SecureConfig, check_secure_endpoint
 from .wire import TOPICS
@@ -142,6 +143,8 @@ class BusConfig:
                         "made for that host (`qradar security init --host HOST`)?")
             raise BusError(f"cannot open zenoh session (mode={self.mode}, connect={list(self.connect)}, "
                            f"listen={self.listen_endpoints()}{who}): {zenoh_reason(exc)}{hint}") from None
+        if self.secure is not None:
+            audit.attach(session)  # (nothing unless the command turned the audit on)
         if self.alone_warning is not None:
             warn_if_alone(session, self)
         return session

@@ -42,6 +42,7 @@ import zenoh
 
 from radar_driver.errors import RadarError
 
+from . import audit
 from .budget import MAX_TOPIC_BUCKETS, IntakeBudget, KeyBudget, TokenBucket
 from .bus import BusConfig, Shard, check_sensor_pattern, pattern_chunk, zenoh_reason
 from .errors import ParameterError, PipelineError, WireError
@@ -490,7 +491,7 @@ class Node:
                 snapshot.append(msg)
         for msg in snapshot:
             try:
-                msg.extra = self.health_extra(msg.sensor_id)
+                msg.extra = audit.health(self.health_extra(msg.sensor_id))  # + "audit" counts under --secure
                 self._put(msg.sensor_id, "health", msg.to_json(), "application/json")
             except (zenoh.ZError, WireError) as exc:
                 log.debug("health publish failed: %s", exc)

@@ -26,6 +26,7 @@ from typing import Callable, TextIO
 import numpy as np
 import zenoh
 
+from pipeline.audit import format_counts
 from pipeline.bus import BusConfig
 from pipeline.decode import Algo, DecoderConfig
 from pipeline.errors import ParameterError
@@ -489,6 +490,9 @@ def format_summary(s: dict) -> str:
                      f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
                      + (f" {rec['lost_by_topic']}" if rec["lost"] else "")
                      + (f"; last write error: {rec['error']}" if rec["error"] else ""))
+    counts = s.get("audit")
+    if counts is not None:
+        lines.append(f"  audit       {format_counts(counts)} (--secure; README, Security)")
     return "\n".join(lines)
 
 

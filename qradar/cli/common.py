@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from pipeline import audit
 from pipeline.budget import (
     DEFAULT_BYTES_PER_S,
     DEFAULT_NEW_SENSORS_BURST,
@@ -207,8 +208,8 @@ class StopOnSignals:
         try:
             os.write(2, f"qradar {self.name}: {name} again while stopping: exiting at once (status 130)\n".encode())
             if self.json_error:
-                os.write(1, (json.dumps({"error": "interrupted", "exit_code": 130, "command": self.name})
-                             + "\n").encode())
+                os.write(audit.stdout_fd(),  # (not 1: under --secure the audit's pipe, never read after _exit)
+                         (json.dumps({"error": "interrupted", "exit_code": 130, "command": self.name}) + "\n").encode())
             if self.on_force is not None:
                 self.on_force()
         finally:
@@ -294,9 +295,12 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
         secure = SecureConfig(args.secure, identity)
     elif args.identity is not None:
         raise ParameterError("--identity is for --secure DIR")
-    return BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                     config_file=args.zenoh_config, prefix=args.prefix, secure=secure,
-                     alone_warning=f"qradar {args.command}")  # a stand-alone command says if it reaches nobody
+    bus = BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+                    config_file=args.zenoh_config, prefix=args.prefix, secure=secure,
+                    alone_warning=f"qradar {args.command}")  # a stand-alone command says if it reaches nobody
+    if secure is not None:  # refused handshakes and denied messages, from zenoh's log (pipeline/audit.py)
+        audit.start(f"qradar {args.command}", full=bus.mode != "client" or bool(bus.listen_endpoints()))
+    return bus
 
 
 #: --bits, wherever a quantizer is set

@@ -8,6 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
+from pipeline import audit
 from pipeline.nodes import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
@@ -75,7 +76,7 @@ def cmd_record(args) -> int:
         run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
         pass
-    print(json.dumps({"node": node.name, **node.totals(), **node.summary()}), flush=True)
+    print(json.dumps({"node": node.name, **node.totals(), **node.summary(), **audit.finish()}), flush=True)
     if node.state is RecordingState.STOPPED:
         raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
     return 0
@@ -94,5 +95,6 @@ def cmd_replay(args) -> int:
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
     result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
-                      "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None}))
+                      "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None,
+                      **audit.finish()}))
     return 0

@@ -10,6 +10,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from pipeline import audit
 from pipeline.bus import BusConfig
 from pipeline.decode import Algo, default_alpha
 from pipeline.errors import ParameterError
@@ -183,7 +184,7 @@ def serve(node, duration: float | None, stop: threading.Event | None = None) -> 
         run_nodes([node], duration, stop)
     except KeyboardInterrupt:
         pass
-    print(json.dumps({"node": node.name, **node.totals()}), flush=True)
+    print(json.dumps({"node": node.name, **node.totals(), **audit.finish()}), flush=True)
     return 0
 
 
@@ -222,7 +223,7 @@ def cmd_source(args) -> int:
         pass
     extra = {"late_ticks": source.late_ticks, "elapsed_s": round(source.elapsed_s, 3)} \
         if isinstance(source, SimulatedSource) else {"source": source.stats()}
-    print(json.dumps({"node": node.name, **extra, **node.totals()}), flush=True)
+    print(json.dumps({"node": node.name, **extra, **node.totals(), **audit.finish()}), flush=True)
     return 0
 
 
@@ -249,6 +250,10 @@ def cmd_router(args) -> int:
     finally:
         if session is not None:
             session.close()
+    final = audit.stop()  # under --secure: the last summaries on stderr, then the counts
+    if final is not None:
+        print(f"qradar router: audit: {audit.format_counts(final)} in all", file=sys.stderr, flush=True)
+        print(json.dumps({"node": "router", "audit": final}), flush=True)
     return 0
 
 
@@ -280,6 +285,7 @@ def cmd_run(args) -> int:
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
     if signals.interrupted is not None:  # Ctrl-C or SIGTERM: the normal end of a live run
         summary["interrupted"] = True
+    summary.update(audit.finish())  # under --secure: {"audit": counts}
     if args.json:
         print_json(summary)
     else:

@@ -7,6 +7,7 @@ import json
 import sys
 import time
 
+from pipeline import audit
 from pipeline.errors import ParameterError, PipelineError
 
 from ..view import FoxgloveView, ViewConfig, parse_endpoint
@@ -66,5 +67,5 @@ def cmd_view(args) -> int:
         pass
     finally:
         view.stop()
-    print(json.dumps({"node": view.name, **view.summary()}), flush=True)
+    print(json.dumps({"node": view.name, **view.summary(), **audit.finish()}), flush=True)
     return 0
