@@ -1,8 +1,10 @@
-"""``qradar run``: the main job. Simulated K-MD2(s) on pseudo-terminals, the serial driver
-of each sensor in its own process (``qradar drive``, so that nothing here can stall
-its serial line), the quantize-with-dither node, the localizer and the recorder, wired
-through one embedded zenoh session; live targets beside the ground truth, and a
-summary at the end. It composes all three libraries, so it lives here.
+"""``qradar run``: the main job. Simulated K-MD2(s) on pseudo-terminals, or real sensors
+on their pyserial URLs (``--sensor``, :mod:`qradar.sensors`), the serial driver of each
+sensor in its own process (``qradar drive``, so that nothing here can stall its serial
+line), the quantize-with-dither node, the localizer and the recorder, wired through one
+embedded zenoh session; live targets beside the true positions (the simulated scene's,
+or a ``--truth`` scene file's: the reflectors' measured positions), and a summary at the
+end. It composes all three libraries, so it lives here.
 
 The driver processes reach the run's session through a unix socket in the run's
 temporary directory (zenoh client mode): no network port is opened."""
@@ -18,6 +20,7 @@ import sys
 import tempfile
 import threading
 import time
+import tomllib
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -34,14 +37,16 @@ from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
-from pipeline.wire import TOPICS, WireError, decode_targets
-from radar_driver.errors import RadarError
-from radar_driver.scene import SimScene, resolve_scene
-from radar_driver.session import SensorSession, SessionConfig
+from pipeline.wire import TOPICS, WireError, decode_health, decode_targets
+from radar_driver.errors import ConfigError, RadarError
+from radar_driver.model import RadarConfig
+from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
+from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
+from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
 
 #: topics the monitor counts by name (``other`` for the rest)
@@ -61,17 +66,19 @@ def remove_run_dirs() -> None:
 
 class Monitor:
     """Watches ``<prefix>/**``: counts and sizes per topic, latency and position error of
-    the targets against the scene's truth, and prints live lines (at most one a second
-    per sensor). Light work only, so it runs in zenoh's callback. Its memory is fixed
-    however long it runs: latency and error go into fixed-size histograms, counts are
-    per known topic (the rest under ``other``)."""
+    the targets against the true positions (``truth``: a scene whose targets are where
+    the reflectors are; None: no error, as for a real sensor without ``--truth``), each
+    sensor's rate and losses, and prints live lines (at most one a second per sensor).
+    Light work only, so it runs in zenoh's callback. Its memory is fixed however long it
+    runs: latency and error go into fixed-size histograms, counts are per known topic
+    (the rest under ``other``), per-sensor state is bounded."""
 
     #: sensors whose last live line is remembered (beyond, the memory is cleared)
     MAX_SENSORS = 1024
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session | None, scene: SimScene, t0_ns: int,
+    def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
                  live: TextIO | None = sys.stdout):
-        self.bus, self.session, self.scene, self.t0_ns = bus, session, scene, t0_ns
+        self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
         self.live = live
         self.count: dict[str, int] = defaultdict(int)
         self.bytes: dict[str, int] = defaultdict(int)
@@ -81,7 +88,9 @@ class Monitor:
         self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
         self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
         self._last_seq: dict[str, int] = {}
-        self._last_print: dict[str, float] = {}
+        # per sensor: [monotonic s of the last live line, targets since, sequence gaps, frames the
+        # sensor's link lost (its driver's health), targets in all, first and last timestamp_ns]
+        self._sensor: dict[str, list] = {}
         self._lock = threading.Lock()
         self._sub = None
 
@@ -97,6 +106,14 @@ class Monitor:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self.on_message(str(sample.key_expr), sample.payload.to_bytes())
 
+    def _state(self, sensor: str) -> list:
+        st = self._sensor.get(sensor)
+        if st is None:
+            if len(self._sensor) >= self.MAX_SENSORS:  # keys of garbage: bounded
+                self._sensor.clear()
+            st = self._sensor[sensor] = [0.0, 0, 0, 0, 0, 0, 0]
+        return st
+
     def on_message(self, key: str, payload: bytes) -> None:
         """One message of ``<prefix>/**`` (what the zenoh callback hands over)."""
         topic = key.rsplit("/", 1)[-1]
@@ -110,6 +127,9 @@ class Monitor:
                 if sensor not in self.raw_by_sensor and len(self.raw_by_sensor) >= self.MAX_SENSORS:
                     self.raw_by_sensor.clear()  # keys of garbage: bounded
                 self.raw_by_sensor[sensor] = self.raw_by_sensor.get(sensor, 0) + 1
+        if topic == "health":
+            self._on_health(key, payload)
+            return
         if topic != "targets":
             return
         try:
@@ -119,43 +139,82 @@ class Monitor:
                 self.bad_targets += 1
             return
         t_s = max(0.0, (msg.timestamp_ns - self.t0_ns) / 1e9)
-        truth = self.scene.truth(t_s)
+        truth = self.truth.truth(t_s) if self.truth is not None else None
         est_r = np.array([[t["range_m"] for t in msg.targets]])
         est_a = np.array([[t["angle_deg"] for t in msg.targets]])
         err = position_error_m(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
                                est_r, est_a)[0] if truth and msg.targets else np.array([])
+        now = time.monotonic()
         with self._lock:
             last = self._last_seq.get(msg.sensor_id)
             if last is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
                 self._last_seq.clear()
+            st = self._state(msg.sensor_id)
             if last is not None and msg.seq > last + 1:
                 self.targets_missing += msg.seq - last - 1
+                st[2] += msg.seq - last - 1
             self._last_seq[msg.sensor_id] = msg.seq
             self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
             self.errors_m.add_many(err)
-        now = time.monotonic()
-        if self.live is not None and now - self._last_print.get(msg.sensor_id, 0.0) >= 1.0:
-            if len(self._last_print) >= self.MAX_SENSORS:
-                self._last_print.clear()
-            self._last_print[msg.sensor_id] = now
-            est = "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets)
-            tru = "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
-            errs = " ".join(f"{e:.2f}" for e in err)
-            print(f"{msg.sensor_id} #{msg.seq:<5d} targets {est}   truth {tru}   error m {errs}",
-                  file=self.live, flush=True)
+            st[1] += 1
+            st[4] += 1
+            if st[4] == 1:
+                st[5] = msg.timestamp_ns
+            st[6] = msg.timestamp_ns
+            due = now - st[0] >= 1.0
+            if due:
+                rate_hz = (st[1] - 1) / (now - st[0]) if st[0] and st[1] > 1 else None
+                lost = st[2] + st[3]
+                st[0], st[1] = now, 1
+        if self.live is not None and due:
+            line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + "  ".join(
+                f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets)
+            if truth is not None:
+                line += "   truth " + "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
+                line += "   error m " + " ".join(f"{e:.2f}" for e in err)
+            line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
+            print(line, file=self.live, flush=True)
+
+    def _on_health(self, key: str, payload: bytes) -> None:
+        """A driver's health: the sensor frames its link lost so far (the DONE counter's gaps)."""
+        if b'"node":"source"' not in payload:
+            return
+        try:
+            msg = decode_health(payload, key)
+        except WireError:
+            return
+        with self._lock:
+            self._state(msg.sensor_id)[3] = msg.drops
+
+    def rates_hz(self) -> dict[str, float]:
+        """Each sensor's targets per second, over its first and last targets' timestamps."""
+        with self._lock:
+            return {sid: round((st[4] - 1) / ((st[6] - st[5]) / 1e9), 2)
+                    for sid, st in sorted(self._sensor.items()) if st[4] > 1 and st[6] > st[5]}
+
+
+#: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
+REAL_SENSOR_K = 2
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    scene: str = "chamber"
-    sensors: int = 1
+    """What ``qradar run`` does. Its sensors are simulated (``scene``, ``sensors``,
+    ``rate_hz``; None: chamber, 1, 20) unless ``sensor_specs`` names real ones (pyserial
+    URLs with their ids and profiles, :class:`~qradar.sensors.SensorSpec` or spec strings),
+    which the simulation's three do not go with. ``truth``: a scene file (or packaged
+    name) whose targets are the reflectors' true positions, for the position errors;
+    None: the simulated scene, or no error with real sensors."""
+
+    scene: str | None = None
+    sensors: int | None = None
     duration_s: float | None = 15.0
-    rate_hz: float = 20.0
+    rate_hz: float | None = None
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
-    k: int | None = None  # None = as many as the scene has targets; with auto_k the most a frame has
+    k: int | None = None  # None = the scene's (or --truth's) count, else REAL_SENSOR_K; with auto_k the most a frame has
     algo: Algo = Algo.CML
     bus: BusConfig = field(default_factory=BusConfig)
-    baud: int = 2_000_000
+    baud: int = 2_000_000  # the simulated sensors' line speed after INIT (a real one's: its spec's baud)
     record: Path | None = None  # MCAP path, or None for no recording
     frames: int | None = None  # stop after this many frames per sensor
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
@@ -167,16 +226,38 @@ class RunConfig:
     record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
-    # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer
-    outstanding: int = 2
+    # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer. None: 2 with
+    # simulated sensors, 1 (drive's default: no assumption) with real ones
+    outstanding: int | None = None
+    sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
+    truth: str | Path | None = None  # scene file of the true positions
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
-        if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 256):
+        specs = tuple(as_spec(s) for s in self.sensor_specs)
+        object.__setattr__(self, "sensor_specs", specs)
+        if specs:
+            if self.sensors is not None:
+                raise ParameterError(f"--sensors {self.sensors} starts simulated sensors; it does not go with "
+                                     f"--sensor (real ones): give one --sensor per sensor")
+            if self.scene is not None:
+                raise ParameterError(f"--scene {self.scene} is the simulated sensors' scene; with --sensor (real "
+                                     f"sensors) give the reflectors' measured positions as --truth SCENE.toml")
+            if self.rate_hz is not None:
+                raise ParameterError(f"--rate {self.rate_hz:g} is the simulated sensors' frame rate; a real sensor "
+                                     f"(--sensor) measures at its own")
+            check_sensor_specs(specs)
+        else:
+            for name, default in (("scene", "chamber"), ("sensors", 1), ("rate_hz", 20.0)):
+                if getattr(self, name) is None:
+                    object.__setattr__(self, name, default)
+        if self.outstanding is None:
+            object.__setattr__(self, "outstanding", 1 if specs else 2)
+        if not specs and not (isinstance(self.sensors, int) and 1 <= self.sensors <= 256):
             raise ParameterError(f"sensors={self.sensors!r} must be an integer in [1, 256]")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ParameterError(f"duration={self.duration_s!r} must be > 0")
-        if not self.rate_hz > 0:
+        if not specs and not self.rate_hz > 0:
             raise ParameterError(f"rate={self.rate_hz!r} must be > 0")
         if self.record_on_error not in tuple(OnWriteError) or not self.record_retry_s > 0:
             raise ParameterError(f"record_on_error={self.record_on_error!r} must be one of "
@@ -185,54 +266,74 @@ class RunConfig:
         if self.outstanding not in (1, 2):
             raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
 
+    @property
+    def real(self) -> bool:
+        """Real sensors (``sensor_specs``), not simulated ones."""
+        return bool(self.sensor_specs)
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensor_specs) or self.sensors
+
 
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
     """Run the pipeline; returns the summary dict."""
-    scene = resolve_scene(cfg.scene)
+    scene = None if cfg.real else resolve_scene(cfg.scene)
+    truth = load_truth(cfg.truth) if cfg.truth is not None else scene
+    radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
     if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
         raise RecordingExists.at(cfg.record)  # before anything starts
-    k = cfg.k or max(1, len(scene.targets))
-    localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar, fallback_pbp=cfg.quantizer.alpha == 0,
+    if scene is not None:
+        k = cfg.k or max(1, len(scene.targets))
+    else:
+        k = cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
+    localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
                                     auto_k=cfg.auto_k, pfa=cfg.pfa)  # checked before anything starts
+    if cfg.real:
+        probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
         _RUN_DIRS.add(tmp)
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
-        sims = [SimulatorServer(scene, link_path=Path(tmp) / f"kmd2-{i}", rate_hz=cfg.rate_hz, seed=i,
-                                hold_clock_when_late=True) for i in range(cfg.sensors)]
+        sims = [] if cfg.real else [
+            SimulatorServer(scene, link_path=Path(tmp) / f"kmd2-{i}", rate_hz=cfg.rate_hz, seed=i,
+                            hold_clock_when_late=True) for i in range(cfg.sensors)]
         for sim in sims:
             sim.start()
+        # a simulated sensor is a simulator on a pty and a driver on that pty; a real one only the driver
+        specs = cfg.sensor_specs or tuple(
+            SensorSpec(str(sim.links[0].link_path), f"kmd2-{i}", baud=cfg.baud, ramps=scene.radar.ramps_per_frame)
+            for i, sim in enumerate(sims))
         bus = driver_bus(cfg.bus, Path(tmp))
         listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
-            monitor = Monitor(cfg.bus, session, scene, time.time_ns(), live).start()
+            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=scene.radar)
-            links = [str(sim.links[0].link_path) for sim in sims]
+            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar)
             if cfg.driver_process:
-                drivers = [DriverProcess(link, f"kmd2-{i}", cfg.baud, scene.radar.ramps_per_frame, bus,
-                                         frames=cfg.frames, outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                         received=lambda sid=f"kmd2-{i}": monitor.raw_by_sensor.get(sid, 0))
-                           for i, link in enumerate(links)]
+                drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
+                                         outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
+                                         profile=s.profile, chirp_select=s.chirp_select,
+                                         received=lambda sid=s.sensor_id: monitor.raw_by_sensor.get(sid, 0))
+                           for s in specs]
             else:
-                drivers = [SourceNode(cfg.bus, SensorSession(SessionConfig(
-                    link, baud=cfg.baud, ramps_per_frame=scene.radar.ramps_per_frame, sensor_id=f"kmd2-{i}",
-                    outstanding=cfg.outstanding)),
-                    session=session, frames=cfg.frames) for i, link in enumerate(links)]
+                drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
+                                      session=session, frames=cfg.frames) for s in specs]
             if cfg.frames is not None:
                 stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k),
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
+                                         metadata=run_metadata(cfg, scene, truth, radar, k),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
             view = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
-                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=scene.radar), session=session).start()
+                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
             try:
@@ -247,12 +348,39 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 sim.stop()
             _RUN_DIRS.discard(tmp)
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
-                        simulator=simulator_lateness(sims))
+                        simulator=simulator_lateness(sims) if sims else None, truth=truth)
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
         summary["recording"] = recorder[0].summary()
     if view is not None:
         summary["foxglove"] = view.summary()
     return summary
+
+
+def load_truth(name_or_path: str | Path) -> SimScene:
+    """The true positions of ``--truth``: a scene file as :mod:`radar_driver.scene` reads
+    (or a packaged scene's name), of which only the targets' ranges and angles (and a
+    velocity, from the run's start) count, so a target's ``amplitude`` may be left out.
+    ConfigError naming ``--truth`` and the file, also for a file without a target."""
+    path = Path(name_or_path)
+    try:
+        if not path.exists() and path.suffix == "" and len(path.parts) == 1:
+            scene = resolve_scene(path.name)  # a packaged scene
+        else:
+            try:
+                data = tomllib.loads(path.read_text())
+            except OSError as exc:
+                raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+            except tomllib.TOMLDecodeError as exc:
+                raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+            targets = data.get("target")
+            if isinstance(targets, list):
+                data["target"] = [{"amplitude": 1.0, **t} if isinstance(t, dict) else t for t in targets]
+            scene = scene_from_dict(data, str(path))
+    except ConfigError as exc:
+        raise ConfigError(f"--truth: {exc}") from None
+    if not scene.targets:
+        raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to compare with")
+    return scene
 
 
 def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
@@ -294,7 +422,8 @@ class DriverProcess:
 
     def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
                  frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None,
-                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1):
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1,
+                 chirp_select: str = "first"):
         self.sensor_id = sensor_id
         self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
                     "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix,
@@ -309,7 +438,9 @@ class DriverProcess:
         if outstanding != 1:
             self.cmd += ["--outstanding", str(outstanding)]
         if profile is not None:
-            self.cmd += ["--profile", profile]
+            self.cmd += ["--profile", str(profile)]
+        if chirp_select != "first":
+            self.cmd += ["--chirp-select", chirp_select]
         if received is not None:
             self.cmd.append("--linger-stdin")
         self.received, self.ack_timeout_s = received, ack_timeout_s
@@ -402,17 +533,31 @@ class DriverProcess:
         return {self.sensor_id: dict(self.counters)}
 
 
-def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
-    """MCAP metadata of a run: radar config, node configs and the ground-truth scene."""
+def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
+                 k: int) -> dict[str, dict]:
+    """MCAP metadata of a run: radar config, node configs, the sensors and the true
+    positions (``qradar.scene``, which ``qradar reprocess`` takes for its truth): the
+    simulated scene, or the ``--truth`` file's (with real sensors: ``simulated`` false)."""
     from dataclasses import asdict
 
-    return {
-        "qradar.radar": scene.radar.to_dict() | {"config_id": scene.radar.config_id()},
+    meta = {
+        "qradar.radar": radar.to_dict() | {"config_id": radar.config_id()},
         "qradar.quantizer": asdict(cfg.quantizer),
         "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized"},
-        "qradar.scene": {"scene": json.dumps(scene.to_dict()), "simulated": "true", "sensors": str(cfg.sensors),
-                         "rate_hz": str(cfg.rate_hz)},
     }
+    if cfg.real:
+        meta["qradar.sensors"] = {s.sensor_id: json.dumps({"url": s.url, "profile": s.profile_name, "baud": s.baud,
+                                                           "ramps": s.ramps, "chirp_select": s.chirp_select})
+                                  for s in cfg.sensor_specs}
+    if scene is not None and truth is scene:
+        meta["qradar.scene"] = {"scene": json.dumps(scene.to_dict()), "simulated": "true",
+                                "sensors": str(cfg.sensors), "rate_hz": str(cfg.rate_hz)}
+    elif truth is not None:  # measured positions (a real sensor), or a truth other than the simulated scene
+        meta["qradar.scene"] = {"scene": json.dumps(truth.to_dict()), "simulated": "false",
+                                "truth_file": str(cfg.truth), "sensors": str(cfg.n_sensors)}
+        if scene is not None:
+            meta["qradar.simulated_scene"] = {"scene": json.dumps(scene.to_dict()), "rate_hz": str(cfg.rate_hz)}
+    return meta
 
 
 def _stat(value: float | None) -> float | None:
@@ -428,20 +573,33 @@ def simulator_lateness(sims: list[SimulatorServer]) -> dict:
 
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
-              simulator: dict | None = None) -> dict:
+              simulator: dict | None = None, truth: SimScene | None = None) -> dict:
+    """The run's summary. ``simulator``: the simulated sensors' lateness (None with real
+    sensors); ``truth``: the true positions the errors were measured against (None: no
+    error, ``position_error_m`` all None)."""
     driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
     driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
     q_tot, l_tot = quantizer.totals(), localizer.totals()
     queue_drops = l_tot["drops"] + q_tot["drops"]
     cnt, size = monitor.count, monitor.bytes
     lat, err = monitor.latency_ms, monitor.errors_m  # fixed-size histograms: within 2 % of the exact figures
+    if truth is None:
+        truth_name = None
+    elif truth is scene:
+        truth_name = "simulated"
+    else:
+        truth_name = str(cfg.truth)
     return {
-        "scene": scene.name,
-        "sensors": cfg.sensors,
+        "scene": scene.name if scene is not None else None,
+        "sensors": cfg.n_sensors,
+        # real sensors: where each one is (--sensor); simulated ones: null
+        "sensor_urls": {s.sensor_id: s.url for s in cfg.sensor_specs} if cfg.real else None,
+        "truth": truth_name,  # "simulated", the --truth file, or null (no position error)
         "seconds": round(seconds, 2),
         "frames_raw": cnt["raw"],
         "frames_quantized": cnt["quantized"],
         "frames_targets": cnt["targets"],
+        "rate_hz": monitor.rates_hz(),  # targets per second of each sensor (first to last frame)
         "drops": driver_drops + queue_drops,
         "drops_detail": {"sensor_frames": driver_drops, "node_queues": queue_drops,
                          "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
@@ -463,27 +621,42 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k},
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
-        # the simulated sensors' own late writes (device clock held): apart from every loss above
-        "simulator": simulator or {"late_writes": 0, "late_s": 0.0},
+        # the simulated sensors' own late writes (device clock held): apart from every loss above;
+        # null with real sensors
+        "simulator": simulator,
     }
 
 
 def format_summary(s: dict) -> str:
     lat, err = s["latency_ms"], s["position_error_m"]
+    urls = s.get("sensor_urls")
+    where = (f"{len(urls)} sensor(s) " + ", ".join(f"{sid} on {url}" for sid, url in urls.items()) if urls
+             else f"scene {s['scene']}, {s['sensors']} sensor(s)")
+    rates = list((s.get("rate_hz") or {}).values())
     lines = [
-        f"qradar run: scene {s['scene']}, {s['sensors']} sensor(s), {s['seconds']} s"
+        f"qradar run: {where}, {s['seconds']} s"
         + (", ended by Ctrl-C / SIGTERM" if s.get("interrupted") else ""),
         f"  frames      raw {s['frames_raw']}, quantized {s['frames_quantized']}, targets {s['frames_targets']}",
+    ]
+    if rates:
+        lines.append(f"  rate        {rates[0]:.1f} frames/s" if len(rates) == 1 else
+                     f"  rate        {min(rates):.1f} to {max(rates):.1f} frames/s per sensor")
+    lines += [
         f"  drops       {s['drops']} ({s['drops_detail']})",
         f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
-        f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms in all "
-        f"(the simulated sensors' own lateness on a busy host, device clock held: no frame lost)",
-        f"  latency     p50 {lat['p50']} ms, p99 {lat['p99']} ms (sensor timestamp -> targets published)",
-        f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true target "
-        f"to the nearest estimate)",
-        f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
-        f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})",
     ]
+    if s.get("simulator") is not None:
+        lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
+                     f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")
+    lines.append(f"  latency     p50 {lat['p50']} ms, p99 {lat['p99']} ms (sensor timestamp -> targets published)")
+    if s.get("truth", "simulated") is None:
+        lines.append("  error       none: no true positions (--truth SCENE.toml gives the reflectors' measured ones)")
+    else:
+        lines.append(f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true "
+                     f"target to the nearest estimate" + (f"; truth {s['truth']}" if s.get("truth") not in
+                                                          (None, "simulated") else "") + ")")
+    lines.append(f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
+                 f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
     rec = s.get("recording")
     if rec is not None:
         lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "

@@ -327,6 +327,22 @@ class SensorSession:
             self._connect()
         self._start_reader()
 
+    def probe(self) -> None:
+        """Open the port as :meth:`open` would (a device path exclusively) and close it at
+        once, sending nothing: a LinkError saying why it cannot be opened (and who holds a
+        busy device), for a caller that checks its ports before it starts anything. Not on
+        an open session."""
+        if self._port is not None:
+            raise LinkError(f"{self.config.url} is open in this session already")
+        try:
+            port = self._open_port(port_url(self.config.url))
+        except (serial.SerialException, OSError, ValueError, termios.error) as exc:
+            raise LinkError(open_error(self.config.url, exc)) from exc
+        try:
+            port.close()
+        except (serial.SerialException, OSError):
+            pass
+
     def request_stop(self) -> None:
         """Ask :meth:`frames` to end, without touching the port (safe from another
         thread); the owner then closes. The reader stops asking at once; the frames it

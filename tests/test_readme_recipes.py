@@ -123,3 +123,29 @@ def test_replay_and_view_work_as_written(tmp_path):
     seen = json.loads(view_out.strip().splitlines()[-1])
     assert published > 0 and seen["frames_in"] > 0 and seen["sensors"], seen
     assert "no zenoh peer or router reached" not in view_err
+
+
+def truth_file(name: str) -> str:
+    """The TOML block of README marked ``<!-- truth: name -->``."""
+    m = re.search(rf"<!-- truth: {re.escape(name)} -->\n```toml\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no truth file {name!r}"
+    return m.group(1)
+
+
+@pytest.mark.slow
+def test_a_run_on_a_sensor_it_does_not_simulate_works_as_written(tmp_path):
+    """``qradar run --sensor`` on ``qradar sim``'s pty, against README's measured.toml."""
+    (tmp_path / "measured.toml").write_text(truth_file("measured.toml"))
+    t = Terminals(tmp_path)
+    try:
+        start_all(recipe("real-sensor"), t, {})
+        out, err = t.procs["run"].communicate(timeout=90)
+        assert t.procs["run"].returncode == 0, err[-3000:]
+        t.stop("sim")
+    finally:
+        t.close()
+    assert "qradar run: 1 sensor(s) lab1 on " in out and "truth measured.toml" in out, out
+    frames = re.search(r"frames      raw (\d+), quantized (\d+), targets (\d+)", out)
+    assert frames and int(frames.group(1)) >= 100 and len(set(frames.groups())) == 1, out
+    median = float(re.search(r"error       median ([0-9.]+) m", out).group(1))
+    assert median < 0.5 and "lab1 #" in out and "Traceback" not in err

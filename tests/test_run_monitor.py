@@ -42,7 +42,7 @@ def state_bytes(mon: Monitor) -> int:
         if isinstance(v, (list, tuple, set)):
             return sys.getsizeof(v) + sum(deep(x) for x in v)
         return sys.getsizeof(v)
-    skip = {"bus", "session", "scene", "live", "_lock", "_sub"}
+    skip = {"bus", "session", "truth", "live", "_lock", "_sub"}
     return sum(deep(v) for k, v in vars(mon).items() if k not in skip)
 
 

@@ -104,20 +104,34 @@ def add_commands(sub) -> None:
     bus_options(p, modes=("router",))
     p.set_defaults(func=cmd_router)
 
-    p = sub.add_parser("run", help="the main job: simulated K-MD2 -> driver -> quantize -> localize over zenoh",
-                       description="Simulated K-MD2(s) on ptys, the serial driver, the 1-bit dithered quantizer "
-                       f"and the localizer (--algo, default {RUN_ALGO}) over an embedded zenoh peer; live targets "
-                       "beside the truth, then a summary.")
-    p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
-    p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
+    p = sub.add_parser("run", help="the main job: K-MD2 (simulated, or real with --sensor) -> driver -> quantize -> "
+                       "localize over zenoh",
+                       description="Simulated K-MD2(s) on ptys, or real sensors on their ports (--sensor), the serial "
+                       f"driver of each, the 1-bit dithered quantizer and the localizer (--algo, default {RUN_ALGO}) "
+                       "over an embedded zenoh peer; live targets beside the true positions (the simulated scene's, "
+                       "or --truth's), then a summary.")
+    p.add_argument("--sensor", dest="sensor_specs", action="append", default=[], metavar="URL,id=NAME[,KEY=VALUE]",
+                   help="a real sensor instead of the simulated ones (repeatable, one each): a pyserial URL (a device "
+                   "path, socket://HOST:PORT, rfc2217://HOST:PORT), then its id (required) and the driver's "
+                   "options: profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays "
+                   "at 115200), ramps=R (default 2), chirp-select=first|stride; e.g. "
+                   "/dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, --sensors, --rate")
+    p.add_argument("--truth", default=None, metavar="SCENE.toml",
+                   help="a scene file whose targets are the reflectors' true (measured) positions: the live lines and "
+                   "the summary give the position errors against them (only the targets' ranges and angles count). "
+                   "Default: the simulated scene; with --sensor, no error")
+    p.add_argument("--scene", default=None, help="the simulated sensors' scene: file or packaged name (default chamber)")
+    p.add_argument("--sensors", type=pos_int, default=None, help="simulated sensors at once (default 1)")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
-    p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
-    p.add_argument("--outstanding", type=int, choices=(1, 2), default=2,
+    p.add_argument("--rate", type=float, default=None, help="frames per second per simulated sensor (default 20)")
+    p.add_argument("--outstanding", type=int, choices=(1, 2), default=None,
                    help="GNFD requests each driver keeps in flight: 2 lets the sensor hold one while its driver is "
-                   "late on a busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to)")
+                   "late on a busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to). Default 2 "
+                   "with simulated sensors, 1 with --sensor")
     quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
                       "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
-    count_options(p, None, "targets per frame (default: the scene's count)")
+    count_options(p, None, "targets per frame (default: the simulated scene's count; with --sensor, the --truth "
+                  "file's, else 2)")
     algo_option(p, "decoder of the localizer", RUN_ALGO)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
@@ -279,7 +293,7 @@ def cmd_run(args) -> int:
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
-                    outstanding=args.outstanding)
+                    outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)

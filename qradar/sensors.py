@@ -1,0 +1,169 @@
+"""The real sensors of ``qradar run --sensor URL,id=NAME[,KEY=VALUE...]``: one spec each,
+validated when it is read, with one-line errors that quote the spec.
+
+A spec is a pyserial URL (a device path, ``socket://host:port``, ``rfc2217://host:port``)
+and then, separated by commas, the sensor's options, as ``qradar drive`` takes them:
+
+- ``id``: the sensor's id in the zenoh keys (required; 1-16 of [A-Za-z0-9_-]);
+- ``profile``: a packaged sensor profile or a TOML file (default kmd2-blocks);
+- ``baud``: the line speed after INIT (default: 2 000 000 on a device path or
+  ``rfc2217://``; a ``socket://`` link stays at the start-up 115200);
+- ``ramps``: ramps per frame, M = 256 x ramps (default 2);
+- ``chirp-select``: with several chirps per RADC, ``first`` or ``stride``.
+
+Before a run starts anything, :func:`check_sensor_specs` refuses two sensors of one id or
+one port, and :func:`probe_sensors` opens each port once and closes it (a device path
+exclusively, as its driver will), so that a port that cannot be opened, or a device held
+by another process, is one line naming the sensor (and the holder)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+
+from pipeline.errors import ParameterError, WireError
+from pipeline.wire import check_sensor_id
+from radar_driver.errors import ConfigError, LinkError, RadarError
+from radar_driver.model import RadarConfig
+from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, resolve_profile
+from radar_driver.session import LinkKind, SensorSession, SessionConfig, link_kind
+
+#: the keys a spec may give after its URL
+SPEC_KEYS = ("id", "profile", "baud", "ramps", "chirp-select")
+SPEC_FORM = "URL,id=NAME[,profile=P][,baud=B][,ramps=R][,chirp-select=first|stride]"
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """One real sensor of a run: its URL, id and driver options (see the module)."""
+
+    url: str
+    sensor_id: str
+    profile: str | None = None  # None: the default, kmd2-blocks
+    baud: int | None = None
+    ramps: int = 2
+    chirp_select: str = "first"
+    text: str = ""  # the spec as given, for messages
+
+    def __post_init__(self) -> None:
+        where = self.where
+        try:
+            check_sensor_id(self.sensor_id)
+        except WireError as exc:
+            raise ParameterError(f"{where}: id: {exc}") from None
+        if self.chirp_select not in CHIRP_SELECT:
+            raise ParameterError(f"{where}: chirp-select={self.chirp_select!r} must be one of {list(CHIRP_SELECT)}")
+        try:
+            self.session_config()  # the profile, the baud among its speeds, the ramps in its chirps
+        except ConfigError as exc:
+            raise ParameterError(f"{where}: {exc}") from None
+
+    @property
+    def profile_name(self) -> str:
+        return self.profile or DEFAULT_PROFILE_NAME
+
+    @property
+    def where(self) -> str:
+        return f"--sensor {self.text or self.url!r}"
+
+    def session_config(self, outstanding: int = 1) -> SessionConfig:
+        return SessionConfig(self.url, baud=self.baud, ramps_per_frame=self.ramps, sensor_id=self.sensor_id,
+                             profile=self.profile, chirp_select=self.chirp_select, outstanding=outstanding)
+
+    def radar(self) -> RadarConfig:
+        """The radar configuration its frames carry."""
+        return self.session_config().radar()
+
+    def port_key(self) -> str:
+        """What names the port, for telling two specs of one port apart: a device path's
+        real path, a network URL's scheme, host and port."""
+        kind = link_kind(self.url)
+        if kind is LinkKind.DEVICE:
+            return os.path.realpath(self.url)
+        return self.url.split("?", 1)[0].lower()
+
+    @classmethod
+    def parse(cls, text: str) -> "SensorSpec":
+        """``URL,id=NAME[,KEY=VALUE...]``; ParameterError (one line, quoting ``text``) on
+        an unknown, repeated or empty key, a missing id, a bad value or profile."""
+        where = f"--sensor {text!r}"
+        if not isinstance(text, str) or not text.strip():
+            raise ParameterError(f"{where}: empty; expected {SPEC_FORM}")
+        url, *fields = [f.strip() for f in text.split(",")]
+        if not url:
+            raise ParameterError(f"{where}: no URL before the first comma; expected {SPEC_FORM}")
+        if url.partition("=")[0].strip() in SPEC_KEYS:
+            raise ParameterError(f"{where}: starts with the key {url!r}; the URL comes first: {SPEC_FORM}")
+        opts: dict[str, str] = {}
+        for f in fields:
+            key, sep, value = (s.strip() for s in f.partition("="))
+            if not sep:
+                raise ParameterError(f"{where}: {f!r} is not KEY=VALUE; expected {SPEC_FORM}")
+            if key not in SPEC_KEYS:
+                raise ParameterError(f"{where}: unknown key {key!r}; known: {', '.join(SPEC_KEYS)}")
+            if key in opts:
+                raise ParameterError(f"{where}: {key} given twice")
+            if not value:
+                raise ParameterError(f"{where}: {key}= has no value")
+            opts[key] = value
+        if "id" not in opts:
+            raise ParameterError(f"{where}: missing id=NAME (the sensor's id in the zenoh keys, e.g. "
+                                 f"{url},id=kmd2-0)")
+        ints = {}
+        for key in ("baud", "ramps"):
+            if key in opts:
+                try:
+                    ints[key] = int(opts[key])
+                except ValueError:
+                    raise ParameterError(f"{where}: {key}={opts[key]!r} is not an integer") from None
+        if ints.get("ramps", 1) < 1:
+            raise ParameterError(f"{where}: ramps={ints['ramps']} must be >= 1")
+        profile = opts.get("profile")
+        try:
+            resolve_profile(profile)
+        except RadarError as exc:
+            raise ParameterError(f"{where}: profile: {exc}") from None
+        return cls(url, opts["id"], profile=profile, baud=ints.get("baud"), ramps=ints.get("ramps", 2),
+                   chirp_select=opts.get("chirp-select", "first"), text=text)
+
+
+def as_spec(spec: SensorSpec | str) -> SensorSpec:
+    return spec if isinstance(spec, SensorSpec) else SensorSpec.parse(spec)
+
+
+def check_sensor_specs(specs: tuple[SensorSpec, ...]) -> RadarConfig:
+    """Refuse two specs of one id or one port, and sensors whose frames a run's nodes
+    could not all take (another radar configuration than the first's, the ramps apart);
+    returns that configuration."""
+    if not specs:
+        raise ParameterError("no sensor given")
+    ids: dict[str, SensorSpec] = {}
+    ports: dict[str, SensorSpec] = {}
+    for s in specs:
+        if s.sensor_id in ids:
+            raise ParameterError(f"{s.where}: id {s.sensor_id!r} is taken by {ids[s.sensor_id].where}; each "
+                                 f"sensor needs its own id")
+        ids[s.sensor_id] = s
+        key = s.port_key()
+        if key in ports:
+            raise ParameterError(f"{s.where}: {s.url} is the port of sensor {ports[key].sensor_id} too (a port "
+                                 f"has one owner)")
+        ports[key] = s
+    base = replace(specs[0].radar(), ramps_per_frame=1)
+    for s in specs[1:]:
+        if replace(s.radar(), ramps_per_frame=1) != base:
+            raise ParameterError(f"{s.where}: its profile {s.profile_name!r} makes frames of another radar "
+                                 f"configuration than sensor {specs[0].sensor_id}'s ({specs[0].profile_name!r}); "
+                                 f"one run processes one (its ramps per frame apart)")
+    return replace(base, ramps_per_frame=specs[0].ramps)
+
+
+def probe_sensors(specs: tuple[SensorSpec, ...]) -> None:
+    """Open each sensor's port and close it at once, sending nothing: a LinkError naming
+    the sensor for the first that cannot be opened (who holds a busy device, what to
+    check). ``socket://`` and ``rfc2217://`` ports are connected to once."""
+    for s in specs:
+        try:
+            SensorSession(s.session_config()).probe()
+        except LinkError as exc:
+            raise LinkError(f"sensor {s.sensor_id}: {exc}") from exc
