@@ -21,6 +21,7 @@ from radar_driver.model import RadarConfig
 from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from .bus import BusConfig
+from .calibration import Calibration
 from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
 from .localize import DEFAULT_PFA, Detections
@@ -58,7 +59,8 @@ class SourceNode(Node):
 
     def __init__(self, bus: BusConfig, source: FrameSource, session: zenoh.Session | None = None,
                  frames: int | None = None, on_frame: Callable[[RawFrame], None] | None = None,
-                 quantizer: QuantizerConfig | None = None, raw_every: int | None = None, **kw):
+                 quantizer: QuantizerConfig | None = None, raw_every: int | None = None,
+                 calibration: Calibration | None = None, **kw):
         raw_every = (0 if quantizer is not None else 1) if raw_every is None else raw_every
         if not (isinstance(raw_every, int) and raw_every >= 0) or (quantizer is None and not raw_every):
             raise ParameterError(f"raw_every={raw_every!r} must be an integer >= 0, and >= 1 without edge "
@@ -68,6 +70,9 @@ class SourceNode(Node):
         self.frames_limit = frames
         self.on_frame = on_frame
         self.quantizer = quantizer
+        self.calibration = calibration
+        if calibration is not None and quantizer is None:
+            raise ParameterError("a calibration is applied where frames are quantized: give a quantizer too")
         self.raw_every = raw_every
         self._source_stats: dict[str, dict[str, int]] = {}
         self.done = threading.Event()
@@ -99,7 +104,7 @@ class SourceNode(Node):
                     raw = headers.take(keep)
                     self.publish_many(raw.sensor_id, "raw", encode_raw_batch(raw, data[keep]), OCTETS)
             if self.quantizer is not None:
-                quantize_and_publish(self, self.quantizer, headers, data, "raw")
+                quantize_and_publish(self, self.quantizer, headers, data, "raw", self.calibration)
 
     def _stopping(self) -> None:
         self.source.request_stop()  # the reader ends at the next frame and closes the source itself
@@ -119,11 +124,14 @@ OCTETS = "application/octet-stream"
 
 
 def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHeaders, data: np.ndarray,
-                         topic: str) -> None:
+                         topic: str, calibration: Calibration | None = None) -> None:
     """Quantize frames (B, M, 2) of many sensors in one vectorized call, each with its
     sensor's dither seed, and publish them on ``quantized``. Frames whose samples are not
     finite or beyond MAX_SAMPLE are refused (``invalid_frames``); a failure of the maths
-    loses only the frames it fails on (:func:`isolate`)."""
+    loses only the frames it fails on (:func:`isolate`). With a ``calibration``, each
+    frame's front end is removed first (:mod:`pipeline.calibration`); a frame of a sensor
+    or config id it has no entry for is counted (``invalid_frames``), never quantized as
+    it came."""
     bad = bad_samples(data)
     for i in np.flatnonzero(bad).tolist():
         node.count(headers.sensor_id[i], "invalid_frames", f"frame {int(headers.seq[i])} from "
@@ -134,6 +142,17 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
         return
     frames = data[keep].astype(np.complex128)
     kept = headers.take(keep)
+    if calibration is not None:
+        frames, ok = calibration.apply(frames, kept.sensor_id, kept.config_id)
+        for i in np.flatnonzero(~ok).tolist():
+            node.count(kept.sensor_id[i], "invalid_frames", f"frame {int(kept.seq[i])} from "
+                       f"{node.bus.key(kept.sensor_id[i], topic)}: no calibration in {calibration.source} for "
+                       f"sensor {kept.sensor_id[i]!r}, config id {int(kept.config_id[i]):#010x}, M = {frames.shape[1]}")
+        if not ok.all():
+            good = np.flatnonzero(ok)
+            if not good.size:
+                return
+            frames, kept = frames[good], kept.take(good)
     seed = sensor_dither_seeds(config.dither_seed, kept.sensor_id)
 
     def compute(idx):
@@ -273,14 +292,16 @@ class QuantizeNode(FrameNode):
     in_topic = "raw"
 
     def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | None = None,
-                 radar: RadarConfig | None = None, max_ramps: int = 16, **kw):
+                 radar: RadarConfig | None = None, max_ramps: int = 16, calibration: Calibration | None = None,
+                 **kw):
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
+        self.calibration = calibration
 
     def process(self, batch) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
-            quantize_and_publish(self, self.config, g.headers, g.data, "raw")
+            quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration)
 
 
 @dataclass(frozen=True)

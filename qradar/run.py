@@ -29,6 +29,8 @@ from typing import Callable, TextIO
 import numpy as np
 import zenoh
 
+from pipeline.calibration import Calibration
+from pipeline.calibration import load as load_calibration
 from pipeline.audit import format_counts
 from pipeline.bus import BusConfig
 from pipeline.decode import Algo, DecoderConfig
@@ -231,6 +233,7 @@ class RunConfig:
     outstanding: int | None = None
     sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
     truth: str | Path | None = None  # scene file of the true positions
+    calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -281,6 +284,12 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     scene = None if cfg.real else resolve_scene(cfg.scene)
     truth = load_truth(cfg.truth) if cfg.truth is not None else scene
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
+    calibration = None
+    if cfg.calibration is not None:  # a file for other sensors: refused before anything starts
+        calibration = load_calibration(cfg.calibration)
+        for sid in ([s.sensor_id for s in cfg.sensor_specs] if cfg.real else
+                    [f"kmd2-{i}" for i in range(cfg.sensors)]):
+            calibration.check_sensor(sid)
     if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
         raise RecordingExists.at(cfg.record)  # before anything starts
     if scene is not None:
@@ -311,7 +320,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         try:
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar)
+            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
             if cfg.driver_process:
                 drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
                                          outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
@@ -327,7 +336,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             recorder = []
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
-                                         metadata=run_metadata(cfg, scene, truth, radar, k),
+                                         metadata=run_metadata(cfg, scene, truth, radar, k, calibration),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
@@ -534,7 +543,7 @@ class DriverProcess:
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
-                 k: int) -> dict[str, dict]:
+                 k: int, calibration: Calibration | None = None) -> dict[str, dict]:
     """MCAP metadata of a run: radar config, node configs, the sensors and the true
     positions (``qradar.scene``, which ``qradar reprocess`` takes for its truth): the
     simulated scene, or the ``--truth`` file's (with real sensors: ``simulated`` false)."""
@@ -549,6 +558,8 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
         meta["qradar.sensors"] = {s.sensor_id: json.dumps({"url": s.url, "profile": s.profile_name, "baud": s.baud,
                                                            "ramps": s.ramps, "chirp_select": s.chirp_select})
                                   for s in cfg.sensor_specs}
+    if calibration is not None:  # what the quantize node removed: a recording can be calibrated again later
+        meta["qradar.calibration"] = {"file": calibration.source, "summary": json.dumps(calibration.summary())}
     if scene is not None and truth is scene:
         meta["qradar.scene"] = {"scene": json.dumps(scene.to_dict()), "simulated": "true",
                                 "sensors": str(cfg.sensors), "rate_hz": str(cfg.rate_hz)}

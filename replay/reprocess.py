@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.calibration import Calibration
+from pipeline.calibration import load as load_calibration
 from pipeline.decode import Algo, DecoderConfig, decode_batch
 from pipeline.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
 from pipeline.progress import Progress
@@ -94,6 +96,18 @@ def load_raw(path, sensor: str | None = None) -> RawRecording:
     return RawRecording(sensor, np.stack([f.data for f in got]).astype(np.complex128),
                         np.array([f.seq for f in got]), np.array([f.timestamp_ns for f in got]),
                         got[0].config_id, src.metadata, sensors, src.truncated)
+
+
+def calibrated(rec: RawRecording, calibration: Calibration) -> RawRecording:
+    """The recording's frames with the front end of ``calibration`` removed; a file without
+    an entry for its sensor and config id is refused (one line)."""
+    calibration.check_sensor(rec.sensor_id)
+    n = rec.frames.shape[0]
+    frames, ok = calibration.apply(rec.frames, [rec.sensor_id] * n, np.full(n, rec.config_id))
+    if not ok.all():
+        raise ReplayError(f"calibration {calibration.source} has no entry for sensor {rec.sensor_id!r} with config id "
+                          f"{rec.config_id:#010x} and M = {rec.frames.shape[1]} (made for another radar configuration)")
+    return replace(rec, frames=frames)
 
 
 def truth_scene(rec: RawRecording, truth_file: str | Path | None) -> SimScene:
@@ -340,7 +354,9 @@ class ReprocessConfig:
     decoders, one sweep each (the first is the reference of the summary's top level).
     sensor: sensor id (None = the first). truth: a scene TOML with the true positions
     (None = the recording's ``qradar.scene`` metadata). out: folder for results.json and
-    the plots. mcap: also write the targets of the best (decoder, alpha) there."""
+    the plots. mcap: also write the targets of the best (decoder, alpha) there.
+    calibration: a ``qradar calibrate`` file whose front end is removed from the raw
+    frames before they are quantized."""
 
     file: Path
     alphas: tuple[float, ...] = tuple(parse_alphas("0:1:0.05"))
@@ -355,6 +371,7 @@ class ReprocessConfig:
     progress: bool = True
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
+    calibration: Path | None = None
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):
@@ -384,6 +401,10 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     (optionally) an MCAP of the best (decoder, alpha)'s targets. Returns the summary,
     the files written, notes for the user (warnings) and the report lines."""
     rec = load_raw(cfg.file, cfg.sensor)
+    calibration = None
+    if cfg.calibration is not None:
+        calibration = load_calibration(cfg.calibration)
+        rec = calibrated(rec, calibration)
     scene = truth_scene(rec, cfg.truth)
     radar = radar_for(rec, scene.radar)
     notes = []
@@ -399,6 +420,8 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     summaries = {a: r.summary() for a, r in results.items()}
     summary = summaries[str(cfg.algos[0])] | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
                                               "truncated": rec.truncated}
+    if calibration is not None:
+        summary["calibration"] = calibration.summary()
     if len(results) > 1:
         summary["by_algo"] = {a: {key: s[key] for key in PER_ALGO} for a, s in summaries.items()}
     best_algo = min(summaries, key=lambda a: np.inf if summaries[a]["error_at_best_m"] is None

@@ -15,6 +15,7 @@ from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
 from .common import BITS_HELP, count_from_args, count_options, nonneg_float, nonneg_int, pfa_arg, pos_int
+from .common import calibration_option
 
 
 def add_montecarlo(sub) -> None:
@@ -80,6 +81,7 @@ def add_reprocess(sub) -> None:
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
     p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
+    calibration_option(p)
     p.add_argument("--out", type=Path, default=Path("out/reprocess"), help="folder for results.json and the plots")
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -106,7 +108,8 @@ def cmd_reprocess(args) -> int:
     k, auto = count_from_args(args)
     cfg = ReprocessConfig(file=args.file, alphas=tuple(parse_alphas(args.alpha)), bits=args.bits, k=k,
                           algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
-                          mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa)
+                          mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa,
+                          calibration=args.calibration)
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)

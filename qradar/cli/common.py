@@ -21,6 +21,8 @@ from pipeline.budget import (
     IntakeBudget,
 )
 from pipeline.bus import BusConfig, Shard, check_sensor_pattern
+from pipeline.calibration import Calibration
+from pipeline.calibration import load as load_calibration_file
 from pipeline.security import SecureConfig
 from pipeline.decode import ALGOS, Algo
 from pipeline.errors import ParameterError
@@ -337,6 +339,27 @@ def edge_quantizer_options(p, switch: str) -> None:
     g.add_argument("--raw-every", type=nonneg_int, default=None, metavar="N",
                    help=f"with {switch}: also publish the raw frames whose seq is a multiple of N (e.g. for "
                    "recording; default 0 = none)")
+    calibration_option(g)
+
+
+CALIBRATION_HELP = ("remove the front end measured by `qradar calibrate` (background: DC, leakage, clutter; "
+                    "I/Q imbalance; receiver 2's gain and phase) where frames are quantized; raw frames and their "
+                    "recordings keep what the sensor sent")
+
+
+def calibration_option(p) -> None:
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAL.json", help=CALIBRATION_HELP)
+
+
+def load_calibration(path: Path | None, sensor_ids: list[str] | tuple[str, ...] = ()) -> Calibration | None:
+    """The calibration file at ``path`` (None: none), refused with one line when it has no
+    entry for one of ``sensor_ids``."""
+    if path is None:
+        return None
+    cal = load_calibration_file(path)
+    for sid in sensor_ids:
+        cal.check_sensor(sid)
+    return cal
 
 
 def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
@@ -344,6 +367,9 @@ def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
     if not args.edge_quantize:
         if args.raw_every is not None:
             raise ParameterError("--raw-every is for edge quantization (--quantized / --quantize)")
+        if args.calibration is not None:
+            raise ParameterError("--calibration is applied where frames are quantized: give --quantized / "
+                                 "--quantize too (or --calibration to the quantize node)")
         return None, None
     return quantizer_config(args), args.raw_every
 

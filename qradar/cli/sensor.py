@@ -32,6 +32,7 @@ from .common import (
     pos_int,
     prob,
     watch_parent,
+    load_calibration,
 )
 
 
@@ -148,6 +149,7 @@ def cmd_drive(args) -> int:
                         sensor_id=check_sensor_id(args.sensor_id), profile=args.profile,
                         chirp_select=args.chirp_select, outstanding=args.outstanding)
     quantizer, raw_every = edge_quantizer(args)
+    load_calibration(args.calibration, [cfg.sensor_id])  # a file for another sensor: refused before the port opens
     if quantizer is not None and args.no_publish:
         raise ParameterError("--quantize publishes quantized frames; it cannot go with --no-publish")
     lines = sys.stderr if args.json else sys.stdout
@@ -177,7 +179,8 @@ def cmd_drive(args) -> int:
             bus = bus_from_args(args)
             bus_session = bus.open()
             node = SourceNode(bus, session, session=bus_session, frames=args.frames, on_frame=show,
-                              quantizer=quantizer, raw_every=raw_every)
+                              quantizer=quantizer, raw_every=raw_every,
+                              calibration=load_calibration(args.calibration, [cfg.sensor_id]))
             try:
                 node.start()
                 while not node.done.wait(0.2):

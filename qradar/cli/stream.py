@@ -43,6 +43,8 @@ from .common import (
     sensor_pattern_arg,
     shard_arg,
     StopOnSignals,
+    calibration_option,
+    load_calibration,
 )
 from .record import write_error_options
 from .view import foxglove_arg
@@ -55,6 +57,7 @@ RUN_ALGO = Algo.CML
 def add_commands(sub) -> None:
     p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
     quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
+    calibration_option(p)
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
@@ -116,6 +119,7 @@ def add_commands(sub) -> None:
                    "options: profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays "
                    "at 115200), ramps=R (default 2), chirp-select=first|stride; e.g. "
                    "/dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, --sensors, --rate")
+    calibration_option(p)
     p.add_argument("--truth", default=None, metavar="SCENE.toml",
                    help="a scene file whose targets are the reflectors' true (measured) positions: the live lines and "
                    "the summary give the position errors against them (only the targets' ranges and angles count). "
@@ -203,7 +207,8 @@ def serve(node, duration: float | None, stop: threading.Event | None = None) -> 
 
 
 def cmd_quantize(args) -> int:
-    return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), **queue_kwargs(args)), args.duration)
+    return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), calibration=load_calibration(args.calibration),
+                              **queue_kwargs(args)), args.duration)
 
 
 def cmd_localize(args) -> int:
@@ -227,7 +232,9 @@ def cmd_source(args) -> int:
         source = SimulatedSource(cfg)
         limit = None
     quantizer, raw_every = edge_quantizer(args)
-    node = SourceNode(bus_from_args(args), source, frames=limit, quantizer=quantizer, raw_every=raw_every)
+    calibration = load_calibration(args.calibration, [] if args.recording is not None else cfg.sensor_ids)
+    node = SourceNode(bus_from_args(args), source, frames=limit, quantizer=quantizer, raw_every=raw_every,
+                      calibration=calibration)
     stop = threading.Event()
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
     install_sigterm("source")
@@ -293,7 +300,8 @@ def cmd_run(args) -> int:
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
-                    outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth)
+                    outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
+                    calibration=args.calibration)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
