@@ -147,6 +147,7 @@ class Monitor:
 @dataclass(frozen=True)
 class RunConfig:
     scene: str = "chamber"
+    empty: bool = False  # the scene without its targets (front end and noise only)
     sensors: int = 1
     duration_s: float | None = 15.0
     rate_hz: float = 20.0
@@ -188,6 +189,8 @@ class RunConfig:
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
     """Run the pipeline; returns the summary dict."""
     scene = resolve_scene(cfg.scene)
+    if cfg.empty:
+        scene = scene.without_targets()
     if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
         raise RecordingExists.at(cfg.record)  # before anything starts
     k = cfg.k or max(1, len(scene.targets))

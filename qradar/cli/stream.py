@@ -108,6 +108,8 @@ def add_commands(sub) -> None:
                        f"and the localizer (--algo, default {RUN_ALGO}) over an embedded zenoh peer; live targets "
                        "beside the truth, then a summary.")
     p.add_argument("--scene", default="chamber", help="scene file or packaged name (default chamber)")
+    p.add_argument("--empty", action="store_true",
+                   help="the scene without its targets: the empty chamber, front end (DC, leakage) and noise only")
     p.add_argument("--sensors", type=pos_int, default=1, help="simulated sensors at once")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
     p.add_argument("--rate", type=float, default=20.0, help="frames per second per sensor")
@@ -274,7 +276,7 @@ def cmd_run(args) -> int:
                     foxglove=args.foxglove, driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
-                    outstanding=args.outstanding)
+                    outstanding=args.outstanding, empty=args.empty)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
