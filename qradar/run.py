@@ -209,6 +209,7 @@ class RunConfig:
     None: the simulated scene, or no error with real sensors."""
 
     scene: str | None = None
+    empty: bool = False  # the simulated scene without its targets (front end and noise only)
     sensors: int | None = None
     duration_s: float | None = 15.0
     rate_hz: float | None = None
@@ -249,6 +250,9 @@ class RunConfig:
             if self.rate_hz is not None:
                 raise ParameterError(f"--rate {self.rate_hz:g} is the simulated sensors' frame rate; a real sensor "
                                      f"(--sensor) measures at its own")
+            if self.empty:
+                raise ParameterError("--empty empties the simulated scene; with --sensor (real sensors) empty the "
+                                     "chamber itself and record it")
             check_sensor_specs(specs)
         else:
             for name, default in (("scene", "chamber"), ("sensors", 1), ("rate_hz", 20.0)):
@@ -282,6 +286,8 @@ class RunConfig:
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
     """Run the pipeline; returns the summary dict."""
     scene = None if cfg.real else resolve_scene(cfg.scene)
+    if cfg.empty and scene is not None:
+        scene = scene.without_targets()
     truth = load_truth(cfg.truth) if cfg.truth is not None else scene
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
     calibration = None

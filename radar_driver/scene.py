@@ -13,23 +13,40 @@ angle_deg = -25.0         # positive = antenna 2 leads
 amplitude = 0.06          # full-scale units at the ADC
 phase_deg = 0.0           # optional
 velocity_m_s = 0.0        # optional radial velocity, + = moving away
+
+[frontend]                # optional: the receiver's impairments (radar_driver/frontend.py);
+dc_offset = [[0.03, -0.02], [-0.025, 0.035]]   # [[I1, Q1], [I2, Q2]], full-scale units
+leakage_amplitude = 0.3   # TX-to-RX leakage, full-scale units, same phase on both receivers
+leakage_range_m = 0.15
+leakage_phase_deg = 40.0
+rx2_gain_db = 1.0         # receiver 2 relative to receiver 1
+rx2_phase_deg = 30.0
+iq_gain_db = 0.5          # the Q path relative to the I path, both receivers
+iq_phase_deg = 3.0
 ```
 
-Amplitudes are in units of the ADC's full scale (see ``protocol.RadcLayout``); the
-sum of the amplitudes plus a few noise stds should stay below 1 to avoid clipping.
+Every ``[frontend]`` key defaults to the ideal sensor. Amplitudes are in units of the
+ADC's full scale (see ``profile.RadcLayout``); the sum of the amplitudes (targets,
+leakage, DC) plus a few noise stds should stay below 1 to avoid clipping.
+
+A scene's ramps are the targets through the paper's model (eq. 2,
+:meth:`SimScene.target_ramps`), then the front end (:meth:`SimScene.clean_ramps`), then
+the sensor noise (:meth:`SimScene.noise`); the simulated K-MD2 and the in-process
+simulated sensors put them through the 12-bit ADC.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .errors import ConfigError
+from .frontend import FrontEnd
 from .model import RadarConfig, polar_to_xy, simulate_frames
 
 
@@ -58,16 +75,19 @@ class SimTarget:
 
 @dataclass(frozen=True)
 class SimScene:
-    """Targets, sensor noise and radar configuration of a simulated K-MD2."""
+    """Targets, sensor noise, radar configuration and receiver front end of a simulated
+    K-MD2 (``front_end``: the ideal sensor unless the scene has a ``[frontend]`` table)."""
 
     targets: tuple[SimTarget, ...]
     noise_std: float = 0.0
     radar: RadarConfig = field(default_factory=RadarConfig)
     name: str = "scene"
+    front_end: FrontEnd = field(default_factory=FrontEnd)
 
-    def clean_ramps(self, t_s) -> np.ndarray:
-        """Noiseless ramps (R, N, 2), full-scale units, at times ``t_s`` (R,) s: the
-        paper's model (eq. 2) for the targets where they are at each time."""
+    def target_ramps(self, t_s) -> np.ndarray:
+        """The targets' ramps (R, N, 2), full-scale units, at times ``t_s`` (R,) s: the
+        paper's model (eq. 2) for the targets where they are at each time, before the
+        front end."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if not self.targets:
             return np.zeros((t.size, self.radar.samples_per_ramp, 2), complex)
@@ -77,9 +97,21 @@ class SimScene:
                                       for tg in self.targets]), r.shape)
         return simulate_frames(r, a, x, self.radar, ramps=1)
 
+    def clean_ramps(self, t_s) -> np.ndarray:
+        """Noiseless ramps (R, N, 2) at the ADC's input, full-scale units, at times ``t_s``
+        (R,) s: :meth:`target_ramps` through the front end (leakage, receiver gain and
+        phase, I/Q imbalance, DC: :meth:`.frontend.FrontEnd.apply`). With the ideal front
+        end, the paper's model."""
+        return self.front_end.apply(self.target_ramps(t_s), self.radar)
+
     def clean_ramp(self, t_s: float) -> np.ndarray:
         """One noiseless ramp (N, 2) at time ``t_s`` (s)."""
         return self.clean_ramps([t_s])[0]
+
+    def without_targets(self) -> "SimScene":
+        """The same sensor in the same room with nothing in it (``--empty``): front end
+        (leakage, DC, ...) and noise only; named ``<name>-empty``."""
+        return replace(self, targets=(), name=f"{self.name}-empty")
 
     def noise(self, n_ramps: int, rng: np.random.Generator | None) -> np.ndarray:
         """Complex white noise of ``noise_std`` per I and Q for ``n_ramps`` ramps: (R, N, 2).
@@ -103,7 +135,8 @@ class SimScene:
         return self.ramps([t_s], rng)[0]
 
     def truth(self, t_s: float = 0.0) -> list[dict[str, float]]:
-        """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude per target."""
+        """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude per target (the
+        front end's leakage and I/Q ghosts are not targets)."""
         out = []
         for tg in self.targets:
             r = float(tg.range_at(t_s))
@@ -125,11 +158,12 @@ class SimScene:
             "noise_std": self.noise_std,
             "radar": self.radar.to_dict(),
             "target": [vars(t).copy() for t in self.targets],
+            "frontend": self.front_end.to_dict(),
         }
 
 
 _TARGET_KEYS = {"range_m", "angle_deg", "amplitude", "phase_deg", "velocity_m_s"}
-_TOP_KEYS = {"name", "noise_std", "radar", "target"}
+_TOP_KEYS = {"name", "noise_std", "radar", "target", "frontend"}
 
 
 def _number(value: Any, where: str, lo: float | None = None, hi: float | None = None) -> float:
@@ -174,10 +208,14 @@ def scene_from_dict(data: dict[str, Any], source: str = "<scene>") -> SimScene:
             phase_deg=_number(t.get("phase_deg", 0.0), f"{where}: phase_deg"),
             velocity_m_s=_number(t.get("velocity_m_s", 0.0), f"{where}: velocity_m_s", -1000.0, 1000.0),
         ))
+    front_end = FrontEnd.from_dict(data.get("frontend", {}), f"{source}: [frontend]")
+    if front_end.leakage_range_m >= radar.max_range_m:
+        raise ConfigError(f"{source}: [frontend]: leakage_range_m: {front_end.leakage_range_m!r} is outside "
+                          f"[0, {radar.max_range_m}) (the radar's range)")
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
         raise ConfigError(f"{source}: name must be a string")
-    return SimScene(tuple(targets), noise, radar, name)
+    return SimScene(tuple(targets), noise, radar, name, front_end)
 
 
 def load_scene(path: str | Path) -> SimScene:

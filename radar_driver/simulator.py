@@ -6,10 +6,11 @@ an error code for an unknown command or a bad parameter), then for ``GNFD`` the
 selected ``RADC`` and ``DONE`` with its frame counter. It speaks a sensor profile
 (:mod:`.profile`): in the default one a ``RADC`` is one ramp and a frame takes
 ``ramps_per_frame`` of them; in a profile of many chirps per ``RADC`` (``kmd2-cube256``)
-one ``RADC`` is one measurement. Chirps come from the scene through the paper's model,
-with noise and the profile's ADC, at ``rate_hz`` frames per second (0 = as fast as
-polled). The azimuth pair carries the scene; any other receiver (the K-MD2's elevation
-one) sees antenna 1's signal with its own noise. The azimuth noise of the first
+one ``RADC`` is one measurement. Chirps come from the scene through the paper's model
+and the scene's receiver front end (DC offset, leakage, receiver and I/Q imbalance:
+:mod:`.frontend`), with noise and the profile's ADC, at ``rate_hz`` frames per second
+(0 = as fast as polled). The azimuth pair carries the scene; any other receiver (the
+K-MD2's elevation one) sees receiver 1's signal, front end included, with its own noise. The azimuth noise of the first
 ``ramps_per_frame`` chirps of a ``RADC`` is drawn from the scene's noise stream, so
 that frames built from them equal the in-process simulated sensor's with the same seed.
 The device measures on its own clock: a host that polls late finds the counter
@@ -296,7 +297,7 @@ class SimulatedKMD2:
 
     def measure(self, index: int) -> np.ndarray:
         """The ADC words (receivers, chirps, samples, 2) of RADC ``index``: the scene's
-        chirps at their times, noise, the profile's ADC."""
+        chirps at their times through its front end, noise, the profile's ADC."""
         lay, scene = self.profile.radc, self.scene
         chirps = lay.chirps
         t_s = ramp_time_s(index * chirps + np.arange(chirps), self.radc_rate_hz * chirps)

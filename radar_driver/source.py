@@ -7,8 +7,8 @@ counters) until it ends or is asked to stop. Three implementations:
 - :class:`~radar_driver.session.SensorSession`: a K-MD2, real or simulated, on any
   pyserial URL;
 - :class:`SimulatedSource` (here): simulated sensors in this process, no serial link;
-  the same scene, noise and 12-bit ADC as the simulated K-MD2, so that with the same
-  seed both give the same frames;
+  the same scene, front end, noise and 12-bit ADC as the simulated K-MD2, so that with
+  the same seed both give the same frames;
 - ``replay.source.RecordingSource``: the raw frames of an MCAP recording.
 
 One source node (``pipeline.nodes.SourceNode``) publishes any of them, and one contract
@@ -164,8 +164,8 @@ class _SimSensorStats:
 
 class SimulatedSource(StoppableSource):
     """Simulated sensors in this process (see :class:`SimSourceConfig`): every frame
-    period, one frame per sensor of the scene's ramps through the paper's model, with
-    sensor noise and the 12-bit ADC of the simulated K-MD2, made for a group of sensors at
+    period, one frame per sensor of the scene's ramps through the paper's model and the
+    scene's front end, with sensor noise and the 12-bit ADC of the simulated K-MD2, made for a group of sensors at
     once (:meth:`frame_batches`). Paced on the monotonic clock; a period whose first group
     comes more than a frame period late is counted in ``late_ticks``. A frame's timestamp
     is the time its group was due (or made, when late)."""
@@ -191,9 +191,10 @@ class SimulatedSource(StoppableSource):
         return {sid: {"frames": st.frames, "dropped": st.dropped} for sid, st in self._stats.items()}
 
     def _make(self, k: int, sensors: range, ts: int) -> list[RawFrame]:
-        """Frame ``k`` of ``sensors``: the tick's clean ramps plus each sensor's noise (drawn
-        from its own generator as :meth:`SimScene.noise` draws it), through the ADC, the
-        group at once and in place on its real and imaginary parts."""
+        """Frame ``k`` of ``sensors``: the tick's clean ramps (targets through the front end)
+        plus each sensor's noise (drawn from its own generator as :meth:`SimScene.noise`
+        draws it), through the ADC, the group at once and in place on its real and
+        imaginary parts."""
         cfg, scene = self.config, self.config.scene
         rpf, n = self.radar.ramps_per_frame, self.radar.samples_per_ramp
         ramp_index = k * rpf + np.arange(rpf)

@@ -54,9 +54,12 @@ def linger_until_stdin_closes(timeout_s: float) -> bool:
 def add_commands(sub) -> None:
     p = sub.add_parser("sim", help="serve a simulated K-MD2 on a pty and/or TCP until interrupted",
                        description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
-                       "the paper's model of a TOML scene, with noise, 12-bit ADC and optional faults.")
+                       "the paper's model of a TOML scene through its front end, with noise, 12-bit ADC and optional "
+                       "faults.")
     p.add_argument("--scene", default="chamber",
-                   help="TOML scene file, or the name of a packaged scene (chamber, single, walker)")
+                   help="TOML scene file, or the name of a packaged scene (chamber, chamber-ideal, single, walker)")
+    p.add_argument("--empty", action="store_true",
+                   help="the scene without its targets: the empty chamber, front end (DC, leakage) and noise only")
     p.add_argument("--link", type=Path, default=None, help="stable symlink path to the pty (e.g. /tmp/kmd2)")
     p.add_argument("--tcp", type=int, default=None, metavar="PORT", help="also serve socket://127.0.0.1:PORT")
     p.add_argument("--rate", type=nonneg_float, default=20.0, help="frames per second (0 = as fast as polled)")
@@ -112,6 +115,8 @@ def cmd_sim(args) -> int:
     if args.link is None and args.tcp is None:
         args.parser.error("give --link PATH and/or --tcp PORT")
     scene = resolve_scene(args.scene)
+    if args.empty:
+        scene = scene.without_targets()
     faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
                        disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
     install_sigterm("sim")

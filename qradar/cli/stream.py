@@ -125,6 +125,9 @@ def add_commands(sub) -> None:
                    "the summary give the position errors against them (only the targets' ranges and angles count). "
                    "Default: the simulated scene; with --sensor, no error")
     p.add_argument("--scene", default=None, help="the simulated sensors' scene: file or packaged name (default chamber)")
+    p.add_argument("--empty", action="store_true",
+                   help="the scene without its targets: the empty chamber, front end (DC, leakage) and noise only "
+                   "(simulated sensors; for `qradar calibrate --empty`)")
     p.add_argument("--sensors", type=pos_int, default=None, help="simulated sensors at once (default 1)")
     p.add_argument("--duration", type=float, default=15.0, help="seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with \"interrupted\": true) and status 0; a second one while it stops exits at once with 130")
     p.add_argument("--rate", type=float, default=None, help="frames per second per simulated sensor (default 20)")
@@ -301,7 +304,7 @@ def cmd_run(args) -> int:
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
-                    calibration=args.calibration)
+                    calibration=args.calibration, empty=args.empty)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
