@@ -23,7 +23,7 @@ js-deps: $(JS_STAMP)
 
 # The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
 run: $(STAMP)
-	$(VENV)/bin/qradar run --duration 15
+	$(VENV)/bin/qradar run --duration 15 --calibration recordings/chamber-cal.json
 
 # A short Monte Carlo of the paper's four schemes.
 montecarlo-quick: $(STAMP)

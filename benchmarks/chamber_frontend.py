@@ -30,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.calibration import load as load_calibration  # noqa: E402
 from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
 from pipeline.localize import position_error_m  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
@@ -97,10 +98,20 @@ def main() -> None:
     ap.add_argument("--gate-m", type=float, default=0.6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--unquantized", action="store_true", help="also decode the 12-bit frames (no quantizer)")
+    ap.add_argument("--calibration", type=Path, default=None,
+                    help="remove the front end this `qradar calibrate` file measured (its first entry's sensor) "
+                    "before quantizing, as the quantize node does")
     args = ap.parse_args()
+    cal = None if args.calibration is None else load_calibration(args.calibration)
     for name in args.scenes:
         scene = resolve_scene(name)
         frames = frames_of(scene, args.frames, args.recording, args.seed)
+        if cal is not None:
+            sid, cid = next(iter(cal.entries))
+            frames, ok = cal.apply(frames, [sid] * len(frames), np.full(len(frames), cid))
+            if not ok.all():
+                sys.exit(f"{args.calibration}: its entry is for frames of M = {cal.entries[sid, cid].m}, these have "
+                         f"M = {frames.shape[1]}")
         inputs = {"1-bit": quantize_frames(frames, QuantizerConfig(alpha=args.alpha, dither_seed=args.seed),
                                            np.arange(len(frames)))}
         if args.unquantized:
@@ -111,6 +122,7 @@ def main() -> None:
                 for auto in (False, True):
                     det = decode_batch(z, scene.radar, 4 if auto else k, DecoderConfig(algo=algo, auto_k=auto))
                     print(json.dumps({"scene": scene.name, "frames": len(frames), "input": kind, "algo": algo,
+                                      "calibration": None if cal is None else str(args.calibration),
                                       "alpha": args.alpha if kind == "1-bit" else None, "K": "auto" if auto else k,
                                       "targets": per_target(scene, det, args.gate_m),
                                       "per_frame": classify(scene, det.range_m, args.gate_m)}), flush=True)

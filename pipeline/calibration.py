@@ -11,8 +11,9 @@ configuration:
 - the **background** ``b`` (M, 2): the mean frame of the empty scene, which holds the DC,
   the leakage and the static clutter together (all three are the same in every frame);
 - the **I/Q imbalance** as the real-linear map it is, ``Q' = alpha I + beta Q`` with
-  ``I' = I`` (``beta = g cos(phi)``, ``alpha = g sin(phi)``: gain ``g`` and phase ``phi``
-  of the Q path), from one reflector at a known range: receiver by receiver, the I channel
+  ``I' = I`` (the simulated front end's ``Q' = g (Q cos(phi) - I sin(phi))``: ``beta =
+  g cos(phi)``, ``alpha = -g sin(phi)``, gain ``g`` and phase ``phi`` of the Q path,
+  :mod:`radar_driver.frontend`), from one reflector at a known range: receiver by receiver, the I channel
   of the background-free mean frame is fitted by ``Re(c t(R))``, ``t`` the model's ideal
   return of a reflector at range R (which is refined around the measured one, so a tape
   measure is enough), then the Q channel by ``alpha Re(c t) + beta Im(c t)``: two linear
@@ -93,7 +94,7 @@ class FrontEndCorrection:
 
     @property
     def iq_phase_deg(self) -> float:
-        return math.degrees(math.atan2(self.iq_alpha, self.iq_beta))
+        return math.degrees(math.atan2(-self.iq_alpha, self.iq_beta))  # radar_driver.frontend's sign
 
     @property
     def rx2_gain_db(self) -> float:

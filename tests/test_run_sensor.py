@@ -47,7 +47,7 @@ def qradar(*args, cwd, timeout_s: float = RUN_TIMEOUT_S) -> subprocess.Completed
 def simulator(link: Path) -> SimulatorServer:
     """The chamber K-MD2 the run's first simulated sensor is: seed 0, 20 frames/s, device
     clock held when this process writes late."""
-    return SimulatorServer(resolve_scene("chamber"), link_path=link, rate_hz=20.0, seed=0, hold_clock_when_late=True)
+    return SimulatorServer(resolve_scene("chamber-ideal"), link_path=link, rate_hz=20.0, seed=0, hold_clock_when_late=True)
 
 
 def recorded(path: Path) -> tuple[dict[int, np.ndarray], dict[int, list[tuple[float, float]]], dict]:
@@ -76,8 +76,9 @@ def run_json(tmp: Path, name: str, *args) -> tuple[dict, str, tuple]:
 
 @pytest.fixture(scope="module")
 def simulated_run(tmp_path_factory):
-    """The reference: ``qradar run`` on its own simulated sensor, the chamber scene."""
-    return run_json(tmp_path_factory.mktemp("simulated"), "simulated")
+    """The reference: ``qradar run`` on its own simulated sensor, the chamber scene without
+    its front end (the point here is the same path, not the impairments)."""
+    return run_json(tmp_path_factory.mktemp("simulated"), "simulated", "--scene", "chamber-ideal")
 
 
 def check_clean(s: dict, sensor: str) -> None:
@@ -105,25 +106,25 @@ def check_same_as_simulated(real, simulated) -> None:
 def test_a_sensor_on_a_pty_gives_the_simulated_runs_frames_targets_and_errors(tmp_path, simulated_run):
     link = tmp_path / "kmd2"
     with simulator(link) as sim:
-        real = run_json(tmp_path, "pty", "--sensor", f"{link},id=kmd2-0", "--truth", "chamber", "--outstanding", "2")
+        real = run_json(tmp_path, "pty", "--sensor", f"{link},id=kmd2-0", "--truth", "chamber-ideal", "--outstanding", "2")
         assert not sim.errors
         assert sim.devices[0].event_counts["GBYE"] == 1  # the driver let the sensor go
     check_same_as_simulated(real, simulated_run)
     s, err, (_, _, meta) = real
-    assert s["sensor_urls"] == {"kmd2-0": str(link)} and s["truth"] == "chamber" and s["scene"] is None
+    assert s["sensor_urls"] == {"kmd2-0": str(link)} and s["truth"] == "chamber-ideal" and s["scene"] is None
     assert s["simulator"] is None and s["sensors"] == 1
     assert "[driver kmd2-0]" in err and "simulated K-MD2" not in err  # no simulator of its own
     assert "truth (  4.9 m,  -20.0°)" in err and "error m " in err  # the live lines, against --truth
     # the recording says where the sensor was and keeps the truth for `qradar reprocess`
     assert json.loads(meta["qradar.sensors"]["kmd2-0"])["url"] == str(link)
-    assert meta["qradar.scene"]["simulated"] == "false" and meta["qradar.scene"]["truth_file"] == "chamber"
+    assert meta["qradar.scene"]["simulated"] == "false" and meta["qradar.scene"]["truth_file"] == "chamber-ideal"
     assert simulated_run[2][2]["qradar.scene"]["simulated"] == "true"
 
 
 def test_a_sensor_behind_ser2net_raw_gives_the_simulated_runs_frames_targets_and_errors(tmp_path, simulated_run):
     link = tmp_path / "kmd2"
     with simulator(link) as sim, ser2net_for(link, "raw", workdir=tmp_path) as s2n:
-        real = run_json(tmp_path, "ser2net", "--sensor", f"{s2n.url},id=kmd2-0", "--truth", "chamber",
+        real = run_json(tmp_path, "ser2net", "--sensor", f"{s2n.url},id=kmd2-0", "--truth", "chamber-ideal",
                         "--outstanding", "2")
         assert not sim.errors
         events = sim.devices[0].events
@@ -157,17 +158,17 @@ def test_without_truth_a_real_sensor_has_targets_rates_and_drops_but_no_error(tm
 
 def test_truth_replaces_the_simulated_scene_and_may_omit_amplitudes(tmp_path):
     """The chamber's reflectors, measured 1 m farther than they are: the errors are ~1 m."""
-    chamber = [(t.range_m, t.angle_deg) for t in resolve_scene("chamber").targets]
+    chamber = [(t.range_m, t.angle_deg) for t in resolve_scene("chamber-ideal").targets]
     truth = tmp_path / "measured.toml"
     truth.write_text("name = 'measured'\n" + "".join(f"[[target]]\nrange_m = {r + 1.0!r}\nangle_deg = {a!r}\n"
                                                       for r, a in chamber))
     assert [(t.range_m, t.angle_deg) for t in load_truth(truth).targets] == [(r + 1.0, a) for r, a in chamber]
-    s, err, (_, _, meta) = run_json(tmp_path, "moved", "--truth", str(truth))
-    assert s["truth"] == str(truth) and s["scene"] == "chamber"
+    s, err, (_, _, meta) = run_json(tmp_path, "moved", "--scene", "chamber-ideal", "--truth", str(truth))
+    assert s["truth"] == str(truth) and s["scene"] == "chamber-ideal"
     assert 0.8 < s["position_error_m"]["median"] < 1.3  # against 0.1 m with the scene's own truth
     assert "truth (  5.9 m,  -20.0°)" in err
     assert meta["qradar.scene"]["simulated"] == "false"
-    assert json.loads(meta["qradar.simulated_scene"]["scene"])["name"] == "chamber"
+    assert json.loads(meta["qradar.simulated_scene"]["scene"])["name"] == "chamber-ideal"
 
 
 @pytest.mark.parametrize("spec, words", [
