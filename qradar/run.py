@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 
 from pipeline.bus import BusConfig
-from pipeline.decode import Algo, DecoderConfig
+from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
@@ -152,7 +152,7 @@ class RunConfig:
     rate_hz: float = 20.0
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
     k: int | None = None  # None = as many as the scene has targets; with auto_k the most a frame has
-    algo: Algo = Algo.CML
+    algo: Algo = DEFAULT_ALGO
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000
     record: Path | None = None  # MCAP path, or None for no recording
@@ -168,6 +168,9 @@ class RunConfig:
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
     # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer
     outstanding: int = 2
+    # the localizer's range gate, m (None: the radar's default, pipeline.gate.RangeGate.default)
+    min_range_m: float | None = None
+    max_range_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -192,7 +195,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         raise RecordingExists.at(cfg.record)  # before anything starts
     k = cfg.k or max(1, len(scene.targets))
     localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=scene.radar, fallback_pbp=cfg.quantizer.alpha == 0,
-                                    auto_k=cfg.auto_k, pfa=cfg.pfa)  # checked before anything starts
+                                    auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
+                                    max_range_m=cfg.max_range_m)  # checked before anything starts
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
         _RUN_DIRS.add(tmp)
@@ -225,7 +229,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k),
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, metadata=run_metadata(cfg, scene, k, localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
@@ -401,14 +405,16 @@ class DriverProcess:
         return {self.sensor_id: dict(self.counters)}
 
 
-def run_metadata(cfg: RunConfig, scene: SimScene, k: int) -> dict[str, dict]:
-    """MCAP metadata of a run: radar config, node configs and the ground-truth scene."""
+def run_metadata(cfg: RunConfig, scene: SimScene, k: int, gate=None) -> dict[str, dict]:
+    """MCAP metadata of a run: radar config, node configs (the localizer's range gate
+    ``gate``) and the ground-truth scene."""
     from dataclasses import asdict
 
     return {
         "qradar.radar": scene.radar.to_dict() | {"config_id": scene.radar.config_id()},
         "qradar.quantizer": asdict(cfg.quantizer),
-        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized"},
+        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized",
+                             **({} if gate is None else gate.to_dict())},
         "qradar.scene": {"scene": json.dumps(scene.to_dict()), "simulated": "true", "sensors": str(cfg.sensors),
                          "rate_hz": str(cfg.rate_hz)},
     }
@@ -459,7 +465,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
                       "dither_seed": cfg.quantizer.dither_seed},
-        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k},
+        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
+                      **localizer.config.gate.to_dict()},
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
         # the simulated sensors' own late writes (device clock held): apart from every loss above
