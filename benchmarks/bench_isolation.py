@@ -3,7 +3,7 @@
 
 One case = fresh processes on 127.0.0.1, each a zenoh client of a ``qradar router``:
 
-- ``qradar quantize --alpha 0.55`` and ``qradar localize --K 2`` (the nodes under test);
+- ``qradar quantize --alpha 0.55`` and ``qradar localize --algo pbp --K 2`` (the nodes under test);
 - the honest sensor, ``qradar source --sensors 1 --rate 20 --id-prefix honest`` (raw frames
   -> quantize -> localize);
 - a flood (this script's ``flood`` command, a process of its own):
@@ -207,7 +207,8 @@ def flood_case(kind: str, args, logdir: Path) -> dict:
         procs.append(router)
         wait_port(port)
         quantize = Proc("quantize", node_argv("quantize", ep, "--alpha", "0.55", *args.node_args), logdir)
-        localize = Proc("localize", node_argv("localize", ep, "--K", "2", *args.node_args, *args.localize_args),
+        localize = Proc("localize", node_argv("localize", ep, "--algo", "pbp", "--K", "2", *args.node_args,
+                                              *args.localize_args),
                         logdir)
         procs += [quantize, localize]
         obs = Observer(ep)

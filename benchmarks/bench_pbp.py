@@ -21,7 +21,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.decode import decode  # noqa: E402
+from pipeline.decode import DecoderConfig, decode  # noqa: E402
+
+QIHT = DecoderConfig(algo="qiht")
 from pipeline.localize import localize, localize_frame  # noqa: E402
 from pipeline.montecarlo import draw_scenes  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
@@ -49,7 +51,7 @@ def main() -> None:
     cfg = RadarConfig()
     rng = np.random.default_rng(0)
     _, _, r, a, x = draw_scenes(args.batch, args.K, rng, cfg)
-    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(), np.arange(args.batch))
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(args.batch))
     z, xi = q.values(), q.dither()
     ramp_indices = np.arange(cfg.n_measurements) % cfg.samples_per_ramp  # same frequencies, dense path
 
@@ -67,11 +69,11 @@ def main() -> None:
         ),
     }
     qb = min(args.batch, 1024)
-    results["qiht_batch_fps"] = best_rate(lambda: decode(z[:qb], xi[:qb], q.delta[:qb], 1, cfg, args.K), qb,
+    results["qiht_batch_fps"] = best_rate(lambda: decode(z[:qb], xi[:qb], q.delta[:qb], 1, cfg, args.K, QIHT), qb,
                                           max(1, args.repeat // 2))
     ns = min(len(single), 100)
     results["qiht_single_fps"] = best_rate(
-        lambda: [decode(z[i:i + 1], xi[i:i + 1], q.delta[i:i + 1], 1, cfg, args.K) for i in range(ns)], ns,
+        lambda: [decode(z[i:i + 1], xi[i:i + 1], q.delta[i:i + 1], 1, cfg, args.K, QIHT) for i in range(ns)], ns,
         max(1, args.repeat // 2))
     results["qiht_batch_ms_per_frame"] = 1e3 / results["qiht_batch_fps"]
     results["qiht_single_ms_per_frame"] = 1e3 / results["qiht_single_fps"]

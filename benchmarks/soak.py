@@ -462,7 +462,7 @@ def soak(args) -> dict:
                                  "--scene", args.scene])
         wait_port(port, run, START_TIMEOUT_S)
         observer = Observer(ep, ("radar", "soak"), t0)
-        ext_loc = start("ext-localize#1", py + ["localize", "--prefix", "soak", *client])
+        ext_loc = start("ext-localize#1", py + ["localize", "--algo", "pbp", "--prefix", "soak", *client])
         ext_q = start("ext-quantize", py + ["quantize", "--prefix", "soak", *client])
         flood = start("flood", [args.python, str(FLOOD), "--connect", ep, "--rate", f"{args.flood_rate:g}",
                                 "--mix", args.flood_mix, "--junk-ids", str(args.junk_ids), "--scene", args.scene,
@@ -489,7 +489,7 @@ def soak(args) -> dict:
                     killed = True
                 if killed and not restarted and now >= t_kill + args.restart_gap:
                     observer.arm_restart("soak")  # targets in flight at the kill have arrived by now
-                    ext_loc = start("ext-localize#2", py + ["localize", "--prefix", "soak", *client])
+                    ext_loc = start("ext-localize#2", py + ["localize", "--algo", "pbp", "--prefix", "soak", *client])
                     restarted = True
                 if not stopped and now >= t_stop:
                     events.append({"t_s": round(now, 1), "event": "stop flood and ext-source"})

@@ -43,6 +43,11 @@ sharper one. (Without dither the 1-bit codes do not fix the scale of the amplitu
 noise together: the estimate runs high and the likelihood is softer than it could be.)
 Unquantized frames get ``anneal`` more least-squares steps instead.
 
+With a range gate (:mod:`pipeline.gate`) detection looks only at the points of the
+oversampled grid inside it, the count test's peak and mean are taken there, and every
+refinement step is clamped to it: a target never leaves the gate (ranges then in
+``[min_range_m, max_range_m]``, not wrapped).
+
 Internally ranges are in bins (``nu = r / dR``) and amplitudes are referred to the middle
 of the sweep (``b = a exp(-i 2 pi nu (f0 / B + (N - 1) / (2 N)))``), which decorrelates
 range from phase; the results are given in the model's terms.
@@ -60,6 +65,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from .errors import ParameterError
+from .gate import RangeGate, check_gate
 from .localize import Detections, cfar_threshold, to_db
 
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
@@ -86,7 +92,7 @@ COUNT_GUARD_BINS = 2.0
 class CmlResult:
     """Targets found by :func:`cml`; per-target arrays strongest first.
 
-    range_m : (B, K) ranges in [0, N dR), m.
+    range_m : (B, K) ranges in [0, N dR), m (with a range gate: inside it).
     amplitudes : (B, K, 2) complex amplitudes ``a_{t,p}`` of the model, frame units.
     statistic_db : (B, K) detection statistic, dB: the target's joint power
         ``|a1|^2 + |a2|^2`` over the mean joint power per range bin of the back
@@ -243,6 +249,22 @@ class _Codes:
         return np.sqrt(np.einsum("bj,bj->b", miss, miss, dtype=float) / np.maximum(wrong, 1))
 
 
+# -- the range gate -----------------------------------------------------------------------
+class _Gate:
+    """A range gate in cml's terms: its ends in bins ``lo``, ``hi`` and ``outside`` (L,)
+    bool, the points of the oversampled detection grid (``oversample`` a bin) beyond it."""
+
+    def __init__(self, gate: RangeGate, config: RadarConfig, oversample: int):
+        self.lo, self.hi = gate.bins(config)
+        grid = np.arange(oversample * config.samples_per_ramp) / oversample
+        eps = 1e-9
+        self.outside = (grid < self.lo - eps) | (grid > self.hi + eps)
+        if self.outside.all():  # a gate narrower than the grid's step: its nearest point
+            self.outside[np.argmin(np.abs(grid - 0.5 * (self.lo + self.hi)))] = False
+        #: the bins the detection search spans (the count test's cells)
+        self.width_bins = min(float(config.samples_per_ramp), max(self.hi - self.lo, 1.0 / oversample))
+
+
 # -- the model and its derivatives -------------------------------------------------------
 def _atoms(nu: np.ndarray, kc: np.ndarray) -> np.ndarray:
     """``exp(-i 2 pi kc nu / N)``: ranges (..., K) in bins -> (..., K, N), from two short
@@ -287,8 +309,8 @@ class _Fit:
     amplitudes referred to mid-sweep; on one ramp the model is
     ``mu_{n,p} = sum_t b_{t,p} w_t[n]`` with ``w_t[n] = exp(-i 2 pi kc_n nu_t / N)``."""
 
-    def __init__(self, codes: _Codes, kc: np.ndarray, b: int):
-        self.codes, self.kc = codes, kc
+    def __init__(self, codes: _Codes, kc: np.ndarray, b: int, gate: _Gate | None = None):
+        self.codes, self.kc, self.gate = codes, kc, gate
         self.set(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool))
 
     def set(self, nu: np.ndarray, amp: np.ndarray, live: np.ndarray) -> None:
@@ -340,6 +362,8 @@ class _Fit:
         norm = np.linalg.norm(step[..., 1:], axis=2)
         step[..., 1:] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
         nu = self.nu + step[..., 0]
+        if self.gate is not None:  # a target may not leave the gate
+            nu = np.clip(nu, self.gate.lo, self.gate.hi)
         amp = self.amp + (step[..., 1::2] + 1j * step[..., 2::2])
         w = _atoms(nu, self.kc)
         mu = self._mu(w, amp)
@@ -372,7 +396,7 @@ def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     return np.broadcast_to(v, (b,)).astype(float)
 
 
-def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample):
+def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None):
     z = np.asarray(z)
     if z.ndim != 3 or z.shape[-1] != 2:
         raise ParameterError(f"cml: Z must have shape (B, M, 2), got {z.shape}")
@@ -391,6 +415,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
             raise ParameterError(f"cml: {name}={value!r} must be an integer in [{lo}, 1000]")
     if noise_sigma is not None:
         noise_sigma = _per_frame("noise_sigma", noise_sigma, b, positive=False)
+    if check_gate(gate) is not None:
+        gate.check(config)
     z = z.astype(complex)
     if bits is None:
         return z, None, None, noise_sigma
@@ -414,7 +440,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
 # -- the decoder ----------------------------------------------------------------------------
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
         noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8,
-        pfa: float | None = None) -> CmlResult:
+        pfa: float | None = None, gate: RangeGate | None = None) -> CmlResult:
     """Greedy continuous-range maximum likelihood decoder (see the module docstring).
 
     Parameters
@@ -438,8 +464,10 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         projection (away from the targets found) must reach the threshold whose
         false-alarm probability on a target-free residual is ``pfa`` per frame and test
         (:func:`pipeline.localize.cfar_threshold` over ``SEARCH_CELLS_PER_BIN * N``
-        cells), on the linear residual and on the likelihood's score both
-        (:func:`_count_statistic`); the first miss ends the frame's targets.
+        cells, N the bins of the gate), on the linear residual and on the likelihood's
+        score both (:func:`_count_statistic`); the first miss ends the frame's targets.
+    gate : a :class:`~pipeline.gate.RangeGate`: targets are sought, tested and refined
+        only inside it, and their ranges stay in it (None: the whole, circular, range axis).
 
     Returns
     -------
@@ -452,8 +480,10 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     batch (about 1e-5 m in range and 1 % in amplitude in a 4-bit case). About 20 evaluations of the
     likelihood and 12 Gauss--Newton systems for K = 2: ~1 ms a frame (M = 512).
     """
-    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample)
-    threshold = None if pfa is None else cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * config.samples_per_ramp)
+    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
+    cgate = None if gate is None else _Gate(gate, config, oversample)
+    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
+    threshold = None if pfa is None else cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
     if z.shape[0] == 0:
         return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
                          np.zeros((0, k), dtype=bool))
@@ -462,20 +492,21 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         sl = slice(lo, lo + BLOCK_FRAMES)
         parts.append(_decode(z[sl], None if xi is None else xi[sl], None if delta is None else delta[sl], bits,
                              config, k, None if noise_sigma is None else noise_sigma[sl], iters, anneal, oversample,
-                             threshold))
+                             threshold, cgate))
     if len(parts) == 1:
         return parts[0]
     return CmlResult(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(CmlResult)))
 
 
-def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold) -> CmlResult:
+def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold,
+            gate: _Gate | None = None) -> CmlResult:
     """:func:`cml` on one block of checked frames; ``threshold``: the count test's
-    (linear), or None."""
+    (linear), or None; ``gate``: the range gate, or None."""
     b, m, _ = z.shape
     n = config.samples_per_ramp
     kc = np.arange(n) - (n - 1) / 2.0
     codes = _Codes(z, xi, delta, bits, n)
-    fit = _Fit(codes, kc, b)
+    fit = _Fit(codes, kc, b, gate)
     if bits is None:
         sigma = np.ones(b)  # least squares: the scale plays no part
         amp_cap = np.full(b, np.inf)
@@ -543,8 +574,12 @@ def _residual(codes: _Codes, fit: _Fit) -> np.ndarray:
 
 def _peak_ratio(y: np.ndarray, fit: _Fit, oversample: int) -> np.ndarray:
     """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
-    beyond COUNT_GUARD_BINS of the targets found (0 where ``y`` is exactly 0)."""
+    beyond COUNT_GUARD_BINS of the targets found and inside the range gate (0 where
+    ``y`` is exactly 0)."""
     energy, near = _energy(y, fit, oversample, COUNT_GUARD_BINS)
+    if fit.gate is not None:
+        energy[:, fit.gate.outside] = 0.0
+        near |= fit.gate.outside
     mean = energy.sum(axis=1) / np.maximum(energy.shape[1] - near.sum(axis=1), 1)
     peak = energy.max(axis=1)
     return np.divide(peak, mean, out=np.zeros_like(peak), where=mean > 0)
@@ -581,11 +616,15 @@ def _detect(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
         y = np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex)  # the score, (B, N, 2)
     size = oversample * n
     energy, _ = _energy(y, fit, oversample, MIN_SEPARATION_BINS)  # not within a bin of a target found
-    peak = np.argmax(energy, axis=1)
+    if fit.gate is None:
+        peak = np.argmax(energy, axis=1)
+    else:  # the peak inside the gate (-1: below any energy, so also a residual of zeros peaks inside)
+        peak = np.argmax(np.where(fit.gate.outside, -1.0, energy), axis=1)
     left, centre, right = (np.take_along_axis(energy, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
     curv = left - 2 * centre + right
     off = np.where(curv < 0, 0.5 * (left - right) / np.where(curv < 0, curv, -1.0), 0.0)
-    return (peak + np.clip(off, -0.5, 0.5)) / oversample
+    nu = (peak + np.clip(off, -0.5, 0.5)) / oversample
+    return nu if fit.gate is None else np.clip(nu, fit.gate.lo, fit.gate.hi)
 
 
 def _amplitude_at(codes: _Codes, fit: _Fit, nu0: np.ndarray) -> np.ndarray:
@@ -601,7 +640,8 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     last), present ones strongest first."""
     n, ramps = codes.n, codes.ramps
     b, t = fit.nu.shape
-    range_m = (fit.nu % n) * config.range_resolution_m
+    # the axis is circular; inside a gate (within [0, N] bins) a range is not wrapped
+    range_m = (fit.nu if fit.gate is not None else fit.nu % n) * config.range_resolution_m
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
     amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
         ..., None]

@@ -37,9 +37,11 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, carrier
 
+from . import defaults
 from .errors import DitherUnavailable, ParameterError
+from .gate import RangeGate, check_gate
 from .localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
-                       grid_statistic_db, joint_support, localize)
+                       gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
 from .cml import cml
 from .quantize import QuantizedFrames
 
@@ -57,15 +59,18 @@ class Algo(StrEnum):
 
 ALGOS = tuple(a.value for a in Algo)
 
-#: dither scale used when none is given: PBP at the paper's best alpha for its noisy
-#: chamber (Fig. 5a); qiht wants the full dither; cml at its best on the off-grid noisy
-#: chamber recording (0.45-0.6 within 5 % of the best, README)
-DEFAULT_ALPHA = {Algo.PBP: 0.55, Algo.QIHT: 1.0, Algo.CML: 0.5}
+#: the decoder of every command that localizes (:mod:`pipeline.defaults`, the one definition)
+DEFAULT_ALGO = Algo(defaults.DEFAULT_ALGO)
+#: the dither scale of every command that quantizes: the default decoder's best (:mod:`pipeline.defaults`)
+DEFAULT_ALPHA = defaults.DEFAULT_ALPHA
+if set(defaults.BEST_ALPHA) != set(ALGOS):
+    raise ImportError(f"pipeline.defaults.BEST_ALPHA names {sorted(defaults.BEST_ALPHA)}, not the decoders {ALGOS}")
 
 
 def default_alpha(algo: str) -> float:
-    """The dither scale alpha in [0, 1] to quantize with for decoder ``algo``."""
-    return DEFAULT_ALPHA[Algo(algo)]
+    """The dither scale alpha in [0, 1] to quantize with for decoder ``algo``: its best
+    (:data:`pipeline.defaults.BEST_ALPHA`); for :data:`DEFAULT_ALGO`, :data:`DEFAULT_ALPHA`."""
+    return defaults.BEST_ALPHA[Algo(algo).value]
 
 
 def ml_temperatures(m: int, steps: int = 8) -> np.ndarray:
@@ -84,9 +89,12 @@ class DecoderConfig:
     PBP instead of raising DitherUnavailable. noise_sigma: cml's sensor noise, std of I
     and of Q in frame units (None: estimated from each frame). auto_k: decide each
     frame's count (``K auto``; the K passed to :func:`decode` is then the most), by a
-    CFAR test of false-alarm probability ``pfa`` per frame and test (pbp and cml)."""
+    CFAR test of false-alarm probability ``pfa`` per frame and test (pbp and cml).
+    gate: the :class:`~pipeline.gate.RangeGate` every decoder searches inside (None: the
+    whole range axis, the paper's protocol; the live localizer's default is
+    :meth:`RangeGate.default <pipeline.gate.RangeGate.default>`)."""
 
-    algo: Algo = Algo.QIHT
+    algo: Algo = DEFAULT_ALGO
     iters: int = 10
     mu: float = 1.0
     ml: bool = True
@@ -94,8 +102,10 @@ class DecoderConfig:
     noise_sigma: float | None = None
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
+    gate: RangeGate | None = None
 
     def __post_init__(self) -> None:
+        check_gate(self.gate)
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
@@ -182,13 +192,21 @@ def _antenna_major(a: np.ndarray, n: int) -> np.ndarray:
     return t.view(float).reshape(b, m // n, 2, n, 2)
 
 
-def _strongest(u: np.ndarray, k: int) -> np.ndarray:
+def _strongest(u: np.ndarray, k: int, outside: np.ndarray | None = None) -> np.ndarray:
     """:func:`pipeline.localize.joint_support` of U held antenna-major, (B, 2, N) -> (B, K):
-    the K bins of largest ``|U1|^2 + |U2|^2``, strongest first."""
+    the K bins of largest ``|U1|^2 + |U2|^2``, strongest first; never a bin where
+    ``outside`` (N,) bool is True (a range gate)."""
     if k > SMALL_K:
-        return joint_support(u.transpose(0, 2, 1), k)
+        ut = u.transpose(0, 2, 1)
+        if outside is None:
+            return joint_support(ut, k)
+        energy = joint_energy(ut)
+        energy[:, outside] = -1.0
+        return joint_support(ut, k, energy)
     p = np.square(np.ascontiguousarray(u, dtype=complex).view(float)).reshape(u.shape + (2,))  # (B, 2, N, re/im)
     energy = (p[:, 0, :, 0] + p[:, 0, :, 1]) + (p[:, 1, :, 0] + p[:, 1, :, 1])  # joint_energy's sums, in its order
+    if outside is not None:
+        energy[:, outside] = -np.inf
     b = energy.shape[0]
     rows = np.arange(b)
     top = np.empty((b, k), dtype=np.int64)
@@ -212,15 +230,17 @@ def consistency(x: np.ndarray, z: np.ndarray, xi: np.ndarray, delta, bits: int, 
 
 
 def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, iters: int = 10,
-         mu: float = 1.0) -> tuple[np.ndarray, np.ndarray, int]:
-    """QIHT from PBP. z: quantized values Z (B, M, 2); xi: the dither (B, M, 2); delta (B,).
+         mu: float = 1.0, gate: RangeGate | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """QIHT from PBP. z: quantized values Z (B, M, 2); xi: the dither (B, M, 2); delta (B,);
+    gate: the support only among the range bins inside it (None: all N).
 
     Returns (X (B, N, 2), support (B, K) strongest first, iterations run). Z is
     ``Q(Gamma + xi)``: the dither is added before quantization and not removed."""
     z, xi, delta = _check(z, xi, delta, bits, config)
     n = config.samples_per_ramp
+    mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     amp, support, done = _qiht(_antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config), delta,
-                               bits, config, k, iters, mu)
+                               bits, config, k, iters, mu, mask)
     return _scatter(amp, support, n), support, done
 
 
@@ -232,10 +252,11 @@ def _scatter(amp: np.ndarray, support: np.ndarray, n: int) -> np.ndarray:
 
 
 def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bits: int, config: RadarConfig, k: int,
-          iters: int, mu: float) -> tuple[np.ndarray, np.ndarray, int]:
+          iters: int, mu: float, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`qiht` on checked frames: zr, xr (B, R, 2, N, 2) from :func:`_antenna_major`;
-    u0 the back projection (B, N, 2). Returns (amplitudes (B, 2, K) on the support,
-    support (B, K), iterations run).
+    u0 the back projection (B, N, 2); mask: the range bins (N,) a support may hold (a
+    range gate; None: all). Returns (amplitudes (B, 2, K) on the support, support (B, K),
+    iterations run).
 
     X lives as its K amplitudes a frame: ``Phi X`` on a ramp is K atoms (an FFT for large
     K), and ``X + step`` is the step with the amplitudes added on the support."""
@@ -243,7 +264,8 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
     car, atoms = _carrier(config), _atoms(config)
     back = np.conj(car)
     scale = mu * (1.0 / ramps)  # mu N / M
-    support = joint_support(u0, k)
+    outside = None if mask is None else ~mask
+    support = joint_support(u0, k, None if mask is None else gated_energy(joint_energy(u0), mask, k)[0])
     amp = np.ascontiguousarray(np.take_along_axis(u0, support[:, :, None], axis=1).transpose(0, 2, 1))
     offsets = (np.arange(b)[:, None, None] * 2 + np.arange(2)[None, :, None]) * n  # of U[b, p, 0] in U (B, 2, N)
     prev_sup, prev_bad, stable, done = np.sort(support, axis=1), None, 0, 0
@@ -276,7 +298,7 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
         u *= scale
         flat = u.reshape(-1)
         flat[offsets + support[:, None, :]] += amp  # X + step
-        support = _strongest(u, k)
+        support = _strongest(u, k, outside)
         amp = flat[offsets + support[:, None, :]]
         sup_sorted = np.sort(support, axis=1)
         same = prev_bad is not None and np.array_equal(sup_sorted, prev_sup) and np.array_equal(bad, prev_bad)
@@ -378,17 +400,19 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     dither-aware decoder needs quantized frames of whole ramps with their dither; other
     frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable. ``cml``
     decodes quantized frames (with or without dither) and unquantized ones (least
-    squares), of whole ramps."""
+    squares), of whole ramps. Every decoder searches only inside ``decoder.gate``
+    (checked against ``config``; None: the whole range axis)."""
     z = np.asarray(z)
     pfa = decoder.pfa if decoder.auto_k else None
+    gate = None if decoder.gate is None else decoder.gate.check(config)
     if decoder.algo == Algo.PBP:
-        return localize(z, config, k, indices, pfa)
+        return localize(z, config, k, indices, pfa, gate)
     if decoder.algo == Algo.CML and indices is None:
         return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma, pfa=pfa).detections(config)
+                   noise_sigma=decoder.noise_sigma, pfa=pfa, gate=gate).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
-            return localize(z, config, k, indices, pfa)
+            return localize(z, config, k, indices, pfa, gate)
         what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                 if bits is None else "frame is not dithered")
         needs = ("frames of whole ramps" if decoder.algo == Algo.CML else
@@ -397,10 +421,16 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     z, xi, delta = _check(z, xi, delta, bits, config)
     n = config.samples_per_ramp
     zr, xr, u0 = _antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config)
-    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu)
+    mask = None if gate is None else gate.bin_mask(config)
+    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu, mask)
     if decoder.ml and bits == 1:
         amp = _ml_refine(zr, xr, delta, support, amp, config)
-    return detections_from_support(_scatter(amp, support, n), support, config, grid_statistic_db(u0, support))
+    if mask is None:
+        stat = grid_statistic_db(u0, support)
+    else:
+        _, energy, cells = gated_energy(joint_energy(u0), mask, k)
+        stat = grid_statistic_db(u0, support, energy, cells)
+    return detections_from_support(_scatter(amp, support, n), support, config, stat)
 
 
 def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,

@@ -26,6 +26,7 @@ from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, p
                                 sensing_matrix)
 
 from .errors import ParameterError
+from .gate import RangeGate, check_gate
 
 
 def _check_z(z: np.ndarray) -> np.ndarray:
@@ -183,13 +184,16 @@ def to_db(ratio: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(db, nan=-STATISTIC_CAP_DB), -STATISTIC_CAP_DB, STATISTIC_CAP_DB)
 
 
-def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | None = None) -> np.ndarray:
+def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | None = None,
+                      cells: int | None = None) -> np.ndarray:
     """Cell-averaging statistic of the support bins of a back projection U (B, N, 2),
     support (B, K) strongest first: dB, (B, K). Target t: its joint energy
     ``|U1|^2 + |U2|^2`` over the mean of the bins outside ``support[:, :t + 1]``.
-    ``energy``: :func:`joint_energy` of U when already known."""
+    ``energy``: :func:`joint_energy` of U when already known; with a range gate, the
+    energy with the bins outside the gate set to 0 and ``cells`` the bins inside (the
+    mean is then over the gate's bins)."""
     energy = joint_energy(u) if energy is None else energy  # (B, N)
-    n = energy.shape[1]
+    n = energy.shape[1] if cells is None else cells
     e_t = energy[np.arange(energy.shape[0])[:, None], support]
     rest = (energy.sum(axis=1, keepdims=True) - np.cumsum(e_t, axis=1)) / np.maximum(
         n - 1 - np.arange(support.shape[1]), 1)
@@ -264,29 +268,51 @@ def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarCon
     return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
 
 
+def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The joint energy (B, N) of a back projection seen through a range gate's bin mask
+    (N,) bool (None: no gate): (energy to pick a support from, -1 outside the gate;
+    energy for the statistic, 0 outside; bins inside). ``k`` bins must fit inside."""
+    n = energy.shape[1]
+    if mask is None:
+        return energy, energy, n
+    cells = int(mask.sum())
+    if isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k > cells:
+        raise ParameterError(f"K={k} targets do not fit in the range gate's {cells} range bins")
+    outside = ~mask
+    pick, stat = energy.copy(), energy.copy()
+    pick[:, outside] = -1.0  # below any energy: never in the support
+    stat[:, outside] = 0.0
+    return pick, stat, cells
+
+
 def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
-             pfa: float | None = None) -> Detections:
+             pfa: float | None = None, gate: RangeGate | None = None) -> Detections:
     """PBP targets of a batch of frames Z (B, M, 2) (quantized or not), each with its
     cell-averaging statistic (:func:`grid_statistic_db`). ``pfa``: decide the count (at
     most ``k``) by a sequential CFAR test with this false-alarm probability per frame
-    and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets."""
+    and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets.
+    ``gate``: search only the range bins inside this :class:`~pipeline.gate.RangeGate`
+    (the statistic and the test then over those bins); None: the whole range axis."""
+    mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)
     energy = joint_energy(u)
-    support = joint_support(u, k, energy)
-    det = detections_from_support(u, support, config, grid_statistic_db(u, support, energy))
+    pick, stat, cells = gated_energy(energy, mask, k)
+    support = joint_support(u, k, pick)
+    det = detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
     if pfa is None:
         return det
-    threshold_db = 10 * np.log10(cfar_threshold(pfa, config.samples_per_ramp))
+    threshold_db = 10 * np.log10(cfar_threshold(pfa, cells))
     return det.masked(sequential_present(det.statistic_db, threshold_db))
 
 
-def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None) -> list[dict[str, float]]:
+def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
+                   gate: RangeGate | None = None) -> list[dict[str, float]]:
     """PBP targets of one frame Z (M, 2), strongest first, as dicts."""
     z = np.asarray(z)
     if z.ndim != 2 or z.shape[-1] != 2:
         raise ParameterError(f"a single frame Z must have shape (M, 2), got {z.shape}")
     idx = None if indices is None else np.asarray(indices)
-    return localize(z[None], config, k, idx).frame(0)
+    return localize(z[None], config, k, idx, gate=gate).frame(0)
 
 
 def nearest_estimates(

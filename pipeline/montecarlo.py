@@ -35,6 +35,7 @@ from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 
 from .errors import ParameterError, PipelineError
 from .decode import ALGOS, Algo, DecoderConfig, decode
+from .gate import RangeGate, check_gate
 from .localize import DEFAULT_PFA, check_pfa, match_detections, position_error_m
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
@@ -172,8 +173,9 @@ PD_AMPLITUDE = 0.3
 class MonteCarloConfig:
     """What to run: sparsities, runs per (scheme, K) (None = the paper's 320 000 x K),
     schemes, seed, off-grid ranges (the same as ``scene.ranges = "cells"``), worker
-    processes (None = all cores), decoders, the scenes (:class:`SceneSpec`) and how the
-    decoders learn the target count (:class:`CountSpec`)."""
+    processes (None = all cores), decoders, the scenes (:class:`SceneSpec`), how the
+    decoders learn the target count (:class:`CountSpec`) and the range gate they search
+    inside (None: the whole range axis, the paper's protocol)."""
 
     ks: tuple[int, ...] = (1, 2)
     runs: int | None = None
@@ -186,8 +188,11 @@ class MonteCarloConfig:
     fallback_pbp: bool = False
     scene: SceneSpec = field(default_factory=SceneSpec)
     count: CountSpec = field(default_factory=CountSpec)
+    gate: RangeGate | None = None
 
     def __post_init__(self) -> None:
+        if check_gate(self.gate) is not None:
+            self.gate.check(self.radar)
         if self.off_grid and self.scene.ranges == "grid":
             object.__setattr__(self, "scene", replace(self.scene, ranges="cells"))
         object.__setattr__(self, "off_grid", self.scene.ranges != "grid")
@@ -323,7 +328,7 @@ class ChunkResult:
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
               algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True,
-              count: CountSpec = CountSpec()) -> dict[str, ChunkResult]:
+              count: CountSpec = CountSpec(), gate: RangeGate | None = None) -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
     given its arguments. Returns {algo: ChunkResult}."""
     scheme = Scheme.parse(scheme_name, radar)
@@ -339,7 +344,7 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
         scheme_rng, radar, scene.noise_sigma, noise_rng)
     out = {}
     for algo in algos:
-        decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa)
+        decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
         det = decode(z, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
         res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
@@ -471,12 +476,13 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
-                collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp, cfg.count))
+                collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp, cfg.count,
+                                       cfg.gate))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
-                                             cfg.fallback_pbp, cfg.count))
+                                             cfg.fallback_pbp, cfg.count, cfg.gate))
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
                     collect(job, fut.result())
@@ -496,12 +502,14 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
     summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
     summary["scene"] = cfg.scene.to_dict()
     summary["count"] = cfg.count.to_dict()
+    if cfg.gate is not None:  # (the paper's protocol searches the whole range axis)
+        summary["gate"] = cfg.gate.to_dict()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     run_config = {
         "seed": cfg.seed, "off_grid": cfg.off_grid, "schemes": list(cfg.schemes), "ks": list(cfg.ks),
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
         "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp, "scene": cfg.scene.to_dict(),
-        "count": cfg.count.to_dict(),
+        "count": cfg.count.to_dict(), "gate": None if cfg.gate is None else cfg.gate.to_dict(),
     }
     return MonteCarloResult(summary, maps, run_config)
 

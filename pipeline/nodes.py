@@ -22,8 +22,9 @@ from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from .bus import BusConfig
 from .calibration import Calibration
-from .decode import Algo, DecoderConfig, DitherUnavailable, decode_batch
+from .decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
+from .gate import RangeGate
 from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
 from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seeds
@@ -306,24 +307,38 @@ class QuantizeNode(FrameNode):
 
 @dataclass(frozen=True)
 class LocalizerConfig:
-    """k: targets per frame. algo: the decoder (:class:`~pipeline.decode.Algo`). source:
-    "quantized" or "raw" (full-resolution baseline). radar: the base configuration;
-    frames of any whole number of ramps are accepted (their config ids are derived
-    from it)."""
+    """k: targets per frame. algo: the decoder (:class:`~pipeline.decode.Algo`; default
+    :data:`pipeline.defaults.DEFAULT_ALGO`). source: "quantized" or "raw"
+    (full-resolution baseline). radar: the base configuration; frames of any whole number
+    of ramps are accepted (their config ids are derived from it). min_range_m /
+    max_range_m: the range gate the decoder searches inside (:mod:`pipeline.gate`); None:
+    the end of :meth:`RangeGate.default <pipeline.gate.RangeGate.default>` for ``radar``
+    (2 range bins kept out at each end of the axis: 1.2 m to 152.4 m for the K-MD2),
+    filled in on construction."""
 
     k: int = 2
-    algo: Algo = Algo.PBP
+    algo: Algo = DEFAULT_ALGO
     source: str = "quantized"
     radar: RadarConfig = field(default_factory=RadarConfig)
     max_ramps: int = 16
     fallback_pbp: bool = False
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
+    min_range_m: float | None = None
+    max_range_m: float | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
             raise ParameterError(f"K={self.k!r} must be an integer in [1, N = {self.radar.samples_per_ramp}]: a "
                                  f"frame has N range bins a ramp and a target takes one")
+        gate = RangeGate.resolve(self.min_range_m, self.max_range_m, self.radar)
+        object.__setattr__(self, "min_range_m", gate.min_range_m)
+        object.__setattr__(self, "max_range_m", gate.max_range_m)
+        mask = gate.bin_mask(self.radar)
+        cells = self.radar.samples_per_ramp if mask is None else int(mask.sum())
+        if self.k > cells:
+            raise ParameterError(f"K={self.k} targets do not fit in the range gate [{gate.min_range_m:g}, "
+                                 f"{gate.max_range_m:g}] m: it holds {cells} range bins")
         object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
         if self.algo == Algo.CML and self.k > self.radar.samples_per_ramp // 2:
             raise ParameterError(f"K={self.k} (or --max-targets) must be at most N/2 = "
@@ -334,15 +349,21 @@ class LocalizerConfig:
         if self.source == "raw" and self.algo == Algo.QIHT:
             raise ParameterError(f"algo={self.algo!r} decodes quantized frames; the raw baseline uses pbp or cml")
 
+    @property
+    def gate(self) -> RangeGate:
+        return RangeGate(self.min_range_m, self.max_range_m)
+
     def decoder(self) -> DecoderConfig:
-        return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp, auto_k=self.auto_k, pfa=self.pfa)
+        return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp, auto_k=self.auto_k, pfa=self.pfa,
+                             gate=self.gate)
 
     def known_configs(self) -> dict[int, RadarConfig]:
         return radar_configs(self.radar, self.max_ramps)
 
 
 class LocalizeNode(FrameNode):
-    """``<prefix>/*/quantized`` (or raw) -> PBP -> ``<prefix>/<sensor>/targets`` (JSON).
+    """``<prefix>/*/quantized`` (or raw) -> the decoder (inside the range gate) ->
+    ``<prefix>/<sensor>/targets`` (JSON).
 
     Latency (health and ``published_ns``) runs from the frame's sensor timestamp to the
     publication of its targets."""

@@ -41,6 +41,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
+from .defaults import DEFAULT_ALPHA
 from .errors import ParameterError
 
 MAX_BITS = 16
@@ -386,14 +387,15 @@ class QuantizerConfig:
     """A dithered b-bit quantizer.
 
     bits : bits per real value (1 = the paper's 1-bit scheme).
-    alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither).
+    alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither); default
+        :data:`pipeline.defaults.DEFAULT_ALPHA`, the default decoder's best.
     delta : quantizer step (same units as the frames) or ``"auto"`` = the smallest 1-bit
         step of each frame times ``1 + delta_margin``.
     dither_seed : seed from which, with the frame sequence number, the dither is drawn.
     """
 
     bits: int = 1
-    alpha: float = 1.0
+    alpha: float = DEFAULT_ALPHA
     delta: float | Literal["auto"] = "auto"
     delta_margin: float = 0.0
     dither_seed: int = 0

@@ -33,7 +33,7 @@ from pipeline.calibration import Calibration
 from pipeline.calibration import load as load_calibration
 from pipeline.audit import format_counts
 from pipeline.bus import BusConfig
-from pipeline.decode import Algo, DecoderConfig
+from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
@@ -215,7 +215,7 @@ class RunConfig:
     rate_hz: float | None = None
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
     k: int | None = None  # None = the scene's (or --truth's) count, else REAL_SENSOR_K; with auto_k the most a frame has
-    algo: Algo = Algo.CML
+    algo: Algo = DEFAULT_ALGO
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000  # the simulated sensors' line speed after INIT (a real one's: its spec's baud)
     record: Path | None = None  # MCAP path, or None for no recording
@@ -235,6 +235,9 @@ class RunConfig:
     sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
     truth: str | Path | None = None  # scene file of the true positions
     calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
+    # the localizer's range gate, m (None: the radar's default, pipeline.gate.RangeGate.default)
+    min_range_m: float | None = None
+    max_range_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -303,7 +306,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     else:
         k = cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
     localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
-                                    auto_k=cfg.auto_k, pfa=cfg.pfa)  # checked before anything starts
+                                    auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
+                                    max_range_m=cfg.max_range_m)  # checked before anything starts
     if cfg.real:
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     t_start = time.monotonic()
@@ -342,7 +346,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             recorder = []
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
-                                         metadata=run_metadata(cfg, scene, truth, radar, k, calibration),
+                                         metadata=run_metadata(cfg, scene, truth, radar, k, calibration,
+                                                               localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
@@ -549,8 +554,9 @@ class DriverProcess:
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
-                 k: int, calibration: Calibration | None = None) -> dict[str, dict]:
-    """MCAP metadata of a run: radar config, node configs, the sensors and the true
+                 k: int, calibration: Calibration | None = None, gate=None) -> dict[str, dict]:
+    """MCAP metadata of a run: radar config, node configs (the localizer's range
+    ``gate``), the sensors and the true
     positions (``qradar.scene``, which ``qradar reprocess`` takes for its truth): the
     simulated scene, or the ``--truth`` file's (with real sensors: ``simulated`` false)."""
     from dataclasses import asdict
@@ -558,7 +564,8 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
     meta = {
         "qradar.radar": radar.to_dict() | {"config_id": radar.config_id()},
         "qradar.quantizer": asdict(cfg.quantizer),
-        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized"},
+        "qradar.localizer": {"algo": str(cfg.algo), "K": k, "K_auto": cfg.auto_k, "source": "quantized",
+                             **({} if gate is None else gate.to_dict())},
     }
     if cfg.real:
         meta["qradar.sensors"] = {s.sensor_id: json.dumps({"url": s.url, "profile": s.profile_name, "baud": s.baud,
@@ -635,7 +642,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
                       "dither_seed": cfg.quantizer.dither_seed},
-        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k},
+        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
+                      **localizer.config.gate.to_dict()},
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
         # the simulated sensors' own late writes (device clock held): apart from every loss above;

@@ -17,7 +17,9 @@ import numpy as np
 
 from pipeline.calibration import Calibration
 from pipeline.calibration import load as load_calibration
-from pipeline.decode import Algo, DecoderConfig, decode_batch
+from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
+from pipeline.errors import ParameterError
+from pipeline.gate import RangeGate, check_range_m
 from pipeline.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
 from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
@@ -141,13 +143,15 @@ class AlphaResult:
 
 
 def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
-              seed: int, algo: Algo = Algo.PBP, auto_k: bool = False, pfa: float = DEFAULT_PFA) -> AlphaResult:
+              seed: int, algo: Algo = DEFAULT_ALGO, auto_k: bool = False, pfa: float = DEFAULT_PFA,
+              gate: RangeGate | None = None) -> AlphaResult:
     """One alpha: quantize every frame, decode (``auto_k``: at most ``k`` targets, counted
-    with false-alarm probability ``pfa``) and measure each true target's error."""
+    with false-alarm probability ``pfa``; only inside ``gate``, None: the whole range
+    axis) and measure each true target's error."""
     q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
                         dither_seed=sensor_dither_seed(seed, rec.sensor_id))
     # alpha = 0 has no dither to use: qiht falls back to PBP there (cml decodes it without dither)
-    det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True, auto_k=auto_k, pfa=pfa))
+    det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True, auto_k=auto_k, pfa=pfa, gate=gate))
     f = rec.frames.shape[0]
     tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
     ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
@@ -214,19 +218,22 @@ class SweepResult:
 
 
 def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
-          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = Algo.PBP,
-          auto_k: bool = False, pfa: float = DEFAULT_PFA, bar: Progress | None = None) -> SweepResult:
-    """Every alpha of ``alphas`` with one decoder. ``bar``: a progress bar of the
-    caller's to advance (else one of its own, shown if ``progress``)."""
+          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = DEFAULT_ALGO,
+          auto_k: bool = False, pfa: float = DEFAULT_PFA, bar: Progress | None = None,
+          gate: RangeGate | None = None) -> SweepResult:
+    """Every alpha of ``alphas`` with one decoder, searching inside ``gate`` (None: the
+    whole range axis). ``bar``: a progress bar of the caller's to advance (else one of
+    its own, shown if ``progress``)."""
     k = k or len(truth)
     out = []
     own = Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress)
     with own if bar is None else nullcontext(bar) as bar:
         for a in alphas:
-            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo, auto_k, pfa))
+            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo, auto_k, pfa, gate))
             bar.update(rec.frames.shape[0])
     return SweepResult(np.asarray(alphas, float), out, truth, rec,
-                       {"bits": bits, "K": k, "K_auto": auto_k, "algo": str(algo), "seed": seed})
+                       {"bits": bits, "K": k, "K_auto": auto_k, "algo": str(algo), "seed": seed,
+                        **({} if gate is None else gate.to_dict())})
 
 
 # -- figures ---------------------------------------------------------------------------------
@@ -355,6 +362,10 @@ class ReprocessConfig:
     sensor: sensor id (None = the first). truth: a scene TOML with the true positions
     (None = the recording's ``qradar.scene`` metadata). out: folder for results.json and
     the plots. mcap: also write the targets of the best (decoder, alpha) there.
+    min_range_m / max_range_m: the range gate the decoders search inside (None: the end
+    of :meth:`RangeGate.default <pipeline.gate.RangeGate.default>` for the recording's
+    radar, as the live localizer); checked here (min < max) and against the radar once
+    the recording is read.
     calibration: a ``qradar calibrate`` file whose front end is removed from the raw
     frames before they are quantized."""
 
@@ -362,7 +373,7 @@ class ReprocessConfig:
     alphas: tuple[float, ...] = tuple(parse_alphas("0:1:0.05"))
     bits: int = 1
     k: int | None = None
-    algos: tuple[Algo, ...] = (Algo.PBP,)
+    algos: tuple[Algo, ...] = (DEFAULT_ALGO,)
     seed: int = 0
     sensor: str | None = None
     truth: Path | None = None
@@ -372,10 +383,20 @@ class ReprocessConfig:
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
     calibration: Path | None = None
+    min_range_m: float | None = None
+    max_range_m: float | None = None
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):
             raise ReplayError(f"alphas {self.alphas!r} must be at least one value in [0, 1]")
+        try:  # before the file is read: numbers >= 0, min < max (against the radar: in run)
+            for name in ("min_range_m", "max_range_m"):
+                if getattr(self, name) is not None:
+                    check_range_m(name, getattr(self, name))
+            if self.min_range_m is not None and self.max_range_m is not None:
+                RangeGate(self.min_range_m, self.max_range_m)
+        except ParameterError as exc:
+            raise ReplayError(str(exc)) from None
         if isinstance(self.algos, str):
             object.__setattr__(self, "algos", (self.algos,))
         algos = tuple(DecoderConfig(algo=a, auto_k=self.auto_k, pfa=self.pfa).algo for a in self.algos)
@@ -407,6 +428,10 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
         rec = calibrated(rec, calibration)
     scene = truth_scene(rec, cfg.truth)
     radar = radar_for(rec, scene.radar)
+    try:
+        gate = RangeGate.resolve(cfg.min_range_m, cfg.max_range_m, radar)
+    except ParameterError as exc:
+        raise ReplayError(f"{cfg.file}: {exc}") from None
     notes = []
     if any(t.velocity_m_s for t in scene.targets):
         notes.append("note: moving targets; the truth is taken at the first frame")
@@ -415,7 +440,7 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
                   enabled=cfg.progress) as bar:
         for algo in cfg.algos:
             results[str(algo)] = sweep(rec, radar, scene.truth(0.0), np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k,
-                                       seed=cfg.seed, algo=algo, auto_k=cfg.auto_k, pfa=cfg.pfa, bar=bar)
+                                       seed=cfg.seed, algo=algo, auto_k=cfg.auto_k, pfa=cfg.pfa, bar=bar, gate=gate)
     first = next(iter(results.values()))
     summaries = {a: r.summary() for a, r in results.items()}
     summary = summaries[str(cfg.algos[0])] | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),

@@ -10,6 +10,9 @@ from pipeline.montecarlo import MonteCarloConfig, draw_scenes, run_montecarlo
 from pipeline.quantize import QuantizerConfig, auto_delta, batch_unit_dither, dequantize, quantize, quantize_frames
 from radar_driver.model import RadarConfig, sensing_matrix, simulate_frames
 
+#: the decoder these tests are about (the default decoder is cml: pipeline.defaults)
+QIHT = DecoderConfig(algo="qiht")
+
 
 def dithered_batch(k, b=400, seed=0, ramps=2):
     cfg = RadarConfig()
@@ -53,7 +56,7 @@ def test_beats_pbp_on_a_small_monte_carlo():
     for k, target in ((1, 0.15), (2, None)):
         cfg, r, a, x, g, delta, xi, z = dithered_batch(k, b=1500, seed=k)
         e_pbp = position_error_m(r, a, *_ra(localize(z, cfg, k)))
-        e_new = position_error_m(r, a, *_ra(decode(z, xi, delta, 1, cfg, k)))
+        e_new = position_error_m(r, a, *_ra(decode(z, xi, delta, 1, cfg, k, QIHT)))
         assert np.median(e_new) < np.median(e_pbp) / 5
         assert e_new[:, -1].mean() < e_pbp[:, -1].mean() / 2
         if target:
@@ -69,7 +72,7 @@ def test_error_falls_faster_than_pbp_with_m():
     for ramps in (2, 8):
         cfg, r, a, x, g, delta, xi, z = dithered_batch(1, b=800, seed=5, ramps=ramps)
         med[("pbp", ramps)] = np.median(position_error_m(r, a, *_ra(localize(z, cfg, 1))))
-        med[("qiht", ramps)] = np.median(position_error_m(r, a, *_ra(decode(z, xi, delta, 1, cfg, 1))))
+        med[("qiht", ramps)] = np.median(position_error_m(r, a, *_ra(decode(z, xi, delta, 1, cfg, 1, QIHT))))
     slope = {alg: np.log(med[(alg, 8)] / med[(alg, 2)]) / np.log(4) for alg in ("pbp", "qiht")}
     assert -0.75 < slope["pbp"] < -0.25  # about -1/2
     assert slope["qiht"] < -0.75  # about -1
@@ -81,7 +84,7 @@ def test_reproduces_the_quantizers_dither_from_the_seed():
     q = quantize_frames(g, QuantizerConfig(alpha=1.0, dither_seed=11), seq=[5, 6])
     xi = q.dither()  # regenerated from (seed, seq), delta and alpha
     np.testing.assert_array_equal(quantize(g, q.delta, 1, xi), q.codes)
-    det = decode(q.values(), xi, q.delta, 1, cfg, 1)
+    det = decode(q.values(), xi, q.delta, 1, cfg, 1, QIHT)
     assert np.all(position_error_m(np.array([[30.0], [60.0]]), np.array([[10.0], [-30.0]]),
                                    det.range_m, det.angle_deg) < 0.3)
 
@@ -89,14 +92,14 @@ def test_reproduces_the_quantizers_dither_from_the_seed():
 def test_bad_inputs_give_clear_errors():
     cfg, r, a, x, g, delta, xi, z = dithered_batch(1, b=4)
     with pytest.raises(DitherUnavailable, match="needs the dither"):
-        decode(z, None, delta, 1, cfg, 1)
-    assert decode(z, None, delta, 1, cfg, 1, DecoderConfig(fallback_pbp=True)).range_m.shape == (4, 1)
+        decode(z, None, delta, 1, cfg, 1, QIHT)
+    assert decode(z, None, delta, 1, cfg, 1, DecoderConfig(algo="qiht", fallback_pbp=True)).range_m.shape == (4, 1)
     with pytest.raises(ParameterError, match="dither shape"):
-        decode(z, xi[:, :256], delta, 1, cfg, 1)
+        decode(z, xi[:, :256], delta, 1, cfg, 1, QIHT)
     with pytest.raises(ParameterError, match="delta must be"):
-        decode(z, xi, delta[:2], 1, cfg, 1)
+        decode(z, xi, delta[:2], 1, cfg, 1, QIHT)
     with pytest.raises(ParameterError, match="whole number of ramps"):
-        decode(z[:, :300], xi[:, :300], delta, 1, cfg, 1)
+        decode(z[:, :300], xi[:, :300], delta, 1, cfg, 1, QIHT)
     with pytest.raises(ParameterError, match="algo='omp'"):
         DecoderConfig(algo="omp")
     with pytest.raises(ParameterError, match="nodither_m512.*--fallback-pbp"):

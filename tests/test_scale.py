@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from pipeline.bus import BusConfig, Shard
+from pipeline.decode import DEFAULT_ALPHA
 from pipeline.errors import ParameterError
 from pipeline.node import HEALTH_SLICES
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
@@ -242,7 +243,7 @@ def test_edge_source_and_two_sharded_localizers_across_processes(free_port, conn
         got = by_frame(col.of("/targets"), decode_targets)
         assert set(got) == {(f"x{i}", q) for i in range(6) for q in range(10)}
         q = decode_quantized(quant.of("/quantized")[0])
-        assert q.bits == 1 and q.alpha == 1.0
+        assert q.bits == 1 and q.alpha == np.float32(DEFAULT_ALPHA)  # the one default (pipeline.defaults)
     finally:
         totals = []
         for p in locs:

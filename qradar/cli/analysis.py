@@ -6,7 +6,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from pipeline.decode import ALGOS, Algo
+from pipeline.decode import ALGOS, DEFAULT_ALGO, Algo
+from pipeline.gate import RangeGate
 from pipeline.localize import DEFAULT_PFA
 from pipeline.montecarlo import (DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
                                  prepare_out_dir, run_montecarlo, write_outputs)
@@ -14,7 +15,8 @@ from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
-from .common import BITS_HELP, count_from_args, count_options, nonneg_float, nonneg_int, pfa_arg, pos_int
+from .common import (BITS_HELP, count_from_args, count_options, gate_options, nonneg_float, nonneg_int, pfa_arg,
+                     pos_int)
 from .common import calibration_option
 
 
@@ -62,6 +64,11 @@ def add_montecarlo(sub) -> None:
     g.add_argument("--gate-m", type=nonneg_float, default=0.6,
                    help="with --count auto: a true target is found by a detection within this range of it "
                    "(default 0.6, one range bin)")
+    g = p.add_argument_group("range gate (default: the whole range axis, the paper's protocol)")
+    g.add_argument("--min-range-m", type=nonneg_float, default=None, metavar="M",
+                   help="the decoders search only ranges >= M (as the live localizer does, whose default is 1.2)")
+    g.add_argument("--max-range-m", type=nonneg_float, default=None, metavar="M",
+                   help="the decoders search only ranges <= M (the live localizer's default: 152.4)")
     p.add_argument("--workers", type=pos_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--out", type=Path, default=Path("montecarlo_out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG maps")
@@ -75,9 +82,9 @@ def add_reprocess(sub) -> None:
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
     p.add_argument("--bits", type=pos_int, default=1, help=BITS_HELP)
     count_options(p, None, "targets (default: the truth's count)")
-    p.add_argument("--algos", "--algo", dest="algos", nargs="+", choices=list(ALGOS), default=[Algo.PBP.value],
-                   help="decoders, one alpha sweep and one curve each (default pbp); qiht decodes alpha = 0 with "
-                   "PBP (there is no dither to use)")
+    p.add_argument("--algos", "--algo", dest="algos", nargs="+", choices=list(ALGOS), default=[DEFAULT_ALGO.value],
+                   help=f"decoders, one alpha sweep and one curve each (default {DEFAULT_ALGO}); qiht decodes "
+                   "alpha = 0 with PBP (there is no dither to use)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--sensor", default=None, help="sensor id (default: the first)")
     p.add_argument("--truth", type=Path, default=None, help="scene TOML with the true positions (real recordings)")
@@ -85,6 +92,7 @@ def add_reprocess(sub) -> None:
     p.add_argument("--out", type=Path, default=Path("out/reprocess"), help="folder for results.json and the plots")
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    gate_options(p)
     p.set_defaults(func=cmd_reprocess)
 
 
@@ -97,6 +105,9 @@ def cmd_montecarlo(args) -> int:
                         min_separation_m=args.min_separation_m, max_angle_deg=args.max_angle_deg,
                         min_amplitude=args.min_amplitude, noise_sigma=args.noise_sigma),
         count=CountSpec(auto=args.count == "auto", max_targets=args.max_targets, pfa=args.pfa, gate_m=args.gate_m),
+        gate=None if args.min_range_m is None and args.max_range_m is None else RangeGate(
+            0.0 if args.min_range_m is None else args.min_range_m,
+            RadarConfig().max_range_m if args.max_range_m is None else args.max_range_m),
     )
     prepare_out_dir(args.out)
     result = run_montecarlo(cfg, progress=not args.quiet)
@@ -109,7 +120,8 @@ def cmd_reprocess(args) -> int:
     cfg = ReprocessConfig(file=args.file, alphas=tuple(parse_alphas(args.alpha)), bits=args.bits, k=k,
                           algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
                           mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa,
-                          calibration=args.calibration)
+                          calibration=args.calibration, min_range_m=args.min_range_m,
+                          max_range_m=args.max_range_m)
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)

@@ -24,8 +24,9 @@ from pipeline.bus import BusConfig, Shard, check_sensor_pattern
 from pipeline.calibration import Calibration
 from pipeline.calibration import load as load_calibration_file
 from pipeline.security import SecureConfig
-from pipeline.decode import ALGOS, Algo
+from pipeline.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, Algo
 from pipeline.errors import ParameterError
+from pipeline.gate import LEAKAGE_BINS
 from pipeline.localize import DEFAULT_PFA
 from pipeline.quantize import QuantizerConfig
 
@@ -134,9 +135,27 @@ def count_from_args(args) -> tuple[int | None, bool]:
     return (args.max_targets, True) if args.k == "auto" else (args.k, False)
 
 
-def algo_option(p: argparse.ArgumentParser, help: str, default: Algo = Algo.PBP) -> None:
-    """``--algo``, one of the decoders (pipeline.decode.Algo)."""
+def algo_option(p: argparse.ArgumentParser, help: str, default: Algo = DEFAULT_ALGO) -> None:
+    """``--algo``, one of the decoders (pipeline.decode.Algo); default the one definition's
+    (:data:`pipeline.defaults.DEFAULT_ALGO`)."""
     p.add_argument("--algo", choices=list(ALGOS), default=default.value, help=f"{help} (default {default})")
+
+
+#: --alpha's help wherever a quantizer has no decoder to follow
+ALPHA_HELP = (f"dither scale in [0, 1] (default {DEFAULT_ALPHA:g}: the best of the default decoder, {DEFAULT_ALGO}, "
+              "off the range grid)")
+
+
+def gate_options(p: argparse.ArgumentParser) -> None:
+    """``--min-range-m`` / ``--max-range-m``: the range gate the decoder searches inside
+    (pipeline.gate); None: the radar's default gate."""
+    g = p.add_argument_group("range gate", "targets are sought only in [MIN, MAX] m; the default keeps out "
+                             f"{LEAKAGE_BINS} range bins at each end of the circular range axis (TX-to-RX leakage "
+                             "sits within the first bin or two, and leaks into the top ones)")
+    g.add_argument("--min-range-m", type=nonneg_float, default=None, metavar="M",
+                   help=f"default {LEAKAGE_BINS} c/(2B): 1.2 m with the K-MD2's 250 MHz sweep")
+    g.add_argument("--max-range-m", type=nonneg_float, default=None, metavar="M",
+                   help=f"default the unambiguous range N c/(2B) less {LEAKAGE_BINS} bins: 152.4 m for the K-MD2")
 
 
 def install_sigterm(name: str) -> "StopOnSignals":
@@ -335,7 +354,7 @@ def edge_quantizer_options(p, switch: str) -> None:
                              "seed rule and options, and publish 1-bit frames on <prefix>/<id>/quantized")
     g.add_argument(switch, dest="edge_quantize", action="store_true",
                    help="publish quantized frames (raw ones only with --raw-every)")
-    quantizer_options(g, 1.0, "dither scale in [0, 1] (default 1)", ("--dither-seed",))
+    quantizer_options(g, DEFAULT_ALPHA, ALPHA_HELP, ("--dither-seed",))
     g.add_argument("--raw-every", type=nonneg_int, default=None, metavar="N",
                    help=f"with {switch}: also publish the raw frames whose seq is a multiple of N (e.g. for "
                    "recording; default 0 = none)")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pipeline import audit
 from pipeline.bus import BusConfig
-from pipeline.decode import Algo, default_alpha
+from pipeline.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
 from pipeline.errors import ParameterError
 from pipeline.node import INPUT_MODES
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
@@ -24,6 +24,7 @@ from replay.source import RecordingSource
 
 from ..run import RunConfig, format_summary, print_json, remove_run_dirs, run
 from .common import (
+    ALPHA_HELP,
     algo_option,
     bus_from_args,
     count_from_args,
@@ -31,6 +32,7 @@ from .common import (
     bus_options,
     edge_quantizer,
     edge_quantizer_options,
+    gate_options,
     install_sigterm,
     intake_budget,
     intake_options,
@@ -50,13 +52,9 @@ from .record import write_error_options
 from .view import foxglove_arg
 
 
-#: run's decoder unless --algo names another: the most accurate off the range grid
-RUN_ALGO = Algo.CML
-
-
 def add_commands(sub) -> None:
     p = sub.add_parser("quantize", help="node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized")
-    quantizer_options(p, 1.0, "dither scale in [0, 1] (default 1)")
+    quantizer_options(p, DEFAULT_ALPHA, ALPHA_HELP)
     calibration_option(p)
     queue_options(p)
     serve_options(p)
@@ -64,9 +62,11 @@ def add_commands(sub) -> None:
     bus_options(p)
     p.set_defaults(func=cmd_quantize)
 
-    p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> PBP -> radar/<sensor>/targets")
+    p = sub.add_parser("localize", help="node: radar/*/quantized (or raw) -> a decoder -> radar/<sensor>/targets")
     count_options(p, 2, "targets per frame (default 2)")
-    algo_option(p, "pbp; qiht: dither-aware on the range grid (needs dithered frames); cml: continuous ranges")
+    algo_option(p, "cml: continuous ranges (the most accurate off the range grid); pbp: the paper's; qiht: "
+                "dither-aware on the range grid (needs dithered frames)")
+    gate_options(p)
     p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
@@ -110,7 +110,7 @@ def add_commands(sub) -> None:
     p = sub.add_parser("run", help="the main job: K-MD2 (simulated, or real with --sensor) -> driver -> quantize -> "
                        "localize over zenoh",
                        description="Simulated K-MD2(s) on ptys, or real sensors on their ports (--sensor), the serial "
-                       f"driver of each, the 1-bit dithered quantizer and the localizer (--algo, default {RUN_ALGO}) "
+                       f"driver of each, the 1-bit dithered quantizer and the localizer (--algo, default {DEFAULT_ALGO}) "
                        "over an embedded zenoh peer; live targets beside the true positions (the simulated scene's, "
                        "or --truth's), then a summary.")
     p.add_argument("--sensor", dest="sensor_specs", action="append", default=[], metavar="URL,id=NAME[,KEY=VALUE]",
@@ -135,11 +135,14 @@ def add_commands(sub) -> None:
                    help="GNFD requests each driver keeps in flight: 2 lets the sensor hold one while its driver is "
                    "late on a busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to). Default 2 "
                    "with simulated sensors, 1 with --sensor")
-    quantizer_options(p, None, "dither scale (default: 0.5 with cml, its best on the off-grid chamber; 0.55 with "
-                      "pbp, the paper's best for its noisy chamber; 1 with qiht, which wants the full dither)")
+    quantizer_options(p, None, f"dither scale (default: the --algo's best, pipeline.defaults.BEST_ALPHA: "
+                      f"{default_alpha('cml'):g} with cml, its best on the off-grid chamber; {default_alpha('pbp'):g} "
+                      f"with pbp, the paper's best for its noisy chamber; {default_alpha('qiht'):g} with qiht, which "
+                      "wants the full dither)")
     count_options(p, None, "targets per frame (default: the simulated scene's count; with --sensor, the --truth "
                   "file's, else 2)")
-    algo_option(p, "decoder of the localizer", RUN_ALGO)
+    algo_option(p, "decoder of the localizer")
+    gate_options(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")
@@ -217,7 +220,7 @@ def cmd_quantize(args) -> int:
 def cmd_localize(args) -> int:
     k, auto = count_from_args(args)
     cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
-                          pfa=args.pfa)
+                          pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m)
     return serve(LocalizeNode(bus_from_args(args), cfg, **queue_kwargs(args)), args.duration)
 
 
@@ -288,6 +291,11 @@ def run_bus(args) -> BusConfig:
     return bus if bus.connect or bus.listen_endpoints() else replace(bus, alone_warning=None)
 
 
+def run_alpha(args) -> float:
+    """run's dither scale: --alpha, else the --algo's best (:func:`pipeline.decode.default_alpha`)."""
+    return default_alpha(args.algo) if args.alpha is None else args.alpha
+
+
 def cmd_run(args) -> int:
     record = None
     if not args.no_record:
@@ -295,7 +303,7 @@ def cmd_run(args) -> int:
     if args.secure is not None and args.mode == "client":
         raise ParameterError("qradar run --secure runs as a peer (its drivers join it over a private unix socket); "
                              "drop --mode client, and give --listen tls/... to serve other nodes")
-    alpha = default_alpha(args.algo) if args.alpha is None else args.alpha
+    alpha = run_alpha(args)
     k, auto = count_from_args(args)
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=run_bus(args),
@@ -304,7 +312,8 @@ def cmd_run(args) -> int:
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
-                    calibration=args.calibration, empty=args.empty)
+                    calibration=args.calibration, empty=args.empty, min_range_m=args.min_range_m,
+                    max_range_m=args.max_range_m)
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)

@@ -1,0 +1,211 @@
+"""The range gate (issue 23): every decoder searches only inside [min_range_m, max_range_m];
+a strong return outside it (TX-to-RX leakage at a few tens of centimetres) never becomes a
+target, a target inside is unaffected, and the options are checked on load."""
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.decode import DecoderConfig, decode, qiht
+from pipeline.cml import cml
+from pipeline.errors import ParameterError
+from pipeline.gate import LEAKAGE_BINS, RangeGate
+from pipeline.localize import localize
+from pipeline.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
+from pipeline.nodes import LocalizerConfig
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from radar_driver.model import RadarConfig, simulate_frames
+from replay.errors import ReplayError
+from replay.reprocess import ReprocessConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = RadarConfig()
+GATE = RangeGate.default(CFG)
+#: the leakage: a return this strong (the target's amplitude is 1) at this range, m
+LEAK_AMPLITUDE, LEAK_RANGE_M = 3.0, 0.3
+TARGET_RANGE_M, TARGET_ANGLE_DEG = 7.3, 20.0
+
+
+def leaky_frames(b: int = 48, seed: int = 1, alpha: float = 1.0, noise: float = 0.02):
+    """1-bit dithered frames of a target (amplitude 1) and a leakage LEAK_AMPLITUDE times
+    stronger at LEAK_RANGE_M, off the range grid both, with a little noise."""
+    rng = np.random.default_rng(seed)
+    r = np.tile([LEAK_RANGE_M, TARGET_RANGE_M], (b, 1))
+    a = np.tile([0.0, TARGET_ANGLE_DEG], (b, 1))
+    x = np.exp(2j * np.pi * rng.random((b, 2))) * [LEAK_AMPLITUDE, 1.0]
+    g = simulate_frames(r, a, x, CFG)
+    g = g + noise * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    q = quantize_frames(g, QuantizerConfig(alpha=alpha), np.arange(b))
+    return q.values(), q.dither(), q.delta
+
+
+def outside(det, gate: RangeGate = GATE) -> np.ndarray:
+    """Targets (present ones) outside ``gate``, (B, K) bool."""
+    r = det.range_m
+    return det.present & ((r < gate.min_range_m - 1e-9) | (r > gate.max_range_m + 1e-9))
+
+
+def found(det, tol_m: float = 0.6) -> np.ndarray:
+    """Frames with a target within tol_m of the true one, (B,) bool."""
+    return np.any(det.present & (np.abs(det.range_m - TARGET_RANGE_M) < tol_m), axis=1)
+
+
+# -- the default and the checks ----------------------------------------------------------------
+def test_the_default_gate_keeps_out_two_bins_at_each_end_of_the_range_axis():
+    assert LEAKAGE_BINS == 2
+    assert (GATE.min_range_m, GATE.max_range_m) == pytest.approx((1.2, 152.4))  # 2 c/(2B), N c/(2B) - 2 c/(2B)
+    mask = GATE.bin_mask(CFG)
+    assert mask.sum() == 256 - 3 and not mask[:2].any() and mask[2] and mask[254] and not mask[255]
+    wide = RadarConfig(bandwidth_hz=500e6)  # dR = 0.3 m: the default follows the range resolution
+    assert (RangeGate.default(wide).min_range_m, RangeGate.default(wide).max_range_m) == pytest.approx((0.6, 76.2))
+    assert RangeGate.full(CFG).bin_mask(CFG) is None  # nothing to mask
+    assert LocalizerConfig().gate == GATE and LocalizerConfig(min_range_m=3).gate == RangeGate(3.0, 152.4)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(min_range_m=5.0, max_range_m=4.0), "min_range_m=5 must be below max_range_m=4"),
+    (dict(min_range_m=5.0, max_range_m=5.0), "must be below"),
+    (dict(min_range_m=-1.0), "min_range_m=-1 must be a finite number of metres >= 0"),
+    (dict(max_range_m=float("nan")), "max_range_m=nan must be a finite number"),
+    (dict(max_range_m=200.0), "max_range_m=200 is beyond the radar's unambiguous range N c/(2B) = 153.6 m"),
+    (dict(min_range_m=160.0), "min_range_m=160 is beyond the radar's unambiguous range"),
+    (dict(min_range_m=0.1, max_range_m=0.5), "holds no range bin"),
+    (dict(min_range_m=10.0, max_range_m=10.5, k=2), "K=2 targets do not fit in the range gate"),
+])
+def test_bad_gates_are_refused_on_load_in_one_line(kwargs, message):
+    with pytest.raises(ParameterError, match=re.escape(message)) as info:
+        LocalizerConfig(**kwargs)
+    assert "\n" not in str(info.value)
+
+
+def test_a_gate_is_checked_against_the_radar_of_each_api():
+    z, xi, delta = leaky_frames(2)
+    beyond = RangeGate(1.0, 160.0)
+    for call in (lambda: localize(z, CFG, 1, gate=beyond), lambda: cml(z, xi, delta, 1, CFG, 1, gate=beyond),
+                 lambda: qiht(z, xi, delta, 1, CFG, 1, gate=beyond),
+                 lambda: decode(z, xi, delta, 1, CFG, 1, DecoderConfig(gate=beyond)),
+                 lambda: MonteCarloConfig(runs=10, gate=beyond)):
+        with pytest.raises(ParameterError, match="beyond the radar's unambiguous range"):
+            call()
+    with pytest.raises(ParameterError, match="must be a RangeGate or None"):
+        DecoderConfig(gate=(1.0, 2.0))
+    with pytest.raises(ReplayError, match="min_range_m=3 must be below max_range_m=2"):
+        ReprocessConfig(Path("x.mcap"), min_range_m=3.0, max_range_m=2.0)
+    with pytest.raises(ReplayError, match="max_range_m=-2 must be"):
+        ReprocessConfig(Path("x.mcap"), max_range_m=-2.0)
+
+
+def qradar(*args, timeout_s=120):
+    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True, timeout=timeout_s,
+                          stdin=subprocess.DEVNULL, cwd=ROOT)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["localize", "--min-range-m", "5", "--max-range-m", "4", "--duration", "1"],
+     "range gate: min_range_m=5 must be below max_range_m=4"),
+    (["run", "--max-range-m", "200", "--no-record", "--duration", "1"],
+     "range gate: max_range_m=200 is beyond the radar's unambiguous range"),
+    (["reprocess", "recordings/chamber.mcap", "--max-range-m", "160", "--quiet"],
+     "recordings/chamber.mcap: range gate: max_range_m=160 is beyond the radar's unambiguous range"),
+    (["reprocess", "recordings/chamber.mcap", "--min-range-m", "9", "--max-range-m", "3", "--quiet"],
+     "range gate: min_range_m=9 must be below max_range_m=3"),
+])
+def test_commands_refuse_a_bad_gate_in_one_line_before_they_start(args, message):
+    proc = qradar(*args)
+    assert proc.returncode == 2, proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ": error: " in ln]
+    assert len(errors) == 1 and message in errors[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+# -- a strong return outside the gate ----------------------------------------------------------
+@pytest.mark.parametrize("algo", ["pbp", "qiht", "cml"])
+def test_a_strong_return_outside_the_gate_never_becomes_a_target(algo):
+    z, xi, delta = leaky_frames()
+    for k in (1, 2):
+        ungated = decode(z, xi, delta, 1, CFG, k, DecoderConfig(algo=algo))
+        assert outside(ungated).any(axis=1).mean() > 0.9  # without a gate the leakage is a target
+        if k == 1:
+            assert found(ungated).mean() < 0.1  # ... in the real target's place
+        det = decode(z, xi, delta, 1, CFG, k, DecoderConfig(algo=algo, gate=GATE))
+        assert not outside(det).any(), f"K={k}: {det.range_m[outside(det).any(axis=1)][:3]}"
+        assert found(det).mean() >= (0.9 if k == 1 else 1.0), f"K={k}: target found in {found(det).mean():.0%}"
+
+
+@pytest.mark.parametrize("algo", ["pbp", "cml"])
+def test_k_auto_detects_only_inside_the_gate(algo):
+    z, xi, delta = leaky_frames()
+    ungated = decode(z, xi, delta, 1, CFG, 4, DecoderConfig(algo=algo, auto_k=True))
+    assert outside(ungated).any(axis=1).all()
+    det = decode(z, xi, delta, 1, CFG, 4, DecoderConfig(algo=algo, auto_k=True, gate=GATE))
+    assert not outside(det).any()
+    assert found(det).mean() >= 0.9
+
+
+def test_the_default_gate_keeps_out_the_top_bins_too():
+    """The range axis of complex samples is circular: a leakage at 0.3 m (half a bin) is as
+    close to bin N as to bin 0, so a gate up to the unambiguous range lets cml (whose ranges
+    are continuous) report it at the top of the axis, and PBP its sidelobe in bin N - 1."""
+    z, xi, delta = leaky_frames()
+    to_the_top = RangeGate(GATE.min_range_m, CFG.max_range_m)
+    det = cml(z, xi, delta, 1, CFG, 1, gate=to_the_top).detections(CFG)
+    assert np.mean(det.range_m[:, 0] > GATE.max_range_m) > 0.9
+    assert not outside(cml(z, xi, delta, 1, CFG, 1, gate=GATE).detections(CFG)).any()
+
+
+def test_cml_targets_never_leave_the_gate_while_refined():
+    """A gate that ends between the target and the leakage: the refinement would walk the
+    target out of it; it stays at the gate's end."""
+    z, xi, delta = leaky_frames(16)
+    tight = RangeGate(7.5, 20.0)  # the target at 7.3 m is just outside
+    res = cml(z, xi, delta, 1, CFG, 2, gate=tight)
+    assert np.all((res.range_m >= 7.5 - 1e-12) & (res.range_m <= 20.0 + 1e-12))
+
+
+# -- a target inside is unaffected -------------------------------------------------------------
+@pytest.mark.parametrize("algo", ["pbp", "qiht", "cml"])
+def test_targets_inside_the_gate_are_decoded_as_without_it(algo):
+    """Off-grid scenes of the Monte Carlo (3-150 m): where no estimate falls outside the
+    gate without it, the gate changes no range, angle or amplitude."""
+    b, k = 96, 2
+    _, _, r, a, x = draw_scenes(b, k, np.random.default_rng(4), CFG,
+                                scene=SceneSpec(ranges="continuous", max_angle_deg=60.0, min_amplitude=0.1))
+    q = quantize_frames(simulate_frames(r, a, x, CFG), QuantizerConfig(alpha=1.0), np.arange(b))
+    z, xi, delta = q.values(), q.dither(), q.delta
+    ungated = decode(z, xi, delta, 1, CFG, k, DecoderConfig(algo=algo))
+    det = decode(z, xi, delta, 1, CFG, k, DecoderConfig(algo=algo, gate=GATE))
+    inside = ~outside(ungated).any(axis=1)
+    assert inside.mean() > 0.9
+    for name in ("range_m", "angle_deg", "amplitude", "bin"):
+        np.testing.assert_array_equal(getattr(det, name)[inside], getattr(ungated, name)[inside], err_msg=name)
+
+
+def test_the_monte_carlo_keeps_the_whole_range_axis_and_the_default_gate_would_move_one_golden_run():
+    """The golden Monte Carlo (tests/golden/montecarlo_seed7.json) is the paper's protocol,
+    which has no leakage: it searches the whole range axis by default, so its figures stand.
+    With the live default gate, one run of its 2 x 300 moves: a weak target of amplitude
+    0.046 (dithered 1-bit, K = 2) buried in the dither's noise, whose PBP estimate was the
+    noise peak in bin 0 and becomes another noise peak, 10.2 m; K2 dither_m512's mean and
+    weak mean move by under 0.1 %, and nothing else."""
+    golden = json.loads((Path(__file__).parent / "golden" / "montecarlo_seed7.json").read_text())["summary"]
+    assert MonteCarloConfig().gate is None
+    r = run_montecarlo(MonteCarloConfig(ks=(1, 2), runs=300, seed=7, workers=1, algos=("pbp", "qiht"),
+                                        fallback_pbp=True, gate=GATE), progress=False)
+    assert r.summary["gate"] == r.run_config["gate"] == GATE.to_dict()
+    moved = {}
+    for kk in ("K1", "K2"):
+        for scheme, stats in golden[kk].items():
+            for key, want in stats.items():
+                got = r.summary[kk][scheme][key]
+                if key.endswith("_m") and abs(want) < 1e-4:
+                    assert abs(got) < 1e-4
+                elif got != pytest.approx(want, rel=1e-9):
+                    moved[(kk, scheme, key)] = (want, got)
+    assert set(moved) == {("K2", "dither_m512", "mean_m"), ("K2", "dither_m512", "weak_mean_m")}, moved
+    for want, got in moved.values():
+        assert abs(got - want) < 1e-3 * want
