@@ -43,16 +43,12 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, antenna_phase_rad, simulate_frames
 
-from .errors import ParameterError
+from .errors import CalibrationError
 
 CAL_TYPE = "qradar.calibration"
 CAL_VERSION = 1
 #: the reflector's range is searched this many range bins either side of the given one
 RANGE_SEARCH_BINS = 1.5
-
-
-class CalibrationError(ParameterError):
-    """A calibration file or estimate that cannot be used; the message names the file and the entry."""
 
 
 @dataclass(frozen=True)

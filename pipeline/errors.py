@@ -20,3 +20,7 @@ class DitherUnavailable(ParameterError):
 
 class BusError(PipelineError):
     """A zenoh session could not be opened or connected, or its config file is unusable."""
+
+
+class CalibrationError(ParameterError):
+    """A calibration file or estimate that cannot be used; the message names the file and the entry."""
