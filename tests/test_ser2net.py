@@ -111,7 +111,13 @@ def test_the_driver_reconnects_after_ser2net_restarts(link, kind):
         # not understood, and the driver's GBYE at every rate through RFC 2217 released it
         assert ("BAUD_MISMATCH", 115_200) in sim.devices[0].events
     else:
-        assert "BAUD_MISMATCH" not in names
+        # raw TCP cannot change the line: the sensor is asked for 115200 only, every time
+        events = sim.devices[0].events
+        assert all(b == 115_200 for e, b in events if e in ("INIT", "SWITCH")), events
+        # ser2net sets the pty's termios as it closes and reopens it; the simulator reads
+        # them when bytes arrive, so a request in flight at the restart may meet them
+        # (seen once on a loaded host): at most the restart's, never a lasting mismatch
+        assert names.count("BAUD_MISMATCH") <= 2 and names[-1] != "BAUD_MISMATCH", events
 
 
 def test_a_stale_client_is_kicked_off(link):
