@@ -75,17 +75,6 @@ def wait_port(port: int, timeout_s: float = 30.0) -> None:
     raise RuntimeError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
 
 
-def wait_ready(proc: Proc, text: str = "", timeout_s: float = 30.0) -> None:
-    """Wait until the process has written something on stderr (its start line) or ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if not proc.alive():
-            raise RuntimeError(f"{proc.name} exited: {proc.stderr_tail()}")
-        if proc.err_path.stat().st_size and text in proc.err_path.read_text(errors="replace"):
-            return
-        time.sleep(0.1)
-
-
 # -- the flood ---------------------------------------------------------------------------------
 def flood_payloads(kind: str, ids: int) -> tuple[list[bytes], bool]:
     """Payloads to send: a pool of valid frames of one sensor (``quantized``/``raw``; seq and
@@ -198,14 +187,24 @@ def node_argv(cmd: str, endpoint: str, *extra: str) -> list[str]:
     return [PY, "-m", "qradar", cmd, "--mode", "client", "--connect", endpoint, *extra]
 
 
-def flood_case(kind: str, args, logdir: Path) -> dict:
+def start_router(logdir: Path) -> tuple[str, Proc]:
+    """A ``qradar router`` on a free port of 127.0.0.1, listening: (its endpoint, the process)."""
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
+    router = Proc("router", [PY, "-m", "qradar", "router", "--listen", ep], logdir)
+    try:
+        wait_port(port)
+    except RuntimeError:
+        router.stop(10)
+        raise
+    return ep, router
+
+
+def flood_case(kind: str, args, logdir: Path) -> dict:
     procs: list[Proc] = []
     try:
-        router = Proc("router", [PY, "-m", "qradar", "router", "--listen", ep], logdir)
+        ep, router = start_router(logdir)
         procs.append(router)
-        wait_port(port)
         quantize = Proc("quantize", node_argv("quantize", ep, "--alpha", "0.55", *args.node_args), logdir)
         localize = Proc("localize", node_argv("localize", ep, "--algo", "pbp", "--K", "2", *args.node_args,
                                               *args.localize_args),
@@ -269,13 +268,10 @@ def flood_case(kind: str, args, logdir: Path) -> dict:
 
 
 def restarts_case(args, logdir: Path) -> dict:
-    port = free_port()
-    ep = f"tcp/127.0.0.1:{port}"
     procs: list[Proc] = []
     try:
-        router = Proc("router", [PY, "-m", "qradar", "router", "--listen", ep], logdir)
+        ep, router = start_router(logdir)
         procs.append(router)
-        wait_port(port)
         quantize = Proc("quantize", node_argv("quantize", ep, "--alpha", "0.55"), logdir)
         procs.append(quantize)
         time.sleep(2.0)
