@@ -7,24 +7,40 @@
   recorder counted no drop. Baseline in the same run: McapSink writing the same
   messages in process, without zenoh.
 - player: ``replay --fast`` of the last file into a subscriber, messages/s.
+- ``--index``: what a recording's index costs per chunk, on a real recording: ``qradar
+  run --sensors N --record`` (simulated sensors: raw, quantized, targets, pointcloud and
+  health of each) for ``--seconds``, or ``--index-of FILE``. In the file: the message
+  index records after each chunk and the chunk index records of the summary, and the
+  file's size minus its chunk records, per chunk. In memory: what the ``mcap`` writer
+  keeps until the file ends (a chunk index per chunk), measured with tracemalloc while
+  McapSink writes the same chunks again (the growth from one pass over them to three).
 
     .venv/bin/python benchmarks/bench_record.py [--sensors 100] [--seconds 4]
+    .venv/bin/python benchmarks/bench_record.py --index [--sensors 3] [--seconds 20] [--index-of FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
+import os
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import tracemalloc
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import zenoh
+from mcap.opcode import Opcode
+from mcap.records import Channel, Message, MessageIndex
+from mcap.stream_reader import StreamReader
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -134,12 +150,104 @@ def bench_replay(path: str) -> dict:
             "received": count[0]}
 
 
+def record_sizes(path: Path) -> tuple[Counter, Counter, int]:
+    """(bytes, count) of the file's top-level records by opcode name, and its size."""
+    data = Path(path).read_bytes()
+    size, count = Counter(), Counter()
+    pos = 8  # after the magic
+    while pos + 9 <= len(data) - 8:  # opcode (1 B), length (8 B), content; the closing magic
+        name, n = Opcode(data[pos]).name, 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+        size[name] += n
+        count[name] += 1
+        pos += n
+    return size, count, len(data)
+
+
+def _rewrite(path: Path, sink: McapSink) -> int:
+    """Write every message of ``path`` into ``sink``, flushing where each of its chunks
+    ended (the message index records that follow a chunk); the chunks written."""
+    chunks, pending, topics = 0, 0, {}
+    with open(path, "rb") as fh:
+        for rec in StreamReader(fh).records:
+            if isinstance(rec, Channel):
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Message):
+                sink.write(topics[rec.channel_id], rec.data, rec.log_time, rec.publish_time, rec.sequence)
+                pending += 1
+            elif isinstance(rec, MessageIndex) and pending:
+                sink.flush()
+                chunks, pending = chunks + 1, 0
+    if pending:
+        sink.flush()
+        chunks += 1
+    return chunks
+
+
+def index_cost(path: Path) -> dict:
+    """What the index of the recording ``path`` costs per chunk: in the file (message
+    index and chunk index records; the file minus its chunk records) and in the memory of
+    the writer until the file ends (the traced memory added by writing its chunks two
+    more times, per chunk)."""
+    size, count, total = record_sizes(path)
+    chunks = count["CHUNK"]
+    index = size["MESSAGE_INDEX"] + size["CHUNK_INDEX"]
+    with tempfile.TemporaryDirectory() as tmp:
+        sink = McapSink(Path(tmp) / "copy.mcap")
+        tracemalloc.start()
+        try:
+            first = _rewrite(path, sink)
+            gc.collect()
+            held_1 = tracemalloc.get_traced_memory()[0]
+            more = _rewrite(path, sink) + _rewrite(path, sink)
+            gc.collect()
+            held_3 = tracemalloc.get_traced_memory()[0]
+        finally:
+            tracemalloc.stop()
+            sink.close()
+    f = McapFile(path)
+    messages = f.scan()
+    return {"path": str(path), "bytes": total, "chunks": chunks, "messages": messages,
+            "channels": len(f.channels), "messages_per_chunk": round(messages / chunks, 1),
+            "message_index_records_per_chunk": round(count["MESSAGE_INDEX"] / chunks, 1),
+            "file_index_bytes_per_chunk": round(index / chunks),
+            "file_message_index_bytes_per_chunk": round(size["MESSAGE_INDEX"] / chunks),
+            "file_chunk_index_bytes_per_chunk": round(size["CHUNK_INDEX"] / chunks),
+            "file_minus_chunks_bytes_per_chunk": round((total - size["CHUNK"]) / chunks),
+            "memory_index_bytes_per_chunk": round((held_3 - held_1) / more), "chunks_rewritten": first + more}
+
+
+def record_run(path: Path, sensors: int, seconds: float) -> None:
+    """A real recording: ``qradar run --sensors N --duration S --record path``."""
+    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--sensors", str(sensors), "--duration", str(seconds),
+                           "--record", str(path), "--json"], capture_output=True, text=True, timeout=seconds + 120,
+                          stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1],
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    if proc.returncode != 0:
+        raise RuntimeError(f"qradar run failed ({proc.returncode}): {proc.stderr[-2000:]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sensors", type=int, default=100)
-    ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument("--sensors", type=int, default=None, help="default 100 (3 with --index)")
+    ap.add_argument("--seconds", type=float, default=None, help="default 4 (20 with --index)")
     ap.add_argument("--rates", type=float, nargs="+", default=[10, 20, 40, 80, 160])
+    ap.add_argument("--index", action="store_true", help="measure the index cost per chunk of a real recording "
+                    "(qradar run --sensors N for --seconds; defaults 3 and 20 with --index)")
+    ap.add_argument("--index-of", type=Path, default=None, metavar="FILE", help="--index of this recording")
     args = ap.parse_args()
+    if args.index or args.index_of:
+        if args.index_of is not None:
+            print(json.dumps(index_cost(args.index_of), indent=1))
+            return
+        sensors = 3 if args.sensors is None else args.sensors
+        seconds = 20.0 if args.seconds is None else args.seconds
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "run.mcap"
+            record_run(path, sensors, seconds)
+            print(json.dumps({"sensors": sensors, "seconds": seconds, **index_cost(path)}, indent=1))
+        return
+    args.sensors = 100 if args.sensors is None else args.sensors
+    args.seconds = 4.0 if args.seconds is None else args.seconds
     msgs = messages(args.sensors)
     out = {"sensors": args.sensors, "bytes_per_frame_set": sum(len(p) for _, p in msgs) // args.sensors,
            "mcapsink_in_process_messages_per_s": round(baseline_sink(msgs, 20), 1), "trials": []}

@@ -48,7 +48,8 @@ from .bus import BusConfig, Shard, check_sensor_pattern, pattern_chunk, zenoh_re
 from .errors import ParameterError, PipelineError, WireError
 from .fairqueue import FairQueue
 from .histogram import LogHistogram
-from .wire import HEADER_LEN, MAGIC, HealthMsg, check_sensor_id
+from .memory import release_memory
+from .wire import HEADER_LEN, MAGIC, TOPICS, HealthMsg, check_sensor_id, forget_sensor_id
 
 log = logging.getLogger("qradar.node")
 
@@ -80,6 +81,9 @@ UNKNOWN_BUDGET_SCALE = 100
 SEQ = struct.Struct("<Q")
 SEQ_OFFSET = 8  # of the uint64 sequence number in the common frame header
 DEFAULT_SENSOR_EXPIRY_S = 60.0
+#: sensors forgotten (~12 KB of state each, freed into the C heap) before an expiry sweep
+#: hands the heap's free memory back to the system (pipeline.memory.release_memory)
+TRIM_AFTER_SENSORS = 64
 DEFAULT_SENSOR_QUEUE = 128
 DEFAULT_QUEUE_BYTES = 64 << 20
 #: a node publishes health in this many slices of its sensors spread over the health
@@ -206,6 +210,7 @@ class Node:
         self._n_publishers = 0
         self._encodings: dict[str, zenoh.Encoding] = {}
         self._retiring: list[zenoh.Publisher] = []
+        self._released = 0  # sensors forgotten since the C heap was last trimmed
         self._token = None
         self._last_log: dict[str, float] = {}
         self._tally: dict[str, dict[str, int]] = {}  # kind -> sender -> count since the last summary
@@ -438,24 +443,35 @@ class Node:
 
     def _expire(self) -> None:
         """Forget sensors silent for sensor_expiry_s; their publishers are undeclared one
-        period later (a worker may still hold one)."""
+        period later (a worker may still hold one), and once TRIM_AFTER_SENSORS sensors are
+        gone that way the C heap's free memory goes back to the system (:func:`release_memory`)."""
         retiring, self._retiring = self._retiring, []
         for pub in retiring:
             try:
                 pub.undeclare()
             except zenoh.ZError:
                 pass
+        retiring.clear()  # their memory is free once nothing holds them
+        if self._released >= TRIM_AFTER_SENSORS:
+            self._released = 0
+            release_memory()
         if self.sensor_expiry_s is None:
             return
         horizon = time.monotonic() - self.sensor_expiry_s
         with self._lock:
-            for sensor in [s for s, st in self.stats.items() if st.last_seen < horizon and s != NO_SENSOR]:
+            expired = [s for s, st in self.stats.items() if st.last_seen < horizon and s != NO_SENSOR]
+            for sensor in expired:
                 self._retired.add_counters(self.stats.pop(sensor))
                 gone = self._publishers.pop(sensor, {})
                 self._n_publishers -= len(gone)
                 self._retiring.extend(gone.values())
                 self.sensors_expired += 1
+                forget_sensor_id(sensor)
                 self.forget(sensor)
+            self._released += len(expired)
+            if expired and len(expired) >= len(self.stats):  # a dict never shrinks as it empties
+                self.stats = dict(self.stats)
+                self._publishers = dict(self._publishers)
 
     def forget(self, sensor_id: str) -> None:
         """Subclass hook (called with ``_lock`` held): drop per-sensor state of an expired sensor."""
@@ -570,6 +586,11 @@ class ProcessingNode(Node):
             with self._lock:
                 out["foreign_frames"] = self.foreign_frames
         return out
+
+    def forget(self, sensor_id: str) -> None:
+        """An expired sensor's keys leave the key cache (subclasses that override call this)."""
+        for topic in TOPICS:
+            self._key_info.pop(self.bus.key(sensor_id, topic), None)
 
     def subscription(self) -> str:
         """The key expression this node listens to."""

@@ -88,6 +88,12 @@ def check_sensor_id(sensor_id: str) -> str:
     return sensor_id
 
 
+def forget_sensor_id(sensor_id: str) -> None:
+    """Drop a sensor id from the cache of checked ids (a node forgot the sensor): the
+    next :func:`check_sensor_id` of it checks it again, and an expired id is not kept."""
+    _known_ids.discard(sensor_id)
+
+
 @dataclass(frozen=True, eq=False)
 class RawFrameMsg:
     """A full-resolution frame Gamma: ``data`` (M, 2) complex64, full-scale units."""

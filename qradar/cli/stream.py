@@ -149,7 +149,8 @@ def add_commands(sub) -> None:
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--split-size", type=pos_float, default=None, metavar="MB",
                    help="record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps "
-                   "each chunk's index in memory until its file ends, ~17 MB per GB recorded")
+                   "each chunk's index in memory until its file ends: at most 0.7 KB a chunk (one a second, or each MB) "
+                   "plus 70 B for each channel in it")
     write_error_options(p, "go on without it (the pipeline keeps running; the summary says so)")
     p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames per sensor")
     p.add_argument("--driver-in-process", action="store_true",
