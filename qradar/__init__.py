@@ -7,4 +7,31 @@ wire formats, zenoh nodes), ``replay`` the recordings (MCAP, player, re-processi
 Only this package knows all three: :mod:`qradar.cli` parses commands and delegates,
 :mod:`qradar.run` wires the main job (simulated sensors, driver, quantizer, localizer,
 recorder) together.
+
+:mod:`qradar.api` is the Python interface (docs/api.md); its names are reachable from
+``qradar`` itself (``qradar.open_recording``), imported on first use so that a command
+does not pay for them.
 """
+
+from importlib import metadata as _metadata
+
+try:
+    __version__ = _metadata.version("qradar")
+except _metadata.PackageNotFoundError:  # run from a source tree that was never installed
+    __version__ = "0+unknown"
+
+
+#: the names of qradar.api reachable as qradar.<name>
+_API = ("Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
+        "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
+        "QuantizerConfig", "DecoderConfig", "RadarConfig", "Detections", "SimScene", "load_scene",
+        "position_error_m")
+
+
+def __getattr__(name: str):
+    """The names of :mod:`qradar.api`, imported on first use (submodules import as usual)."""
+    if name in _API:
+        from importlib import import_module
+
+        return getattr(import_module("qradar.api"), name)
+    raise AttributeError(f"module 'qradar' has no attribute {name!r}")

@@ -33,6 +33,7 @@ from radar_driver.errors import RadarError
 from replay.errors import ReplayError
 
 from . import analysis, bringup, calibrate, record, security, sensor, stream, view
+from .. import __version__
 from .common import DefaultsFormatter
 
 log = logging.getLogger("qradar")
@@ -44,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=DefaultsFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging, tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"qradar {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     analysis.add_montecarlo(sub)  # the order of `qradar -h`, as before the split into groups
     sensor.add_commands(sub)
