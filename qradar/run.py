@@ -79,8 +79,13 @@ class Monitor:
     MAX_SENSORS = 1024
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
-                 live: TextIO | None = sys.stdout):
+                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False):
+        """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
+        with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
+        scene starts moving with its first measured frame, after its driver connected)."""
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
+        self.clock_per_sensor = clock_per_sensor
+        self._t0_by_sensor: dict[str, int] = {}
         self.live = live
         self.count: dict[str, int] = defaultdict(int)
         self.bytes: dict[str, int] = defaultdict(int)
@@ -140,7 +145,13 @@ class Monitor:
             with self._lock:
                 self.bad_targets += 1
             return
-        t_s = max(0.0, (msg.timestamp_ns - self.t0_ns) / 1e9)
+        t0_ns = self.t0_ns
+        if self.clock_per_sensor:
+            with self._lock:
+                if len(self._t0_by_sensor) >= self.MAX_SENSORS and msg.sensor_id not in self._t0_by_sensor:
+                    self._t0_by_sensor.clear()
+                t0_ns = self._t0_by_sensor.setdefault(msg.sensor_id, msg.timestamp_ns)
+        t_s = max(0.0, (msg.timestamp_ns - t0_ns) / 1e9)
         truth = self.truth.truth(t_s) if self.truth is not None else None
         est_r = np.array([[t["range_m"] for t in msg.targets]])
         est_a = np.array([[t["angle_deg"] for t in msg.targets]])
@@ -328,7 +339,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
-            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live).start()
+            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
             if cfg.driver_process:
@@ -690,7 +701,7 @@ def format_summary(s: dict) -> str:
                      + (f"; last write error: {rec['error']}" if rec["error"] else ""))
     counts = s.get("audit")
     if counts is not None:
-        lines.append(f"  audit       {format_counts(counts)} (--secure; README, Security)")
+        lines.append(f"  audit       {format_counts(counts)} (--secure; docs/security.md)")
     return "\n".join(lines)
 
 

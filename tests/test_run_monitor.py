@@ -86,3 +86,22 @@ def test_monitor_memory_is_flat_and_its_percentiles_are_right():
         assert mon.errors_m.percentile(q) == pytest.approx(np.percentile(err, q), rel=0.02)
     assert mon.errors_m.mean() == pytest.approx(err.mean(), rel=1e-6)
     assert mon.latency_ms.mean() == pytest.approx(lat.mean(), rel=1e-3)  # published_ns is rounded to 1 ns
+
+
+@pytest.mark.parametrize("per_sensor", [True, False])
+def test_a_moving_targets_truth_starts_with_each_simulated_sensors_first_frame(per_sensor):
+    """A simulated K-MD2's scene starts moving with its first measured frame, seconds
+    after the run started (its driver connects first): the monitor takes the truth of a
+    frame at its time since that sensor's first frame; a real sensor's at the run's start."""
+    scene = resolve_scene("walker")
+    assert scene.truth(0.0) != scene.truth(2.0)
+    start_ns = T0_NS - 2_000_000_000  # the run started 2 s before the sensor's first frame
+    mon = Monitor(BusConfig(), None, scene, start_ns, live=None, clock_per_sensor=per_sensor)
+    for seq in range(40):  # 2 s of frames, each with the scene's exact truth at its own time
+        t_s = seq * 0.05
+        mon.on_message("radar/w0/targets", TargetsMsg("w0", seq, T0_NS + seq * 50_000_000, 7, "cml", 2, "quantized",
+                                                      scene.truth(t_s), T0_NS + seq * 50_000_000 + 1).to_json())
+    if per_sensor:
+        assert mon.errors_m.percentile(99) < 1e-3
+    else:  # 2 s ahead of the scene: the walker's own 2 s of walking
+        assert mon.errors_m.percentile(90) > 1.0
