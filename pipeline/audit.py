@@ -39,7 +39,7 @@ are the policy deciding who may read, not someone trying to write.
 
 The TRACE lines are the cost: zenoh writes one for every message it lets through too
 (ingress, and egress once per subscriber), ~5 µs of a core each with their reading here
-(README, Security, *Audit log*); a client without a listener does without them (:func:`start`).
+(docs/security.md, *Audit log*); a client without a listener does without them (:func:`start`).
 """
 
 from __future__ import annotations

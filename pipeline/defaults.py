@@ -9,7 +9,7 @@ repeats their values (``tests/test_defaults.py`` parses every command's options)
 The default is the decoder and the dither scale that give the best result **off the
 range grid** (real reflectors are never on the 0.6 m grid): ``cml`` at its best alpha on
 the committed off-grid chamber recording (``qradar reprocess recordings/chamber.mcap
---alpha 0:1:0.05 --algos cml``) and on the off-grid Monte Carlo with sensor noise (README,
+--alpha 0:1:0.05 --algos cml``) and on the off-grid Monte Carlo with sensor noise (docs/science.md,
 "Off the grid" and "Recording, replay, re-processing", for the figures and the commands).
 
 The Monte Carlo (``qradar montecarlo``) is not one of these commands: its defaults are the
@@ -26,7 +26,7 @@ DEFAULT_ALGO = "cml"
 #: error over ten dither seeds, alpha in steps of 0.05: 0.228 m, 0.232 m at 0.5, 0.250 m at
 #: 0.65, 0.603 m at 1; seed 0 alone is best at 0.65, a draw of the dither) and on the
 #: off-grid Monte Carlo with sensor noise 0.1 (K = 1 median 0.304 m; 0.320 m at 0.65, 0.376 m
-#: at 1); without sensor noise the full dither is best (README). pbp: the paper's best for
+#: at 1); without sensor noise the full dither is best (docs/science.md). pbp: the paper's best for
 #: its noisy chamber (Fig. 5a); qiht: the full dither (its likelihood stage assumes a dither
 #: spanning the cell)
 BEST_ALPHA = {"pbp": 0.55, "qiht": 1.0, "cml": 0.45}

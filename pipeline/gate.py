@@ -2,7 +2,7 @@
 searches for targets (issue 23).
 
 A real FMCW front end puts its strongest return within the first range bin or two:
-TX-to-RX coupling and the radome, at a few tens of centimetres (DESIGN.md, "A real front
+TX-to-RX coupling and the radome, at a few tens of centimetres (docs/design.md, "A real front
 end is not the paper's model"). A decoder that searches the whole range axis reports it
 as a target, and with a fixed K it takes a real target's place. The gate keeps it out:
 
@@ -18,7 +18,7 @@ complex samples is circular (bin N - 1 is next to bin 0: a return at 0.3 m leaks
 top bins as much as into bin 2), as many at its top end: ``[2 dR, N dR - 2 dR]``, that is
 1.2 m to 152.4 m for the K-MD2. The live localizer, ``qradar run`` and ``qradar
 reprocess`` use it; the library functions and the Monte Carlo search the whole axis unless
-given a gate (the paper's protocol has no leakage; README, "The range gate").
+given a gate (the paper's protocol has no leakage; docs/science.md, "The range gate").
 
 Only the gate's ends are stored, in metres; :meth:`RangeGate.check` tests them against a
 radar configuration (``0 <= min < max <= N dR``, at least one range bin inside).

@@ -1,4 +1,4 @@
-"""The paper's Monte Carlo (Sec. 5) with the protocol of DESIGN.md.
+"""The paper's Monte Carlo (Sec. 5) with the protocol of docs/design.md.
 
 Every run draws K targets in a 40 x 40 polar grid of cells (distinct range cells,
 range centres snapped to the range grid unless ``off_grid``), uniform phases, the

@@ -1,7 +1,7 @@
 """The receiver front end of a real sensor: what stands between the paper's signal model
 (eq. 2, :mod:`.model`) and the ADC words. The default :class:`FrontEnd` is the ideal
 sensor (it changes nothing); a scene's ``[frontend]`` table (:mod:`.scene`) sets the
-impairments a K-MD2 in a chamber shows (DESIGN.md, "A real front end is not the paper's
+impairments a K-MD2 in a chamber shows (docs/design.md, "A real front end is not the paper's
 model").
 
 The chain, per receiver p (1, 2) and measurement m, all in full-scale units of the ADC::

@@ -3,7 +3,7 @@ paper's signal model (eq. 2), batched over scenes.
 
 Conventions held here and nowhere else:
 
-* **Angle sign** (DESIGN.md): antenna 2 sees ``G = exp(+i 2 pi f0 d sin(theta) / c)``
+* **Angle sign** (docs/design.md): antenna 2 sees ``G = exp(+i 2 pi f0 d sin(theta) / c)``
   relative to antenna 1, so a positive angle means the phase on antenna 2 *leads*
   antenna 1, and ``theta_hat = arcsin(c * angle(x2 * conj(x1)) / (2 pi f0 d))``.
   See :func:`antenna_phase_rad` and :func:`angle_from_antennas_rad`.

@@ -296,7 +296,7 @@ def test_view_config_and_endpoints_are_checked():
 
 
 def test_the_committed_layout_shows_topics_the_view_serves():
-    """docs/foxglove-layout.json (README: "Live view in Foxglove") names only topics and
+    """docs/foxglove-layout.json (docs/stream.md: "Live view in Foxglove") names only topics and
     frames the view serves for ``qradar run``'s sensor kmd2-0."""
     layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
     panels = layout["configById"]

@@ -1,4 +1,4 @@
-"""The paper's claims (Sec. 5) on Monte Carlo runs of the DESIGN.md protocol."""
+"""The paper's claims (Sec. 5) on Monte Carlo runs of the docs/design.md protocol."""
 
 import json
 import subprocess

@@ -149,3 +149,110 @@ def test_a_run_on_a_sensor_it_does_not_simulate_works_as_written(tmp_path):
     assert frames and int(frames.group(1)) >= 100 and len(set(frames.groups())) == 1, out
     median = float(re.search(r"error       median ([0-9.]+) m", out).group(1))
     assert median < 0.5 and "lab1 #" in out and "Traceback" not in err
+
+
+# -- one-shot recipes: each line a command that ends, run in order ----------------------------
+def steps(name: str) -> list[str]:
+    """The command lines of README's block marked ``<!-- recipe-steps: name -->``."""
+    m = re.search(rf"<!-- recipe-steps: {re.escape(name)} -->\n```sh\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no recipe-steps {name!r}"
+    return [re.sub(r"\s+#.*$", "", line).strip() for line in m.group(1).splitlines() if line.strip()]
+
+
+def run_step(line: str, tmp: Path, timeout_s: float = 300) -> subprocess.CompletedProcess:
+    """One line as a user types it (``qradar`` is .venv/bin/qradar), in ``tmp``, with the
+    repository's recordings/ reachable under the same path."""
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    out = subprocess.run(["bash", "-c", line], cwd=tmp, env=env, stdin=subprocess.DEVNULL, capture_output=True,
+                         text=True, timeout=timeout_s)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, (line, out.returncode, out.stderr[-3000:])
+    return out
+
+
+@pytest.fixture
+def workdir(tmp_path: Path) -> Path:
+    """A folder like a checkout's: recordings/ (the committed ones) and out/."""
+    (tmp_path / "recordings").symlink_to(ROOT / "recordings")
+    return tmp_path
+
+
+@pytest.mark.slow
+def test_the_simulated_sensor_recipe_works_as_written(workdir):
+    lines = steps("simulated")
+    first = run_step(lines[0], workdir)
+    median = float(re.search(r"error       median ([0-9.]+) m", first.stdout).group(1))
+    assert median < 0.5, first.stdout  # the calibrated chamber
+    summary = json.loads(run_step(lines[1], workdir).stdout)
+    assert summary["frames_targets"] > 100 and summary["sensors"] == 3, summary
+    assert summary["position_error_m"]["median"] < 0.5, summary  # the walker's truth follows each sensor's clock
+    run_step(lines[2], workdir)
+    assert (workdir / "out" / "mc" / "summary.json").exists()
+    assert len(lines) == 3
+
+
+@pytest.mark.slow
+def test_the_chamber_recipe_works_as_written_on_a_simulated_sensor(workdir):
+    """Each line as written, /dev/ttyUSB0 being a simulated K-MD2 of the scene that step
+    asks for: the empty chamber, the reflector at 3.1 m, then the chamber."""
+    (workdir / "measured.toml").write_text(truth_file("measured.toml"))
+    lines = steps("chamber")
+    scenes = ["--scene chamber --empty", "--scene chamber-reflector", None, "--scene chamber"]
+    assert len(lines) == len(scenes)
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    out = None
+    for line, scene in zip(lines, scenes):
+        if scene is None:
+            run_step(line, workdir)
+            continue
+        link = workdir / f"kmd2-{len(line)}"
+        sim = subprocess.Popen(["bash", "-c", f"exec qradar sim {scene} --link {link} --hold-clock-when-late"],
+                               cwd=workdir, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 20
+            while not link.exists() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            out = run_step(line.replace("/dev/ttyUSB0", str(link)), workdir)
+        finally:
+            sim.send_signal(signal.SIGTERM)
+            sim.communicate(timeout=20)
+    assert json.loads((workdir / "cal.json").read_text())["entries"]
+    median = float(re.search(r"error       median ([0-9.]+) m", out.stdout).group(1))
+    assert median < 0.5, out.stdout  # calibrated: 2 m without
+
+
+@pytest.mark.slow
+def test_the_reprocess_recipe_works_as_written(workdir):
+    for line in steps("reprocess"):
+        run_step(line, workdir)
+    result = json.loads((workdir / "out" / "sweep" / "results.json").read_text())
+    assert set(result["by_algo"]) == {"pbp", "cml"}
+    assert (workdir / "out" / "sweep" / "alpha_sweep.png").stat().st_size > 0
+    assert (workdir / "out" / "fixed.mcap").exists()
+
+
+@pytest.mark.slow
+def test_the_foxglove_recipe_works_as_written(workdir):
+    (line,) = steps("foxglove")
+    port = free_port()
+    out = run_step(line.replace("8765", str(port)), workdir)
+    assert f"ws://127.0.0.1:{port}" in out.stdout + out.stderr
+
+
+@pytest.mark.slow
+def test_the_security_recipe_works_as_written(workdir):
+    lines = steps("security")
+    run_step(lines[0], workdir)
+    listed = run_step(lines[1], workdir).stdout
+    assert "sensor-kmd2-0" in listed and "router" in listed
+    out = run_step(lines[2], workdir).stdout
+    assert "0 refused_handshakes" in out and "frames" in out
+
+
+def test_the_python_recipe_works_as_written(workdir):
+    m = re.search(r"<!-- recipe-python: api -->\n```python\n(.*?)```", README.read_text(), re.S)
+    assert m, "README.md has no recipe-python api"
+    out = subprocess.run([sys.executable, "-c", m.group(1)], cwd=workdir, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("(106, 2)")

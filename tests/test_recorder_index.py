@@ -1,4 +1,4 @@
-"""What a recording's index costs, as the README documents it, checked on a real recording
+"""What a recording's index costs, as docs/recording.md documents it, checked on a real recording
 (``qradar run --sensors 3 --record``) with the measurement of ``benchmarks/bench_record.py
 --index``: the index records in the file and what the ``mcap`` writer keeps in memory
 until the file ends, per chunk (issue 28: 2-4 KB a chunk, where ~1 KB was documented)."""
@@ -19,12 +19,12 @@ def bench_record():
 
 def documented() -> tuple[tuple[int, int, int], tuple[float, int]]:
     """((B a message, B a channel, B a chunk) in the file, (KB a chunk, B a channel) in
-    memory), as the README states them."""
-    text = (ROOT / "README.md").read_text()
+    memory), as docs/recording.md states them."""
+    text = (ROOT / "docs" / "recording.md").read_text()
     text = " ".join(text.split())  # the sentences wrap
     f = re.search(r"\*\*(\d+) B a message plus (\d+) B a channel plus (\d+) B a chunk\*\*", text)
     m = re.search(r"\*\*at most ([\d.]+) KB a chunk plus (\d+) B a channel in it\*\*", text)
-    assert f and m, "the README no longer states the index's cost in the words this test reads"
+    assert f and m, "docs/recording.md no longer states the index's cost in the words this test reads"
     return tuple(int(x) for x in f.groups()), (float(m.group(1)), int(m.group(2)))
 
 

@@ -24,7 +24,7 @@ def add_montecarlo(sub) -> None:
     p = sub.add_parser(
         "montecarlo",
         help="reproduce the paper's Monte Carlo (Sec. 5, Figs. 2-4)",
-        description="Monte Carlo of PBP localization with the DESIGN.md protocol; writes "
+        description="Monte Carlo of PBP localization with the protocol of docs/design.md; writes "
         "summary.json, maps.npz and polar error maps (PNG) to --out.",
     )
     p.add_argument("--K", dest="ks", type=pos_int, nargs="+", default=[1, 2], help="sparsities (default 1 2)")
