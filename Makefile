@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast js-deps bench montecarlo-quick montecarlo-paper clean
+.PHONY: run test test-fast js-deps bench montecarlo-quick montecarlo-paper docs-figures clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
@@ -28,6 +28,10 @@ run: $(STAMP)
 # A short Monte Carlo of the paper's four schemes.
 montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
+
+# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them).
+docs-figures: $(STAMP)
+	$(PY) docs/figures/regenerate.py
 
 # The whole suite, slow tests included (CI runs this).
 test: $(STAMP) $(JS_STAMP)
