@@ -78,7 +78,7 @@ def add_montecarlo(sub) -> None:
 
 def add_reprocess(sub) -> None:
     p = sub.add_parser("reprocess", help="re-quantize and re-localize a recording's raw frames offline (alpha sweep)")
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=Path, help="a qradar MCAP recording with raw frames")
     p.add_argument("--alpha", default="0:1:0.05", help="start:stop:step, a,b,c or one value (default 0:1:0.05)")
     p.add_argument("--bits", type=pos_int, default=1, help=BITS_HELP)
     count_options(p, None, "targets (default: the truth's count)")

@@ -33,12 +33,12 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=Path, help="the cut-short MCAP file (read, never changed)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=Path, help="a qradar MCAP recording")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rate", type=float, default=1.0, help="speed factor of the original timing (default 1)")
     g.add_argument("--fast", action="store_true", help="as fast as subscribers take it (publishers block, no drops)")

@@ -30,7 +30,7 @@ def add_commands(sub) -> None:
 
     q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
                       "viewer")
-    q.add_argument("dir", type=Path)
+    q.add_argument("dir", type=Path, help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each")
     q.add_argument("--sensors", type=names, action="extend", default=None, metavar="ID[,ID...]",
                    help="sensor ids, one sensor identity each (default: sim0, the first of `qradar source`)")
     _cert_options(q)
@@ -38,8 +38,8 @@ def add_commands(sub) -> None:
     q.set_defaults(func=cmd_init)
 
     q = ss.add_parser("add", help="issue one more identity with the CA of DIR (restart the router to apply)")
-    q.add_argument("dir", type=Path)
-    q.add_argument("--role", choices=ROLES, required=True)
+    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
+    q.add_argument("--role", choices=ROLES, required=True, help="what the identity may publish and subscribe")
     q.add_argument("--id", type=names, action="extend", default=None, metavar="ID[,ID...]",
                    help="sensor role: the sensor id(s) it publishes; other roles: a label, the name becomes "
                    "<role>-<id>")
@@ -51,14 +51,14 @@ def add_commands(sub) -> None:
     q.set_defaults(func=cmd_add)
 
     q = ss.add_parser("remove", help="withdraw an identity from the policy of DIR (restart the router to apply)")
-    q.add_argument("dir", type=Path)
-    q.add_argument("name")
+    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
+    q.add_argument("name", help="the identity's name, as `qradar security list` shows it")
     q.set_defaults(func=cmd_remove)
 
     q = ss.add_parser("list", help="the identities of DIR and what each may publish")
-    q.add_argument("dir", type=Path)
+    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
     q.add_argument("--prefix", default="radar", help="key prefix")
-    q.add_argument("--json", action="store_true")
+    q.add_argument("--json", action="store_true", help="print the identities as JSON")
     q.set_defaults(func=cmd_list)
     for q in ss.choices.values():  # as build_parser does for the first level
         q.formatter_class = DefaultsFormatter
