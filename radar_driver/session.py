@@ -44,7 +44,7 @@ import termios
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from enum import Enum
 from typing import Callable, Iterator
 
@@ -54,7 +54,7 @@ import serial
 from .devices import cmdline, device_identity, lock_holders, port_holders
 from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout
 from .model import RadarConfig
-from .profile import CHIRP_SELECT, DEFAULT_PROFILE, SensorProfile, resolve_profile
+from .profile import CHIRP_SELECT, SensorProfile, resolve_profile
 from .protocol import (
     BAUD_SWITCH_SETTLE_S,
     Done,

@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.cml import cml
 from pipeline.decode import DecoderConfig, decode
 from pipeline.errors import ParameterError
 from pipeline.localize import Detections, cfar_threshold, localize, match_detections, sequential_present

@@ -325,7 +325,6 @@ def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free
     assert totals["source"]["frames_out"] == frames
     with col.lock:
         keys = {k for k, _ in col.items}
-        payloads = [p for _, p in col.items]
     assert keys <= {"radar/s0/raw", "radar/s0/quantized", "radar/s0/targets", "radar/s0/health"}, keys
     forged = [(k, p[:80]) for k, p in col.items if b"forged" in p or b'"range_m":99.0' in p or b"evil" in p]
     # only health, which every role may publish for every sensor it serves (a viewer: all), and which no

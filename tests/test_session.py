@@ -290,7 +290,7 @@ def test_an_error_without_reconnect_says_goodbye_first(link):
 
 def test_one_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(link, caplog):
     faults = SimFaults(disconnect_after_frames=3, reconnect_after_s=1.0)
-    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults) as sim:
+    with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults):
         with caplog.at_level("WARNING", logger="qradar.driver"), session(link, backoff_s=0.1, max_backoff_s=0.2) as s:
             frames = list(s.frames(6))
     assert len(frames) == 6 and s.counters.reconnects == 1
