@@ -342,8 +342,8 @@ class FoxgloveView(ProcessingNode):
                     self._targets(sensor, key, payload)
                 elif topic == "quantized":
                     self._profile(sensor, key, payload)
-                elif topic == "health":
-                    self._health(sensor, key, payload)
+                elif topic == "health":  # queued under no sensor when the view has none of its state yet
+                    self._health(self.bus.sensor_of(key), key, payload)
             except (PipelineError, RadarError) as exc:
                 self.count_error(sensor, exc)
 
