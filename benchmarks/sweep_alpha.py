@@ -88,7 +88,7 @@ def report(rows: list[dict], args) -> None:
         for sigma in args.sigmas:
             sel = {r["scheme"]: r for r in rows if r["sigma"] == sigma and r["K"] == k}
             cells = [f"{sel[n]['median_m']:.3f}" + (f"/{sel[n]['weak_mean_m']:.2f}" if k > 1 else "") for n in names]
-            fixed = [n for n in names if n.startswith(("dither", "nodither")) and "auto" not in n]
+            fixed = [n for n in names if n.startswith(("dither", "nodither"))]
             best = min(fixed, key=lambda n: sel[n]["median_m"])
             rho = next(iter(sel.values()))["rho"]
             print(f"{sigma:>6g} {rho:>7.4f} " + " ".join(f"{c:>14}" for c in cells) + f"  {best}")
@@ -130,6 +130,48 @@ def plot(rows: list[dict], args) -> None:
     path = args.out / "sweep_alpha.png"
     fig.savefig(path, dpi=110)
     print(f"\nwrote {path} and {args.out / 'sweep.json'}")
+    plot_rows(rows, args)
+
+
+def plot_rows(rows: list[dict], args) -> None:
+    """The Monte Carlo's noise rows: error against sigma for each 1-bit scheme (alpha auto
+    bold), cml on the unquantized frames (black) and twice it (the issue's line, dotted)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sigmas = [x for x in args.sigmas if x > 0]
+    panels = [(k, "median_m", "median") for k in args.ks] + ([(2, "weak_mean_m", "weakest target's mean")]
+                                                            if 2 in args.ks else [])
+    names = list(dict.fromkeys(r["scheme"] for r in rows))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.4), squeeze=False)
+    for ax, (k, key, what) in zip(axes[0], panels):
+        def line(name):
+            return [next(r[key] for r in rows if r["sigma"] == x and r["K"] == k and r["scheme"] == name)
+                    for x in sigmas]
+        ref = line("32bit_m512")
+        ax.plot(sigmas, ref, "k-o", ms=4, label="cml, unquantized")
+        ax.plot(sigmas, [2 * v for v in ref], "k:", label="2 × unquantized")
+        for name in names:
+            if name == "32bit_m512":
+                continue
+            auto = "auto" in name
+            ax.plot(sigmas, line(name), "-o" if auto else "--o", ms=4 if auto else 3, lw=2.2 if auto else 1,
+                    color="C3" if auto else None, label=f"1-bit, α {'auto' if auto else _alpha(name):g}"
+                    if not auto else "1-bit, α auto")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("noise σ (std of I and of Q, strongest amplitude 1)")
+        ax.set_ylabel(f"{what} position error, m")
+        ax.set_title(f"K = {k}, {what}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"cml, M = 512, continuous (off-grid) scenes, {args.runs} runs a point", fontsize=10)
+    fig.tight_layout()
+    path = args.out / "rows.png"
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
 
 
 def replot(path: Path) -> None:

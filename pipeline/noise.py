@@ -180,6 +180,10 @@ class NoiseTracker:
             out["alpha"] = st.alpha
         return out
 
+    def snapshot(self) -> dict[str, dict]:
+        """:meth:`health` of every sensor tracked, by sensor id."""
+        return {sid: self.health(sid) for sid in list(self._sensors)}
+
     def forget(self, sensor_id: str) -> None:
         self._sensors.pop(sensor_id, None)
 

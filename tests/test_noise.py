@@ -186,3 +186,58 @@ def test_a_bad_alpha_is_one_line(cmd):
                        timeout=60, stdin=subprocess.DEVNULL)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].endswith("--alpha: alpha='1.5' must be 'auto' or a number in [0, 1]")
+
+
+def test_the_monte_carlo_auto_alpha_scheme():
+    from pipeline.montecarlo import MonteCarloConfig, Scheme, measure
+
+    cfg = RadarConfig()
+    s = Scheme.parse("dither_aauto_m512", cfg)
+    assert s.adaptive and s.bits == 1
+    with pytest.raises(ParameterError, match="whole ramps"):
+        Scheme.parse("dither_aauto_m16", cfg)
+    with pytest.raises(ParameterError, match="decoder_noise"):
+        MonteCarloConfig(runs=1, decoder_noise="oracle")
+    rng = np.random.default_rng(4)
+    _, _, r, a, x = draw_scenes(64, 1, rng, cfg, scene=SceneSpec(ranges="continuous"))
+    sigma = np.where(np.arange(64) < 32, 0.0, 0.3)  # (the Monte Carlo adds one sigma; here two halves)
+    gamma = simulate_frames(r, a, x, cfg)
+    noisy = gamma + sigma[:, None, None] * (rng.standard_normal(gamma.shape) + 1j * rng.standard_normal(gamma.shape))
+    z, idx, xi, delta, est = measure(s, lambda _: noisy, 64, np.random.default_rng(1), cfg)
+    alpha = auto_alpha(est, delta)
+    assert np.all(alpha[:32] == 1.0) and np.all(alpha[32:] < 0.5)
+    half = np.maximum(np.abs(xi.real), np.abs(xi.imag)).max(axis=(1, 2)) / delta
+    assert np.all(half <= alpha / 2) and np.all(half > 0.9 * alpha / 2)  # each run's dither spans its alpha
+
+
+def test_the_edge_quantizer_publishes_the_noise_and_forgets_an_expired_sensor(bus, zenoh_session):
+    """drive --quantize's path in process: a source node quantizing with alpha auto puts the
+    estimate in its sensor's health (the walker scene's noise_std, within 5 %), and a
+    quantize node forgets a sensor's noise when the sensor expires."""
+    from pipeline.nodes import QuantizeNode, SourceNode, run_nodes
+    from radar_driver.source import SimSourceConfig, SimulatedSource
+
+    session = zenoh_session
+    col = Collector(session, "radar/**")
+    scene = resolve_scene("walker")
+    src = SourceNode(bus, SimulatedSource(SimSourceConfig(scene, sensors=1, rate_hz=200, frames=60)),
+                     session=session, quantizer=QuantizerConfig(alpha="auto"), health_period_s=0.2)
+    run_nodes([src], duration_s=2.0)
+    hs = [decode_health(p) for p in col.of("/health")]
+    hs = [h for h in hs if h.node == "source" and h.extra.get("noise_frames", 0) >= 40]
+    assert hs, "no health with the noise estimate"
+    extra = hs[-1].extra
+    assert abs(extra["noise_sigma"] / scene.noise_std - 1) < 0.05 and 0 < extra["alpha"] <= 1, extra
+    qs = [decode_quantized(p) for p in col.of("/quantized")]
+    assert len(qs) == 60 and qs[-1].alpha == pytest.approx(extra["alpha"], abs=0.02)
+
+    q = QuantizeNode(bus, QuantizerConfig(alpha="auto"), session=session, health_period_s=0.1,
+                     sensor_expiry_s=0.3).start()
+    try:
+        frame = offgrid_frames(1, 1, 0.05, 2, seed=1)[0].astype(np.complex64)
+        session.put("radar/gone/raw", encode_raw(RawFrameMsg("gone", 0, time.time_ns(), RadarConfig().config_id(),
+                                                             frame)))
+        wait_until(lambda: len(q.noise) == 1, 10, "the sensor's noise tracked")
+        wait_until(lambda: len(q.noise) == 0 and q.sensors_expired == 1, 10, "the expired sensor forgotten")
+    finally:
+        q.stop()
