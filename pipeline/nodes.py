@@ -28,7 +28,8 @@ from .gate import RangeGate
 from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
 from .noise import NoiseTracker
-from .quantize import AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seeds
+from .quantize import (AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames,
+                       sensor_dither_seeds)
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,
@@ -175,17 +176,17 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
                 return
             frames, kept = frames[good], kept.take(good)
     seed = sensor_dither_seeds(config.dither_seed, kept.sensor_id)
-    sigma = None
-    if config.alpha == AUTO_ALPHA:
-        if noise is None:
-            raise ParameterError("alpha 'auto' needs a NoiseTracker (pipeline.nodes.noise_tracker)")
-        sigma = noise.update(kept.sensor_id, frames)
+    if config.alpha == AUTO_ALPHA and noise is None:
+        raise ParameterError("alpha 'auto' needs a NoiseTracker (pipeline.nodes.noise_tracker)")
 
     def compute(idx):
-        q = quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx],
-                            noise_sigma=None if sigma is None else sigma[idx])
-        if noise is not None:
-            noise.set_alpha([kept.sensor_id[i] for i in idx.tolist()], q.alpha)
+        sigma = None
+        if config.alpha == AUTO_ALPHA:  # (inside: a frame the estimate fails on loses only itself)
+            ids = [kept.sensor_id[i] for i in idx.tolist()]
+            sigma = noise.update(ids, frames[idx])
+        q = quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx], noise_sigma=sigma)
+        if sigma is not None:
+            noise.set_alpha(ids, q.alpha)
         return q
 
     def failed(i, exc):
