@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -35,10 +36,14 @@ MAIN_LOBE_BINS = 5
 _BH4 = (0.35875, 0.48829, 0.14128, 0.01168)
 
 
+@lru_cache(maxsize=8)
 def _window(n: int) -> np.ndarray:
+    """The periodic 4-term Blackman--Harris window of n points (read-only)."""
     k = 2.0 * np.pi * np.arange(n) / n  # periodic: the FFT's
     a0, a1, a2, a3 = _BH4
-    return a0 - a1 * np.cos(k) + a2 * np.cos(2 * k) - a3 * np.cos(3 * k)
+    w = a0 - a1 * np.cos(k) + a2 * np.cos(2 * k) - a3 * np.cos(3 * k)
+    w.flags.writeable = False
+    return w
 
 
 def estimate_noise_sigma(frames: np.ndarray, samples_per_ramp: int) -> np.ndarray:
@@ -63,18 +68,21 @@ def estimate_noise_sigma(frames: np.ndarray, samples_per_ramp: int) -> np.ndarra
         ramps = np.diff(ramps, axis=1)
         scale = 2.0
     w = _window(n)
-    spec = np.fft.fft(ramps * w[None, None, :, None], axis=2)
-    power = spec.real ** 2 + spec.imag ** 2  # (B, R', N, 2)
+    # (B, R', 2, N): the FFT along the last, contiguous axis
+    spec = np.fft.fft(np.ascontiguousarray(ramps.transpose(0, 1, 3, 2)) * w, axis=-1)
+    power = spec.real ** 2 + spec.imag ** 2
     per_bin = 2.0 * scale * float(np.sum(w * w))  # E|X|^2 of a noise bin over sigma^2
     b = f.shape[0]
-    first = np.quantile(power.reshape(b, -1), NOISE_QUANTILE, axis=1) / -math.log1p(-NOISE_QUANTILE)
+    flat = power.reshape(b, -1)
+    kq = int(NOISE_QUANTILE * (flat.shape[1] - 1))
+    first = np.partition(flat, kq, axis=1)[:, kq] / -math.log1p(-NOISE_QUANTILE)
     # the bins of targets: above PEAK_FACTOR times the first guess in any ramp or antenna,
     # widened by the window's main lobe; the mean of the others is the noise's
-    peak = (power > PEAK_FACTOR * first[:, None, None, None]).any(axis=(1, 3))  # (B, N)
-    near = peak.copy()
-    for shift in range(1, MAIN_LOBE_BINS + 1):
-        near |= np.roll(peak, shift, axis=1) | np.roll(peak, -shift, axis=1)
-    keep = ~near[:, None, :, None]
+    peak = (power > PEAK_FACTOR * first[:, None, None, None]).any(axis=(1, 2))  # (B, N)
+    h = MAIN_LOBE_BINS  # near: a peak within h bins, circularly (a running sum of the padded peaks)
+    run = np.concatenate([peak[:, n - h:], peak, peak[:, :h]], axis=1).cumsum(axis=1, dtype=np.int32)
+    near = (run[:, 2 * h:] - np.concatenate([np.zeros((b, 1), np.int32), run[:, :n - 1]], axis=1)) > 0
+    keep = ~near[:, None, None, :]
     count = keep.sum(axis=(1, 2, 3)) * power.shape[1] * 2
     total = np.where(keep, power, 0.0).sum(axis=(1, 2, 3))
     mean = np.where(count > 0, total / np.maximum(count, 1), first)
