@@ -178,6 +178,9 @@ def test_qradar_quantize_alpha_auto_publishes_the_noise_and_quantizes_with_its_a
         proc.terminate()
         out, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])  # its summary lists the sensors' noise too
+    assert set(summary["noise"]) == set(noise)
+    assert all(abs(summary["noise"][s]["noise_sigma"] / sigma - 1) < 0.05 for s, sigma in noise.items())
 
 
 @pytest.mark.parametrize("cmd", [["quantize"], ["run"], ["drive", "--quantize"], ["source", "--quantized"]])
