@@ -390,7 +390,8 @@ def _symmetric_index(size: int) -> np.ndarray:
 
 
 def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int,
-           decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None) -> Detections:
+           decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None,
+           noise_sigma=None) -> Detections:
     """Targets of a batch of frames with the configured decoder: the one place where a
     decoder is chosen.
 
@@ -401,7 +402,8 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable. ``cml``
     decodes quantized frames (with or without dither) and unquantized ones (least
     squares), of whole ramps. Every decoder searches only inside ``decoder.gate``
-    (checked against ``config``; None: the whole range axis)."""
+    (checked against ``config``; None: the whole range axis). ``noise_sigma``: cml's
+    sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that)."""
     z = np.asarray(z)
     pfa = decoder.pfa if decoder.auto_k else None
     gate = None if decoder.gate is None else decoder.gate.check(config)
@@ -409,7 +411,7 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
         return localize(z, config, k, indices, pfa, gate)
     if decoder.algo == Algo.CML and indices is None:
         return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma, pfa=pfa, gate=gate).detections(config)
+                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa, gate=gate).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
             return localize(z, config, k, indices, pfa, gate)

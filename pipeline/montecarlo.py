@@ -37,6 +37,7 @@ from .errors import ParameterError, PipelineError
 from .decode import ALGOS, Algo, DecoderConfig, decode
 from .gate import RangeGate, check_gate
 from .localize import DEFAULT_PFA, check_pfa, match_detections, position_error_m
+from .noise import auto_alpha, estimate_noise_sigma
 from .progress import Progress
 from .quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -47,25 +48,33 @@ CHUNK_RUNS = 4096
 WITHIN_DEG = 60.0
 OVER_M = 5.0
 
-_SCHEME_RE = re.compile(r"^(nodither|dither|32bit)(?:_a([01](?:\.[0-9]+)?))?_m([1-9][0-9]*)$")
+_SCHEME_RE = re.compile(r"^(nodither|dither|32bit)(?:_a([01](?:\.[0-9]+)?|auto))?_m([1-9][0-9]*)$")
+#: how the cml decoder learns the sensor noise: ``codes`` (it estimates it from the codes,
+#: what the live localizer does), ``true`` (the scene's noise_sigma), ``frames`` (the
+#: quantizer's estimate from the full frames, :func:`pipeline.noise.estimate_noise_sigma`)
+DECODER_NOISE = ("codes", "true", "frames")
 
 
 @dataclass(frozen=True)
 class Scheme:
-    """A measurement scheme: ``bits`` 1 (quantized, ``alpha`` dither) or None (32-bit)."""
+    """A measurement scheme: ``bits`` 1 (quantized, ``alpha`` dither) or None (32-bit).
+    ``adaptive``: alpha per run from the noise the quantizer estimates in the frame
+    (:func:`pipeline.noise.auto_alpha`; ``alpha`` is then nan)."""
 
     name: str
     n_measurements: int
     bits: int | None
     alpha: float
+    adaptive: bool = False
 
     @classmethod
     def parse(cls, name: str, config: RadarConfig) -> "Scheme":
         m = _SCHEME_RE.match(name)
-        if not m or (m.group(2) is not None and (m.group(1) != "dither" or not 0 < float(m.group(2)) <= 1)):
+        if not m or (m.group(2) is not None and (m.group(1) != "dither" or (
+                m.group(2) != "auto" and not 0 < float(m.group(2)) <= 1))):
             raise ParameterError(
                 f"scheme {name!r} is not of the form dither_m<M>, dither_a<alpha>_m<M> (0 < alpha <= 1), "
-                "nodither_m<M> or 32bit_m<M>"
+                "dither_aauto_m<M> (alpha from the noise), nodither_m<M> or 32bit_m<M>"
             )
         kind, n_meas = m.group(1), int(m.group(3))
         n = config.samples_per_ramp
@@ -75,6 +84,11 @@ class Scheme:
             )
         if kind == "32bit":
             return cls(name, n_meas, None, 0.0)
+        if m.group(2) == "auto":
+            if n_meas % n:
+                raise ParameterError(f"scheme {name!r}: auto alpha estimates the noise on whole ramps; M={n_meas} "
+                                     f"is not a multiple of N={n}")
+            return cls(name, n_meas, 1, float("nan"), adaptive=True)
         alpha = float(m.group(2)) if m.group(2) is not None else 1.0 if kind == "dither" else 0.0
         return cls(name, n_meas, 1, alpha)
 
@@ -189,8 +203,11 @@ class MonteCarloConfig:
     scene: SceneSpec = field(default_factory=SceneSpec)
     count: CountSpec = field(default_factory=CountSpec)
     gate: RangeGate | None = None
+    decoder_noise: str = "codes"
 
     def __post_init__(self) -> None:
+        if self.decoder_noise not in DECODER_NOISE:
+            raise ParameterError(f"decoder_noise={self.decoder_noise!r} must be one of {', '.join(DECODER_NOISE)}")
         if check_gate(self.gate) is not None:
             self.gate.check(self.radar)
         if self.off_grid and self.scene.ranges == "grid":
@@ -292,11 +309,13 @@ def _separated_ranges(n_runs: int, k: int, rng: np.random.Generator, scene: Scen
 
 
 def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig,
-            noise_sigma: float = 0.0, noise_rng: np.random.Generator | None = None):
+            noise_sigma: float = 0.0, noise_rng: np.random.Generator | None = None, estimate: bool = False):
     """Measurements Z (n_runs, M, 2), the frequency indices (None or (n_runs, M)), the
-    dither xi (None when there is none) and delta ((n_runs,) or None). ``noise_sigma``:
-    std of each of I and Q of white noise added to Gamma before quantization, drawn from
-    ``noise_rng`` (so that the dither does not depend on it)."""
+    dither xi (None when there is none) and delta ((n_runs,) or None); with ``estimate``
+    (or an adaptive scheme) a fifth item, the noise estimated from the full frames
+    ((n_runs,), :func:`pipeline.noise.estimate_noise_sigma`). ``noise_sigma``: std of each
+    of I and Q of white noise added to Gamma before quantization, drawn from ``noise_rng``
+    (so that the dither does not depend on it)."""
     n = config.samples_per_ramp
     if scheme.ramps(config):
         indices = None
@@ -306,13 +325,17 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
         gamma = gamma_fn(indices)
     if noise_sigma > 0:
         gamma = gamma + noise_sigma * (noise_rng.standard_normal(gamma.shape) + 1j * noise_rng.standard_normal(gamma.shape))
+    sigma_hat = estimate_noise_sigma(gamma, n) if (estimate or scheme.adaptive) and indices is None else None
+    extra = (sigma_hat,) if estimate or scheme.adaptive else ()
     if scheme.bits is None:
-        return gamma.astype(np.complex64), indices, None, None
+        return (gamma.astype(np.complex64), indices, None, None) + extra
     delta = auto_delta(gamma)
     dither = None
-    if scheme.alpha > 0:
-        dither = scheme.alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
-    return dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices, dither, delta
+    alpha = auto_alpha(sigma_hat, delta)[:, None, None] if scheme.adaptive else scheme.alpha
+    if scheme.adaptive or scheme.alpha > 0:
+        dither = alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
+    return (dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices, dither,
+            delta) + extra
 
 
 @dataclass
@@ -328,9 +351,11 @@ class ChunkResult:
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
               algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True,
-              count: CountSpec = CountSpec(), gate: RangeGate | None = None) -> dict[str, ChunkResult]:
+              count: CountSpec = CountSpec(), gate: RangeGate | None = None,
+              decoder_noise: str = "codes") -> dict[str, ChunkResult]:
     """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
-    given its arguments. Returns {algo: ChunkResult}."""
+    given its arguments. ``decoder_noise``: what cml is told of the noise
+    (:data:`DECODER_NOISE`). Returns {algo: ChunkResult}."""
     scheme = Scheme.parse(scheme_name, radar)
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
     scheme_rng = np.random.default_rng(
@@ -339,13 +364,15 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
     crc = zlib.crc32(scheme_name.encode())
     noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
-    z, indices, xi, delta = measure(
+    z, indices, xi, delta, *est = measure(
         scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs,
-        scheme_rng, radar, scene.noise_sigma, noise_rng)
+        scheme_rng, radar, scene.noise_sigma, noise_rng, estimate=decoder_noise == "frames")
+    noise = {"codes": None, "true": scene.noise_sigma, "frames": est[0] if est else None}[decoder_noise]
     out = {}
     for algo in algos:
         decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
-        det = decode(z, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices)
+        det = decode(z, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices,
+                     noise_sigma=noise)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
         res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
         if count.auto:
@@ -477,12 +504,12 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
         if workers == 1:
             for job in jobs:
                 collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp, cfg.count,
-                                       cfg.gate))
+                                       cfg.gate, cfg.decoder_noise))
                 bar.update(job[3])
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
-                                             cfg.fallback_pbp, cfg.count, cfg.gate))
+                                             cfg.fallback_pbp, cfg.count, cfg.gate, cfg.decoder_noise))
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
                     collect(job, fut.result())
@@ -510,6 +537,7 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
         "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp, "scene": cfg.scene.to_dict(),
         "count": cfg.count.to_dict(), "gate": None if cfg.gate is None else cfg.gate.to_dict(),
+        "decoder_noise": cfg.decoder_noise,
     }
     return MonteCarloResult(summary, maps, run_config)
 

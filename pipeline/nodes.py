@@ -27,7 +27,9 @@ from .errors import ParameterError
 from .gate import RangeGate
 from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
-from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seeds
+from .noise import NoiseTracker
+from .quantize import (AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames,
+                       sensor_dither_seeds)
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,
@@ -75,6 +77,7 @@ class SourceNode(Node):
         if calibration is not None and quantizer is None:
             raise ParameterError("a calibration is applied where frames are quantized: give a quantizer too")
         self.raw_every = raw_every
+        self.noise = noise_tracker(quantizer, getattr(source, "radar", None))
         self._source_stats: dict[str, dict[str, int]] = {}
         self.done = threading.Event()
 
@@ -105,13 +108,20 @@ class SourceNode(Node):
                     raw = headers.take(keep)
                     self.publish_many(raw.sensor_id, "raw", encode_raw_batch(raw, data[keep]), OCTETS)
             if self.quantizer is not None:
-                quantize_and_publish(self, self.quantizer, headers, data, "raw", self.calibration)
+                quantize_and_publish(self, self.quantizer, headers, data, "raw", self.calibration, self.noise)
 
     def _stopping(self) -> None:
         self.source.request_stop()  # the reader ends at the next frame and closes the source itself
 
     def health_extra(self, sensor_id: str) -> dict:
-        return {"source": self._source_stats.get(sensor_id, {})}
+        extra = {"source": self._source_stats.get(sensor_id, {})}
+        if self.noise is not None:
+            extra.update(self.noise.health(sensor_id))
+        return extra
+
+    def forget(self, sensor_id: str) -> None:
+        if self.noise is not None:
+            self.noise.forget(sensor_id)
 
     def _publish_health(self, part: int | None = None) -> None:
         stats = self._source_stats = self.source.stats()  # once per publication, not per sensor
@@ -124,15 +134,26 @@ class SourceNode(Node):
 OCTETS = "application/octet-stream"
 
 
+def noise_tracker(config: QuantizerConfig | None, radar: RadarConfig | None) -> NoiseTracker | None:
+    """The per-sensor noise estimate a quantizer with ``alpha="auto"`` needs (None for a
+    fixed alpha: nothing is estimated)."""
+    if config is None or config.alpha != AUTO_ALPHA:
+        return None
+    return NoiseTracker((radar or RadarConfig()).samples_per_ramp)
+
+
 def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHeaders, data: np.ndarray,
-                         topic: str, calibration: Calibration | None = None) -> None:
+                         topic: str, calibration: Calibration | None = None,
+                         noise: NoiseTracker | None = None) -> None:
     """Quantize frames (B, M, 2) of many sensors in one vectorized call, each with its
     sensor's dither seed, and publish them on ``quantized``. Frames whose samples are not
     finite or beyond MAX_SAMPLE are refused (``invalid_frames``); a failure of the maths
     loses only the frames it fails on (:func:`isolate`). With a ``calibration``, each
     frame's front end is removed first (:mod:`pipeline.calibration`); a frame of a sensor
     or config id it has no entry for is counted (``invalid_frames``), never quantized as
-    it came."""
+    it came. With ``alpha="auto"`` the ``noise`` tracker estimates each sensor's noise
+    from its frames (after the calibration) and alpha follows it
+    (:func:`pipeline.noise.auto_alpha`); the node publishes both in the sensor's health."""
     bad = bad_samples(data)
     for i in np.flatnonzero(bad).tolist():
         node.count(headers.sensor_id[i], "invalid_frames", f"frame {int(headers.seq[i])} from "
@@ -155,9 +176,18 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
                 return
             frames, kept = frames[good], kept.take(good)
     seed = sensor_dither_seeds(config.dither_seed, kept.sensor_id)
+    if config.alpha == AUTO_ALPHA and noise is None:
+        raise ParameterError("alpha 'auto' needs a NoiseTracker (pipeline.nodes.noise_tracker)")
 
     def compute(idx):
-        return quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx])
+        sigma = None
+        if config.alpha == AUTO_ALPHA:  # (inside: a frame the estimate fails on loses only itself)
+            ids = [kept.sensor_id[i] for i in idx.tolist()]
+            sigma = noise.update(ids, frames[idx])
+        q = quantize_frames(frames[idx], config, kept.seq[idx], dither_seed=seed[idx], noise_sigma=sigma)
+        if sigma is not None:
+            noise.set_alpha(ids, q.alpha)
+        return q
 
     def failed(i, exc):
         node.count(kept.sensor_id[i], "processing_errors", f"frame {int(kept.seq[i])} from "
@@ -298,11 +328,20 @@ class QuantizeNode(FrameNode):
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
         self.calibration = calibration
+        self.noise = noise_tracker(config, radar)
 
     def process(self, batch) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
-            quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration)
+            quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration, self.noise)
+
+    def health_extra(self, sensor_id: str) -> dict:
+        """With alpha auto: the sensor's noise estimate and the alpha of its last frame."""
+        return {} if self.noise is None else self.noise.health(sensor_id)
+
+    def forget(self, sensor_id: str) -> None:
+        if self.noise is not None:
+            self.noise.forget(sensor_id)
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ import numpy as np
 
 from .defaults import DEFAULT_ALPHA
 from .errors import ParameterError
+from .noise import auto_alpha
 
 MAX_BITS = 16
 DITHER_SEEDSEQ = "seedseq"
@@ -66,6 +67,24 @@ def check_bits(bits: int) -> int:
 #: frames lie within +-1 a part (12-bit ADC), a simulated scene's within its summed
 #: amplitudes, so 1-bit steps stay far below; beyond is a forged or corrupt frame
 MAX_DELTA = 1000.0
+
+
+#: ``alpha="auto"``: the dither scale from the noise the quantizer estimates in each
+#: sensor's frames (:func:`pipeline.noise.auto_alpha`)
+AUTO_ALPHA = "auto"
+
+
+def parse_alpha(text: str) -> float | str:
+    """A command line's ``--alpha``: ``auto`` or a number in [0, 1]."""
+    if text.strip().lower() == AUTO_ALPHA:
+        return AUTO_ALPHA
+    try:
+        value = float(text)
+    except ValueError:
+        raise ParameterError(f"alpha={text!r} must be 'auto' or a number in [0, 1]") from None
+    if not 0.0 <= value <= 1.0:
+        raise ParameterError(f"alpha={text!r} must be 'auto' or a number in [0, 1]")
+    return value
 
 
 def check_alpha(alpha: float) -> float:
@@ -387,22 +406,26 @@ class QuantizerConfig:
     """A dithered b-bit quantizer.
 
     bits : bits per real value (1 = the paper's 1-bit scheme).
-    alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither); default
-        :data:`pipeline.defaults.DEFAULT_ALPHA`, the default decoder's best.
+    alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither), or
+        ``"auto"`` (:data:`AUTO_ALPHA`: per frame from the sensor's noise,
+        :func:`pipeline.noise.auto_alpha`); default :data:`pipeline.defaults.DEFAULT_ALPHA`.
     delta : quantizer step (same units as the frames) or ``"auto"`` = the smallest 1-bit
         step of each frame times ``1 + delta_margin``.
     dither_seed : seed from which, with the frame sequence number, the dither is drawn.
     """
 
     bits: int = 1
-    alpha: float = DEFAULT_ALPHA
+    alpha: float | Literal["auto"] = DEFAULT_ALPHA
     delta: float | Literal["auto"] = "auto"
     delta_margin: float = 0.0
     dither_seed: int = 0
 
     def __post_init__(self) -> None:
         check_bits(self.bits)
-        check_alpha(self.alpha)
+        if self.alpha != AUTO_ALPHA:
+            if isinstance(self.alpha, str):
+                raise ParameterError(f"alpha={self.alpha!r} must be 'auto' or a number in [0, 1]")
+            check_alpha(self.alpha)
         if self.delta != "auto":
             if isinstance(self.delta, str):
                 raise ParameterError(f"delta={self.delta!r} must be 'auto' or a number > 0")
@@ -476,8 +499,12 @@ class QuantizedFrames:
 
 
 def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed=None,
-                    generator=DITHER_COUNTER) -> QuantizedFrames:
+                    generator=DITHER_COUNTER, noise_sigma=None) -> QuantizedFrames:
     """Dither and quantize frames (B, M, 2) with sequence numbers ``seq`` ((B,) or int).
+
+    ``noise_sigma``: the sensor noise of each frame (scalar or (B,), std of I and of Q,
+    frame units), which ``config.alpha == "auto"`` needs: alpha is then
+    :func:`pipeline.noise.auto_alpha` of it and of each frame's delta, one per frame.
 
     delta and alpha are rounded to float32 first, as the wire format carries them, so a
     decoder regenerates exactly the dither used here. ``dither_seed`` overrides the
@@ -501,9 +528,17 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
     else:
         delta = np.full(f.shape[0], float(config.delta))
     delta = np.maximum(delta.astype(np.float32), np.finfo(np.float32).tiny).astype(float)
-    alpha = float(np.float32(config.alpha))
+    if config.alpha == AUTO_ALPHA:
+        if noise_sigma is None:
+            raise ParameterError("alpha 'auto' needs the frames' noise_sigma (pipeline.noise.NoiseTracker)")
+        alpha = auto_alpha(np.broadcast_to(np.asarray(noise_sigma, dtype=float), delta.shape), delta)
+        alpha = alpha.astype(np.float32).astype(float)
+        dithered = bool(np.any(alpha > 0))
+    else:
+        alpha = float(np.float32(config.alpha))
+        dithered = alpha > 0
     dither = None
-    if alpha > 0:
+    if dithered:
         dither = unit_dither(seed, seqs, f.shape[1], generator)
         dither *= (alpha * delta)[:, None, None]
     codes = quantize(f, delta, config.bits, dither)

@@ -652,7 +652,9 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         "bytes_per_raw_frame": round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
         "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
         "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
-                      "dither_seed": cfg.quantizer.dither_seed},
+                      "dither_seed": cfg.quantizer.dither_seed,
+                      # alpha auto: each sensor's noise estimate and the alpha of its last frame
+                      **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
         "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
                       **localizer.config.gate.to_dict()},
         "driver": driver_stats,

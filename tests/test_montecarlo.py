@@ -187,6 +187,8 @@ def test_same_seed_same_summary_as_the_recorded_one():
     assert r.summary.pop("count") == r.run_config.pop("count") == CountSpec().to_dict()  # K given (issue 10)
     # the range gate came later (issue 23); the Monte Carlo searches the whole range axis unless given one
     assert r.run_config.pop("gate") is None and "gate" not in r.summary
+    # what cml is told of the noise came later (issue 24); the default is what it always did
+    assert r.run_config.pop("decoder_noise") == "codes"
     _same_figures(json.loads(json.dumps(r.summary)), golden["summary"])
     golden["config"]["workers"] = r.run_config["workers"]
     assert json.loads(json.dumps(r.run_config)) == golden["config"]

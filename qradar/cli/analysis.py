@@ -9,7 +9,7 @@ from pathlib import Path
 from pipeline.decode import ALGOS, DEFAULT_ALGO, Algo
 from pipeline.gate import RangeGate
 from pipeline.localize import DEFAULT_PFA
-from pipeline.montecarlo import (DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
+from pipeline.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
                                  prepare_out_dir, run_montecarlo, write_outputs)
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
@@ -31,7 +31,8 @@ def add_montecarlo(sub) -> None:
     p.add_argument("--runs", type=pos_int, default=None,
                    help="runs per scheme and K (default: the paper's 320000 x K)")
     p.add_argument("--schemes", nargs="+", default=list(DEFAULT_SCHEMES),
-                   help="dither_m<M>, nodither_m<M>, 32bit_m<M> (default: the paper's four)")
+                   help="dither_m<M>, dither_a<alpha>_m<M>, dither_aauto_m<M> (alpha from the noise the quantizer "
+                   "estimates in each frame), nodither_m<M>, 32bit_m<M> (default: the paper's four)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--algos", nargs="+", default=[Algo.PBP.value],
                    help=f"decoders: {', '.join(ALGOS)} (default {Algo.PBP}); "
@@ -54,6 +55,9 @@ def add_montecarlo(sub) -> None:
     g.add_argument("--noise-sigma", type=nonneg_float, default=0.0,
                    help="sensor noise before quantization: std of I and of Q relative to the strongest target "
                    "(default 0)")
+    g.add_argument("--decoder-noise", choices=list(DECODER_NOISE), default="codes",
+                   help="what cml is told of the noise: codes (it estimates it from the codes, as live), true (the "
+                   "scene's --noise-sigma), frames (the quantizer's estimate from the full frames) (default codes)")
     g = p.add_argument_group("target count (default: each decoder is told the scene's K)")
     g.add_argument("--count", choices=["given", "auto"], default="given",
                    help="auto: the decoders (pbp, cml) decide each frame's count, as with localize --K auto; the "
@@ -104,6 +108,7 @@ def cmd_montecarlo(args) -> int:
         scene=SceneSpec(ranges=args.ranges, range_min_m=args.range_interval[0], range_max_m=args.range_interval[1],
                         min_separation_m=args.min_separation_m, max_angle_deg=args.max_angle_deg,
                         min_amplitude=args.min_amplitude, noise_sigma=args.noise_sigma),
+        decoder_noise=args.decoder_noise,
         count=CountSpec(auto=args.count == "auto", max_targets=args.max_targets, pfa=args.pfa, gate_m=args.gate_m),
         gate=None if args.min_range_m is None and args.max_range_m is None else RangeGate(
             0.0 if args.min_range_m is None else args.min_range_m,

@@ -28,7 +28,7 @@ from pipeline.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, Algo
 from pipeline.errors import ParameterError
 from pipeline.gate import LEAKAGE_BINS
 from pipeline.localize import DEFAULT_PFA
-from pipeline.quantize import QuantizerConfig
+from pipeline.quantize import QuantizerConfig, parse_alpha
 
 
 def nonneg_int(text: str) -> int:
@@ -89,6 +89,14 @@ def nonneg_float(text: str) -> float:
     if not v >= 0.0:
         raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
     return v
+
+
+def alpha_arg(text: str) -> str | float:
+    """``auto`` (alpha from each sensor's noise) or a dither scale in [0, 1]."""
+    try:
+        return parse_alpha(text)
+    except ParameterError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def delta_arg(text: str) -> str | float:
@@ -335,7 +343,9 @@ def quantizer_options(p, alpha_default: float | None, alpha_help: str,
     command whose --seed is another seed, e.g. the simulated sensors' noise, takes
     --dither-seed only)."""
     p.add_argument("--bits", type=pos_int, default=1, help=BITS_HELP)
-    p.add_argument("--alpha", type=float, default=alpha_default, help=alpha_help)
+    p.add_argument("--alpha", type=alpha_arg, default=alpha_default,
+                   help=alpha_help + "; 'auto': per sensor from the noise estimated in its frames (published in the "
+                   "quantizer's health)")
     p.add_argument("--delta", type=delta_arg, default="auto", help="'auto' (smallest 1-bit step per frame) or a step in full-scale units")
     p.add_argument("--delta-margin", type=nonneg_float, default=0.0, help="auto delta x (1 + margin)")
     p.add_argument(*seed_flags, dest="dither_seed", type=nonneg_int, default=0,

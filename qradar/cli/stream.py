@@ -209,8 +209,15 @@ def serve(node, duration: float | None, stop: threading.Event | None = None) -> 
         run_nodes([node], duration, stop)
     except KeyboardInterrupt:
         pass
-    print(json.dumps({"node": node.name, **node.totals(), **audit.finish()}), flush=True)
+    print(json.dumps({"node": node.name, **node.totals(), **noise_summary(node), **audit.finish()}), flush=True)
     return 0
+
+
+def noise_summary(node) -> dict:
+    """With --alpha auto: ``{"noise": {sensor: {"noise_sigma", "noise_frames", "alpha"}}}``
+    for a command's summary (the sensors not expired), else {}."""
+    noise = getattr(node, "noise", None)
+    return {} if noise is None else {"noise": noise.snapshot()}
 
 
 def cmd_quantize(args) -> int:
@@ -251,7 +258,8 @@ def cmd_source(args) -> int:
         pass
     extra = {"late_ticks": source.late_ticks, "elapsed_s": round(source.elapsed_s, 3)} \
         if isinstance(source, SimulatedSource) else {"source": source.stats()}
-    print(json.dumps({"node": node.name, **extra, **node.totals(), **audit.finish()}), flush=True)
+    print(json.dumps({"node": node.name, **extra, **node.totals(), **noise_summary(node), **audit.finish()}),
+          flush=True)
     return 0
 
 

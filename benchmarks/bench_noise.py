@@ -1,0 +1,66 @@
+#!/usr/bin/env python3
+"""What ``--alpha auto`` costs the quantizer: per-frame time of ``quantize_frames`` (1 bit,
+auto delta, M = 512, frames of distinct sensors) with a fixed alpha against alpha auto
+(the per-sensor :class:`pipeline.noise.NoiseTracker` update -- the noise estimate -- plus
+the quantization with each frame's alpha), at batch sizes 1, 16, 64, 512; and the estimate
+alone. Best of ``--repeat`` runs, us per frame; the ratio is taken in the same process
+(the machine may be shared, so absolute figures drift more than ratios).
+
+    .venv/bin/python benchmarks/bench_noise.py [--repeat 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.noise import NoiseTracker, estimate_noise_sigma  # noqa: E402
+from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
+
+M, N = 512, 256
+
+
+def per_frame_us(fn, frames: int, repeat: int, calls: int) -> float:
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            fn()
+        best = min(best, time.perf_counter() - t0)
+    return best / (calls * frames) * 1e6
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=7)
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    fixed, auto = QuantizerConfig(alpha=0.45), QuantizerConfig(alpha="auto")
+    print(f"{'batch':>6} {'fixed alpha':>12} {'alpha auto':>12} {'ratio':>7} {'estimate':>10}   (us per frame)")
+    for b in (1, 16, 64, 512):
+        frames = 0.3 * (rng.standard_normal((b, M, 2)) + 1j * rng.standard_normal((b, M, 2)))
+        ids = [f"s{i}" for i in range(b)]
+        seeds, seq = sensor_dither_seeds(0, ids), np.arange(b)
+        tracker = NoiseTracker(N)
+        calls = max(1, 256 // b)
+
+        def run_fixed():
+            quantize_frames(frames, fixed, seq, dither_seed=seeds)
+
+        def run_auto():
+            quantize_frames(frames, auto, seq, dither_seed=seeds, noise_sigma=tracker.update(ids, frames))
+
+        tf = per_frame_us(run_fixed, b, args.repeat, calls)
+        ta = per_frame_us(run_auto, b, args.repeat, calls)
+        te = per_frame_us(lambda: estimate_noise_sigma(frames, N), b, args.repeat, calls)
+        print(f"{b:>6} {tf:>12.1f} {ta:>12.1f} {ta / tf:>6.2f}x {te:>10.1f}")
+
+
+if __name__ == "__main__":
+    main()
