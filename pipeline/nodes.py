@@ -27,6 +27,7 @@ from .errors import ParameterError
 from .gate import RangeGate
 from .localize import DEFAULT_PFA, Detections
 from .node import Node, ProcessingNode, run_nodes
+from .track import Integration, Tracker, TrackerConfig, publish_tracks
 from .quantize import MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames, sensor_dither_seeds
 from .wire import (
     HEADER_LEN,
@@ -370,10 +371,17 @@ class LocalizeNode(FrameNode):
 
     name = "localize"
 
-    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None, **kw):
+    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None,
+                 tracking: TrackerConfig | None = None, **kw):
         self.in_topic = config.source
         super().__init__(bus, config.radar, config.max_ramps, session, **kw)
         self.config = config
+        # tracks (pipeline.track): ``<prefix>/<sensor>/tracks`` after each frame's targets
+        self.tracker = None if tracking is None else Tracker(tracking, Integration.of_localizer(config))
+
+    def forget(self, sensor_id: str) -> None:
+        if self.tracker is not None:
+            self.tracker.forget(sensor_id)
 
     def process(self, batch) -> None:
         groups, keys = self.decode(batch)
@@ -431,6 +439,9 @@ class LocalizeNode(FrameNode):
                 part = part_of(j)  # a non-finite target loses its own frame only
                 self.publish_many(part.sensor_id, "targets", payloads, "application/json")
                 self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
+            if self.tracker is not None:
+                publish_tracks(self, self.tracker, part_of(np.arange(idx.size)), det, frames if len(idx) == n
+                               else frames.take(idx) if isinstance(frames, QuantizedFrames) else None, radar)
 
     def _failed(self, sensor: str, seq: int, key: str, exc: Exception) -> None:
         if isinstance(exc, DitherUnavailable):

@@ -31,15 +31,21 @@ frames decoded together) is in :mod:`pipeline.integrate`.
 from __future__ import annotations
 
 import threading
+import time
+from collections import deque
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from radar_driver.model import polar_to_xy
+from radar_driver.model import RadarConfig, polar_to_xy
 
 from .errors import ParameterError
+from .gate import RangeGate
+from .integrate import concat_frames, integrate
+from .quantize import QuantizedFrames
+from .wire import TracksMsg
 
 #: chi-square quantiles, 2 degrees of freedom
 CHI2_2DOF_99 = 9.2103
@@ -250,7 +256,7 @@ class SensorTracks:
         return self.static_since_ns >= 0
 
 
-def step(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.ndarray, angle_deg: np.ndarray) -> None:
+def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.ndarray, angle_deg: np.ndarray) -> None:
     """One frame of one sensor: predict to ``now_ns``, gate and assign its targets (K,),
     update, confirm, end and start tracks, and test each for being static. In place."""
     if st.last_ns is not None and not 0 <= now_ns - st.last_ns <= cfg.max_gap_s * 1e9:
@@ -323,37 +329,160 @@ def report(st: SensorTracks, now_ns: int) -> list[dict]:
     return out
 
 
+@dataclass(frozen=True)
+class Integration:
+    """How static tracks are refined (:mod:`pipeline.integrate`): the localizer's count
+    ``k`` (with ``pfa``: the most, counted with that false-alarm probability; None:
+    exactly k) and range ``gate``; a refinement at most every ``every_s`` seconds a sensor
+    (the decode of T frames costs about T frames' decodes), the position held between."""
+
+    k: int = 2
+    gate: RangeGate | None = None
+    pfa: float | None = None
+    every_s: float = 0.25
+
+    @classmethod
+    def of_localizer(cls, config, every_s: float = 0.25) -> "Integration":
+        """The integration of a :class:`pipeline.nodes.LocalizerConfig`'s decoder."""
+        return cls(config.k, config.gate, config.pfa if config.auto_k else None, every_s)
+
+
+@dataclass
+class _Window:
+    """A sensor's last frames for integration: (timestamp_ns, one-frame QuantizedFrames,
+    radar) in time order, and when it was last decoded."""
+
+    frames: deque = field(default_factory=deque)
+    last_refine_ns: int | None = None
+
+
+#: frames a sensor's integration window holds at most (60 s at 20 Hz)
+MAX_WINDOW_FRAMES = 1200
+
+
 class Tracker:
     """Tracks of many sensors: :meth:`step` one frame of a sensor, :meth:`forget` a sensor.
-    Thread-safe (one lock); ``max_sensors`` bounds the sensors held (the oldest is dropped)."""
+    Thread-safe (one lock); ``max_sensors`` bounds the sensors held (the oldest is dropped).
+    With ``integration`` and ``config.integrate_s`` > 0, frames given to :meth:`step` are
+    kept for ``integrate_s`` seconds and static tracks are refined on them."""
 
-    def __init__(self, config: TrackerConfig = TrackerConfig(), max_sensors: int = 4096):
+    def __init__(self, config: TrackerConfig = TrackerConfig(), integration: Integration | None = None,
+                 max_sensors: int = 4096):
         self.config = config
+        self.integration = integration if config.integrate_s > 0 else None
         self.max_sensors = max_sensors
         self._sensors: dict[str, SensorTracks] = {}
+        self._windows: dict[str, _Window] = {}
         self._lock = threading.Lock()
+        #: integration decodes run and the seconds they took (for the health and benchmarks)
+        self.refinements = 0
+        self.refine_s = 0.0
 
     def state(self, sensor_id: str) -> SensorTracks:
         """The sensor's tracks (created empty)."""
         st = self._sensors.get(sensor_id)
         if st is None:
             if len(self._sensors) >= self.max_sensors:
-                self._sensors.pop(next(iter(self._sensors)))
+                gone = next(iter(self._sensors))
+                self._sensors.pop(gone)
+                self._windows.pop(gone, None)
             st = self._sensors[sensor_id] = SensorTracks()
         return st
 
-    def step(self, sensor_id: str, timestamp_ns: int, range_m, angle_deg) -> list[dict]:
-        """One frame's targets (K,) of ``sensor_id`` at ``timestamp_ns``: its confirmed tracks."""
+    def step(self, sensor_id: str, timestamp_ns: int, range_m, angle_deg, frame: QuantizedFrames | None = None,
+             radar: RadarConfig | None = None) -> list[dict]:
+        """One frame's targets (K,) of ``sensor_id`` at ``timestamp_ns``: its confirmed
+        tracks (:func:`report`). ``frame``: the frame itself (a batch of one) and its
+        ``radar``, for the integration of static tracks."""
+        now = int(timestamp_ns)
         with self._lock:
             st = self.state(sensor_id)
-            step(st, self.config, int(timestamp_ns), np.atleast_1d(range_m), np.atleast_1d(angle_deg))
-            return report(st, int(timestamp_ns))
+            restart = st.last_ns is not None and not 0 <= now - st.last_ns <= self.config.max_gap_s * 1e9
+            step_tracks(st, self.config, now, np.atleast_1d(range_m), np.atleast_1d(angle_deg))
+            if self.integration is not None:
+                self._integrate(sensor_id, st, now, frame, radar, restart)
+            return report(st, now)
+
+    def _integrate(self, sensor_id: str, st: SensorTracks, now: int, frame, radar, restart: bool) -> None:
+        win = self._windows.get(sensor_id)
+        if win is None:
+            win = self._windows[sensor_id] = _Window()
+        if restart:
+            win.frames.clear()
+        if frame is not None and radar is not None and frame.dithered:
+            win.frames.append((now, frame, radar))
+        horizon = now - int(self.config.integrate_s * 1e9)
+        while win.frames and (win.frames[0][0] < horizon or len(win.frames) > MAX_WINDOW_FRAMES):
+            win.frames.popleft()
+        static = np.flatnonzero(st.static)
+        if not static.size or not win.frames:
+            return
+        if win.last_refine_ns is not None and 0 <= now - win.last_refine_ns < self.integration.every_s * 1e9:
+            return
+        win.last_refine_ns = now
+        _, last, radar = win.frames[-1]
+        shape = last.codes.shape[1:]
+        # the frames like the last one (same radar, M, bits), since each static track became static
+        starts = np.maximum(st.static_since_ns[static], horizon)
+        for start in np.unique(starts).tolist():
+            parts = [f for t, f, r in win.frames if t >= start and r == radar and f.codes.shape[1:] == shape
+                     and f.bits == last.bits]
+            if len(parts) < 2:
+                continue
+            t0 = time.perf_counter()
+            det = integrate(concat_frames(parts), radar, self.integration.k, self.integration.gate,
+                            self.integration.pfa)
+            self.refine_s += time.perf_counter() - t0
+            self.refinements += 1
+            ok = det.present[0] & np.isfinite(det.range_m[0]) & np.isfinite(det.angle_deg[0])
+            if not ok.any():
+                continue
+            z, r = measurements(det.range_m[0][ok], det.angle_deg[0][ok], self.config.range_sigma_m,
+                                self.config.angle_sigma_deg)
+            mine = static[starts == start]
+            d2, logdet = innovations(st.x[mine], st.p[mine], z, r)
+            rows, cols = assign(d2, logdet, self.config.gate_chi2)
+            st.refined[mine] = np.nan
+            st.refined[mine[rows]] = z[cols]
 
     def forget(self, sensor_id: str) -> None:
+        """Drop a sensor's tracks and frames (an expired sensor)."""
         with self._lock:
             self._sensors.pop(sensor_id, None)
+            self._windows.pop(sensor_id, None)
 
     @property
     def sensors(self) -> list[str]:
         with self._lock:
             return list(self._sensors)
+
+
+def track_batch(tracker: Tracker, headers, det, frames=None, radar: RadarConfig | None = None,
+                published_ns: int = 0) -> list[bytes]:
+    """The tracks JSON (:class:`pipeline.wire.TracksMsg`) after each frame of a decoded
+    batch, in order: ``headers`` (:class:`pipeline.wire.FrameHeaders`, B frames), ``det``
+    their :class:`pipeline.localize.Detections` (B, K); ``frames`` the batch's
+    QuantizedFrames (for integration; raw frames or None: none)."""
+    quantized = isinstance(frames, QuantizedFrames)
+    present = np.asarray(det.present, dtype=bool)
+    out = []
+    seqs, stamps = headers.seq.tolist(), headers.timestamp_ns.tolist()
+    for i, sid in enumerate(headers.sensor_id):
+        keep = present[i]
+        tracks = tracker.step(sid, stamps[i], det.range_m[i][keep], det.angle_deg[i][keep],
+                              frames.take(np.array([i])) if quantized else None, radar)
+        out.append(TracksMsg(sid, seqs[i], stamps[i], tracks, published_ns).to_json())
+    return out
+
+
+def publish_tracks(node, tracker: Tracker, headers, det, frames, radar: RadarConfig) -> None:
+    """The localizer node's hook: :func:`track_batch` of a decoded batch, published on
+    ``<prefix>/<sensor>/tracks``; a failure is counted (``processing_errors``) and loses
+    the tracks of that batch only."""
+    try:
+        payloads = track_batch(tracker, headers, det, frames, radar, time.time_ns())
+    except Exception as exc:  # the targets are out already; the tracks of this batch are lost
+        for sid, seq in zip(headers.sensor_id, headers.seq.tolist()):
+            node.count(sid, "processing_errors", f"tracks of frame {seq} from {sid}: {type(exc).__name__}: {exc}")
+        return
+    node.publish_many(headers.sensor_id, "tracks", payloads, "application/json")

@@ -38,6 +38,7 @@ from pipeline.errors import ParameterError
 from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.track import TrackerConfig
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import TOPICS, WireError, decode_health, decode_targets
 from radar_driver.errors import ConfigError, RadarError
@@ -238,6 +239,7 @@ class RunConfig:
     # the localizer's range gate, m (None: the radar's default, pipeline.gate.RangeGate.default)
     min_range_m: float | None = None
     max_range_m: float | None = None
+    tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.track), None: none
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -329,7 +331,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live).start()
-            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
+            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
             if cfg.driver_process:
                 drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,

@@ -45,6 +45,8 @@ from .common import (
     sensor_pattern_arg,
     shard_arg,
     StopOnSignals,
+    track_options,
+    tracker_config,
     calibration_option,
     load_calibration,
 )
@@ -70,6 +72,7 @@ def add_commands(sub) -> None:
     p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
+    track_options(p)
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
@@ -143,6 +146,7 @@ def add_commands(sub) -> None:
                   "file's, else 2)")
     algo_option(p, "decoder of the localizer")
     gate_options(p)
+    track_options(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")
@@ -221,7 +225,8 @@ def cmd_localize(args) -> int:
     k, auto = count_from_args(args)
     cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
                           pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m)
-    return serve(LocalizeNode(bus_from_args(args), cfg, **queue_kwargs(args)), args.duration)
+    return serve(LocalizeNode(bus_from_args(args), cfg, tracking=tracker_config(args), **queue_kwargs(args)),
+                 args.duration)
 
 
 def cmd_source(args) -> int:
@@ -313,7 +318,7 @@ def cmd_run(args) -> int:
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
                     calibration=args.calibration, empty=args.empty, min_range_m=args.min_range_m,
-                    max_range_m=args.max_range_m)
+                    max_range_m=args.max_range_m, tracking=tracker_config(args))
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
