@@ -485,4 +485,4 @@ def publish_tracks(node, tracker: Tracker, headers, det, frames, radar: RadarCon
         for sid, seq in zip(headers.sensor_id, headers.seq.tolist()):
             node.count(sid, "processing_errors", f"tracks of frame {seq} from {sid}: {type(exc).__name__}: {exc}")
         return
-    node.publish_many(headers.sensor_id, "tracks", payloads, "application/json")
+    node.publish_many(headers.sensor_id, "tracks", payloads, "application/json", frames_out=False)

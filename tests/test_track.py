@@ -390,3 +390,70 @@ def test_integration_stops_when_the_track_moves():
             break
     assert len(st.ids) == 1 and not st.static.any() and np.isnan(st.refined).all()
     assert i < 30  # within half a second (0.3 m)
+
+
+# -- live: a real `qradar localize --track` over zenoh ---------------------------------------------------
+def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
+    import subprocess
+    import sys
+    import time
+
+    import zenoh
+    from zenoh_helpers import Collector, wait_until
+
+    from pipeline.wire import encode_quantized_batch
+
+    n = 60
+    scene, frames = _scene_frames("walker", n)
+    radar = scene.radar
+    seed = 11
+    from pipeline.quantize import sensor_dither_seed
+    q = quantize_frames(frames, QuantizerConfig(), np.arange(n, dtype=np.uint64),
+                        dither_seed=sensor_dither_seed(seed, "walk0"))
+    t0 = time.time_ns()
+    headers = FrameHeaders(["walk0"] * n, np.arange(n, dtype=np.uint64), t0 + np.arange(n, dtype=np.int64) * PERIOD_NS,
+                           np.full(n, radar.config_id(), dtype=np.uint32))
+    payloads = encode_quantized_batch(headers, q)
+    ep = f"tcp/127.0.0.1:{free_port}"
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "localize", "--listen", ep, "--K", "2", "--track",
+                             "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        session = connect_when_ready(ep, timeout_s=20, mode="client")
+        col = Collector(session, "radar/walk0/**")
+
+        def alive():
+            return {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
+                    if r.ok is not None}
+
+        wait_until(lambda: "localize" in alive(), 30, "the localizer alive")
+        pub = session.declare_publisher("radar/walk0/quantized", congestion_control=zenoh.CongestionControl.BLOCK)
+        for p in payloads:  # in order, at about the sensor's pace
+            pub.put(p)
+            time.sleep(0.01)
+        wait_until(lambda: len(col.of("walk0/tracks")) == n, 60, f"{n} tracks messages")
+        msgs = [decode_tracks(p, "radar/walk0/tracks") for p in col.of("walk0/tracks")]
+        raw = [json.loads(p) for p in col.of("walk0/tracks")]
+        session.close()
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert sorted(m.seq for m in msgs) == list(range(n))
+    msgs.sort(key=lambda m: m.seq)
+    assert all(m.timestamp_ns == t0 + m.seq * PERIOD_NS and m.published_ns >= t0 for m in msgs)
+    assert all(list(o) == ["version", "type", "sensor_id", "seq", "timestamp_ns", "published_ns", "tracks"]
+               for o in raw)
+    walker, reflector = scene.targets
+    th = np.deg2rad(walker.angle_deg)
+    ids = set()
+    for m in msgs[10:]:
+        tx, ty = polar_to_xy(walker.range_at(m.seq / RATE_HZ), th)
+        t = _nearest_track(m.tracks, tx, ty)
+        assert t is not None and not t["static"] and t["vx_mps"] > 1.0
+        ids.add(t["track_id"])
+    assert len(ids) == 1
+    rx, ry = polar_to_xy(reflector.range_m, np.deg2rad(reflector.angle_deg))
+    t = _nearest_track(msgs[-1].tracks, rx, ry, 0.5)
+    assert t is not None and t["static"] and t["hits"] >= n - 5 and t["age_s"] == pytest.approx((n - 1) / RATE_HZ)
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["frames_out"] == n  # frames, not messages: the tracks do not count twice
