@@ -17,7 +17,7 @@ from replay.reprocess import run as run_reprocess
 
 from .common import (BITS_HELP, count_from_args, count_options, gate_options, nonneg_float, nonneg_int, pfa_arg,
                      pos_int)
-from .common import calibration_option
+from .common import calibration_option, track_options, tracker_config
 
 
 def add_montecarlo(sub) -> None:
@@ -93,6 +93,7 @@ def add_reprocess(sub) -> None:
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     gate_options(p)
+    track_options(p)
     p.set_defaults(func=cmd_reprocess)
 
 
@@ -121,7 +122,7 @@ def cmd_reprocess(args) -> int:
                           algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
                           mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa,
                           calibration=args.calibration, min_range_m=args.min_range_m,
-                          max_range_m=args.max_range_m)
+                          max_range_m=args.max_range_m, tracking=tracker_config(args))
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)
