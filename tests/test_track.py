@@ -457,3 +457,54 @@ def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
     assert t is not None and t["static"] and t["hits"] >= n - 5 and t["age_s"] == pytest.approx((n - 1) / RATE_HZ)
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["frames_out"] == n  # frames, not messages: the tracks do not count twice
+
+
+# -- recorded: qradar run --track to MCAP, replayed; qradar reprocess --track -------------------------
+def test_run_track_records_tracks_that_replay(tmp_path):
+    import subprocess
+    import sys
+
+    from replay.mcapio import McapFile
+
+    path = tmp_path / "run.mcap"
+    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--scene", "walker", "--frames", "40", "--track",
+                           "--json", "--record", str(path)], capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads(proc.stdout)
+    assert s["frames_targets"] == 40 and s["drops"] == 0
+    f = McapFile(path)
+    tracks = [(ch, m) for ch, m in f.messages() if ch.topic == "radar/kmd2-0/tracks"]
+    assert len(tracks) == 40
+    schema = f.schemas[tracks[0][0].schema_id]
+    msgs = [decode_tracks(m.data, ch.topic) for ch, m in tracks]
+    assert sorted(m.seq for m in msgs) == list(range(40))
+    assert {len(m.tracks) for m in msgs[10:]} == {2}  # the walker and the reflector, from confirmation on
+    assert schema.name == "qradar.Tracks" and json.loads(schema.data)["required"][-1] == "tracks"
+    rp = subprocess.run([sys.executable, "-m", "qradar", "replay", str(path), "--fast", "--replay-prefix", "replay"],
+                        capture_output=True, text=True, timeout=120)
+    assert rp.returncode == 0, rp.stderr
+    out = json.loads(rp.stdout.strip().splitlines()[-1])
+    assert out["published"] >= 4 * 40  # raw, quantized, targets and tracks
+
+
+def test_reprocess_track_integrates_the_chamber_recording(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from replay.mcapio import McapFile
+
+    chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    out = tmp_path / "rp"
+    proc = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(chamber), "--alpha", "0.45", "--track",
+                           "--out", str(out), "--mcap", str(tmp_path / "re.mcap"), "--quiet"],
+                          capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    t = json.loads((out / "results.json").read_text())["tracks"]
+    assert t["track_ids"] == [1, 2] and t["refinements"] > 0 and t["integrate_s"] == 1.0
+    # the static reflectors after 1 s of integration: several times sharper than a frame's targets
+    assert t["static_track_error_median_m"] < 0.5 * t["target_error_median_m"]
+    assert "tracks: ids [1, 2]" in proc.stdout
+    recorded = [decode_tracks(m.data) for ch, m in McapFile(tmp_path / "re.mcap").messages()
+                if ch.topic.endswith("/tracks")]
+    assert len(recorded) == 106 and all(len(m.tracks) == 2 for m in recorded[10:])
