@@ -22,6 +22,7 @@ from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
 from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
+from ..view import load_poses
 from ..run import RunConfig, format_summary, print_json, remove_run_dirs, run
 from .common import (
     ALPHA_HELP,
@@ -51,7 +52,7 @@ from .common import (
     load_calibration,
 )
 from .record import write_error_options
-from .view import foxglove_arg
+from .view import foxglove_arg, poses_option
 
 
 def add_commands(sub) -> None:
@@ -161,6 +162,7 @@ def add_commands(sub) -> None:
     p.add_argument("--foxglove", type=foxglove_arg, default=None, metavar="[HOST:]PORT",
                    help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
                    "127.0.0.1)")
+    poses_option(p)
     bus_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -313,7 +315,8 @@ def cmd_run(args) -> int:
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=run_bus(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
-                    foxglove=args.foxglove, driver_process=not args.driver_in_process,
+                    foxglove=args.foxglove if args.foxglove is None or args.sensor_poses is None else replace(
+                        args.foxglove, poses=load_poses(args.sensor_poses)), driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
