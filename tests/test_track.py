@@ -508,3 +508,37 @@ def test_reprocess_track_integrates_the_chamber_recording(tmp_path):
     recorded = [decode_tracks(m.data) for ch, m in McapFile(tmp_path / "re.mcap").messages()
                 if ch.topic.endswith("/tracks")]
     assert len(recorded) == 106 and all(len(m.tracks) == 2 for m in recorded[10:])
+
+
+def test_tracker_state_expires_with_its_sensor(bus, zenoh_session):
+    """A localizer with tracks forgets a sensor's tracks when it forgets the sensor
+    (silent for its sensor expiry), through the real node and bus."""
+    import time
+
+    import zenoh
+    from zenoh_helpers import Collector, wait_until
+
+    from pipeline.nodes import LocalizeNode, LocalizerConfig
+    from pipeline.quantize import sensor_dither_seed
+    from pipeline.wire import encode_quantized_batch
+
+    n = 10
+    scene, frames = _scene_frames("walker", n)
+    q = quantize_frames(frames, QuantizerConfig(), np.arange(n, dtype=np.uint64),
+                        dither_seed=sensor_dither_seed(0, "exp0"))
+    headers = FrameHeaders(["exp0"] * n, np.arange(n, dtype=np.uint64),
+                           time.time_ns() + np.arange(n, dtype=np.int64) * PERIOD_NS,
+                           np.full(n, scene.radar.config_id(), dtype=np.uint32))
+    col = Collector(zenoh_session, "radar/exp0/tracks")
+    node = LocalizeNode(bus, LocalizerConfig(k=2), session=zenoh_session, tracking=TrackerConfig(),
+                        sensor_expiry_s=0.5, health_period_s=0.1).start()
+    try:
+        pub = zenoh_session.declare_publisher("radar/exp0/quantized", congestion_control=zenoh.CongestionControl.BLOCK)
+        for p in encode_quantized_batch(headers, q):
+            pub.put(p)
+        wait_until(lambda: len(col.of("exp0/tracks")) == n, 20, f"{n} tracks messages")
+        assert node.tracker.sensors == ["exp0"] and len(node.tracker.state("exp0").ids) >= 2
+        wait_until(lambda: node.tracker.sensors == [], 10, "the silent sensor's tracks forgotten")
+    finally:
+        node.stop()
+    assert node.sensors_expired == 1
