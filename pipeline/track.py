@@ -81,8 +81,9 @@ class TrackerConfig:
     static_min_hits : hits a track needs before it can be static.
     init_speed_mps : std of the velocity of a new track, m/s (each axis).
     max_tracks : tracks a sensor holds at most.
-    max_gap_s : a frame this much later than the sensor's last (or earlier) starts its
-        tracks afresh, s.
+    max_gap_s : a frame this much later than the sensor's last, or earlier, starts its
+        tracks afresh (a restarted sensor), s; a frame earlier by less (one that came late)
+        is left out.
     integrate_s : static tracks are refined on the codes of this many seconds of frames
         together (0: no integration; :mod:`pipeline.integrate`).
     """
@@ -294,8 +295,10 @@ def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.n
     """One frame of one sensor: predict to ``now_ns``, gate and assign its targets (K,)
     (``statistic_db`` (K,): their detection statistics, for their noise), update, confirm,
     end and start tracks, and test each for being static. In place."""
+    if late(st, cfg, now_ns):
+        return  # a frame that came late: the tracks have moved past it
     if st.last_ns is not None and not 0 <= now_ns - st.last_ns <= cfg.max_gap_s * 1e9:
-        st.keep(np.zeros(len(st.ids), dtype=bool))  # time went back (a restart) or a long gap: afresh
+        st.keep(np.zeros(len(st.ids), dtype=bool))  # time went far back (a restart) or a long gap: afresh
     dt = 0.0 if st.last_ns is None else (now_ns - st.last_ns) / 1e9
     st.last_ns = now_ns
     if len(st.ids) and dt > 0:
@@ -331,6 +334,11 @@ def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.n
     born = np.flatnonzero(free)[:max(room, 0)]
     if born.size:
         st.append(*new_tracks(z[born], r[born], cfg.init_speed_mps), now_ns)
+
+
+def late(st: SensorTracks, cfg: TrackerConfig, now_ns: int) -> bool:
+    """True for a frame earlier than the sensor's last by less than ``max_gap_s`` (reordered)."""
+    return st.last_ns is not None and 0 < st.last_ns - now_ns <= cfg.max_gap_s * 1e9
 
 
 def _assign_confirmed_first(d2, logdet, confirmed, gate_chi2):
@@ -438,6 +446,8 @@ class Tracker:
         now = int(timestamp_ns)
         with self._lock:
             st = self.state(sensor_id)
+            if late(st, self.config, now):
+                return report(st, st.last_ns)
             restart = st.last_ns is not None and not 0 <= now - st.last_ns <= self.config.max_gap_s * 1e9
             step_tracks(st, self.config, now, np.atleast_1d(range_m), np.atleast_1d(angle_deg),
                         None if statistic_db is None else np.atleast_1d(statistic_db))

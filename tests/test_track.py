@@ -144,11 +144,14 @@ def test_state_is_bounded_and_forgotten():
     assert tr.sensors == ["c"]
 
 
-def test_time_going_back_starts_afresh():
+def test_a_late_frame_is_left_out_and_time_going_far_back_starts_afresh():
     tr = Tracker()
+    t0 = 1000 * PERIOD_NS
     for i in range(5):
-        tr.step("s", (100 + i) * PERIOD_NS, [8.0], [0.0])
-    assert tr.step("s", 99 * PERIOD_NS, [8.0], [0.0]) == []  # a restarted sensor clock: no stale track
+        tracks = tr.step("s", t0 + i * PERIOD_NS, [8.0], [0.0])
+    assert tr.step("s", t0 + 2 * PERIOD_NS, [30.0], [40.0]) == tracks  # came late: nothing changes
+    assert tr.state("s").hits.tolist() == [5] and tr.state("s").last_ns == t0 + 4 * PERIOD_NS
+    assert tr.step("s", t0 - int(6e9), [8.0], [0.0]) == []  # a restarted sensor clock: no stale track
     assert tr.state("s").next_id == 3
 
 
