@@ -6,7 +6,7 @@ batches of ``--batch`` frames as the localizer node decodes them, and tracked fr
 frame as the node tracks them (track_batch: association, filter, the tracks JSON). The
 two take turns for ``--seconds``, so a busy host slows them alike; the figure is the
 ratio. The integration of static tracks (one cml decode of ``--integrate`` seconds of
-frames, at most every Integration.every_s = 0.5 s) is measured apart: its cost per refinement and per frame.
+frames, at most every Integration.every_s = 1 s) is measured apart: its cost per refinement and per frame.
 
     .venv/bin/python benchmarks/bench_track.py [--seconds 30] [--batch 4] [--integrate 1]
 

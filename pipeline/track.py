@@ -383,10 +383,10 @@ class Integration:
     k: int = 2
     gate: RangeGate | None = None
     pfa: float | None = None
-    every_s: float = 0.5
+    every_s: float = 1.0
 
     @classmethod
-    def of_localizer(cls, config, every_s: float = 0.5) -> "Integration":
+    def of_localizer(cls, config, every_s: float = 1.0) -> "Integration":
         """The integration of a :class:`pipeline.nodes.LocalizerConfig`'s decoder."""
         return cls(config.k, config.gate, config.pfa if config.auto_k else None, every_s)
 
