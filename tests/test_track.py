@@ -475,6 +475,8 @@ def test_run_track_records_tracks_that_replay(tmp_path):
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)
     assert s["frames_targets"] == 40 and s["drops"] == 0
+    assert s["tracks"]["messages"] == 40 and s["tracks"]["last_track_id"] == {"kmd2-0": 2}
+    assert s["tracks"]["static_track_error_m"]["median"] < 0.3  # the reflector at 20 m, from when it is static
     f = McapFile(path)
     tracks = [(ch, m) for ch, m in f.messages() if ch.topic == "radar/kmd2-0/tracks"]
     assert len(tracks) == 40
