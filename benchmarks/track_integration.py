@@ -9,11 +9,11 @@
    of the static tracks once S seconds of frames are integrated (frames from S + 1 s on;
    S = 0: the filter alone), pooled over both reflectors and ``--seeds`` noise seeds;
    beside it the per-frame targets' median.
-2. **The Monte Carlo in time**: random static scenes (one target, continuous range in
+2. **The Monte Carlo in time** (:func:`pipeline.integrate.time_monte_carlo`, also
+   ``qradar montecarlo-time``): random static scenes (one target, continuous range in
    [3, 150] m, |angle| <= 60 deg), T frames each with a fresh dither (and fresh noise),
-   decoded together (pipeline.integrate) for T = 1 .. 32: median error against T, with
-   noise sigma = 0.1 of the amplitude and without, and the slope of log(median) against
-   log(T).
+   decoded together for T = 1 .. 32: median error against T, with noise sigma = 0.1 of the
+   amplitude and without, and the slope of log(median) against log(T).
 
     .venv/bin/python benchmarks/track_integration.py [--seeds 3] [--runs 40] [--out out/track]
 """
@@ -38,11 +38,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 from pipeline.calibration import load as load_calibration  # noqa: E402
 from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
 from pipeline.gate import RangeGate  # noqa: E402
-from pipeline.integrate import integrate  # noqa: E402
+from pipeline.integrate import time_monte_carlo  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
 from pipeline.track import Integration, Tracker, TrackerConfig, track_batch  # noqa: E402
 from pipeline.wire import FrameHeaders, decode_tracks  # noqa: E402
-from radar_driver.model import RadarConfig, polar_to_xy, simulate_frames  # noqa: E402
 from radar_driver.scene import ramp_time_s, resolve_scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,29 +87,6 @@ def chamber(seeds: int, seconds=SECONDS) -> dict:
             "seeds": seeds}
 
 
-def monte_carlo(runs: int, noise_sigma: float, frames_t=FRAMES_T, seed: int = 0) -> dict:
-    radar = RadarConfig()
-    rng = np.random.default_rng(seed)
-    gate = RangeGate.default(radar)
-    tmax = max(frames_t)
-    errs = {t: [] for t in frames_t}
-    for run in range(runs):
-        r = rng.uniform(3.0, 150.0)
-        a = rng.uniform(-60.0, 60.0)
-        amp = np.exp(2j * np.pi * rng.random())
-        clean = simulate_frames(np.full((tmax, 1), r), np.full((tmax, 1), a), np.full((tmax, 1), amp), radar)
-        noisy = clean + noise_sigma * (rng.standard_normal(clean.shape) + 1j * rng.standard_normal(clean.shape))
-        q = quantize_frames(noisy, QuantizerConfig(), np.arange(tmax, dtype=np.uint64), dither_seed=seed * 100003 + run)
-        x, y = polar_to_xy(r, np.deg2rad(a))
-        for t in frames_t:
-            d = integrate(q.take(np.arange(t)), radar, 1, gate)
-            errs[t].append(float(np.hypot(d.x_m[0, 0] - x, d.y_m[0, 0] - y)))
-    med = np.array([np.median(errs[t]) for t in frames_t])
-    slope = float(np.polyfit(np.log(frames_t), np.log(med), 1)[0])
-    return {"noise_sigma": noise_sigma, "T": list(frames_t), "median_m": med.tolist(),
-            "p90_m": [float(np.percentile(errs[t], 90)) for t in frames_t], "slope": slope, "runs": runs}
-
-
 def plot(ch: dict, mcs: list[dict], path: Path) -> None:
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.8))
     s = np.array(ch["seconds"])
@@ -149,7 +125,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     ch = chamber(args.seeds)
-    mcs = [monte_carlo(args.runs, s) for s in (0.1, 0.0)]
+    mcs = [time_monte_carlo(args.runs, FRAMES_T, s) for s in (0.1, 0.0)]
     result = {"chamber": ch, "monte_carlo": mcs, "seconds": round(time.monotonic() - t0, 1)}
     (args.out / "integration.json").write_text(json.dumps(result, indent=2) + "\n")
     plot(ch, mcs, args.out / "integration.png")

@@ -547,3 +547,32 @@ def test_tracker_state_expires_with_its_sensor(bus, zenoh_session):
     finally:
         node.stop()
     assert node.sensors_expired == 1
+
+
+# -- the Monte Carlo in time ---------------------------------------------------------------------------
+def test_time_monte_carlo_error_falls_with_the_frames():
+    from pipeline.integrate import time_monte_carlo
+
+    r = time_monte_carlo(24, (1, 4, 16), 0.0, seed=3)
+    assert r["T"] == [1, 4, 16] and r["runs"] == 24
+    assert r["median_m"][2] < 0.25 * r["median_m"][0] and r["slope"] < -0.6
+    with pytest.raises(ParameterError, match="noise_sigma"):
+        time_monte_carlo(2, (1,), float("nan"))
+    with pytest.raises(ParameterError, match="runs"):
+        time_monte_carlo(0, (1,))
+
+
+def test_cli_montecarlo_time_writes_its_curve(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "mct"
+    proc = subprocess.run([sys.executable, "-m", "qradar", "montecarlo-time", "--runs", "6", "--frames", "1", "8",
+                           "--noise-sigma", "0", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads((out / "time.json").read_text())
+    assert len(res) == 1 and res[0]["T"] == [1, 8] and res[0]["median_m"][1] < res[0]["median_m"][0]
+    assert (out / "time.png").read_bytes()[:4] == b"\x89PNG" and "slope" in proc.stdout
+    bad = subprocess.run([sys.executable, "-m", "qradar", "montecarlo-time", "--out", "/proc/qradar"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("qradar montecarlo-time: error: ")
