@@ -106,6 +106,26 @@ def test_assign_is_global_and_gated():
     assert rows.size == 0
 
 
+def test_assign_is_the_brute_force_optimum():
+    """The Hungarian assignment against every assignment enumerated (the reference)."""
+    import itertools
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        t, k = rng.integers(1, 5, size=2)
+        d2 = rng.exponential(8.0, (t, k))
+        logdet = rng.normal(0.0, 1.0, (t, k))
+        rows, cols = assign(d2, logdet, 13.8)
+        ok = d2 <= 13.8
+        best = (0, 0.0)  # (pairs, -cost): the most pairs within the gate, then the least cost
+        for perm in itertools.permutations(range(max(t, k))):
+            pairs = [(i, j) for i, j in enumerate(perm[:t]) if j < k and ok[i, j]]
+            score = (len(pairs), -sum(d2[i, j] + logdet[i, j] for i, j in pairs))
+            best = max(best, score)
+        got = (len(rows), -float(sum(d2[rows, cols] + logdet[rows, cols])))
+        assert got[0] == best[0] and got[1] == pytest.approx(best[1])
+
+
 @pytest.mark.parametrize("kw", [{"accel_mps2": 0}, {"gate_chi2": float("nan")}, {"confirm_hits": 0},
                                 {"max_tracks": 2.5}, {"static_chi2": 20.0, "moving_chi2": 10.0},
                                 {"integrate_s": -1}, {"integrate_s": True}])
