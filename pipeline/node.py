@@ -409,9 +409,12 @@ class Node:
             st.bytes_out += len(payload)
             st.last_seen = time.monotonic()
 
-    def publish_many(self, sensor_ids: list[str], topic: str, payloads: list[bytes], encoding: str) -> None:
+    def publish_many(self, sensor_ids: list[str], topic: str, payloads: list[bytes], encoding: str,
+                     frames_out: bool = True) -> None:
         """Put each payload on its sensor's ``topic`` key, the counters under one lock; a
-        message that fails is counted in its sensor's ``processing_errors`` (the others go on)."""
+        message that fails is counted in its sensor's ``processing_errors`` (the others go on).
+        ``frames_out=False``: a second message about frames already counted (the tracks after
+        the targets): its bytes count, not its frames."""
         sent = []
         for sensor, payload in zip(sensor_ids, payloads):
             try:
@@ -424,7 +427,7 @@ class Node:
         with self._lock:
             for sensor, n in sent:
                 st = self.sensor_stats(sensor)
-                st.frames_out += 1
+                st.frames_out += frames_out
                 st.bytes_out += n
                 st.last_seen = now
 

@@ -30,6 +30,7 @@ from .node import Node, ProcessingNode, run_nodes
 from .noise import NoiseTracker
 from .quantize import (AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames,
                        sensor_dither_seeds)
+from .track import Integration, Tracker, TrackerConfig, publish_tracks
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,
@@ -409,10 +410,17 @@ class LocalizeNode(FrameNode):
 
     name = "localize"
 
-    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None, **kw):
+    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None,
+                 tracking: TrackerConfig | None = None, **kw):
         self.in_topic = config.source
         super().__init__(bus, config.radar, config.max_ramps, session, **kw)
         self.config = config
+        # tracks (pipeline.track): ``<prefix>/<sensor>/tracks`` after each frame's targets
+        self.tracker = None if tracking is None else Tracker(tracking, Integration.of_localizer(config))
+
+    def forget(self, sensor_id: str) -> None:
+        if self.tracker is not None:
+            self.tracker.forget(sensor_id)
 
     def process(self, batch) -> None:
         groups, keys = self.decode(batch)
@@ -470,6 +478,9 @@ class LocalizeNode(FrameNode):
                 part = part_of(j)  # a non-finite target loses its own frame only
                 self.publish_many(part.sensor_id, "targets", payloads, "application/json")
                 self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
+            if self.tracker is not None:
+                publish_tracks(self, self.tracker, part_of(np.arange(idx.size)), det, frames if len(idx) == n
+                               else frames.take(idx) if isinstance(frames, QuantizedFrames) else None, radar)
 
     def _failed(self, sensor: str, seq: int, key: str, exc: Exception) -> None:
         if isinstance(exc, DitherUnavailable):

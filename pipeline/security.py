@@ -51,7 +51,7 @@ ROLES = ("router", "sensor", "quantizer", "localizer", "recorder", "viewer")
 ROLE_NODE = {"sensor": "source", "quantizer": "quantize", "localizer": "localize", "recorder": "record",
              "viewer": "view"}
 # the data topics each role may publish for its sensors
-ROLE_TOPICS = {"sensor": ("raw", "quantized"), "quantizer": ("quantized",), "localizer": ("targets",),
+ROLE_TOPICS = {"sensor": ("raw", "quantized"), "quantizer": ("quantized",), "localizer": ("targets", "tracks"),
                "recorder": (), "viewer": ()}
 ALL_SENSORS = ("*",)
 LOCAL_LINKS = ("unixsock-stream",)  # trusted as far as the socket file's permissions go

@@ -1,7 +1,7 @@
 """Wire formats of the zenoh stream (byte layouts in docs/wire-formats.md).
 
 Raw and quantized frames are compact binary, little-endian, behind one 48-byte common
-header; targets and health are UTF-8 JSON objects. Every message carries the format
+header; targets, tracks and health are UTF-8 JSON objects. Every message carries the format
 version, the sensor id, the sequence number, the sensor timestamp (ns) and the radar
 configuration id. Decoders check everything and raise :class:`WireError` naming what
 is wrong and where (the ``source``, e.g. the zenoh key).
@@ -63,7 +63,7 @@ MAX_M = 1 << 20
 SENSOR_ID_MAX = 16
 JSON_VERSION = 1
 #: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``; this is the one list of them
-TOPICS = ("raw", "quantized", "targets", "health")
+TOPICS = ("raw", "quantized", "targets", "tracks", "health")
 #: bytes a sensor id may hold
 _ID_BYTES = np.zeros(256, dtype=bool)
 _ID_BYTES[list(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")] = True
@@ -740,6 +740,64 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
                           int(obj.get("published_ns", 0)), bool(obj.get("K_auto", False)))
     except (KeyError, TypeError, ValueError, OverflowError, WireError) as exc:
         raise WireError(f"targets from {source}: missing or bad field ({exc})") from None
+
+
+#: the fields of a track in the tracks JSON (pipeline.track), in order; ``track_id`` and
+#: ``hits`` are integers, ``static`` a boolean, the others numbers
+TRACK_FIELDS = ("track_id", "range_m", "angle_deg", "x_m", "y_m", "vx_mps", "vy_mps", "sigma_m", "age_s", "hits",
+                "static")
+_TRACK_FLOATS = ("range_m", "angle_deg", "x_m", "y_m", "vx_mps", "vy_mps", "sigma_m", "age_s")
+
+
+def _track(t: dict) -> dict:
+    """A track's fields, checked: integers >= 0, finite floats, a boolean."""
+    out = {"track_id": _uint(t, "track_id"), **{f: float(t[f]) for f in _TRACK_FLOATS}, "hits": _uint(t, "hits")}
+    bad = [f for f in _TRACK_FLOATS if not np.isfinite(out[f])]
+    if bad:
+        raise ValueError(f"track field {bad[0]}={out[bad[0]]} is not finite")
+    if not isinstance(t["static"], bool):
+        raise ValueError(f"static={t['static']!r} must be true or false")
+    out["static"] = t["static"]
+    return {f: out[f] for f in TRACK_FIELDS}
+
+
+@dataclass(frozen=True)
+class TracksMsg:
+    """The confirmed tracks of one sensor after frame ``seq`` (pipeline.track): each a dict
+    with TRACK_FIELDS; ``published_ns`` is the tracker's wall clock when it published them."""
+
+    sensor_id: str
+    seq: int
+    timestamp_ns: int
+    tracks: list[dict]
+    published_ns: int = 0
+
+    def to_json(self) -> bytes:
+        """Compact JSON; each float with TARGET_DIGITS significant digits."""
+        head = json.dumps({"version": JSON_VERSION, "type": "tracks", "sensor_id": check_sensor_id(self.sensor_id),
+                           "seq": self.seq, "timestamp_ns": self.timestamp_ns, "published_ns": self.published_ns},
+                          separators=(",", ":"))
+        items = []
+        for t in self.tracks:
+            t = _track(t)
+            items.append('{"track_id":%d,' % t["track_id"]
+                         + ",".join(f'"{f}":{t[f]:.{TARGET_DIGITS}g}' for f in _TRACK_FLOATS)
+                         + ',"hits":%d,"static":%s}' % (t["hits"], "true" if t["static"] else "false"))
+        return (head[:-1] + ',"tracks":[' + ",".join(items) + "]}").encode()
+
+
+def decode_tracks(payload: bytes, source: str = "<bytes>") -> TracksMsg:
+    obj = _load_json(payload, source, "tracks")
+    try:
+        if not isinstance(obj["tracks"], list):
+            raise ValueError(f"tracks must be a list, got {type(obj['tracks']).__name__}")
+        tracks = [_track(t) for t in obj["tracks"]]
+        ts, pub = obj["timestamp_ns"], obj["published_ns"]
+        if isinstance(ts, bool) or not isinstance(ts, int) or isinstance(pub, bool) or not isinstance(pub, int):
+            raise ValueError("timestamp_ns and published_ns must be integers")
+        return TracksMsg(check_sensor_id(obj["sensor_id"]), _uint(obj, "seq"), ts, tracks, pub)
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError, WireError) as exc:
+        raise WireError(f"tracks from {source}: missing or bad field ({exc})") from None
 
 
 #: health counters added in this version of the JSON (0 when a message lacks them)

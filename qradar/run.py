@@ -38,10 +38,11 @@ from pipeline.errors import ParameterError
 from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.track import TrackerConfig
 from pipeline.quantize import QuantizerConfig
-from pipeline.wire import TOPICS, WireError, decode_health, decode_targets
+from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
 from radar_driver.errors import ConfigError, RadarError
-from radar_driver.model import RadarConfig
+from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
@@ -92,6 +93,10 @@ class Monitor:
         self.latency_ms = LogHistogram(lo=1e-3, hi=1e6)  # sensor timestamp -> targets published, ms
         self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
         self.bad_targets = 0
+        # tracks (--track): each static true target to the nearest static track within 1 m, m;
+        # the largest track id seen per sensor (ids count up from 1)
+        self.static_track_errors_m = LogHistogram(lo=1e-4, hi=1e4)
+        self.track_ids: dict[str, int] = {}
         self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
         self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
         self._last_seq: dict[str, int] = {}
@@ -136,6 +141,9 @@ class Monitor:
                 self.raw_by_sensor[sensor] = self.raw_by_sensor.get(sensor, 0) + 1
         if topic == "health":
             self._on_health(key, payload)
+            return
+        if topic == "tracks":
+            self._on_tracks(key, payload)
             return
         if topic != "targets":
             return
@@ -187,6 +195,31 @@ class Monitor:
                 line += "   error m " + " ".join(f"{e:.2f}" for e in err)
             line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
             print(line, file=self.live, flush=True)
+
+    def _on_tracks(self, key: str, payload: bytes) -> None:
+        """A tracks message: its largest id, and with a truth the static tracks' errors."""
+        try:
+            msg = decode_tracks(payload, key)
+        except WireError:
+            with self._lock:
+                self.bad_targets += 1
+            return
+        errors = []
+        if self.truth is not None:
+            static = [(t["x_m"], t["y_m"]) for t in msg.tracks if t["static"]]
+            for tg in self.truth.targets:
+                if tg.velocity_m_s or not static:
+                    continue
+                x, y = polar_to_xy(tg.range_m, np.radians(tg.angle_deg))
+                d = min(float(np.hypot(sx - x, sy - y)) for sx, sy in static)
+                if d < 1.0:
+                    errors.append(d)
+        with self._lock:
+            if msg.sensor_id not in self.track_ids and len(self.track_ids) >= self.MAX_SENSORS:
+                self.track_ids.clear()  # keys of garbage: bounded
+            self.track_ids[msg.sensor_id] = max([self.track_ids.get(msg.sensor_id, 0)]
+                                                + [t["track_id"] for t in msg.tracks])
+            self.static_track_errors_m.add_many(errors)
 
     def _on_health(self, key: str, payload: bytes) -> None:
         """A driver's health: the sensor frames its link lost so far (the DONE counter's gaps)."""
@@ -249,6 +282,7 @@ class RunConfig:
     # the localizer's range gate, m (None: the radar's default, pipeline.gate.RangeGate.default)
     min_range_m: float | None = None
     max_range_m: float | None = None
+    tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.track), None: none
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -340,7 +374,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
-            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session)
+            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
             if cfg.driver_process:
                 drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
@@ -657,6 +691,12 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
                       **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
         "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
                       **localizer.config.gate.to_dict()},
+        **({"tracks": {"messages": cnt["tracks"], "last_track_id": dict(sorted(monitor.track_ids.items())),
+                       "integrate_s": cfg.tracking.integrate_s,
+                       # each static true target to the nearest static track (within 1 m), every message
+                       "static_track_error_m": {"median": _stat(monitor.static_track_errors_m.percentile(50)),
+                                                "p90": _stat(monitor.static_track_errors_m.percentile(90))}}}
+           if cfg.tracking is not None else {}),
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
         # the simulated sensors' own late writes (device clock held): apart from every loss above;
@@ -693,6 +733,11 @@ def format_summary(s: dict) -> str:
         lines.append(f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true "
                      f"target to the nearest estimate" + (f"; truth {s['truth']}" if s.get("truth") not in
                                                           (None, "simulated") else "") + ")")
+    tr = s.get("tracks")
+    if tr is not None:
+        e = tr["static_track_error_m"]
+        lines.append(f"  tracks      {tr['messages']} messages, last track id {tr['last_track_id']}; static tracks' error "
+                     f"median {e['median']} m, p90 {e['p90']} m (--integrate {tr['integrate_s']:g} s)")
     lines.append(f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
                  f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
     rec = s.get("recording")

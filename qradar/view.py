@@ -11,14 +11,20 @@ that listens only where asked (default 127.0.0.1:8765). Per sensor ``s``:
   one point per target, float32 fields x, y, z (m; x = R cos θ along boresight, y = R sin θ
   across it, from :func:`radar_driver.model.polar_to_xy`; z = 0), amplitude, range_m,
   angle_deg and statistic_db (NaN when the localizer gave none);
+* ``/<prefix>/s/tracks``: ``foxglove.SceneUpdate`` (protobuf) in the frame ``radar_s``, one
+  entity per track of the sensor's tracks messages (``--track``): a sphere at the track's
+  position (diameter 2 sigma, at least 0.2 m; green while static, orange while moving) and
+  a label with its id, speed and sigma; an entity lives 0.5 s unless the next message
+  replaces it;
 * ``/<prefix>/s/targets_json``: the targets message as on the wire (JSON,
   docs/wire-formats.md), for plots of ``targets[0].range_m`` and the like;
 * ``/<prefix>/s/range_profile``: |Φ*Z/M| of a quantized frame against range, per antenna
   and joint, in dB (JSON, :func:`range_profile`), at most ``profile_rate_hz`` a second;
 * ``/<prefix>/s/health/<node>``: each node's health JSON as on the wire (the view's own,
   node ``view``, among them);
-* ``/tf``: ``foxglove.FrameTransform`` world → ``radar_s`` (identity: qradar does not know
-  where a sensor stands), once a second.
+* ``/tf``: ``foxglove.FrameTransform`` world → ``radar_s``, once a second: the sensor's pose
+  from a sensors file (``--sensor-poses sensors.toml``: per sensor id its ``x_m``, ``y_m``
+  and ``yaw_deg`` in the world; :func:`load_poses`), else the identity.
 
 A malformed payload is counted (``decode_errors``), logged at most once a second, and
 skipped; the view keeps running. The WebSocket server keeps at most 1 024 outgoing
@@ -37,14 +43,20 @@ from dataclasses import dataclass, field, replace
 import foxglove
 import numpy as np
 import zenoh
-from foxglove.channels import FrameTransformChannel, PointCloudChannel
+from foxglove.channels import FrameTransformChannel, PointCloudChannel, SceneUpdateChannel
 from foxglove.messages import (
+    Color,
+    Duration,
     FrameTransform,
     PackedElementField,
     PackedElementFieldNumericType,
     PointCloud,
     Pose,
     Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    TextPrimitive,
     Timestamp,
     Vector3,
 )
@@ -60,10 +72,12 @@ from pipeline.wire import (
     MAGIC,
     QuantizedFrameMsg,
     TargetsMsg,
+    TracksMsg,
     check_sensor_id,
     decode_health,
     decode_quantized,
     decode_targets,
+    decode_tracks,
 )
 from radar_driver.errors import RadarError
 from replay.mcapio import TARGETS_SCHEMA
@@ -128,6 +142,8 @@ class ViewConfig:
     queue_size: int = 256
     max_sensors: int = 64
     name: str = "qradar"
+    #: sensor id -> (x_m, y_m, yaw_deg) of the sensor in the world (:func:`load_poses`)
+    poses: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.host, str) and self.host.strip()):
@@ -169,10 +185,10 @@ def frame_id(sensor_id: str) -> str:
 
 def sensor_topics(prefix: str, sensor_id: str) -> dict[str, str]:
     """A sensor's Foxglove topics by kind: ``targets`` (foxglove.PointCloud), ``targets_json``,
-    ``range_profile``; its health topics are :func:`health_topic`."""
+    ``range_profile``, ``tracks`` (foxglove.SceneUpdate); its health topics are :func:`health_topic`."""
     base = f"/{prefix}/{sensor_id}"
     return {"targets": f"{base}/targets", "targets_json": f"{base}/targets_json",
-            "range_profile": f"{base}/range_profile"}
+            "range_profile": f"{base}/range_profile", "tracks": f"{base}/tracks"}
 
 
 def health_topic(prefix: str, sensor_id: str, node: str) -> str:
@@ -214,6 +230,84 @@ def targets_pointcloud(msg: TargetsMsg, source: str = "<targets>") -> PointCloud
         data=target_points(msg).tobytes())
 
 
+#: how long a track's entity stays without a newer message, ns
+TRACK_LIFETIME_NS = 500_000_000
+#: colours of a static and of a moving track (RGBA, 0..1)
+STATIC_COLOR = (0.2, 0.8, 0.3, 0.9)
+MOVING_COLOR = (1.0, 0.55, 0.1, 0.9)
+
+
+def track_label(track: dict) -> str:
+    """``#3 1.52 m/s σ 0.041 m`` (``static`` instead of the speed while static)."""
+    speed = "static" if track["static"] else f"{math.hypot(track['vx_mps'], track['vy_mps']):.2f} m/s"
+    return f"#{track['track_id']} {speed} σ {track['sigma_m']:.3f} m"
+
+
+def tracks_scene(msg: TracksMsg, source: str = "<tracks>") -> SceneUpdate:
+    """``foxglove.SceneUpdate`` of one tracks message, in the frame ``radar_<sensor>``,
+    stamped with the frame's sensor timestamp: an entity ``track-<id>`` per track, a sphere
+    at its position (diameter 2 sigma, at least 0.2 m) and a label (:func:`track_label`)."""
+    stamp = _timestamp(msg.timestamp_ns, f"tracks from {source}")
+    identity = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+    entities = []
+    for t in msg.tracks:
+        size = max(2.0 * t["sigma_m"], 0.2)
+        r, g, b, a = STATIC_COLOR if t["static"] else MOVING_COLOR
+        entities.append(SceneEntity(
+            timestamp=stamp, frame_id=frame_id(msg.sensor_id), id=f"track-{t['track_id']}",
+            lifetime=Duration(sec=0, nsec=TRACK_LIFETIME_NS), frame_locked=True,
+            spheres=[SpherePrimitive(pose=Pose(position=Vector3(x=t["x_m"], y=t["y_m"], z=0.0), orientation=identity),
+                                     size=Vector3(x=size, y=size, z=size), color=Color(r=r, g=g, b=b, a=a))],
+            texts=[TextPrimitive(pose=Pose(position=Vector3(x=t["x_m"], y=t["y_m"], z=0.5), orientation=identity),
+                                 billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=Color(r=1.0, g=1.0, b=1.0, a=1.0), text=track_label(t))]))
+    return SceneUpdate(entities=entities)
+
+
+def load_poses(path) -> dict[str, tuple[float, float, float]]:
+    """A sensors file: a TOML table per sensor id with its pose in the world, ``x_m``,
+    ``y_m`` (m) and ``yaw_deg`` (deg, counter-clockwise; boresight along the world's x at
+    0), each optional (0). -> {sensor id: (x_m, y_m, yaw_deg)}; a mistake is one
+    ParameterError naming the file and the entry."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as exc:
+        raise ParameterError(f"sensors file {path}: cannot read ({exc.strerror or exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ParameterError(f"sensors file {path}: not TOML ({exc})") from None
+    poses = {}
+    for sid, entry in data.items():
+        try:
+            check_sensor_id(sid)
+        except WireError as exc:
+            raise ParameterError(f"sensors file {path}: {exc}") from None
+        if not isinstance(entry, dict):
+            raise ParameterError(f"sensors file {path}: [{sid}] must be a table of x_m, y_m, yaw_deg")
+        unknown = sorted(set(entry) - {"x_m", "y_m", "yaw_deg"})
+        if unknown:
+            raise ParameterError(f"sensors file {path}: [{sid}] has unknown keys {unknown}; known: x_m, y_m, yaw_deg")
+        pose = []
+        for key in ("x_m", "y_m", "yaw_deg"):
+            v = entry.get(key, 0.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ParameterError(f"sensors file {path}: [{sid}] {key}={v!r} must be a finite number")
+            pose.append(float(v))
+        poses[sid] = tuple(pose)
+    return poses
+
+
+def sensor_transform(sensor: str, pose: tuple[float, float, float] | None, stamp: Timestamp) -> FrameTransform:
+    """world -> ``radar_<sensor>`` at ``pose`` (x_m, y_m, yaw_deg; None: the identity)."""
+    x, y, yaw = pose or (0.0, 0.0, 0.0)
+    half = math.radians(yaw) / 2.0
+    return FrameTransform(timestamp=stamp, parent_frame_id=WORLD_FRAME, child_frame_id=frame_id(sensor),
+                          translation=Vector3(x=x, y=y, z=0.0),
+                          rotation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
+
+
 def _db(magnitude: np.ndarray) -> list[float]:
     return np.round(20.0 * np.log10(np.maximum(magnitude, PROFILE_FLOOR)), 2).tolist()
 
@@ -242,6 +336,7 @@ class _SensorChannels:
     points: PointCloudChannel
     targets: foxglove.Channel
     profile: foxglove.Channel
+    tracks: SceneUpdateChannel
     health: dict[str, foxglove.Channel] = field(default_factory=dict)
 
 
@@ -296,7 +391,7 @@ class FoxgloveView(ProcessingNode):
         return self
 
     def _start(self) -> None:
-        topics = ["targets", "health"] + (["quantized"] if self.config.profile_rate_hz > 0 else [])
+        topics = ["targets", "tracks", "health"] + (["quantized"] if self.config.profile_rate_hz > 0 else [])
         self._subscribers = [self.session.declare_subscriber(self.bus.wildcard(t), self._on_sample) for t in topics]
         self._spawn_supervised(self._work_loop, "worker")
 
@@ -340,6 +435,8 @@ class FoxgloveView(ProcessingNode):
             try:
                 if topic == "targets":
                     self._targets(sensor, key, payload)
+                elif topic == "tracks":
+                    self._tracks(sensor, key, payload)
                 elif topic == "quantized":
                     self._profile(sensor, key, payload)
                 elif topic == "health":  # queued under no sensor when the view has none of its state yet
@@ -359,7 +456,8 @@ class FoxgloveView(ProcessingNode):
         ch = _SensorChannels(
             points=PointCloudChannel(topics["targets"], context=self._context),
             targets=foxglove.Channel(topics["targets_json"], schema=TARGETS_SCHEMA, context=self._context),
-            profile=foxglove.Channel(topics["range_profile"], schema=RANGE_PROFILE_SCHEMA, context=self._context))
+            profile=foxglove.Channel(topics["range_profile"], schema=RANGE_PROFILE_SCHEMA, context=self._context),
+            tracks=SceneUpdateChannel(topics["tracks"], context=self._context))
         self._sensors[sensor] = ch
         self._log_transform(sensor)
         return ch
@@ -376,6 +474,13 @@ class FoxgloveView(ProcessingNode):
         ch.points.log(cloud, log_time=msg.timestamp_ns)
         ch.targets.log(payload, log_time=msg.timestamp_ns)
         self._count_out(sensor, 2, len(payload), (time.time_ns() - msg.timestamp_ns) / 1e6)
+
+    def _tracks(self, sensor: str, key: str, payload: bytes) -> None:
+        msg = decode_tracks(payload, key)
+        self._check_sensor(msg.sensor_id, sensor, key, "tracks")
+        scene = tracks_scene(msg, key)
+        self._channels(sensor, key).tracks.log(scene, log_time=msg.timestamp_ns)
+        self._count_out(sensor, 1, len(payload))
 
     def _profile(self, sensor: str, key: str, payload: bytes) -> None:
         msg = decode_quantized(payload, key)
@@ -414,9 +519,7 @@ class FoxgloveView(ProcessingNode):
 
     def _log_transform(self, sensor: str) -> None:
         if self._tf is not None:
-            self._tf.log(FrameTransform(timestamp=Timestamp.from_epoch_secs(time.time()), parent_frame_id=WORLD_FRAME,
-                                        child_frame_id=frame_id(sensor), translation=Vector3(x=0.0, y=0.0, z=0.0),
-                                        rotation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)))
+            self._tf.log(sensor_transform(sensor, self.config.poses.get(sensor), Timestamp.from_epoch_secs(time.time())))
 
     # -- health ---------------------------------------------------------------------------------
     def _publish_health(self, part: int | None = None) -> None:

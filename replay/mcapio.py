@@ -2,7 +2,7 @@
 
 One channel per zenoh key (``radar/<sensor>/<topic>``) with one schema per message type;
 binary frames use the message encoding ``qradar/wire-v1`` (schema data: the byte layout,
-docs/wire-formats.md), targets and health are ``json`` with a JSON schema. Targets also
+docs/wire-formats.md), targets, tracks and health are ``json`` with a JSON schema. Targets also
 go to ``<prefix>/<sensor>/pointcloud`` as ``foxglove.PointCloud`` (JSON), so Foxglove
 shows them without plugins.
 
@@ -34,7 +34,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from zstandard import ZstdError
 
-from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TargetsMsg
+from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TRACK_FIELDS, TargetsMsg
 
 from .errors import NotMcapError, RecordingExists, ReplayError
 
@@ -52,6 +52,18 @@ TARGETS_SCHEMA = {
                        f: {"type": "number"} for f in TARGET_FIELDS + OPTIONAL_TARGET_FIELDS},
                        "required": list(TARGET_FIELDS)}}},
     "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "targets"],
+}
+#: JSON schema of the tracks JSON (docs/wire-formats.md, pipeline.track)
+TRACKS_SCHEMA = {
+    "type": "object", "title": "qradar.Tracks",
+    "properties": {"version": {"type": "integer"}, "type": {"const": "tracks"}, "sensor_id": {"type": "string"},
+                   "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
+                   "published_ns": {"type": "integer"},
+                   "tracks": {"type": "array", "items": {"type": "object", "properties": {
+                       f: {"type": "integer" if f in ("track_id", "hits") else "boolean" if f == "static"
+                           else "number"} for f in TRACK_FIELDS},
+                       "required": list(TRACK_FIELDS)}}},
+    "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "published_ns", "tracks"],
 }
 _HEALTH_SCHEMA = {
     "type": "object", "title": "qradar.Health",
@@ -99,7 +111,7 @@ def pointcloud_json(msg: TargetsMsg, frame_id: str = "radar") -> bytes:
 
 
 def topic_of(key: str) -> str | None:
-    """``raw`` / ``quantized`` / ``targets`` / ``health`` / ``pointcloud`` of a qradar key, else None."""
+    """``raw`` / ``quantized`` / ``targets`` / ``tracks`` / ``health`` / ``pointcloud`` of a qradar key, else None."""
     last = key.rsplit("/", 1)[-1]
     return last if last in TOPICS + ("pointcloud",) else None
 
@@ -205,7 +217,7 @@ class McapSink:
                 sid = self.writer.register_schema("foxglove.PointCloud", "jsonschema",
                                                   json.dumps(FOXGLOVE_POINTCLOUD_SCHEMA).encode())
             else:
-                schema = TARGETS_SCHEMA if topic == "targets" else _HEALTH_SCHEMA
+                schema = {"targets": TARGETS_SCHEMA, "tracks": TRACKS_SCHEMA}.get(topic, _HEALTH_SCHEMA)
                 sid = self.writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._schemas[topic] = sid
         return self._schemas[topic]

@@ -90,7 +90,7 @@ def message_times(topic: str, payload: bytes, log_time_ns: int) -> tuple[int, in
             magic, _, _, _, _, seq, ts, _, _, _ = COMMON.unpack_from(payload)
             if magic == MAGIC:
                 return int(ts), int(seq)
-        elif topic in ("targets", "health"):
+        elif topic in ("targets", "tracks", "health"):
             obj = json.loads(payload)
             return int(obj.get("timestamp_ns", log_time_ns)), int(obj.get("seq", 0))
     except (struct.error, ValueError, TypeError, AttributeError):

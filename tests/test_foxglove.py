@@ -321,3 +321,71 @@ def test_the_committed_layout_shows_topics_the_view_serves():
         return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
 
     assert sorted(leaves(layout["layout"])) == sorted(panels)
+
+
+def test_tracks_as_a_scene_update_and_sensors_at_their_poses(node, bus, zenoh_session, tmp_path):
+    """Tracks messages -> foxglove.SceneUpdate, decoded by the foreign client with the
+    official schema the server advertises: one entity per track, a sphere at its position
+    and a label with its id, speed and sigma; each sensor's frame at its pose of the
+    sensors file."""
+    from pipeline.wire import TracksMsg
+    from qradar.view import load_poses, track_label
+
+    poses = tmp_path / "sensors.toml"
+    poses.write_text("[trk0]\nx_m = 3.0\ny_m = -2.0\nyaw_deg = 90.0\n\n[trk1]\nyaw_deg = -30\n")
+    view = FoxgloveView(bus, ViewConfig(port=0, profile_rate_hz=0.0, poses=load_poses(poses)), session=zenoh_session,
+                        health_period_s=0.2)
+    view.start()
+    client = Client(node, view.url, topic=r"/(tracks|tf)$")
+    tracks = [{"track_id": 3, "range_m": 5.0, "angle_deg": 0.0, "x_m": 5.0, "y_m": 0.0, "vx_mps": 1.2,
+               "vy_mps": -0.5, "sigma_m": 0.25, "age_s": 2.0, "hits": 40, "static": False},
+              {"track_id": 4, "range_m": 10.0, "angle_deg": 30.0, "x_m": 8.66, "y_m": 5.0, "vx_mps": 0.0,
+               "vy_mps": 0.0, "sigma_m": 0.02, "age_s": 9.0, "hits": 180, "static": True}]
+    try:
+        wait_until(lambda: client.events("open"), 15, "the client to connect")
+        for i in range(40):  # until the client has subscribed and got some
+            for sid in ("trk0", "trk1"):
+                zenoh_session.put(f"radar/{sid}/tracks", TracksMsg(sid, i, 10**18 + i, tracks, 0).to_json())
+            time.sleep(0.05)
+            if len(client.messages("/trk1/tracks")) >= 3 and len(client.messages("/tf")) >= 2:
+                break
+        wait_until(lambda: {e["data"]["childFrameId"] for e in client.messages("/tf")} >= {"radar_trk0", "radar_trk1"},
+                   10, "both sensors' transforms")
+    finally:
+        view.stop()
+        client.finish()
+    assert view.totals()["decode_errors"] == 0
+    advertised = {e["topic"]: e for e in client.events("advertise")}
+    assert advertised["/radar/trk0/tracks"]["schemaName"] == "foxglove.SceneUpdate"
+    assert advertised["/radar/trk0/tracks"]["encoding"] == "protobuf"
+    scene = client.messages("/trk1/tracks")[-1]["data"]
+    ents = {e["id"]: e for e in scene["entities"]}
+    assert set(ents) == {"track-3", "track-4"}
+    moving, static = ents["track-3"], ents["track-4"]
+    assert moving["frameId"] == "radar_trk1" and moving["frameLocked"]
+    assert moving["spheres"][0]["pose"]["position"]["x"] == pytest.approx(5.0)
+    assert moving["spheres"][0]["size"]["x"] == pytest.approx(0.5)  # 2 sigma
+    assert static["spheres"][0]["size"]["x"] == pytest.approx(0.2)  # at least 0.2 m
+    assert static["spheres"][0]["pose"]["position"]["y"] == pytest.approx(5.0)
+    assert moving["texts"][0]["text"] == track_label(tracks[0]) == "#3 1.30 m/s σ 0.250 m"
+    assert static["texts"][0]["text"] == "#4 static σ 0.020 m"
+    assert static["spheres"][0]["color"]["g"] > static["spheres"][0]["color"]["r"]  # green while static
+    tf = {e["data"]["childFrameId"]: e["data"] for e in client.messages("/tf")}
+    t0 = tf["radar_trk0"]
+    assert t0["parentFrameId"] == "world"
+    assert (t0["translation"]["x"], t0["translation"]["y"]) == (pytest.approx(3.0), pytest.approx(-2.0))
+    assert (t0["rotation"]["z"], t0["rotation"]["w"]) == (pytest.approx(np.sqrt(0.5)), pytest.approx(np.sqrt(0.5)))
+    assert tf["radar_trk1"]["rotation"]["z"] == pytest.approx(np.sin(np.radians(-15.0)))
+
+
+def test_a_bad_sensors_file_is_one_clear_error(tmp_path):
+    from qradar.view import load_poses
+
+    p = tmp_path / "s.toml"
+    for text, what in [("[a]\nx_m = 'one'\n", "x_m='one'"), ("[a]\nz_m = 1\n", "unknown keys \\['z_m'\\]"),
+                       ("['a/b']\nx_m = 1\n", "sensor_id"), ("a = 1\n", "must be a table"), ("[a\n", "not TOML")]:
+        p.write_text(text)
+        with pytest.raises(ParameterError, match=what):
+            load_poses(p)
+    with pytest.raises(ParameterError, match="cannot read"):
+        load_poses(tmp_path / "missing.toml")

@@ -256,3 +256,14 @@ def test_the_python_recipe_works_as_written(workdir):
                          timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("(106, 2)")
+
+
+@pytest.mark.slow
+def test_the_tracks_recipe_works_as_written(workdir):
+    walk, chamber = steps("tracks")
+    out = run_step(walk, workdir).stdout
+    assert "tracks" in out and "Traceback" not in out
+    out = run_step(chamber, workdir).stdout
+    m = re.search(r"static tracks' error median ([0-9.]+) m", out)
+    assert m, out[-3000:]
+    assert float(m.group(1)) < 0.08, out[-2000:]  # one frame: ~0.12 m

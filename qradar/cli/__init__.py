@@ -3,7 +3,7 @@
 - :mod:`.sensor`: ``sim``, ``drive``
 - :mod:`.stream`: ``quantize``, ``localize``, ``source``, ``router``, ``run``
 - :mod:`.record`: ``record``, ``recover``, ``replay``
-- :mod:`.analysis`: ``montecarlo``, ``reprocess``
+- :mod:`.analysis`: ``montecarlo``, ``montecarlo-time``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)
 - :mod:`.security`: ``security init|add|remove|list`` (certificates for ``--secure``)
@@ -48,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"qradar {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     analysis.add_montecarlo(sub)  # the order of `qradar -h`, as before the split into groups
+    analysis.add_montecarlo_time(sub)
     sensor.add_commands(sub)
     stream.add_commands(sub)
     record.add_commands(sub)

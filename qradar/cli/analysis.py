@@ -1,23 +1,27 @@
-"""Analysis commands: ``montecarlo`` (the paper's Sec. 5) and ``reprocess`` (a
-recording's raw frames quantized and localized again, the alpha sweep of Sec. 6)."""
+"""Analysis commands: ``montecarlo`` (the paper's Sec. 5), ``montecarlo-time`` (T frames of
+a static scene decoded together, error against T) and ``reprocess`` (a recording's raw
+frames quantized and localized again, the alpha sweep of Sec. 6)."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
 from pipeline.decode import ALGOS, DEFAULT_ALGO, Algo
 from pipeline.gate import RangeGate
+from pipeline.integrate import time_monte_carlo
 from pipeline.localize import DEFAULT_PFA
 from pipeline.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
                                  prepare_out_dir, run_montecarlo, write_outputs)
+from pipeline.plots import error_vs_frames_figure
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
 
 from .common import (BITS_HELP, count_from_args, count_options, gate_options, nonneg_float, nonneg_int, pfa_arg,
                      pos_int)
-from .common import calibration_option
+from .common import calibration_option, track_options, tracker_config
 
 
 def add_montecarlo(sub) -> None:
@@ -80,6 +84,38 @@ def add_montecarlo(sub) -> None:
     p.set_defaults(func=cmd_montecarlo)
 
 
+def add_montecarlo_time(sub) -> None:
+    p = sub.add_parser(
+        "montecarlo-time",
+        help="the Monte Carlo in time: T 1-bit frames of a static scene decoded together, error against T",
+        description="Random static scenes of one target off the grid (range uniform in 3-150 m, angle in +-60 deg), "
+        "each seen in T frames with a fresh dither (and fresh noise), decoded together by cml "
+        "(pipeline.integrate); writes time.json and time.png to --out and prints the median error against T and "
+        "its slope in log-log.")
+    p.add_argument("--runs", type=pos_int, default=200, help="scenes per noise level (default 200)")
+    p.add_argument("--frames", type=pos_int, nargs="+", default=[1, 2, 4, 8, 16, 32],
+                   help="the T to decode (default 1 2 4 8 16 32)")
+    p.add_argument("--noise-sigma", type=nonneg_float, nargs="+", default=[0.1, 0.0],
+                   help="noise std of I and Q relative to the amplitude, one curve each (default 0.1 0)")
+    p.add_argument("--alpha", type=nonneg_float, default=None, help="dither scale (default: the default decoder's)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
+    p.add_argument("--out", type=Path, default=Path("out/montecarlo-time"), help="folder for time.json and time.png")
+    p.set_defaults(func=cmd_montecarlo_time)
+
+
+def cmd_montecarlo_time(args) -> int:
+    prepare_out_dir(args.out)  # before the work: a folder it cannot write is one line at once
+    results = [time_monte_carlo(args.runs, tuple(args.frames), s, args.alpha, args.seed) for s in args.noise_sigma]
+    (args.out / "time.json").write_text(json.dumps(results, indent=2) + "\n")
+    error_vs_frames_figure(args.out / "time.png", results)
+    for r in results:
+        slope = "" if r["slope"] is None else f"; slope {r['slope']:.2f}"
+        print(f"noise sigma {r['noise_sigma']:g}: median error " + ", ".join(
+            f"T={t} {e:.4f} m" for t, e in zip(r["T"], r["median_m"])) + slope)
+    print(f"wrote {args.out / 'time.json'}, {args.out / 'time.png'}")
+    return 0
+
+
 def add_reprocess(sub) -> None:
     p = sub.add_parser("reprocess", help="re-quantize and re-localize a recording's raw frames offline (alpha sweep)")
     p.add_argument("file", type=Path, help="a qradar MCAP recording with raw frames")
@@ -97,6 +133,7 @@ def add_reprocess(sub) -> None:
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     gate_options(p)
+    track_options(p)
     p.set_defaults(func=cmd_reprocess)
 
 
@@ -126,7 +163,7 @@ def cmd_reprocess(args) -> int:
                           algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
                           mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa,
                           calibration=args.calibration, min_range_m=args.min_range_m,
-                          max_range_m=args.max_range_m)
+                          max_range_m=args.max_range_m, tracking=tracker_config(args))
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)

@@ -29,6 +29,7 @@ from pipeline.errors import ParameterError
 from pipeline.gate import LEAKAGE_BINS
 from pipeline.localize import DEFAULT_PFA
 from pipeline.quantize import QuantizerConfig, parse_alpha
+from pipeline.track import TrackerConfig
 
 
 def nonneg_int(text: str) -> int:
@@ -164,6 +165,21 @@ def gate_options(p: argparse.ArgumentParser) -> None:
                    help=f"default {LEAKAGE_BINS} c/(2B): 1.2 m with the K-MD2's 250 MHz sweep")
     g.add_argument("--max-range-m", type=nonneg_float, default=None, metavar="M",
                    help=f"default the unambiguous range N c/(2B) less {LEAKAGE_BINS} bins: 152.4 m for the K-MD2")
+
+
+def track_options(p: argparse.ArgumentParser) -> None:
+    """``--track`` and ``--integrate SECONDS``: tracks after the localizer (pipeline.track)."""
+    g = p.add_argument_group("tracks", "tracks of the targets (pipeline.track): an id, a velocity, an uncertainty "
+                             "and a static flag per track, on radar/<sensor>/tracks")
+    g.add_argument("--track", action="store_true", help="publish radar/<sensor>/tracks, one JSON message a frame")
+    g.add_argument("--integrate", type=nonneg_float, default=TrackerConfig.integrate_s, metavar="SECONDS",
+                   help="refine each static track on the codes of its last SECONDS of frames decoded together "
+                   f"(default {TrackerConfig.integrate_s:g}; 0: no integration)")
+
+
+def tracker_config(args) -> TrackerConfig | None:
+    """The tracker of ``--track`` (None without it)."""
+    return TrackerConfig(integrate_s=args.integrate) if args.track else None
 
 
 def install_sigterm(name: str) -> "StopOnSignals":

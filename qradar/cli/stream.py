@@ -22,6 +22,7 @@ from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
 from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
+from ..view import load_poses
 from ..run import RunConfig, format_summary, print_json, remove_run_dirs, run
 from .common import (
     ALPHA_HELP,
@@ -45,11 +46,13 @@ from .common import (
     sensor_pattern_arg,
     shard_arg,
     StopOnSignals,
+    track_options,
+    tracker_config,
     calibration_option,
     load_calibration,
 )
 from .record import write_error_options
-from .view import foxglove_arg
+from .view import foxglove_arg, poses_option
 
 
 def add_commands(sub) -> None:
@@ -70,6 +73,7 @@ def add_commands(sub) -> None:
     p.add_argument("--fallback-pbp", action="store_true", help="with qiht: decode frames without dither by PBP")
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
+    track_options(p)
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
@@ -143,6 +147,7 @@ def add_commands(sub) -> None:
                   "file's, else 2)")
     algo_option(p, "decoder of the localizer")
     gate_options(p)
+    track_options(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON summary object on stdout")
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")
@@ -158,6 +163,7 @@ def add_commands(sub) -> None:
     p.add_argument("--foxglove", type=foxglove_arg, default=None, metavar="[HOST:]PORT",
                    help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
                    "127.0.0.1)")
+    poses_option(p)
     bus_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -229,7 +235,8 @@ def cmd_localize(args) -> int:
     k, auto = count_from_args(args)
     cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
                           pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m)
-    return serve(LocalizeNode(bus_from_args(args), cfg, **queue_kwargs(args)), args.duration)
+    return serve(LocalizeNode(bus_from_args(args), cfg, tracking=tracker_config(args), **queue_kwargs(args)),
+                 args.duration)
 
 
 def cmd_source(args) -> int:
@@ -317,12 +324,13 @@ def cmd_run(args) -> int:
     cfg = RunConfig(scene=args.scene, sensors=args.sensors, duration_s=args.duration, rate_hz=args.rate,
                     quantizer=quantizer_config(args, alpha), k=k, algo=args.algo, bus=run_bus(args),
                     record=record, frames=args.frames, auto_k=auto, pfa=args.pfa,
-                    foxglove=args.foxglove, driver_process=not args.driver_in_process,
+                    foxglove=args.foxglove if args.foxglove is None or args.sensor_poses is None else replace(
+                        args.foxglove, poses=load_poses(args.sensor_poses)), driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
                     calibration=args.calibration, empty=args.empty, min_range_m=args.min_range_m,
-                    max_range_m=args.max_range_m)
+                    max_range_m=args.max_range_m, tracking=tracker_config(args))
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)

@@ -6,11 +6,12 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 from pipeline import audit
 from pipeline.errors import ParameterError, PipelineError
 
-from ..view import FoxgloveView, ViewConfig, parse_endpoint
+from ..view import FoxgloveView, ViewConfig, load_poses, parse_endpoint
 from .common import bus_from_args, bus_options, install_sigterm, intake_budget, intake_options, nonneg_float, pos_int
 
 LAYOUT = "docs/foxglove-layout.json"
@@ -44,14 +45,22 @@ def add_commands(sub) -> None:
     p.add_argument("--profile-rate", type=nonneg_float, default=2.0, metavar="HZ",
                    help="range profiles per second and sensor at most (default 2; 0: none)")
     p.add_argument("--queue", type=pos_int, default=256, help="bounded input queue (messages)")
+    poses_option(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     intake_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_view)
 
 
+def poses_option(p) -> None:
+    p.add_argument("--sensor-poses", type=Path, default=None, metavar="SENSORS.toml",
+                   help="each sensor's pose in the world, a TOML table per sensor id with x_m, y_m and yaw_deg "
+                   "(the frame radar_<id> is placed there; default: every sensor at the origin)")
+
+
 def cmd_view(args) -> int:
-    cfg = ViewConfig(host=args.host, port=args.port, profile_rate_hz=args.profile_rate, queue_size=args.queue)
+    cfg = ViewConfig(host=args.host, port=args.port, profile_rate_hz=args.profile_rate, queue_size=args.queue,
+                     poses=load_poses(args.sensor_poses) if args.sensor_poses is not None else {})
     view = FoxgloveView(bus_from_args(args), cfg, intake=intake_budget(args))
     install_sigterm("view")
     view.start()  # a busy port or an unknown host: ViewError, one line
