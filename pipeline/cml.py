@@ -58,6 +58,7 @@ strongest first; amplitudes (B, K, 2).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -83,6 +84,47 @@ DEFAULT_ENGINE = "numba" if _kernels is not None else "numpy"
 LIKELIHOODS = ("logistic", "gaussian")
 DEFAULT_LIKELIHOOD = "logistic"
 _LIK = {"logistic": 0, "gaussian": 1}  # the kernels' codes
+_ready = threading.Event()
+_warming_lock = threading.Lock()
+_warming: list[threading.Thread] = []
+
+
+def kernels_ready() -> bool:
+    """Whether :func:`warm_up_kernels` has compiled (or loaded from numba's cache) the kernels."""
+    return _kernels is not None and _ready.is_set()
+
+
+def warm_up_kernels(wait: bool = False) -> None:
+    """Compile the kernels for every kind of frame (or load them from numba's on-disk cache:
+    about 0.5 s; a first compile takes tens of seconds), in a daemon thread started once;
+    ``wait``: until done. A live localizer decodes with the numpy engine meanwhile."""
+    if _kernels is None:
+        return
+    with _warming_lock:
+        if not _warming:
+            _warming.append(threading.Thread(target=_compile_all, name="cml-jit", daemon=True))
+            _warming[0].start()
+    if wait:
+        _warming[0].join()
+
+
+def _compile_all() -> None:
+    cfg = RadarConfig()
+    n = cfg.samples_per_ramp
+    rng = np.random.default_rng(0)
+    g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
+    xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
+    gate = RangeGate(5.0, 100.0)
+    for bits in (1, 3, None):
+        delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
+        half = 0 if bits is None else 1 << (bits - 1)
+        z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
+            np.clip(np.floor((g + xi).imag / delta), -half, half - 1) + 0.5))
+        for lik in LIKELIHOODS:
+            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik)
+            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
+                init_range_m=np.array([[30.0, np.nan]]))
+    _ready.set()
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
@@ -534,7 +576,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
         noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8,
         pfa: float | None = None, gate: RangeGate | None = None, engine: str | None = None,
-        likelihood: str | None = None) -> CmlResult:
+        likelihood: str | None = None, init_range_m: np.ndarray | None = None) -> CmlResult:
     """Greedy continuous-range maximum likelihood decoder (see the module docstring).
 
     Parameters
@@ -567,6 +609,14 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         imports) or "numpy" (the vectorized reference); None: ``DEFAULT_ENGINE``.
     likelihood : "logistic" or "gaussian" (the exact Gaussian likelihood of a code given the
         dither and the noise); None: ``DEFAULT_LIKELIHOOD``.
+    init_range_m : (B, J) ranges (m) to start from, NaN for none (e.g. the previous
+        frame's targets: warm start), J <= k. A frame with at least one gives no greedy
+        search: its amplitudes are estimated at those ranges (a target's phase turns by
+        ``4 pi dr / lambda``, 5 rad for 5 mm at 24 GHz: the previous amplitudes say
+        little), then ``WARM_STEPS`` refinement steps and the annealing. Frames without
+        one, or whose warm fit the model no longer explains (:func:`_warm_misfit`: with
+        ``pfa`` a target appeared or vanished; else a target's statistic below
+        ``WARM_MIN_DB``), are decoded from scratch.
 
     Returns
     -------
@@ -593,6 +643,9 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     if z.shape[0] == 0:
         return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
                          np.zeros((0, k), dtype=bool))
+    if init_range_m is not None:
+        return _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate,
+                             engine, likelihood, _check_init(init_range_m, z.shape[0], k, config, gate))
     parts = []
     for lo in range(0, z.shape[0], BLOCK_FRAMES):  # blocks small enough for the work arrays to stay in cache
         sl = slice(lo, lo + BLOCK_FRAMES)
@@ -602,6 +655,112 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     if len(parts) == 1:
         return parts[0]
     return CmlResult(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(CmlResult)))
+
+
+def _check_init(init, b: int, k: int, config: RadarConfig, gate: RangeGate | None) -> np.ndarray:
+    """``init_range_m`` as (B, k) floats in the range axis (inside the gate), NaN padded."""
+    try:
+        r = np.asarray(init, dtype=float)
+    except (TypeError, ValueError):
+        raise ParameterError(f"cml: init_range_m must be ({b}, J) numbers, got {init!r}") from None
+    if r.ndim != 2 or r.shape[0] != b or r.shape[1] > k:
+        raise ParameterError(f"cml: init_range_m must have shape ({b}, J) with J <= k={k}, got {r.shape}")
+    top = config.samples_per_ramp * config.range_resolution_m
+    if np.any(np.isinf(r)) or np.any((r < 0) | (r > top)):
+        raise ParameterError(f"cml: init_range_m must be NaN or in [0, {top:g}] m")
+    if gate is not None:
+        r = np.where(np.isnan(r), np.nan, np.clip(r, gate.min_range_m, gate.max_range_m))
+    return np.concatenate([r, np.full((b, k - r.shape[1]), np.nan)], axis=1)
+
+
+def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate, engine,
+                  likelihood, init) -> CmlResult:
+    """:func:`cml` with starting ranges ``init`` (B, k) (NaN: none): warm frames refined
+    from them, the others and the warm ones the model no longer explains from scratch."""
+    b = z.shape[0]
+    warm = ~np.isnan(init).all(axis=1)
+    out = [None] * b
+    cold = np.flatnonzero(~warm)
+
+    def sub(idx):
+        return (z[idx], None if xi is None else xi[idx], None if delta is None else delta[idx],
+                None if noise_sigma is None else noise_sigma[idx])
+
+    widx = np.flatnonzero(warm)
+    if widx.size:
+        for lo in range(0, widx.size, BLOCK_FRAMES):
+            idx = widx[lo:lo + BLOCK_FRAMES]
+            zz, xx, dd, nn = sub(idx)
+            res, misfit = _refine_warm(zz, xx, dd, bits, config, k, nn, anneal, threshold, cgate, engine, likelihood,
+                                       init[idx], oversample)
+            for j, i in enumerate(idx.tolist()):
+                out[i] = None if misfit[j] else _row(res, j)
+        cold = np.flatnonzero([o is None for o in out])
+    for lo in range(0, cold.size, BLOCK_FRAMES):
+        idx = cold[lo:lo + BLOCK_FRAMES]
+        zz, xx, dd, nn = sub(idx)
+        res = _decode(zz, xx, dd, bits, config, k, nn, iters, anneal, oversample, threshold, cgate, engine, likelihood)
+        for j, i in enumerate(idx.tolist()):
+            out[i] = _row(res, j)
+    return CmlResult(*(np.stack([getattr(o, f.name) for o in out]) for f in fields(CmlResult)))
+
+
+def _row(res: CmlResult, j: int) -> CmlResult:
+    return CmlResult(*(getattr(res, f.name)[j] for f in fields(CmlResult)))
+
+
+#: refinement steps of a warm start at the greedy stage's scale, before the annealing
+WARM_STEPS = 2
+#: without a count test, a warm fit whose weakest target's statistic is below this (dB)
+#: goes back to a full search (a target vanished)
+WARM_MIN_DB = 10.0
+
+
+def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
+                 oversample):
+    """Refine the targets at ``init`` (B, k) ranges (NaN: absent) of one block; returns
+    the result and the frames (B,) bool the model no longer explains (:func:`cml`)."""
+    b, m, _ = z.shape
+    n = config.samples_per_ramp
+    kc = np.arange(n) - (n - 1) / 2.0
+    codes = _Codes(z, xi, delta, bits, n)
+    fit = _Fit(codes, kc, b, gate, engine, likelihood)
+    if bits is None:
+        sigma, amp_cap = np.ones(b), np.full(b, np.inf)
+    else:
+        noise = np.zeros(b) if noise_sigma is None else noise_sigma
+        floor = np.maximum(delta / m, noise)
+        sigma = np.maximum(SIGMA_START * delta, noise)
+        amp_cap = delta * (1 << (bits - 1))
+    live_all = ~np.isnan(init)
+    order = np.argsort(~live_all, axis=1, kind="stable")  # the given ranges first
+    init = np.take_along_axis(init, order, axis=1)
+    live_all = np.take_along_axis(live_all, order, axis=1)
+    nu_all = np.nan_to_num(init) / config.range_resolution_m
+    for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
+        amp0 = np.where(live_all[:, t, None], _amplitude_at(codes, fit, nu_all[:, t]), 0.0)
+        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
+    fit.evaluate(sigma)
+    fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+    if bits is not None and anneal:
+        ratio = (floor / sigma) ** (1.0 / anneal)
+        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, anneal + 1)
+        fit.run(levels, amp_cap, adapt=noise_sigma is None)
+        sigma = fit.sigma
+    if bits is None:
+        fit.run(np.ones((b, anneal)), amp_cap)
+        sigma = codes.wrong_rms(fit.mu)
+    res = _result(fit, codes, config, sigma, k)
+    count = fit.live.sum(axis=1)
+    weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
+    if threshold is None:
+        misfit = (weakest < WARM_MIN_DB) | (count < k)  # a target vanished, or fewer than k given
+    else:
+        thr_db = to_db(np.asarray(threshold, dtype=float))
+        fit.evaluate(fit.sigma if bits is not None else sigma)
+        grew = (count < k) & (_count_statistic(fit, codes, oversample) >= threshold)  # a target appeared
+        misfit = grew | (weakest < thr_db)  # or one vanished
+    return res, misfit
 
 
 def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold,
