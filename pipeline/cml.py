@@ -613,7 +613,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         frame's targets: warm start), J <= k. A frame with at least one gives no greedy
         search: its amplitudes are estimated at those ranges (a target's phase turns by
         ``4 pi dr / lambda``, 5 rad for 5 mm at 24 GHz: the previous amplitudes say
-        little), then ``WARM_STEPS`` refinement steps and the annealing. Frames without
+        little), then ``WARM_STEPS`` refinement steps and ``WARM_ANNEAL`` levels of the
+        annealing. Frames without
         one, or whose warm fit the model no longer explains (:func:`_warm_misfit`: with
         ``pfa`` a target appeared or vanished; else a target's statistic below
         ``WARM_MIN_DB``), are decoded from scratch.
@@ -710,7 +711,10 @@ def _row(res: CmlResult, j: int) -> CmlResult:
 
 
 #: refinement steps of a warm start at the greedy stage's scale, before the annealing
-WARM_STEPS = 2
+WARM_STEPS = 1
+#: levels of the warm start's annealing (at most ``anneal``): from the greedy stage's scale
+#: to the floor in fewer, larger steps, the ranges being close already
+WARM_ANNEAL = 4
 #: without a count test, a warm fit whose weakest target's statistic is below this (dB)
 #: goes back to a full search (a target vanished)
 WARM_MIN_DB = 10.0
@@ -743,8 +747,9 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     fit.evaluate(sigma)
     fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
     if bits is not None and anneal:
-        ratio = (floor / sigma) ** (1.0 / anneal)
-        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, anneal + 1)
+        levels_n = min(anneal, WARM_ANNEAL)
+        ratio = (floor / sigma) ** (1.0 / levels_n)
+        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, levels_n + 1)
         fit.run(levels, amp_cap, adapt=noise_sigma is None)
         sigma = fit.sigma
     if bits is None:
