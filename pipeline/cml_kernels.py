@@ -150,6 +150,24 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
     else:
         inv = 1.0 / sigma
     inv2 = inv * inv
+    if kind == ONE_BIT and lik == LOGISTIC:  # the common case, as one flat loop
+        m4 = n * 4
+        af = a.reshape(ramps, m4)
+        bf = b.reshape(ramps, m4)
+        muf = mu.reshape(m4)
+        gf = g.reshape(m4)
+        hf = h.reshape(m4)
+        for r in range(ramps):
+            for i in range(m4):
+                s = float(af[r, i])
+                u = (s * muf[i] + float(bf[r, i])) * inv
+                if u >= TABLE_REACH:
+                    continue
+                v, fneg, ff = _logistic(u)
+                total += v
+                gf[i] -= s * fneg * inv
+                hf[i] += ff * inv2
+        return total
     for r in range(ramps):
         for i in range(n):
             for j in range(4):
@@ -217,26 +235,27 @@ def _wrong_rms(kind, a, b, mu) -> float:
 
 
 @njit(cache=True)
-def _model(nu, amp, kc, w, dw, mu):
-    """Atoms ``w`` (K, N), their derivatives in nu ``dw`` and the model ``mu`` (N, 4)."""
+def _model(nu, amp, kc, w, mu):
+    """Atoms ``w`` (K, 2, N) (real and imaginary parts) and the model ``mu`` (N, 4)."""
     k = nu.shape[0]
     n = kc.shape[0]
     mu[:] = 0.0
     for t in range(k):
         ph = -2.0 * math.pi * nu[t] / n
-        rot = complex(math.cos(ph), math.sin(ph))  # w[t, i + 1] = w[t, i] rot, anchored every 32
-        wt = rot
+        cr, ci = math.cos(ph), math.sin(ph)  # w[t, i + 1] = w[t, i] exp(i ph), anchored every 32
+        wr, wi = 1.0, 0.0
+        a1r, a1i, a2r, a2i = amp[t, 0].real, amp[t, 0].imag, amp[t, 1].real, amp[t, 1].imag
         for i in range(n):
             if i % 32 == 0:
-                wt = complex(math.cos(ph * kc[i]), math.sin(ph * kc[i]))
+                wr, wi = math.cos(ph * kc[i]), math.sin(ph * kc[i])
             else:
-                wt = wt * rot
-            w[t, i] = wt
-            dw[t, i] = wt * complex(0.0, -2.0 * math.pi * kc[i] / n)
-            for p in range(2):
-                v = amp[t, p] * wt
-                mu[i, 2 * p] += v.real
-                mu[i, 2 * p + 1] += v.imag
+                wr, wi = wr * cr - wi * ci, wr * ci + wi * cr
+            w[t, 0, i] = wr
+            w[t, 1, i] = wi
+            mu[i, 0] += a1r * wr - a1i * wi
+            mu[i, 1] += a1r * wi + a1i * wr
+            mu[i, 2] += a2r * wr - a2i * wi
+            mu[i, 3] += a2r * wi + a2i * wr
 
 
 @njit(cache=True)
@@ -271,18 +290,20 @@ def _solve(m, rhs):
 
 
 @njit(cache=True, fastmath=True)
-def _normal_equations(w, dw, amp, g, h, hess, grad):
+def _normal_equations(w, kc, amp, g, h, hess, grad):
     """The Gauss--Newton system of one frame: ``hess`` (5K, 5K) and ``grad`` (5K,), the
-    parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t."""
-    k, n = w.shape
+    parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t; ``w`` (K, 2, N)
+    the atoms' real and imaginary parts."""
+    k, n = w.shape[0], w.shape[2]
     nb = 4 * k
-    basis = np.empty((nb, n))  # rows: Re w, Re dw, Im w, Im dw
+    basis = np.empty((nb, n))  # rows: Re w, Re dw, Im w, Im dw; dw = w (-i 2 pi kc / N)
     for t in range(k):
         for i in range(n):
-            basis[t, i] = w[t, i].real
-            basis[k + t, i] = dw[t, i].real
-            basis[2 * k + t, i] = w[t, i].imag
-            basis[3 * k + t, i] = dw[t, i].imag
+            c = 2.0 * math.pi * kc[i] / n
+            basis[t, i] = w[t, 0, i]
+            basis[k + t, i] = c * w[t, 1, i]
+            basis[2 * k + t, i] = w[t, 1, i]
+            basis[3 * k + t, i] = -c * w[t, 0, i]
     hess[:] = 0.0
     grad[:] = 0.0
     ht = np.ascontiguousarray(h.T)
@@ -339,10 +360,8 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
     steps = levels.shape[1]
     if k == 0:
         return
-    w = np.empty((k, n), dtype=np.complex128)
-    dw = np.empty((k, n), dtype=np.complex128)
-    w2 = np.empty((k, n), dtype=np.complex128)
-    dw2 = np.empty((k, n), dtype=np.complex128)
+    w = np.empty((k, 2, n))
+    w2 = np.empty((k, 2, n))
     mu2 = np.empty((n, 4))
     g2 = np.empty((n, 4))
     h2 = np.empty((n, 4))
@@ -351,7 +370,7 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
     nu2 = np.empty(k)
     amp2 = np.empty((k, 2), dtype=np.complex128)
     for f in range(nb):
-        _model(nu[f], amp[f], kc, w, dw, mu[f])
+        _model(nu[f], amp[f], kc, w, mu[f])
         current = sigma_out[f]
         for s in range(steps):
             level = levels[f, s]
@@ -360,7 +379,7 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
             if level != current:
                 nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], level, g[f], h[f])
                 current = level
-            _normal_equations(w, dw, amp[f], g[f], h[f], hess, grad)
+            _normal_equations(w, kc, amp[f], g[f], h[f], hess, grad)
             dmax = 0.0
             for q in range(5 * k):
                 dmax = max(dmax, hess[q, q])
@@ -384,15 +403,14 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
                 nu2[t] = v
                 for p in range(2):
                     amp2[t, p] = amp[f, t, p] + complex(step[5 * t + 1 + 2 * p] * cut, step[5 * t + 2 + 2 * p] * cut)
-            _model(nu2, amp2, kc, w2, dw2, mu2)
+            _model(nu2, amp2, kc, w2, mu2)
             cand = _evaluate_frame(kind, lik, a[f], b[f], mu2, current, g2, h2)
             if cand <= nll[f]:
                 lm[f] = max(lm[f] / 3.0, 1e-9)
                 nll[f] = cand
                 nu[f, :] = nu2
                 amp[f, :, :] = amp2
-                w[:, :] = w2
-                dw[:, :] = dw2
+                w[:, :, :] = w2
                 mu[f, :, :] = mu2
                 g[f, :, :] = g2
                 h[f, :, :] = h2
