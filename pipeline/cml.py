@@ -58,11 +58,11 @@ strongest first; amplitudes (B, K, 2).
 
 from __future__ import annotations
 
+import importlib.util
 import threading
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.special import log_ndtr
 
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
@@ -70,15 +70,24 @@ from .errors import ParameterError
 from .gate import RangeGate, check_gate
 from .localize import Detections, cfar_threshold, to_db
 
-try:  # the compiled kernels (numba); the numpy code below is their reference
-    from . import cml_kernels as _kernels
-except ImportError:  # pragma: no cover - numba is a declared dependency
-    _kernels = None
+#: numba is installed: the compiled kernels (:mod:`pipeline.cml_kernels`, imported on first
+#: use so that importing this module stays cheap) can run; the numpy code below is their reference
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+_kernels_module = None
+
+
+def _kernels():
+    global _kernels_module
+    if _kernels_module is None:
+        from . import cml_kernels
+        _kernels_module = cml_kernels
+    return _kernels_module
+
 
 #: the implementations of the per-frame work: "numba" (compiled, one frame at a time) or
 #: "numpy" (vectorized over a block; the reference)
 ENGINES = ("numba", "numpy")
-DEFAULT_ENGINE = "numba" if _kernels is not None else "numpy"
+DEFAULT_ENGINE = "numba" if HAVE_NUMBA else "numpy"
 #: likelihoods of a code: "logistic" (scaled logistic in place of the Gaussian CDF) or
 #: "gaussian" (the exact Gaussian CDF of the noise: ``Phi((hi - l) / s) - Phi((lo - l) / s)``)
 LIKELIHOODS = ("logistic", "gaussian")
@@ -91,14 +100,14 @@ _warming: list[threading.Thread] = []
 
 def kernels_ready() -> bool:
     """Whether :func:`warm_up_kernels` has compiled (or loaded from numba's cache) the kernels."""
-    return _kernels is not None and _ready.is_set()
+    return HAVE_NUMBA and _ready.is_set()
 
 
 def warm_up_kernels(wait: bool = False) -> None:
     """Compile the kernels for every kind of frame (or load them from numba's on-disk cache:
     about 0.5 s; a first compile takes tens of seconds), in a daemon thread started once;
     ``wait``: until done. A live localizer decodes with the numpy engine meanwhile."""
-    if _kernels is None:
+    if not HAVE_NUMBA:
         return
     with _warming_lock:
         if not _warming:
@@ -215,7 +224,7 @@ class _Codes:
         if bits is None:
             self.data = z  # what detection and amplitudes back-project
             self.y = zr
-            self.kind = 0 if _kernels is None else _kernels.LSQ
+            self.kind = 0  # the kernels' LSQ
             self.ka = self.kb = zr.reshape(b, self.ramps, n, 4)  # the kernels' arrays
             return
         self.data = z - xi
@@ -229,12 +238,12 @@ class _Codes:
             self.s = s.astype(np.float32)
             self.so = (s * xr).astype(np.float32)
             self.half_s = 0.5 * s.sum(axis=1)
-            self.kind = 1 if _kernels is None else _kernels.ONE_BIT
+            self.kind = 1  # ONE_BIT
             self.ka, self.kb = self.s.reshape(b, self.ramps, n, 4), self.so.reshape(b, self.ramps, n, 4)
             return
         self.lo = (np.where(q <= -half, -np.inf, q * d) - xr).astype(np.float32)  # lambda's cell: [lo, hi)
         self.hi = (np.where(q >= half - 1, np.inf, (q + 1) * d) - xr).astype(np.float32)
-        self.kind = 2 if _kernels is None else _kernels.MULTI_BIT
+        self.kind = 2  # MULTI_BIT
         self.ka, self.kb = self.lo.reshape(b, self.ramps, n, 4), self.hi.reshape(b, self.ramps, n, 4)
 
     def evaluate(self, mu: np.ndarray, sigma: np.ndarray, likelihood: str = DEFAULT_LIKELIHOOD):
@@ -269,6 +278,8 @@ class _Codes:
 
     def _gaussian(self, mu: np.ndarray, sigma: np.ndarray):
         """:meth:`evaluate` with the exact Gaussian likelihood (float64, scipy's log_ndtr)."""
+        from scipy.special import log_ndtr  # here: importing scipy costs the others' start-up
+
         b = mu.shape[0]
         inv = (1.0 / sigma)[:, None, None, None, None]
         mu = mu[:, None]
@@ -436,7 +447,7 @@ class _Fit:
             return
         b, n = self.mu.shape[:2]
         self.g, self.h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
-        self.nll = _kernels.evaluate(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb,
+        self.nll = _kernels().evaluate(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb,
                                      np.ascontiguousarray(self.mu).reshape(b, n, 4), self.sigma,
                                      self.g.reshape(b, n, 4), self.h.reshape(b, n, 4))
 
@@ -459,7 +470,7 @@ class _Fit:
         mu, g, h = (np.ascontiguousarray(v, dtype=float).reshape(b, n, 4) for v in (self.mu, self.g, self.h))
         nll, sigma, lm = self.nll.astype(float), self.sigma.astype(float), self.lm.astype(float)
         gate = self.gate
-        _kernels.refine(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb, self.kc, nu, amp,
+        _kernels().refine(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb, self.kc, nu, amp,
                         np.ascontiguousarray(self.live), lm, np.ascontiguousarray(levels, dtype=float), adapt,
                         WRONG_RMS_PER_SIGMA, np.ascontiguousarray(amp_cap, dtype=float),
                         0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
@@ -633,9 +644,9 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
     engine = DEFAULT_ENGINE if engine is None else engine
     likelihood = DEFAULT_LIKELIHOOD if likelihood is None else likelihood
-    if engine not in ENGINES or (engine == "numba" and _kernels is None):
+    if engine not in ENGINES or (engine == "numba" and not HAVE_NUMBA):
         raise ParameterError(f"cml: engine={engine!r} is not available; available: "
-                             f"{', '.join(e for e in ENGINES if e != 'numba' or _kernels is not None)}")
+                             f"{', '.join(e for e in ENGINES if e != 'numba' or HAVE_NUMBA)}")
     if likelihood not in LIKELIHOODS:
         raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
     cgate = None if gate is None else _Gate(gate, config, oversample)

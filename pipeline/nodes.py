@@ -388,8 +388,6 @@ class LocalizeNode(FrameNode):
         #: for none); a sensor has an entry only while it has stats (forgotten when it expires)
         self._last: dict[str, tuple[int, np.ndarray]] = {}
         self._warm = config.algo == Algo.CML and config.full_search_every > 1
-        if config.algo == Algo.CML:
-            warm_up_kernels()  # compiled in the background (or loaded from the cache); numpy meanwhile
 
     def forget(self, sensor_id: str) -> None:
         self._last.pop(sensor_id, None)
@@ -447,7 +445,10 @@ class LocalizeNode(FrameNode):
         cfg = self.config
         decoder = cfg.decoder()
         if decoder.algo == Algo.CML and not kernels_ready():
-            decoder = replace(decoder, engine="numpy")  # until the kernels are compiled
+            # the kernels load (or compile, once after an install) in the background from the
+            # first frame on, not at start-up (numba's import would delay listening); numpy meanwhile
+            warm_up_kernels()
+            decoder = replace(decoder, engine="numpy")
         n = len(headers)
         sensors = [str(s) for s in headers.sensor_id]
         init = self._init_ranges(sensors)

@@ -136,3 +136,10 @@ def test_unknown_engine_or_likelihood_is_a_parameter_error(cfg):
         cml(z, xi, delta, 1, cfg, 1, engine="fortran")
     with pytest.raises(ParameterError, match="likelihood"):
         cml(z, xi, delta, 1, cfg, 1, likelihood="cauchy")
+
+
+def test_the_kinds_of_frames_are_the_kernels_codes(cfg):
+    (r, a, x), rng = off_grid(1, 1, 0)
+    for bits, kind in ((None, cml_kernels.LSQ), (1, cml_kernels.ONE_BIT), (3, cml_kernels.MULTI_BIT)):
+        z, xi, delta = measure(r, a, x, cfg, rng, bits=bits)
+        assert _Codes(z, xi, delta, bits, cfg.samples_per_ramp).kind == kind
