@@ -626,9 +626,9 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         ``4 pi dr / lambda``, 5 rad for 5 mm at 24 GHz: the previous amplitudes say
         little), then ``WARM_STEPS`` refinement steps and ``WARM_ANNEAL`` levels of the
         annealing. Frames without
-        one, or whose warm fit the model no longer explains (:func:`_warm_misfit`: with
-        ``pfa`` a target appeared or vanished; else a target's statistic below
-        ``WARM_MIN_DB``), are decoded from scratch.
+        one, or whose warm fit the model no longer explains (with ``pfa``: the count test
+        finds a target more in the residual, or a target's statistic falls below the
+        test's threshold; without: fewer than k ranges given), are decoded from scratch.
 
     Returns
     -------
@@ -726,9 +726,6 @@ WARM_STEPS = 1
 #: levels of the warm start's annealing (at most ``anneal``): from the greedy stage's scale
 #: to the floor in fewer, larger steps, the ranges being close already
 WARM_ANNEAL = 4
-#: without a count test, a warm fit whose weakest target's statistic is below this (dB)
-#: goes back to a full search (a target vanished)
-WARM_MIN_DB = 10.0
 
 
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
@@ -769,8 +766,8 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     res = _result(fit, codes, config, sigma, k)
     count = fit.live.sum(axis=1)
     weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
-    if threshold is None:
-        misfit = (weakest < WARM_MIN_DB) | (count < k)  # a target vanished, or fewer than k given
+    if threshold is None:  # k targets a frame, whatever their strength: only fewer than k given
+        misfit = count < k
     else:
         thr_db = to_db(np.asarray(threshold, dtype=float))
         fit.evaluate(fit.sigma if bits is not None else sigma)
