@@ -626,9 +626,10 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         ``4 pi dr / lambda``, 5 rad for 5 mm at 24 GHz: the previous amplitudes say
         little), then ``WARM_STEPS`` refinement steps and ``WARM_ANNEAL`` levels of the
         annealing. Frames without
-        one, or whose warm fit the model no longer explains (with ``pfa``: the count test
-        finds a target more in the residual, or a target's statistic falls below the
-        test's threshold; without: fewer than k ranges given), are decoded from scratch.
+        one, or whose warm fit the model no longer explains (the count test, at ``pfa`` or
+        else ``WARM_PFA``, finds a peak in the residual: a target appeared or moved beyond
+        the steps' reach; with ``pfa`` also a target's statistic below the test's
+        threshold: it vanished), are decoded from scratch.
 
     Returns
     -------
@@ -690,6 +691,8 @@ def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, ove
     """:func:`cml` with starting ranges ``init`` (B, k) (NaN: none): warm frames refined
     from them, the others and the warm ones the model no longer explains from scratch."""
     b = z.shape[0]
+    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
+    warm_threshold = cfar_threshold(WARM_PFA, SEARCH_CELLS_PER_BIN * search_bins)
     warm = ~np.isnan(init).all(axis=1)
     out = [None] * b
     cold = np.flatnonzero(~warm)
@@ -704,7 +707,7 @@ def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, ove
             idx = widx[lo:lo + BLOCK_FRAMES]
             zz, xx, dd, nn = sub(idx)
             res, misfit = _refine_warm(zz, xx, dd, bits, config, k, nn, anneal, threshold, cgate, engine, likelihood,
-                                       init[idx], oversample)
+                                       init[idx], oversample, warm_threshold)
             for j, i in enumerate(idx.tolist()):
                 out[i] = None if misfit[j] else _row(res, j)
         cold = np.flatnonzero([o is None for o in out])
@@ -721,6 +724,9 @@ def _row(res: CmlResult, j: int) -> CmlResult:
     return CmlResult(*(getattr(res, f.name)[j] for f in fields(CmlResult)))
 
 
+#: without a count test (k given), a warm frame goes back to a full search when its residual
+#: has a peak the count test would take for a target at this false-alarm probability
+WARM_PFA = 1e-3
 #: refinement steps of a warm start at the greedy stage's scale, before the annealing
 WARM_STEPS = 1
 #: levels of the warm start's annealing (at most ``anneal``): from the greedy stage's scale
@@ -729,7 +735,7 @@ WARM_ANNEAL = 4
 
 
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
-                 oversample):
+                 oversample, warm_threshold):
     """Refine the targets at ``init`` (B, k) ranges (NaN: absent) of one block; returns
     the result and the frames (B,) bool the model no longer explains (:func:`cml`)."""
     b, m, _ = z.shape
@@ -765,14 +771,14 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
         sigma = codes.wrong_rms(fit.mu)
     res = _result(fit, codes, config, sigma, k)
     count = fit.live.sum(axis=1)
-    weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
-    if threshold is None:  # k targets a frame, whatever their strength: only fewer than k given
-        misfit = count < k
+    # the residual (and the likelihood's score, at the last level) holds a peak the targets do
+    # not explain: a target appeared, or one moved beyond the refinement's reach
+    unexplained = _count_statistic(fit, codes, oversample) >= (warm_threshold if threshold is None else threshold)
+    if threshold is None:  # k targets a frame, whatever their strength
+        misfit = (count < k) | unexplained
     else:
-        thr_db = to_db(np.asarray(threshold, dtype=float))
-        fit.evaluate(fit.sigma if bits is not None else sigma)
-        grew = (count < k) & (_count_statistic(fit, codes, oversample) >= threshold)  # a target appeared
-        misfit = grew | (weakest < thr_db)  # or one vanished
+        weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
+        misfit = ((count < k) & unexplained) | (weakest < to_db(np.asarray(threshold, dtype=float)))  # or vanished
     return res, misfit
 
 

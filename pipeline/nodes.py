@@ -398,10 +398,12 @@ class LocalizeNode(FrameNode):
             return None
         every = self.config.full_search_every
         init = np.full((len(sensors), self.config.k), np.nan)
+        seen: dict[str, int] = {}  # a sensor's frames earlier in this batch
         with self._lock:
             for i, sid in enumerate(sensors):
                 last = self._last.get(sid)
-                if last is not None and last[0] + 1 < every:
+                j = seen[sid] = seen.get(sid, 0) + 1
+                if last is not None and last[0] + j < every:
                     init[i] = last[1]
         return init
 
