@@ -42,8 +42,10 @@ from .wire import (
 
 log = logging.getLogger("qradar.node")
 
-#: cml's warm start: a full search every this many frames of a sensor (LocalizerConfig)
-DEFAULT_FULL_SEARCH_EVERY = 20
+#: cml's warm start: a full search every this many frames of a sensor (LocalizerConfig); 1 = a
+#: full search on every frame, the default: a warm frame's targets depend on how the node
+#: batched the sensor's earlier frames (timing), and live runs are compared target for target
+DEFAULT_FULL_SEARCH_EVERY = 1
 
 __all__ = ["LocalizeNode", "LocalizerConfig", "QuantizeNode", "SourceNode", "run_nodes"]
 
@@ -389,6 +391,13 @@ class LocalizeNode(FrameNode):
         self._last: dict[str, tuple[int, np.ndarray]] = {}
         self._warm = config.algo == Algo.CML and config.full_search_every > 1
 
+    def start(self) -> "LocalizeNode":
+        if self.config.algo == Algo.CML:
+            # cml's kernels, from numba's cache (~0.5 s; `make` compiles them at install), before
+            # subscribing: the session already listens, and every frame gets the same engine
+            warm_up_kernels(wait=True)
+        return super().start()
+
     def forget(self, sensor_id: str) -> None:
         self._last.pop(sensor_id, None)
 
@@ -446,11 +455,8 @@ class LocalizeNode(FrameNode):
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
         decoder = cfg.decoder()
-        if decoder.algo == Algo.CML and not kernels_ready():
-            # the kernels load (or compile, once after an install) in the background from the
-            # first frame on, not at start-up (numba's import would delay listening); numpy meanwhile
-            warm_up_kernels()
-            decoder = replace(decoder, engine="numpy")
+        if decoder.algo == Algo.CML and not kernels_ready():  # a node never started (tests)
+            warm_up_kernels(wait=True)
         n = len(headers)
         sensors = [str(s) for s in headers.sensor_id]
         init = self._init_ranges(sensors)
