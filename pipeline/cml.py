@@ -32,6 +32,14 @@ closest to a Gaussian of std ``sigma_eff``):
   for the sign ``s``);
 * unquantized (``bits=None``): least squares.
 
+``likelihood="gaussian"`` uses the exact ``Phi((hi - lambda) / s) - Phi((lo - lambda) / s)``
+instead (a stable log in both tails); measured, it is no more accurate than the logistic
+under noise (README) and costs more, so the logistic is the default.
+
+The per-frame work (the likelihood, its derivatives and the Levenberg--Marquardt steps) runs
+in compiled kernels, one frame at a time (:mod:`pipeline.cml_kernels`, ``engine="numba"``);
+``engine="numpy"`` is the vectorized reference they are tested against.
+
 ``sigma_eff`` (frame units) starts at ``max(delta / 4, noise_sigma)`` for the greedy
 stage, then falls geometrically over ``anneal`` levels (one step each) to its floor
 ``max(delta / M, noise_sigma)`` (``delta / M``: the size of the cell of amplitudes
