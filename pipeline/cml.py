@@ -32,6 +32,14 @@ closest to a Gaussian of std ``sigma_eff``):
   for the sign ``s``);
 * unquantized (``bits=None``): least squares.
 
+``likelihood="gaussian"`` uses the exact ``Phi((hi - lambda) / s) - Phi((lo - lambda) / s)``
+instead (a stable log in both tails); measured, it is no more accurate than the logistic
+under noise (README) and costs more, so the logistic is the default.
+
+The per-frame work (the likelihood, its derivatives and the Levenberg--Marquardt steps) runs
+in compiled kernels, one frame at a time (:mod:`pipeline.cml_kernels`, ``engine="numba"``);
+``engine="numpy"`` is the vectorized reference they are tested against.
+
 ``sigma_eff`` (frame units) starts at ``max(delta / 4, noise_sigma)`` for the greedy
 stage, then falls geometrically over ``anneal`` levels (one step each) to its floor
 ``max(delta / M, noise_sigma)`` (``delta / M``: the size of the cell of amplitudes
@@ -58,6 +66,8 @@ strongest first; amplitudes (B, K, 2).
 
 from __future__ import annotations
 
+import importlib.util
+import threading
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -68,6 +78,72 @@ from .errors import ParameterError
 from .gate import RangeGate, check_gate
 from .localize import Detections, cfar_threshold, to_db
 
+#: numba is installed: the compiled kernels (:mod:`pipeline.cml_kernels`, imported on first
+#: use so that importing this module stays cheap) can run; the numpy code below is their reference
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+_kernels_module = None
+
+
+def _kernels():
+    global _kernels_module
+    if _kernels_module is None:
+        from . import cml_kernels
+        _kernels_module = cml_kernels
+    return _kernels_module
+
+
+#: the implementations of the per-frame work: "numba" (compiled, one frame at a time) or
+#: "numpy" (vectorized over a block; the reference)
+ENGINES = ("numba", "numpy")
+DEFAULT_ENGINE = "numba" if HAVE_NUMBA else "numpy"
+#: likelihoods of a code: "logistic" (scaled logistic in place of the Gaussian CDF) or
+#: "gaussian" (the exact Gaussian CDF of the noise: ``Phi((hi - l) / s) - Phi((lo - l) / s)``)
+LIKELIHOODS = ("logistic", "gaussian")
+DEFAULT_LIKELIHOOD = "logistic"
+_LIK = {"logistic": 0, "gaussian": 1}  # the kernels' codes
+_ready = threading.Event()
+_warming_lock = threading.Lock()
+_warming: list[threading.Thread] = []
+
+
+def kernels_ready() -> bool:
+    """Whether :func:`warm_up_kernels` has compiled (or loaded from numba's cache) the kernels."""
+    return HAVE_NUMBA and _ready.is_set()
+
+
+def warm_up_kernels(wait: bool = False) -> None:
+    """Compile the kernels for every kind of frame (or load them from numba's on-disk cache:
+    about 0.5 s; a first compile takes tens of seconds), in a daemon thread started once;
+    ``wait``: until done. A live localizer decodes with the numpy engine meanwhile."""
+    if not HAVE_NUMBA:
+        return
+    with _warming_lock:
+        if not _warming:
+            _warming.append(threading.Thread(target=_compile_all, name="cml-jit", daemon=True))
+            _warming[0].start()
+    if wait:
+        _warming[0].join()
+
+
+def _compile_all() -> None:
+    cfg = RadarConfig()
+    n = cfg.samples_per_ramp
+    rng = np.random.default_rng(0)
+    g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
+    xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
+    gate = RangeGate(5.0, 100.0)
+    for bits in (1, 3, None):
+        delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
+        half = 0 if bits is None else 1 << (bits - 1)
+        z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
+            np.clip(np.floor((g + xi).imag / delta), -half, half - 1) + 0.5))
+        for lik in LIKELIHOODS:
+            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik)
+            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
+                init_range_m=np.array([[30.0, np.nan]]))
+    _ready.set()
+
+_LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
 LOGISTIC_PER_SIGMA = 1.702
 #: first sigma_eff, in units of delta
@@ -156,6 +232,8 @@ class _Codes:
         if bits is None:
             self.data = z  # what detection and amplitudes back-project
             self.y = zr
+            self.kind = 0  # the kernels' LSQ
+            self.ka = self.kb = zr.reshape(b, self.ramps, n, 4)  # the kernels' arrays
             return
         self.data = z - xi
         xr = np.ascontiguousarray(xi, dtype=complex).view(float).reshape(shape)
@@ -168,16 +246,24 @@ class _Codes:
             self.s = s.astype(np.float32)
             self.so = (s * xr).astype(np.float32)
             self.half_s = 0.5 * s.sum(axis=1)
+            self.kind = 1  # ONE_BIT
+            self.ka, self.kb = self.s.reshape(b, self.ramps, n, 4), self.so.reshape(b, self.ramps, n, 4)
             return
         self.lo = (np.where(q <= -half, -np.inf, q * d) - xr).astype(np.float32)  # lambda's cell: [lo, hi)
         self.hi = (np.where(q >= half - 1, np.inf, (q + 1) * d) - xr).astype(np.float32)
+        self.kind = 2  # MULTI_BIT
+        self.ka, self.kb = self.lo.reshape(b, self.ramps, n, 4), self.hi.reshape(b, self.ramps, n, 4)
 
-    def evaluate(self, mu: np.ndarray, scale: np.ndarray):
+    def evaluate(self, mu: np.ndarray, sigma: np.ndarray, likelihood: str = DEFAULT_LIKELIHOOD):
         """NLL (B,) and its first and second derivatives in each real measurement, summed
-        over the ramps (B, N, 2, 2). mu : (B, N, 2, 2); scale : (B,) logistic scale T."""
+        over the ramps (B, N, 2, 2). mu : (B, N, 2, 2); sigma : (B,) the noise std of the
+        likelihood (the logistic's scale is ``sigma / LOGISTIC_PER_SIGMA``)."""
         if self.bits is None:
             r = mu[:, None] - self.y
             return 0.5 * np.einsum("brnpc,brnpc->b", r, r), r.sum(axis=1), np.full(mu.shape, float(self.ramps))
+        if likelihood == "gaussian":
+            return self._gaussian(mu, sigma)
+        scale = sigma / LOGISTIC_PER_SIGMA
         mu = mu[:, None].astype(np.float32)
         inv = (1.0 / scale).astype(np.float32)[:, None, None, None, None]
         u = self.work[0]
@@ -197,6 +283,35 @@ class _Codes:
             nll, g, h = nll + nll_c, g + g_c, h + h_c
         inv = inv[:, 0].astype(float)
         return nll, g * inv, h * (inv * inv)
+
+    def _gaussian(self, mu: np.ndarray, sigma: np.ndarray):
+        """:meth:`evaluate` with the exact Gaussian likelihood (float64, scipy's log_ndtr)."""
+        from scipy.special import log_ndtr  # here: importing scipy costs the others' start-up
+
+        b = mu.shape[0]
+        inv = (1.0 / sigma)[:, None, None, None, None]
+        mu = mu[:, None]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            if self.bits == 1:
+                s = self.s.astype(float)
+                v = (s * mu + self.so) * inv  # the margin in units of sigma
+                lp = log_ndtr(v)
+                r = np.exp(-0.5 * v * v - _LOG_SQRT_2PI - lp)  # phi(v) / Phi(v)
+                nll, dv, d2v = -lp, -r * s, r * (v + r)
+            else:
+                a = (self.lo - mu) * inv
+                c = (self.hi - mu) * inv
+                flip = a + c > 0.0  # the upper tail: Phi(c) - Phi(a) = Phi(-a) - Phi(-c)
+                a2, c2 = np.where(flip, -c, a), np.where(flip, -a, c)
+                lh = log_ndtr(c2)
+                ld = lh + np.log1p(-np.exp(log_ndtr(a2) - lh))  # log(Phi(c) - Phi(a))
+                pa = np.where(np.isfinite(a), np.exp(-0.5 * a * a - _LOG_SQRT_2PI - ld), 0.0)  # phi(a) / P
+                pc = np.where(np.isfinite(c), np.exp(-0.5 * c * c - _LOG_SQRT_2PI - ld), 0.0)
+                dv = pc - pa
+                d2v = dv * dv + np.where(np.isfinite(c), c * pc, 0.0) - np.where(np.isfinite(a), a * pa, 0.0)
+                nll = -ld
+        inv = inv[:, 0]
+        return nll.reshape(b, -1).sum(axis=1), dv.sum(axis=1) * inv, d2v.sum(axis=1) * (inv * inv)
 
     def _softplus(self, u, sign):
         """Sum per frame of ``-log F(u)`` (B,), and its first and second derivatives in
@@ -309,8 +424,10 @@ class _Fit:
     amplitudes referred to mid-sweep; on one ramp the model is
     ``mu_{n,p} = sum_t b_{t,p} w_t[n]`` with ``w_t[n] = exp(-i 2 pi kc_n nu_t / N)``."""
 
-    def __init__(self, codes: _Codes, kc: np.ndarray, b: int, gate: _Gate | None = None):
+    def __init__(self, codes: _Codes, kc: np.ndarray, b: int, gate: _Gate | None = None,
+                 engine: str = DEFAULT_ENGINE, likelihood: str = DEFAULT_LIKELIHOOD):
         self.codes, self.kc, self.gate = codes, kc, gate
+        self.engine, self.likelihood = engine, likelihood
         self.set(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool))
 
     def set(self, nu: np.ndarray, amp: np.ndarray, live: np.ndarray) -> None:
@@ -330,9 +447,46 @@ class _Fit:
         """One ramp of the model, (B, N, 2) complex."""
         return self.mu.view(complex)[..., 0]
 
-    def evaluate(self, scale: np.ndarray) -> None:
-        self.scale = scale
-        self.nll, self.g, self.h = self.codes.evaluate(self.mu, scale)
+    def evaluate(self, sigma: np.ndarray) -> None:
+        """The likelihood at noise std ``sigma`` (B,) and its derivatives at the model."""
+        self.sigma = np.asarray(sigma, dtype=float)
+        if self.engine == "numpy":
+            self.nll, self.g, self.h = self.codes.evaluate(self.mu, self.sigma, self.likelihood)
+            return
+        b, n = self.mu.shape[:2]
+        self.g, self.h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+        self.nll = _kernels().evaluate(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb,
+                                     np.ascontiguousarray(self.mu).reshape(b, n, 4), self.sigma,
+                                     self.g.reshape(b, n, 4), self.h.reshape(b, n, 4))
+
+    def run(self, levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> None:
+        """One step a level: at noise std ``levels[:, j]`` (B, S) (``adapt``: not below
+        the noise the model leaves, ``wrong_rms / WRONG_RMS_PER_SIGMA``), the likelihood
+        evaluated again where the level changed, then :meth:`step`."""
+        b = self.nu.shape[0]
+        if self.engine == "numpy" or self.nu.shape[1] == 0:
+            for j in range(levels.shape[1]):
+                sigma = levels[:, j]
+                if adapt:
+                    sigma = np.maximum(sigma, self.codes.wrong_rms(self.mu) / WRONG_RMS_PER_SIGMA)
+                if not np.array_equal(sigma, self.sigma):
+                    self.evaluate(sigma)
+                self.step(amp_cap)
+            return
+        n = self.kc.size
+        nu, amp = np.ascontiguousarray(self.nu, dtype=float), np.ascontiguousarray(self.amp, dtype=complex)
+        mu, g, h = (np.ascontiguousarray(v, dtype=float).reshape(b, n, 4) for v in (self.mu, self.g, self.h))
+        nll, sigma, lm = self.nll.astype(float), self.sigma.astype(float), self.lm.astype(float)
+        gate = self.gate
+        _kernels().refine(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb, self.kc, nu, amp,
+                        np.ascontiguousarray(self.live), lm, np.ascontiguousarray(levels, dtype=float), adapt,
+                        WRONG_RMS_PER_SIGMA, np.ascontiguousarray(amp_cap, dtype=float),
+                        0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
+                        gate is not None, MAX_RANGE_STEP_BINS, mu, g, h, nll, sigma)
+        self.nu, self.amp, self.lm, self.nll, self.sigma = nu, amp, lm, nll, sigma
+        self.mu, self.g, self.h = (v.reshape(b, n, 2, 2) for v in (mu, g, h))
+        self.w = None  # stale: only the numpy step reads it
+
 
     def step(self, amp_cap: np.ndarray) -> None:
         """One Levenberg--Marquardt step of every frame at the current scale; a frame
@@ -367,7 +521,7 @@ class _Fit:
         amp = self.amp + (step[..., 1::2] + 1j * step[..., 2::2])
         w = _atoms(nu, self.kc)
         mu = self._mu(w, amp)
-        nll, g, h = self.codes.evaluate(mu, self.scale)
+        nll, g, h = self.codes.evaluate(mu, self.sigma, self.likelihood)
         ok = nll <= self.nll
         self.lm = np.clip(np.where(ok, self.lm / 3.0, self.lm * 8.0), 1e-9, 1e9)
         bad = np.flatnonzero(~ok)  # frames that keep their parameters (few)
@@ -440,7 +594,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
 # -- the decoder ----------------------------------------------------------------------------
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
         noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8,
-        pfa: float | None = None, gate: RangeGate | None = None) -> CmlResult:
+        pfa: float | None = None, gate: RangeGate | None = None, engine: str | None = None,
+        likelihood: str | None = None, init_range_m: np.ndarray | None = None) -> CmlResult:
     """Greedy continuous-range maximum likelihood decoder (see the module docstring).
 
     Parameters
@@ -469,6 +624,21 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     gate : a :class:`~pipeline.gate.RangeGate`: targets are sought, tested and refined
         only inside it, and their ranges stay in it (None: the whole, circular, range axis).
 
+    engine : "numba" (compiled kernels, :mod:`pipeline.cml_kernels`; the default when numba
+        imports) or "numpy" (the vectorized reference); None: ``DEFAULT_ENGINE``.
+    likelihood : "logistic" or "gaussian" (the exact Gaussian likelihood of a code given the
+        dither and the noise); None: ``DEFAULT_LIKELIHOOD``.
+    init_range_m : (B, J) ranges (m) to start from, NaN for none (e.g. the previous
+        frame's targets: warm start), J <= k. A frame with at least one gives no greedy
+        search: its amplitudes are estimated at those ranges (a target's phase turns by
+        ``4 pi dr / lambda``, 5 rad for 5 mm at 24 GHz: the previous amplitudes say
+        little), then ``WARM_STEPS`` refinement steps and ``WARM_ANNEAL`` levels of the
+        annealing. Frames without
+        one, or whose warm fit the model no longer explains (the count test, at ``pfa`` or
+        else ``WARM_PFA``, finds a peak in the residual: a target appeared or moved beyond
+        the steps' reach; with ``pfa`` also a target's statistic below the test's
+        threshold: it vanished), are decoded from scratch.
+
     Returns
     -------
     CmlResult, targets strongest first (with ``pfa``: the present ones first).
@@ -481,32 +651,155 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     likelihood and 12 Gauss--Newton systems for K = 2: ~1 ms a frame (M = 512).
     """
     z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
+    engine = DEFAULT_ENGINE if engine is None else engine
+    likelihood = DEFAULT_LIKELIHOOD if likelihood is None else likelihood
+    if engine not in ENGINES or (engine == "numba" and not HAVE_NUMBA):
+        raise ParameterError(f"cml: engine={engine!r} is not available; available: "
+                             f"{', '.join(e for e in ENGINES if e != 'numba' or HAVE_NUMBA)}")
+    if likelihood not in LIKELIHOODS:
+        raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
     cgate = None if gate is None else _Gate(gate, config, oversample)
     search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
     threshold = None if pfa is None else cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
     if z.shape[0] == 0:
         return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
                          np.zeros((0, k), dtype=bool))
+    if init_range_m is not None:
+        return _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate,
+                             engine, likelihood, _check_init(init_range_m, z.shape[0], k, config, gate))
     parts = []
     for lo in range(0, z.shape[0], BLOCK_FRAMES):  # blocks small enough for the work arrays to stay in cache
         sl = slice(lo, lo + BLOCK_FRAMES)
         parts.append(_decode(z[sl], None if xi is None else xi[sl], None if delta is None else delta[sl], bits,
                              config, k, None if noise_sigma is None else noise_sigma[sl], iters, anneal, oversample,
-                             threshold, cgate))
+                             threshold, cgate, engine, likelihood))
     if len(parts) == 1:
         return parts[0]
     return CmlResult(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(CmlResult)))
 
 
+def _check_init(init, b: int, k: int, config: RadarConfig, gate: RangeGate | None) -> np.ndarray:
+    """``init_range_m`` as (B, k) floats in the range axis (inside the gate), NaN padded."""
+    try:
+        r = np.asarray(init, dtype=float)
+    except (TypeError, ValueError):
+        raise ParameterError(f"cml: init_range_m must be ({b}, J) numbers, got {init!r}") from None
+    if r.ndim != 2 or r.shape[0] != b or r.shape[1] > k:
+        raise ParameterError(f"cml: init_range_m must have shape ({b}, J) with J <= k={k}, got {r.shape}")
+    top = config.samples_per_ramp * config.range_resolution_m
+    if np.any(np.isinf(r)) or np.any((r < 0) | (r > top)):
+        raise ParameterError(f"cml: init_range_m must be NaN or in [0, {top:g}] m")
+    if gate is not None:
+        r = np.where(np.isnan(r), np.nan, np.clip(r, gate.min_range_m, gate.max_range_m))
+    return np.concatenate([r, np.full((b, k - r.shape[1]), np.nan)], axis=1)
+
+
+def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate, engine,
+                  likelihood, init) -> CmlResult:
+    """:func:`cml` with starting ranges ``init`` (B, k) (NaN: none): warm frames refined
+    from them, the others and the warm ones the model no longer explains from scratch."""
+    b = z.shape[0]
+    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
+    warm_threshold = cfar_threshold(WARM_PFA, SEARCH_CELLS_PER_BIN * search_bins)
+    warm = ~np.isnan(init).all(axis=1)
+    out = [None] * b
+    cold = np.flatnonzero(~warm)
+
+    def sub(idx):
+        return (z[idx], None if xi is None else xi[idx], None if delta is None else delta[idx],
+                None if noise_sigma is None else noise_sigma[idx])
+
+    widx = np.flatnonzero(warm)
+    if widx.size:
+        for lo in range(0, widx.size, BLOCK_FRAMES):
+            idx = widx[lo:lo + BLOCK_FRAMES]
+            zz, xx, dd, nn = sub(idx)
+            res, misfit = _refine_warm(zz, xx, dd, bits, config, k, nn, anneal, threshold, cgate, engine, likelihood,
+                                       init[idx], oversample, warm_threshold)
+            for j, i in enumerate(idx.tolist()):
+                out[i] = None if misfit[j] else _row(res, j)
+        cold = np.flatnonzero([o is None for o in out])
+    for lo in range(0, cold.size, BLOCK_FRAMES):
+        idx = cold[lo:lo + BLOCK_FRAMES]
+        zz, xx, dd, nn = sub(idx)
+        res = _decode(zz, xx, dd, bits, config, k, nn, iters, anneal, oversample, threshold, cgate, engine, likelihood)
+        for j, i in enumerate(idx.tolist()):
+            out[i] = _row(res, j)
+    return CmlResult(*(np.stack([getattr(o, f.name) for o in out]) for f in fields(CmlResult)))
+
+
+def _row(res: CmlResult, j: int) -> CmlResult:
+    return CmlResult(*(getattr(res, f.name)[j] for f in fields(CmlResult)))
+
+
+#: without a count test (k given), a warm frame goes back to a full search when its residual
+#: has a peak the count test would take for a target at this false-alarm probability
+WARM_PFA = 1e-3
+#: refinement steps of a warm start at the greedy stage's scale, before the annealing
+WARM_STEPS = 1
+#: levels of the warm start's annealing (at most ``anneal``): from the greedy stage's scale
+#: to the floor in fewer, larger steps, the ranges being close already
+WARM_ANNEAL = 4
+
+
+def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
+                 oversample, warm_threshold):
+    """Refine the targets at ``init`` (B, k) ranges (NaN: absent) of one block; returns
+    the result and the frames (B,) bool the model no longer explains (:func:`cml`)."""
+    b, m, _ = z.shape
+    n = config.samples_per_ramp
+    kc = np.arange(n) - (n - 1) / 2.0
+    codes = _Codes(z, xi, delta, bits, n)
+    fit = _Fit(codes, kc, b, gate, engine, likelihood)
+    if bits is None:
+        sigma, amp_cap = np.ones(b), np.full(b, np.inf)
+    else:
+        noise = np.zeros(b) if noise_sigma is None else noise_sigma
+        floor = np.maximum(delta / m, noise)
+        sigma = np.maximum(SIGMA_START * delta, noise)
+        amp_cap = delta * (1 << (bits - 1))
+    live_all = ~np.isnan(init)
+    order = np.argsort(~live_all, axis=1, kind="stable")  # the given ranges first
+    init = np.take_along_axis(init, order, axis=1)
+    live_all = np.take_along_axis(live_all, order, axis=1)
+    nu_all = np.nan_to_num(init) / config.range_resolution_m
+    for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
+        amp0 = np.where(live_all[:, t, None], _amplitude_at(codes, fit, nu_all[:, t]), 0.0)
+        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
+    fit.evaluate(sigma)
+    fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+    if bits is not None and anneal:
+        levels_n = min(anneal, WARM_ANNEAL)
+        ratio = (floor / sigma) ** (1.0 / levels_n)
+        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, levels_n + 1)
+        fit.run(levels, amp_cap, adapt=noise_sigma is None)
+        sigma = fit.sigma
+    if bits is None:
+        fit.run(np.ones((b, anneal)), amp_cap)
+        sigma = codes.wrong_rms(fit.mu)
+    res = _result(fit, codes, config, sigma, k)
+    count = fit.live.sum(axis=1)
+    # the residual (and the likelihood's score, at the last level) holds a peak the targets do
+    # not explain: a target appeared, or one moved beyond the refinement's reach
+    unexplained = _count_statistic(fit, codes, oversample) >= (warm_threshold if threshold is None else threshold)
+    if threshold is None:  # k targets a frame, whatever their strength
+        misfit = (count < k) | unexplained
+    else:
+        weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
+        misfit = ((count < k) & unexplained) | (weakest < to_db(np.asarray(threshold, dtype=float)))  # or vanished
+    return res, misfit
+
+
 def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold,
-            gate: _Gate | None = None) -> CmlResult:
+            gate: _Gate | None = None, engine: str = DEFAULT_ENGINE,
+            likelihood: str = DEFAULT_LIKELIHOOD) -> CmlResult:
     """:func:`cml` on one block of checked frames; ``threshold``: the count test's
     (linear), or None; ``gate``: the range gate, or None."""
     b, m, _ = z.shape
     n = config.samples_per_ramp
     kc = np.arange(n) - (n - 1) / 2.0
     codes = _Codes(z, xi, delta, bits, n)
-    fit = _Fit(codes, kc, b, gate)
+    fit = _Fit(codes, kc, b, gate, engine, likelihood)
     if bits is None:
         sigma = np.ones(b)  # least squares: the scale plays no part
         amp_cap = np.full(b, np.inf)
@@ -517,7 +810,7 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         amp_cap = delta * (1 << (bits - 1))  # largest amplitude change a step: the quantizer's half range
     active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
     if threshold is not None:
-        fit.evaluate(sigma / LOGISTIC_PER_SIGMA)  # the score of the empty model, for the first count test
+        fit.evaluate(sigma)  # the score of the empty model, for the first count test
     for t in range(k):
         if threshold is not None:
             active &= _count_statistic(fit, codes, oversample) >= threshold
@@ -527,22 +820,19 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         amp0 = np.where(active[:, None], _amplitude_at(codes, fit, nu0), 0.0)
         fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                 np.concatenate([fit.live, active[:, None]], axis=1))
-        fit.evaluate(sigma / LOGISTIC_PER_SIGMA)
-        for _ in range(iters):
-            fit.step(amp_cap)
+        fit.evaluate(sigma)
+        fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
     if bits is not None and anneal:
         ratio = (floor / sigma) ** (1.0 / anneal)
+        levels = np.empty((b, anneal))
         level = sigma
-        for _ in range(anneal):
+        for j in range(anneal):
             level = level * ratio
-            sigma = level
-            if noise_sigma is None:  # not sharper than the noise the model leaves
-                sigma = np.maximum(level, codes.wrong_rms(fit.mu) / WRONG_RMS_PER_SIGMA)
-            fit.evaluate(sigma / LOGISTIC_PER_SIGMA)
-            fit.step(amp_cap)
+            levels[:, j] = level
+        fit.run(levels, amp_cap, adapt=noise_sigma is None)  # adapt: not sharper than the noise the model leaves
+        sigma = fit.sigma
     if bits is None:
-        for _ in range(anneal):  # least squares: polish
-            fit.step(amp_cap)
+        fit.run(np.ones((b, anneal)), amp_cap)  # least squares: polish
         sigma = codes.wrong_rms(fit.mu)
     return _result(fit, codes, config, sigma, k)
 

@@ -42,7 +42,7 @@ from .errors import DitherUnavailable, ParameterError
 from .gate import RangeGate, check_gate
 from .localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
-from .cml import cml
+from .cml import ENGINES, LIKELIHOODS, cml
 from .quantize import QuantizedFrames
 
 
@@ -92,7 +92,8 @@ class DecoderConfig:
     CFAR test of false-alarm probability ``pfa`` per frame and test (pbp and cml).
     gate: the :class:`~pipeline.gate.RangeGate` every decoder searches inside (None: the
     whole range axis, the paper's protocol; the live localizer's default is
-    :meth:`RangeGate.default <pipeline.gate.RangeGate.default>`)."""
+    :meth:`RangeGate.default <pipeline.gate.RangeGate.default>`). engine, likelihood:
+    cml's (:func:`pipeline.cml.cml`; None: its defaults)."""
 
     algo: Algo = DEFAULT_ALGO
     iters: int = 10
@@ -103,9 +104,15 @@ class DecoderConfig:
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
     gate: RangeGate | None = None
+    engine: str | None = None
+    likelihood: str | None = None
 
     def __post_init__(self) -> None:
         check_gate(self.gate)
+        if self.engine not in (None, *ENGINES):
+            raise ParameterError(f"engine={self.engine!r} is not known; available: {', '.join(ENGINES)}")
+        if self.likelihood not in (None, *LIKELIHOODS):
+            raise ParameterError(f"likelihood={self.likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
@@ -391,7 +398,7 @@ def _symmetric_index(size: int) -> np.ndarray:
 
 def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int,
            decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None,
-           noise_sigma=None) -> Detections:
+           noise_sigma=None, init_range_m: np.ndarray | None = None) -> Detections:
     """Targets of a batch of frames with the configured decoder: the one place where a
     decoder is chosen.
 
@@ -403,7 +410,9 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     decodes quantized frames (with or without dither) and unquantized ones (least
     squares), of whole ramps. Every decoder searches only inside ``decoder.gate``
     (checked against ``config``; None: the whole range axis). ``noise_sigma``: cml's
-    sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that)."""
+    sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that).
+    ``init_range_m`` (B, J), NaN for none: cml's warm start (see :func:`pipeline.cml.cml`);
+    the others ignore it."""
     z = np.asarray(z)
     pfa = decoder.pfa if decoder.auto_k else None
     gate = None if decoder.gate is None else decoder.gate.check(config)
@@ -411,7 +420,9 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
         return localize(z, config, k, indices, pfa, gate)
     if decoder.algo == Algo.CML and indices is None:
         return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa, gate=gate).detections(config)
+                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa, gate=gate,
+                   engine=decoder.engine, likelihood=decoder.likelihood,
+                   init_range_m=init_range_m).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
             return localize(z, config, k, indices, pfa, gate)
@@ -436,15 +447,16 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
 
 
 def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,
-                 decoder: DecoderConfig = DecoderConfig()) -> Detections:
+                 decoder: DecoderConfig = DecoderConfig(), init_range_m: np.ndarray | None = None) -> Detections:
     """Targets of a batch: quantized frames (their dither regenerated from their seeds)
     or full-resolution frames (B, M, 2) complex. What the localizer node and offline
-    re-processing call; see :func:`decode` for the rules."""
+    re-processing call; see :func:`decode` for the rules (and ``init_range_m``)."""
     if isinstance(frames, QuantizedFrames):
         n = config.samples_per_ramp
         if decoder.algo == Algo.PBP and frames.codes.shape[1] % n == 0:
             # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
             return decode(frames.ramp_mean(n), None, frames.delta, frames.bits, config, k, decoder)
         xi = None if decoder.algo == Algo.PBP else frames.dither()  # PBP does not use it: skip regenerating it
-        return decode(frames.values(), xi, frames.delta, frames.bits, config, k, decoder)
-    return decode(np.asarray(frames).astype(np.complex128), None, None, None, config, k, decoder)
+        return decode(frames.values(), xi, frames.delta, frames.bits, config, k, decoder, init_range_m=init_range_m)
+    return decode(np.asarray(frames).astype(np.complex128), None, None, None, config, k, decoder,
+                  init_range_m=init_range_m)

@@ -22,6 +22,7 @@ from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from .bus import BusConfig
 from .calibration import Calibration
+from .cml import kernels_ready, warm_up_kernels
 from .decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
 from .gate import RangeGate
@@ -43,6 +44,11 @@ from .wire import (
 )
 
 log = logging.getLogger("qradar.node")
+
+#: cml's warm start: a full search every this many frames of a sensor (LocalizerConfig); 1 = a
+#: full search on every frame, the default: a warm frame's targets depend on how the node
+#: batched the sensor's earlier frames (timing), and live runs are compared target for target
+DEFAULT_FULL_SEARCH_EVERY = 1
 
 __all__ = ["LocalizeNode", "LocalizerConfig", "QuantizeNode", "SourceNode", "run_nodes"]
 
@@ -121,6 +127,7 @@ class SourceNode(Node):
         return extra
 
     def forget(self, sensor_id: str) -> None:
+        super().forget(sensor_id)
         if self.noise is not None:
             self.noise.forget(sensor_id)
 
@@ -341,6 +348,7 @@ class QuantizeNode(FrameNode):
         return {} if self.noise is None else self.noise.health(sensor_id)
 
     def forget(self, sensor_id: str) -> None:
+        super().forget(sensor_id)
         if self.noise is not None:
             self.noise.forget(sensor_id)
 
@@ -354,7 +362,10 @@ class LocalizerConfig:
     max_range_m: the range gate the decoder searches inside (:mod:`pipeline.gate`); None:
     the end of :meth:`RangeGate.default <pipeline.gate.RangeGate.default>` for ``radar``
     (2 range bins kept out at each end of the axis: 1.2 m to 152.4 m for the K-MD2),
-    filled in on construction."""
+    filled in on construction. full_search_every: cml starts a sensor's frame from that
+    sensor's last targets (warm start) and searches from scratch on its first frame, every
+    ``full_search_every`` frames and whenever the fit no longer explains the codes
+    (:func:`pipeline.cml.cml`'s ``init_range_m``); 1: always from scratch."""
 
     k: int = 2
     algo: Algo = DEFAULT_ALGO
@@ -366,8 +377,11 @@ class LocalizerConfig:
     pfa: float = DEFAULT_PFA
     min_range_m: float | None = None
     max_range_m: float | None = None
+    full_search_every: int = DEFAULT_FULL_SEARCH_EVERY
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.full_search_every, int) and self.full_search_every >= 1):
+            raise ParameterError(f"full_search_every={self.full_search_every!r} must be an integer >= 1")
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
             raise ParameterError(f"K={self.k!r} must be an integer in [1, N = {self.radar.samples_per_ramp}]: a "
                                  f"frame has N range bins a ramp and a target takes one")
@@ -417,10 +431,47 @@ class LocalizeNode(FrameNode):
         self.config = config
         # tracks (pipeline.track): ``<prefix>/<sensor>/tracks`` after each frame's targets
         self.tracker = None if tracking is None else Tracker(tracking, Integration.of_localizer(config))
+        #: cml's warm start: sensor -> (frames since its last full search, its last ranges (k,), NaN
+        #: for none); a sensor has an entry only while it has stats (forgotten when it expires)
+        self._last: dict[str, tuple[int, np.ndarray]] = {}
+        self._warm = config.algo == Algo.CML and config.full_search_every > 1
+
+    def start(self) -> "LocalizeNode":
+        if self.config.algo == Algo.CML:
+            # cml's kernels, from numba's cache (~0.5 s; `make` compiles them at install), before
+            # subscribing: the session already listens, and every frame gets the same engine
+            warm_up_kernels(wait=True)
+        return super().start()
 
     def forget(self, sensor_id: str) -> None:
+        super().forget(sensor_id)
+        self._last.pop(sensor_id, None)
         if self.tracker is not None:
             self.tracker.forget(sensor_id)
+
+    def _init_ranges(self, sensors: list[str]) -> np.ndarray | None:
+        """The warm start's ranges (B, k) of frames from ``sensors`` (NaN: a full search)."""
+        if not self._warm:
+            return None
+        every = self.config.full_search_every
+        init = np.full((len(sensors), self.config.k), np.nan)
+        seen: dict[str, int] = {}  # a sensor's frames earlier in this batch
+        with self._lock:
+            for i, sid in enumerate(sensors):
+                last = self._last.get(sid)
+                j = seen[sid] = seen.get(sid, 0) + 1
+                if last is not None and last[0] + j < every:
+                    init[i] = last[1]
+        return init
+
+    def _remember(self, sensors: list[str], init: np.ndarray, ranges: np.ndarray) -> None:
+        with self._lock:
+            for i, sid in enumerate(sensors):
+                if sid not in self.stats:  # expired meanwhile (or never counted): keep nothing
+                    continue
+                last = self._last.get(sid)
+                since = 0 if np.isnan(init[i]).all() or last is None else last[0] + 1
+                self._last[sid] = (since, np.array(ranges[i], dtype=float))
 
     def process(self, batch) -> None:
         groups, keys = self.decode(batch)
@@ -451,14 +502,18 @@ class LocalizeNode(FrameNode):
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
-
+        decoder = cfg.decoder()
+        if decoder.algo == Algo.CML and not kernels_ready():  # a node never started (tests)
+            warm_up_kernels(wait=True)
         n = len(headers)
+        sensors = [str(s) for s in headers.sensor_id]
+        init = self._init_ranges(sensors)
 
         def compute(idx):
             if len(idx) == n:
-                return decode_batch(frames, radar, cfg.k, cfg.decoder())
+                return decode_batch(frames, radar, cfg.k, decoder, init_range_m=init)
             return decode_batch(frames.take(idx) if isinstance(frames, QuantizedFrames) else frames[idx],
-                                radar, cfg.k, cfg.decoder())
+                                radar, cfg.k, decoder, init_range_m=None if init is None else init[idx])
 
         def failed(i, exc):
             self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)
@@ -466,6 +521,8 @@ class LocalizeNode(FrameNode):
         for idx, det in isolate(compute, np.arange(n), failed):
             idx = np.atleast_1d(np.asarray(idx))
             now = time.time_ns()
+            if init is not None:
+                self._remember([sensors[i] for i in idx.tolist()], init[idx], det.range_m)
 
             def part_of(j):  # the headers of positions j in idx (all of them: no copy)
                 return headers if len(j) == n else headers.take(idx[j])

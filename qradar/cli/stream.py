@@ -15,7 +15,7 @@ from pipeline.bus import BusConfig
 from pipeline.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
 from pipeline.errors import ParameterError
 from pipeline.node import INPUT_MODES
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.nodes import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
@@ -74,6 +74,10 @@ def add_commands(sub) -> None:
     p.add_argument("--source", choices=["quantized", "raw"], default="quantized",
                    help="raw = the full-resolution baseline")
     track_options(p)
+    p.add_argument("--full-search-every", type=pos_int, default=DEFAULT_FULL_SEARCH_EVERY,
+                   help="cml: start each sensor's frame from its last targets (warm start) and search from scratch "
+                        f"every N frames (and when the fit no longer explains the codes); 1 = always (default "
+                        f"{DEFAULT_FULL_SEARCH_EVERY})")
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
@@ -234,7 +238,8 @@ def cmd_quantize(args) -> int:
 def cmd_localize(args) -> int:
     k, auto = count_from_args(args)
     cfg = LocalizerConfig(k=k, algo=args.algo, source=args.source, fallback_pbp=args.fallback_pbp, auto_k=auto,
-                          pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m)
+                          pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m,
+                          full_search_every=args.full_search_every)
     return serve(LocalizeNode(bus_from_args(args), cfg, tracking=tracker_config(args), **queue_kwargs(args)),
                  args.duration)
 
