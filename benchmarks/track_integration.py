@@ -36,6 +36,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from pipeline.calibration import load as load_calibration  # noqa: E402
+from pipeline.plots import draw_error_vs_frames  # noqa: E402
 from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
 from pipeline.gate import RangeGate  # noqa: E402
 from pipeline.integrate import time_monte_carlo  # noqa: E402
@@ -101,16 +102,7 @@ def plot(ch: dict, mcs: list[dict], path: Path) -> None:
     a1.set_title(f"chamber (calibrated), 1 bit: {ch['seeds']} seeds, both reflectors")
     a1.grid(True, which="both", alpha=0.3)
     a1.legend(fontsize=8)
-    for mc in mcs:
-        a2.loglog(mc["T"], mc["median_m"], "o-", label=f"noise sigma {mc['noise_sigma']:g}: slope {mc['slope']:.2f}")
-    t = np.array(mcs[0]["T"], dtype=float)
-    a2.loglog(t, mcs[0]["median_m"][0] / t, "k:", lw=0.8, label="1/T")
-    a2.loglog(t, mcs[0]["median_m"][0] / np.sqrt(t), "k--", lw=0.8, label="1/sqrt(T)")
-    a2.set_xlabel("T frames decoded together (fresh dither each)")
-    a2.set_ylabel("median position error, m")
-    a2.set_title(f"Monte Carlo in time: 1 target off the grid, {mcs[0]['runs']} runs")
-    a2.grid(True, which="both", alpha=0.3)
-    a2.legend(fontsize=8)
+    draw_error_vs_frames(a2, mcs, f"Monte Carlo in time: 1 target off the grid, {mcs[0]['runs']} runs")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -179,23 +179,29 @@ def detection_figure(path: Path, summary: dict) -> Path | None:
     return Path(path)
 
 
-def error_vs_frames_figure(path: Path, results: list[dict]) -> Path:
-    """The Monte Carlo in time (:func:`pipeline.integrate.time_monte_carlo`): median
-    position error against T frames decoded together, one curve per result (noise level),
-    log-log, with 1/T and 1/sqrt(T) guides from the first curve's T = 1."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+def draw_error_vs_frames(ax, results: list[dict], title: str) -> None:
+    """On ``ax``: median position error against T frames decoded together, one curve per
+    result (noise level, its slope), log-log, with 1/T and 1/sqrt(T) guides from the first
+    curve's T = 1."""
     for r in results:
-        slope = "" if r["slope"] is None else f": slope {r['slope']:.2f}"
+        slope = "" if r.get("slope") is None else f": slope {r['slope']:.2f}"
         ax.loglog(r["T"], r["median_m"], "o-", label=f"noise sigma {r['noise_sigma']:g}{slope}")
     t = np.array(results[0]["T"], dtype=float)
     ax.loglog(t, results[0]["median_m"][0] / t, "k:", lw=0.8, label="1/T")
     ax.loglog(t, results[0]["median_m"][0] / np.sqrt(t), "k--", lw=0.8, label="1/sqrt(T)")
     ax.set_xlabel("T frames decoded together (fresh dither each)")
     ax.set_ylabel("median position error, m")
-    ax.set_title(f"1 bit, one static target off the grid, {results[0]['runs']} runs")
+    ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
+
+
+def error_vs_frames_figure(path: Path, results: list[dict]) -> Path:
+    """The Monte Carlo in time (:func:`pipeline.integrate.time_monte_carlo`) as a PNG
+    (:func:`draw_error_vs_frames`)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    draw_error_vs_frames(ax, results, f"1 bit, one static target off the grid, {results[0]['runs']} runs")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
