@@ -52,7 +52,7 @@ TABLE_REACH, TABLE_STEP = 32.0, 1.0 / 16.0
 _TABLE = _logistic_table(TABLE_REACH, TABLE_STEP)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _logistic(u: float):
     """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
     if u >= TABLE_REACH:
@@ -75,7 +75,7 @@ def _logistic(u: float):
             h00 * a[4] + h10 * a[5] + h01 * b[4] + h11 * b[5])
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False)
 def log_ndtr(v: float) -> float:
     """``log Phi(v)``, stable for any v (asymptotic series below -20)."""
     if v > 6.0:
@@ -86,7 +86,7 @@ def log_ndtr(v: float) -> float:
     return -0.5 * v * v - math.log(-v) - _LOG_SQRT_2PI + math.log1p(x2 * (-1.0 + x2 * (3.0 - 15.0 * x2)))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gauss_tail(v: float):
     """``-log Phi(v)``, its derivative in v and the second derivative: ``-r`` and
     ``r (v + r)`` with ``r = phi(v) / Phi(v)``."""
@@ -95,7 +95,7 @@ def _gauss_tail(v: float):
     return -lp, -r, r * (v + r)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _log_diff_ndtr(lo: float, hi: float) -> float:
     """``log(Phi(hi) - Phi(lo))`` for lo < hi (either may be infinite), stable in the tails."""
     if lo + hi > 0.0:  # the upper tail: Phi(hi) - Phi(lo) = Phi(-lo) - Phi(-hi)
@@ -106,7 +106,7 @@ def _log_diff_ndtr(lo: float, hi: float) -> float:
     return lh + math.log1p(-math.exp(log_ndtr(lo) - lh))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gauss_cell(a: float, c: float):
     """``-log(Phi(c) - Phi(a))`` with ``a = (lo - lambda) / s``, ``c = (hi - lambda) / s``,
     and its first and second derivatives in ``lambda`` times s and s^2."""
@@ -119,7 +119,7 @@ def _gauss_cell(a: float, c: float):
     return -ld, g, g * g + cpc - apa
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def evaluate(kind: int, lik: int, a, b, mu, sigma, g, h):
     """NLL (B,) of the models ``mu`` (B, N, 4) at noise std ``sigma`` (B,) (the
     logistic's scale is ``sigma / 1.702``; least squares ignores it); writes ``g``, ``h``."""
@@ -130,7 +130,7 @@ def evaluate(kind: int, lik: int, a, b, mu, sigma, g, h):
     return nll
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
     ramps, n = a.shape[0], a.shape[1]
     g[:] = 0.0
@@ -214,7 +214,7 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _wrong_rms(kind, a, b, mu) -> float:
     """RMS distance of the codes ``mu`` gets wrong to their cells (0 when none is)."""
     ramps, n = a.shape[0], a.shape[1]
@@ -234,7 +234,7 @@ def _wrong_rms(kind, a, b, mu) -> float:
     return math.sqrt(acc / max(wrong, 1))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _model(nu, amp, kc, w, mu):
     """Atoms ``w`` (K, 2, N) (real and imaginary parts) and the model ``mu`` (N, 4)."""
     k = nu.shape[0]
@@ -258,7 +258,7 @@ def _model(nu, amp, kc, w, mu):
             mu[i, 3] += a2r * wi + a2i * wr
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve(m, rhs):
     """``m x = rhs`` by Gaussian elimination with partial pivoting (m and rhs overwritten)."""
     p = m.shape[0]
@@ -289,7 +289,7 @@ def _solve(m, rhs):
     return x
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _normal_equations(w, kc, amp, g, h, hess, grad):
     """The Gauss--Newton system of one frame: ``hess`` (5K, 5K) and ``grad`` (5K,), the
     parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t; ``w`` (K, 2, N)
@@ -346,7 +346,7 @@ def _normal_equations(w, kc, amp, g, h, hess, grad):
         grad += coef.T @ proj
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
            use_gate, max_range_step, mu, g, h, nll, sigma_out):
     """Levenberg--Marquardt steps of every frame, as :meth:`pipeline.cml._Fit.step`:

@@ -430,7 +430,9 @@ class LocalizeNode(FrameNode):
         super().__init__(bus, config.radar, config.max_ramps, session, **kw)
         self.config = config
         # tracks (pipeline.track): ``<prefix>/<sensor>/tracks`` after each frame's targets
-        self.tracker = None if tracking is None else Tracker(tracking, Integration.of_localizer(config))
+        # (static tracks refined in a thread of their own: a refinement decodes a second of frames at once)
+        self.tracker = None if tracking is None else Tracker(tracking, Integration.of_localizer(config),
+                                                             background=True)
         #: cml's warm start: sensor -> (frames since its last full search, its last ranges (k,), NaN
         #: for none); a sensor has an entry only while it has stats (forgotten when it expires)
         self._last: dict[str, tuple[int, np.ndarray]] = {}
@@ -442,6 +444,11 @@ class LocalizeNode(FrameNode):
             # subscribing: the session already listens, and every frame gets the same engine
             warm_up_kernels(wait=True)
         return super().start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        super().stop(timeout_s)
+        if self.tracker is not None:
+            self.tracker.close()
 
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)

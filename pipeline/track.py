@@ -36,6 +36,7 @@ frames decoded together) is in :mod:`pipeline.integrate`.
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections import deque
@@ -195,6 +196,15 @@ def innovations(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> t
     return d2, np.log(det)
 
 
+@lru_cache(maxsize=1)
+def _linear_sum_assignment():
+    """scipy's Hungarian solver, imported on first use (every command imports this module;
+    a :class:`Tracker` imports it when made, so that no frame waits the ~0.3 s)."""
+    from scipy.optimize import linear_sum_assignment
+
+    return linear_sum_assignment
+
+
 def assign(d2: np.ndarray, logdet: np.ndarray, gate_chi2: float) -> tuple[np.ndarray, np.ndarray]:
     """Global nearest-neighbour assignment: (track rows, target columns) of the pairs that
     minimize the summed cost ``d2 + ln det S`` with no pair beyond the gate, each track and
@@ -203,9 +213,7 @@ def assign(d2: np.ndarray, logdet: np.ndarray, gate_chi2: float) -> tuple[np.nda
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     ok = d2 <= gate_chi2
     cost = np.where(ok, d2 + logdet, _FORBIDDEN)
-    from scipy.optimize import linear_sum_assignment  # on first use: every command imports this module
-
-    rows, cols = linear_sum_assignment(cost)
+    rows, cols = _linear_sum_assignment()(cost)
     keep = ok[rows, cols]
     return rows[keep], cols[keep]
 
@@ -416,13 +424,25 @@ class Tracker:
     kept for ``integrate_s`` seconds and static tracks are refined on them."""
 
     def __init__(self, config: TrackerConfig = TrackerConfig(), integration: Integration | None = None,
-                 max_sensors: int = 4096):
+                 max_sensors: int = 4096, background: bool = False):
+        """``background``: refinements run in a thread of their own (the live localizer: a
+        refinement decodes T frames at once, which its worker must not wait for; the kernels
+        release the GIL), a sensor's result applied to its static tracks when it is ready;
+        else in :meth:`step`, so a re-processing's tracks do not depend on timing."""
         self.config = config
         self.integration = integration if config.integrate_s > 0 else None
         self.max_sensors = max_sensors
+        _linear_sum_assignment()  # now, not in the first frame's time
         self._sensors: dict[str, SensorTracks] = {}
         self._windows: dict[str, _Window] = {}
         self._lock = threading.Lock()
+        self.background = background
+        #: the background refinements waiting (at most one a sensor: ``_pending``), and their thread
+        self._jobs: queue.Queue = queue.Queue()
+        self._pending: set[str] = set()
+        self._thread: threading.Thread | None = None
+        self.refinements_skipped = 0  # due while the sensor's previous one still ran
+        self.refinement_errors = 0
         #: integration decodes run and the seconds they took (for the health and benchmarks)
         self.refinements = 0
         self.refine_s = 0.0
@@ -477,26 +497,75 @@ class Tracker:
         shape = last.codes.shape[1:]
         # the frames like the last one (same radar, M, bits), since each static track became static
         starts = np.maximum(st.static_since_ns[static], horizon)
+        jobs = []
         for start in np.unique(starts).tolist():
             parts = [f for t, f, r in win.frames if t >= start and r == radar and f.codes.shape[1:] == shape
                      and f.bits == last.bits]
-            if len(parts) < MIN_INTEGRATED_FRAMES:
-                continue
-            t0 = time.perf_counter()
-            det = integrate(concat_frames(parts), radar, self.integration.k, self.integration.gate,
-                            self.integration.pfa)
-            self.refine_s += time.perf_counter() - t0
-            self.refinements += 1
-            ok = det.present[0] & np.isfinite(det.range_m[0]) & np.isfinite(det.angle_deg[0])
-            if not ok.any():
-                continue
-            sr, sa = measurement_sigmas(det.statistic_db[0][ok], det.angle_deg[0][ok], self.config)
-            z, r = measurements(det.range_m[0][ok], det.angle_deg[0][ok], sr, sa)
-            mine = static[starts == start]
-            d2, logdet = innovations(st.x[mine], st.p[mine], z, r)
-            rows, cols = assign(d2, logdet, self.config.gate_chi2)
-            st.refined[mine] = np.nan
-            st.refined[mine[rows]] = z[cols]
+            if len(parts) >= MIN_INTEGRATED_FRAMES:
+                jobs.append((start, parts))
+        if not jobs:
+            return
+        if not self.background:
+            for start, parts in jobs:
+                self._apply(st, horizon, start, self._refine(parts, radar))
+            return
+        if sensor_id in self._pending:  # its previous refinement still runs: this one waits for the next due
+            self.refinements_skipped += 1
+            return
+        self._pending.add(sensor_id)
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._work, name="qradar-integrate", daemon=True)
+            self._thread.start()
+        self._jobs.put((sensor_id, horizon, radar, jobs))
+
+    def _refine(self, parts: list, radar: RadarConfig):
+        """One integration decode (:func:`pipeline.integrate.integrate`) of ``parts``."""
+        t0 = time.perf_counter()
+        det = integrate(concat_frames(parts), radar, self.integration.k, self.integration.gate, self.integration.pfa)
+        self.refine_s += time.perf_counter() - t0
+        self.refinements += 1
+        return det
+
+    def _apply(self, st: SensorTracks, horizon: int, start: int, det) -> None:
+        """The refined positions of ``det`` (one integrated frame) to the static tracks of
+        ``st`` integrated since ``start`` (with the sensor's lock held)."""
+        ok = det.present[0] & np.isfinite(det.range_m[0]) & np.isfinite(det.angle_deg[0])
+        static = np.flatnonzero(st.static)
+        mine = static[np.maximum(st.static_since_ns[static], horizon) == start]
+        if not ok.any() or not mine.size:
+            return
+        sr, sa = measurement_sigmas(det.statistic_db[0][ok], det.angle_deg[0][ok], self.config)
+        z, r = measurements(det.range_m[0][ok], det.angle_deg[0][ok], sr, sa)
+        d2, logdet = innovations(st.x[mine], st.p[mine], z, r)
+        rows, cols = assign(d2, logdet, self.config.gate_chi2)
+        st.refined[mine] = np.nan
+        st.refined[mine[rows]] = z[cols]
+
+    def _work(self) -> None:
+        """The background refinements, one at a time; a sensor forgotten meanwhile gets none."""
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            sensor_id, horizon, radar, jobs = job
+            try:
+                results = [(start, self._refine(parts, radar)) for start, parts in jobs]
+            except Exception:  # a refinement that fails leaves the filter's positions: counted, not fatal
+                self.refinement_errors += 1
+                results = []
+            with self._lock:
+                self._pending.discard(sensor_id)
+                st = self._sensors.get(sensor_id)
+                if st is not None:
+                    for start, det in results:
+                        self._apply(st, horizon, start, det)
+
+    def close(self) -> None:
+        """End the background refinements' thread (after the one running)."""
+        if self._thread is not None:
+            self._jobs.put(None)
+            self._thread.join(timeout=10)
+            self._thread = None
 
     def forget(self, sensor_id: str) -> None:
         """Drop a sensor's tracks and frames (an expired sensor)."""
