@@ -201,6 +201,12 @@ class Topology:
     def argv(self, role: str, args: list[str]) -> list[str]:
         return [*self.prefix(role), self.python, *args]
 
+    def wait_listening(self, role: str, alive, timeout_s: float = 30.0) -> bool:
+        """Wait until the hub ``role`` listens (here: a fixed second; a topology that can
+        reach its port does better)."""
+        time.sleep(1.0)
+        return alive()
+
 
 class Loopback(Topology):
     """Everything on this host, zenoh TCP on 127.0.0.1 at one free port."""
@@ -214,6 +220,19 @@ class Loopback(Topology):
 
     def connect(self, role: str) -> str:
         return self.bare if role.startswith("bare") else self.endpoint
+
+    def wait_listening(self, role: str, alive, timeout_s: float = 30.0) -> bool:
+        """Until the hub's port takes a TCP connection (a localizer loading cml's kernels
+        takes a while) or its process ended."""
+        host, port = self.listen(role)[0].split("/", 1)[1].rsplit(":", 1)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and alive():
+            try:
+                socket.create_connection((host, int(port)), timeout=0.5).close()
+                return True
+            except OSError:
+                time.sleep(0.05)
+        return False
 
 
 @functools.lru_cache(maxsize=None)
@@ -337,8 +356,8 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
                 if name == "router":
                     if not _wait_text(procs[0], "listening", 30.0):
                         raise StepError(f"router not listening: {procs[0].stderr_tail()}")
-                else:
-                    time.sleep(1.0)
+                elif not topo.wait_listening(role, procs[0].alive):
+                    raise StepError(f"{name} (the hub) not listening: {procs[0].stderr_tail()}")
         sink = Proc("sink", _sink_argv(spec, topo, sid_prefix), logdir)
         procs.append(sink)
         ready = _read_line(sink, 60.0, lambda o: "ready" in o)
