@@ -13,27 +13,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_wire import per_frame_us  # noqa: E402
 from pipeline.noise import NoiseTracker, estimate_noise_sigma  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
 
 M, N = 512, 256
-
-
-def per_frame_us(fn, frames: int, repeat: int, calls: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        best = min(best, time.perf_counter() - t0)
-    return best / (calls * frames) * 1e6
 
 
 def main() -> None:

@@ -742,22 +742,27 @@ WARM_STEPS = 1
 WARM_ANNEAL = 4
 
 
+def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
+    """What a block's decode starts from: its codes, an empty fit, the first likelihood
+    scale sigma_eff (B,), its floor (B,; None unquantized) and the largest amplitude change
+    of a step (the quantizer's half range)."""
+    b, m, _ = z.shape
+    n = config.samples_per_ramp
+    codes = _Codes(z, xi, delta, bits, n)
+    fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
+    if bits is None:  # least squares: the scale plays no part
+        return codes, fit, np.ones(b), None, np.full(b, np.inf)
+    noise = np.zeros(b) if noise_sigma is None else noise_sigma
+    return (codes, fit, np.maximum(SIGMA_START * delta, noise), np.maximum(delta / m, noise),
+            delta * (1 << (bits - 1)))
+
+
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
                  oversample, warm_threshold):
     """Refine the targets at ``init`` (B, k) ranges (NaN: absent) of one block; returns
     the result and the frames (B,) bool the model no longer explains (:func:`cml`)."""
-    b, m, _ = z.shape
-    n = config.samples_per_ramp
-    kc = np.arange(n) - (n - 1) / 2.0
-    codes = _Codes(z, xi, delta, bits, n)
-    fit = _Fit(codes, kc, b, gate, engine, likelihood)
-    if bits is None:
-        sigma, amp_cap = np.ones(b), np.full(b, np.inf)
-    else:
-        noise = np.zeros(b) if noise_sigma is None else noise_sigma
-        floor = np.maximum(delta / m, noise)
-        sigma = np.maximum(SIGMA_START * delta, noise)
-        amp_cap = delta * (1 << (bits - 1))
+    b = z.shape[0]
+    codes, fit, sigma, floor, amp_cap = _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood)
     live_all = ~np.isnan(init)
     order = np.argsort(~live_all, axis=1, kind="stable")  # the given ranges first
     init = np.take_along_axis(init, order, axis=1)
@@ -795,19 +800,8 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
             likelihood: str = DEFAULT_LIKELIHOOD) -> CmlResult:
     """:func:`cml` on one block of checked frames; ``threshold``: the count test's
     (linear), or None; ``gate``: the range gate, or None."""
-    b, m, _ = z.shape
-    n = config.samples_per_ramp
-    kc = np.arange(n) - (n - 1) / 2.0
-    codes = _Codes(z, xi, delta, bits, n)
-    fit = _Fit(codes, kc, b, gate, engine, likelihood)
-    if bits is None:
-        sigma = np.ones(b)  # least squares: the scale plays no part
-        amp_cap = np.full(b, np.inf)
-    else:
-        noise = np.zeros(b) if noise_sigma is None else noise_sigma
-        floor = np.maximum(delta / m, noise)
-        sigma = np.maximum(SIGMA_START * delta, noise)
-        amp_cap = delta * (1 << (bits - 1))  # largest amplitude change a step: the quantizer's half range
+    b = z.shape[0]
+    codes, fit, sigma, floor, amp_cap = _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood)
     active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
     if threshold is not None:
         fit.evaluate(sigma)  # the score of the empty model, for the first count test
