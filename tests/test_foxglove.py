@@ -389,3 +389,26 @@ def test_a_bad_sensors_file_is_one_clear_error(tmp_path):
             load_poses(p)
     with pytest.raises(ParameterError, match="cannot read"):
         load_poses(tmp_path / "missing.toml")
+
+
+def test_bad_tracks_messages_are_counted_and_the_view_keeps_serving(bus, zenoh_session):
+    """Malformed tracks (not JSON, another sensor's id, a NaN position) are counted in
+    the view's decode errors, one each, and a good tracks message after them is served."""
+    from pipeline.wire import TracksMsg
+
+    view = FoxgloveView(bus, ViewConfig(port=0, profile_rate_hz=0), session=zenoh_session, health_period_s=0.2)
+    view.start()
+    try:
+        track = {"track_id": 1, "range_m": 5.0, "angle_deg": 10.0, "x_m": 4.92, "y_m": 0.87, "vx_mps": 0.0,
+                 "vy_mps": 0.0, "sigma_m": 0.05, "age_s": 1.0, "hits": 20, "static": True}
+        good = TracksMsg("t0", 1, time.time_ns(), [track]).to_json()
+        bad = [b"not json", TracksMsg("t1", 2, 1, [track]).to_json(),
+               good.replace(b'"x_m":4.92', b'"x_m":NaN')]
+        for payload in bad:
+            zenoh_session.put("radar/t0/tracks", payload)
+        wait_until(lambda: view.totals()["decode_errors"] == 3, 10, "three bad tracks messages counted")
+        zenoh_session.put("radar/t0/tracks", good)
+        wait_until(lambda: view.totals()["frames_out"] >= 1, 10, "the good tracks message served")
+        assert view.totals()["decode_errors"] == 3 and not view.errors
+    finally:
+        view.stop()
