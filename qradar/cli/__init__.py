@@ -83,6 +83,32 @@ def limit_malloc_arenas(arenas: int = 2) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``qradar`` command; ``argv`` None: the process's own arguments, and a process
+    that loaded zenoh then ends here (:func:`_end_process`)."""
+    code = _main(argv)
+    if argv is None and "zenoh" in sys.modules:
+        _end_process(code)
+    return code
+
+
+def _end_process(code: int) -> None:
+    """End the process without the interpreter's finalization once the command is done
+    (its sessions closed, files written, summary printed): zenoh's own threads outlive the
+    closed sessions, and one calling into Python while the interpreter finalizes is
+    aborted by the C library ("FATAL: exception not rethrown", status -6; seen once in a
+    --secure node under attack). The exit handlers run first, the output is flushed."""
+    import atexit
+
+    atexit._run_exitfuncs()
+    for out in (sys.stdout, sys.stderr):
+        try:
+            out.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code if isinstance(code, int) else 1)
+
+
+def _main(argv: list[str] | None) -> int:
     limit_malloc_arenas()
     parser = build_parser()
     args = parser.parse_args(argv)
