@@ -31,7 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
 from pipeline.gate import RangeGate  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from pipeline.track import Integration, Tracker, TrackerConfig, track_batch  # noqa: E402
+from pipeline.track import TrackerConfig  # noqa: E402
+from pipeline.tracker import Integration, Tracker, track_batch  # noqa: E402
 from pipeline.wire import FrameHeaders  # noqa: E402
 from radar_driver.scene import ramp_time_s, resolve_scene  # noqa: E402
 

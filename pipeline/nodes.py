@@ -31,7 +31,8 @@ from .node import Node, ProcessingNode, run_nodes
 from .noise import NoiseTracker
 from .quantize import (AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames,
                        sensor_dither_seeds)
-from .track import Integration, Tracker, TrackerConfig, publish_tracks
+from .track import TrackerConfig
+from .tracker import Integration, Tracker, publish_tracks
 from .wire import (
     HEADER_LEN,
     QUANT_HEADER_LEN,

@@ -23,7 +23,8 @@ from pipeline.gate import RangeGate, check_range_m
 from pipeline.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
 from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
-from pipeline.track import Integration, Tracker, TrackerConfig, track_batch
+from pipeline.track import TrackerConfig
+from pipeline.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict

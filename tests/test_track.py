@@ -16,9 +16,7 @@ from pipeline.gate import RangeGate
 from pipeline.integrate import concat_frames, integrate, stack_frames
 from pipeline.quantize import QuantizerConfig, quantize_frames
 from pipeline.track import (
-    Integration,
     SensorTracks,
-    Tracker,
     TrackerConfig,
     assign,
     cv_model,
@@ -26,10 +24,10 @@ from pipeline.track import (
     measurements,
     predict,
     step_tracks,
-    track_batch,
     update,
     velocity_chi2,
 )
+from pipeline.tracker import Integration, Tracker, track_batch
 from pipeline.wire import TRACK_FIELDS, FrameHeaders, TracksMsg, decode_tracks
 from radar_driver.model import RadarConfig, add_noise, polar_to_xy, simulate_frames
 from radar_driver.scene import ramp_time_s, resolve_scene
