@@ -265,7 +265,7 @@ def montecarlo(config: MonteCarloConfig | None = None, progress: bool = False, *
     """The Monte Carlo of the paper (``qradar montecarlo``): a :class:`MonteCarloConfig` or
     its fields as keywords (``ks=(1,), runs=2000, algos=("cml",), off_grid=True``). The
     result's ``summary`` is the dict the command writes as ``summary.json``; write it all with
-    :func:`pipeline.montecarlo.write_outputs`."""
+    :func:`pipeline.montecarlo_report.write_outputs`."""
     if config is None:
         config = MonteCarloConfig(**kwargs)
     elif kwargs:

@@ -13,7 +13,8 @@ from pipeline.gate import RangeGate
 from pipeline.integrate import time_monte_carlo
 from pipeline.localize import DEFAULT_PFA
 from pipeline.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
-                                 prepare_out_dir, run_montecarlo, write_outputs)
+                                 run_montecarlo)
+from pipeline.montecarlo_report import prepare_out_dir, write_outputs
 from pipeline.plots import error_vs_frames_figure
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
