@@ -16,17 +16,15 @@ import logging
 import termios
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Callable
+from typing import Callable, Protocol
 
 import serial
 
 from .assembly import DriverCounters, FrameAssembler
-from .errors import LinkError, SensorError, SensorResponseError, SensorTimeout
-from .link import SerialLink, WrongDevice
+from .errors import LinkError, SensorError, SensorResponseError, SensorTimeout, WrongDevice
+from .link import LinkKind, SerialLink
+from .profile import SensorProfile
 from .protocol import BAUD_SWITCH_SETTLE_S, Gbye, Init, Message, Resp, RespCode, encode
-
-if TYPE_CHECKING:
-    from .session import SessionConfig
 
 log = logging.getLogger("qradar.driver")
 
@@ -49,11 +47,29 @@ def silence_text(url: str, startup_baud: int, name: str, timeout_s: float, seen:
     return f"no RESP to {name} from {url} within {timeout_s:.2f} s; {what}"
 
 
+class LinkSettings(Protocol):
+    """What a connection reads of its configuration (a :class:`~.session.SessionConfig`)."""
+
+    url: str
+    baud: int | None
+    timeout_s: float
+    profile: SensorProfile
+
+    @property
+    def kind(self) -> LinkKind: ...
+
+    @property
+    def line_baud(self) -> int: ...
+
+    @property
+    def baud_code(self) -> int: ...
+
+
 class SensorConnection:
     """The link, the codec (through ``assembler``) and the commands of a session's set-up
     and end. ``fill`` reads the port once into ``inbox``."""
 
-    def __init__(self, config: "SessionConfig", assembler: FrameAssembler, counters: DriverCounters,
+    def __init__(self, config: LinkSettings, assembler: FrameAssembler, counters: DriverCounters,
                  port_factory: Callable[..., serial.SerialBase] = serial.serial_for_url):
         self.config = config
         self.profile = config.profile

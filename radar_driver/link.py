@@ -21,7 +21,7 @@ from typing import Callable
 import serial
 
 from .devices import cmdline, device_identity, lock_holders, port_holders
-from .errors import LinkError
+from .errors import LinkError, WrongDevice
 
 
 class LinkKind(str, Enum):
@@ -104,10 +104,6 @@ def open_error(url: str, exc: BaseException) -> str:
     # pyserial repeats itself: "[Errno 2] could not open port X: [Errno 2] ..."; keep the last clause
     reason = reason.rsplit("] ", 1)[-1] if reason.count("[Errno") else reason
     return f"cannot open {url}: {reason}"
-
-
-class WrongDevice(LinkError):
-    """A device path that now names another device than the one first opened."""
 
 
 #: what pyserial raises when opening a port fails
