@@ -202,6 +202,15 @@ class DecoderStats:
     scanned_bytes: int = 0
 
 
+def _next_candidate(x: int, every: np.ndarray | None, cands: list[list[int]]) -> int:
+    """Position of the first candidate at or after stream offset x, or _NONE: in ``every``
+    (all positions, sorted) if given, else among ``cands``."""
+    if every is not None:
+        i = int(np.searchsorted(every, x))
+        return int(every[i]) if i < every.size else _NONE
+    return next((c[0] for c in cands if c[0] >= x), _NONE)
+
+
 class _Tally:
     """What a :class:`StreamDecoder` counts in ``stats``: messages, runs of skipped bytes
     (a resync each) and refused candidates (the reason of the latest in ``last_error``)."""
@@ -336,23 +345,9 @@ class StreamDecoder:
                 if self._pad:
                     return True  # all zeros so far
             end = base + len(buf)
-            if self._bulk[0].size or len(self._cands) > 1:
-                return False
-            if self._cands:  # one waiting candidate at the head
-                c = self._cands[0]
-                if c[0] != base or c[3] != _PEND or self._t.kinds[c[1]] == _OPAQUE:
-                    return False
-            else:
-                if end - base < PREFIX_LEN:
-                    return not buf
-                k = self._t.index.get(bytes(buf[:HEADER_LEN]))
-                if k is None or self._t.kinds[k] == _OPAQUE:
-                    return False
-                n = int.from_bytes(buf[HEADER_LEN:PREFIX_LEN], "little")
-                lo, hi = self._t.bounds[k]
-                if not lo <= n <= hi:
-                    return False
-                c = [base, k, n, _PEND, -1, base + PREFIX_LEN]
+            c = self._step_head(base, end)
+            if isinstance(c, bool):
+                return c
             _, k, n = c[:3]
             stop = base + PREFIX_LEN + n
             radc = self._t.kinds[k] == _RADC
@@ -374,6 +369,24 @@ class StreamDecoder:
             self._base = stop
             self._cands = []
             self._scan = max(self._scan, stop)
+
+    def _step_head(self, base: int, end: int) -> list[int] | bool:
+        """The candidate at the head that the step may take, or, when there is none, what
+        :meth:`_in_step` returns (True: no bytes to decide; False: the search decides)."""
+        if self._bulk[0].size or len(self._cands) > 1:
+            return False
+        if self._cands:  # one waiting candidate at the head
+            c = self._cands[0]
+            return c if c[0] == base and c[3] == _PEND and self._t.kinds[c[1]] != _OPAQUE else False
+        buf = self._buf
+        if end - base < PREFIX_LEN:
+            return not buf
+        k = self._t.index.get(bytes(buf[:HEADER_LEN]))
+        if k is None or self._t.kinds[k] == _OPAQUE:
+            return False
+        n = int.from_bytes(buf[HEADER_LEN:PREFIX_LEN], "little")
+        lo, hi = self._t.bounds[k]
+        return [base, k, n, _PEND, -1, base + PREFIX_LEN] if lo <= n <= hi else False
 
     def _hand_over(self, c: list[int]) -> bool:
         """Keep the head candidate ``c`` for the search (which starts after it); False."""
@@ -431,20 +444,13 @@ class StreamDecoder:
             elif stop <= end:
                 c[3] = _OK
         elif kind == _OPAQUE:
-            inside = self._next_candidate(p + PREFIX_LEN, every)
+            inside = _next_candidate(p + PREFIX_LEN, every, self._cands)
             if inside < stop:
                 c[3], c[4] = _REJ, inside
             elif stop <= end and self._tail_start(p + PREFIX_LEN, base, end) >= stop:
                 c[3] = _OK
         elif stop <= end:
             c[3] = _REJ if kind == _RESP and any(self._buf[p + PREFIX_LEN + 1 - base : stop - base]) else _OK
-
-    def _next_candidate(self, x: int, every: np.ndarray | None) -> int:
-        """Position of the first candidate at or after stream offset x, or _NONE."""
-        if every is not None:
-            i = int(np.searchsorted(every, x))
-            return int(every[i]) if i < every.size else _NONE
-        return next((c[0] for c in self._cands if c[0] >= x), _NONE)
 
     def _check_words(self, c: list[int], base: int, end: int) -> int:
         """Range-check the words of RADC candidate ``c`` that came since its last check:
@@ -483,11 +489,7 @@ class StreamDecoder:
     def _tail_start(self, lo: int, base: int, end: int) -> int:
         """First position from ``lo`` among the last, unsearched bytes that may still start a
         header (its bytes so far begin one), or ``end``."""
-        buf, prefixes = self._buf, self._t.prefixes
-        for p in range(max(lo, self._scan, base), end):
-            if bytes(buf[p - base : p - base + HEADER_LEN]) in prefixes:
-                return p
-        return end
+        return self._t.tail_start(self._buf, max(lo, self._scan, base), base, end)
 
     # -- the walk: messages in order, garbage counted --------------------------------------------
     def _walk(self) -> list[Message]:

@@ -99,6 +99,13 @@ class HeaderTable:
         found.sort()
         return [f[0] for f in found], [f[1] for f in found], [f[2] for f in found]
 
+    def tail_start(self, buf: bytearray, lo: int, base: int, end: int) -> int:
+        """First position in [lo, end) whose bytes so far begin a header, or ``end``."""
+        for p in range(lo, end):
+            if bytes(buf[p - base : p - base + HEADER_LEN]) in self.prefixes:
+                return p
+        return end
+
     # -- validation ------------------------------------------------------------------------------
     def first_bad_word(self, buf: bytearray, base: int, start: int, stop: int) -> int:
         """Index of the first word in [start, stop) out of the ADC range, or -1."""
