@@ -54,6 +54,10 @@ class LinkError(SensorError):
     """The port could not be opened, or failed (unplugged device, closed socket)."""
 
 
+class WrongDevice(LinkError):
+    """A device path that now names another device than the one first opened."""
+
+
 class LinkDown(RadarError):
     """The simulated link has no peer or was closed."""
 

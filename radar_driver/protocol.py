@@ -29,9 +29,8 @@ import numpy as np
 
 from .errors import ProtocolError, RespCode
 from .profile import DEFAULT_PROFILE, RadcLayout, SensorProfile
-
-HEADER_LEN = 4
-PREFIX_LEN = 8  # header + uint32 length
+from .resync import HEADER_LEN, NONE as _NONE, OK as _OK, OPAQUE as _OPAQUE, PEND as _PEND, PREFIX_LEN
+from .resync import RADC as _RADC, REJ as _REJ, RESP as _RESP, HeaderTable
 
 
 #: Line speed of a sensor after power-up and after GBYE (every shipped profile's startup_baud).
@@ -183,18 +182,9 @@ def decode(data: bytes, profile: SensorProfile = DEFAULT_PROFILE) -> Message:
 
 
 # -- streaming decoder -----------------------------------------------------------------------
-# How the payload of a candidate (a known header with a plausible length) is validated:
-_FIXED, _RESP, _RADC, _OPAQUE = 0, 1, 2, 3  # any payload / zero padding / ADC range / no candidate inside
-_FIXED_HEADERS = (b"INIT", b"GNFD", b"GBYE", b"DONE")
-# What a candidate would be at the head of the stream:
-_PEND, _OK, _REJ = 0, 1, 2  # undecided (more bytes needed) / a message / garbage
-_NONE = np.iinfo(np.int64).max
-_ODD = 1 << 61  # added to odd positions to sort them after the even ones
 _EMPTY = np.zeros(0, np.int64)
 #: new candidates of one feed decided one by one in Python up to this many, with numpy beyond
 _FEW = 16
-#: new bytes searched for headers with bytes.find up to this many, with numpy beyond
-_FIND_BYTES = 512
 
 
 @dataclass
@@ -212,6 +202,55 @@ class DecoderStats:
     scanned_bytes: int = 0
 
 
+def _next_candidate(x: int, every: np.ndarray | None, cands: list[list[int]]) -> int:
+    """Position of the first candidate at or after stream offset x, or _NONE: in ``every``
+    (all positions, sorted) if given, else among ``cands``."""
+    if every is not None:
+        i = int(np.searchsorted(every, x))
+        return int(every[i]) if i < every.size else _NONE
+    return next((c[0] for c in cands if c[0] >= x), _NONE)
+
+
+class _Tally:
+    """What a :class:`StreamDecoder` counts in ``stats``: messages, runs of skipped bytes
+    (a resync each) and refused candidates (the reason of the latest in ``last_error``)."""
+
+    def __init__(self, stats: DecoderStats, table: HeaderTable):
+        self.stats, self._t = stats, table
+        self.skipping = False
+        self.err_at = -1  # stream offset of the candidate last_error names
+
+    def message(self) -> None:
+        self.stats.messages += 1
+        self.skipping = False
+
+    def skipped(self, start: int, stop: int, bulk: tuple, buf: bytearray, base: int) -> None:
+        """Count the bytes [start, stop) as skipped and the refused candidates among them
+        that were decided in bulk (``bulk``; the others are counted as the walk meets them)."""
+        if stop <= start:
+            return
+        self.stats.skipped_bytes += stop - start
+        if not self.skipping:
+            self.stats.resyncs += 1
+            self.skipping = True
+        r = bulk[0]
+        if r.size:
+            i, j = int(np.searchsorted(r, start)), int(np.searchsorted(r, stop))
+            if j > i:
+                self.refused(buf, base, *(int(a[j - 1]) for a in bulk), count=j - i)
+
+    def refused(self, buf: bytearray, base: int, q: int, k: int, n: int, why: int, count: int = 1) -> None:
+        """Count ``count`` refused candidates, the last at stream offset ``q``."""
+        self.stats.invalid += count
+        if q > self.err_at:
+            self.stats.last_error, self.err_at = self._t.why(buf, base, q, k, n, why), q
+
+    def failed(self, q: int, exc: Exception) -> None:
+        """A candidate that passed the checks and still did not decode."""
+        self.stats.invalid += 1
+        self.stats.last_error, self.err_at = f"{exc} (stream byte {q})", q
+
+
 @dataclass
 class StreamDecoder:
     """Incremental decoder: ``feed(chunk)`` returns the messages completed by ``chunk``.
@@ -223,47 +262,24 @@ class StreamDecoder:
     stray header claiming 16 KiB does not swallow the frames after it). Each run of
     skipped bytes counts one resync, each refused candidate one ``invalid``.
 
+    Three paths, each a section below: the *step* takes messages that follow each other
+    from the head without a search; elsewhere the *search* finds each new byte's
+    candidates once and *decides* each once (with numpy when there are many; the
+    search and the validation live in :class:`~.resync.HeaderTable`), and the *walk*
+    emits the decided messages in order and counts the garbage between them.
+
     The work is linear in the bytes fed, whatever they are and however they are cut
-    (``stats.scanned_bytes`` counts it). Messages that follow each other are taken in
-    step, without a search; elsewhere each new byte is searched for headers once, and
-    each candidate is decided once, with numpy when there are many; a candidate waiting
-    for a long payload is re-examined on the new bytes only. Memory is bounded by the
-    largest plausible message plus the chunk being fed.
-    ``profile``: the sensor's conventions (RADC layout, other frames' lengths).
+    (``stats.scanned_bytes`` counts it); a candidate waiting for a long payload is
+    re-examined on the new bytes only. Memory is bounded by the largest plausible
+    message plus the chunk being fed. ``profile``: the sensor's conventions (RADC
+    layout, other frames' lengths).
     """
 
     profile: SensorProfile = DEFAULT_PROFILE
     stats: DecoderStats = field(default_factory=DecoderStats)
 
     def __post_init__(self) -> None:
-        lengths = self.profile.plausible_length()
-        self._headers = tuple(lengths)
-        lay = self.profile.radc
-        limits = np.iinfo(np.dtype(lay.dtype))
-        radc_checked = lay.min_word > limits.min or lay.max_word < limits.max  # 16-bit words: no check
-        # header index: the order of the headers' uint32 codes (for numpy's searchsorted)
-        codes = [int.from_bytes(h, "little") for h in self._headers]
-        self._names = [h for _, h in sorted(zip(codes, self._headers))]
-        self._codes = np.array(sorted(codes) + [0xFFFFFFFF], np.uint32)  # a sentinel no header has
-        self._index = {h: i for i, h in enumerate(self._names)}
-        self._bounds = [lengths[h] for h in self._names]
-        self._lo = np.array([b[0] for b in self._bounds] + [1], np.int64)
-        self._hi = np.array([b[1] for b in self._bounds] + [0], np.int64)
-        self._kinds = [_FIXED if h in _FIXED_HEADERS else _RESP if h == b"RESP"
-                       else _RADC if h == b"RADC" and radc_checked else _OPAQUE for h in self._names]
-        self._kind = np.array(self._kinds)
-        self._first2 = np.zeros(1 << 16, bool)  # the first two bytes of the headers, as uint16 LE
-        self._first2[[h[0] | h[1] << 8 for h in self._headers]] = True
-        self._max_len = max(b[1] for b in self._bounds)
-        self._prefixes = {h[:i] for h in self._headers for i in range(1, HEADER_LEN + 1)}
-        self._radc_len = lay.payload_len
-        # unsigned words with a 0 minimum and a 2^b - 1 maximum, b >= 8: a word is out of
-        # range iff its high byte exceeds max >> 8 (checked on bytes, without numpy)
-        self._hi_off = None
-        if lay.word in ("uint16le", "uint16be") and lay.min_word == 0 and lay.adc_bits >= 8:
-            self._hi_off = 1 if lay.word == "uint16le" else 0
-            self._hi_max = lay.max_word >> 8
-            self._badmap = bytes(int(b > self._hi_max) for b in range(256))
+        self._t = HeaderTable(self.profile)
         self._buf = bytearray()
         self._restart(0)
 
@@ -271,8 +287,7 @@ class StreamDecoder:
         self._base = base  # stream offset of _buf[0]; all positions are stream offsets
         self._scan = base  # positions below were searched for candidates
         self._pad = 0  # zero padding that may follow the last message
-        self._skipping = False
-        self._err_at = -1  # stream offset of the candidate last_error names
+        self._tally = _Tally(self.stats, self._t)
         # candidates from _base on, by position: [position, header index, declared length,
         # status, why refused (the first bad RADC word, the candidate inside an opaque
         # frame), the next RADC word to check]
@@ -299,7 +314,7 @@ class StreamDecoder:
             return 1
         k, n = self._cands[0][1:3]
         need = PREFIX_LEN + n - len(buf)
-        if self._kinds[k] == _OPAQUE:  # a header in the next bytes may decide it sooner
+        if self._t.kinds[k] == _OPAQUE:  # a header in the next bytes may decide it sooner
             need = min(need, PREFIX_LEN)
         return max(1, need)
 
@@ -330,26 +345,12 @@ class StreamDecoder:
                 if self._pad:
                     return True  # all zeros so far
             end = base + len(buf)
-            if self._bulk[0].size or len(self._cands) > 1:
-                return False
-            if self._cands:  # one waiting candidate at the head
-                c = self._cands[0]
-                if c[0] != base or c[3] != _PEND or self._kinds[c[1]] == _OPAQUE:
-                    return False
-            else:
-                if end - base < PREFIX_LEN:
-                    return not buf
-                k = self._index.get(bytes(buf[:HEADER_LEN]))
-                if k is None or self._kinds[k] == _OPAQUE:
-                    return False
-                n = int.from_bytes(buf[HEADER_LEN:PREFIX_LEN], "little")
-                lo, hi = self._bounds[k]
-                if not lo <= n <= hi:
-                    return False
-                c = [base, k, n, _PEND, -1, base + PREFIX_LEN]
+            c = self._step_head(base, end)
+            if isinstance(c, bool):
+                return c
             _, k, n = c[:3]
             stop = base + PREFIX_LEN + n
-            radc = self._kinds[k] == _RADC
+            radc = self._t.kinds[k] == _RADC
             if stop > end:  # wait for the rest; a RADC's words are checked as they come
                 if radc and (bad := self._check_words(c, base, end)) >= 0:
                     c[3], c[4] = _REJ, bad
@@ -357,18 +358,35 @@ class StreamDecoder:
                 self._hand_over(c)
                 return True
             try:
-                msg = decode_payload(self._names[k], bytes(buf[PREFIX_LEN : PREFIX_LEN + n]), self.profile)
+                msg = decode_payload(self._t.names[k], bytes(buf[PREFIX_LEN : PREFIX_LEN + n]), self.profile)
             except ProtocolError:  # a RADC word out of range, a RESP's padding
                 c[3], c[4] = _REJ, self._check_words(c, base, end) if radc else -1
                 return self._hand_over(c)
             out.append(msg)
-            self.stats.messages += 1
-            self._skipping = False
+            self._tally.message()
             self._pad = (-n) % 4
             del buf[: stop - base]
             self._base = stop
             self._cands = []
             self._scan = max(self._scan, stop)
+
+    def _step_head(self, base: int, end: int) -> list[int] | bool:
+        """The candidate at the head that the step may take, or, when there is none, what
+        :meth:`_in_step` returns (True: no bytes to decide; False: the search decides)."""
+        if self._bulk[0].size or len(self._cands) > 1:
+            return False
+        if self._cands:  # one waiting candidate at the head
+            c = self._cands[0]
+            return c if c[0] == base and c[3] == _PEND and self._t.kinds[c[1]] != _OPAQUE else False
+        buf = self._buf
+        if end - base < PREFIX_LEN:
+            return not buf
+        k = self._t.index.get(bytes(buf[:HEADER_LEN]))
+        if k is None or self._t.kinds[k] == _OPAQUE:
+            return False
+        n = int.from_bytes(buf[HEADER_LEN:PREFIX_LEN], "little")
+        lo, hi = self._t.bounds[k]
+        return [base, k, n, _PEND, -1, base + PREFIX_LEN] if lo <= n <= hi else False
 
     def _hand_over(self, c: list[int]) -> bool:
         """Keep the head candidate ``c`` for the search (which starts after it); False."""
@@ -377,13 +395,13 @@ class StreamDecoder:
             self._scan = max(self._scan, c[0] + 1)
         return False
 
-    # -- deciding candidates ----------------------------------------------------------------------
+    # -- the search: candidates among the new bytes, each decided once ----------------------------
     def _classify(self) -> None:
         """Find the candidates among the new bytes and decide what the bytes so far decide
         of them and of the undecided ones."""
         base, end = self._base, self._base + len(self._buf)
         s0 = max(self._scan, base)
-        pos, k, n = self._search(s0, base, end)
+        pos, k, n = self._search(s0, end)
         undecided = [c for c in self._cands if c[3] == _PEND]
         few = len(pos) <= _FEW
         every = None  # positions of all candidates, sorted (for the opaque frames)
@@ -405,46 +423,20 @@ class StreamDecoder:
         if not few:
             self._decide_many(pos, k, n, every, s0 + PREFIX_LEN, base, end)
 
-    def _search(self, s0: int, base: int, end: int) -> tuple:
+    def _search(self, s0: int, end: int) -> tuple:
         """Candidates starting in [s0, end - 8] (where all 8 bytes of a header and its length
         are present): positions, header indices, lengths (lists, or int64 arrays)."""
         if end - s0 < PREFIX_LEN:
             return [], [], []
         self._scan = end - PREFIX_LEN + 1
         self.stats.scanned_bytes += end - s0
-        m = end - s0 - PREFIX_LEN + 1  # positions searched
-        buf = self._buf
-        if m <= _FIND_BYTES:
-            found = []
-            lo, hi = s0 - base, s0 - base + m + HEADER_LEN - 1
-            for h in self._headers:
-                i = buf.find(h, lo, hi)
-                while i >= 0:
-                    n = int.from_bytes(buf[i + HEADER_LEN : i + PREFIX_LEN], "little")
-                    k = self._index[h]
-                    if self._bounds[k][0] <= n <= self._bounds[k][1]:
-                        found.append((i + base, k, n))
-                    i = buf.find(h, i + 1, hi)
-            found.sort()
-            return [f[0] for f in found], [f[1] for f in found], [f[2] for f in found]
-        # uint16 and uint32 at every byte offset (unaligned views): the first two bytes of a
-        # header, then the length (most garbage fails here) and the header, one gather each
-        u2 = np.ndarray((m,), "<u2", buf, s0 - base, (1,))
-        idx = np.flatnonzero(np.take(self._first2, u2))
-        u4 = np.ndarray((m + HEADER_LEN,), "<u4", buf, s0 - base, (1,))
-        n = u4[idx + HEADER_LEN]
-        short = np.flatnonzero(n <= self._max_len)
-        idx, n = idx[short], n[short].astype(np.int64)
-        h = u4[idx]
-        k = np.searchsorted(self._codes, h)
-        ok = np.flatnonzero((self._codes[k] == h) & (self._lo[k] <= n) & (n <= self._hi[k]))
-        return idx[ok] + s0, k[ok], n[ok]
+        return self._t.search(self._buf, s0, self._base, end)
 
     def _decide(self, c: list[int], base: int, end: int, every: np.ndarray | None) -> None:
         """Decide one candidate from the bytes so far, if they decide it."""
         p, k, n = c[0], c[1], c[2]
         stop = p + PREFIX_LEN + n
-        kind = self._kinds[k]
+        kind = self._t.kinds[k]
         if kind == _RADC:
             bad = self._check_words(c, base, end)
             if bad >= 0:
@@ -452,7 +444,7 @@ class StreamDecoder:
             elif stop <= end:
                 c[3] = _OK
         elif kind == _OPAQUE:
-            inside = self._next_candidate(p + PREFIX_LEN, every)
+            inside = _next_candidate(p + PREFIX_LEN, every, self._cands)
             if inside < stop:
                 c[3], c[4] = _REJ, inside
             elif stop <= end and self._tail_start(p + PREFIX_LEN, base, end) >= stop:
@@ -460,83 +452,26 @@ class StreamDecoder:
         elif stop <= end:
             c[3] = _REJ if kind == _RESP and any(self._buf[p + PREFIX_LEN + 1 - base : stop - base]) else _OK
 
-    def _next_candidate(self, x: int, every: np.ndarray | None) -> int:
-        """Position of the first candidate at or after stream offset x, or _NONE."""
-        if every is not None:
-            i = int(np.searchsorted(every, x))
-            return int(every[i]) if i < every.size else _NONE
-        return next((c[0] for c in self._cands if c[0] >= x), _NONE)
-
     def _check_words(self, c: list[int], base: int, end: int) -> int:
         """Range-check the words of RADC candidate ``c`` that came since its last check:
         the position of the first word out of the ADC range, or -1."""
-        start, stop = c[5], min(c[0] + PREFIX_LEN + self._radc_len, end)
+        start, stop = c[5], min(c[0] + PREFIX_LEN + self._t.radc_len, end)
         if stop - start < 2:
             return -1
         self.stats.scanned_bytes += stop - start
-        words = (stop - start) // 2
-        if self._hi_off is not None:
-            o = self._hi_off - base
-            i = self._buf[start + o : stop - 1 + o : 2].translate(self._badmap).find(1)
-        else:
-            bad = self._bad_words(np.frombuffer(self._buf, np.uint8, stop - start, start - base))[::2]
-            i = int(bad.argmax()) if bad[bad.argmax()] else -1
+        i = self._t.first_bad_word(self._buf, base, start, stop)
         if i >= 0:
             return start + 2 * i
-        c[5] = start + 2 * words
+        c[5] = start + (stop - start) // 2 * 2
         return -1
-
-    def _bad_words(self, a: np.ndarray) -> np.ndarray:
-        """Whether the word starting at each byte of ``a`` (all but the last) is out of the
-        ADC range of the profile, (len(a) - 1,) bool."""
-        lay = self.profile.radc
-        if self._hi_off is not None:
-            return a[self._hi_off : len(a) - 1 + self._hi_off] > self._hi_max
-        lo, hi = a[:-1].astype(np.uint16), a[1:].astype(np.uint16)
-        v = (lo << 8 | hi) if lay.word == "uint16be" else (lo | hi << 8)
-        if lay.word == "int16le":
-            v = v.view(np.int16)
-        return (v < lay.min_word) | (v > lay.max_word)
 
     def _decide_many(self, pos, k, n, every, lo, base, end) -> None:
         """Decide many new candidates at once (numpy); the refused ones go to _bulk, the
         others to _cands. ``every``: the positions of all candidates, sorted; ``lo``: the
         first byte of the new candidates' payloads."""
-        kind = self._kind[k]
-        stop = pos + PREFIX_LEN + n
-        st = (stop <= end).astype(np.int8)  # _OK if whole, else _PEND: right for _FIXED
-        why = np.full(pos.size, -1, np.int64)
-        count = np.bincount(kind, minlength=4)
-        view = np.frombuffer(self._buf, np.uint8)  # released on return: the buffer resizes later
-        if count[_RESP]:  # zero padding after the code: the payload's bytes 1 to 3 that it has
-            m = np.flatnonzero((kind == _RESP) & (st == _OK))
-            at = np.minimum(pos[m, None] + (PREFIX_LEN + 1 + np.arange(3)), end - 1) - base
-            padded = (view[at] != 0) & (np.arange(1, 4) < n[m, None])
-            st[m[padded.any(axis=1)]] = _REJ
-        if count[_RADC] and end - lo >= 2:  # the first word out of the ADC range
-            self.stats.scanned_bytes += end - lo
-            bad = self._bad_words(view[lo - base :])  # words starting at lo, lo + 1, ...
-            m = np.flatnonzero(kind == _RADC)
-            first = pos[m] + PREFIX_LEN  # first word of each
-            shift = (first & 1) * _ODD  # a RADC's words have the parity of its first
-            # the bad words, keyed by parity: the even ones, then the odd ones + _ODD, in order
-            e = lo & 1  # index in ``bad`` of the first even position
-            keys = np.concatenate((np.flatnonzero(bad[e::2]) * 2 + (lo + e),
-                                   np.flatnonzero(bad[1 - e :: 2]) * 2 + (lo + 1 - e + _ODD), [_NONE]))
-            first_bad = keys[np.searchsorted(keys, first + shift)] - shift  # >= _ODD - 1: none
-            refused = first_bad < first + self._radc_len
-            st[m[refused]] = _REJ
-            why[m[refused]] = first_bad[refused]
-        if count[_OPAQUE]:  # refused if another candidate starts inside
-            m = np.flatnonzero(kind == _OPAQUE)
-            j = np.searchsorted(every, pos[m] + PREFIX_LEN)
-            inside = np.where(j < every.size, every[np.minimum(j, every.size - 1)], _NONE)
-            refused = inside < stop[m]
-            st[m[refused]] = _REJ
-            why[m[refused]] = inside[refused]
-            for i in m[~refused & (st[m] == _OK)]:  # whole: the last 7 bytes may start a header yet
-                if self._tail_start(int(pos[i]) + PREFIX_LEN, base, end) < stop[i]:
-                    st[i] = _PEND
+        st, why, scanned = self._t.decide_many(self._buf, pos, k, n, every, lo, base, end,
+                                               lambda x: self._tail_start(x, base, end))
+        self.stats.scanned_bytes += scanned
         rej = st == _REJ
         if rej.any():
             new = (pos[rej], k[rej], n[rej], why[rej])
@@ -544,7 +479,7 @@ class StreamDecoder:
             self._bulk = tuple(np.concatenate(ab) for ab in zip(old, new)) if old[0].size else new
             keep = np.flatnonzero(~rej)
             pos, k, n, st = pos[keep], k[keep], n[keep], st[keep]
-        nr, kinds = self._radc_len, self._kinds
+        nr, kinds = self._t.radc_len, self._t.kinds
         for p, kk, nn, s in zip(pos.tolist(), k.tolist(), n.tolist(), st.tolist()):
             checked = p + PREFIX_LEN  # the next RADC word to check, if undecided
             if s == _PEND and kinds[kk] == _RADC:
@@ -554,11 +489,7 @@ class StreamDecoder:
     def _tail_start(self, lo: int, base: int, end: int) -> int:
         """First position from ``lo`` among the last, unsearched bytes that may still start a
         header (its bytes so far begin one), or ``end``."""
-        buf, prefixes = self._buf, self._prefixes
-        for p in range(max(lo, self._scan, base), end):
-            if bytes(buf[p - base : p - base + HEADER_LEN]) in prefixes:
-                return p
-        return end
+        return self._t.tail_start(self._buf, max(lo, self._scan, base), base, end)
 
     # -- the walk: messages in order, garbage counted --------------------------------------------
     def _walk(self) -> list[Message]:
@@ -577,26 +508,24 @@ class StreamDecoder:
                 head = q
                 break
             if st == _REJ:
-                self._refused(q, k, n, c[4])
+                self._tally.refused(buf, base, q, k, n, c[4])
                 continue
             try:
-                msg = decode_payload(self._names[k], bytes(buf[q + PREFIX_LEN - base : q + PREFIX_LEN + n - base]),
+                msg = decode_payload(self._t.names[k], bytes(buf[q + PREFIX_LEN - base : q + PREFIX_LEN + n - base]),
                                      self.profile)
             except ProtocolError as exc:  # not expected after the checks; refused all the same
-                self.stats.invalid += 1
-                self.stats.last_error, self._err_at = f"{exc} (stream byte {q})", q
+                self._tally.failed(q, exc)
                 continue
-            self._garbage(cursor, q)
+            self._tally.skipped(cursor, q, self._bulk, buf, base)
             out.append(msg)
-            self.stats.messages += 1
-            self._skipping = False
+            self._tally.message()
             self._pad = (-n) % 4
             cursor = q + PREFIX_LEN + n
             if self._pad:
                 cursor = self._eat_padding(cursor, end)
         if head < 0:
             head = self._tail_start(cursor, base, end)
-        self._garbage(cursor, head)
+        self._tally.skipped(cursor, head, self._bulk, buf, base)
         del buf[: head - base]
         self._base = head
         if self._cands and self._cands[0][0] < head:
@@ -614,41 +543,3 @@ class StreamDecoder:
             n += 1
         self._pad = self._pad - n if at + n == end else 0  # more padding may come
         return at + n
-
-    def _garbage(self, start: int, stop: int) -> None:
-        """Count the bytes [start, stop) as skipped and the refused candidates among them
-        that were decided in bulk (the others are counted as the walk meets them)."""
-        if stop <= start:
-            return
-        self.stats.skipped_bytes += stop - start
-        if not self._skipping:
-            self.stats.resyncs += 1
-            self._skipping = True
-        r = self._bulk[0]
-        if r.size:
-            i, j = int(np.searchsorted(r, start)), int(np.searchsorted(r, stop))
-            if j > i:
-                self._refused(*(int(a[j - 1]) for a in self._bulk), count=j - i)
-
-    def _refused(self, q: int, k: int, n: int, why: int, count: int = 1) -> None:
-        """Count ``count`` refused candidates, the last at stream offset ``q``."""
-        self.stats.invalid += count
-        if q > self._err_at:
-            self.stats.last_error, self._err_at = self._why(q, k, n, why), q
-
-    def _why(self, q: int, k: int, n: int, w: int) -> str:
-        """One line on why the candidate at stream offset ``q`` was refused."""
-        base = self._base
-        name = self._names[k].decode("ascii")
-        kind = self._kinds[k]
-        if kind == _RADC:
-            lay = self.profile.radc
-            value = int(np.frombuffer(bytes(self._buf[w - base : w - base + 2]), lay.dtype)[0])
-            return (f"RADC word {(w - q - PREFIX_LEN) // 2} is {value}, beyond the {lay.adc_bits}-bit ADC range "
-                    f"[{lay.min_word}, {lay.max_word}] of this profile (stream byte {q})")
-        if kind == _OPAQUE:
-            other = bytes(self._buf[w - base : w - base + HEADER_LEN]).decode("ascii", "replace")
-            return (f"{name} declares {n} payload bytes but a {other} header starts {w - q - PREFIX_LEN} bytes "
-                    f"into them: a stray header (stream byte {q})")
-        payload = bytes(self._buf[q + PREFIX_LEN - base : q + PREFIX_LEN + n - base])
-        return f"{name} padding is not zero: {payload.hex()} (stream byte {q})"
