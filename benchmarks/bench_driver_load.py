@@ -55,7 +55,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(HERE))
 
-from qradar.run import last_json_object  # noqa: E402
+from qradar.drivers import last_json_object  # noqa: E402
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 LINKS = ("pty", "ser2net", "pty-nopub", "ser2net-nopub", "run", "run-in-process")
 CODES = ("before", "after")

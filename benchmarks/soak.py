@@ -73,7 +73,7 @@ sys.path.insert(0, str(HERE))
 
 from pipeline.bus import BusConfig  # noqa: E402
 from pipeline.progress import Progress  # noqa: E402
-from qradar.run import last_json_object  # noqa: E402
+from qradar.drivers import last_json_object  # noqa: E402
 
 FLOOD = Path(__file__).resolve().parent / "soak_flood.py"
 START_TIMEOUT_S = 60.0

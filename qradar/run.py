@@ -14,20 +14,14 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 import tomllib
-from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, TextIO
-
-import numpy as np
-import zenoh
+from typing import TextIO
 
 from pipeline.calibration import Calibration
 from pipeline.calibration import load as load_calibration
@@ -35,25 +29,22 @@ from pipeline.audit import format_counts
 from pipeline.bus import BusConfig
 from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
-from pipeline.histogram import LogHistogram
-from pipeline.localize import DEFAULT_PFA, position_error_m
+from pipeline.localize import DEFAULT_PFA
 from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.track import TrackerConfig
 from pipeline.quantize import QuantizerConfig
-from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
-from radar_driver.errors import ConfigError, RadarError
-from radar_driver.model import RadarConfig, polar_to_xy
+from radar_driver.errors import ConfigError
+from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
+from .drivers import DriverProcess, driver_bus
+from .monitor import Monitor
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
-
-#: topics the monitor counts by name (``other`` for the rest)
-MONITORED_TOPICS = frozenset(TOPICS)
 
 #: the temporary directories of the runs in progress (pty links, the zenoh socket)
 _RUN_DIRS: set[str] = set()
@@ -65,178 +56,6 @@ def remove_run_dirs() -> None:
     processes stop by themselves). Quick, and raises nothing."""
     for path in list(_RUN_DIRS):
         shutil.rmtree(path, ignore_errors=True)
-
-
-class Monitor:
-    """Watches ``<prefix>/**``: counts and sizes per topic, latency and position error of
-    the targets against the true positions (``truth``: a scene whose targets are where
-    the reflectors are; None: no error, as for a real sensor without ``--truth``), each
-    sensor's rate and losses, and prints live lines (at most one a second per sensor).
-    Light work only, so it runs in zenoh's callback. Its memory is fixed however long it
-    runs: latency and error go into fixed-size histograms, counts are per known topic
-    (the rest under ``other``), per-sensor state is bounded."""
-
-    #: sensors whose last live line is remembered (beyond, the memory is cleared)
-    MAX_SENSORS = 1024
-
-    def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
-                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False):
-        """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
-        with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
-        scene starts moving with its first measured frame, after its driver connected)."""
-        self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
-        self.clock_per_sensor = clock_per_sensor
-        self._t0_by_sensor: dict[str, int] = {}
-        self.live = live
-        self.count: dict[str, int] = defaultdict(int)
-        self.bytes: dict[str, int] = defaultdict(int)
-        self.latency_ms = LogHistogram(lo=1e-3, hi=1e6)  # sensor timestamp -> targets published, ms
-        self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
-        self.bad_targets = 0
-        # tracks (--track): each static true target to the nearest static track within 1 m, m;
-        # the largest track id seen per sensor (ids count up from 1)
-        self.static_track_errors_m = LogHistogram(lo=1e-4, hi=1e4)
-        self.track_ids: dict[str, int] = {}
-        self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
-        self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
-        self._last_seq: dict[str, int] = {}
-        # per sensor: [monotonic s of the last live line, targets since, sequence gaps, frames the
-        # sensor's link lost (its driver's health), targets in all, first and last timestamp_ns]
-        self._sensor: dict[str, list] = {}
-        self._lock = threading.Lock()
-        self._sub = None
-
-    def start(self) -> "Monitor":
-        self._sub = self.session.declare_subscriber(f"{self.bus.prefix}/**", self._on_sample)
-        return self
-
-    def stop(self) -> None:
-        if self._sub is not None:
-            self._sub.undeclare()
-            self._sub = None
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.on_message(str(sample.key_expr), sample.payload.to_bytes())
-
-    def _state(self, sensor: str) -> list:
-        st = self._sensor.get(sensor)
-        if st is None:
-            if len(self._sensor) >= self.MAX_SENSORS:  # keys of garbage: bounded
-                self._sensor.clear()
-            st = self._sensor[sensor] = [0.0, 0, 0, 0, 0, 0, 0]
-        return st
-
-    def on_message(self, key: str, payload: bytes) -> None:
-        """One message of ``<prefix>/**`` (what the zenoh callback hands over)."""
-        topic = key.rsplit("/", 1)[-1]
-        if topic not in MONITORED_TOPICS:
-            topic = "other"
-        with self._lock:
-            self.count[topic] += 1
-            self.bytes[topic] += len(payload)
-            if topic == "raw":
-                sensor = key.rsplit("/", 2)[-2]
-                if sensor not in self.raw_by_sensor and len(self.raw_by_sensor) >= self.MAX_SENSORS:
-                    self.raw_by_sensor.clear()  # keys of garbage: bounded
-                self.raw_by_sensor[sensor] = self.raw_by_sensor.get(sensor, 0) + 1
-        if topic == "health":
-            self._on_health(key, payload)
-            return
-        if topic == "tracks":
-            self._on_tracks(key, payload)
-            return
-        if topic != "targets":
-            return
-        try:
-            msg = decode_targets(payload, key)
-        except WireError:
-            with self._lock:
-                self.bad_targets += 1
-            return
-        t0_ns = self.t0_ns
-        if self.clock_per_sensor:
-            with self._lock:
-                if len(self._t0_by_sensor) >= self.MAX_SENSORS and msg.sensor_id not in self._t0_by_sensor:
-                    self._t0_by_sensor.clear()
-                t0_ns = self._t0_by_sensor.setdefault(msg.sensor_id, msg.timestamp_ns)
-        t_s = max(0.0, (msg.timestamp_ns - t0_ns) / 1e9)
-        truth = self.truth.truth(t_s) if self.truth is not None else None
-        est_r = np.array([[t["range_m"] for t in msg.targets]])
-        est_a = np.array([[t["angle_deg"] for t in msg.targets]])
-        err = position_error_m(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
-                               est_r, est_a)[0] if truth and msg.targets else np.array([])
-        now = time.monotonic()
-        with self._lock:
-            last = self._last_seq.get(msg.sensor_id)
-            if last is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
-                self._last_seq.clear()
-            st = self._state(msg.sensor_id)
-            if last is not None and msg.seq > last + 1:
-                self.targets_missing += msg.seq - last - 1
-                st[2] += msg.seq - last - 1
-            self._last_seq[msg.sensor_id] = msg.seq
-            self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
-            self.errors_m.add_many(err)
-            st[1] += 1
-            st[4] += 1
-            if st[4] == 1:
-                st[5] = msg.timestamp_ns
-            st[6] = msg.timestamp_ns
-            due = now - st[0] >= 1.0
-            if due:
-                rate_hz = (st[1] - 1) / (now - st[0]) if st[0] and st[1] > 1 else None
-                lost = st[2] + st[3]
-                st[0], st[1] = now, 1
-        if self.live is not None and due:
-            line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + "  ".join(
-                f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets)
-            if truth is not None:
-                line += "   truth " + "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
-                line += "   error m " + " ".join(f"{e:.2f}" for e in err)
-            line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
-            print(line, file=self.live, flush=True)
-
-    def _on_tracks(self, key: str, payload: bytes) -> None:
-        """A tracks message: its largest id, and with a truth the static tracks' errors."""
-        try:
-            msg = decode_tracks(payload, key)
-        except WireError:
-            with self._lock:
-                self.bad_targets += 1
-            return
-        errors = []
-        if self.truth is not None:
-            static = [(t["x_m"], t["y_m"]) for t in msg.tracks if t["static"]]
-            for tg in self.truth.targets:
-                if tg.velocity_m_s or not static:
-                    continue
-                x, y = polar_to_xy(tg.range_m, np.radians(tg.angle_deg))
-                d = min(float(np.hypot(sx - x, sy - y)) for sx, sy in static)
-                if d < 1.0:
-                    errors.append(d)
-        with self._lock:
-            if msg.sensor_id not in self.track_ids and len(self.track_ids) >= self.MAX_SENSORS:
-                self.track_ids.clear()  # keys of garbage: bounded
-            self.track_ids[msg.sensor_id] = max([self.track_ids.get(msg.sensor_id, 0)]
-                                                + [t["track_id"] for t in msg.tracks])
-            self.static_track_errors_m.add_many(errors)
-
-    def _on_health(self, key: str, payload: bytes) -> None:
-        """A driver's health: the sensor frames its link lost so far (the DONE counter's gaps)."""
-        if b'"node":"source"' not in payload:
-            return
-        try:
-            msg = decode_health(payload, key)
-        except WireError:
-            return
-        with self._lock:
-            self._state(msg.sensor_id)[3] = msg.drops
-
-    def rates_hz(self) -> dict[str, float]:
-        """Each sensor's targets per second, over its first and last targets' timestamps."""
-        with self._lock:
-            return {sid: round((st[4] - 1) / ((st[6] - st[5]) / 1e9), 2)
-                    for sid, st in sorted(self._sensor.items()) if st[4] > 1 and st[6] > st[5]}
 
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
@@ -446,156 +265,6 @@ def load_truth(name_or_path: str | Path) -> SimScene:
     if not scene.targets:
         raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to compare with")
     return scene
-
-
-def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
-    """How a driver process joins the run's zenoh session: through a unix socket in the
-    run's directory (nothing listens on the network), or, when the run is itself a zenoh
-    client, through the same endpoints."""
-    if bus.mode == "client":
-        return replace(bus, listen=())
-    return BusConfig(mode="client", connect=(f"unixsock-stream/{tmp / 'zenoh.sock'}",), prefix=bus.prefix)
-
-
-def last_json_object(lines) -> dict:
-    """The last line of ``lines`` that is a JSON object (what a ``--json`` command ends
-    with), or {}."""
-    for line in reversed(list(lines)):
-        try:
-            out = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(out, dict):
-            return out
-    return {}
-
-
-class DriverProcess:
-    """One sensor's serial driver in its own process (``qradar drive``), publishing raw
-    frames on ``bus`` (a zenoh client). Node-like for :func:`run_nodes`: ``start``,
-    ``stop``, ``errors``, ``done`` (the driver has finished: its counters came, or it
-    exited). Stopped with SIGTERM, it says GBYE and prints its counters (JSON), which
-    :meth:`stats` returns; its log lines go to ``log``.
-
-    ``received()``: the raw frames of this sensor the run has received. With it the
-    driver keeps its zenoh session open after its counters (``--linger-stdin``) until
-    the run has received every frame they count (at most ``ack_timeout_s``), and only
-    then is its stdin closed: zenoh can lose a put made just before its session
-    closes, and the last frames of a stop are just that."""
-
-    name = "driver"
-
-    def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
-                 frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None,
-                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1,
-                 chirp_select: str = "first"):
-        self.sensor_id = sensor_id
-        self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
-                    "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix,
-                    "--parent-pid", str(os.getpid())]  # it stops when this process dies, however
-        self.cmd += [a for ep in bus.connect for a in ("--connect", ep)]
-        if bus.config_file is not None:
-            self.cmd += ["--zenoh-config", str(bus.config_file)]
-        if baud is not None:
-            self.cmd += ["--baud", str(baud)]
-        if frames is not None:
-            self.cmd += ["--frames", str(frames)]
-        if outstanding != 1:
-            self.cmd += ["--outstanding", str(outstanding)]
-        if profile is not None:
-            self.cmd += ["--profile", str(profile)]
-        if chirp_select != "first":
-            self.cmd += ["--chirp-select", chirp_select]
-        if received is not None:
-            self.cmd.append("--linger-stdin")
-        self.received, self.ack_timeout_s = received, ack_timeout_s
-        self.log = log
-        self.errors: list[BaseException] = []
-        self.done = threading.Event()
-        self.counters: dict[str, int] = {}
-        self._proc: subprocess.Popen | None = None
-        self._stopping = False
-        self._out: list[str] = []
-        self._final: dict = {}  # the JSON object the driver ends with (counters or error)
-        self._exited = threading.Event()
-        self._threads: list[threading.Thread] = []
-
-    def start(self) -> "DriverProcess":
-        stdin = subprocess.DEVNULL if self.received is None else subprocess.PIPE
-        self._proc = subprocess.Popen(self.cmd, stdin=stdin, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, text=True, start_new_session=True)
-        for target in (self._read_stdout, self._read_stderr, self._watch):
-            t = threading.Thread(target=target, name=f"driver-{self.sensor_id}-{target.__name__}", daemon=True)
-            t.start()
-            self._threads.append(t)
-        return self
-
-    def _read_stdout(self) -> None:
-        for line in self._proc.stdout:
-            self._out.append(line)
-            del self._out[:-4]
-            final = last_json_object([line])
-            if final:
-                self._final = final
-                self.done.set()
-
-    def _read_stderr(self) -> None:
-        for line in self._proc.stderr:
-            if self.log is not None:
-                self.log.write(f"[driver {self.sensor_id}] {line}")
-                self.log.flush()
-
-    def _watch(self) -> None:
-        rc = self._proc.wait()
-        for t in self._threads[:2]:
-            t.join(5.0)
-        last = last_json_object(self._out)
-        if "error" in last:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
-        elif rc != 0 and not self._stopping:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
-        else:
-            self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
-        self._exited.set()
-        self.done.set()
-
-    def _acknowledge(self) -> None:
-        """Once the run has received the frames the driver counted (or after
-        ack_timeout_s, said in the log), close its stdin: it closes its zenoh session."""
-        sent = self._final.get("frames")
-        if self.received is not None and isinstance(sent, int) and self._proc.poll() is None:
-            deadline = time.monotonic() + self.ack_timeout_s
-            while self.received() < sent and time.monotonic() < deadline:
-                time.sleep(0.01)
-            if self.received() < sent and self.log is not None:
-                self.log.write(f"[driver {self.sensor_id}] the run received {self.received()} of its {sent} frames "
-                               f"within {self.ack_timeout_s:g} s\n")
-        if self._proc.stdin is not None:
-            try:
-                self._proc.stdin.close()
-            except OSError:
-                pass
-
-    def stop(self, timeout_s: float = 10.0) -> None:
-        """SIGTERM (the driver says GBYE and prints its counters) unless it has finished;
-        the acknowledgement of its last frames; SIGKILL after ``timeout_s``."""
-        if self._proc is None:
-            return
-        self._stopping = True
-        if self._proc.poll() is None and not self.done.is_set():
-            self._proc.send_signal(signal.SIGTERM)
-        if self.received is not None:
-            self.done.wait(timeout_s)  # its counters, or its exit
-        self._acknowledge()
-        try:
-            self._proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} did not stop in {timeout_s} s"))
-        self._exited.wait(timeout_s)
-
-    def stats(self) -> dict[str, dict[str, int]]:
-        return {self.sensor_id: dict(self.counters)}
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,

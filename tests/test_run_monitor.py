@@ -10,7 +10,7 @@ import pytest
 from pipeline.bus import BusConfig
 from pipeline.histogram import LogHistogram
 from pipeline.wire import TargetsMsg
-from qradar.run import Monitor
+from qradar.monitor import Monitor
 from radar_driver.scene import resolve_scene
 
 T0_NS = 1_700_000_000_000_000_000

@@ -24,7 +24,8 @@ import pytest
 from pipeline.bus import BusConfig
 from pipeline.errors import ParameterError
 from pipeline.wire import HealthMsg, TargetsMsg, decode_raw, decode_targets
-from qradar.run import Monitor, RunConfig, format_summary, load_truth
+from qradar.monitor import Monitor
+from qradar.run import RunConfig, format_summary, load_truth
 from qradar.sensors import SensorSpec
 from radar_driver.errors import ConfigError
 from radar_driver.scene import resolve_scene
