@@ -364,7 +364,7 @@ def _faults(f: dict, kind: int, size: int):
     if kind == KIND_RAW:
         yield size != frame_size(kind, m)
         return
-    yield np.full(m.shape, size < QUANT_HEADER_LEN)
+    yield size < QUANT_HEADER_LEN
     if size < QUANT_HEADER_LEN:
         return
     bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
@@ -444,9 +444,8 @@ def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
         f.update({name: rec[name] for name in ("alpha", "delta") if name in dtype.names})
         f["magic_bad"] = np.any(rec["magic"] != _MAGIC_BYTES, axis=1)
         f["sensor_id_bad"] = sensor_id_fields_bad(rec["sensor_id"])
-        failed = np.zeros(idx.size, dtype=np.int64)
-        for number, bad in enumerate(_faults(f, kind, size), 1):
-            failed[(failed == 0) & bad] = number
+        faults = np.stack(np.broadcast_arrays(*_faults(f, kind, size)))  # (checks, n)
+        failed = np.where(faults.any(axis=0), faults.argmax(axis=0) + 1, 0)  # the first check each fails
         for j in np.flatnonzero(failed).tolist():
             one = {name: rec[name][j].tobytes() if name in ("magic", "sensor_id") else rec[name][j].item()
                    for name in dtype.names}
