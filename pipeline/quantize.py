@@ -202,11 +202,10 @@ def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = N
 
 def _quantize(f: np.ndarray, d: np.ndarray, bits: int, dither: np.ndarray | None) -> np.ndarray:
     """:func:`quantize` of checked arguments: ``f`` (B, M, 2) complex, ``d`` () or (B,)."""
-    fresh = dither is not None
-    if fresh:
-        f = np.add(f, dither, dtype=np.complex128)  # the one complex128 copy of the frames
-    lam = np.ascontiguousarray(f, dtype=np.complex128).view(np.float64).reshape(f.shape + (2,))  # (B, M, 2, 2)
-    scaled = np.divide(lam, _per_frame(d, 4), out=lam if fresh else None)
+    # the one complex128 copy of the frames (none when they are complex128 and not dithered)
+    c = np.ascontiguousarray(f, dtype=np.complex128) if dither is None else np.add(f, dither, dtype=np.complex128)
+    lam = c.view(np.float64).reshape(f.shape + (2,))  # (B, M, 2, 2)
+    scaled = np.divide(lam, _per_frame(d, 4), out=None if np.may_share_memory(c, f) else lam)  # frames kept
     if bits == 1:  # floor(x) clipped to [-1, 0], plus 1: 1 exactly where x >= 0 (-0.0 included)
         return np.greater_equal(scaled, 0.0).view(np.uint8)
     half = 1 << (bits - 1)
