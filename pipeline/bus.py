@@ -31,6 +31,8 @@ from pathlib import Path
 
 import zenoh
 
+from radar_driver.limits import SENSOR_ID_CHARS
+
 from . import audit
 from .errors import BusError, ParameterError
 from .security import SecureConfig, check_secure_endpoint
@@ -220,7 +222,7 @@ def check_sensor_pattern(pattern: str) -> str:
     """A key chunk naming sensors: characters of a sensor id and ``*`` wildcards (``*`` =
     every sensor, ``b1*`` = the ids starting with b1); anything else is a ParameterError."""
     ok = isinstance(pattern, str) and 1 <= len(pattern) <= 64 and all(
-        c.isascii() and (c.isalnum() or c in "_-*") for c in pattern) and "**" not in pattern
+        c in SENSOR_ID_CHARS or c == "*" for c in pattern) and "**" not in pattern
     if not ok:
         raise ParameterError(f"sensor pattern {pattern!r} must be one key chunk of [A-Za-z0-9_-] and * wildcards "
                              "(e.g. '*' or 'b1*')")

@@ -72,6 +72,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from .errors import ParameterError
@@ -574,8 +575,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     z = z.astype(complex)
     if bits is None:
         return z, None, None, noise_sigma
-    if not _is_int(bits) or not 1 <= bits <= 16:
-        raise ParameterError(f"cml: bits={bits!r} must be None (unquantized) or an integer in [1, 16]")
+    if not _is_int(bits) or not 1 <= bits <= MAX_BITS:
+        raise ParameterError(f"cml: bits={bits!r} must be None (unquantized) or an integer in [1, {MAX_BITS}]")
     xi = np.zeros_like(z) if xi is None else np.asarray(xi)
     if xi.shape != z.shape:
         raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape}")

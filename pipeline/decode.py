@@ -43,7 +43,7 @@ from .gate import RangeGate, check_gate
 from .localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
 from .cml import ENGINES, LIKELIHOODS, cml
-from .quantize import QuantizedFrames
+from .quantize import QuantizedFrames, check_bits
 
 
 class Algo(StrEnum):
@@ -178,8 +178,7 @@ def _check(z, xi, delta, bits, config):
     delta = np.asarray(delta, dtype=float).reshape(-1)
     if delta.shape != (z.shape[0],) or np.any(~np.isfinite(delta)) or np.any(delta <= 0):
         raise ParameterError(f"delta must be ({z.shape[0]},) finite values > 0, got shape {delta.shape}")
-    if not (isinstance(bits, (int, np.integer)) and 1 <= bits <= 16):
-        raise ParameterError(f"bits={bits!r} must be an integer in [1, 16]")
+    check_bits(bits)
     n = config.samples_per_ramp
     if z.shape[1] % n:
         raise ParameterError(f"M={z.shape[1]} is not a whole number of ramps of {n}: the dither-aware "
@@ -458,5 +457,5 @@ def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: i
             return decode(frames.ramp_mean(n), None, frames.delta, frames.bits, config, k, decoder)
         xi = None if decoder.algo == Algo.PBP else frames.dither()  # PBP does not use it: skip regenerating it
         return decode(frames.values(), xi, frames.delta, frames.bits, config, k, decoder, init_range_m=init_range_m)
-    return decode(np.asarray(frames).astype(np.complex128), None, None, None, config, k, decoder,
+    return decode(np.asarray(frames, dtype=np.complex128), None, None, None, config, k, decoder,
                   init_range_m=init_range_m)

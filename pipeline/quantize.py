@@ -41,11 +41,13 @@ from typing import Literal, Sequence
 
 import numpy as np
 
+from radar_driver.limits import MAX_BITS
+from radar_driver.limits import check_bits as _check_bits
+
 from .defaults import DEFAULT_ALPHA
 from .errors import ParameterError
 from .noise import auto_alpha
 
-MAX_BITS = 16
 DITHER_SEEDSEQ = "seedseq"
 DITHER_COUNTER = "counter"
 DITHER_GENERATORS = (DITHER_SEEDSEQ, DITHER_COUNTER)
@@ -58,9 +60,8 @@ SPLITMIX_C2 = 0x94D049BB133111EB
 
 # -- parameter checks ---------------------------------------------------------------
 def check_bits(bits: int) -> int:
-    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not 1 <= bits <= MAX_BITS:
-        raise ParameterError(f"bits={bits!r} must be an integer in [1, {MAX_BITS}]")
-    return int(bits)
+    """``bits`` as an int in [1, MAX_BITS] (radar_driver.limits), else a ParameterError."""
+    return _check_bits(bits, ParameterError)
 
 
 #: the largest quantizer step a quantized frame may carry, in full-scale units: a sensor's
@@ -196,9 +197,15 @@ def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = N
         dither = np.asarray(dither)
         if dither.shape != f.shape:
             raise ParameterError(f"dither shape {dither.shape} does not match frames shape {f.shape}")
-        f = f + dither
-    lam = np.ascontiguousarray(f, dtype=np.complex128).view(np.float64).reshape(f.shape + (2,))  # (B, M, 2, 2)
-    scaled = lam / _per_frame(d, 4)
+    return _quantize(f, d, bits, dither)
+
+
+def _quantize(f: np.ndarray, d: np.ndarray, bits: int, dither: np.ndarray | None) -> np.ndarray:
+    """:func:`quantize` of checked arguments: ``f`` (B, M, 2) complex, ``d`` () or (B,)."""
+    # the one complex128 copy of the frames (none when they are complex128 and not dithered)
+    c = np.ascontiguousarray(f, dtype=np.complex128) if dither is None else np.add(f, dither, dtype=np.complex128)
+    lam = c.view(np.float64).reshape(f.shape + (2,))  # (B, M, 2, 2)
+    scaled = np.divide(lam, _per_frame(d, 4), out=None if np.may_share_memory(c, f) else lam)  # frames kept
     if bits == 1:  # floor(x) clipped to [-1, 0], plus 1: 1 exactly where x >= 0 (-0.0 included)
         return np.greater_equal(scaled, 0.0).view(np.uint8)
     half = 1 << (bits - 1)
@@ -219,7 +226,11 @@ def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
         raise ParameterError(f"codes must have shape (B, M, 2, 2), got {c.shape}")
     if c.size and int(c.max()) >= (1 << bits):
         raise ParameterError(f"codes hold {int(c.max())}, beyond the {1 << bits} levels of {bits} bits")
-    d = check_delta(delta, c.shape[0])
+    return _dequantize(c, check_delta(delta, c.shape[0]), bits)
+
+
+def _dequantize(c: np.ndarray, d: np.ndarray, bits: int) -> np.ndarray:
+    """:func:`dequantize` of checked arguments (codes within 2**bits, ``d`` () or (B,))."""
     v = _levels(bits)[c]  # (B, M, 2, 2) float64: code - 2**(b-1) + 1/2
     v *= _per_frame(d, 4)
     return v.view(np.complex128).reshape(c.shape[:3])
@@ -373,11 +384,17 @@ def pack_codes(codes: np.ndarray, bits: int) -> np.ndarray:
         raise ParameterError("codes must have a batch axis")
     if not np.issubdtype(c.dtype, np.integer):
         raise ParameterError(f"codes must be integers, got dtype {c.dtype}")
-    flat = c.reshape(c.shape[0], -1)
+    return pack_codes_unchecked(c, bits)
+
+
+def pack_codes_unchecked(codes: np.ndarray, bits: int) -> np.ndarray:
+    """:func:`pack_codes` for a caller that checked ``bits`` and the codes' shape and
+    dtype (the wire encoder); the codes' range is still checked (one pass)."""
+    flat = codes.reshape(codes.shape[0], -1)
     if flat.size and (flat.min() < 0 or int(flat.max()) >= (1 << bits)):
         raise ParameterError(f"codes must lie in [0, {1 << bits}) for bits={bits}")
     if bits == 1:
-        return np.packbits(flat.astype(np.uint8), axis=1)
+        return np.packbits(flat.astype(np.uint8, copy=False), axis=1)
     shifts = np.arange(bits - 1, -1, -1, dtype=np.uint32)
     bitplanes = ((flat.astype(np.uint32)[..., None] >> shifts) & 1).astype(np.uint8)
     return np.packbits(bitplanes.reshape(flat.shape[0], -1), axis=1)
@@ -392,11 +409,17 @@ def unpack_codes(packed: np.ndarray, bits: int, n_codes: int) -> np.ndarray:
     need = packed_size(n_codes, bits)
     if p.shape[1] != need:
         raise ParameterError(f"{n_codes} codes of {bits} bits need {need} bytes, got {p.shape[1]}")
-    planes = np.unpackbits(p, axis=1, count=n_codes * bits)
+    return unpack_codes_unchecked(p, bits, n_codes)
+
+
+def unpack_codes_unchecked(packed: np.ndarray, bits: int, n_codes: int) -> np.ndarray:
+    """:func:`unpack_codes` for a caller that checked ``bits`` and the length (the wire
+    decoder, which checked the frame's header and size)."""
+    planes = np.unpackbits(packed, axis=1, count=n_codes * bits)
     if bits == 1:
         return planes
     weights = (1 << np.arange(bits - 1, -1, -1)).astype(np.uint32)
-    codes = planes.reshape(p.shape[0], n_codes, bits).astype(np.uint32) @ weights
+    codes = planes.reshape(packed.shape[0], n_codes, bits).astype(np.uint32) @ weights
     return codes.astype(np.uint8 if bits <= 8 else np.uint16)
 
 
@@ -453,8 +476,9 @@ class QuantizedFrames:
     generator: str | np.ndarray = DITHER_COUNTER
 
     def values(self) -> np.ndarray:
-        """Z, the quantized complex values, (B, M, 2)."""
-        return dequantize(self.codes, self.delta, self.bits)
+        """Z, the quantized complex values, (B, M, 2) complex128 (the batch was checked
+        where it was made: by the quantizer or the wire decoder)."""
+        return _dequantize(np.asarray(self.codes), np.asarray(self.delta, dtype=float), self.bits)
 
     def take(self, index) -> "QuantizedFrames":
         """The frames ``index`` of the batch (an int index array): per-frame fields are
@@ -541,5 +565,5 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
     if dithered:
         dither = unit_dither(seed, seqs, f.shape[1], generator)
         dither *= (alpha * delta)[:, None, None]
-    codes = quantize(f, delta, config.bits, dither)
+    codes = _quantize(f, delta, config.bits, dither)  # bits checked by the config, delta made here
     return QuantizedFrames(codes, delta, config.bits, alpha, seed, seqs, generator)

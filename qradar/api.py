@@ -26,8 +26,8 @@ from pipeline.decode import DecoderConfig, decode_batch
 from pipeline.localize import Detections, position_error_m
 from pipeline.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from pipeline.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
-from pipeline.wire import (TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized, decode_raw,
-                           decode_targets, quantized_batch)
+from pipeline.wire import (TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized_batch,
+                           decode_raw_batch, decode_targets, quantized_batch)
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 from replay.errors import ReplayError
@@ -144,19 +144,26 @@ class Recording:
         if not payloads:
             raise ReplayError(f"{self.path} has no {topic} messages of sensor {sensor!r}; "
                               f"sensors with {topic}: {sorted(s for s, t in self._payloads if t == topic)}")
+        source = f"{self.path}:{sensor}/{topic}"
         out = []
-        for p in payloads:
-            try:
-                out.append(decode_fn(p, f"{self.path}:{sensor}/{topic}"))
-            except (WireError, ValueError):
-                self.unparsed[topic] = self.unparsed.get(topic, 0) + 1
+        if decode_fn in (decode_raw_batch, decode_quantized_batch):  # the binary frames: all in one call
+            groups, errors = decode_fn(payloads, [source] * len(payloads))
+            out = [m for g in groups for m in g.messages()]
+            if errors:
+                self.unparsed[topic] = self.unparsed.get(topic, 0) + len(errors)
+        else:
+            for p in payloads:
+                try:
+                    out.append(decode_fn(p, source))
+                except WireError:
+                    self.unparsed[topic] = self.unparsed.get(topic, 0) + 1
         if not out:
             raise ReplayError(f"{self.path}: none of the {len(payloads)} {topic} messages of {sensor!r} parse")
         return sensor, out
 
     def raw(self, sensor: str | None = None) -> Frames:
         """The raw frames of ``sensor`` (the first sensor by name if None), in sequence order."""
-        sensor, msgs = self._messages("raw", sensor, decode_raw)
+        sensor, msgs = self._messages("raw", sensor, decode_raw_batch)
         order = _ordered([m.seq for m in msgs])
         msgs = [msgs[i] for i in order]
         if len({m.data.shape for m in msgs}) != 1:
@@ -167,7 +174,7 @@ class Recording:
 
     def quantized(self, sensor: str | None = None) -> Quantized:
         """The quantized frames of ``sensor`` as the stream carried them, in sequence order."""
-        sensor, msgs = self._messages("quantized", sensor, decode_quantized)
+        sensor, msgs = self._messages("quantized", sensor, decode_quantized_batch)
         msgs = [msgs[i] for i in _ordered([m.seq for m in msgs])]
         return Quantized(sensor, np.array([m.seq for m in msgs], np.uint64),
                          np.array([m.timestamp_ns for m in msgs], np.int64), msgs[0].config_id, quantized_batch(msgs))

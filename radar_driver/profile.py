@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ConfigError, ProtocolError
+from .limits import ADC_WORD_BITS
 
 #: word format name -> numpy dtype of one word on the wire
 WORD_DTYPES: dict[str, str] = {"uint16le": "<u2", "uint16be": ">u2", "int16le": "<i2"}
@@ -74,8 +75,8 @@ class RadcLayout:
             raise ConfigError(f"radc.order={self.order!r} must be one of {list(ORDERS)}")
         if self.word not in WORD_DTYPES:
             raise ConfigError(f"radc.word={self.word!r} must be one of {list(WORD_DTYPES)}")
-        if self.adc_bits > 16:
-            raise ConfigError(f"radc.adc_bits={self.adc_bits} must be <= 16 (16-bit words)")
+        if self.adc_bits > ADC_WORD_BITS:
+            raise ConfigError(f"radc.adc_bits={self.adc_bits} must be <= {ADC_WORD_BITS} ({ADC_WORD_BITS}-bit words)")
         if isinstance(self.offset, bool) or not isinstance(self.offset, int) or not self.min_word <= self.offset <= self.max_word:
             raise ConfigError(f"radc.offset={self.offset!r} must be an integer code in [{self.min_word}, {self.max_word}]")
         if self.payload_len > 64 << 20:

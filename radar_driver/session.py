@@ -38,6 +38,7 @@ import serial
 from .assembly import DriverCounters, FrameAssembler, Taken
 from .connection import SensorConnection
 from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout
+from .limits import check_sensor_id
 from .link import LinkKind, SerialLink, busy_text, describe_device, link_kind, open_error, port_url
 from .model import RadarConfig
 from .profile import CHIRP_SELECT, SensorProfile, resolve_profile
@@ -90,8 +91,7 @@ class SessionConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.url, str) or not self.url:
             raise ConfigError(f"url={self.url!r} must be a non-empty string")
-        if not isinstance(self.sensor_id, str) or not self.sensor_id:
-            raise ConfigError(f"sensor_id={self.sensor_id!r} must be a non-empty string")
+        check_sensor_id(self.sensor_id)  # a ConfigError naming the rule (radar_driver.limits)
         object.__setattr__(self, "profile", resolve_profile(self.profile))
         if self.baud is not None:
             self.profile.baud_code(self.baud)  # ConfigError naming the profile's speeds

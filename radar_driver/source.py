@@ -25,6 +25,7 @@ from typing import Iterator, Protocol, runtime_checkable
 import numpy as np
 
 from .errors import ConfigError
+from .limits import check_sensor_id
 from .profile import DEFAULT_PROFILE
 from .scene import SimScene, ramp_time_s
 
@@ -150,6 +151,7 @@ class SimSourceConfig:
             raise ConfigError(f"seed={self.seed!r} must be an integer >= 0")
         if self.frames is not None and not (isinstance(self.frames, int) and self.frames >= 1):
             raise ConfigError(f"frames={self.frames!r} must be an integer >= 1 or None")
+        check_sensor_id(f"{self.id_prefix}{self.sensors - 1}")  # the longest id (radar_driver.limits)
 
     @property
     def sensor_ids(self) -> list[str]:

@@ -25,7 +25,7 @@ from pipeline.progress import Progress
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
 from pipeline.track import TrackerConfig
 from pipeline.tracker import Integration, Tracker, track_batch
-from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks
+from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks, encode_targets_batch
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
@@ -343,13 +343,17 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
     sink = McapSink(path, overwrite=True)  # an output in reprocess's own --out folder
     try:
         sink.metadata("qradar.reprocess", {"alpha": str(r.alpha), **{k: str(v) for k, v in result.params.items()}})
-        for i in range(rec.frames.shape[0]):
+        n = rec.frames.shape[0]
+        headers = FrameHeaders([rec.sensor_id] * n, rec.seq, rec.timestamp_ns, [radar.config_id()] * n)
+        payloads = encode_targets_batch(headers, r.detections, result.params["algo"], result.params["K"], "quantized",
+                                        0, result.params["K_auto"])
+        for i in range(n):
             msg = TargetsMsg(rec.sensor_id, int(rec.seq[i]), int(rec.timestamp_ns[i]), radar.config_id(),
                              result.params["algo"], result.params["K"], "quantized", r.detections.frame(i), 0,
                              auto_k=result.params["K_auto"])
             key = f"reprocess/{rec.sensor_id}/targets"
             ts = int(rec.timestamp_ns[i])
-            sink.write(key, msg.to_json(), ts, ts, int(rec.seq[i]))
+            sink.write(key, payloads[i], ts, ts, int(rec.seq[i]))
             sink.write(f"reprocess/{rec.sensor_id}/pointcloud", pointcloud_json(msg), ts, ts, int(rec.seq[i]))
             if tracks is not None:
                 sink.write(f"reprocess/{rec.sensor_id}/tracks", tracks[i], ts, ts, int(rec.seq[i]))

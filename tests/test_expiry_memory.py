@@ -13,7 +13,7 @@ import tracemalloc
 from pathlib import Path
 
 import pipeline.node as node_mod
-import pipeline.wire as wire
+import radar_driver.limits as limits
 from pipeline.budget import IntakeBudget
 from pipeline.memory import release_memory
 from pipeline.node import NO_SENSOR, TRIM_AFTER_SENSORS
@@ -94,7 +94,7 @@ def test_expired_sensors_leave_no_state_and_their_memory_goes_back(bus, zenoh_se
         totals = loc.totals()
         with loc._lock:
             keys_left = [k for k in loc._key_info if k.split("/")[1] in ids]
-        ids_left = [s for s in ids if s in wire._known_ids]
+        ids_left = [s for s in ids if s in limits._known_ids]
         fifos_left = len(loc._queue._fifos)
     finally:
         loc.stop()

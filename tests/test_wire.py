@@ -520,7 +520,8 @@ def test_targets_batch_refuses_non_finite_present_targets():
 def test_sensor_id_rule_is_one_rule():
     """The byte-level checks of a header's sensor id (single frame: bytes; batch: arrays)
     agree with check_sensor_id on the NUL-stripped text, for ids of random bytes."""
-    from pipeline.wire import _sensor_id_bad, check_sensor_id
+    from pipeline.wire import check_sensor_id
+    from radar_driver.limits import sensor_id_fields_bad as _sensor_id_bad
 
     rng = np.random.default_rng(9)
     alphabet = np.frombuffer(b"\0\0\0aZ9_-./ \xff\x80", dtype=np.uint8)
