@@ -36,7 +36,7 @@ from radar_driver.limits import SENSOR_ID_CHARS
 from . import audit
 from .errors import BusError, ParameterError
 from .security import SecureConfig, check_secure_endpoint
-from .wire import TOPICS
+from .keys import TOPICS
 
 _RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?\s*$")
 

@@ -37,8 +37,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from radar_driver.limits import check_sensor_id
+
 from .errors import BusError, ParameterError
-from .wire import check_sensor_id
 
 POLICY_FILE = "identities.json"
 POLICY_FORMAT = "qradar-identities"
@@ -119,8 +120,8 @@ class Identity:
 
 def _check_sensor(sid: str, name: str) -> None:
     try:
-        check_sensor_id(sid)
-    except ValueError as exc:
+        check_sensor_id(sid, ParameterError)
+    except ParameterError as exc:
         raise ParameterError(f"identity {name!r}: {exc}") from None
 
 

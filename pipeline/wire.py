@@ -15,9 +15,10 @@ from __future__ import annotations
 from radar_driver.limits import SENSOR_ID_MAX, forget_sensor_id
 
 from .errors import WireError
+from .keys import TOPICS
 from .wire_frames import (COMMON, COMMON_DTYPE, COMMON_FIELDS, FLAG_DITHERED, GENERATOR_VERSIONS, HEADER_LEN,
                           KIND_QUANTIZED, KIND_RAW, MAGIC, MAX_BITS, MAX_M, QUANT_DTYPE, QUANT_EXT, QUANT_EXT_FIELDS,
-                          QUANT_HEADER_LEN, RAW_VERSION, TOPICS, VERSIONS, FrameHeaders, QuantizedFrameMsg,
+                          QUANT_HEADER_LEN, RAW_VERSION, VERSIONS, FrameHeaders, QuantizedFrameMsg,
                           QuantizedGroup, RawFrameMsg, RawGroup, check_sensor_id, decode_quantized,
                           decode_quantized_batch, decode_raw, decode_raw_batch, encode_quantized,
                           encode_quantized_batch, encode_raw, encode_raw_batch, frame_size, quantized_batch)

@@ -27,7 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from radar_driver import limits
-from radar_driver.limits import MAX_BITS, SENSOR_ID_MAX, bits_bad, forget_sensor_id, sensor_id_fields_bad  # noqa: F401
+from radar_driver.limits import MAX_BITS, SENSOR_ID_MAX, bits_bad, sensor_id_fields_bad
 
 from .errors import ParameterError, WireError
 from .quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_DELTA, QuantizedFrames, as_int_array, check_alpha,
@@ -62,8 +62,6 @@ assert (COMMON_DTYPE.itemsize, QUANT_DTYPE.itemsize) == (COMMON.size, COMMON.siz
 HEADER_LEN = COMMON.size  # 48
 QUANT_HEADER_LEN = COMMON.size + QUANT_EXT.size  # 64
 MAX_M = 1 << 20
-#: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``; this is the one list of them
-TOPICS = ("raw", "quantized", "targets", "tracks", "health")
 
 
 def check_sensor_id(sensor_id: str) -> str:

@@ -1,0 +1,6 @@
+"""The topics of the stream: a sensor's keys are ``<prefix>/<sensor>/<topic>``. The one
+list of them, shared by the wire formats (a message per topic) and the bus (the key
+expressions), so that neither imports the other."""
+
+#: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``
+TOPICS = ("raw", "quantized", "targets", "tracks", "health")
