@@ -114,9 +114,10 @@ def fisher(ds: np.ndarray, weights) -> np.ndarray:
     (B, L). Returns (B, P, P)."""
     ds = np.asarray(ds, dtype=float)
     w = np.asarray(weights, dtype=float)
+    dst = np.swapaxes(ds, 1, 2)  # (B, P, L): batched matrix products (BLAS), not einsum's loops
     if w.ndim < 2:
-        return _per_batch(w, 3) * np.einsum("blp,blq->bpq", ds, ds)
-    return np.einsum("blp,bl,blq->bpq", ds, w, ds)
+        return _per_batch(w, 3) * (dst @ ds)
+    return (dst * w[:, None, :]) @ ds
 
 
 # -- per-sample information weights ---------------------------------------------------------
@@ -173,14 +174,25 @@ def weights_1bit_expected(s: np.ndarray, dither_width, sigma) -> np.ndarray:
         raise ParameterError(f"dither_width must be finite and >= 0, got {np.ravel(a)[:4].tolist()}")
     a = _per_batch(a, 2)
     s = np.asarray(s, dtype=float)
-    z, big_h = _h_table()
     half = 0.5 * a / sg
-    hi = np.interp(s / sg + half, z, big_h)
-    lo = np.interp(s / sg - half, z, big_h)
+    zs = s / sg
     wide = np.broadcast_to(half > 0.025, s.shape)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        avg = np.where(wide, (hi - lo) / np.where(wide, 2.0 * half, 1.0), _h(s / sg))
+    if wide.all():
+        avg = (_big_h(zs + half) - _big_h(zs - half)) / (2.0 * half)
+    else:
+        avg = _h(zs)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            avg[wide] = ((_big_h(zs + half) - _big_h(zs - half)) / (2.0 * half))[wide]
     return avg / sg**2
+
+
+def _big_h(x: np.ndarray) -> np.ndarray:
+    """H(x) by linear interpolation in the uniform table (constant beyond its ends)."""
+    _, table = _h_table()
+    pos = np.clip((x + Z_MAX) / Z_STEP, 0.0, table.size - 1.0)
+    i = np.minimum(pos.astype(np.int64), table.size - 2)
+    frac = pos - i
+    return table[i] + frac * (table[i + 1] - table[i])
 
 
 def weights_bits(s: np.ndarray, dither: np.ndarray | None, sigma, delta, bits: int) -> np.ndarray:
