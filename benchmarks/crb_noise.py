@@ -33,8 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.crb import (crb, fisher, position_covariance, position_rms, signal_jacobian,  # noqa: E402
-                          weights_1bit_expected, weights_unquantized)
+from pipeline.crb import (crb, fisher, position_bound, position_covariance, position_rms,  # noqa: E402
+                          signal_jacobian, weights_1bit_expected, weights_unquantized)
 from pipeline.montecarlo import (CHUNK_RUNS, MonteCarloConfig, SceneSpec, draw_scenes,  # noqa: E402
                                  run_montecarlo)
 from pipeline.progress import Progress  # noqa: E402
@@ -52,13 +52,13 @@ def scheme(alpha: float) -> str:
     return "nodither_m512" if alpha == 0 else "dither_m512" if alpha == 1 else f"dither_a{alpha:g}_m512"
 
 
-def scenes(runs: int, seed: int, radar: RadarConfig):
+def scenes(runs: int, seed: int, radar: RadarConfig, max_angle_deg: float = 90.0):
     """The Monte Carlo's K = 1 continuous scenes of ``seed``: range_m, angle_deg, amplitude (runs, 1)."""
     parts = []
     for c, start in enumerate(range(0, runs, CHUNK_RUNS)):
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1, c)))
         parts.append(draw_scenes(min(CHUNK_RUNS, runs - start), 1, rng, radar,
-                                 scene=SceneSpec(ranges="continuous"))[2:])
+                                 scene=SceneSpec(ranges="continuous", max_angle_deg=max_angle_deg))[2:])
     return tuple(np.concatenate(p) for p in zip(*parts))
 
 
@@ -85,22 +85,52 @@ def bounds(r, a_deg, x, radar: RadarConfig, sigmas, alphas, seed: int) -> dict:
     return {s: {k: np.concatenate(v) for k, v in d.items()} for s, d in out.items()}
 
 
-def efficient_median(cov: np.ndarray, rng: np.random.Generator, draws: int = 32) -> float:
-    """Median of |e| over e ~ N(0, cov_b) pooled over scenes b (cov (B, 2, 2)), m."""
-    chol = np.linalg.cholesky(cov + 1e-18 * np.eye(2))
-    e = np.einsum("bij,bdj->bdi", chol, rng.standard_normal((cov.shape[0], draws, 2)))
-    return float(np.median(np.linalg.norm(e, axis=-1)))
+def median_rms(cov: np.ndarray) -> float:
+    """Median over scenes of the bound's RMS position error (cov (B, 2, 2)), m; inf where undefined."""
+    return float(np.median(np.nan_to_num(position_rms(cov), nan=np.inf)))
 
 
-def measure(sigma: float, alphas, runs: int, seed: int, workers: int, out: Path) -> dict:
+def two_bit(r, a_deg, x, radar: RadarConfig, sigmas, seed: int, scenes_n: int = 250) -> list[str]:
+    """Lines: the 2-bit bound against the unquantized one on the first ``scenes_n`` scenes,
+    step a quarter of the 1-bit step (thresholds 0 and +-delta/4), alpha 0 and 0.5."""
+    sl = slice(0, scenes_n)
+    th = np.deg2rad(a_deg[sl])
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(97,)))
+    clean = simulate_frames(r[sl], a_deg[sl], x[sl], radar)
+    lines = []
+    for sigma in sigmas:
+        noisy = clean + sigma * (rng.standard_normal(clean.shape) + 1j * rng.standard_normal(clean.shape))
+        step = auto_delta(noisy) / 4
+        unq = median_rms(position_bound(r[sl], th, x[sl], radar, sigma))
+        ratios = [median_rms(position_bound(r[sl], th, x[sl], radar, sigma, al, step, 2)) / unq for al in (0.0, 0.5)]
+        lines.append(f"sigma {sigma:g}: 2-bit codes, step = 1-bit step / 4: bound ratio {ratios[0]:.2f} (alpha 0), "
+                     f"{ratios[1]:.2f} (alpha 0.5), {scenes_n} scenes")
+    return lines
+
+
+def efficient_median(cov: np.ndarray, seed: int, draws: int = 64) -> float:
+    """Median of |e| over e ~ N(0, cov_b) pooled over scenes b (cov (B, 2, 2)), m; the same
+    normal draws for every call of a seed (smooth curves over alpha)."""
+    ok = np.isfinite(cov).all(axis=(1, 2))  # a scene at +-90 deg has no angle information: error inf
+    lam, vec = np.linalg.eigh(np.where(ok[:, None, None], cov, 0.0))
+    root = vec * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]  # root @ root.T = cov
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(98,)))
+    e = np.einsum("bij,bdj->bdi", root, rng.standard_normal((cov.shape[0], draws, 2)))
+    err = np.where(ok[:, None], np.linalg.norm(e, axis=-1), np.inf)
+    return float(np.median(err))
+
+
+def measure(sigma: float, alphas, runs: int, seed: int, workers: int, out: Path, max_angle_deg: float = 90.0) -> dict:
     """cml median errors (m) per scheme on the Monte Carlo's scenes; cached in ``out``."""
-    path = out / f"measured_sigma{sigma:g}_runs{runs}_seed{seed}.json"
+    path = out / (f"measured_sigma{sigma:g}_runs{runs}_seed{seed}" + (
+        f"_angle{max_angle_deg:g}.json" if max_angle_deg != 90 else ".json"))
     have = json.loads(path.read_text()) if path.exists() else {}
     want = [scheme(a) for a in alphas] + ["32bit_m512"]
     todo = [s for s in want if s not in have]
     if todo:
         cfg = MonteCarloConfig(ks=(1,), runs=runs, schemes=tuple(todo), seed=seed, algos=("cml",),
-                               scene=SceneSpec(ranges="continuous", noise_sigma=sigma), workers=workers)
+                               scene=SceneSpec(ranges="continuous", noise_sigma=sigma, max_angle_deg=max_angle_deg),
+                               workers=workers)
         t0 = time.perf_counter()
         summ = run_montecarlo(cfg, progress=True).summary
         for s in todo:
@@ -118,37 +148,44 @@ def main() -> None:
     ap.add_argument("--alphas", type=float, nargs="+", default=list(BOUND_ALPHAS), help="alphas of the bound")
     ap.add_argument("--measure-alphas", type=float, nargs="*", default=list(MEASURED_ALPHAS),
                     help="alphas (<= 1) measured with cml; none: the bound only")
+    ap.add_argument("--max-angle-deg", type=float, default=90.0, help="scene angles within +-this")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("out/crb_noise"))
     ap.add_argument("--figure", type=Path, default=Path("docs/figures/crb_noise.png"))
     ap.add_argument("--replot", action="store_true", help="redraw from --out/crb_noise.json, compute nothing")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    table_path = args.out / "crb_noise.json"
+    table_path = args.out / ("crb_noise.json" if args.max_angle_deg == 90 else
+                             f"crb_noise_angle{args.max_angle_deg:g}.json")
     if args.replot:
-        rows = json.loads(table_path.read_text())["rows"]
+        data = json.loads(table_path.read_text())
+        rows, extra = data["rows"], data.get("two_bit", [])
     else:
-        print(f"seed {args.seed}, runs {args.runs}, K 1, continuous scenes", flush=True)
+        print(f"seed {args.seed}, runs {args.runs}, K 1, continuous scenes, |angle| <= {args.max_angle_deg:g} deg",
+              flush=True)
         radar = RadarConfig()
-        measured = {s: measure(s, args.measure_alphas, args.runs, args.seed, args.workers, args.out)
+        measured = {s: measure(s, args.measure_alphas, args.runs, args.seed, args.workers, args.out,
+                               args.max_angle_deg)
                     for s in args.sigmas} if args.measure_alphas else {}
-        r, a_deg, x = scenes(args.runs, args.seed, radar)
+        r, a_deg, x = scenes(args.runs, args.seed, radar, args.max_angle_deg)
         b = bounds(r, a_deg, x, radar, args.sigmas, args.alphas, args.seed)
-        rng = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(98,)))
         rows = []
         for sigma in args.sigmas:
             unq = b[sigma]["unq"]
-            unq_rms, unq_eff = float(np.median(position_rms(unq))), efficient_median(unq, rng)
+            unq_rms, unq_eff = median_rms(unq), efficient_median(unq, args.seed)
             m = measured.get(sigma, {})
             for al in args.alphas:
                 cov = b[sigma][al]
-                one_rms, one_eff = float(np.median(position_rms(cov))), efficient_median(cov, rng)
+                one_rms, one_eff = median_rms(cov), efficient_median(cov, args.seed)
                 rows.append({"sigma": sigma, "alpha": al, "bound_rms_1bit": one_rms, "bound_rms_unq": unq_rms,
                              "ratio_rms": one_rms / unq_rms, "eff_median_1bit": one_eff, "eff_median_unq": unq_eff,
                              "ratio_eff": one_eff / unq_eff, "cml_1bit": m.get(scheme(al)),
                              "cml_unq": m.get("32bit_m512")})
-        table_path.write_text(json.dumps({"seed": args.seed, "runs": args.runs, "rows": rows}, indent=1) + "\n")
+        extra = two_bit(r, a_deg, x, radar, args.sigmas, args.seed)
+        table_path.write_text(json.dumps({"seed": args.seed, "runs": args.runs, "rows": rows, "two_bit": extra},
+                                         indent=1) + "\n")
     report(rows)
+    print("\n".join(extra))
     plot(rows, args.figure)
 
 
@@ -178,6 +215,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     for i, sigma in enumerate(sorted({r["sigma"] for r in rows})):
@@ -198,11 +236,15 @@ def plot(rows: list[dict], path: Path) -> None:
     ax1.set(xlabel="dither scale α (dither width α δ)", ylabel="median error, 1-bit / unquantized",
             title="1-bit cost: Cramér–Rao bound and cml", yscale="log")
     ax2.set(xlabel="dither scale α", ylabel="median position error, m", yscale="log",
-            title="median error (dotted: unquantized bound; □: cml unquantized)")
-    ax1.legend(fontsize=7, ncol=2)
+            title="median error (dotted: unquantized bound, □: its cml)")
+    ax1.set_ylim(1.4, 16.0)
+    ax1.set_yticks([1.5, 2, 3, 4, 6, 8, 12])
+    ax1.legend(fontsize=7, ncol=2, loc="upper left")
     ax2.legend(fontsize=7)
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)
+        ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -257,8 +257,10 @@ def position_covariance(cov: np.ndarray, range_m: np.ndarray, angle_rad: np.ndar
 
 
 def position_rms(cov_xy: np.ndarray) -> np.ndarray:
-    """RMS position error bound ``sqrt(trace)`` of (..., 2, 2) covariances, m."""
-    return np.sqrt(np.trace(cov_xy, axis1=-2, axis2=-1))
+    """RMS position error bound ``sqrt(trace)`` of (..., 2, 2) covariances, m; nan where the
+    inverse lost its sign (a target at +-90 deg has no angle information)."""
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.trace(cov_xy, axis1=-2, axis2=-1))
 
 
 def position_bound(range_m: np.ndarray, angle_rad: np.ndarray, amplitude: np.ndarray, config: RadarConfig,
