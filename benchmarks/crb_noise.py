@@ -206,7 +206,7 @@ def report(rows: list[dict]) -> None:
         if meas:
             bm = min(meas, key=lambda r: r["cml_1bit"])
             line += (f"; cml best {bm['cml_1bit']:.3f} m at alpha {bm['alpha']:g} = {bm['cml_1bit'] / bm['cml_unq']:.2f}"
-                     f" x cml unquantized, {bm['cml_1bit'] / best['eff_median_1bit']:.2f} x the 1-bit bound's median")
+                     f" x cml unquantized, {bm['cml_1bit'] / bm['eff_median_1bit']:.2f} x the 1-bit bound's median there")
         print(line)
 
 
