@@ -40,8 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import free_port, rss_mb, wait_port
-from streamlib import Proc, cpu_s
+from harness import cpu_s, free_port, rss_mb, wait_port
+from streamlib import Proc
 
 CASES = ("quantized", "raw", "new-ids", "restarts")
 P99_GOAL_MS = 50.0

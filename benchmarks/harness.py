@@ -1,5 +1,5 @@
 """What the benchmark scripts share: timing loops (best of rounds after a warm-up, or
-decoders taking turns for a while), a free port and a wait for one, a process's RSS, the
+decoders taking turns for a while), a free port and a wait for one, a process's RSS and CPU, the
 machine's description, JSON output and a progress bar on stderr.
 
 A script's own folder is on ``sys.path`` and the project is installed (editable) in the
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Timings", "best_rate", "best_time", "emit", "free_port", "machine", "rss_mb", "take_turns",
+__all__ = ["Timings", "best_rate", "best_time", "cpu_s", "emit", "free_port", "machine", "rss_mb", "take_turns",
            "tests_module", "time_calls", "wait_port"]
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,6 +130,15 @@ def rss_mb(pid: int | str = "self") -> float | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def cpu_s(pid: int | str = "self") -> float | None:
+    """CPU time (user + system) process ``pid`` has used, s; None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # fields 14, 15 of stat(5)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 # -- output ---------------------------------------------------------------------------------

@@ -67,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import free_port, rss_mb, wait_port
+from harness import cpu_s, free_port, rss_mb, wait_port
 from pipeline.bus import BusConfig
 from pipeline.progress import Progress
 from qradar.run import last_json_object
@@ -83,15 +83,6 @@ LOSS_FIELDS = ("drops", "decode_errors", "invalid_frames", "processing_errors", 
 
 
 # -- processes -------------------------------------------------------------------------------
-def cpu_s(pid: int) -> float | None:
-    """utime + stime of a live process, s."""
-    try:
-        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def children_of(pid: int) -> list[int]:
     out: list[int] = []
     try:

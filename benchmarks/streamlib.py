@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from harness import free_port, wait_port
+from harness import cpu_s, free_port, wait_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,23 +52,12 @@ LOSS_COUNTERS = ("drops", "decode_errors", "invalid_frames", "processing_errors"
 SINK_CPU_FLAG = 80.0
 #: the source must send at least this fraction of the offered frames per second
 PACE_MIN = 0.98
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: the simulated sensors' ids are <prefix>0, <prefix>1, ...
 SENSOR_ID_PREFIX = "b"
 TARGETS_BYTES = 330  # a targets message of K = 2 (JSON), for the bare baseline
 
 
 # -- processes -----------------------------------------------------------------------------
-def cpu_s(pid: int) -> float | None:
-    """utime + stime of process ``pid`` in seconds (None once it is gone)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14, 15 of stat(5)
-
-
 def last_json(text: str) -> dict | None:
     """The last line of ``text`` that is a JSON object."""
     for line in reversed(text.strip().splitlines()):
