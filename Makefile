@@ -42,10 +42,10 @@ test: $(STAMP) $(JS_STAMP)
 test-fast: $(STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
+# Every benchmark that runs alone on one host (the list: SUITE in benchmarks/suite.py), each in a
+# fresh process; `make bench SHORT=1`: each with its shortest options (a smoke run, a few minutes).
 bench: $(STAMP)
-	$(PY) benchmarks/bench_pbp.py
-	$(PY) benchmarks/bench_driver.py
-	$(PY) benchmarks/bench_cml.py
+	$(PY) benchmarks/suite.py $(if $(SHORT),--short)
 
 # The paper's full run: 320 000 x K runs per scheme, K = 1 and 2, all four schemes.
 montecarlo-paper: $(STAMP)

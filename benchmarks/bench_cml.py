@@ -16,21 +16,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import sys
 import time
-from pathlib import Path
+from functools import partial
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.decode import DecoderConfig, decode  # noqa: E402
-from pipeline.montecarlo import SceneSpec, draw_scenes  # noqa: E402
-from pipeline.progress import Progress  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
+from harness import machine, take_turns
+from pipeline.decode import DecoderConfig, decode
+from pipeline.montecarlo import SceneSpec, draw_scenes
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from radar_driver.model import RadarConfig, simulate_frames
 
 ALGOS = ("pbp", "qiht", "cml")
 
@@ -52,21 +47,11 @@ def main() -> None:
     # each decoder told K, and pbp and cml deciding the count (K auto, at most --max-targets)
     runs = {algo: (DecoderConfig(algo=algo), args.K) for algo in ALGOS}
     runs |= {f"{algo}_auto": (DecoderConfig(algo=algo, auto_k=True), args.max_targets) for algo in ("pbp", "cml")}
-    times: dict[str, list[float]] = {label: [] for label in runs}
-    deadline = time.monotonic() + args.seconds
-    with Progress(int(args.seconds), "bench_cml", unit="s") as bar:
-        done = 0
-        while time.monotonic() < deadline:
-            for label, (decoder, k) in runs.items():
-                t0 = time.process_time()
-                decode(z, xi, q.delta, 1, cfg, k, decoder)
-                times[label].append((time.process_time() - t0) / args.batch * 1e3)
-            now = int(args.seconds - max(0.0, deadline - time.monotonic()))
-            bar.update(now - done)
-            done = now
-    ms = {algo: float(np.median(v)) for algo, v in times.items()}
+    calls = {label: partial(decode, z, xi, q.delta, 1, cfg, k, decoder) for label, (decoder, k) in runs.items()}
+    times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
+    ms = {algo: float(np.median(v)) / args.batch * 1e3 for algo, v in times.items()}
     print(json.dumps({
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__},
+        "machine": machine(),
         "batch": args.batch, "K": args.K, "max_targets_auto": args.max_targets, "rounds": len(times["pbp"]), "seconds": args.seconds,
         "ms_per_frame": {k: round(v, 4) for k, v in ms.items()},
         "ratio_to_pbp": {k: round(v / ms["pbp"], 1) for k, v in ms.items()},

@@ -19,17 +19,12 @@ For each kind of garbage (header-like bytes everywhere, nothing valid), the best
 from __future__ import annotations
 
 import argparse
-import json
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from radar_driver.profile import DEFAULT_PROFILE  # noqa: E402
-from radar_driver.protocol import Done, Radc, StreamDecoder, encode  # noqa: E402
+from harness import emit, time_calls
+from radar_driver.profile import DEFAULT_PROFILE
+from radar_driver.protocol import Done, Radc, StreamDecoder, encode
 
 MIB, SMALL, CHUNK = 1 << 20, 64 << 10, 4096
 
@@ -65,14 +60,15 @@ def run(data: bytes, chunk: int | None, repeat: int) -> tuple[float, float, Stre
     at once), and the last decoder."""
     step = chunk or len(data)
     pieces = [data[i : i + step] for i in range(0, len(data), step)]
-    cpu = wall = float("inf")
-    for _ in range(repeat):
-        d = StreamDecoder()
-        t0, c0 = time.perf_counter(), time.process_time()
+    decoders: list[StreamDecoder] = []
+
+    def feed_all() -> None:
+        decoders.append(d := StreamDecoder())
         for p in pieces:
             d.feed(p)
-        cpu, wall = min(cpu, time.process_time() - c0), min(wall, time.perf_counter() - t0)
-    return cpu, wall, d
+
+    t = time_calls(feed_all, repeat)
+    return float(t.cpu_s.min()), float(t.wall_s.min()), decoders[-1]
 
 
 def main() -> None:
@@ -95,7 +91,7 @@ def main() -> None:
                          "work_per_byte": d_big.stats.scanned_bytes / d_big.stats.bytes_in,
                          "skipped": d_big.stats.skipped_bytes, "invalid": d_big.stats.invalid})
     if args.json:
-        print(json.dumps({"valid_1mib_ms": {str(k): v * 1e3 for k, v in base.items()}, "garbage": rows}, indent=2))
+        emit({"valid_1mib_ms": {str(k): v * 1e3 for k, v in base.items()}, "garbage": rows})
         return
     print(f"baseline: 1 MiB of valid ramps decodes in {base[None] * 1e3:.1f} ms CPU at once, "
           f"{base[CHUNK] * 1e3:.1f} ms in 4 KiB chunks ({len(valid) // 2068 / base[CHUNK]:,.0f} ramps/s)")

@@ -22,12 +22,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
-import time
 from pathlib import Path
+
+from harness import machine, time_calls
 
 HERE = Path(__file__).resolve().parents[1]
 
@@ -74,11 +73,13 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
         for algo in algos:
             decoder = DecoderConfig(algo=algo)
             decode(*data[0][:2], data[0][2], 1, cfg, k, decoder)  # warm-up (caches, first-call costs)
-            best = np.inf
-            for z, xi, delta in data:
-                t0 = time.process_time()
+            rounds = iter(data)
+
+            def one() -> None:
+                z, xi, delta = next(rounds)
                 decode(z, xi, delta, 1, cfg, k, decoder)
-                best = min(best, time.process_time() - t0)
+
+            best = time_calls(one, len(data)).cpu_s.min()  # CPU s, each round on frames of its own
             out[algo][str(b)] = round(best / b * 1e3, 4)
     return out
 
@@ -120,9 +121,7 @@ def main(argv=None) -> None:
             m = _run(args.code, args)
             base = b if base is None else _best(base, b)
             ms = m if ms is None else _best(ms, m)
-    import numpy as np
-
-    report = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__},
+    report = {"machine": machine(),
               "code": str(args.code), "K": args.K, "repeats": args.repeats, "ms_per_frame": ms}
     if base is not None:
         report |= {"baseline": str(args.baseline), "rounds": args.rounds, "baseline_ms_per_frame": base,

@@ -13,22 +13,19 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from radar_driver.profile import DEFAULT_PROFILE  # noqa: E402
-from radar_driver.protocol import Done, Radc, Resp, StreamDecoder, encode  # noqa: E402
-from radar_driver.scene import resolve_scene  # noqa: E402
-from radar_driver.session import SensorSession, SessionConfig  # noqa: E402
-from radar_driver.simulator import SimulatorServer  # noqa: E402
+from harness import emit
+from radar_driver.profile import DEFAULT_PROFILE
+from radar_driver.protocol import Done, Radc, Resp, StreamDecoder, encode
+from radar_driver.scene import resolve_scene
+from radar_driver.session import SensorSession, SessionConfig
+from radar_driver.simulator import SimulatorServer
 
 
 LAYOUT = DEFAULT_PROFILE.radc  # one ramp per RADC: words (receivers, chirps, samples, I/Q) = (2, 1, 256, 2)
@@ -106,7 +103,7 @@ def main() -> None:
     args = ap.parse_args()
     out = bench_codec(args.frames)
     out.update(bench_driver(args.frames))
-    print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in out.items()}, indent=2))
+    emit({k: (round(v, 3) if isinstance(v, float) else v) for k, v in out.items()})
 
 
 if __name__ == "__main__":

@@ -52,10 +52,9 @@ import time
 from collections import deque
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(HERE))
+from qradar.drivers import last_json_object
 
-from qradar.drivers import last_json_object  # noqa: E402
+HERE = Path(__file__).resolve().parents[1]
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 LINKS = ("pty", "ser2net", "pty-nopub", "ser2net-nopub", "run", "run-in-process")
 CODES = ("before", "after")

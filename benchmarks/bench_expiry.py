@@ -17,31 +17,21 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import sys
 import time
 import tracemalloc
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from qradar.cli import limit_malloc_arenas
 
-from qradar.cli import limit_malloc_arenas  # noqa: E402
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from pipeline.budget import IntakeBudget  # noqa: E402
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.node import NO_SENSOR  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
-from pipeline.wire import FrameHeaders, encode_quantized_batch  # noqa: E402
-from radar_driver.scene import resolve_scene  # noqa: E402
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return round(int(line.split()[1]) / 1024, 1)
-    return float("nan")
+from harness import rss_mb
+from pipeline.budget import IntakeBudget
+from pipeline.bus import BusConfig
+from pipeline.node import NO_SENSOR
+from pipeline.nodes import LocalizeNode, LocalizerConfig
+from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.wire import FrameHeaders, encode_quantized_batch
+from radar_driver.scene import resolve_scene
 
 
 def frames(ids: list[str]) -> list[tuple[str, bytes]]:
@@ -90,7 +80,7 @@ def main() -> None:
         msgs.clear()
         while done() < total and time.monotonic() - t0 < 600:
             time.sleep(0.05)
-        peak = rss_mb()
+        peak = round(rss_mb(), 1)
         while not forgotten() and time.monotonic() - t0 < 900:
             time.sleep(0.1)
         time.sleep(node.health_period_s + 0.2)  # one more sweep: the publishers' undeclaring and the trim
@@ -101,7 +91,7 @@ def main() -> None:
         one_frame_each(frames([f"w{i}" for i in range(200)]))  # warm-up: the decoder's and zenoh's caches
         if args.trace:
             tracemalloc.start()
-        base = {"rss_mb": rss_mb()}
+        base = {"rss_mb": round(rss_mb(), 1)}
         if args.trace:
             base["python_mb"] = round(tracemalloc.get_traced_memory()[0] / 2**20, 2)
         print(json.dumps({"ids": args.ids, "expiry_s": args.expiry, "before": base}), flush=True)
@@ -109,7 +99,7 @@ def main() -> None:
             msgs = frames([f"r{r}x{i}" for i in range(args.ids)])
             t0 = time.monotonic()
             peak = one_frame_each(msgs)
-            out = {"round": r, "rss_mb_targets_out": peak, "rss_mb_forgotten": rss_mb(),
+            out = {"round": r, "rss_mb_targets_out": peak, "rss_mb_forgotten": round(rss_mb(), 1),
                    "seconds": round(time.monotonic() - t0, 1)}
             if args.trace:
                 out["python_mb_forgotten"] = round(tracemalloc.get_traced_memory()[0] / 2**20 - base["python_mb"], 2)

@@ -40,9 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from streamlib import Proc, cpu_s, free_port  # noqa: E402
+from harness import cpu_s, free_port, rss_mb, wait_port
+from streamlib import Proc
 
 CASES = ("quantized", "raw", "new-ids", "restarts")
 P99_GOAL_MS = 50.0
@@ -51,28 +50,6 @@ RSS_GOAL_MB = 10.0
 LOSS_KINDS = ("over_budget", "refused", "drops", "invalid_frames", "decode_errors", "processing_errors")
 HONEST = "honest0"
 PY = sys.executable
-
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        return None
-    return None
-
-
-def wait_port(port: int, timeout_s: float = 30.0) -> None:
-    import socket
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.1)
-    raise RuntimeError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
 
 
 # -- the flood ---------------------------------------------------------------------------------

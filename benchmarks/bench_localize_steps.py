@@ -16,18 +16,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_nodes import payloads  # noqa: E402
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.decode import decode_batch  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig, take_detections  # noqa: E402
-from pipeline.wire import encode_targets_batch  # noqa: E402
+from bench_nodes import payloads
+from pipeline.bus import BusConfig
+from pipeline.decode import decode_batch
+from pipeline.nodes import LocalizeNode, LocalizerConfig, take_detections
+from pipeline.wire import encode_targets_batch
 
 STEPS = ("parse", "take", "decode", "encode", "publish", "latency")
 

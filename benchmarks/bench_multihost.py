@@ -26,9 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import streamlib as sl  # noqa: E402
+import streamlib as sl
 
 PORT = 7447
 #: where each role runs: the sensor host, the router, the localizer host

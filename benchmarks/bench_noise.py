@@ -12,16 +12,12 @@ alone. Best of ``--repeat`` runs, us per frame; the ratio is taken in the same p
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench_wire import per_frame_us  # noqa: E402
-from pipeline.noise import NoiseTracker, estimate_noise_sigma  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
+from bench_wire import per_frame_us
+from pipeline.noise import NoiseTracker, estimate_noise_sigma
+from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 
 M, N = 512, 256
 

@@ -13,31 +13,17 @@ import argparse
 import json
 import os
 import platform
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.decode import DecoderConfig, decode  # noqa: E402
+from harness import best_rate
+from pipeline.decode import DecoderConfig, decode
 
 QIHT = DecoderConfig(algo="qiht")
-from pipeline.localize import localize, localize_frame  # noqa: E402
-from pipeline.montecarlo import draw_scenes  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
-
-
-def best_rate(fn, frames: int, repeat: int) -> float:
-    """Frames per second of the fastest of ``repeat`` calls of ``fn``."""
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return frames / best
+from pipeline.localize import localize, localize_frame
+from pipeline.montecarlo import draw_scenes
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from radar_driver.model import RadarConfig, simulate_frames
 
 
 def main() -> None:

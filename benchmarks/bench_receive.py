@@ -27,8 +27,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 MODES = ("notify", "poll", "fifo")
 SENSORS = 400  # keys radar/s<i>/quantized, as many sensors
@@ -57,7 +55,7 @@ def subscribe(mode: str, messages: int, rate: float) -> dict:
     import zenoh
 
     from pipeline.bus import BusConfig
-    from streamlib import free_port
+    from harness import free_port
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = BusConfig(listen=(endpoint,)).open()
     got, done = [0], threading.Event()

@@ -25,7 +25,6 @@ import argparse
 import gc
 import json
 import os
-import socket
 import struct
 import subprocess
 import sys
@@ -42,21 +41,14 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Message, MessageIndex
 from mcap.stream_reader import StreamReader
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.decode import Algo  # noqa: E402
-from pipeline.errors import BusError  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw  # noqa: E402
-from replay.mcapio import McapFile, McapSink  # noqa: E402
-from replay.player import PlayConfig, play  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from harness import free_port
+from pipeline.bus import BusConfig
+from pipeline.decode import Algo
+from pipeline.errors import BusError
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw
+from replay.mcapio import McapFile, McapSink
+from replay.player import PlayConfig, play
 
 
 def messages(sensors: int) -> list[tuple[str, bytes]]:

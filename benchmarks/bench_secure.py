@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import tempfile
@@ -25,18 +24,11 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.errors import BusError  # noqa: E402
-from pipeline.security import SecureConfig  # noqa: E402
-from pipeline.wire import RawFrameMsg, encode_raw  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from harness import emit, free_port
+from pipeline.bus import BusConfig
+from pipeline.errors import BusError
+from pipeline.security import SecureConfig
+from pipeline.wire import RawFrameMsg, encode_raw
 
 
 def connect(bus: BusConfig, timeout_s: float = 20.0) -> zenoh.Session:
@@ -104,8 +96,8 @@ def main() -> None:
                   file=sys.stderr, flush=True)
     p, s = float(np.median(plain)), float(np.median(secure))
     size = len(encode_raw(RawFrameMsg("b0", 0, 0, 7, np.zeros((512, 2), np.complex64))))
-    print(json.dumps({"messages": args.messages, "bytes": size, "plain_msgs_s": round(p),
-                      "secure_msgs_s": round(s), "secure_over_plain": round(s / p, 3)}, indent=1))
+    emit({"messages": args.messages, "bytes": size, "plain_msgs_s": round(p),
+          "secure_msgs_s": round(s), "secure_over_plain": round(s / p, 3)}, indent=1)
 
 
 if __name__ == "__main__":

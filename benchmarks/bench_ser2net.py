@@ -23,29 +23,20 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+from harness import ROOT, tests_module, time_calls
+from radar_driver.session import SensorSession, SessionConfig
 
-from radar_driver.session import SensorSession, SessionConfig  # noqa: E402
-from ser2net_helpers import Ser2net, require_ser2net  # noqa: E402
+_S2N = tests_module("ser2net_helpers")  # the tests' ser2net wrapper
+Ser2net, require_ser2net = _S2N.Ser2net, _S2N.require_ser2net
 
 
 def time_ramps(url: str, baud: int, ramps: int, warmup: int) -> tuple[list[float], float]:
     """Seconds per read_ramp() for ``ramps`` ramps after ``warmup`` untimed ones, and the
     CPU seconds this process spent on them (all threads: pyserial's RFC 2217 client
     reads in a thread of its own)."""
-    out = []
     with SensorSession(SessionConfig(url, baud=baud, reconnect=False, timeout_s=2.0)) as s:
-        for _ in range(warmup):
-            s.read_ramp()
-        cpu0 = time.process_time()
-        for _ in range(ramps):
-            t0 = time.perf_counter()
-            s.read_ramp()
-            out.append(time.perf_counter() - t0)
-        cpu = time.process_time() - cpu0
-    return out, cpu
+        t = time_calls(s.read_ramp, ramps, warmup)
+    return t.wall_s.tolist(), float(t.cpu_s.sum())
 
 
 def summary(name: str, dt: list[float], cpu_s: float) -> dict:

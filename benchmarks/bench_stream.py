@@ -41,9 +41,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import streamlib as sl  # noqa: E402
+import streamlib as sl
 
 
 def sweep(base: sl.StepSpec, counts: list[int], topo_factory, bisect: bool, resolution: int,

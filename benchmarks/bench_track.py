@@ -20,21 +20,18 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
-from pipeline.gate import RangeGate  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from pipeline.track import TrackerConfig  # noqa: E402
-from pipeline.tracker import Integration, Tracker, track_batch  # noqa: E402
-from pipeline.wire import FrameHeaders  # noqa: E402
-from radar_driver.scene import ramp_time_s, resolve_scene  # noqa: E402
+from harness import take_turns
+from pipeline.decode import DecoderConfig, decode_batch
+from pipeline.gate import RangeGate
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.track import TrackerConfig
+from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.wire import FrameHeaders
+from radar_driver.scene import ramp_time_s, resolve_scene
 
 RATE_HZ = 20.0
 
@@ -60,17 +57,13 @@ def main() -> None:
     det = decode_batch(q, radar, 2, decoder)  # the tracker's input (the same each round)
     batches = [np.arange(s, min(s + args.batch, n)) for s in range(0, n, args.batch)]
 
-    loc_ms, trk_ms = [], []
-    deadline = time.monotonic() + args.seconds
-    while time.monotonic() < deadline or not loc_ms:
-        t0 = time.perf_counter()
+    def localize() -> None:
         for idx in batches:
             decode_batch(q.take(idx), radar, 2, decoder)
-        t1 = time.perf_counter()
-        track_batch(Tracker(TrackerConfig(integrate_s=0)), headers, det)
-        t2 = time.perf_counter()
-        loc_ms.append((t1 - t0) / n * 1e3)
-        trk_ms.append((t2 - t1) / n * 1e3)
+
+    times = take_turns({"loc": localize, "trk": lambda: track_batch(Tracker(TrackerConfig(integrate_s=0)), headers, det)},
+                       args.seconds, "bench_track", clock=time.perf_counter)
+    loc_ms, trk_ms = (np.asarray(times[k]) / n * 1e3 for k in ("loc", "trk"))
 
     tracker = Tracker(TrackerConfig(integrate_s=args.integrate), Integration(2, gate, None))
     t0 = time.perf_counter()

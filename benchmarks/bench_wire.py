@@ -16,18 +16,14 @@ machine may be shared, so absolute figures drift more than ratios).
 from __future__ import annotations
 
 import argparse
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.localize import Detections  # noqa: E402
-from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize_frames,  # noqa: E402
+from harness import best_time
+from pipeline.localize import Detections
+from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize_frames,
                                sensor_dither_seeds, unit_dither)
-from pipeline.wire import (FrameHeaders, TargetsMsg, decode_quantized, decode_quantized_batch,  # noqa: E402
+from pipeline.wire import (FrameHeaders, TargetsMsg, decode_quantized, decode_quantized_batch,
                            encode_quantized_batch, encode_targets_batch)
 
 M = 512
@@ -35,13 +31,11 @@ M = 512
 
 def per_frame_us(fn, frames: int, repeat: int, calls: int = 1) -> float:
     """Best of ``repeat`` runs of ``calls`` calls of fn, in us per frame."""
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
+    def run() -> None:
         for _ in range(calls):
             fn()
-        best = min(best, time.perf_counter() - t0)
-    return best / calls / frames * 1e6
+
+    return best_time(run, repeat) / calls / frames * 1e6
 
 
 def main() -> None:

@@ -28,14 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.calibration import load as load_calibration  # noqa: E402
-from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
-from pipeline.localize import position_error_m  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from radar_driver.scene import SimScene, resolve_scene  # noqa: E402
-from radar_driver.source import SimSourceConfig, SimulatedSource  # noqa: E402
+from pipeline.calibration import load as load_calibration
+from pipeline.decode import DecoderConfig, decode_batch
+from pipeline.localize import position_error_m
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from radar_driver.scene import SimScene, resolve_scene
+from radar_driver.source import SimSourceConfig, SimulatedSource
 
 
 def frames_of(scene: SimScene, n: int, recording: Path | None, seed: int) -> np.ndarray:

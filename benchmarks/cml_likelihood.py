@@ -19,17 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.cml import cml  # noqa: E402
-from pipeline.localize import nearest_estimates  # noqa: E402
-from pipeline.montecarlo import SceneSpec, draw_scenes  # noqa: E402
-from pipeline.quantize import auto_delta, batch_unit_dither, dequantize, quantize  # noqa: E402
-from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
+from pipeline.cml import cml
+from pipeline.localize import nearest_estimates
+from pipeline.montecarlo import SceneSpec, draw_scenes
+from pipeline.quantize import auto_delta, batch_unit_dither, dequantize, quantize
+from radar_driver.model import RadarConfig, simulate_frames
 
 
 def main() -> None:

@@ -56,7 +56,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -68,13 +67,12 @@ from pathlib import Path
 
 import numpy as np
 
+from harness import cpu_s, free_port, rss_mb, wait_port
+from pipeline.bus import BusConfig
+from pipeline.progress import Progress
+from qradar.drivers import last_json_object
+
 HERE = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(HERE))
-
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.progress import Progress  # noqa: E402
-from qradar.drivers import last_json_object  # noqa: E402
-
 FLOOD = Path(__file__).resolve().parent / "soak_flood.py"
 START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 10.0
@@ -85,26 +83,6 @@ LOSS_FIELDS = ("drops", "decode_errors", "invalid_frames", "processing_errors", 
 
 
 # -- processes -------------------------------------------------------------------------------
-def rss_mb(pid: int) -> float | None:
-    """VmRSS of a live process, MB; None once it is gone."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def cpu_s(pid: int) -> float | None:
-    """utime + stime of a live process, s."""
-    try:
-        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def children_of(pid: int) -> list[int]:
     out: list[int] = []
     try:
@@ -310,25 +288,15 @@ def memory_figures(samples: list[tuple[float, float]], start_s: float, warmup_s:
 
 
 # -- one soak -----------------------------------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_port(port: int, run: Child, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if run.poll() is not None:
-            raise RuntimeError(f"qradar run exited ({run.returncode}) before listening: "
-                               f"{' | '.join(run.stderr_tail)}")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                return
-        except OSError:
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"qradar run did not listen on 127.0.0.1:{port} within {timeout_s} s") from None
-            time.sleep(0.2)
+def wait_run_port(port: int, run: Child, timeout_s: float) -> None:
+    """Until ``qradar run`` listens on ``port``; RuntimeError with its stderr if it exits first."""
+    try:
+        wait_port(port, timeout_s=timeout_s, alive=lambda: run.poll() is None, what="qradar run")
+    except RuntimeError as e:
+        if run.poll() is None:
+            raise
+        raise RuntimeError(f"qradar run exited ({run.returncode}) before listening: "
+                           f"{' | '.join(run.stderr_tail)}") from e
 
 
 def per_sensor_published(total: int, sensors: list[str]) -> dict[str, int]:
@@ -460,7 +428,7 @@ def soak(args) -> dict:
         run = start("run", py + ["run", "--duration", f"{D:g}", "--sensors", str(args.sensors), "--listen", ep,
                                  "--json", *(["--no-record"] if args.no_record else ["--record", str(rec)]),
                                  "--scene", args.scene])
-        wait_port(port, run, START_TIMEOUT_S)
+        wait_run_port(port, run, START_TIMEOUT_S)
         observer = Observer(ep, ("radar", "soak"), t0)
         ext_loc = start("ext-localize#1", py + ["localize", "--algo", "pbp", "--prefix", "soak", *client])
         ext_q = start("ext-quantize", py + ["quantize", "--prefix", "soak", *client])
@@ -677,7 +645,6 @@ def main() -> None:
     if args.case != "soak":
         sys.exit(isolation_cases(args))
     if args.flood_mix is None:
-        sys.path.insert(0, str(FLOOD.parent))
         from soak_flood import DEFAULT_MIX
 
         args.flood_mix = DEFAULT_MIX

@@ -27,18 +27,15 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import zenoh
 
-import zenoh  # noqa: E402
-
-from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.wire import RawFrameMsg, encode_raw  # noqa: E402
-from radar_driver.scene import resolve_scene  # noqa: E402
-from radar_driver.source import SimSourceConfig, SimulatedSource  # noqa: E402
+from pipeline.bus import BusConfig
+from pipeline.wire import RawFrameMsg, encode_raw
+from radar_driver.scene import resolve_scene
+from radar_driver.source import SimSourceConfig, SimulatedSource
 
 KINDS = ("valid", "nan", "badcfg", "short", "junk")
 #: kinds that take a sequence number of the flooding sensor

@@ -27,7 +27,6 @@ import json
 import os
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -39,8 +38,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from harness import cpu_s, free_port, wait_port
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 RATE_HZ = 20.0
 MAX_P99_MS = 20.0
@@ -52,29 +52,12 @@ LOSS_COUNTERS = ("drops", "decode_errors", "invalid_frames", "processing_errors"
 SINK_CPU_FLAG = 80.0
 #: the source must send at least this fraction of the offered frames per second
 PACE_MIN = 0.98
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: the simulated sensors' ids are <prefix>0, <prefix>1, ...
 SENSOR_ID_PREFIX = "b"
 TARGETS_BYTES = 330  # a targets message of K = 2 (JSON), for the bare baseline
 
 
 # -- processes -----------------------------------------------------------------------------
-def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-def cpu_s(pid: int) -> float | None:
-    """utime + stime of process ``pid`` in seconds (None once it is gone)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14, 15 of stat(5)
-
-
 def last_json(text: str) -> dict | None:
     """The last line of ``text`` that is a JSON object."""
     for line in reversed(text.strip().splitlines()):
@@ -225,14 +208,11 @@ class Loopback(Topology):
         """Until the hub's port takes a TCP connection (a localizer loading cml's kernels
         takes a while) or its process ended."""
         host, port = self.listen(role)[0].split("/", 1)[1].rsplit(":", 1)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and alive():
-            try:
-                socket.create_connection((host, int(port)), timeout=0.5).close()
-                return True
-            except OSError:
-                time.sleep(0.05)
-        return False
+        try:
+            wait_port(int(port), host, timeout_s, alive)
+        except RuntimeError:
+            return False
+        return True
 
 
 @functools.lru_cache(maxsize=None)

@@ -28,23 +28,21 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from pipeline.calibration import load as load_calibration  # noqa: E402
-from pipeline.plots import draw_error_vs_frames  # noqa: E402
-from pipeline.decode import DecoderConfig, decode_batch  # noqa: E402
-from pipeline.gate import RangeGate  # noqa: E402
-from pipeline.integrate import time_monte_carlo  # noqa: E402
-from pipeline.quantize import QuantizerConfig, quantize_frames  # noqa: E402
-from pipeline.track import TrackerConfig  # noqa: E402
-from pipeline.tracker import Integration, Tracker, track_batch  # noqa: E402
-from pipeline.wire import FrameHeaders, decode_tracks  # noqa: E402
-from radar_driver.scene import ramp_time_s, resolve_scene  # noqa: E402
+from pipeline.calibration import load as load_calibration
+from pipeline.plots import draw_error_vs_frames
+from pipeline.decode import DecoderConfig, decode_batch
+from pipeline.gate import RangeGate
+from pipeline.integrate import time_monte_carlo
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.track import TrackerConfig
+from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.wire import FrameHeaders, decode_tracks
+from radar_driver.scene import ramp_time_s, resolve_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 20.0

@@ -1,8 +1,11 @@
 """Shared fixtures: a radar configuration, a seeded rng, and the zenoh ones (an embedded
 peer session, a free loopback port, a bounded connect to a listener in another process).
-Helpers that are not fixtures (Collector, wait_until, free_port) live in zenoh_helpers."""
+Helpers that are not fixtures (Collector, wait_until, free_port, wait_port, rss_mb) live in
+zenoh_helpers. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name."""
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +14,8 @@ import zenoh_helpers
 from pipeline.bus import BusConfig
 from pipeline.errors import PipelineError
 from radar_driver.model import RadarConfig
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 #: pause between two connection attempts, s
 CONNECT_RETRY_S = 0.2

@@ -35,6 +35,8 @@ from typing import Iterator
 
 import pytest
 
+from zenoh_helpers import free_port
+
 REQUIRE_ENV = "QRADAR_REQUIRE_SER2NET"
 HOST = "127.0.0.1"
 #: how long ser2net may take to listen after it starts, s
@@ -98,12 +100,6 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
-
-
-def free_port(host: str = HOST) -> int:
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
 
 
 def listening_addresses(port: int) -> set[str]:

@@ -105,7 +105,6 @@ def test_premade_frames_are_what_an_edge_source_publishes(tmp_path, bus, zenoh_s
     from radar_driver.source import SimSourceConfig, SimulatedSource
     from zenoh_helpers import Collector
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
     import streamlib
 
     path = streamlib.make_premade(tmp_path / "frames.npy", "chamber", sensors=3, frames=4, alpha=1.0, bits=1,

@@ -7,7 +7,6 @@ of a MB of what it was before them, and the C heap's free memory went back to th
 system (the node's expiry sweep calls malloc_trim)."""
 
 import gc
-import importlib.util
 import time
 import tracemalloc
 from pathlib import Path
@@ -18,7 +17,7 @@ from pipeline.budget import IntakeBudget
 from pipeline.memory import release_memory
 from pipeline.node import NO_SENSOR, TRIM_AFTER_SENSORS
 from pipeline.nodes import LocalizeNode, LocalizerConfig
-from zenoh_helpers import wait_until
+from zenoh_helpers import rss_mb, wait_until
 
 #: distinct sensor ids, one frame each (the issue's 10 000: benchmarks/bench_expiry.py)
 N = 3000
@@ -28,17 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def quantized_frames(ids: list[str]) -> list[tuple[str, bytes]]:
     """(key, payload): one valid 1-bit frame of each sensor, made by the project's
     quantizer (benchmarks/bench_expiry.py's, so the test and the benchmark feed the same)."""
-    spec = importlib.util.spec_from_file_location("bench_expiry", ROOT / "benchmarks" / "bench_expiry.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.frames(ids)
+    import bench_expiry
 
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
+    return bench_expiry.frames(ids)
 
 
 def test_expired_sensors_leave_no_state_and_their_memory_goes_back(bus, zenoh_session, monkeypatch):

@@ -3,7 +3,6 @@
 --index``: the index records in the file and what the ``mcap`` writer keeps in memory
 until the file ends, per chunk (issue 28: 2-4 KB a chunk, where ~1 KB was documented)."""
 
-import importlib.util
 import re
 from pathlib import Path
 
@@ -11,10 +10,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def bench_record():
-    spec = importlib.util.spec_from_file_location("bench_record", ROOT / "benchmarks" / "bench_record.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    import bench_record
+
+    return bench_record
 
 
 def documented() -> tuple[tuple[int, int, int], tuple[float, int]]:

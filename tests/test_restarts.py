@@ -8,21 +8,13 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
-from zenoh_helpers import free_port, wait_port
+from zenoh_helpers import free_port, rss_mb, wait_port
 
 QRADAR = [sys.executable, "-m", "qradar"]
 RESTARTS = 20
-
-
-def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError(f"no VmRSS for {pid}")
 
 
 @pytest.mark.slow

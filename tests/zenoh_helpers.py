@@ -1,18 +1,20 @@
 """Helpers shared by the tests (not fixtures; those are in conftest.py): a bounded wait, a
 collecting zenoh subscriber, a free loopback port for code that needs one outside a fixture,
-the listening sockets of a process."""
+a wait for a port, the listening sockets and the memory of a process."""
 
 import os
 import socket
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
 
-def free_port() -> int:
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on ``host`` that was free a moment ago."""
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind((host, 0))
         return s.getsockname()[1]
 
 
@@ -76,3 +78,11 @@ def wait_port(port: int, timeout_s: float = 20) -> None:
                 return
         time.sleep(0.1)
     raise AssertionError(f"nothing listens on 127.0.0.1:{port}")
+
+
+def rss_mb(pid: int | str = "self") -> float:
+    """Resident memory (VmRSS) of process ``pid`` (default this one), MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for {pid}")
