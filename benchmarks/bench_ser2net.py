@@ -4,7 +4,8 @@ without ``tcp(nodelay)``, against the simulated K-MD2's pty opened directly.
 
 The simulated K-MD2 runs in its own process (``qradar sim --rate 0``: it answers at
 once), ser2net with the YAML of docs/chamber.md (tests/ser2net_helpers.py) on 127.0.0.1,
-and this process times ``SensorSession.read_ramp`` after a warm-up. Raw TCP at 115200
+and this process times a ``SensorSession``'s frames of one ramp after a warm-up (its
+reader keeps one GNFD outstanding, so a frame's time is one round trip). Raw TCP at 115200
 (a socket cannot switch the speed), RFC 2217 at 2 000 000 with ``?ign_set_control``.
 A pty has no line rate: these are the latencies of the software path, not of a UART.
 
@@ -31,11 +32,12 @@ Ser2net, require_ser2net = _S2N.Ser2net, _S2N.require_ser2net
 
 
 def time_ramps(url: str, baud: int, ramps: int, warmup: int) -> tuple[list[float], float]:
-    """Seconds per read_ramp() for ``ramps`` ramps after ``warmup`` untimed ones, and the
+    """Seconds per frame of one ramp for ``ramps`` ramps after ``warmup`` untimed ones, and the
     CPU seconds this process spent on them (all threads: pyserial's RFC 2217 client
     reads in a thread of its own)."""
-    with SensorSession(SessionConfig(url, baud=baud, reconnect=False, timeout_s=2.0)) as s:
-        t = time_calls(s.read_ramp, ramps, warmup)
+    with SensorSession(SessionConfig(url, baud=baud, ramps_per_frame=1, reconnect=False, timeout_s=2.0)) as s:
+        frames = s.frames()
+        t = time_calls(lambda: next(frames), ramps, warmup)
     return t.wall_s.tolist(), float(t.cpu_s.sum())
 
 
