@@ -30,8 +30,8 @@ import numpy as np  # noqa: E402
 
 from pipeline.budget import IntakeBudget  # noqa: E402
 from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.node import NO_SENSOR  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig  # noqa: E402
+from pipeline.counters import NO_SENSOR  # noqa: E402
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
 from pipeline.wire import FrameHeaders, encode_quantized_batch  # noqa: E402
 from radar_driver.scene import resolve_scene  # noqa: E402

@@ -14,7 +14,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig  # noqa: E402
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig  # noqa: E402
 bus = BusConfig(); s = bus.open()
 node = LocalizeNode(bus, LocalizerConfig(), session=s)
 rng = np.random.default_rng(0)

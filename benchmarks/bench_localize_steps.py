@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_nodes import payloads  # noqa: E402
 from pipeline.bus import BusConfig  # noqa: E402
 from pipeline.decode import decode_batch  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig, take_detections  # noqa: E402
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, take_detections  # noqa: E402
 from pipeline.wire import encode_targets_batch  # noqa: E402
 
 STEPS = ("parse", "take", "decode", "encode", "publish", "latency")

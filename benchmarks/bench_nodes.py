@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.bus import BusConfig  # noqa: E402
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode  # noqa: E402
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode  # noqa: E402
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds  # noqa: E402
 from pipeline.wire import FrameHeaders, encode_quantized_batch, encode_raw_batch  # noqa: E402
 from radar_driver.scene import resolve_scene  # noqa: E402

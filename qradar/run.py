@@ -37,7 +37,7 @@ from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.histogram import LogHistogram
 from pipeline.localize import DEFAULT_PFA, position_error_m
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.track import TrackerConfig
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks

@@ -12,12 +12,13 @@ import time
 import tracemalloc
 from pathlib import Path
 
-import pipeline.node as node_mod
+import pipeline.runtime as node_mod
 import pipeline.wire as wire
 from pipeline.budget import IntakeBudget
 from pipeline.memory import release_memory
-from pipeline.node import NO_SENSOR, TRIM_AFTER_SENSORS
-from pipeline.nodes import LocalizeNode, LocalizerConfig
+from pipeline.counters import NO_SENSOR
+from pipeline.runtime import TRIM_AFTER_SENSORS
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
 from zenoh_helpers import wait_until
 
 #: distinct sensor ids, one frame each (the issue's 10 000: benchmarks/bench_expiry.py)

@@ -15,7 +15,7 @@ import zenoh
 
 from pipeline.bus import BusConfig
 from pipeline.localize import position_error_m
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from pipeline.quantize import QuantizerConfig, unit_dither
 from pipeline.wire import (
