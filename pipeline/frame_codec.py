@@ -11,7 +11,7 @@ from typing import ClassVar, Protocol, Sequence
 
 import numpy as np
 
-from .errors import ParameterError
+from .errors import ParameterError, WireError
 from .quantize import MAX_BITS, QuantizedFrames, packed_size
 from .wire import (
     HEADER_LEN,
@@ -19,7 +19,6 @@ from .wire import (
     FrameHeaders,
     QuantizedGroup,
     RawGroup,
-    WireError,
     decode_quantized_batch,
     decode_raw_batch,
     encode_quantized_batch,

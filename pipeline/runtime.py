@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable, ClassVar, Protocol, Sequence
+from typing import Callable, ClassVar, Protocol, Sequence, runtime_checkable
 
 import zenoh
 
@@ -307,15 +307,17 @@ class Node(Counters):
 
 
 
+@runtime_checkable
 class Runnable(Protocol):
-    """What :func:`run_nodes` runs: a node, or a process that drives sensors."""
+    """What :func:`run_nodes` runs (a :class:`Node`, ``qradar.run.DriverProcess``): started,
+    stopped once, named in errors; ``errors`` holds what its threads died of."""
 
     name: str
     errors: list[BaseException]
 
     def start(self) -> object: ...
 
-    def stop(self, timeout_s: float = 5.0) -> None: ...
+    def stop(self) -> None: ...
 
 
 def _raise_node_error(nodes: Sequence[Runnable]) -> None:

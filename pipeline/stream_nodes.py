@@ -225,7 +225,8 @@ class FrameNode(ProcessingNode):
 
     batch_linger_s = BATCH_LINGER_S
 
-    def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | Transport | None, **kw):
+    def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | Transport | None,
+                 **kw):
         super().__init__(bus, session, **kw)
         self.codec: FrameCodec = codec_for(self.in_topic)
         self._configs = radar_configs(radar, max_ramps)
@@ -238,7 +239,7 @@ class FrameNode(ProcessingNode):
                 f"({len(self._configs)} configs, {min(self._lengths)}-{max(self._lengths)} bytes)")
 
     def decode(self, batch: list[QueuedFrame]) -> tuple[list, list[str]]:
-        """Decode a batch of queued frames in one vectorized call per
+        """Decode a batch of queued frames with the input's codec, in one vectorized call per
         length: the groups of frames whose sensor id matches the key, whose config id is
         announced and whose M is that configuration's, each with the keys of its frames
         (in order). The others are counted (decode_errors, invalid_frames)."""
