@@ -36,6 +36,7 @@ import zenoh
 from pipeline.bus import BusConfig, zenoh_reason
 from pipeline.counters import NO_SENSOR
 from pipeline.intake import ProcessingNode, QueuedFrame
+from pipeline.transport import Transport
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
 from .errors import RecordingExists, ReplayError
@@ -115,7 +116,7 @@ class RecorderNode(ProcessingNode):
     batch_per_sensor = None  # writing is cheap: whole batches
 
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
-                 session: zenoh.Session | None = None, split_size_mb: float | None = None,
+                 session: zenoh.Session | Transport | None = None, split_size_mb: float | None = None,
                  split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
                  queue_size: int = 20000, on_write_error: OnWriteError | str = OnWriteError.RESUME,
                  retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False, **kw):

@@ -1,7 +1,7 @@
 """No input stops a node, every lost frame is counted where it is noticed, and a flooding
 or misbehaving sender costs only itself. What a node does with its input (queue, budgets,
 counters) runs over the in-memory transport (pipeline.transport), the same node over
-zenoh gives the same outputs; what involves zenoh itself (wildcard keys, the recorder,
+zenoh gives the same outputs; what involves zenoh itself (wildcard keys, nodes in other
 processes over 127.0.0.1) runs on real zenoh sessions. Every wait bounded."""
 
 import json
@@ -371,15 +371,15 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
     assert loc["frames_missing"] == h.frames_missing and loc["drops"] == 0
 
 
-def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, zenoh_session, tmp_path):
+def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, mem, tmp_path):
     # the recorder records its own health on radar/<sensor>/health: that must neither keep a
     # silent sensor's state alive nor make it again (benchmarks/soak.py's junk keys)
     from replay.recorder import RecorderNode
 
-    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session, health_period_s=0.1,
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=mem, health_period_s=0.1,
                        sensor_expiry_s=0.5).start()
     try:
-        zenoh_session.put("radar/junk1/raw", raw("junk1", 0))
+        mem.put("radar/junk1/raw", raw("junk1", 0))
         wait_until(lambda: "junk1" in rec.stats, 10, "the junk sensor's state")
         wait_until(lambda: rec.sensors_expired >= 1 and "junk1" not in rec.stats, 10, "the junk sensor to expire")
         time.sleep(1.0)  # ten health periods: late health makes no state again
@@ -402,16 +402,16 @@ def test_a_flooding_sensor_cannot_fill_a_batch():
     assert len(nxt) == 17 and ("good", 1) in nxt  # served in the next batch, not 64 frames later
 
 
-def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, zenoh_session, tmp_path):
+def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, mem, tmp_path):
     from mcap.reader import make_reader
 
     from replay.recorder import RecorderNode
 
-    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session).start()
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=mem).start()
     try:
         for i in range(50):
-            zenoh_session.put(f"radar/junk{i}/raw", b"x")
-        zenoh_session.put("radar/s6/raw", raw("s6", 0))
+            mem.put(f"radar/junk{i}/raw", b"x")
+        mem.put("radar/s6/raw", raw("s6", 0))
         wait_until(lambda: rec.totals()["frames_out"] == 1 and rec.totals()["invalid_frames"] == 50, 10,
                    "one frame recorded, 50 refused")
     finally:
