@@ -29,13 +29,13 @@ from .decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode
 from .errors import ParameterError
 from .frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
 from .gate import RangeGate
-from .localize import DEFAULT_PFA, Detections
 from .intake import ProcessingNode, QueuedFrame
+from .localize import DEFAULT_PFA, Detections
 from .noise import NoiseTracker
 from .quantize import AUTO_ALPHA, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
 from .runtime import Node, run_nodes
-from .transport import Transport
 from .track import Integration, Tracker, TrackerConfig, publish_tracks
+from .transport import Transport
 from .wire import FrameHeaders, encode_targets_batch
 
 log = logging.getLogger("qradar.node")
