@@ -27,8 +27,8 @@ import numpy as np
 from harness import rss_mb
 from pipeline.budget import IntakeBudget
 from pipeline.bus import BusConfig
-from pipeline.node import NO_SENSOR
-from pipeline.nodes import LocalizeNode, LocalizerConfig
+from pipeline.counters import NO_SENSOR
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
 from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import FrameHeaders, encode_quantized_batch
 from radar_driver.scene import resolve_scene

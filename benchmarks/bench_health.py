@@ -12,7 +12,7 @@ import numpy as np
 
 from harness import time_calls
 from pipeline.bus import BusConfig
-from pipeline.nodes import LocalizeNode, LocalizerConfig
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
 
 
 def main() -> None:

@@ -2,7 +2,7 @@
 (issue 23): ``qradar run``, ``localize``, ``quantize``, ``drive --quantize``, ``source
 --quantized`` and ``reprocess``, and of the configurations behind them
 (:class:`~pipeline.quantize.QuantizerConfig`, :class:`~pipeline.decode.DecoderConfig`,
-:class:`~pipeline.nodes.LocalizerConfig`, ``qradar.run.RunConfig``,
+:class:`~pipeline.stream_nodes.LocalizerConfig`, ``qradar.run.RunConfig``,
 ``replay.reprocess.ReprocessConfig``). Everything else reads these names; nothing
 repeats their values (``tests/test_defaults.py`` parses every command's options).
 

@@ -5,7 +5,7 @@ free top of the main arena (beyond M_TRIM_THRESHOLD); memory freed inside an are
 in the arenas of other threads (zenoh's among them), stays in the process's RSS until
 ``malloc_trim`` is called. A node that forgets many sensors at once frees their state
 (stats, histograms, zenoh publishers: ~12 KB a sensor) into the heap, so it calls
-:func:`release_memory` after an expiry sweep (:meth:`pipeline.node.Node._expire`).
+:func:`release_memory` after an expiry sweep (:meth:`pipeline.runtime.Node._expire`).
 """
 
 from __future__ import annotations

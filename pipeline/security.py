@@ -48,7 +48,9 @@ CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
 
 ROLES = ("router", "sensor", "quantizer", "localizer", "recorder", "viewer")
-# the zenoh node name (Node.name) each role runs, for its liveliness tokens
+# the liveliness name (Node.name) of the node each role runs: the node class that declares
+# that role (Node.role; tests/test_security.py checks the two agree). A table here, not a
+# look-up of the classes: the router enforces it and imports none of them
 ROLE_NODE = {"sensor": "source", "quantizer": "quantize", "localizer": "localize", "recorder": "record",
              "viewer": "view"}
 # the data topics each role may publish for its sensors

@@ -37,7 +37,7 @@ class Integration:
 
     @classmethod
     def of_localizer(cls, config, every_s: float = 1.0) -> "Integration":
-        """The integration of a :class:`pipeline.nodes.LocalizerConfig`'s decoder."""
+        """The integration of a :class:`pipeline.stream_nodes.LocalizerConfig`'s decoder."""
         return cls(config.k, config.gate, config.pfa if config.auto_k else None, every_s)
 
 

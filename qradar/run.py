@@ -30,7 +30,7 @@ from pipeline.bus import BusConfig
 from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.localize import DEFAULT_PFA
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.track import TrackerConfig
 from pipeline.quantize import QuantizerConfig
 from radar_driver.errors import ConfigError

@@ -1,7 +1,7 @@
 """``qradar view``: the live stream in Foxglove, over the Foxglove WebSocket protocol
 (``foxglove-sdk``).
 
-A node like the others (:class:`pipeline.node.ProcessingNode`): it subscribes
+A node like the others (:class:`pipeline.intake.ProcessingNode`): it subscribes
 ``<prefix>/*/targets``, ``<prefix>/*/quantized`` and ``<prefix>/*/health``, zenoh's
 callback copies a payload into a bounded queue (a full queue drops the newest and counts
 it in ``drops``), and one worker thread decodes and logs to a Foxglove WebSocket server
@@ -64,8 +64,8 @@ from foxglove.messages import (
 from pipeline.budget import IntakeBudget
 from pipeline.bus import BusConfig
 from pipeline.errors import ParameterError, PipelineError, WireError
+from pipeline.intake import SEQ, SEQ_OFFSET, ProcessingNode, QueuedFrame
 from pipeline.localize import back_project
-from pipeline.node import SEQ, SEQ_OFFSET, ProcessingNode
 from pipeline.quantize import dequantize
 from pipeline.wire import (
     HEADER_LEN,
@@ -347,6 +347,7 @@ class FoxgloveView(ProcessingNode):
     stops with :meth:`stop`."""
 
     name = "view"
+    role = "viewer"
 
     def __init__(self, bus: BusConfig, config: ViewConfig = ViewConfig(), session: zenoh.Session | None = None,
                  health_period_s: float = 1.0, intake: IntakeBudget | None = None):
@@ -392,7 +393,7 @@ class FoxgloveView(ProcessingNode):
 
     def _start(self) -> None:
         topics = ["targets", "tracks", "health"] + (["quantized"] if self.config.profile_rate_hz > 0 else [])
-        self._subscribers = [self.session.declare_subscriber(self.bus.wildcard(t), self._on_sample) for t in topics]
+        self._subscribers = [self.transport.declare_subscriber(self.bus.wildcard(t), self._on_sample) for t in topics]
         self._spawn_supervised(self._work_loop, "worker")
 
     def _stopping(self) -> None:
@@ -429,8 +430,9 @@ class FoxgloveView(ProcessingNode):
         super()._on_sample(sample)
 
     # -- the worker ------------------------------------------------------------------------------
-    def process(self, batch) -> None:
-        for sensor, key, payload, _ in batch:
+    def process(self, batch: list[QueuedFrame]) -> None:
+        for item in batch:
+            sensor, key, payload = item.sensor, item.key, item.payload
             topic = key.rsplit("/", 1)[-1]
             try:
                 if topic == "targets":

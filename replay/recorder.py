@@ -34,7 +34,9 @@ from pathlib import Path
 import zenoh
 
 from pipeline.bus import BusConfig, zenoh_reason
-from pipeline.node import NO_SENSOR, ProcessingNode
+from pipeline.counters import NO_SENSOR
+from pipeline.intake import ProcessingNode, QueuedFrame
+from pipeline.transport import Transport
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
 from .errors import RecordingExists, ReplayError
@@ -109,11 +111,12 @@ class RecorderNode(ProcessingNode):
     when recording stops for good after a write error."""
 
     name = "record"
+    role = "recorder"
     accepts_any_key = True  # every key under the subscription is recorded
     batch_per_sensor = None  # writing is cheap: whole batches
 
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
-                 session: zenoh.Session | None = None, split_size_mb: float | None = None,
+                 session: zenoh.Session | Transport | None = None, split_size_mb: float | None = None,
                  split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
                  queue_size: int = 20000, on_write_error: OnWriteError | str = OnWriteError.RESUME,
                  retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False, **kw):
@@ -340,8 +343,9 @@ class RecorderNode(ProcessingNode):
             log.warning("recording still paused (%s); %d messages lost so far", why, self.lost)
 
     # -- writing -------------------------------------------------------------------------------
-    def process(self, batch) -> None:
-        for sensor, key, payload, log_ns in batch:
+    def process(self, batch: list[QueuedFrame]) -> None:
+        for item in batch:
+            sensor, key, payload, log_ns = item.sensor, item.key, item.payload, item.received_ns
             topic = topic_of(key)
             sink = self._sink
             if sink is None:  # paused or stopped

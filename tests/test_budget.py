@@ -15,8 +15,9 @@ import zenoh
 
 from pipeline.budget import IntakeBudget, KeyBudget, TokenBucket
 from pipeline.errors import ParameterError
-from pipeline.node import MAX_SEQ_GAP, NO_SENSOR, PUBLISHER_AFTER, UNKNOWN_SENSOR
-from pipeline.nodes import QuantizeNode
+from pipeline.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
+from pipeline.runtime import PUBLISHER_AFTER
+from pipeline.stream_nodes import QuantizeNode
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized
 from test_hardening import raw

@@ -125,7 +125,7 @@ def test_the_localizer_keeps_each_sensors_last_targets_until_it_expires(bus, zen
     from radar_driver.source import SimSourceConfig, SimulatedSource
     from zenoh_helpers import Collector, wait_until
 
-    from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
+    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
     from pipeline.quantize import QuantizerConfig
     from pipeline.wire import decode_targets
 

@@ -181,7 +181,7 @@ def test_the_localizer_node_counts_the_chamber_targets(bus, zenoh_session):
     with K auto; every target carries its statistic."""
     import threading
 
-    from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
     from pipeline.quantize import QuantizerConfig
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource
@@ -236,7 +236,7 @@ def test_reprocess_with_k_auto_counts_empty_frames_and_writes_valid_json(tmp_pat
 
 
 def test_cml_localizer_refuses_more_targets_than_it_can_fit():
-    from pipeline.nodes import LocalizerConfig
+    from pipeline.stream_nodes import LocalizerConfig
 
     with pytest.raises(ParameterError, match="at most N/2 = 128 for cml"):
         LocalizerConfig(k=200, algo="cml", auto_k=True)

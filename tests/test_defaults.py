@@ -12,7 +12,7 @@ import pytest
 from pipeline import defaults
 from pipeline.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, DecoderConfig, default_alpha
 from pipeline.gate import RangeGate
-from pipeline.nodes import LocalizerConfig
+from pipeline.stream_nodes import LocalizerConfig
 from pipeline.quantize import QuantizerConfig
 from qradar.cli import build_parser
 from qradar.cli.common import edge_quantizer, quantizer_config

@@ -18,7 +18,7 @@ from numpy.testing import assert_allclose
 
 from pipeline.bus import BusConfig
 from pipeline.errors import ParameterError
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import TargetsMsg, decode_quantized
 from qradar.run import RunConfig, run

@@ -13,7 +13,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-import pipeline.nodes as nodes_mod
+import pipeline.frame_codec as frame_codec
 import pipeline.wire_frames as wire_frames
 import radar_driver.limits as limits
 from pipeline.decode import DecoderConfig, decode_batch
@@ -26,7 +26,7 @@ from radar_driver.source import SimSourceConfig, SimulatedSource
 #: the checks the probe counts, by the name the test reports
 CHECKS = {"sensor_id": (limits, "sensor_id_problem"), "sensor_id_bytes": (limits, "sensor_id_fields_bad"),
           "bits": (limits, "bits_problem"), "bits_vectorized": (limits, "bits_bad"), "header_and_length": (wire_frames, "_faults"),
-          "sample_range": (nodes_mod, "bad_samples")}
+          "sample_range": (frame_codec, "bad_samples")}
 
 
 @pytest.fixture
@@ -67,7 +67,7 @@ def test_each_check_once_per_hop_at_the_edge(probe):
     # the quantizer node: raw bytes -> a typed raw batch -> codes -> quantized bytes
     (group,), errors = decode_raw_batch(raw, ["radar/sim0/raw"])
     assert not errors and group.data.dtype == np.complex64
-    assert not nodes_mod.bad_samples(group.data).any()
+    assert not frame_codec.bad_samples(group.data).any()
     q = quantize_frames(group.data, config, group.headers.seq,
                         dither_seed=sensor_dither_seeds(config.dither_seed, group.headers.sensor_id))
     quantized = encode_quantized_batch(group.headers, q)

@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.budget import IntakeBudget
 from pipeline.errors import WireError
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode
 from pipeline.quantize import QuantizerConfig, quantize_frames
 from pipeline.wire import (
     COMMON,

@@ -17,7 +17,7 @@ from pipeline.errors import ParameterError
 from pipeline.gate import LEAKAGE_BINS, RangeGate
 from pipeline.localize import localize
 from pipeline.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
-from pipeline.nodes import LocalizerConfig
+from pipeline.stream_nodes import LocalizerConfig
 from pipeline.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 from replay.errors import ReplayError

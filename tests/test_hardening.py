@@ -1,6 +1,8 @@
 """No input stops a node, every lost frame is counted where it is noticed, and a flooding
-or misbehaving sender costs only itself (issue 12). Real zenoh sessions, in process and
-across processes over 127.0.0.1; every wait bounded."""
+or misbehaving sender costs only itself. What a node does with its input (queue, budgets,
+counters) runs over the in-memory transport (pipeline.transport), the same node over
+zenoh gives the same outputs; what involves zenoh itself (wildcard keys, nodes in other
+processes over 127.0.0.1) runs on real zenoh sessions. Every wait bounded."""
 
 import json
 import subprocess
@@ -13,11 +15,12 @@ import pytest
 import zenoh
 
 from pipeline.budget import IntakeBudget
+from pipeline.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
 from pipeline.errors import ParameterError
 from pipeline.fairqueue import FairQueue
-from pipeline.node import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
 from pipeline.quantize import QuantizerConfig
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
+from pipeline.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
 from zenoh_helpers import Collector, wait_until
@@ -29,6 +32,16 @@ FRAME = np.tile(SCENE.clean_ramp(0.0), (2, 1)).astype(np.complex64)
 
 def raw(sensor, seq, data=FRAME, config_id=CONFIG_ID):
     return encode_raw(RawFrameMsg(sensor, seq, time.time_ns(), config_id, data))
+
+
+@pytest.fixture
+def mem():
+    """An in-memory transport, closed after."""
+    transport = MemoryTransport()
+    try:
+        yield transport
+    finally:
+        transport.close()
 
 
 def chain(bus, session, **kw):
@@ -75,16 +88,16 @@ def test_isolate_loses_only_the_bad_frame():
 
 # -- a node never stops -------------------------------------------------------------------------
 @pytest.mark.parametrize("bad", ["nan", "inf", "huge"])
-def test_a_frame_of_bad_samples_is_counted_and_the_stream_goes_on(bus, zenoh_session, bad):
-    col = Collector(zenoh_session, "radar/*/targets")
-    q, loc = chain(bus, zenoh_session)
+def test_a_frame_of_bad_samples_is_counted_and_the_stream_goes_on(bus, mem, bad):
+    col = Collector(mem, "radar/*/targets")
+    q, loc = chain(bus, mem)
     try:
         frame = FRAME.copy()
         frame[7, 1] = {"nan": np.nan, "inf": -np.inf, "huge": 3e38}[bad]
-        zenoh_session.put("radar/s1/raw", raw("s1", 0))
-        zenoh_session.put("radar/s1/raw", raw("s1", 1, frame))
-        zenoh_session.put("radar/s1/raw", raw("s1", 2 ** 63))  # a sequence number beyond int64
-        zenoh_session.put("radar/s1/raw", raw("s1", 2 ** 64 - 1))
+        mem.put("radar/s1/raw", raw("s1", 0))
+        mem.put("radar/s1/raw", raw("s1", 1, frame))
+        mem.put("radar/s1/raw", raw("s1", 2 ** 63))  # a sequence number beyond int64
+        mem.put("radar/s1/raw", raw("s1", 2 ** 64 - 1))
         wait_until(lambda: len(col.of("s1/targets")) == 3, 15, "targets of the three good frames")
         assert sorted(decode_targets(p).seq for p in col.of("s1/targets")) == [0, 2 ** 63, 2 ** 64 - 1]
         assert q.totals()["invalid_frames"] == 1 and q.totals()["processing_errors"] == 0
@@ -94,13 +107,13 @@ def test_a_frame_of_bad_samples_is_counted_and_the_stream_goes_on(bus, zenoh_ses
         loc.stop()
 
 
-def test_a_frame_no_configuration_announces_is_refused_before_it_is_copied(bus, zenoh_session):
-    q, loc = chain(bus, zenoh_session)
+def test_a_frame_no_configuration_announces_is_refused_before_it_is_copied(bus, mem):
+    q, loc = chain(bus, mem)
     try:
         huge = np.zeros((1 << 20, 2), np.complex64)  # M = 2^20, 16 MB: the wire's largest
         for i in range(4):
-            zenoh_session.put("radar/s2/raw", raw("s2", i, huge))
-        zenoh_session.put("radar/s2/raw", raw("s2", 4, FRAME, config_id=12345))  # right length, unknown config
+            mem.put("radar/s2/raw", raw("s2", i, huge))
+        mem.put("radar/s2/raw", raw("s2", 4, FRAME, config_id=12345))  # right length, unknown config
         wait_until(lambda: q.totals()["invalid_frames"] == 5, 15, "five refused frames")
         with q._lock:
             st = q.stats["s2"]  # the config-id frame gave it state
@@ -112,7 +125,7 @@ def test_a_frame_no_configuration_announces_is_refused_before_it_is_copied(bus, 
         loc.stop()
 
 
-def test_a_dead_worker_is_restarted_and_counted(bus, zenoh_session):
+def test_a_dead_worker_is_restarted_and_counted(bus, mem):
     class Flaky(QuantizeNode):
         fails = 2
 
@@ -121,20 +134,51 @@ def test_a_dead_worker_is_restarted_and_counted(bus, zenoh_session):
                 self.fails -= 1
                 raise RuntimeError("worker bug")
 
-    col = Collector(zenoh_session, "radar/*/quantized")
-    q = Flaky(bus, QuantizerConfig(), session=zenoh_session).start()
+    col = Collector(mem, "radar/*/quantized")
+    q = Flaky(bus, QuantizerConfig(), session=mem).start()
     try:
         wait_until(lambda: q.totals()["worker_restarts"] == 2, 10, "two restarts")
-        zenoh_session.put("radar/s3/raw", raw("s3", 0))
+        mem.put("radar/s3/raw", raw("s3", 0))
         wait_until(lambda: len(col.of("s3/quantized")) == 1, 10, "a frame after the restarts")
         assert not q.errors
     finally:
         q.stop()
 
 
+
+@pytest.mark.parametrize("input_mode", ["callback", "pull"])
+def test_the_same_nodes_give_the_same_outputs_over_zenoh_and_in_memory(bus, zenoh_session, mem, input_mode):
+    """The in-memory transport carries a chain as zenoh does: the same frames (a bad one, a
+    gap, a garbage payload among them) give the same quantized bytes, targets and counters."""
+    bad = FRAME.copy()
+    bad[3, 0] = np.nan
+    msgs = [("radar/a/raw", raw("a", 0)), ("radar/b/raw", raw("b", 0)), ("radar/a/raw", raw("a", 1, bad)),
+            ("radar/a/raw", raw("a", 3)), ("radar/b/raw", b"x"), ("radar/b/raw", raw("b", 1))]
+
+    def run(transport):
+        col = Collector(transport, "radar/**")
+        q, loc = chain(bus, transport, input_mode=input_mode)
+        try:
+            for key, payload in msgs:
+                transport.put(key, payload)
+            wait_until(lambda: loc.totals()["frames_out"] == 4, 15, "the targets of the four good frames")
+        finally:
+            q.stop()
+            loc.stop()
+        targets = sorted((t.sensor_id, t.seq, t.timestamp_ns, t.config_id, str(t.targets))
+                         for t in map(decode_targets, col.of("/targets")))
+        counters = [{k: v for k, v in nd.totals().items() if k != "bytes_out" or nd is q} for nd in (q, loc)]
+        return sorted(col.of("/quantized")), targets, counters
+
+    over_zenoh, in_memory = run(zenoh_session), run(mem)
+    assert len(over_zenoh[0]) == 4 and len(over_zenoh[1]) == 4
+    assert over_zenoh[2][0]["invalid_frames"] == 2 and over_zenoh[2][0]["frames_missing"] == 1
+    assert in_memory == over_zenoh
+
+
 # -- exhaustion and strangers ---------------------------------------------------------------
 @pytest.mark.parametrize("intake", ["default", "unlimited"])
-def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_session, intake):
+def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, mem, intake):
     """With the intake budgets (the default) the flood's excess is dropped where it arrives
     (over_budget); without them, the fair queue still makes the flood lose its own frames."""
     class Slow(QuantizeNode):
@@ -142,16 +186,16 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_sessio
             time.sleep(0.002 * len(batch))  # a busy node: 2 ms a frame
             super().process(batch)
 
-    col = Collector(zenoh_session, "radar/*/quantized")
-    q = Slow(bus, QuantizerConfig(), session=zenoh_session, queue_size=64, sensor_queue_size=16,
+    col = Collector(mem, "radar/*/quantized")
+    q = Slow(bus, QuantizerConfig(), session=mem, queue_size=64, sensor_queue_size=16,
              batch_max=8, intake=IntakeBudget() if intake == "default" else IntakeBudget.unlimited()).start()
     try:
-        evil = zenoh_session.declare_publisher("radar/evil/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+        evil = mem.declare_publisher("radar/evil/raw")
         payload = raw("evil", 0)
         for i in range(40):  # 40 ticks of 20 ms: the real sensor sends 1 frame, the evil one 50
             for j in range(50):
                 evil.put(payload)
-            zenoh_session.put("radar/real/raw", raw("real", i))
+            mem.put("radar/real/raw", raw("real", i))
             time.sleep(0.02)
         wait_until(lambda: len(col.of("real/quantized")) == 40, 20, "every frame of the real sensor")
         with q._lock:
@@ -163,15 +207,15 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, zenoh_sessio
         q.stop()
 
 
-def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, zenoh_session):
-    health = Collector(zenoh_session, "radar/*/health")
-    q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session, health_period_s=0.1,
+def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, mem):
+    health = Collector(mem, "radar/*/health")
+    q = QuantizeNode(bus, QuantizerConfig(), session=mem, health_period_s=0.1,
                      sensor_expiry_s=0.5).start()
     try:
         for i in range(1000):  # one-byte puts to distinct keys
-            zenoh_session.put(f"radar/k{i}/raw", b"x")
+            mem.put(f"radar/k{i}/raw", b"x")
         for i in range(20):
-            zenoh_session.put(f"radar/v{i}/raw", raw(f"v{i}", 0))
+            mem.put(f"radar/v{i}/raw", raw(f"v{i}", 0))
         wait_until(lambda: q.totals()["frames_out"] == 20, 10, "the valid frames")
         with q._lock:
             assert set(q.stats) <= {NO_SENSOR} | {f"v{i}" for i in range(20)}
@@ -209,15 +253,15 @@ def test_a_wildcard_key_never_becomes_a_published_key(bus, zenoh_session):
 
 
 # -- every lost frame is counted ---------------------------------------------------------------
-def test_sequence_gaps_are_counted_at_every_stage(bus, zenoh_session):
-    col = Collector(zenoh_session, "radar/*/health")
-    q, loc = chain(bus, zenoh_session)
+def test_sequence_gaps_are_counted_at_every_stage(bus, mem):
+    col = Collector(mem, "radar/*/health")
+    q, loc = chain(bus, mem)
     try:
         for s in [*range(10), *range(20, 30)]:  # 10 frames lost before the quantizer
-            zenoh_session.put("radar/s5/raw", raw("s5", s))
+            mem.put("radar/s5/raw", raw("s5", s))
         wait_until(lambda: loc.totals()["frames_out"] == 20, 10, "20 targets")
         for s in range(3):  # the sensor restarted: its count starts again
-            zenoh_session.put("radar/s5/raw", raw("s5", s))
+            mem.put("radar/s5/raw", raw("s5", s))
         wait_until(lambda: loc.totals()["frames_out"] == 23, 10, "23 targets")
         for node in (q, loc):
             t = node.totals()
@@ -234,19 +278,19 @@ def test_sequence_gaps_are_counted_at_every_stage(bus, zenoh_session):
         loc.stop()
 
 
-def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, zenoh_session):
+def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, mem):
     """One frame with seq 2^63 on an honest key is a reset, not 2^63 frames missing; the
     honest frames after it are a reset again, and a real gap is still counted."""
-    q, loc = chain(bus, zenoh_session)
+    q, loc = chain(bus, mem)
     try:
         for s in [0, 1, 2, 2**63, 3, 4, 6]:
-            zenoh_session.put("radar/h0/raw", raw("h0", s))
+            mem.put("radar/h0/raw", raw("h0", s))
         wait_until(lambda: loc.totals()["frames_out"] == 7, 10, "7 targets")
         for node in (q, loc):
             t = node.totals()
             assert (t["frames_missing"], t["seq_resets"]) == (1, 2), (node.name, t)
         gap = MAX_SEQ_GAP + 7  # the largest gap that still counts, from 6
-        zenoh_session.put("radar/h0/raw", raw("h0", gap))
+        mem.put("radar/h0/raw", raw("h0", gap))
         wait_until(lambda: loc.totals()["frames_out"] == 8, 10, "8 targets")
         assert q.totals()["frames_missing"] == 1 + MAX_SEQ_GAP
     finally:
@@ -327,15 +371,15 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
     assert loc["frames_missing"] == h.frames_missing and loc["drops"] == 0
 
 
-def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, zenoh_session, tmp_path):
+def test_a_recorder_forgets_a_silent_sensor_though_its_own_health_goes_on(bus, mem, tmp_path):
     # the recorder records its own health on radar/<sensor>/health: that must neither keep a
     # silent sensor's state alive nor make it again (benchmarks/soak.py's junk keys)
     from replay.recorder import RecorderNode
 
-    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session, health_period_s=0.1,
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=mem, health_period_s=0.1,
                        sensor_expiry_s=0.5).start()
     try:
-        zenoh_session.put("radar/junk1/raw", raw("junk1", 0))
+        mem.put("radar/junk1/raw", raw("junk1", 0))
         wait_until(lambda: "junk1" in rec.stats, 10, "the junk sensor's state")
         wait_until(lambda: rec.sensors_expired >= 1 and "junk1" not in rec.stats, 10, "the junk sensor to expire")
         time.sleep(1.0)  # ten health periods: late health makes no state again
@@ -358,16 +402,16 @@ def test_a_flooding_sensor_cannot_fill_a_batch():
     assert len(nxt) == 17 and ("good", 1) in nxt  # served in the next batch, not 64 frames later
 
 
-def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, zenoh_session, tmp_path):
+def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, mem, tmp_path):
     from mcap.reader import make_reader
 
     from replay.recorder import RecorderNode
 
-    rec = RecorderNode(bus, tmp_path / "r.mcap", session=zenoh_session).start()
+    rec = RecorderNode(bus, tmp_path / "r.mcap", session=mem).start()
     try:
         for i in range(50):
-            zenoh_session.put(f"radar/junk{i}/raw", b"x")
-        zenoh_session.put("radar/s6/raw", raw("s6", 0))
+            mem.put(f"radar/junk{i}/raw", b"x")
+        mem.put("radar/s6/raw", raw("s6", 0))
         wait_until(lambda: rec.totals()["frames_out"] == 1 and rec.totals()["invalid_frames"] == 50, 10,
                    "one frame recorded, 50 refused")
     finally:

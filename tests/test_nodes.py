@@ -15,7 +15,7 @@ import zenoh
 
 from pipeline.bus import BusConfig
 from pipeline.localize import position_error_m
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from pipeline.quantize import QuantizerConfig, unit_dither
 from pipeline.wire import (
@@ -384,3 +384,15 @@ def test_localizer_node_with_the_continuous_decoder_off_the_grid(bus, zenoh_sess
     assert np.median(err, axis=0).max() < 0.6, np.median(err, axis=0)  # both targets, off the 0.6 m grid
     ranges = np.array([sorted(t["range_m"] for t in m.targets) for m in targets])
     assert np.median(np.abs(ranges - [9.23, 23.43]), axis=0).max() < 0.1  # between the bins, not on them
+
+
+def test_a_node_and_a_driver_process_are_runnable_and_a_plain_object_is_not(bus):
+    """run_nodes takes what a Node and a DriverProcess have in common (pipeline.runtime.Runnable)."""
+    from pipeline.runtime import Runnable
+    from pipeline.transport import MemoryTransport
+    from qradar.run import DriverProcess
+
+    node = QuantizeNode(bus, QuantizerConfig(), session=MemoryTransport())
+    driver = DriverProcess("/dev/null", "s1", None, 1, bus)  # not started: no process
+    assert isinstance(node, Runnable) and isinstance(driver, Runnable)
+    assert not isinstance(object(), Runnable)

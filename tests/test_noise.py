@@ -217,7 +217,7 @@ def test_the_edge_quantizer_publishes_the_noise_and_forgets_an_expired_sensor(bu
     """drive --quantize's path in process: a source node quantizing with alpha auto puts the
     estimate in its sensor's health (the walker scene's noise_std, within 5 %), and a
     quantize node forgets a sensor's noise when the sensor expires."""
-    from pipeline.nodes import QuantizeNode, SourceNode, run_nodes
+    from pipeline.stream_nodes import QuantizeNode, SourceNode, run_nodes
     from radar_driver.source import SimSourceConfig, SimulatedSource
 
     session = zenoh_session

@@ -16,8 +16,8 @@ import pytest
 from pipeline.bus import BusConfig, Shard
 from pipeline.decode import DEFAULT_ALPHA
 from pipeline.errors import ParameterError
-from pipeline.node import HEALTH_SLICES
-from pipeline.nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.counters import HEALTH_SLICES
+from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
 from radar_driver.scene import resolve_scene

@@ -389,3 +389,27 @@ def test_only_the_router_is_the_router(pki, free_port):
             assert "only the router's own certificate" in line and "cannot open zenoh session" in line
     finally:
         stop([impostor])
+
+
+def test_every_role_security_knows_has_a_node_class_of_that_liveliness_name():
+    """The node each role runs is the node class that declares that role (Node.role), and
+    its liveliness name (Node.name) is the one the policy lets the role declare."""
+    import pipeline.stream_nodes  # noqa: F401  (the node classes, by layer)
+    import qradar.view  # noqa: F401
+    import replay.recorder  # noqa: F401
+    from pipeline.runtime import Node
+    from pipeline.security import ROLE_NODE, ROLES
+
+    def subclasses(cls):
+        for sub in cls.__subclasses__():
+            yield sub
+            yield from subclasses(sub)
+
+    declared = {}
+    for cls in subclasses(Node):
+        if "role" in vars(cls) and cls.role is not None:
+            declared.setdefault(cls.role, set()).add(cls.name)
+    assert declared == {role: {name} for role, name in ROLE_NODE.items()}
+    assert set(ROLES) == {"router", *declared}  # the router runs no node of ours
+    for role, name in ROLE_NODE.items():
+        assert Identity("x", role, ("s1",) if role == "sensor" else ()).liveliness("radar") == [f"radar/alive/{name}/*"]

@@ -572,7 +572,7 @@ def test_tracker_state_expires_with_its_sensor(bus, zenoh_session):
     import zenoh
     from zenoh_helpers import Collector, wait_until
 
-    from pipeline.nodes import LocalizeNode, LocalizerConfig
+    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
     from pipeline.quantize import sensor_dither_seed
     from pipeline.wire import encode_quantized_batch
 

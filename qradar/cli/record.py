@@ -9,7 +9,7 @@ import threading
 from pathlib import Path
 
 from pipeline import audit
-from pipeline.nodes import run_nodes
+from pipeline.stream_nodes import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
 from replay.mcapio import recover

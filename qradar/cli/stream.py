@@ -14,8 +14,8 @@ from pipeline import audit
 from pipeline.bus import BusConfig
 from pipeline.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
 from pipeline.errors import ParameterError
-from pipeline.node import INPUT_MODES
-from pipeline.nodes import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.intake import INPUT_MODES
+from pipeline.stream_nodes import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource

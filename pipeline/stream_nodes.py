@@ -1,6 +1,8 @@
-"""The zenoh nodes of the stream: a source node (any frame source -> raw frames), the
-quantize-with-dither node and the localizer node. The node machinery (queues, health,
-liveliness) is in :mod:`pipeline.node`; the math they call is in
+"""The nodes of the stream: a source node (any frame source -> raw frames), the
+quantize-with-dither node and the localizer node. The node machinery is in
+:mod:`pipeline.runtime` (transport, liveliness, health) and :mod:`pipeline.intake`
+(queues, budgets, batches); how each kind of frame decodes is in
+:mod:`pipeline.frame_codec`; the math they call is in
 :mod:`pipeline.quantize` and :mod:`pipeline.decode`: a node decodes payloads, groups
 them into batches and publishes what the math returns.
 """
@@ -25,24 +27,17 @@ from .calibration import Calibration
 from .cml import kernels_ready, warm_up_kernels
 from .decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
 from .errors import ParameterError
+from .frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
 from .gate import RangeGate
+from .intake import ProcessingNode, QueuedFrame
 from .localize import DEFAULT_PFA, Detections
-from .node import Node, ProcessingNode, run_nodes
 from .noise import NoiseTracker
-from .quantize import (AUTO_ALPHA, MAX_BITS, QuantizedFrames, QuantizerConfig, packed_size, quantize_frames,
-                       sensor_dither_seeds)
+from .quantize import AUTO_ALPHA, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
+from .runtime import Node, run_nodes
 from .track import TrackerConfig
 from .tracker import Integration, Tracker, publish_tracks
-from .wire import (
-    HEADER_LEN,
-    QUANT_HEADER_LEN,
-    FrameHeaders,
-    decode_quantized_batch,
-    decode_raw_batch,
-    encode_quantized_batch,
-    encode_raw_batch,
-    encode_targets_batch,
-)
+from .transport import Transport
+from .wire import FrameHeaders, encode_targets_batch
 
 log = logging.getLogger("qradar.node")
 
@@ -67,8 +62,9 @@ class SourceNode(Node):
     = when the source ends); ``on_frame`` sees every frame after it is published."""
 
     name = "source"
+    role = "sensor"
 
-    def __init__(self, bus: BusConfig, source: FrameSource, session: zenoh.Session | None = None,
+    def __init__(self, bus: BusConfig, source: FrameSource, session: zenoh.Session | Transport | None = None,
                  frames: int | None = None, on_frame: Callable[[RawFrame], None] | None = None,
                  quantizer: QuantizerConfig | None = None, raw_every: int | None = None,
                  calibration: Calibration | None = None, **kw):
@@ -114,7 +110,7 @@ class SourceNode(Node):
                 keep = np.flatnonzero(headers.seq % np.uint64(self.raw_every) == 0)
                 if keep.size:
                     raw = headers.take(keep)
-                    self.publish_many(raw.sensor_id, "raw", encode_raw_batch(raw, data[keep]), OCTETS)
+                    self.publish_many(raw.sensor_id, "raw", CODECS["raw"].encode(raw, data[keep]), OCTETS)
             if self.quantizer is not None:
                 quantize_and_publish(self, self.quantizer, headers, data, "raw", self.calibration, self.noise)
 
@@ -186,7 +182,7 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
             frames, kept = frames[good], kept.take(good)
     seed = sensor_dither_seeds(config.dither_seed, kept.sensor_id)
     if config.alpha == AUTO_ALPHA and noise is None:
-        raise ParameterError("alpha 'auto' needs a NoiseTracker (pipeline.nodes.noise_tracker)")
+        raise ParameterError("alpha 'auto' needs a NoiseTracker (pipeline.stream_nodes.noise_tracker)")
 
     def compute(idx):
         sigma = None
@@ -204,7 +200,7 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
 
     for idx, q in isolate(compute, np.arange(keep.size), failed):
         part = kept.take(idx)
-        node.publish_many(part.sensor_id, "quantized", encode_quantized_batch(part, q), OCTETS)
+        node.publish_many(part.sensor_id, "quantized", CODECS["quantized"].encode(part, q), OCTETS)
 
 
 #: how long a frame node's worker waits at most, once a frame is queued, for a full batch
@@ -213,30 +209,11 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
 #: (PBP edge 131 against 150; qiht 10, not 17): the wait itself is latency.
 BATCH_LINGER_S = 0.002
 
-#: the largest |Re| or |Im| of a raw sample a node accepts, full-scale units (the ADC's
-#: full scale is 1; beyond this a frame is refused as invalid, not quantized)
-MAX_SAMPLE = 1e4
-
-
 def radar_configs(radar: RadarConfig, max_ramps: int) -> dict[int, RadarConfig]:
     """The announced configurations: ``radar`` with 1..max_ramps ramps per frame, by config id."""
     if not (isinstance(max_ramps, int) and max_ramps >= 1):
         raise ParameterError(f"max_ramps={max_ramps!r} must be an integer >= 1")
     return {c.config_id(): c for c in (replace(radar, ramps_per_frame=r) for r in range(1, max_ramps + 1))}
-
-
-def frame_lengths(configs: dict[int, RadarConfig], topic: str) -> frozenset[int]:
-    """Every payload length a raw or quantized frame of these configurations can have, bytes."""
-    ms = {c.n_measurements for c in configs.values()}
-    if topic == "raw":
-        return frozenset(HEADER_LEN + 16 * m for m in ms)
-    return frozenset(QUANT_HEADER_LEN + packed_size(4 * m, b) for m in ms for b in range(1, MAX_BITS + 1))
-
-
-def bad_samples(frames: np.ndarray) -> np.ndarray:
-    """(B,) True where a frame (B, M, 2) has a sample that is not finite or beyond MAX_SAMPLE."""
-    parts = frames.view(np.float32 if frames.dtype == np.complex64 else np.float64)
-    return ~(np.abs(parts) <= MAX_SAMPLE).reshape(frames.shape[0], -1).all(axis=1)  # NaN fails <=
 
 
 class FrameNode(ProcessingNode):
@@ -249,10 +226,12 @@ class FrameNode(ProcessingNode):
 
     batch_linger_s = BATCH_LINGER_S
 
-    def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | None, **kw):
+    def __init__(self, bus: BusConfig, radar: RadarConfig, max_ramps: int, session: zenoh.Session | Transport | None,
+                 **kw):
         super().__init__(bus, session, **kw)
+        self.codec: FrameCodec = codec_for(self.in_topic)
         self._configs = radar_configs(radar, max_ramps)
-        self._lengths = frame_lengths(self._configs, self.in_topic)
+        self._lengths = self.codec.lengths({c.n_measurements for c in self._configs.values()})
 
     def admit(self, key: str, n_bytes: int) -> str | None:
         if n_bytes in self._lengths:
@@ -260,25 +239,24 @@ class FrameNode(ProcessingNode):
         return (f"{n_bytes} bytes, a length no announced radar configuration has "
                 f"({len(self._configs)} configs, {min(self._lengths)}-{max(self._lengths)} bytes)")
 
-    def decode(self, batch) -> tuple[list, list[str]]:
-        """Decode a batch of queued (sensor, key, payload, t) in one vectorized call per
+    def decode(self, batch: list[QueuedFrame]) -> tuple[list, list[str]]:
+        """Decode a batch of queued frames with the input's codec, in one vectorized call per
         length: the groups of frames whose sensor id matches the key, whose config id is
         announced and whose M is that configuration's, each with the keys of its frames
         (in order). The others are counted (decode_errors, invalid_frames)."""
-        keys = [k for _, k, _, _ in batch]
-        decoder = decode_quantized_batch if self.in_topic == "quantized" else decode_raw_batch
-        groups, errors = decoder([p for _, _, p, _ in batch], keys)
+        keys = [item.key for item in batch]
+        groups, errors = self.codec.decode([item.payload for item in batch], keys)
         for i, exc in errors:
-            self.count(batch[i][0], "decode_errors", exc)
+            self.count(batch[i].sensor, "decode_errors", exc)
         out = []
         for g in groups:
             h = g.headers
-            m = g.frames.codes.shape[1] if self.in_topic == "quantized" else g.data.shape[1]
+            m = self.codec.n_measurements(g)
             ok = np.ones(len(h), dtype=bool)
             for j, (i, sid) in enumerate(zip(g.index.tolist(), h.sensor_id)):
-                if sid != batch[i][0]:
+                if sid != batch[i].sensor:
                     ok[j] = False
-                    self.count(batch[i][0], "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
+                    self.count(batch[i].sensor, "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
                                "not match the key")
             for cid in np.unique(h.config_id).tolist():
                 radar = self._configs.get(cid)
@@ -293,10 +271,7 @@ class FrameNode(ProcessingNode):
             if ok.all():
                 out.append(g)
             elif ok.any():
-                keep = np.flatnonzero(ok)
-                frames = g.frames.take(keep) if self.in_topic == "quantized" else g.data[keep]
-                out.append(replace(g, headers=h.take(keep), index=g.index[keep],
-                                   **({"frames": frames} if self.in_topic == "quantized" else {"data": frames})))
+                out.append(self.codec.take(g, np.flatnonzero(ok)))
         return out, keys
 
 
@@ -329,9 +304,10 @@ class QuantizeNode(FrameNode):
     radar, max_ramps: the announced configurations; other frames are refused."""
 
     name = "quantize"
+    role = "quantizer"
     in_topic = "raw"
 
-    def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | None = None,
+    def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | Transport | None = None,
                  radar: RadarConfig | None = None, max_ramps: int = 16, calibration: Calibration | None = None,
                  **kw):
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
@@ -339,7 +315,7 @@ class QuantizeNode(FrameNode):
         self.calibration = calibration
         self.noise = noise_tracker(config, radar)
 
-    def process(self, batch) -> None:
+    def process(self, batch: list[QueuedFrame]) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
             quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration, self.noise)
@@ -424,8 +400,9 @@ class LocalizeNode(FrameNode):
     publication of its targets."""
 
     name = "localize"
+    role = "localizer"
 
-    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | None = None,
+    def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | Transport | None = None,
                  tracking: TrackerConfig | None = None, **kw):
         self.in_topic = config.source
         super().__init__(bus, config.radar, config.max_ramps, session, **kw)
@@ -481,32 +458,26 @@ class LocalizeNode(FrameNode):
                 since = 0 if np.isnan(init[i]).all() or last is None else last[0] + 1
                 self._last[sid] = (since, np.array(ranges[i], dtype=float))
 
-    def process(self, batch) -> None:
+    def process(self, batch: list[QueuedFrame]) -> None:
         groups, keys = self.decode(batch)
-        quantized = self.in_topic == "quantized"
         for g in groups:
             h = g.headers
-            if quantized:
-                dithered = np.broadcast_to(np.asarray(g.frames.alpha) > 0, (len(h),))
-                frames = g.frames
-            else:  # raw frames: finite samples only
-                bad = bad_samples(g.data)
+            frames, dithered, bad = self.codec.frames(g)
+            if bad is not None:  # raw frames: finite samples only
                 for j in np.flatnonzero(bad).tolist():
                     self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from {keys[g.index[j]]}: "
                                f"a sample is not finite or beyond {MAX_SAMPLE:g} full scale")
-                dithered = np.zeros(len(h), dtype=bool)
-                frames = g.data.astype(np.complex128)
             # one decoder call per configuration (and dither), whatever the sensors
             for cid, dith in {(c, d) for c, d in zip(h.config_id.tolist(), dithered.tolist())}:
                 sel = (h.config_id == cid) & (dithered == dith)
-                if not quantized:
+                if bad is not None:
                     sel &= ~bad
                 idx = np.flatnonzero(sel)
                 if idx.size == len(h):  # the usual batch: one configuration, nothing to copy
                     self._localize(self._configs[cid], h, frames, [keys[i] for i in g.index.tolist()])
                 elif idx.size:
-                    self._localize(self._configs[cid], h.take(idx), frames.take(idx) if quantized
-                                   else frames[idx], [keys[i] for i in g.index[idx].tolist()])
+                    self._localize(self._configs[cid], h.take(idx), self.codec.select(frames, idx),
+                                   [keys[i] for i in g.index[idx].tolist()])
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
