@@ -73,7 +73,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
-from .cml_detect import _amplitude_at, _count_statistic, _detect, _residual
+from .cml_detect import _amplitude_at, _count_statistic, _detect, _residual, detect_compiled
 from .cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _Codes, _Fit, _Gate)
 from .errors import ParameterError
@@ -202,15 +202,18 @@ def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
 
 def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None):
     z = np.asarray(z)
-    if z.ndim != 3 or z.shape[-1] != 2:
-        raise ParameterError(f"cml: Z must have shape (B, M, 2), got {z.shape}")
+    codes = z.ndim == 4 and np.issubdtype(z.dtype, np.integer)  # the quantizer's codes
+    if codes and (z.shape[-2:] != (2, 2) or bits is None):
+        raise ParameterError(f"cml: codes must have shape (B, M, 2, 2) and bits given, got {z.shape}, bits={bits!r}")
+    if not codes and (z.ndim != 3 or z.shape[-1] != 2):
+        raise ParameterError(f"cml: Z must have shape (B, M, 2) (or codes (B, M, 2, 2) integers), got {z.shape}")
     if not np.issubdtype(z.dtype, np.number):
         raise ParameterError(f"cml: Z must be numbers, got dtype {z.dtype}")
-    b, m, _ = z.shape
+    b, m = z.shape[:2]
     n = config.samples_per_ramp
     if m == 0 or m % n:
         raise ParameterError(f"cml: M={m} is not a whole number of ramps of N={n} samples")
-    if not np.all(np.isfinite(z)):
+    if not codes and not np.all(np.isfinite(z)):
         raise ParameterError("cml: Z holds values that are not finite")
     if not _is_int(k) or not 1 <= k <= n // 2:
         raise ParameterError(f"cml: k={k!r} must be an integer in [1, N/2 = {n // 2}]")
@@ -221,17 +224,22 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
         noise_sigma = _per_frame("noise_sigma", noise_sigma, b, positive=False)
     if check_gate(gate) is not None:
         gate.check(config)
-    z = z.astype(complex)
+    z = z if codes else z.astype(complex)
     if bits is None:
         return z, None, None, noise_sigma
     if not _is_int(bits) or not 1 <= bits <= 16:
         raise ParameterError(f"cml: bits={bits!r} must be None (unquantized) or an integer in [1, 16]")
-    xi = np.zeros_like(z) if xi is None else np.asarray(xi)
-    if xi.shape != z.shape:
-        raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape}")
+    xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi)
+    if xi.shape != z.shape[:3]:
+        raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape[:3]}")
     if not np.all(np.isfinite(xi)):
         raise ParameterError("cml: the dither holds values that are not finite")
     d = _per_frame("delta", delta, b, positive=True)
+    if codes:  # levels by construction: only their range is checked
+        if z.size and (z.min() < 0 or z.max() >= 1 << bits):
+            raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
+                                 f"[{z.min()}, {z.max()}]")
+        return z, xi.astype(complex), d, noise_sigma
     level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     half = 1 << (bits - 1)
     if level.size and (np.any(np.abs(level - np.rint(level)) > 1e-6) or level.min() < -half - 1e-6
@@ -251,7 +259,10 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     Parameters
     ----------
     z : (B, M, 2) complex, M = R N (whole ramps): quantized values ``Q_b(Gamma + xi)``
-        (``bits`` >= 1) or full-resolution frames (``bits=None``: least squares).
+        (``bits`` >= 1) or full-resolution frames (``bits=None``: least squares); or the
+        quantizer's integer codes (B, M, 2, 2) (:class:`pipeline.quantize.QuantizedFrames`,
+        ``Z = delta (code - 2^(b-1) + 1/2)``), taken as they are: cheaper than values,
+        which are checked to lie on the quantizer's grid and turned back into codes.
     xi : (B, M, 2) complex, the dither added before quantization (None: no dither);
         ignored when ``bits`` is None.
     delta : quantizer step, scalar or (B,), frame units; ignored when ``bits`` is None.
@@ -396,7 +407,7 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     """What a block's decode starts from: its codes, an empty fit, the first likelihood
     scale sigma_eff (B,), its floor (B,; None unquantized) and the largest amplitude change
     of a step (the quantizer's half range)."""
-    b, m, _ = z.shape
+    b, m = z.shape[:2]
     n = config.samples_per_ramp
     codes = _Codes(z, xi, delta, bits, n)
     fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
@@ -419,7 +430,9 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     live_all = np.take_along_axis(live_all, order, axis=1)
     nu_all = np.nan_to_num(init) / config.range_resolution_m
     for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
-        amp0 = np.where(live_all[:, t, None], _amplitude_at(codes, fit, nu_all[:, t]), 0.0)
+        amp_t = (_amplitude_at(codes, fit, nu_all[:, t]) if engine == "numpy" else
+                 detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
+        amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
         fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
     fit.evaluate(sigma)
     fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
@@ -436,7 +449,9 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     count = fit.live.sum(axis=1)
     # the residual (and the likelihood's score, at the last level) holds a peak the targets do
     # not explain: a target appeared, or one moved beyond the refinement's reach
-    unexplained = _count_statistic(fit, codes, oversample) >= (warm_threshold if threshold is None else threshold)
+    stat = (_count_statistic(fit, codes, oversample) if engine == "numpy" else
+            detect_compiled(codes, fit, oversample, True, np.zeros(b))[0])
+    unexplained = stat >= (warm_threshold if threshold is None else threshold)
     if threshold is None:  # k targets a frame, whatever their strength
         misfit = (count < k) | unexplained
     else:
@@ -456,12 +471,18 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
     if threshold is not None:
         fit.evaluate(sigma)  # the score of the empty model, for the first count test
     for t in range(k):
-        if threshold is not None:
-            active &= _count_statistic(fit, codes, oversample) >= threshold
-            if not active.any():
-                break
-        nu0 = _detect(fit, codes, oversample)
-        amp0 = np.where(active[:, None], _amplitude_at(codes, fit, nu0), 0.0)
+        if engine == "numpy":
+            if threshold is not None:
+                active &= _count_statistic(fit, codes, oversample) >= threshold
+            nu0 = None if not active.any() else _detect(fit, codes, oversample)
+            amp_t = None if nu0 is None else _amplitude_at(codes, fit, nu0)
+        else:  # the statistic, the detection and the amplitudes in one kernel call
+            stat, nu0, amp_t = detect_compiled(codes, fit, oversample, threshold is not None)
+            if threshold is not None:
+                active &= stat >= threshold
+        if not active.any():
+            break
+        amp0 = np.where(active[:, None], amp_t, 0.0)
         fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                 np.concatenate([fit.live, active[:, None]], axis=1))
         fit.evaluate(sigma)

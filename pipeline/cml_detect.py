@@ -10,6 +10,17 @@ import numpy as np
 
 from .cml_fit import _atoms, _Codes, _Fit
 
+_kernels_module = None
+
+
+def _kernels():
+    """:mod:`pipeline.cml_detect_kernels`, imported on first use (it imports numba)."""
+    global _kernels_module
+    if _kernels_module is None:
+        from . import cml_detect_kernels
+        _kernels_module = cml_detect_kernels
+    return _kernels_module
+
 
 #: a detection keeps at least this far from the targets already found, range bins
 MIN_SEPARATION_BINS = 1.0
@@ -39,8 +50,9 @@ def _energy(y: np.ndarray, fit: _Fit, oversample: int, guard_bins: float) -> tup
 
 def _residual(codes: _Codes, fit: _Fit) -> np.ndarray:
     """``Z - xi - model`` (full frames: ``Z - model``) summed over the ramps, (B, N, 2)."""
-    b = fit.nu.shape[0]
-    return codes.data.reshape(b, codes.ramps, codes.n, 2).sum(axis=1) - codes.ramps * fit.model()
+    if codes.folded is None:  # Z - xi does not change during a decode: summed once
+        codes.folded = codes.data.reshape(fit.nu.shape[0], codes.ramps, codes.n, 2).sum(axis=1)
+    return codes.folded - codes.ramps * fit.model()
 
 
 def _peak_ratio(y: np.ndarray, fit: _Fit, oversample: int) -> np.ndarray:
@@ -104,3 +116,51 @@ def _amplitude_at(codes: _Codes, fit: _Fit, nu0: np.ndarray) -> np.ndarray:
     y = _residual(codes, fit)
     w = _atoms(nu0[:, None], fit.kc)[:, 0]
     return np.einsum("bn,bnp->bp", np.conj(w), y) / (ramps * n)
+
+
+def _ifft(x: np.ndarray, size: int) -> np.ndarray:
+    """Zero-padded inverse FFT of ``size`` points along the last axis: scipy's when it
+    imports (the same pocketfft as numpy's, with less overhead a call: most of a frame's
+    FFT cost at B = 1), else numpy's."""
+    global _fft_module
+    if _fft_module is None:
+        try:
+            import scipy.fft as _fft_module
+        except ImportError:
+            _fft_module = np.fft
+    return _fft_module.ifft(x, n=size, axis=-1)
+
+
+_fft_module = None
+
+
+def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """:func:`_count_statistic` (``count``; else None), :func:`_detect` (unless ``nu0`` (B,)
+    bins is given) and :func:`_amplitude_at` there, with the per-frame work compiled
+    (:func:`pipeline.cml_detect_kernels.detect`): one inverse FFT of the block, then one
+    kernel call. Returns the statistic (B,), the ranges (B,) in bins and the amplitudes (B, 2)."""
+    y = _residual(codes, fit)
+    b, n = y.shape[:2]
+    t = fit.nu.shape[1]
+    on_score = codes.bits is not None and nu0 is None and t > 0  # detection on the likelihood's score
+    sources = [y] if count or (nu0 is None and not on_score) else []
+    if codes.bits is not None and (count or on_score):  # the score, (B, N, 2)
+        sources.append(np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex))
+    stack = np.empty((b, len(sources), 2, n), dtype=complex)  # (B, S, 2, N)
+    for j, src in enumerate(sources):
+        stack[:, j] = src.transpose(0, 2, 1)
+    u = _ifft(stack, oversample * n) if sources else np.empty((b, 0, 2, oversample * n), dtype=complex)
+    gate = fit.gate
+    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
+    stat = np.zeros(b)
+    given = nu0 is not None
+    nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
+    amp = np.empty((b, 2), dtype=complex)
+    _kernels().detect(u, np.ascontiguousarray(y), fit.kc.astype(float), codes.ramps,
+                      np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.live), oversample,
+                      COUNT_GUARD_BINS, MIN_SEPARATION_BINS, outside, gate is not None,
+                      0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
+                      len(sources) if count else 0, -1 if given else len(sources) - 1 if on_score else 0,
+                      stat, nu_out, amp)
+    return (stat if count else None), nu_out, amp

@@ -58,9 +58,17 @@ class _Codes:
 
     def __init__(self, z: np.ndarray, xi: np.ndarray | None, delta: np.ndarray | None, bits: int | None,
                  n: int):
-        b, m, _ = z.shape
+        """z: (B, M, 2) complex values, or (B, M, 2, 2) integer codes of ``bits`` bits
+        (:class:`pipeline.quantize.QuantizedFrames`' codes: their levels are taken as they
+        are, not recovered from the values)."""
+        b, m = z.shape[:2]
         self.bits, self.ramps, self.n = bits, m // n, n
+        self.folded = None  # Z - xi (or Z) summed over the ramps, (B, N, 2) complex: set on first use
         shape = (b, self.ramps, n, 2, 2)
+        q = None
+        if z.ndim == 4:  # codes: the levels q in [-2^(b-1), 2^(b-1)), Z = delta (q + 1/2)
+            q = z.reshape(shape).astype(np.float64) - (1 << (bits - 1))
+            z = (delta[:, None, None, None, None] * (q + 0.5)).view(complex).reshape(b, m, 2)
         zr = np.ascontiguousarray(z, dtype=complex).view(float).reshape(shape)
         if bits is None:
             self.data = z  # what detection and amplitudes back-project
@@ -72,7 +80,8 @@ class _Codes:
         xr = np.ascontiguousarray(xi, dtype=complex).view(float).reshape(shape)
         d = delta[:, None, None, None, None]
         half = 1 << (bits - 1)
-        q = np.rint(zr / d - 0.5)  # zr = (q + 1/2) delta
+        if q is None:
+            q = np.rint(zr / d - 0.5)  # zr = (q + 1/2) delta
         self.work = [np.empty(shape, dtype=np.float32) for _ in range(3)]
         if bits == 1:
             s = np.where(q >= 0, 1.0, -1.0)  # the sign of lambda + xi
