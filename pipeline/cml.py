@@ -68,12 +68,13 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, fields
+from functools import lru_cache
 
 import numpy as np
 
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
-from .cml_detect import _amplitude_at, _count_statistic, _detect, _residual, detect_compiled
+from .cml_detect import _amplitude_at, _count_statistic, _detect, _ifft, _residual, detect_compiled
 from .cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _Codes, _Fit, _Gate)
 from .errors import ParameterError
@@ -319,9 +320,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
                              f"{', '.join(e for e in ENGINES if e != 'numba' or HAVE_NUMBA)}")
     if likelihood not in LIKELIHOODS:
         raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
-    cgate = None if gate is None else _Gate(gate, config, oversample)
-    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
-    threshold = None if pfa is None else cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
+    cgate = _gate(gate, config, oversample)
+    threshold = None if pfa is None else _threshold(pfa, config, cgate)
     if z.shape[0] == 0:
         return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
                          np.zeros((0, k), dtype=bool))
@@ -337,6 +337,25 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     if len(parts) == 1:
         return parts[0]
     return CmlResult(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(CmlResult)))
+
+
+@lru_cache(maxsize=64)
+def _gate(gate: RangeGate | None, config: RadarConfig, oversample: int) -> _Gate | None:
+    """The range gate in cml's terms (None: none), built once per gate, radar and grid
+    (a live node decodes every frame with the same)."""
+    if gate is None:
+        return None
+    cgate = _Gate(gate, config, oversample)
+    cgate.outside.flags.writeable = False
+    return cgate
+
+
+@lru_cache(maxsize=64)
+def _threshold(pfa: float, config: RadarConfig, cgate: _Gate | None) -> float:
+    """The count test's threshold (linear) at false-alarm probability ``pfa`` over the
+    bins the search spans (:func:`pipeline.localize.cfar_threshold`)."""
+    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
+    return cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
 
 
 def _check_init(init, b: int, k: int, config: RadarConfig, gate: RangeGate | None) -> np.ndarray:
@@ -360,8 +379,7 @@ def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, ove
     """:func:`cml` with starting ranges ``init`` (B, k) (NaN: none): warm frames refined
     from them, the others and the warm ones the model no longer explains from scratch."""
     b = z.shape[0]
-    search_bins = config.samples_per_ramp if cgate is None else cgate.width_bins
-    warm_threshold = cfar_threshold(WARM_PFA, SEARCH_CELLS_PER_BIN * search_bins)
+    warm_threshold = _threshold(WARM_PFA, config, cgate)
     warm = ~np.isnan(init).all(axis=1)
     out = [None] * b
     cold = np.flatnonzero(~warm)
@@ -512,7 +530,7 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
     amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
         ..., None]
-    noise = (np.abs(np.fft.ifft(_residual(codes, fit), axis=1) / ramps) ** 2).sum(axis=2).mean(axis=1)  # a bin
+    noise = (np.abs(_ifft(_residual(codes, fit), axis=1) / ramps) ** 2).sum(axis=2).mean(axis=1)  # a bin
     power = (np.abs(fit.amp) ** 2).sum(axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         stat = to_db(power / noise[:, None])

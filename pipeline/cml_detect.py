@@ -118,8 +118,8 @@ def _amplitude_at(codes: _Codes, fit: _Fit, nu0: np.ndarray) -> np.ndarray:
     return np.einsum("bn,bnp->bp", np.conj(w), y) / (ramps * n)
 
 
-def _ifft(x: np.ndarray, size: int) -> np.ndarray:
-    """Zero-padded inverse FFT of ``size`` points along the last axis: scipy's when it
+def _ifft(x: np.ndarray, size: int | None = None, axis: int = -1) -> np.ndarray:
+    """Inverse FFT (zero-padded to ``size`` points) along ``axis``: scipy's when it
     imports (the same pocketfft as numpy's, with less overhead a call: most of a frame's
     FFT cost at B = 1), else numpy's."""
     global _fft_module
@@ -128,7 +128,7 @@ def _ifft(x: np.ndarray, size: int) -> np.ndarray:
             import scipy.fft as _fft_module
         except ImportError:
             _fft_module = np.fft
-    return _fft_module.ifft(x, n=size, axis=-1)
+    return _fft_module.ifft(x, n=size, axis=axis)
 
 
 _fft_module = None
