@@ -74,7 +74,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
-from .cml_detect import _amplitude_at, _count_statistic, _detect, _ifft, _residual, detect_compiled
+from .cml_detect import _amplitude_at, _count_statistic, _detect, _residual, detect_compiled
 from .cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _Codes, _Fit, _Gate)
 from .errors import ParameterError
@@ -530,7 +530,10 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
     amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
         ..., None]
-    noise = (np.abs(_ifft(_residual(codes, fit), axis=1) / ramps) ** 2).sum(axis=2).mean(axis=1)  # a bin
+    # the mean joint power a bin of the residual's back projection, |ifft(y) / R|^2 summed over the
+    # antennas and averaged over the N bins: by Parseval sum |y|^2 / (N R)^2, without the FFT
+    y = _residual(codes, fit).view(float)
+    noise = np.einsum("bj,bj->b", y.reshape(b, -1), y.reshape(b, -1)) / float(n * ramps) ** 2
     power = (np.abs(fit.amp) ** 2).sum(axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         stat = to_db(power / noise[:, None])
