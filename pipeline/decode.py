@@ -402,7 +402,8 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     decoder is chosen.
 
     z: (B, M, 2) quantized values Z (``bits`` >= 1, step ``delta`` (B,), dither ``xi``
-    (B, M, 2) or None) or full-resolution frames (``bits=None``); ``indices``: the
+    (B, M, 2) or None; cml also takes their codes (B, M, 2, 2), see
+    :func:`pipeline.cml.cml`) or full-resolution frames (``bits=None``); ``indices``: the
     frequency subset of the dense path (None = whole ramps). PBP decodes anything. A
     dither-aware decoder needs quantized frames of whole ramps with their dither; other
     frames go to PBP if ``decoder.fallback_pbp``, else raise DitherUnavailable. ``cml``
@@ -456,6 +457,7 @@ def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: i
             # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
             return decode(frames.ramp_mean(n), None, frames.delta, frames.bits, config, k, decoder)
         xi = None if decoder.algo == Algo.PBP else frames.dither()  # PBP does not use it: skip regenerating it
-        return decode(frames.values(), xi, frames.delta, frames.bits, config, k, decoder, init_range_m=init_range_m)
+        z = frames.codes if decoder.algo == Algo.CML else frames.values()  # cml takes the codes as they are
+        return decode(z, xi, frames.delta, frames.bits, config, k, decoder, init_range_m=init_range_m)
     return decode(np.asarray(frames, dtype=np.complex128), None, None, None, config, k, decoder,
                   init_range_m=init_range_m)

@@ -415,6 +415,7 @@ class LocalizeNode(FrameNode):
         #: for none); a sensor has an entry only while it has stats (forgotten when it expires)
         self._last: dict[str, tuple[int, np.ndarray]] = {}
         self._warm = config.algo == Algo.CML and config.full_search_every > 1
+        self._decoder = config.decoder()  # checked once, not per batch
 
     def start(self) -> "LocalizeNode":
         if self.config.algo == Algo.CML:
@@ -481,7 +482,7 @@ class LocalizeNode(FrameNode):
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
-        decoder = cfg.decoder()
+        decoder = self._decoder
         if decoder.algo == Algo.CML and not kernels_ready():  # a node never started (tests)
             warm_up_kernels(wait=True)
         n = len(headers)

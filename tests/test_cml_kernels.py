@@ -1,10 +1,16 @@
 """The compiled cml (pipeline.cml_kernels, engine="numba") against the numpy reference
-(engine="numpy") on the scenes of tests/test_cml.py, and the exact Gaussian likelihood.
+(engine="numpy") on the scenes of tests/test_cml.py, and the exact Gaussian likelihood;
+the compiled detection and count test (pipeline.cml_detect_kernels) against their numpy
+reference (pipeline.cml_detect) on every kind of scene, and codes against values.
 
 Tolerance: the two engines take the same steps in a different floating-point order (the
 reference evaluates the likelihood in float32, the kernels in float64), so a range agrees
 to 1e-4 m and an amplitude to 1e-3 of the strongest one (the frames here sit far from a
-step kept by one engine and refused by the other; measured: about 1e-8 m and 1e-5)."""
+step kept by one engine and refused by the other; measured: about 1e-8 m and 1e-5).
+
+Detection and the count test take the same FFT and the same sums but for the count's
+mean (numpy sums pairwise, the kernel in order): statistics agree to 1e-9 relative, the
+detected ranges to 1e-9 bins and a new target's amplitudes to 1e-9 of the largest."""
 
 import numpy as np
 import pytest
@@ -13,9 +19,12 @@ from scipy.special import ndtr
 from test_cml import measure, random_scenes
 
 from pipeline import cml_kernels
-from pipeline.cml import _Codes, cml
+from pipeline.cml import _Codes, _Gate, _start, cml
+from pipeline.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
 from pipeline.errors import ParameterError
 from pipeline.gate import RangeGate
+from pipeline.quantize import QuantizerConfig, quantize_frames
+from radar_driver.model import simulate_frames
 
 RANGE_TOL_M = 1e-4
 AMP_TOL = 1e-3
@@ -143,3 +152,72 @@ def test_the_kinds_of_frames_are_the_kernels_codes(cfg):
     for bits, kind in ((None, cml_kernels.LSQ), (1, cml_kernels.ONE_BIT), (3, cml_kernels.MULTI_BIT)):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits)
         assert _Codes(z, xi, delta, bits, cfg.samples_per_ramp).kind == kind
+
+
+def detection_agrees(z, xi, delta, bits, cfg, gate=None, oversample=8):
+    """The compiled detection, count statistic and amplitudes against numpy's, on the empty
+    model and after one and two targets found (the second detection on the score)."""
+    b = z.shape[0]
+    cgate = None if gate is None else _Gate(gate, cfg, oversample)
+    codes, fit, sigma, _, _ = _start(z, xi, delta, bits, cfg, None, cgate, "numpy", "logistic")
+    fit.evaluate(sigma)
+    for t in range(2):
+        stat, nu0, amp0 = detect_compiled(codes, fit, oversample, True)
+        np.testing.assert_allclose(stat, _count_statistic(fit, codes, oversample), rtol=1e-9)
+        ref_nu = _detect(fit, codes, oversample)
+        np.testing.assert_allclose(nu0, ref_nu, rtol=0, atol=1e-9)
+        ref_amp = _amplitude_at(codes, fit, ref_nu)
+        np.testing.assert_allclose(amp0, ref_amp, rtol=0, atol=1e-9 * np.abs(ref_amp).max())
+        assert detect_compiled(codes, fit, oversample, False)[0] is None
+        np.testing.assert_allclose(detect_compiled(codes, fit, oversample, False)[1], ref_nu, rtol=0, atol=1e-9)
+        live = np.ones((b, 1), dtype=bool)
+        live[::4] = t == 0  # some frames' second target is not live: its guard band is cleared
+        fit.set(np.concatenate([fit.nu, ref_nu[:, None]], axis=1), np.concatenate([fit.amp, ref_amp[:, None]], axis=1),
+                np.concatenate([fit.live, live], axis=1))
+        fit.evaluate(sigma)
+        fit.run(np.repeat(sigma[:, None], 2, axis=1), np.full(b, np.inf) if bits is None else
+                delta * (1 << (bits - 1)))
+    given = fit.nu[:, 0] + 0.25
+    _, nu_given, amp_given = detect_compiled(codes, fit, oversample, False, given)
+    np.testing.assert_array_equal(nu_given, given)
+    ref = _amplitude_at(codes, fit, given)
+    np.testing.assert_allclose(amp_given, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("kind", ["one_bit", "on_grid", "three_bit", "unquantized", "noisy_small_alpha", "gated",
+                                  "one_target_frames"])
+def test_compiled_detection_and_count_agree_with_numpy(cfg, kind):
+    (r, a, x), rng = off_grid(12, 2, 30)
+    if kind == "on_grid":
+        r[:, 0] = np.round(r[:, 0] / cfg.range_resolution_m) * cfg.range_resolution_m
+    if kind == "one_target_frames":
+        x[::2, 1] = 0.0
+    gate = RangeGate(min_range_m=20.0, max_range_m=100.0) if kind == "gated" else None
+    bits = {"three_bit": 3, "unquantized": None}.get(kind, 1)
+    z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, **({"alpha": 0.1, "noise": 0.1}
+                                                           if kind == "noisy_small_alpha" else {}))
+    detection_agrees(z, xi, delta, bits, cfg, gate)
+
+
+@pytest.mark.parametrize("bits", [1, 3])
+def test_codes_decode_as_their_values(cfg, bits):
+    (r, a, x), _ = off_grid(6, 2, 40)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(6))
+    for kw in ({}, {"pfa": 1e-3}, {"init_range_m": r[:, :1]}):
+        for engine in ("numba", "numpy"):
+            by_values = cml(q.values(), q.dither(), q.delta, bits, cfg, 2, engine=engine, **kw)
+            by_codes = cml(q.codes, q.dither(), q.delta, bits, cfg, 2, engine=engine, **kw)
+            for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
+                np.testing.assert_allclose(getattr(by_codes, name), getattr(by_values, name), rtol=1e-12,
+                                           atol=1e-12, err_msg=f"{name} {kw} {engine}")
+
+
+def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
+    (r, a, x), _ = off_grid(2, 1, 41)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(2))
+    codes = q.codes.copy()
+    codes[1, 3, 0, 1] = 2
+    with pytest.raises(ParameterError, match=r"codes must be integers in \[0, 1\]"):
+        cml(codes, q.dither(), q.delta, 1, cfg, 1)
+    with pytest.raises(ParameterError, match="bits given"):
+        cml(q.codes, None, None, None, cfg, 1)
