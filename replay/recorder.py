@@ -100,6 +100,23 @@ def message_times(topic: str, payload: bytes, log_time_ns: int) -> tuple[int, in
     return log_time_ns, 0
 
 
+def free_bytes(folder: Path) -> int | None:
+    """Free bytes (for an unprivileged writer) in ``folder``, or in its nearest existing
+    ancestor (the folder may have been removed); None if unknown."""
+    d = Path(folder)
+    for _ in range(64):
+        try:
+            st = os.statvfs(d)
+            return st.f_bavail * st.f_frsize
+        except FileNotFoundError:
+            if d.parent == d:
+                return None
+            d = d.parent
+        except OSError:
+            return None
+    return None
+
+
 class RecorderNode(ProcessingNode):
     """Subscribes ``topics`` (default ``<prefix>/**``) and writes MCAP files.
 
@@ -308,26 +325,11 @@ class RecorderNode(ProcessingNode):
             log.error("recording paused: %s%s; messages are counted as lost until %s can be written (probing "
                       "every %g s); the pipeline keeps running", error, detail, self._next_path(), self.retry_s)
 
-    def _free_bytes(self) -> int | None:
-        """Free bytes (for an unprivileged writer) where the next file goes; None if unknown."""
-        d = self._next_path().parent
-        for _ in range(64):  # the nearest existing ancestor: the folder may have been removed
-            try:
-                st = os.statvfs(d)
-                return st.f_bavail * st.f_frsize
-            except FileNotFoundError:
-                if d.parent == d:
-                    return None
-                d = d.parent
-            except OSError:
-                return None
-        return None
-
     def _probe(self) -> None:
         """While paused: is there room again? Then resume into the next file."""
         now = time.monotonic()
         self._next_probe = now + self.retry_s
-        free = self._free_bytes()
+        free = free_bytes(self._next_path().parent)
         why = None
         if free is not None and free < self.resume_free_bytes:
             why = f"{free} bytes free, waiting for {self.resume_free_bytes}"
