@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
 	# cml's compiled kernels, into numba's on-disk cache: a localizer's first frame then loads them (~0.5 s)
-	$(PY) -c 'from pipeline.cml import warm_up_kernels; warm_up_kernels(wait=True)'
+	$(PY) -c 'from pipeline.dsp.cml import warm_up_kernels; warm_up_kernels(wait=True)'
 	@touch $(STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.

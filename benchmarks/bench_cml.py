@@ -22,9 +22,9 @@ from functools import partial
 import numpy as np
 
 from harness import machine, take_turns
-from pipeline.decode import DecoderConfig, decode
-from pipeline.montecarlo import SceneSpec, draw_scenes
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.decode import DecoderConfig, decode
+from replay.montecarlo import SceneSpec, draw_scenes
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 
 ALGOS = ("pbp", "qiht", "cml")

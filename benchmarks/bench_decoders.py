@@ -2,7 +2,7 @@
 """Decode cost per frame of pbp, qiht and cml at several batch sizes: 1-bit dithered frames
 (alpha = 1, M = 512 = 2 ramps x 256 samples, 2 antennas) of off-grid scenes (ranges
 uniform over 3-150 m, |theta| <= 60 deg, K = 2), each decoder told K. Only
-``pipeline.decode.decode`` is timed: the codes and the dither are made beforehand (the
+``pipeline.dsp.decode.decode`` is timed: the codes and the dither are made beforehand (the
 dither's regeneration from its seed is not counted).
 
 Each (decoder, batch) figure is the best, over ``--repeats`` calls, of the CPU time of
@@ -54,9 +54,9 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
     sys.path.insert(0, str(code))
     import numpy as np
 
-    from pipeline.decode import DecoderConfig, decode
-    from pipeline.montecarlo import SceneSpec, draw_scenes
-    from pipeline.quantize import QuantizerConfig, quantize_frames
+    from pipeline.dsp.decode import DecoderConfig, decode
+    from replay.montecarlo import SceneSpec, draw_scenes
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
     from radar_driver.model import RadarConfig, simulate_frames
 
     cfg = RadarConfig()

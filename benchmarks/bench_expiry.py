@@ -25,11 +25,11 @@ from qradar.cli import limit_malloc_arenas
 import numpy as np
 
 from harness import rss_mb
-from pipeline.budget import IntakeBudget
-from pipeline.bus import BusConfig
-from pipeline.counters import NO_SENSOR
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.nodes.budget import IntakeBudget
+from pipeline.bus.session import BusConfig
+from pipeline.nodes.counters import NO_SENSOR
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import FrameHeaders, encode_quantized_batch
 from radar_driver.scene import resolve_scene
 

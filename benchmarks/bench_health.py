@@ -11,8 +11,8 @@ import itertools
 import numpy as np
 
 from harness import time_calls
-from pipeline.bus import BusConfig
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
+from pipeline.bus.session import BusConfig
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
 
 
 def main() -> None:

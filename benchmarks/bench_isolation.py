@@ -56,7 +56,7 @@ PY = sys.executable
 def flood_payloads(kind: str, ids: int) -> tuple[list[bytes], bool]:
     """Payloads to send: a pool of valid frames of one sensor (``quantized``/``raw``; seq and
     timestamp rewritten per send) or one raw frame per new id (``new-ids``)."""
-    from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
     from pipeline.wire import FrameHeaders, encode_quantized_batch, encode_raw_batch
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource

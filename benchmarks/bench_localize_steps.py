@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 from bench_nodes import payloads
-from pipeline.bus import BusConfig
-from pipeline.decode import decode_batch
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, take_detections
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.decode import decode_batch
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, take_detections
 from pipeline.wire import encode_targets_batch
 
 STEPS = ("parse", "take", "decode", "encode", "publish", "latency")

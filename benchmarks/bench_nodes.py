@@ -23,9 +23,9 @@ import time
 
 import numpy as np
 
-from pipeline.bus import BusConfig
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.bus.session import BusConfig
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import FrameHeaders, encode_quantized_batch, encode_raw_batch
 from radar_driver.scene import resolve_scene
 

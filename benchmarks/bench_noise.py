@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """What ``--alpha auto`` costs the quantizer: per-frame time of ``quantize_frames`` (1 bit,
 auto delta, M = 512, frames of distinct sensors) with a fixed alpha against alpha auto
-(the per-sensor :class:`pipeline.noise.NoiseTracker` update -- the noise estimate -- plus
+(the per-sensor :class:`pipeline.dsp.noise.NoiseTracker` update -- the noise estimate -- plus
 the quantization with each frame's alpha), at batch sizes 1, 16, 64, 512; and the estimate
 alone. Best of ``--repeat`` runs, us per frame; the ratio is taken in the same process
 (the machine may be shared, so absolute figures drift more than ratios).
@@ -16,8 +16,8 @@ import argparse
 import numpy as np
 
 from bench_wire import per_frame_us
-from pipeline.noise import NoiseTracker, estimate_noise_sigma
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.dsp.noise import NoiseTracker, estimate_noise_sigma
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 
 M, N = 512, 256
 

@@ -17,12 +17,12 @@ import platform
 import numpy as np
 
 from harness import best_rate
-from pipeline.decode import DecoderConfig, decode
+from pipeline.dsp.decode import DecoderConfig, decode
 
 QIHT = DecoderConfig(algo="qiht")
-from pipeline.localize import localize, localize_frame
-from pipeline.montecarlo import draw_scenes
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.localize import localize, localize_frame
+from replay.montecarlo import draw_scenes
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 
 

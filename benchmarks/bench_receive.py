@@ -36,7 +36,7 @@ SIZE = 320  # a 1-bit frame's payload, bytes
 def publish(endpoint: str, messages: int, rate: float) -> None:
     import zenoh
 
-    from pipeline.bus import BusConfig
+    from pipeline.bus.session import BusConfig
     session = BusConfig(mode="client", connect=(endpoint,)).open()
     pubs = [session.declare_publisher(f"radar/s{i}/quantized", congestion_control=zenoh.CongestionControl.BLOCK)
             for i in range(SENSORS)]
@@ -54,7 +54,7 @@ def publish(endpoint: str, messages: int, rate: float) -> None:
 def subscribe(mode: str, messages: int, rate: float) -> dict:
     import zenoh
 
-    from pipeline.bus import BusConfig
+    from pipeline.bus.session import BusConfig
     from harness import free_port
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = BusConfig(listen=(endpoint,)).open()

@@ -42,10 +42,10 @@ from mcap.records import Channel, Message, MessageIndex
 from mcap.stream_reader import StreamReader
 
 from harness import free_port
-from pipeline.bus import BusConfig
-from pipeline.decode import Algo
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.decode import Algo
 from pipeline.errors import BusError
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw
 from replay.mcapio import McapFile, McapSink
 from replay.player import PlayConfig, play

@@ -25,9 +25,9 @@ import numpy as np
 import zenoh
 
 from harness import emit, free_port
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError
-from pipeline.security import SecureConfig
+from pipeline.bus.security import SecureConfig
 from pipeline.wire import RawFrameMsg, encode_raw
 
 

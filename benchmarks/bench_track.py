@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Cost of the tracker (pipeline/track.py) against the localizer's, per frame, in the same
+"""Cost of the tracker (pipeline/dsp/track.py) against the localizer's, per frame, in the same
 process: the `walker` scene (a moving reflector beside a static one), 1-bit dithered frames
 (M = 512), decoded by the default decoder (cml, K = 2, the live default range gate) in
 batches of ``--batch`` frames as the localizer node decodes them, and tracked frame by
@@ -25,11 +25,11 @@ import time
 import numpy as np
 
 from harness import take_turns
-from pipeline.decode import DecoderConfig, decode_batch
-from pipeline.gate import RangeGate
-from pipeline.quantize import QuantizerConfig, quantize_frames
-from pipeline.track import TrackerConfig
-from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.track import TrackerConfig
+from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders
 from radar_driver.scene import ramp_time_s, resolve_scene
 

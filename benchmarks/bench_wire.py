@@ -20,8 +20,8 @@ import argparse
 import numpy as np
 
 from harness import best_time
-from pipeline.localize import Detections
-from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize_frames,
+from pipeline.dsp.localize import Detections
+from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize_frames,
                                sensor_dither_seeds, unit_dither)
 from pipeline.wire import (FrameHeaders, TargetsMsg, decode_quantized, decode_quantized_batch,
                            encode_quantized_batch, encode_targets_batch)

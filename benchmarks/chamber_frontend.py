@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.calibration import load as load_calibration
-from pipeline.decode import DecoderConfig, decode_batch
-from pipeline.localize import position_error_m
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.calibration import load as load_calibration
+from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.localize import position_error_m
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.scene import SimScene, resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 

@@ -22,10 +22,10 @@ import sys
 
 import numpy as np
 
-from pipeline.cml import cml
-from pipeline.localize import nearest_estimates
-from pipeline.montecarlo import SceneSpec, draw_scenes
-from pipeline.quantize import auto_delta, batch_unit_dither, dequantize, quantize
+from pipeline.dsp.cml import cml
+from pipeline.dsp.localize import nearest_estimates
+from replay.montecarlo import SceneSpec, draw_scenes
+from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 from radar_driver.model import RadarConfig, simulate_frames
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """What any unbiased decoder can do with 1-bit dithered codes in sensor noise: the
-Cramer-Rao bound (:mod:`pipeline.crb`) on the position error of the Monte Carlo's
+Cramer-Rao bound (:mod:`pipeline.dsp.crb`) on the position error of the Monte Carlo's
 continuous K = 1 scenes, 1-bit against unquantized, beside the ``cml`` decoder's measured
 median errors on the same scenes.
 
@@ -33,12 +33,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.crb import (crb, fisher, position_bound, position_covariance, position_rms,  # noqa: E402
+from pipeline.dsp.crb import (crb, fisher, position_bound, position_covariance, position_rms,  # noqa: E402
                           signal_jacobian, weights_1bit_expected, weights_unquantized)
-from pipeline.montecarlo import (CHUNK_RUNS, MonteCarloConfig, SceneSpec, draw_scenes,  # noqa: E402
+from replay.montecarlo import (CHUNK_RUNS, MonteCarloConfig, SceneSpec, draw_scenes,  # noqa: E402
                                  run_montecarlo)
-from pipeline.progress import Progress  # noqa: E402
-from pipeline.quantize import auto_delta  # noqa: E402
+from replay.progress import Progress  # noqa: E402
+from pipeline.dsp.quantize import auto_delta  # noqa: E402
 from radar_driver.model import RadarConfig, simulate_frames  # noqa: E402
 
 SIGMAS = (0.03, 0.1, 0.3)

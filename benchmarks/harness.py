@@ -74,7 +74,7 @@ def take_turns(fns: Mapping[str, Callable[[], object]], seconds: float, label: s
     """Call every function in turn, round after round, for ``seconds`` of wall time (one
     round at least), so a busy machine slows them alike: the ``clock`` seconds of each call,
     by name, one per round. ``warmup`` untimed rounds first; a progress bar on stderr."""
-    from pipeline.progress import Progress  # here: bench_decoders.py imports pipeline from another tree
+    from replay.progress import Progress  # here: bench_decoders.py imports pipeline from another tree
 
     for _ in range(warmup):
         for fn in fns.values():

@@ -68,8 +68,8 @@ from pathlib import Path
 import numpy as np
 
 from harness import cpu_s, free_port, rss_mb, wait_port
-from pipeline.bus import BusConfig
-from pipeline.progress import Progress
+from pipeline.bus.session import BusConfig
+from replay.progress import Progress
 from qradar.drivers import last_json_object
 
 HERE = Path(__file__).resolve().parents[1]

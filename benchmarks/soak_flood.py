@@ -32,7 +32,7 @@ import numpy as np
 
 import zenoh
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource

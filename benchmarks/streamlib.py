@@ -218,7 +218,7 @@ class Loopback(Topology):
 @functools.lru_cache(maxsize=None)
 def frame_sizes(spec: StepSpec) -> dict[str, int]:
     """Bytes of one raw and one quantized frame of the step's scene, and a targets message."""
-    from pipeline.quantize import packed_size
+    from pipeline.dsp.quantize import packed_size
     from pipeline.wire import HEADER_LEN, QUANT_HEADER_LEN
     from radar_driver.scene import resolve_scene
     radar = resolve_scene(spec.scene).radar
@@ -383,7 +383,7 @@ class StepError(RuntimeError):
 def measure_window(procs: list[Proc], source: Proc, spec: StepSpec, progress: bool) -> dict:
     """CPU of every process from the end of the source's warm-up to its last reading
     before the source exits; bounded by 3 x the trial's length + 30 s."""
-    from pipeline.progress import Progress
+    from replay.progress import Progress
     t_start = time.monotonic() + spec.warmup_s
     deadline = t_start + 3 * spec.seconds + 30
     while time.monotonic() < t_start and source.alive():
@@ -524,7 +524,7 @@ def run_bare(spec: StepSpec, topo: Topology, logdir: Path) -> dict:
 
 
 def _open(args, listener: bool):
-    from pipeline.bus import BusConfig
+    from pipeline.bus.session import BusConfig
     if listener:
         return BusConfig(listen=tuple(args.listen)).open()
     return BusConfig(mode="client", connect=(args.connect,)).open()
@@ -593,8 +593,8 @@ def make_premade(path: Path, scene: str, sensors: int, frames: int, alpha: float
     timestamp rewritten, so a step measures the localizer's host without the sensors'
     simulation and quantization on its cores."""
     import numpy as np
-    from pipeline.progress import Progress
-    from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+    from replay.progress import Progress
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
     from pipeline.wire import FrameHeaders, encode_quantized_batch
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource

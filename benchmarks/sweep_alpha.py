@@ -1,5 +1,5 @@
 """The dither scale against the sensor noise: the Monte Carlo sweep behind
-:func:`pipeline.noise.auto_alpha` (issue 24).
+:func:`pipeline.dsp.noise.auto_alpha` (issue 24).
 
 For each noise sigma (std of I and of Q relative to the strongest target) and each alpha,
 1-bit M = 512 frames of continuous (off-grid) scenes decoded by cml, K = 1 and 2, and the
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
-from pipeline.quantize import auto_delta
+from replay.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
+from pipeline.dsp.quantize import auto_delta
 from radar_driver.model import RadarConfig, simulate_frames
 
 SIGMAS = (0.0, 0.01, 0.03, 0.1, 0.3)

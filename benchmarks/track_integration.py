@@ -9,7 +9,7 @@
    of the static tracks once S seconds of frames are integrated (frames from S + 1 s on;
    S = 0: the filter alone), pooled over both reflectors and ``--seeds`` noise seeds;
    beside it the per-frame targets' median.
-2. **The Monte Carlo in time** (:func:`pipeline.integrate.time_monte_carlo`, also
+2. **The Monte Carlo in time** (:func:`pipeline.dsp.integrate.time_monte_carlo`, also
    ``qradar montecarlo-time``): random static scenes (one target, continuous range in
    [3, 150] m, |angle| <= 60 deg), T frames each with a fresh dither (and fresh noise),
    decoded together for T = 1 .. 32: median error against T, with noise sigma = 0.1 of the
@@ -33,14 +33,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from pipeline.calibration import load as load_calibration
-from pipeline.plots import draw_error_vs_frames
-from pipeline.decode import DecoderConfig, decode_batch
-from pipeline.gate import RangeGate
-from pipeline.integrate import time_monte_carlo
-from pipeline.quantize import QuantizerConfig, quantize_frames
-from pipeline.track import TrackerConfig
-from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.dsp.calibration import load as load_calibration
+from replay.plots import draw_error_vs_frames
+from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.integrate import time_monte_carlo
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.track import TrackerConfig
+from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, decode_tracks
 from radar_driver.scene import ramp_time_s, resolve_scene
 

@@ -1,8 +1,8 @@
 """The one definition of the defaults of every command that localizes or quantizes
 (issue 23): ``qradar run``, ``localize``, ``quantize``, ``drive --quantize``, ``source
 --quantized`` and ``reprocess``, and of the configurations behind them
-(:class:`~pipeline.quantize.QuantizerConfig`, :class:`~pipeline.decode.DecoderConfig`,
-:class:`~pipeline.stream_nodes.LocalizerConfig`, ``qradar.run.RunConfig``,
+(:class:`~pipeline.dsp.quantize.QuantizerConfig`, :class:`~pipeline.dsp.decode.DecoderConfig`,
+:class:`~pipeline.nodes.stream.LocalizerConfig`, ``qradar.run.RunConfig``,
 ``replay.reprocess.ReprocessConfig``). Everything else reads these names; nothing
 repeats their values (``tests/test_defaults.py`` parses every command's options).
 
@@ -18,7 +18,7 @@ paper's protocol (PBP, the schemes' own alpha).
 Plain values (no imports), so that any module of the package can read them.
 """
 
-#: the decoder of every command that localizes, by name (:class:`pipeline.decode.Algo`)
+#: the decoder of every command that localizes, by name (:class:`pipeline.dsp.decode.Algo`)
 DEFAULT_ALGO = "cml"
 
 #: each decoder's best dither scale alpha in [0, 1], what ``qradar run --algo A`` quantizes

@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.decode import DecoderConfig, decode_batch
-from pipeline.localize import Detections, position_error_m
-from pipeline.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
-from pipeline.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.localize import Detections, position_error_m
+from replay.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
+from pipeline.dsp.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import (TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized_batch,
                            decode_raw_batch, decode_targets, quantized_batch)
 from radar_driver.model import RadarConfig
@@ -67,7 +67,7 @@ class Frames(_Stream):
 class Quantized(_Stream):
     """Quantized frames of one sensor as the stream carried them: ``frames``, the codes
     (F, M, 2, 2) and each frame's delta, alpha and dither seed
-    (:class:`pipeline.quantize.QuantizedFrames`)."""
+    (:class:`pipeline.dsp.quantize.QuantizedFrames`)."""
 
     frames: QuantizedFrames
 
@@ -272,7 +272,7 @@ def montecarlo(config: MonteCarloConfig | None = None, progress: bool = False, *
     """The Monte Carlo of the paper (``qradar montecarlo``): a :class:`MonteCarloConfig` or
     its fields as keywords (``ks=(1,), runs=2000, algos=("cml",), off_grid=True``). The
     result's ``summary`` is the dict the command writes as ``summary.json``; write it all with
-    :func:`pipeline.montecarlo_report.write_outputs`."""
+    :func:`replay.montecarlo_report.write_outputs`."""
     if config is None:
         config = MonteCarloConfig(**kwargs)
     elif kwargs:

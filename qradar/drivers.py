@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable, TextIO
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from radar_driver.errors import RadarError
 
 
@@ -42,7 +42,7 @@ def last_json_object(lines) -> dict:
 
 class DriverProcess:
     """One sensor's serial driver in its own process (``qradar drive``), publishing raw
-    frames on ``bus`` (a zenoh client). :class:`~pipeline.runtime.Runnable` by :func:`run_nodes`: ``start``,
+    frames on ``bus`` (a zenoh client). :class:`~pipeline.nodes.runtime.Runnable` by :func:`run_nodes`: ``start``,
     ``stop``, ``errors``, ``done`` (the driver has finished: its counters came, or it
     exited). Stopped with SIGTERM, it says GBYE and prints its counters (JSON), which
     :meth:`stats` returns; its log lines go to ``log``.

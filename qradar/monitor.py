@@ -12,9 +12,9 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from pipeline.bus import BusConfig
-from pipeline.histogram import LogHistogram
-from pipeline.localize import position_error_m
+from pipeline.bus.session import BusConfig
+from pipeline.nodes.histogram import LogHistogram
+from pipeline.dsp.localize import position_error_m
 from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
 from radar_driver.model import polar_to_xy
 from radar_driver.scene import SimScene

@@ -23,16 +23,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
-from pipeline.calibration import Calibration
-from pipeline.calibration import load as load_calibration
-from pipeline.audit import format_counts
-from pipeline.bus import BusConfig
-from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig
+from pipeline.dsp.calibration import Calibration
+from pipeline.dsp.calibration import load as load_calibration
+from pipeline.bus.audit import format_counts
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
-from pipeline.localize import DEFAULT_PFA
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
-from pipeline.track import TrackerConfig
-from pipeline.quantize import QuantizerConfig
+from pipeline.dsp.localize import DEFAULT_PFA
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.dsp.track import TrackerConfig
+from pipeline.dsp.quantize import QuantizerConfig
 from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
@@ -98,10 +98,10 @@ class RunConfig:
     sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
     truth: str | Path | None = None  # scene file of the true positions
     calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
-    # the localizer's range gate, m (None: the radar's default, pipeline.gate.RangeGate.default)
+    # the localizer's range gate, m (None: the radar's default, pipeline.dsp.gate.RangeGate.default)
     min_range_m: float | None = None
     max_range_m: float | None = None
-    tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.track), None: none
+    tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.dsp.track), None: none
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)

@@ -3,7 +3,7 @@ certificate per identity, made with the ``openssl`` command (OpenSSL 1.1.1 or la
 
 ``init`` makes the CA (``ca.pem``, ``ca.key``) and the identities of a pipeline —
 ``router``, ``sensor-<id>`` per sensor, ``quantizer``, ``localizer``, ``recorder``,
-``viewer`` — and their policy (``identities.json``, see :mod:`pipeline.security`);
+``viewer`` — and their policy (``identities.json``, see :mod:`pipeline.bus.security`);
 ``add`` issues one more with the CA key, ``remove`` withdraws one. Keys are EC P-256, written 0600 in a 0700
 directory; the CA key never needs to leave the machine that issues certificates: a host
 gets ``ca.pem``, ``identities.json`` and its own ``<name>.pem`` / ``<name>.key``.
@@ -28,7 +28,7 @@ import tempfile
 from pathlib import Path
 
 from pipeline.errors import BusError, ParameterError
-from pipeline.security import CA_CERT, CA_KEY, POLICY_FILE, Identity, Policy
+from pipeline.bus.security import CA_CERT, CA_KEY, POLICY_FILE, Identity, Policy
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")
 DEFAULT_DAYS = 365

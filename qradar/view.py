@@ -1,7 +1,7 @@
 """``qradar view``: the live stream in Foxglove, over the Foxglove WebSocket protocol
 (``foxglove-sdk``).
 
-A node like the others (:class:`pipeline.intake.ProcessingNode`): it subscribes
+A node like the others (:class:`pipeline.nodes.intake.ProcessingNode`): it subscribes
 ``<prefix>/*/targets``, ``<prefix>/*/quantized`` and ``<prefix>/*/health``, zenoh's
 callback copies a payload into a bounded queue (a full queue drops the newest and counts
 it in ``drops``), and one worker thread decodes and logs to a Foxglove WebSocket server
@@ -61,12 +61,12 @@ from foxglove.messages import (
     Vector3,
 )
 
-from pipeline.budget import IntakeBudget
-from pipeline.bus import BusConfig
+from pipeline.nodes.budget import IntakeBudget
+from pipeline.bus.session import BusConfig
 from pipeline.errors import ParameterError, PipelineError, WireError
-from pipeline.intake import SEQ, SEQ_OFFSET, ProcessingNode, QueuedFrame
-from pipeline.localize import back_project
-from pipeline.quantize import dequantize
+from pipeline.nodes.intake import SEQ, SEQ_OFFSET, ProcessingNode, QueuedFrame
+from pipeline.dsp.localize import back_project
+from pipeline.dsp.quantize import dequantize
 from pipeline.wire import (
     HEADER_LEN,
     MAGIC,

@@ -11,7 +11,7 @@ counters) until it ends or is asked to stop. Three implementations:
   the same seed both give the same frames;
 - ``replay.source.RecordingSource``: the raw frames of an MCAP recording.
 
-One source node (``pipeline.stream_nodes.SourceNode``) publishes any of them, and one contract
+One source node (``pipeline.nodes.stream.SourceNode``) publishes any of them, and one contract
 test suite (``tests/test_sources.py``) runs over all three.
 """
 

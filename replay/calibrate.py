@@ -1,12 +1,12 @@
 """``qradar calibrate``: a front-end calibration from recordings of the empty scene and of
-one reflector at a known position (the estimates are :mod:`pipeline.calibration`'s)."""
+one reflector at a known position (the estimates are :mod:`pipeline.dsp.calibration`'s)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.calibration import FrontEndCorrection, estimate_front_end, save
+from pipeline.dsp.calibration import FrontEndCorrection, estimate_front_end, save
 from radar_driver.model import RadarConfig
 
 from .errors import ReplayError

@@ -53,7 +53,7 @@ TARGETS_SCHEMA = {
                        "required": list(TARGET_FIELDS)}}},
     "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "targets"],
 }
-#: JSON schema of the tracks JSON (docs/wire-formats.md, pipeline.track)
+#: JSON schema of the tracks JSON (docs/wire-formats.md, pipeline.dsp.track)
 TRACKS_SCHEMA = {
     "type": "object", "title": "qradar.Tracks",
     "properties": {"version": {"type": "integer"}, "type": {"const": "tracks"}, "sensor_id": {"type": "string"},

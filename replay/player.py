@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 
 from .errors import NoQradarChannelsError, ReplayError
 from .mcapio import McapFile, qradar_channels

@@ -33,10 +33,10 @@ from pathlib import Path
 
 import zenoh
 
-from pipeline.bus import BusConfig, zenoh_reason
-from pipeline.counters import NO_SENSOR
-from pipeline.intake import ProcessingNode, QueuedFrame
-from pipeline.transport import Transport
+from pipeline.bus.session import BusConfig, zenoh_reason
+from pipeline.nodes.counters import NO_SENSOR
+from pipeline.nodes.intake import ProcessingNode, QueuedFrame
+from pipeline.nodes.transport import Transport
 from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
 
 from .errors import RecordingExists, ReplayError

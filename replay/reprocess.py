@@ -15,16 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.calibration import load as load_calibration
-from pipeline.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
+from pipeline.dsp.calibration import Calibration
+from pipeline.dsp.calibration import load as load_calibration
+from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
 from pipeline.errors import ParameterError
-from pipeline.gate import RangeGate, check_range_m
-from pipeline.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
-from pipeline.progress import Progress
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
-from pipeline.track import TrackerConfig
-from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.dsp.gate import RangeGate, check_range_m
+from pipeline.dsp.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
+from replay.progress import Progress
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
+from pipeline.dsp.track import TrackerConfig
+from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks, encode_targets_batch
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
@@ -243,7 +243,7 @@ def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
     """Fig. 5a: mean position error against alpha. One decoder: a curve per target and
     their mean; several: the mean of the targets, one curve per decoder (each target's
     curve dotted, in the decoder's colour), each decoder's best alpha marked."""
-    from pipeline.plots import _pyplot
+    from replay.plots import _pyplot
 
     plt = _pyplot()
     first = next(iter(results.values()))
@@ -298,7 +298,7 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
     """Mean estimated position of each target with its 2-sigma ellipse over the frames,
     alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. Lateral
     y (m) across, boresight x (m) up; the radar at (0, 0)."""
-    from pipeline.plots import _pyplot
+    from replay.plots import _pyplot
 
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
@@ -364,7 +364,7 @@ def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path
 
 def track_recording(result: SweepResult, index: int, radar: RadarConfig, tracking: TrackerConfig,
                     gate: RangeGate | None, pfa: float | None = None) -> tuple[list[bytes], dict]:
-    """Tracks (pipeline.track) of the re-processed targets of one alpha, frame by frame, the
+    """Tracks (pipeline.dsp.track) of the re-processed targets of one alpha, frame by frame, the
     static ones integrated on the frames quantized again as that alpha's were: the tracks
     JSON of each frame and a summary (``pfa``: the decoder's count test, None: K targets) (ids, and against the truth's static targets the median
     position error of the static tracks after the integration time and of the targets)."""
@@ -405,7 +405,7 @@ class ReprocessConfig:
     (None = the recording's ``qradar.scene`` metadata). out: folder for results.json and
     the plots. mcap: also write the targets of the best (decoder, alpha) there.
     min_range_m / max_range_m: the range gate the decoders search inside (None: the end
-    of :meth:`RangeGate.default <pipeline.gate.RangeGate.default>` for the recording's
+    of :meth:`RangeGate.default <pipeline.dsp.gate.RangeGate.default>` for the recording's
     radar, as the live localizer); checked here (min < max) and against the radar once
     the recording is read.
     calibration: a ``qradar calibrate`` file whose front end is removed from the raw
@@ -427,7 +427,7 @@ class ReprocessConfig:
     calibration: Path | None = None
     min_range_m: float | None = None
     max_range_m: float | None = None
-    tracking: TrackerConfig | None = None  # tracks of the best (decoder, alpha)'s targets (pipeline.track)
+    tracking: TrackerConfig | None = None  # tracks of the best (decoder, alpha)'s targets (pipeline.dsp.track)
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import zenoh_helpers
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import PipelineError
 from radar_driver.model import RadarConfig
 
@@ -69,7 +69,7 @@ def _joined(session, timeout_s: float) -> bool:
 @pytest.fixture
 def connect_when_ready():
     """``connect_when_ready(endpoint, timeout_s=20, mode="peer", secure=None)``: a zenoh session
-    connected to ``endpoint`` (with ``secure``, a pipeline.security.SecureConfig, over mTLS),
+    connected to ``endpoint`` (with ``secure``, a pipeline.bus.security.SecureConfig, over mTLS),
     whose listener is in another process that may not be up yet.
 
     Each attempt opens a session (a client fails at once when nothing listens: a

@@ -7,7 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from pipeline.bus import ALONE_AFTER_S
+from pipeline.bus.session import ALONE_AFTER_S
 
 WARNING = "no zenoh peer or router reached"
 

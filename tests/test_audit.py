@@ -1,4 +1,4 @@
-"""The audit log of ``--secure`` (pipeline/audit.py): refused TLS handshakes and messages
+"""The audit log of ``--secure`` (pipeline/bus/audit.py): refused TLS handshakes and messages
 denied by the access-control policy, read from zenoh's own log, counted, summarized on
 stderr at most once an interval per kind and identity/key, and shown in health and in
 the commands' end summaries.
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.audit import KINDS, MAX_LINES, AuditLog
-from pipeline.bus import BusConfig
+from pipeline.bus.audit import KINDS, MAX_LINES, AuditLog
+from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError
-from pipeline.security import SecureConfig
+from pipeline.bus.security import SecureConfig
 from test_security import pki, qradar  # noqa: F401 -- the module's fixture: the lab's CA and another
 from zenoh_helpers import Collector, wait_until
 
@@ -199,7 +199,7 @@ def test_summaries_are_rate_limited_per_kind():
 
 CAPTURE = r"""
 import os, sys, time
-from pipeline import audit
+from pipeline.bus import audit
 audit.start("t")
 print("python's own line", flush=True)
 os.write(1, b"a line on descriptor 1\n")

@@ -98,8 +98,8 @@ def test_premade_frames_are_what_an_edge_source_publishes(tmp_path, bus, zenoh_s
     """make_premade's frames are byte for byte the 1-bit frames `qradar source --quantized
     --rate 0` publishes (the same simulation, noise, dither seeds and quantizer), but for
     the timestamp, which the player rewrites at sending."""
-    from pipeline.stream_nodes import SourceNode, run_nodes
-    from pipeline.quantize import QuantizerConfig
+    from pipeline.nodes.stream import SourceNode, run_nodes
+    from pipeline.dsp.quantize import QuantizerConfig
     from pipeline.wire import COMMON_DTYPE
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource

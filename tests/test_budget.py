@@ -13,12 +13,12 @@ import time
 import pytest
 import zenoh
 
-from pipeline.budget import IntakeBudget, KeyBudget, TokenBucket
+from pipeline.nodes.budget import IntakeBudget, KeyBudget, TokenBucket
 from pipeline.errors import ParameterError
-from pipeline.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
-from pipeline.runtime import PUBLISHER_AFTER
-from pipeline.stream_nodes import QuantizeNode
-from pipeline.quantize import QuantizerConfig
+from pipeline.nodes.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
+from pipeline.nodes.runtime import PUBLISHER_AFTER
+from pipeline.nodes.stream import QuantizeNode
+from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized
 from test_hardening import raw
 from zenoh_helpers import Collector, wait_until

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.calibration import (
+from pipeline.dsp.calibration import (
     Calibration,
     CalibrationError,
     FrontEndCorrection,

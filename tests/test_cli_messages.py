@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from pipeline.bus import zenoh_reason
+from pipeline.bus.session import zenoh_reason
 from qradar.cli import build_parser
 from replay.errors import ReplayError
 from replay.reprocess import parse_alphas

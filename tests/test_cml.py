@@ -1,12 +1,12 @@
-"""The continuous-range maximum likelihood decoder (pipeline.cml)."""
+"""The continuous-range maximum likelihood decoder (pipeline.dsp.cml)."""
 
 import numpy as np
 import pytest
 
-from pipeline.cml import BLOCK_FRAMES, CmlResult, cml, cml_detections, model_frames
+from pipeline.dsp.cml import BLOCK_FRAMES, CmlResult, cml, cml_detections, model_frames
 from pipeline.errors import ParameterError
-from pipeline.localize import Detections, localize, nearest_estimates, position_error_m
-from pipeline.quantize import auto_delta, batch_unit_dither, dequantize, quantize
+from pipeline.dsp.localize import Detections, localize, nearest_estimates, position_error_m
+from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 from radar_driver.model import RadarConfig, antenna_phase_rad, simulate_frames
 
 

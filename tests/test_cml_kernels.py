@@ -1,7 +1,7 @@
-"""The compiled cml (pipeline.cml_kernels, engine="numba") against the numpy reference
+"""The compiled cml (pipeline.dsp.cml_kernels, engine="numba") against the numpy reference
 (engine="numpy") on the scenes of tests/test_cml.py, and the exact Gaussian likelihood;
-the compiled detection and count test (pipeline.cml_detect_kernels) against their numpy
-reference (pipeline.cml_detect) on every kind of scene, and codes against values.
+the compiled detection and count test (pipeline.dsp.cml_detect_kernels) against their numpy
+reference (pipeline.dsp.cml_detect) on every kind of scene, and codes against values.
 
 Tolerance: the two engines take the same steps in a different floating-point order (the
 reference evaluates the likelihood in float32, the kernels in float64), so a range agrees
@@ -18,12 +18,12 @@ from scipy.special import log_ndtr as scipy_log_ndtr
 from scipy.special import ndtr
 from test_cml import measure, random_scenes
 
-from pipeline import cml_kernels
-from pipeline.cml import _Codes, _Gate, _start, cml
-from pipeline.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
+from pipeline.dsp import cml_kernels
+from pipeline.dsp.cml import _Codes, _Gate, _start, cml
+from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
 from pipeline.errors import ParameterError
-from pipeline.gate import RangeGate
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import simulate_frames
 
 RANGE_TOL_M = 1e-4

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from test_cml import measure, random_scenes
 
-from pipeline.cml import CmlResult, cml
+from pipeline.dsp.cml import CmlResult, cml
 from pipeline.errors import ParameterError
-from pipeline.localize import nearest_estimates
+from pipeline.dsp.localize import nearest_estimates
 from radar_driver.scene import resolve_scene
 
 PFA = 1e-3
@@ -125,8 +125,8 @@ def test_the_localizer_keeps_each_sensors_last_targets_until_it_expires(bus, zen
     from radar_driver.source import SimSourceConfig, SimulatedSource
     from zenoh_helpers import Collector, wait_until
 
-    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
-    from pipeline.quantize import QuantizerConfig
+    from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
+    from pipeline.dsp.quantize import QuantizerConfig
     from pipeline.wire import decode_targets
 
     scene = SimScene((SimTarget(23.43, 12.0, 0.5), SimTarget(9.23, -20.0, 0.2)), noise_std=0.005, name="offgrid")

@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.decode import DecoderConfig, decode
+from pipeline.dsp.decode import DecoderConfig, decode
 from pipeline.errors import ParameterError
-from pipeline.localize import Detections, cfar_threshold, localize, match_detections, sequential_present
-from pipeline.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
-from pipeline.quantize import batch_unit_dither, dequantize, quantize
+from pipeline.dsp.localize import Detections, cfar_threshold, localize, match_detections, sequential_present
+from replay.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
+from pipeline.dsp.quantize import batch_unit_dither, dequantize, quantize
 from pipeline.wire import TargetsMsg, decode_targets
 from test_cml import measure, nearest_estimates, random_scenes
 
@@ -181,8 +181,8 @@ def test_the_localizer_node_counts_the_chamber_targets(bus, zenoh_session):
     with K auto; every target carries its statistic."""
     import threading
 
-    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
-    from pipeline.quantize import QuantizerConfig
+    from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+    from pipeline.dsp.quantize import QuantizerConfig
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource
     from zenoh_helpers import Collector
@@ -236,7 +236,7 @@ def test_reprocess_with_k_auto_counts_empty_frames_and_writes_valid_json(tmp_pat
 
 
 def test_cml_localizer_refuses_more_targets_than_it_can_fit():
-    from pipeline.stream_nodes import LocalizerConfig
+    from pipeline.nodes.stream import LocalizerConfig
 
     with pytest.raises(ParameterError, match="at most N/2 = 128 for cml"):
         LocalizerConfig(k=200, algo="cml", auto_k=True)

@@ -1,4 +1,4 @@
-"""Cramer-Rao bounds of pipeline.crb against closed forms, finite differences of the radar
+"""Cramer-Rao bounds of pipeline.dsp.crb against closed forms, finite differences of the radar
 model, and the empirical covariance of the score of simulated 1-bit codes."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.special import log_ndtr
 
-from pipeline.crb import (crb, fisher, h_integral, position_bound, position_covariance, signal_jacobian,
+from pipeline.dsp.crb import (crb, fisher, h_integral, position_bound, position_covariance, signal_jacobian,
                           weights_1bit, weights_1bit_expected, weights_bits, weights_bits_expected,
                           weights_unquantized)
 from pipeline.errors import ParameterError
-from pipeline.quantize import quantize
+from pipeline.dsp.quantize import quantize
 from radar_driver.model import RadarConfig, polar_to_xy, simulate_frames
 
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from pipeline.decode import DecoderConfig, DitherUnavailable, consistency, decode, forward_ramps, qiht
+from pipeline.dsp.decode import DecoderConfig, DitherUnavailable, consistency, decode, forward_ramps, qiht
 from pipeline.errors import ParameterError
-from pipeline.localize import back_project_ramps, localize, position_error_m
-from pipeline.montecarlo import MonteCarloConfig, draw_scenes, run_montecarlo
-from pipeline.quantize import QuantizerConfig, auto_delta, batch_unit_dither, dequantize, quantize, quantize_frames
+from pipeline.dsp.localize import back_project_ramps, localize, position_error_m
+from replay.montecarlo import MonteCarloConfig, draw_scenes, run_montecarlo
+from pipeline.dsp.quantize import QuantizerConfig, auto_delta, batch_unit_dither, dequantize, quantize, quantize_frames
 from radar_driver.model import RadarConfig, sensing_matrix, simulate_frames
 
 #: the decoder these tests are about (the default decoder is cml: pipeline.defaults)
@@ -41,7 +41,7 @@ def test_estimate_is_consistent_with_the_codes():
     x_qiht, support, iters = qiht(z, xi, delta, 1, cfg, 2, iters=20)
     x_pbp, _ = np.zeros_like(x_qiht), None
     u = back_project_ramps(z, cfg)
-    from pipeline.localize import project_theta_k
+    from pipeline.dsp.localize import project_theta_k
 
     x_pbp, _ = project_theta_k(u, 2)
     c_pbp = consistency(x_pbp, z, xi, delta, 1, cfg)
@@ -130,7 +130,7 @@ def test_cml_through_the_decode_entry_places_an_off_grid_target():
 
 
 def test_montecarlo_decodes_the_32bit_reference_with_the_same_decoder():
-    from pipeline.montecarlo import SceneSpec
+    from replay.montecarlo import SceneSpec
 
     res = run_montecarlo(MonteCarloConfig(ks=(1,), runs=400, schemes=("dither_m512", "32bit_m512"),
                                           algos=("pbp", "cml"), scene=SceneSpec(ranges="continuous", max_angle_deg=60)),
@@ -147,7 +147,7 @@ def test_pbp_on_the_ramps_mean_of_the_codes_is_pbp_on_every_measurement():
     targets are those of PBP on every measurement."""
     from numpy.testing import assert_allclose
 
-    from pipeline.decode import decode_batch
+    from pipeline.dsp.decode import decode_batch
     from radar_driver.scene import resolve_scene
     scene = resolve_scene("chamber")
     rng = np.random.default_rng(4)

@@ -5,15 +5,15 @@ same amplitudes to floating-point rounding."""
 import numpy as np
 import pytest
 
-from pipeline.decode import DecoderConfig, decode, ml_refine, ml_temperatures, qiht
-from pipeline.localize import back_project, back_project_ramps, detections_from_support, grid_statistic_db, \
+from pipeline.dsp.decode import DecoderConfig, decode, ml_refine, ml_temperatures, qiht
+from pipeline.dsp.localize import back_project, back_project_ramps, detections_from_support, grid_statistic_db, \
     project_theta_k
-from pipeline.montecarlo import SceneSpec, draw_scenes
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from replay.montecarlo import SceneSpec, draw_scenes
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, carrier, simulate_frames
 
 
-# -- the reference: pipeline/decode.py before issue 13 ------------------------------------
+# -- the reference: pipeline/dsp/decode.py before issue 13 ------------------------------------
 def _requantize(lam, d, bits):
     half = 1 << (bits - 1)
     return (np.clip(np.floor(lam / d), -half, half - 1) + 0.5) * d

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from pipeline import defaults
-from pipeline.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, DecoderConfig, default_alpha
-from pipeline.gate import RangeGate
-from pipeline.stream_nodes import LocalizerConfig
-from pipeline.quantize import QuantizerConfig
+from pipeline.dsp.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, DecoderConfig, default_alpha
+from pipeline.dsp.gate import RangeGate
+from pipeline.nodes.stream import LocalizerConfig
+from pipeline.dsp.quantize import QuantizerConfig
 from qradar.cli import build_parser
 from qradar.cli.common import edge_quantizer, quantizer_config
 from qradar.cli.stream import run_alpha

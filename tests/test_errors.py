@@ -13,7 +13,7 @@ import pytest
 import pipeline
 import radar_driver
 import replay
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError, PipelineError
 from radar_driver.errors import RadarError
 from replay.errors import ReplayError
@@ -53,7 +53,7 @@ def test_every_exception_lives_in_the_errors_module_under_the_root(package):
 
 
 def test_moved_exceptions_keep_their_old_import_paths():
-    from pipeline.decode import DitherUnavailable
+    from pipeline.dsp.decode import DitherUnavailable
     from pipeline.wire import WireError
     from radar_driver.protocol import ProtocolError
     from radar_driver.session import LinkError, SensorError, SensorResponseError, SensorTimeout

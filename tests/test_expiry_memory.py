@@ -11,13 +11,13 @@ import time
 import tracemalloc
 from pathlib import Path
 
-import pipeline.runtime as node_mod
+import pipeline.nodes.runtime as node_mod
 import radar_driver.limits as limits
-from pipeline.budget import IntakeBudget
-from pipeline.counters import NO_SENSOR
-from pipeline.memory import release_memory
-from pipeline.runtime import TRIM_AFTER_SENSORS
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
+from pipeline.nodes.budget import IntakeBudget
+from pipeline.nodes.counters import NO_SENSOR
+from pipeline.nodes.memory import release_memory
+from pipeline.nodes.runtime import TRIM_AFTER_SENSORS
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
 from zenoh_helpers import rss_mb, wait_until
 
 #: distinct sensor ids, one frame each (the issue's 10 000: benchmarks/bench_expiry.py)

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import ParameterError
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
-from pipeline.quantize import QuantizerConfig
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import TargetsMsg, decode_quantized
 from qradar.run import RunConfig, run
 from qradar.view import (POINT_FIELDS, TF_TOPIC, FoxgloveView, ViewConfig, ViewError, health_topic, parse_endpoint,

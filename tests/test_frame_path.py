@@ -13,11 +13,11 @@ from collections import Counter
 import numpy as np
 import pytest
 
-import pipeline.frame_codec as frame_codec
-import pipeline.wire_frames as wire_frames
+import pipeline.nodes.frame_codec as frame_codec
+import pipeline.wire.frames as wire_frames
 import radar_driver.limits as limits
-from pipeline.decode import DecoderConfig, decode_batch
-from pipeline.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import (FrameHeaders, decode_quantized_batch, decode_raw_batch, decode_targets,
                            encode_quantized_batch, encode_raw_batch, encode_targets_batch)
 from radar_driver.scene import resolve_scene

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from pipeline.localize import back_project, localize
+from pipeline.dsp.localize import back_project, localize
 from radar_driver.errors import ConfigError, InputError
 from radar_driver.frontend import FRONTEND_KEYS, FrontEnd
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, simulate_frames

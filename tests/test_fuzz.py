@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.budget import IntakeBudget
+from pipeline.nodes.budget import IntakeBudget
 from pipeline.errors import WireError
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from pipeline.wire import (
     COMMON,
     HealthMsg,

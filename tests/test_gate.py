@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.decode import DecoderConfig, decode, qiht
-from pipeline.cml import cml
+from pipeline.dsp.decode import DecoderConfig, decode, qiht
+from pipeline.dsp.cml import cml
 from pipeline.errors import ParameterError
-from pipeline.gate import LEAKAGE_BINS, RangeGate
-from pipeline.localize import localize
-from pipeline.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
-from pipeline.stream_nodes import LocalizerConfig
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate
+from pipeline.dsp.localize import localize
+from replay.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
+from pipeline.nodes.stream import LocalizerConfig
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 from replay.errors import ReplayError
 from replay.reprocess import ReprocessConfig

@@ -1,6 +1,6 @@
 """No input stops a node, every lost frame is counted where it is noticed, and a flooding
 or misbehaving sender costs only itself. What a node does with its input (queue, budgets,
-counters) runs over the in-memory transport (pipeline.transport), the same node over
+counters) runs over the in-memory transport (pipeline.nodes.transport), the same node over
 zenoh gives the same outputs; what involves zenoh itself (wildcard keys, nodes in other
 processes over 127.0.0.1) runs on real zenoh sessions. Every wait bounded."""
 
@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from pipeline.budget import IntakeBudget
-from pipeline.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
+from pipeline.nodes.budget import IntakeBudget
+from pipeline.nodes.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
 from pipeline.errors import ParameterError
-from pipeline.fairqueue import FairQueue
-from pipeline.quantize import QuantizerConfig
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
-from pipeline.transport import MemoryTransport
+from pipeline.nodes.fairqueue import FairQueue
+from pipeline.dsp.quantize import QuantizerConfig
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
+from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
 from zenoh_helpers import Collector, wait_until

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ParameterError
-from pipeline.histogram import LogHistogram, SharedHistogram
+from pipeline.nodes.histogram import LogHistogram, SharedHistogram
 
 
 def test_percentiles_within_two_percent_of_exact():

@@ -1,4 +1,5 @@
-"""The packages import one way: radar_driver <- pipeline <- replay <- qradar.
+"""The packages import one way: radar_driver <- pipeline <- replay <- qradar, and inside
+pipeline its jobs: the base (errors, defaults, keys) <- dsp <- wire <- bus <- nodes.
 
 Every import of every module (also the ones inside functions) is read from the source,
 so a lazy import cannot hide a cycle. A module may import its own package and the
@@ -92,14 +93,16 @@ def test_no_import_cycle():
 
 def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
     p = tmp_path / "x.py"
-    p.write_text("def f():\n    from replay.mcapio import McapFile\nfrom .bus import BusConfig\n")
-    known = {"replay.mcapio", "pipeline.bus", "pipeline.x"}
-    assert imports_of("pipeline.x", p, known) == {"replay.mcapio", "pipeline.bus"}
+    p.write_text("def f():\n    from replay.mcapio import McapFile\nfrom .session import BusConfig\n"
+                 "from ..dsp import quantize\n")
+    known = {"replay.mcapio", "pipeline.bus.session", "pipeline.bus.x", "pipeline.dsp.quantize", "pipeline.dsp"}
+    assert imports_of("pipeline.bus.x", p, known) == {"replay.mcapio", "pipeline.bus.session", "pipeline.dsp",
+                                                      "pipeline.dsp.quantize"}
 
 
 @pytest.mark.parametrize("module, absent", [
     ("radar_driver.session", ["pipeline", "replay", "qradar", "zenoh", "mcap"]),
-    ("pipeline.montecarlo", ["replay", "qradar", "zenoh", "serial", "mcap"]),
+    ("replay.montecarlo", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
     ("replay.reprocess", ["qradar", "zenoh"]),
 ])
 def test_offline_modules_do_not_pull_in_the_bus(module, absent):
@@ -113,3 +116,70 @@ def test_python_m_qradar_works():
     proc = subprocess.run([sys.executable, "-m", "qradar", "--help"], capture_output=True, text=True, timeout=60,
                           cwd=ROOT)
     assert proc.returncode == 0 and "montecarlo" in proc.stdout and "reprocess" in proc.stdout
+
+
+#: inside pipeline the jobs import one way too: the base modules (errors, defaults, keys)
+#: <- dsp (the maths) <- wire (the formats) <- bus (zenoh) <- nodes (the runtime and the nodes)
+PIPELINE_ORDER = ["pipeline", "pipeline.dsp", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]
+
+
+def pipeline_layer(module: str) -> str | None:
+    """The layer of a pipeline module (None outside pipeline): its subpackage, or the base."""
+    parts = module.split(".")
+    if parts[0] != "pipeline":
+        return None
+    sub = ".".join(parts[:2])
+    return sub if sub in PIPELINE_ORDER else "pipeline"
+
+
+def test_pipeline_imports_follow_its_jobs():
+    rank = {layer: i for i, layer in enumerate(PIPELINE_ORDER)}
+    wrong = [f"{m} imports {d}" for m, deps in graph().items() if pipeline_layer(m)
+             for d in sorted(deps) if pipeline_layer(d) and rank[pipeline_layer(d)] > rank[pipeline_layer(m)]]
+    assert not wrong, "imports against " + " <- ".join(PIPELINE_ORDER) + ":\n" + "\n".join(wrong)
+
+
+def test_every_pipeline_module_sits_in_a_job():
+    """A new module goes into the subpackage of its job, not beside them."""
+    base = sorted(m for m in modules() if pipeline_layer(m) == "pipeline")
+    assert base == ["pipeline", "pipeline.defaults", "pipeline.errors", "pipeline.keys"], base
+
+
+def _loaded_after_import(modules_: list[str]) -> set[str]:
+    code = ("import sys, importlib; [importlib.import_module(m) for m in sys.argv[1:]]; "
+            "print(' '.join(sorted(sys.modules)))")
+    proc = subprocess.run([sys.executable, "-c", code, *modules_], capture_output=True, text=True, timeout=120,
+                          cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-800:]
+    return set(proc.stdout.split())
+
+
+def test_the_maths_import_no_io():
+    """pipeline.dsp: numpy (scipy, numba) and the signal model; no bus, port or file format."""
+    dsp = sorted(m for m in modules() if pipeline_layer(m) == "pipeline.dsp")
+    loaded = _loaded_after_import(dsp)
+    bad = sorted(m for m in loaded if m.split(".")[0] in ("zenoh", "serial", "mcap", "replay", "qradar")
+                 or pipeline_layer(m) in ("pipeline.wire", "pipeline.bus", "pipeline.nodes"))
+    assert not bad, f"importing pipeline.dsp loads {bad}"
+
+
+def test_opening_a_bus_imports_no_maths():
+    loaded = _loaded_after_import(["pipeline.bus.session", "pipeline.bus.security"])
+    bad = sorted(m for m in loaded if pipeline_layer(m) in ("pipeline.dsp", "pipeline.wire", "pipeline.nodes"))
+    assert not bad, f"opening a bus loads {bad}"
+
+
+MAX_FILE_LINES = 600
+MAX_CLASS_LINES = 300
+
+
+def test_no_file_over_600_lines_and_no_class_over_300():
+    long = []
+    for name, path in modules().items():
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_FILE_LINES:
+            long.append(f"{path.relative_to(ROOT)}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES:
+                long.append(f"{path.relative_to(ROOT)}: class {node.name} {node.end_lineno - node.lineno + 1} lines")
+    assert not long, "\n".join(long)

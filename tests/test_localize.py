@@ -3,7 +3,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from pipeline.errors import ParameterError
-from pipeline.localize import (
+from pipeline.dsp.localize import (
     back_project_dense,
     back_project_ramps,
     joint_support,
@@ -12,7 +12,7 @@ from pipeline.localize import (
     pbp,
     position_error_m,
 )
-from pipeline.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from pipeline.bus import BusConfig
-from pipeline.localize import position_error_m
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.localize import position_error_m
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from pipeline.quantize import QuantizerConfig, unit_dither
+from pipeline.dsp.quantize import QuantizerConfig, unit_dither
 from pipeline.wire import (
     RawFrameMsg,
     decode_health,
@@ -90,7 +90,7 @@ def test_quantized_frames_carry_a_reproducible_dither(bus, zenoh_session):
                  scene, sensors=1, rate_hz=200, frames=5)), session=session)
     raw = Collector(session, "radar/*/raw")
     run_nodes([q, src], duration_s=1.5)
-    from pipeline.quantize import quantize
+    from pipeline.dsp.quantize import quantize
     from pipeline.wire import decode_raw
 
     raws = {m.seq: m for m in map(decode_raw, raw.of("/raw"))}
@@ -387,9 +387,9 @@ def test_localizer_node_with_the_continuous_decoder_off_the_grid(bus, zenoh_sess
 
 
 def test_a_node_and_a_driver_process_are_runnable_and_a_plain_object_is_not(bus):
-    """run_nodes takes what a Node and a DriverProcess have in common (pipeline.runtime.Runnable)."""
-    from pipeline.runtime import Runnable
-    from pipeline.transport import MemoryTransport
+    """run_nodes takes what a Node and a DriverProcess have in common (pipeline.nodes.runtime.Runnable)."""
+    from pipeline.nodes.runtime import Runnable
+    from pipeline.nodes.transport import MemoryTransport
     from qradar.run import DriverProcess
 
     node = QuantizeNode(bus, QuantizerConfig(), session=MemoryTransport())

@@ -14,10 +14,10 @@ import pytest
 import zenoh
 
 from pipeline.errors import ParameterError
-from pipeline.montecarlo import SceneSpec, draw_scenes
-from pipeline.noise import (AUTO_ALPHA_BEST, AUTO_ALPHA_RHO, NOISE_SMOOTHING_FRAMES, NoiseTracker, auto_alpha,
+from replay.montecarlo import SceneSpec, draw_scenes
+from pipeline.dsp.noise import (AUTO_ALPHA_BEST, AUTO_ALPHA_RHO, NOISE_SMOOTHING_FRAMES, NoiseTracker, auto_alpha,
                             estimate_noise_sigma)
-from pipeline.quantize import QuantizerConfig, quantize, quantize_frames, unit_dither
+from pipeline.dsp.quantize import QuantizerConfig, quantize, quantize_frames, unit_dither
 from pipeline.wire import RawFrameMsg, decode_health, decode_quantized, encode_raw
 from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.scene import resolve_scene
@@ -192,7 +192,7 @@ def test_a_bad_alpha_is_one_line(cmd):
 
 
 def test_the_monte_carlo_auto_alpha_scheme():
-    from pipeline.montecarlo import MonteCarloConfig, Scheme, measure
+    from replay.montecarlo import MonteCarloConfig, Scheme, measure
 
     cfg = RadarConfig()
     s = Scheme.parse("dither_aauto_m512", cfg)
@@ -217,7 +217,7 @@ def test_the_edge_quantizer_publishes_the_noise_and_forgets_an_expired_sensor(bu
     """drive --quantize's path in process: a source node quantizing with alpha auto puts the
     estimate in its sensor's health (the walker scene's noise_std, within 5 %), and a
     quantize node forgets a sensor's noise when the sensor expires."""
-    from pipeline.stream_nodes import QuantizeNode, SourceNode, run_nodes
+    from pipeline.nodes.stream import QuantizeNode, SourceNode, run_nodes
     from radar_driver.source import SimSourceConfig, SimulatedSource
 
     session = zenoh_session

@@ -3,7 +3,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from pipeline.errors import ParameterError, PipelineError
-from pipeline.quantize import (
+from pipeline.dsp.quantize import (
     DITHER_COUNTER,
     DITHER_SEEDSEQ,
     QuantizedFrames,
@@ -260,7 +260,7 @@ def test_bad_parameters_raise_clear_value_errors(call, fragment):
 
 def test_counter_generator_test_vectors_of_the_docs():
     """The test vectors of docs/wire-formats.md (version 2)."""
-    from pipeline.quantize import counter_keys
+    from pipeline.dsp.quantize import counter_keys
 
     k = counter_keys(np.array([0, 655087151], np.uint64), np.array([0, 41], np.uint64))
     assert k.tolist() == [0x48218226FF3CD4BF, 0x4B8C5DCC28E8F094]
@@ -311,7 +311,7 @@ def test_ramp_mean_sums_codes_of_any_integer_type_and_layout_exactly(dtype, bits
 
 
 def test_a_step_beyond_what_a_frame_may_carry_is_refused_at_the_config():
-    from pipeline.quantize import MAX_DELTA
+    from pipeline.dsp.quantize import MAX_DELTA
 
     assert QuantizerConfig(delta=MAX_DELTA).delta == MAX_DELTA
     with pytest.raises(ParameterError, match="at most 1000"):

@@ -17,8 +17,8 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
-from pipeline.bus import BusConfig
-from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize, quantize_frames,
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize, quantize_frames,
                                sensor_dither_seed)
 from pipeline.wire import RawFrameMsg, TargetsMsg, decode_quantized, decode_quantized_batch, decode_raw, encode_raw
 from replay.errors import NoQradarChannelsError, NotMcapError, ReplayError

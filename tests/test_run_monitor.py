@@ -7,8 +7,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from pipeline.bus import BusConfig
-from pipeline.histogram import LogHistogram
+from pipeline.bus.session import BusConfig
+from pipeline.nodes.histogram import LogHistogram
 from pipeline.wire import TargetsMsg
 from qradar.monitor import Monitor
 from radar_driver.scene import resolve_scene

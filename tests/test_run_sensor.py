@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import ParameterError
 from pipeline.wire import HealthMsg, TargetsMsg, decode_raw, decode_targets
 from qradar.monitor import Monitor

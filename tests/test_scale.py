@@ -13,12 +13,12 @@ import zlib
 import numpy as np
 import pytest
 
-from pipeline.bus import BusConfig, Shard
-from pipeline.decode import DEFAULT_ALPHA
+from pipeline.bus.session import BusConfig, Shard
+from pipeline.dsp.decode import DEFAULT_ALPHA
 from pipeline.errors import ParameterError
-from pipeline.counters import HEALTH_SLICES
-from pipeline.stream_nodes import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
-from pipeline.quantize import QuantizerConfig
+from pipeline.nodes.counters import HEALTH_SLICES
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource

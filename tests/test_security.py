@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from pipeline.bus import BusConfig
+from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError, ParameterError
-from pipeline.security import Identity, Policy, SecureConfig
+from pipeline.bus.security import Identity, Policy, SecureConfig
 from pipeline.wire import (
     QuantizedFrameMsg,
     RawFrameMsg,
@@ -394,11 +394,11 @@ def test_only_the_router_is_the_router(pki, free_port):
 def test_every_role_security_knows_has_a_node_class_of_that_liveliness_name():
     """The node each role runs is the node class that declares that role (Node.role), and
     its liveliness name (Node.name) is the one the policy lets the role declare."""
-    import pipeline.stream_nodes  # noqa: F401  (the node classes, by layer)
+    import pipeline.nodes.stream  # noqa: F401  (the node classes, by layer)
     import qradar.view  # noqa: F401
     import replay.recorder  # noqa: F401
-    from pipeline.runtime import Node
-    from pipeline.security import ROLE_NODE, ROLES
+    from pipeline.nodes.runtime import Node
+    from pipeline.bus.security import ROLE_NODE, ROLES
 
     def subclasses(cls):
         for sub in cls.__subclasses__():

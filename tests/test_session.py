@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.localize import localize
+from pipeline.dsp.localize import localize
 from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.protocol import Done, Gbye, Gnfd, Init, OtherMessage, Radc, Resp, RespCode, StreamDecoder, encode
 from radar_driver.scene import SimScene, SimTarget, resolve_scene

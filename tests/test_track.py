@@ -1,5 +1,5 @@
-"""The tracker (pipeline/track.py) and the integration of static tracks
-(pipeline/integrate.py): the math on known inputs, then real scenes quantized to 1 bit and
+"""The tracker (pipeline/dsp/track.py) and the integration of static tracks
+(pipeline/dsp/integrate.py): the math on known inputs, then real scenes quantized to 1 bit and
 decoded by the default decoder, frame by frame, as the localizer node does."""
 
 import json
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from pipeline.decode import DecoderConfig, decode_batch
+from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.errors import ParameterError, WireError
-from pipeline.gate import RangeGate
-from pipeline.integrate import concat_frames, integrate, stack_frames
-from pipeline.quantize import QuantizerConfig, quantize_frames
-from pipeline.track import (
+from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.integrate import concat_frames, integrate, stack_frames
+from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.track import (
     SensorTracks,
     TrackerConfig,
     assign,
@@ -27,7 +27,7 @@ from pipeline.track import (
     update,
     velocity_chi2,
 )
-from pipeline.tracker import Integration, Tracker, track_batch
+from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import TRACK_FIELDS, FrameHeaders, TracksMsg, decode_tracks
 from radar_driver.model import RadarConfig, add_noise, polar_to_xy, simulate_frames
 from radar_driver.scene import ramp_time_s, resolve_scene
@@ -459,7 +459,7 @@ def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
     scene, frames = _scene_frames("walker", n)
     radar = scene.radar
     seed = 11
-    from pipeline.quantize import sensor_dither_seed
+    from pipeline.dsp.quantize import sensor_dither_seed
     q = quantize_frames(frames, QuantizerConfig(), np.arange(n, dtype=np.uint64),
                         dither_seed=sensor_dither_seed(seed, "walk0"))
     t0 = time.time_ns()
@@ -572,8 +572,8 @@ def test_tracker_state_expires_with_its_sensor(bus, zenoh_session):
     import zenoh
     from zenoh_helpers import Collector, wait_until
 
-    from pipeline.stream_nodes import LocalizeNode, LocalizerConfig
-    from pipeline.quantize import sensor_dither_seed
+    from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
+    from pipeline.dsp.quantize import sensor_dither_seed
     from pipeline.wire import encode_quantized_batch
 
     n = 10
@@ -600,7 +600,7 @@ def test_tracker_state_expires_with_its_sensor(bus, zenoh_session):
 
 # -- the Monte Carlo in time ---------------------------------------------------------------------------
 def test_time_monte_carlo_error_falls_with_the_frames():
-    from pipeline.integrate import time_monte_carlo
+    from pipeline.dsp.integrate import time_monte_carlo
 
     r = time_monte_carlo(24, (1, 4, 16), 0.0, seed=3)
     assert r["T"] == [1, 4, 16] and r["runs"] == 24

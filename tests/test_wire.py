@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.errors import PipelineError
-from pipeline.localize import Detections
-from pipeline.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizedFrames, QuantizerConfig, quantize_frames,
+from pipeline.dsp.localize import Detections
+from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizedFrames, QuantizerConfig, quantize_frames,
                                unit_dither)
 from pipeline.wire import (
     COMMON,

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.localize import Detections
-from pipeline.quantize import QuantizedFrames
+from pipeline.dsp.localize import Detections
+from pipeline.dsp.quantize import QuantizedFrames
 from pipeline.wire import (FrameHeaders, HealthMsg, TracksMsg, decode_health, decode_quantized, decode_quantized_batch,
                            decode_raw, decode_raw_batch, decode_targets, decode_tracks, encode_quantized,
                            encode_quantized_batch, encode_raw, encode_raw_batch, encode_targets_batch)

@@ -102,7 +102,7 @@ def _install() -> None:
     session.SensorSession._fill_inbox, session.SensorSession._write = fill, swrite
 
     try:
-        from pipeline import stream_nodes as nodes
+        from pipeline.nodes import stream as nodes
     except ImportError:
         return
     pub0 = nodes.SourceNode.publish

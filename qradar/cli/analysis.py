@@ -8,14 +8,14 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.decode import ALGOS, DEFAULT_ALGO, Algo
-from pipeline.gate import RangeGate
-from pipeline.integrate import time_monte_carlo
-from pipeline.localize import DEFAULT_PFA
-from pipeline.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
+from pipeline.dsp.decode import ALGOS, DEFAULT_ALGO, Algo
+from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.integrate import time_monte_carlo
+from pipeline.dsp.localize import DEFAULT_PFA
+from replay.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
                                  run_montecarlo)
-from pipeline.montecarlo_report import prepare_out_dir, write_outputs
-from pipeline.plots import error_vs_frames_figure
+from replay.montecarlo_report import prepare_out_dir, write_outputs
+from replay.plots import error_vs_frames_figure
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
@@ -91,7 +91,7 @@ def add_montecarlo_time(sub) -> None:
         help="the Monte Carlo in time: T 1-bit frames of a static scene decoded together, error against T",
         description="Random static scenes of one target off the grid (range uniform in 3-150 m, angle in +-60 deg), "
         "each seen in T frames with a fresh dither (and fresh noise), decoded together by cml "
-        "(pipeline.integrate); writes time.json and time.png to --out and prints the median error against T and "
+        "(pipeline.dsp.integrate); writes time.json and time.png to --out and prints the median error against T and "
         "its slope in log-log.")
     p.add_argument("--runs", type=pos_int, default=200, help="scenes per noise level (default 200)")
     p.add_argument("--frames", type=pos_int, nargs="+", default=[1, 2, 4, 8, 16, 32],

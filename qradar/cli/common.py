@@ -12,24 +12,24 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from pipeline import audit
-from pipeline.budget import (
+from pipeline.bus import audit
+from pipeline.nodes.budget import (
     DEFAULT_BYTES_PER_S,
     DEFAULT_NEW_SENSORS_BURST,
     DEFAULT_NEW_SENSORS_PER_S,
     DEFAULT_RATE_HZ,
     IntakeBudget,
 )
-from pipeline.bus import BusConfig, Shard, check_sensor_pattern
-from pipeline.calibration import Calibration
-from pipeline.calibration import load as load_calibration_file
-from pipeline.security import SecureConfig
-from pipeline.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, Algo
+from pipeline.bus.session import BusConfig, Shard, check_sensor_pattern
+from pipeline.dsp.calibration import Calibration
+from pipeline.dsp.calibration import load as load_calibration_file
+from pipeline.bus.security import SecureConfig
+from pipeline.dsp.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, Algo
 from pipeline.errors import ParameterError
-from pipeline.gate import LEAKAGE_BINS
-from pipeline.localize import DEFAULT_PFA
-from pipeline.quantize import QuantizerConfig, parse_alpha
-from pipeline.track import TrackerConfig
+from pipeline.dsp.gate import LEAKAGE_BINS
+from pipeline.dsp.localize import DEFAULT_PFA
+from pipeline.dsp.quantize import QuantizerConfig, parse_alpha
+from pipeline.dsp.track import TrackerConfig
 
 
 def nonneg_int(text: str) -> int:
@@ -145,7 +145,7 @@ def count_from_args(args) -> tuple[int | None, bool]:
 
 
 def algo_option(p: argparse.ArgumentParser, help: str, default: Algo = DEFAULT_ALGO) -> None:
-    """``--algo``, one of the decoders (pipeline.decode.Algo); default the one definition's
+    """``--algo``, one of the decoders (pipeline.dsp.decode.Algo); default the one definition's
     (:data:`pipeline.defaults.DEFAULT_ALGO`)."""
     p.add_argument("--algo", choices=list(ALGOS), default=default.value, help=f"{help} (default {default})")
 
@@ -157,7 +157,7 @@ ALPHA_HELP = (f"dither scale in [0, 1] (default {DEFAULT_ALPHA:g}: the best of t
 
 def gate_options(p: argparse.ArgumentParser) -> None:
     """``--min-range-m`` / ``--max-range-m``: the range gate the decoder searches inside
-    (pipeline.gate); None: the radar's default gate."""
+    (pipeline.dsp.gate); None: the radar's default gate."""
     g = p.add_argument_group("range gate", "targets are sought only in [MIN, MAX] m; the default keeps out "
                              f"{LEAKAGE_BINS} range bins at each end of the circular range axis (TX-to-RX leakage "
                              "sits within the first bin or two, and leaks into the top ones)")
@@ -168,8 +168,8 @@ def gate_options(p: argparse.ArgumentParser) -> None:
 
 
 def track_options(p: argparse.ArgumentParser) -> None:
-    """``--track`` and ``--integrate SECONDS``: tracks after the localizer (pipeline.track)."""
-    g = p.add_argument_group("tracks", "tracks of the targets (pipeline.track): an id, a velocity, an uncertainty "
+    """``--track`` and ``--integrate SECONDS``: tracks after the localizer (pipeline.dsp.track)."""
+    g = p.add_argument_group("tracks", "tracks of the targets (pipeline.dsp.track): an id, a velocity, an uncertainty "
                              "and a static flag per track, on radar/<sensor>/tracks")
     g.add_argument("--track", action="store_true", help="publish radar/<sensor>/tracks, one JSON message a frame")
     g.add_argument("--integrate", type=nonneg_float, default=TrackerConfig.integrate_s, metavar="SECONDS",
@@ -343,7 +343,7 @@ def bus_from_args(args, mode: str | None = None) -> BusConfig:
     bus = BusConfig(mode=mode or args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                     config_file=args.zenoh_config, prefix=args.prefix, secure=secure,
                     alone_warning=f"qradar {args.command}")  # a stand-alone command says if it reaches nobody
-    if secure is not None:  # refused handshakes and denied messages, from zenoh's log (pipeline/audit.py)
+    if secure is not None:  # refused handshakes and denied messages, from zenoh's log (pipeline/bus/audit.py)
         audit.start(f"qradar {args.command}", full=bus.mode != "client" or bool(bus.listen_endpoints()))
     return bus
 
@@ -420,7 +420,7 @@ def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
 
 
 def intake_options(p) -> None:
-    """The intake budgets of a node that subscribes (pipeline.budget)."""
+    """The intake budgets of a node that subscribes (pipeline.nodes.budget)."""
     g = p.add_argument_group("intake budgets", "checked where each message arrives, before any work; a message "
                              "over a budget is dropped and counted (over_budget, refused), so a flooding sender "
                              "cannot delay the others (0: no limit)")

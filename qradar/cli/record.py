@@ -8,8 +8,8 @@ import sys
 import threading
 from pathlib import Path
 
-from pipeline import audit
-from pipeline.stream_nodes import run_nodes
+from pipeline.bus import audit
+from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
 from replay.mcapio import recover

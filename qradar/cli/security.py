@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline.errors import ParameterError
-from pipeline.security import CA_KEY, POLICY_FILE, ROLES, Identity, Policy
+from pipeline.bus.security import CA_KEY, POLICY_FILE, ROLES, Identity, Policy
 
 from .. import security
 from .common import DefaultsFormatter, pos_int

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ParameterError
-from pipeline.stream_nodes import SourceNode
+from pipeline.nodes.stream import SourceNode
 from pipeline.wire import check_sensor_id
 from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, packaged_profiles, resolve_profile
 from radar_driver.scene import resolve_scene

@@ -10,12 +10,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from pipeline import audit
-from pipeline.bus import BusConfig
-from pipeline.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
+from pipeline.bus import audit
+from pipeline.bus.session import BusConfig
+from pipeline.dsp.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
 from pipeline.errors import ParameterError
-from pipeline.intake import INPUT_MODES
-from pipeline.stream_nodes import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.nodes.intake import INPUT_MODES
+from pipeline.nodes.stream import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SEND_MODES, SimSourceConfig, SimulatedSource
@@ -313,7 +313,7 @@ def run_bus(args) -> BusConfig:
 
 
 def run_alpha(args) -> float:
-    """run's dither scale: --alpha, else the --algo's best (:func:`pipeline.decode.default_alpha`)."""
+    """run's dither scale: --alpha, else the --algo's best (:func:`pipeline.dsp.decode.default_alpha`)."""
     return default_alpha(args.algo) if args.alpha is None else args.alpha
 
 

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline import audit
+from pipeline.bus import audit
 from pipeline.errors import ParameterError, PipelineError
 
 from ..view import FoxgloveView, ViewConfig, load_poses, parse_endpoint

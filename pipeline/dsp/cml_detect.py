@@ -1,0 +1,166 @@
+"""Detection and the count test of :func:`pipeline.dsp.cml.cml`: the back projection of a
+residual on the oversampled range grid, its peak, and the peak over mean of its joint
+energy (numpy reference; :func:`detect_compiled` runs the per-frame part compiled).
+
+Shapes: a block of B frames of N samples a ramp, 2 antennas; ranges in bins."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.dsp.cml_fit import _atoms, _Codes, _Fit
+
+_kernels_module = None
+
+
+def _kernels():
+    """:mod:`pipeline.dsp.cml_detect_kernels`, imported on first use (it imports numba)."""
+    global _kernels_module
+    if _kernels_module is None:
+        from pipeline.dsp import cml_detect_kernels
+        _kernels_module = cml_detect_kernels
+    return _kernels_module
+
+
+#: a detection keeps at least this far from the targets already found, range bins
+MIN_SEPARATION_BINS = 1.0
+#: the count test looks for a peak this far from the targets found, range bins (a guard
+#: band: a strong target's 1-bit fit leaves residual energy up to ~2 bins away)
+COUNT_GUARD_BINS = 2.0
+
+
+def _energy(y: np.ndarray, fit: _Fit, oversample: int, guard_bins: float) -> tuple[np.ndarray, np.ndarray]:
+    """Joint energy ``|U1|^2 + |U2|^2`` (B, L) of the back projection of ``y`` (B, N, 2)
+    on a grid of ``oversample`` points a bin (zero-padded inverse FFT), zero within
+    ``guard_bins`` of the live targets found, and that mask (B, L) bool."""
+    b, n = y.shape[:2]
+    size = oversample * n
+    u = np.fft.ifft(np.ascontiguousarray(y.transpose(0, 2, 1)), n=size, axis=2).view(float)  # (B, 2, 2L)
+    np.square(u, out=u)
+    both = u[:, 0] + u[:, 1]
+    energy = both[:, 0::2] + both[:, 1::2]  # (B, L): |U1|^2 + |U2|^2
+    near = np.zeros(energy.shape, dtype=bool)
+    reach = int(np.ceil(guard_bins * oversample)) - 1
+    for j in range(fit.nu.shape[1]):
+        idx = np.rint(fit.nu[:, j] * oversample).astype(np.int64)[:, None] + np.arange(-reach, reach + 1)
+        np.put_along_axis(near, idx % size, fit.live[:, j, None], axis=1)
+    energy[near] = 0.0
+    return energy, near
+
+
+def _residual(codes: _Codes, fit: _Fit) -> np.ndarray:
+    """``Z - xi - model`` (full frames: ``Z - model``) summed over the ramps, (B, N, 2)."""
+    if codes.folded is None:  # Z - xi does not change during a decode: summed once
+        codes.folded = codes.data.reshape(fit.nu.shape[0], codes.ramps, codes.n, 2).sum(axis=1)
+    return codes.folded - codes.ramps * fit.model()
+
+
+def _peak_ratio(y: np.ndarray, fit: _Fit, oversample: int) -> np.ndarray:
+    """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
+    beyond COUNT_GUARD_BINS of the targets found and inside the range gate (0 where
+    ``y`` is exactly 0)."""
+    energy, near = _energy(y, fit, oversample, COUNT_GUARD_BINS)
+    if fit.gate is not None:
+        energy[:, fit.gate.outside] = 0.0
+        near |= fit.gate.outside
+    mean = energy.sum(axis=1) / np.maximum(energy.shape[1] - near.sum(axis=1), 1)
+    peak = energy.max(axis=1)
+    return np.divide(peak, mean, out=np.zeros_like(peak), where=mean > 0)
+
+
+def _count_statistic(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
+    """The count test's statistic (B,), peak over mean of two residuals, the smaller:
+
+    * the linear residual ``Z - xi - model``: white when the quantizer is linear on
+      average over the dither (alpha = 1: ``E Q(x + xi) = x``), but with alpha < 1 it
+      carries the quantizer's harmonics of strong targets;
+    * the score of the likelihood (``Z - E[Z | model, xi]`` per code, the generalized
+      residual): free of those harmonics, but not white while the likelihood is
+      sharper or softer than the noise (noiseless frames at the greedy stage).
+
+    A frame passes only if both show a peak, so the false-alarm rate holds wherever
+    either residual is white. Unquantized frames: the linear residual."""
+    ratio = _peak_ratio(_residual(codes, fit), fit, oversample)
+    if codes.bits is None:
+        return ratio
+    b = fit.nu.shape[0]
+    score = np.ascontiguousarray(-fit.g).reshape(b, codes.n, 4).view(complex)
+    return np.minimum(ratio, _peak_ratio(score, fit, oversample))
+
+
+def _detect(fit: _Fit, codes: _Codes, oversample: int) -> np.ndarray:
+    """Range (bins, (B,)) of the peak of the joint energy of the residual's back
+    projection on a grid of ``oversample`` points a bin, refined by a parabola."""
+    n = codes.n
+    b, t = fit.nu.shape
+    if t == 0 or codes.bits is None:
+        y = _residual(codes, fit)
+    else:
+        y = np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex)  # the score, (B, N, 2)
+    size = oversample * n
+    energy, _ = _energy(y, fit, oversample, MIN_SEPARATION_BINS)  # not within a bin of a target found
+    if fit.gate is None:
+        peak = np.argmax(energy, axis=1)
+    else:  # the peak inside the gate (-1: below any energy, so also a residual of zeros peaks inside)
+        peak = np.argmax(np.where(fit.gate.outside, -1.0, energy), axis=1)
+    left, centre, right = (np.take_along_axis(energy, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
+    curv = left - 2 * centre + right
+    off = np.where(curv < 0, 0.5 * (left - right) / np.where(curv < 0, curv, -1.0), 0.0)
+    nu = (peak + np.clip(off, -0.5, 0.5)) / oversample
+    return nu if fit.gate is None else np.clip(nu, fit.gate.lo, fit.gate.hi)
+
+
+def _amplitude_at(codes: _Codes, fit: _Fit, nu0: np.ndarray) -> np.ndarray:
+    """Least-squares amplitudes (B, 2) of one target at ``nu0`` (bins) in ``Z - xi - model``."""
+    n, ramps = codes.n, codes.ramps
+    y = _residual(codes, fit)
+    w = _atoms(nu0[:, None], fit.kc)[:, 0]
+    return np.einsum("bn,bnp->bp", np.conj(w), y) / (ramps * n)
+
+
+def _ifft(x: np.ndarray, size: int | None = None, axis: int = -1) -> np.ndarray:
+    """Inverse FFT (zero-padded to ``size`` points) along ``axis``: scipy's when it
+    imports (the same pocketfft as numpy's, with less overhead a call: most of a frame's
+    FFT cost at B = 1), else numpy's."""
+    global _fft_module
+    if _fft_module is None:
+        try:
+            import scipy.fft as _fft_module
+        except ImportError:
+            _fft_module = np.fft
+    return _fft_module.ifft(x, n=size, axis=axis)
+
+
+_fft_module = None
+
+
+def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """:func:`_count_statistic` (``count``; else None), :func:`_detect` (unless ``nu0`` (B,)
+    bins is given) and :func:`_amplitude_at` there, with the per-frame work compiled
+    (:func:`pipeline.dsp.cml_detect_kernels.detect`): one inverse FFT of the block, then one
+    kernel call. Returns the statistic (B,), the ranges (B,) in bins and the amplitudes (B, 2)."""
+    y = _residual(codes, fit)
+    b, n = y.shape[:2]
+    t = fit.nu.shape[1]
+    on_score = codes.bits is not None and nu0 is None and t > 0  # detection on the likelihood's score
+    sources = [y] if count or (nu0 is None and not on_score) else []
+    if codes.bits is not None and (count or on_score):  # the score, (B, N, 2)
+        sources.append(np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex))
+    stack = np.empty((b, len(sources), 2, n), dtype=complex)  # (B, S, 2, N)
+    for j, src in enumerate(sources):
+        stack[:, j] = src.transpose(0, 2, 1)
+    u = _ifft(stack, oversample * n) if sources else np.empty((b, 0, 2, oversample * n), dtype=complex)
+    gate = fit.gate
+    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
+    stat = np.zeros(b)
+    given = nu0 is not None
+    nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
+    amp = np.empty((b, 2), dtype=complex)
+    _kernels().detect(u, np.ascontiguousarray(y), fit.kc.astype(float), codes.ramps,
+                      np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.live), oversample,
+                      COUNT_GUARD_BINS, MIN_SEPARATION_BINS, outside, gate is not None,
+                      0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
+                      len(sources) if count else 0, -1 if given else len(sources) - 1 if on_score else 0,
+                      stat, nu_out, amp)
+    return (stat if count else None), nu_out, amp

@@ -1,0 +1,116 @@
+"""Compiled (numba) detection and count test of :mod:`pipeline.dsp.cml_detect`, one frame at a
+time inside the kernel (a frame costs the same in a batch of 1 or of 64). The numpy
+functions of :mod:`pipeline.dsp.cml_detect` are the reference (tests/test_cml_kernels.py).
+
+Layouts (one block of B frames, N samples a ramp, L = oversample N grid points, T targets
+found so far): ``u`` (B, S, 2, L) complex, the zero-padded inverse FFTs of S residuals
+(0: the linear residual ``Z - xi - model`` summed over the ramps, 1: the likelihood's
+score) per antenna; ``y`` (B, N, 2) complex the linear residual; ``nu`` (B, T) ranges in
+bins, ``live`` (B, T) bool; ``outside`` (L,) bool the grid points beyond the range gate.
+
+Compiled on first use and cached on disk (``cache=True``), as :mod:`pipeline.dsp.cml_kernels`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _energy(u, nu, live, oversample, guard_bins, energy, near):
+    """Joint energy ``|U1|^2 + |U2|^2`` of ``u`` (2, L) into ``energy`` (L,), zero within
+    ``guard_bins`` of the live targets ``nu`` (T,) (``near`` (L,): that mask), as
+    :func:`pipeline.dsp.cml_detect._energy` (the same order of the sums)."""
+    size = energy.shape[0]
+    for i in range(size):
+        a = u[0, i]
+        b = u[1, i]
+        energy[i] = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
+        near[i] = False
+    reach = int(math.ceil(guard_bins * oversample)) - 1
+    for j in range(nu.shape[0]):
+        c = int(np.rint(nu[j] * oversample))
+        for d in range(-reach, reach + 1):
+            near[(c + d) % size] = live[j]  # later targets overwrite, as put_along_axis
+    for i in range(size):
+        if near[i]:
+            energy[i] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def _peak_ratio(u, nu, live, oversample, guard_bins, outside, use_gate, energy, near) -> float:
+    """Peak over mean of the joint energy beyond ``guard_bins`` of the targets and inside
+    the gate (0 when the energy is 0 there)."""
+    _energy(u, nu, live, oversample, guard_bins, energy, near)
+    size = energy.shape[0]
+    total = 0.0
+    peak = 0.0
+    cells = 0
+    for i in range(size):
+        if use_gate and outside[i]:
+            energy[i] = 0.0
+            near[i] = True
+        total += energy[i]
+        peak = max(peak, energy[i])
+        if not near[i]:
+            cells += 1
+    mean = total / max(cells, 1)
+    return peak / mean if mean > 0.0 else 0.0
+
+
+@njit(cache=True, nogil=True)
+def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, energy, near) -> float:
+    """Range (bins) of the peak of the joint energy, refined by a parabola through it and
+    its neighbours; inside the gate (``use_gate``)."""
+    _energy(u, nu, live, oversample, guard_bins, energy, near)
+    size = energy.shape[0]
+    best = 0
+    top = -math.inf
+    for i in range(size):
+        v = -1.0 if use_gate and outside[i] else energy[i]  # -1: below any energy
+        if v > top:
+            top = v
+            best = i
+    left = energy[(best - 1) % size]
+    centre = energy[best]
+    right = energy[(best + 1) % size]
+    curv = left - 2.0 * centre + right
+    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
+    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
+    if use_gate:
+        nu0 = min(max(nu0, gate_lo), gate_hi)
+    return nu0
+
+
+@njit(cache=True, nogil=True)
+def detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo, gate_hi,
+           count_sources, detect_source, stat, nu0, amp0):
+    """Per frame: the count test's statistic into ``stat`` (B,) (the smaller peak ratio of
+    the first ``count_sources`` residuals of ``u``; 0 sources: left alone), the detected
+    range into ``nu0`` (B,) (residual ``detect_source`` of ``u``; -1: ``nu0`` given), and
+    the least-squares amplitudes (B, 2) of one target at ``nu0`` in ``y`` into ``amp0``."""
+    nb = u.shape[0]
+    size = u.shape[3]
+    n = y.shape[1]
+    energy = np.empty(size)
+    near = np.empty(size, dtype=np.bool_)
+    scale = 1.0 / (ramps * n)
+    for f in range(nb):
+        for s in range(count_sources):
+            r = _peak_ratio(u[f, s], nu[f], live[f], oversample, count_guard, outside, use_gate, energy, near)
+            stat[f] = r if s == 0 else min(stat[f], r)
+        if detect_source >= 0:
+            nu0[f] = _peak(u[f, detect_source], nu[f], live[f], oversample, sep_guard, outside, use_gate, gate_lo,
+                           gate_hi, energy, near)
+        ph = 2.0 * math.pi * nu0[f] / n
+        a1 = 0.0 + 0.0j
+        a2 = 0.0 + 0.0j
+        for i in range(n):
+            w = complex(math.cos(ph * kc[i]), math.sin(ph * kc[i]))  # conj(exp(-i 2 pi kc nu / N))
+            a1 += w * y[f, i, 0]
+            a2 += w * y[f, i, 1]
+        amp0[f, 0] = a1 * scale
+        amp0[f, 1] = a2 * scale

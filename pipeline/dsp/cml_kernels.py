@@ -1,0 +1,419 @@
+"""Compiled (numba) kernels of :mod:`pipeline.dsp.cml`: the likelihood of the codes and the
+Levenberg--Marquardt refinement, one frame at a time (so a frame costs the same in a batch
+of 1 or of 64). The pure-numpy code in :mod:`pipeline.dsp.cml` is the reference these kernels
+are tested against (tests/test_cml_kernels.py).
+
+Layouts (one block of B frames, R ramps of N samples, K targets; the 4 real parts of a
+sample are ``2 p + c``, antenna p, c = 0 real, 1 imaginary):
+
+* ``a``, ``b``: (B, R, N, 4) the codes' arrays: least squares ``y`` (and ``b`` unused);
+  1 bit ``s`` (the code's sign) and ``s xi``; b bits the cell ``[lo, hi)`` of lambda;
+* ``mu``, ``g``, ``h``: (B, N, 4) the model on one ramp, and the first and second
+  derivatives of the negative log-likelihood (NLL) in each real part, summed over ramps;
+* ``nu`` (B, K) ranges in bins, ``amp`` (B, K, 2) complex amplitudes referred to
+  mid-sweep, ``live`` (B, K) bool, ``lm`` (B,) damping.
+
+Kinds: ``LSQ`` least squares, ``ONE_BIT``, ``MULTI_BIT``; likelihoods: ``LOGISTIC`` (the
+scaled logistic of the module docstring of :mod:`pipeline.dsp.cml`) or ``GAUSSIAN`` (the
+exact ``Phi((hi - lambda) / s) - Phi((lo - lambda) / s)``).
+
+Compiled on first use and cached on disk (``cache=True``: ``__pycache__`` beside this
+file, or ``NUMBA_CACHE_DIR``), so a later process loads them instead of compiling.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+LSQ, ONE_BIT, MULTI_BIT = 0, 1, 2
+LOGISTIC, GAUSSIAN = 0, 1
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_SQRT1_2 = math.sqrt(0.5)
+
+
+def _logistic_table(reach: float, step: float) -> np.ndarray:
+    """Nodes u = -reach, -reach + step, ... reach of the logistic likelihood's functions and
+    their derivatives in u, (L, 6): ``-log F(u)``, ``-F(-u)``, ``F(-u)``, ``-F(u) F(-u)``,
+    ``F(u) F(-u)``, ``F(u) F(-u) (F(-u) - F(u))`` (F the logistic), for cubic Hermite
+    interpolation (relative error ~1e-8 at step 1/16)."""
+    u = np.arange(-reach, reach + 2 * step, step)
+    fm = 0.5 * (1.0 - np.tanh(0.5 * u))  # F(-u)
+    fp = 1.0 - fm
+    ff = fm * fp
+    return np.ascontiguousarray(np.stack([np.logaddexp(0.0, -u), -fm, fm, -ff, ff, ff * (fm - fp)], axis=1))
+
+
+#: the table's reach and step (units of the logistic scale): beyond +-reach a code's terms are
+#: their limits (-log F(u) = -u below, 0 above) to exp(-32) ~ 1e-14
+TABLE_REACH, TABLE_STEP = 32.0, 1.0 / 16.0
+_TABLE = _logistic_table(TABLE_REACH, TABLE_STEP)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _logistic(u: float):
+    """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
+    if u >= TABLE_REACH:
+        return 0.0, 0.0, 0.0
+    if u <= -TABLE_REACH:
+        return -u, 1.0, 0.0
+    x = (u + TABLE_REACH) * (1.0 / TABLE_STEP)
+    j = int(x)
+    t = x - j
+    t2 = t * t
+    t3 = t2 * t
+    h00 = 2.0 * t3 - 3.0 * t2 + 1.0
+    h01 = 1.0 - h00
+    h10 = (t3 - 2.0 * t2 + t) * TABLE_STEP
+    h11 = (t3 - t2) * TABLE_STEP
+    a = _TABLE[j]
+    b = _TABLE[j + 1]
+    return (h00 * a[0] + h10 * a[1] + h01 * b[0] + h11 * b[1],
+            h00 * a[2] + h10 * a[3] + h01 * b[2] + h11 * b[3],
+            h00 * a[4] + h10 * a[5] + h01 * b[4] + h11 * b[5])
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def log_ndtr(v: float) -> float:
+    """``log Phi(v)``, stable for any v (asymptotic series below -20)."""
+    if v > 6.0:
+        return -0.5 * math.erfc(v * _SQRT1_2)  # log(1 - t) ~ -t, t < 1e-9
+    if v > -20.0:
+        return math.log(0.5 * math.erfc(-v * _SQRT1_2))
+    x2 = 1.0 / (v * v)
+    return -0.5 * v * v - math.log(-v) - _LOG_SQRT_2PI + math.log1p(x2 * (-1.0 + x2 * (3.0 - 15.0 * x2)))
+
+
+@njit(cache=True, nogil=True)
+def _gauss_tail(v: float):
+    """``-log Phi(v)``, its derivative in v and the second derivative: ``-r`` and
+    ``r (v + r)`` with ``r = phi(v) / Phi(v)``."""
+    lp = log_ndtr(v)
+    r = math.exp(-0.5 * v * v - _LOG_SQRT_2PI - lp)
+    return -lp, -r, r * (v + r)
+
+
+@njit(cache=True, nogil=True)
+def _log_diff_ndtr(lo: float, hi: float) -> float:
+    """``log(Phi(hi) - Phi(lo))`` for lo < hi (either may be infinite), stable in the tails."""
+    if lo + hi > 0.0:  # the upper tail: Phi(hi) - Phi(lo) = Phi(-lo) - Phi(-hi)
+        lo, hi = -hi, -lo
+    lh = log_ndtr(hi)
+    if lo == -math.inf:
+        return lh
+    return lh + math.log1p(-math.exp(log_ndtr(lo) - lh))
+
+
+@njit(cache=True, nogil=True)
+def _gauss_cell(a: float, c: float):
+    """``-log(Phi(c) - Phi(a))`` with ``a = (lo - lambda) / s``, ``c = (hi - lambda) / s``,
+    and its first and second derivatives in ``lambda`` times s and s^2."""
+    ld = _log_diff_ndtr(a, c)
+    pa = 0.0 if a == -math.inf else math.exp(-0.5 * a * a - _LOG_SQRT_2PI - ld)  # phi(a) / P
+    pc = 0.0 if c == math.inf else math.exp(-0.5 * c * c - _LOG_SQRT_2PI - ld)
+    g = pc - pa
+    apa = 0.0 if a == -math.inf else a * pa
+    cpc = 0.0 if c == math.inf else c * pc
+    return -ld, g, g * g + cpc - apa
+
+
+@njit(cache=True, nogil=True)
+def evaluate(kind: int, lik: int, a, b, mu, sigma, g, h):
+    """NLL (B,) of the models ``mu`` (B, N, 4) at noise std ``sigma`` (B,) (the
+    logistic's scale is ``sigma / 1.702``; least squares ignores it); writes ``g``, ``h``."""
+    nb = mu.shape[0]
+    nll = np.zeros(nb)
+    for f in range(nb):
+        nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], sigma[f], g[f], h[f])
+    return nll
+
+
+@njit(cache=True, nogil=True)
+def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
+    ramps, n = a.shape[0], a.shape[1]
+    g[:] = 0.0
+    h[:] = 0.0
+    total = 0.0
+    if kind == LSQ:
+        for r in range(ramps):
+            for i in range(n):
+                for j in range(4):
+                    d = mu[i, j] - a[r, i, j]
+                    total += 0.5 * d * d
+                    g[i, j] += d
+                    h[i, j] += 1.0
+        return total
+    if lik == LOGISTIC:
+        inv = 1.702 / sigma
+    else:
+        inv = 1.0 / sigma
+    inv2 = inv * inv
+    if kind == ONE_BIT and lik == LOGISTIC:  # the common case, as one flat loop
+        m4 = n * 4
+        af = a.reshape(ramps, m4)
+        bf = b.reshape(ramps, m4)
+        muf = mu.reshape(m4)
+        gf = g.reshape(m4)
+        hf = h.reshape(m4)
+        for r in range(ramps):
+            for i in range(m4):
+                s = float(af[r, i])
+                u = (s * muf[i] + float(bf[r, i])) * inv
+                if u >= TABLE_REACH:
+                    continue
+                v, fneg, ff = _logistic(u)
+                total += v
+                gf[i] -= s * fneg * inv
+                hf[i] += ff * inv2
+        return total
+    for r in range(ramps):
+        for i in range(n):
+            for j in range(4):
+                m = mu[i, j]
+                if kind == ONE_BIT:
+                    s = float(a[r, i, j])
+                    u = (s * m + float(b[r, i, j])) * inv  # the margin: > 0 for a code the model gets right
+                    if lik == LOGISTIC:
+                        if u >= TABLE_REACH:
+                            continue
+                        v, fneg, ff = _logistic(u)
+                        total += v
+                        g[i, j] -= s * fneg * inv
+                        h[i, j] += ff * inv2
+                    else:
+                        if u > 38.0:
+                            continue
+                        v, dv, d2v = _gauss_tail(u)
+                        total += v
+                        g[i, j] += s * dv * inv
+                        h[i, j] += d2v * inv2
+                else:
+                    lo = float(a[r, i, j])
+                    hi = float(b[r, i, j])
+                    if lik == LOGISTIC:  # -log F((mu - lo) / T) - log F((hi - mu) / T) + const
+                        for side in range(2):
+                            if side == 0:
+                                u = (m - lo) * inv
+                                sg = 1.0
+                            else:
+                                u = (hi - m) * inv
+                                sg = -1.0
+                            if u >= TABLE_REACH:
+                                continue
+                            v, fneg, ff = _logistic(u)
+                            total += v
+                            g[i, j] -= sg * fneg * inv
+                            h[i, j] += ff * inv2
+                    else:
+                        v, dv, d2v = _gauss_cell((lo - m) * inv, (hi - m) * inv)
+                        total += v
+                        g[i, j] += dv * inv
+                        h[i, j] += d2v * inv2
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _wrong_rms(kind, a, b, mu) -> float:
+    """RMS distance of the codes ``mu`` gets wrong to their cells (0 when none is)."""
+    ramps, n = a.shape[0], a.shape[1]
+    acc = 0.0
+    wrong = 0
+    for r in range(ramps):
+        for i in range(n):
+            for j in range(4):
+                m = mu[i, j]
+                if kind == ONE_BIT:
+                    v = min(float(a[r, i, j]) * m + float(b[r, i, j]), 0.0)
+                else:
+                    v = max(float(a[r, i, j]) - m, 0.0) + max(m - float(b[r, i, j]), 0.0)
+                if v != 0.0:
+                    acc += v * v
+                    wrong += 1
+    return math.sqrt(acc / max(wrong, 1))
+
+
+@njit(cache=True, nogil=True)
+def _model(nu, amp, kc, w, mu):
+    """Atoms ``w`` (K, 2, N) (real and imaginary parts) and the model ``mu`` (N, 4)."""
+    k = nu.shape[0]
+    n = kc.shape[0]
+    mu[:] = 0.0
+    for t in range(k):
+        ph = -2.0 * math.pi * nu[t] / n
+        cr, ci = math.cos(ph), math.sin(ph)  # w[t, i + 1] = w[t, i] exp(i ph), anchored every 32
+        wr, wi = 1.0, 0.0
+        a1r, a1i, a2r, a2i = amp[t, 0].real, amp[t, 0].imag, amp[t, 1].real, amp[t, 1].imag
+        for i in range(n):
+            if i % 32 == 0:
+                wr, wi = math.cos(ph * kc[i]), math.sin(ph * kc[i])
+            else:
+                wr, wi = wr * cr - wi * ci, wr * ci + wi * cr
+            w[t, 0, i] = wr
+            w[t, 1, i] = wi
+            mu[i, 0] += a1r * wr - a1i * wi
+            mu[i, 1] += a1r * wi + a1i * wr
+            mu[i, 2] += a2r * wr - a2i * wi
+            mu[i, 3] += a2r * wi + a2i * wr
+
+
+@njit(cache=True, nogil=True)
+def _solve(m, rhs):
+    """``m x = rhs`` by Gaussian elimination with partial pivoting (m and rhs overwritten)."""
+    p = m.shape[0]
+    for col in range(p):
+        piv = col
+        best = abs(m[col, col])
+        for r in range(col + 1, p):
+            if abs(m[r, col]) > best:
+                best = abs(m[r, col])
+                piv = r
+        if piv != col:
+            for c in range(p):
+                m[col, c], m[piv, c] = m[piv, c], m[col, c]
+            rhs[col], rhs[piv] = rhs[piv], rhs[col]
+        d = m[col, col]
+        for r in range(col + 1, p):
+            fct = m[r, col] / d
+            if fct != 0.0:
+                for c in range(col, p):
+                    m[r, c] -= fct * m[col, c]
+                rhs[r] -= fct * rhs[col]
+    x = np.zeros(p)
+    for r in range(p - 1, -1, -1):
+        acc = rhs[r]
+        for c in range(r + 1, p):
+            acc -= m[r, c] * x[c]
+        x[r] = acc / m[r, r]
+    return x
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _normal_equations(w, kc, amp, g, h, hess, grad):
+    """The Gauss--Newton system of one frame: ``hess`` (5K, 5K) and ``grad`` (5K,), the
+    parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t; ``w`` (K, 2, N)
+    the atoms' real and imaginary parts."""
+    k, n = w.shape[0], w.shape[2]
+    nb = 4 * k
+    basis = np.empty((nb, n))  # rows: Re w, Re dw, Im w, Im dw; dw = w (-i 2 pi kc / N)
+    for t in range(k):
+        for i in range(n):
+            c = 2.0 * math.pi * kc[i] / n
+            basis[t, i] = w[t, 0, i]
+            basis[k + t, i] = c * w[t, 1, i]
+            basis[2 * k + t, i] = w[t, 1, i]
+            basis[3 * k + t, i] = -c * w[t, 0, i]
+    hess[:] = 0.0
+    grad[:] = 0.0
+    ht = np.ascontiguousarray(h.T)
+    gt = np.ascontiguousarray(g.T)
+    gram = np.empty((nb, nb))
+    proj = np.empty(nb)
+    coef = np.zeros((nb, 5 * k))
+    for j in range(4):
+        p, c = j // 2, j % 2
+        hw = ht[j]
+        gw = gt[j]
+        for r1 in range(nb):
+            b1 = basis[r1]
+            acc_g = 0.0
+            for i in range(n):
+                acc_g += b1[i] * gw[i]
+            proj[r1] = acc_g
+            for r2 in range(r1, nb):
+                b2 = basis[r2]
+                acc = 0.0
+                for i in range(n):
+                    acc += hw[i] * b1[i] * b2[i]
+                gram[r1, r2] = acc
+                gram[r2, r1] = acc
+        # coef[:, q]: the derivative of part c of mu_p in parameter q is basis^T coef[:, q]
+        coef[:] = 0.0
+        for t in range(k):
+            if c == 0:
+                coef[t, 5 * t + 1 + 2 * p] = 1.0
+                coef[2 * k + t, 5 * t + 2 + 2 * p] = -1.0
+                coef[k + t, 5 * t] = amp[t, p].real
+                coef[3 * k + t, 5 * t] = -amp[t, p].imag
+            else:
+                coef[2 * k + t, 5 * t + 1 + 2 * p] = 1.0
+                coef[t, 5 * t + 2 + 2 * p] = 1.0
+                coef[k + t, 5 * t] = amp[t, p].imag
+                coef[3 * k + t, 5 * t] = amp[t, p].real
+        tmp = gram @ coef
+        hess += coef.T @ tmp
+        grad += coef.T @ proj
+
+
+@njit(cache=True, nogil=True)
+def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+           use_gate, max_range_step, mu, g, h, nll, sigma_out):
+    """Levenberg--Marquardt steps of every frame, as :meth:`pipeline.dsp.cml._Fit.step`:
+    step j at noise std ``levels[f, j]`` (``adapt``: not below the wrong codes' RMS
+    distance over ``wrong_per_sigma``), re-evaluating the likelihood when the level changes;
+    a step is kept only when the NLL does not grow. Updates ``nu``, ``amp``, ``lm``, ``mu``,
+    ``g``, ``h``, ``nll`` in place and writes each frame's last level to ``sigma_out``.
+    ``nll`` on entry: the NLL at ``sigma_out`` (the current level; -1: none)."""
+    nb, k = nu.shape
+    n = kc.shape[0]
+    steps = levels.shape[1]
+    if k == 0:
+        return
+    w = np.empty((k, 2, n))
+    w2 = np.empty((k, 2, n))
+    mu2 = np.empty((n, 4))
+    g2 = np.empty((n, 4))
+    h2 = np.empty((n, 4))
+    hess = np.empty((5 * k, 5 * k))
+    grad = np.empty(5 * k)
+    nu2 = np.empty(k)
+    amp2 = np.empty((k, 2), dtype=np.complex128)
+    for f in range(nb):
+        _model(nu[f], amp[f], kc, w, mu[f])
+        current = sigma_out[f]
+        for s in range(steps):
+            level = levels[f, s]
+            if adapt:
+                level = max(level, _wrong_rms(kind, a[f], b[f], mu[f]) / wrong_per_sigma)
+            if level != current:
+                nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], level, g[f], h[f])
+                current = level
+            _normal_equations(w, kc, amp[f], g[f], h[f], hess, grad)
+            dmax = 0.0
+            for q in range(5 * k):
+                dmax = max(dmax, hess[q, q])
+            for q in range(5 * k):
+                hess[q, q] += lm[f] * hess[q, q] + 1e-9 * dmax + 1e-300
+                grad[q] = -grad[q]
+            step = _solve(hess, grad)
+            for t in range(k):
+                if not live[f, t]:
+                    for q in range(5):
+                        step[5 * t + q] = 0.0
+                dnu = min(max(step[5 * t], -max_range_step), max_range_step)
+                norm = 0.0
+                for q in range(1, 5):
+                    norm += step[5 * t + q] ** 2
+                norm = math.sqrt(norm)
+                cut = min(1.0, amp_cap[f] / max(norm, 1e-300))
+                v = nu[f, t] + dnu
+                if use_gate:
+                    v = min(max(v, gate_lo), gate_hi)
+                nu2[t] = v
+                for p in range(2):
+                    amp2[t, p] = amp[f, t, p] + complex(step[5 * t + 1 + 2 * p] * cut, step[5 * t + 2 + 2 * p] * cut)
+            _model(nu2, amp2, kc, w2, mu2)
+            cand = _evaluate_frame(kind, lik, a[f], b[f], mu2, current, g2, h2)
+            if cand <= nll[f]:
+                lm[f] = max(lm[f] / 3.0, 1e-9)
+                nll[f] = cand
+                nu[f, :] = nu2
+                amp[f, :, :] = amp2
+                w[:, :, :] = w2
+                mu[f, :, :] = mu2
+                g[f, :, :] = g2
+                h[f, :, :] = h2
+            else:
+                lm[f] = min(lm[f] * 8.0, 1e9)
+        sigma_out[f] = current

@@ -1,0 +1,362 @@
+"""Projected back projection (PBP, paper eq. 5) and target extraction.
+
+``X_hat = P_Theta_K(Phi^* Z / M)``: back-project the (quantized) measurements, keep the
+K range bins with the largest joint energy ``(|U_n1|^2 + |U_n2|^2)^(1/2)``, then read
+range from the bin and angle from the phase between the antennas.
+
+Two back projections give the same ``Phi^* Z / M``:
+
+* :func:`back_project_ramps` for frames of whole ramps: fold the ramps, one inverse
+  FFT of length N per antenna, times ``exp(+i 4 pi f0 R_n / c)``: O(M + N log N).
+* :func:`back_project_dense` for any set of frequencies (a subset, per frame or shared):
+  an explicit ``Phi^H Z``: O(M N).
+
+Shapes: Z is (B, M, 2); U and X_hat are (B, N, 2); supports and targets are (B, K),
+ordered strongest first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, polar_to_plane, polar_to_xy,
+                                sensing_matrix)
+
+from pipeline.errors import ParameterError
+from pipeline.dsp.gate import RangeGate, check_gate
+
+
+def _check_z(z: np.ndarray) -> np.ndarray:
+    z = np.asarray(z)
+    if z.ndim != 3 or z.shape[-1] != 2:
+        raise ParameterError(f"Z must have shape (B, M, 2), got {z.shape}")
+    return z
+
+
+def back_project_ramps(z: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """``Phi^* Z / M`` for frames of whole ramps (fast path).
+
+    z : (B, M, 2) with M a multiple of N (measurement m at frequency index m mod N).
+    Returns U, (B, N, 2) complex.
+    """
+    z = _check_z(z)
+    n = config.samples_per_ramp
+    b, m, _ = z.shape
+    if m == 0 or m % n:
+        raise ParameterError(f"M={m} is not a whole number of ramps of N={n} samples")
+    folded = z if m == n else z.reshape(b, m // n, n, 2).sum(axis=1)  # (B, N, 2)
+    # sum_k folded_k exp(+i 2 pi k n / N) = N * ifft; the f0 term exp(+i 4 pi f0 R_n / c)
+    spectrum = np.fft.ifft(folded, axis=1)
+    if m != n:
+        spectrum *= n / m
+    spectrum *= _conj_carrier(config)[None, :, None]
+    return spectrum
+
+
+@lru_cache(maxsize=32)
+def _conj_carrier(config: RadarConfig) -> np.ndarray:
+    """``conj(carrier(config))``, (N,) complex128, read-only."""
+    c = np.conj(carrier(config)).astype(np.complex128)
+    c.flags.writeable = False
+    return c
+
+
+def back_project_dense(z: np.ndarray, config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
+    """``Phi^* Z / M`` for any frequencies (dense path).
+
+    z : (B, M, 2). indices : None (whole ramps), (M,) shared or (B, M) per-frame
+    frequency indices in [0, N). Returns U, (B, N, 2) complex.
+    """
+    z = _check_z(z)
+    if indices is None or np.ndim(indices) == 1:
+        key = None if indices is None else np.asarray(indices, dtype=np.int64).tobytes()
+        phi = _shared_adjoint(config, key)  # (M, N), cached: a live stream reuses one subset
+    else:
+        phi = sensing_matrix(config, indices)  # (B, M, N)
+    if phi.shape[-2] != z.shape[1] or (phi.ndim == 3 and phi.shape[0] != z.shape[0]):
+        raise ParameterError(f"Z {z.shape} does not match the frequencies {phi.shape[:-1]}")
+    if phi.ndim == 2:
+        u = np.einsum("mn,bmp->bnp", phi, z, optimize=True)
+    else:
+        u = np.einsum("bmn,bmp->bnp", np.conj(phi), z, optimize=True)
+    return u / z.shape[1]
+
+
+@lru_cache(maxsize=32)
+def _shared_adjoint(config: RadarConfig, indices_key: bytes | None) -> np.ndarray:
+    """conj(Phi) for whole ramps (key None) or one shared subset (int64 bytes); read-only."""
+    indices = None if indices_key is None else np.frombuffer(indices_key, dtype=np.int64)
+    phi = np.conj(sensing_matrix(config, indices))
+    phi.flags.writeable = False
+    return phi
+
+
+def back_project(z: np.ndarray, config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
+    """``Phi^* Z / M``: the FFT path for whole ramps (``indices=None``), dense otherwise."""
+    if indices is None:
+        return back_project_ramps(z, config)
+    return back_project_dense(z, config, indices)
+
+
+def joint_energy(u: np.ndarray) -> np.ndarray:
+    """``|U_n1|^2 + |U_n2|^2``, the squared joint norm of each bin: (B, N, 2) complex ->
+    (B, N) float (squares of the real and imaginary parts; no reduction over the short
+    antenna axis, which numpy does slowly)."""
+    u = np.ascontiguousarray(u, dtype=np.complex128)
+    p = np.square(u.view(np.float64)).reshape(u.shape[:-1] + (4,))  # Re, Im of antenna 1, then 2
+    return (p[..., 0] + p[..., 1]) + (p[..., 2] + p[..., 3])
+
+
+def joint_support(u: np.ndarray, k: int, energy: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the K bins with the largest ``(|U_n1|^2 + |U_n2|^2)^(1/2)``,
+    strongest first: (B, N, 2) -> (B, K) int. ``energy``: :func:`joint_energy` of U
+    when already known."""
+    u = np.asarray(u)
+    n = u.shape[1]
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
+        raise ParameterError(f"K={k!r} must be an integer in [1, N={n}]")
+    energy = joint_energy(u) if energy is None else energy  # monotone in the joint norm
+    top = np.argpartition(-energy, k - 1, axis=1)[:, :k]
+    frames = np.arange(top.shape[0])[:, None]
+    order = np.argsort(-energy[frames, top], axis=1, kind="stable")
+    return top[frames, order]
+
+
+def project_theta_k(u: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """P_Theta_K(U): zero all but the K strongest rows (joint support).
+
+    Returns (X_hat (B, N, 2), support (B, K) strongest first).
+    """
+    support = joint_support(u, k)
+    x = np.zeros_like(u)
+    rows = np.take_along_axis(u, support[:, :, None], axis=1)
+    np.put_along_axis(x, support[:, :, None], rows, axis=1)
+    return x, support
+
+
+def pbp(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """PBP estimate ``P_Theta_K(Phi^* Z / M)``: (X_hat (B, N, 2), support (B, K))."""
+    return project_theta_k(back_project(z, config, indices), k)
+
+
+#: default false-alarm probability of ``K auto``: per frame and per test, the chance that a
+#: residual with no target left crosses the detection threshold
+DEFAULT_PFA = 1e-3
+#: a detection statistic too large to be finite (a noiseless fit) is reported as this, dB
+STATISTIC_CAP_DB = 300.0
+
+
+def check_pfa(pfa) -> float:
+    """``pfa`` if it is a false-alarm probability in (0, 1), else a ParameterError."""
+    if isinstance(pfa, bool) or not (isinstance(pfa, (int, float)) and 0 < pfa < 1):
+        raise ParameterError(f"pfa={pfa!r} must be a false-alarm probability in (0, 1)")
+    return float(pfa)
+
+
+def cfar_threshold(pfa: float, cells: float) -> float:
+    """Detection threshold on (peak joint energy) / (mean joint energy per bin), linear.
+
+    Under the null (white Gaussian residual: 4 real degrees of freedom a bin over the
+    two antennas) the joint energy of a bin over its mean is Gamma(2, 1/2), exceeded
+    with probability ``e^-2x (1 + 2x)``, so the largest of ``cells`` independent bins
+    exceeds T with probability ``cells e^-2T (1 + 2T)``; T solves that equal to ``pfa``
+    (0 < pfa < 1)."""
+    base = np.log(max(cells, 1.0) / check_pfa(pfa))
+    y = max(base, 1.0)
+    for _ in range(50):  # y = log(cells / pfa) + log(1 + y), y = 2T: a contraction
+        y = base + np.log1p(y)
+    return float(y / 2.0)
+
+
+def sequential_present(statistic_db: np.ndarray, threshold_db: float) -> np.ndarray:
+    """Targets kept by a sequential test (B, K) bool: target t of a frame is kept while
+    every target up to t has ``statistic_db >= threshold_db`` (targets in test order)."""
+    return np.cumprod(np.asarray(statistic_db) >= threshold_db, axis=1).astype(bool)
+
+
+def to_db(ratio: np.ndarray) -> np.ndarray:
+    """10 log10 of a power ratio, capped at +-STATISTIC_CAP_DB (0 -> -cap, inf -> +cap)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        db = 10 * np.log10(ratio)
+    return np.clip(np.nan_to_num(db, nan=-STATISTIC_CAP_DB), -STATISTIC_CAP_DB, STATISTIC_CAP_DB)
+
+
+def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | None = None,
+                      cells: int | None = None) -> np.ndarray:
+    """Cell-averaging statistic of the support bins of a back projection U (B, N, 2),
+    support (B, K) strongest first: dB, (B, K). Target t: its joint energy
+    ``|U1|^2 + |U2|^2`` over the mean of the bins outside ``support[:, :t + 1]``.
+    ``energy``: :func:`joint_energy` of U when already known; with a range gate, the
+    energy with the bins outside the gate set to 0 and ``cells`` the bins inside (the
+    mean is then over the gate's bins)."""
+    energy = joint_energy(u) if energy is None else energy  # (B, N)
+    n = energy.shape[1] if cells is None else cells
+    e_t = energy[np.arange(energy.shape[0])[:, None], support]
+    rest = (energy.sum(axis=1, keepdims=True) - np.cumsum(e_t, axis=1)) / np.maximum(
+        n - 1 - np.arange(support.shape[1]), 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return to_db(e_t / np.maximum(rest, 0.0))
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Targets found in a batch of frames; every array is (B, K), strongest first.
+
+    range_m (m), angle_deg (deg, positive = antenna 2 leads), x_m / y_m (m, x along
+    boresight), amplitude (joint magnitude / sqrt(2), frame units), bin (range bin),
+    statistic_db (detection statistic, dB: the target's joint power over the mean
+    noise power per range bin of the back projection; see each decoder), present
+    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN).
+    """
+
+    range_m: np.ndarray
+    angle_deg: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    amplitude: np.ndarray
+    bin: np.ndarray
+    statistic_db: np.ndarray | None = None
+    present: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        shape = np.shape(self.range_m)
+        if self.statistic_db is None:
+            object.__setattr__(self, "statistic_db", np.full(shape, np.nan))
+        if self.present is None:
+            object.__setattr__(self, "present", np.ones(shape, dtype=bool))
+
+    @property
+    def count(self) -> np.ndarray:
+        """Targets per frame, (B,) int."""
+        return self.present.sum(axis=1)
+
+    def masked(self, present: np.ndarray) -> "Detections":
+        """The same detections keeping only ``present`` (B, K): the others become NaN
+        (bin -1) and not present."""
+        present = np.asarray(present, dtype=bool) & self.present
+        nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
+        return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
+                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present)
+
+    def frame(self, i: int) -> list[dict[str, float]]:
+        """The targets of frame ``i`` that are present, as plain dicts (for JSON)."""
+        return [
+            {
+                "range_m": float(self.range_m[i, j]),
+                "angle_deg": float(self.angle_deg[i, j]),
+                "x_m": float(self.x_m[i, j]),
+                "y_m": float(self.y_m[i, j]),
+                "amplitude": float(self.amplitude[i, j]),
+                "bin": int(self.bin[i, j]),
+                **({"statistic_db": float(self.statistic_db[i, j])} if np.isfinite(self.statistic_db[i, j]) else {}),
+            }
+            for j in range(self.range_m.shape[1]) if self.present[i, j]
+        ]
+
+
+def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarConfig,
+                            statistic_db: np.ndarray | None = None) -> Detections:
+    """Range, angle and position of each support bin of U (B, N, 2); support (B, K)."""
+    rows = u[np.arange(u.shape[0])[:, None], support]  # (B, K, 2)
+    angle = angle_from_antennas_rad(rows[..., 0], rows[..., 1], config)
+    rng_m = config.range_grid_m()[support]
+    x, y = polar_to_xy(rng_m, angle)
+    amp = np.sqrt(joint_energy(rows) / 2.0)
+    return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
+
+
+def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The joint energy (B, N) of a back projection seen through a range gate's bin mask
+    (N,) bool (None: no gate): (energy to pick a support from, -1 outside the gate;
+    energy for the statistic, 0 outside; bins inside). ``k`` bins must fit inside."""
+    n = energy.shape[1]
+    if mask is None:
+        return energy, energy, n
+    cells = int(mask.sum())
+    if isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k > cells:
+        raise ParameterError(f"K={k} targets do not fit in the range gate's {cells} range bins")
+    outside = ~mask
+    pick, stat = energy.copy(), energy.copy()
+    pick[:, outside] = -1.0  # below any energy: never in the support
+    stat[:, outside] = 0.0
+    return pick, stat, cells
+
+
+def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
+             pfa: float | None = None, gate: RangeGate | None = None) -> Detections:
+    """PBP targets of a batch of frames Z (B, M, 2) (quantized or not), each with its
+    cell-averaging statistic (:func:`grid_statistic_db`). ``pfa``: decide the count (at
+    most ``k``) by a sequential CFAR test with this false-alarm probability per frame
+    and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets.
+    ``gate``: search only the range bins inside this :class:`~pipeline.dsp.gate.RangeGate`
+    (the statistic and the test then over those bins); None: the whole range axis."""
+    mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
+    u = back_project(z, config, indices)
+    energy = joint_energy(u)
+    pick, stat, cells = gated_energy(energy, mask, k)
+    support = joint_support(u, k, pick)
+    det = detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
+    if pfa is None:
+        return det
+    threshold_db = 10 * np.log10(cfar_threshold(pfa, cells))
+    return det.masked(sequential_present(det.statistic_db, threshold_db))
+
+
+def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
+                   gate: RangeGate | None = None) -> list[dict[str, float]]:
+    """PBP targets of one frame Z (M, 2), strongest first, as dicts."""
+    z = np.asarray(z)
+    if z.ndim != 2 or z.shape[-1] != 2:
+        raise ParameterError(f"a single frame Z must have shape (M, 2), got {z.shape}")
+    idx = None if indices is None else np.asarray(indices)
+    return localize(z[None], config, k, idx, gate=gate).frame(0)
+
+
+def nearest_estimates(
+    true_range_m: np.ndarray, true_angle_deg: np.ndarray, est_range_m: np.ndarray, est_angle_deg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each true target, the closest estimate in the plane: (error m (B, K),
+    position x + i y of that estimate (B, K) complex, m).
+
+    true_* : (B, K); est_* : (B, L); errors are ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``;
+    NaN estimates (absent targets) are skipped, and a frame without any gives inf.
+    """
+    t = polar_to_plane(true_range_m, np.deg2rad(true_angle_deg))
+    e = polar_to_plane(est_range_m, np.deg2rad(est_angle_deg))
+    dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, K, L)
+    dist = np.where(np.isnan(dist), np.inf, dist)  # absent estimates (NaN) are never the nearest
+    nearest = np.argmin(dist, axis=2)
+    pos = np.take_along_axis(np.broadcast_to(e[:, None, :], dist.shape), nearest[:, :, None], axis=2)[..., 0]
+    return np.take_along_axis(dist, nearest[:, :, None], axis=2)[..., 0], pos
+
+
+def match_detections(true_range_m: np.ndarray, est_range_m: np.ndarray, gate_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matching of detections to true targets by range: each true target in
+    turn (strongest first) claims the nearest unclaimed detection within ``gate_m``.
+
+    true_range_m : (B, K); est_range_m : (B, L), NaN for absent. Returns found (B, K)
+    bool and false targets (B,) int (present detections left unclaimed)."""
+    est = np.array(est_range_m, dtype=float)
+    present = ~np.isnan(est)
+    found = np.zeros(true_range_m.shape, dtype=bool)
+    for t in range(true_range_m.shape[1]):  # K true targets, not frames
+        dist = np.abs(est - true_range_m[:, t, None])
+        dist[np.isnan(dist)] = np.inf
+        j = np.argmin(dist, axis=1)
+        hit = np.take_along_axis(dist, j[:, None], axis=1)[:, 0] <= gate_m
+        found[:, t] = hit
+        est[np.flatnonzero(hit), j[hit]] = np.nan  # claimed
+    return found, present.sum(axis=1) - found.sum(axis=1)
+
+
+def position_error_m(
+    true_range_m: np.ndarray, true_angle_deg: np.ndarray, est_range_m: np.ndarray, est_angle_deg: np.ndarray
+) -> np.ndarray:
+    """Error of each true target: ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``, m.
+
+    true_* : (B, K); est_* : (B, L). Returns (B, K).
+    """
+    return nearest_estimates(true_range_m, true_angle_deg, est_range_m, est_angle_deg)[0]

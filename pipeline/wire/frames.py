@@ -1,0 +1,526 @@
+"""The binary wire formats: raw and quantized frames (byte layouts in docs/wire-formats.md).
+
+Compact, little-endian, behind one 48-byte common header (magic, version, kind, bits,
+flags, seq, timestamp_ns, config_id, M, sensor_id). One writer and one reader per format,
+both for batches: :func:`encode_raw_batch` / :func:`encode_quantized_batch` write B frames,
+:func:`decode_raw_batch` / :func:`decode_quantized_batch` parse many payloads at once
+(grouped by length, headers read through a structured numpy dtype, every field checked
+vectorized, the codes of a group unpacked in one call); the single-frame codecs
+(:func:`encode_raw`, :func:`decode_raw`, ...) are these called with one frame.
+
+Checked once, at the edge: a decoder checks every header field and the length where
+bytes become arrays and returns typed batches (:class:`FrameHeaders` with
+:class:`RawGroup` / :class:`QuantizedGroup`); :class:`FrameHeaders` checks what it is
+built from; code downstream trusts them. Every failure is a :class:`WireError`.
+
+The version of a quantized frame names its dither generator (pipeline.dsp.quantize): 1 =
+``"seedseq"``, 2 = ``"counter"``. Raw frames are written as version 1 and read as 1 or 2.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Sequence
+
+import numpy as np
+
+from radar_driver import limits
+from radar_driver.limits import MAX_BITS, SENSOR_ID_MAX, bits_bad, sensor_id_fields_bad
+
+from pipeline.errors import ParameterError, WireError
+from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, MAX_DELTA, QuantizedFrames, as_int_array, check_alpha,
+                       check_generator, check_uint64, pack_codes_unchecked, unpack_codes_unchecked)
+
+MAGIC = b"QRDR"
+#: format version of each dither generator (quantized frames); raw frames are written as 1
+GENERATOR_VERSIONS = {DITHER_SEEDSEQ: 1, DITHER_COUNTER: 2}
+_GENERATOR_OF_VERSION = {v: g for g, v in GENERATOR_VERSIONS.items()}
+VERSIONS = (1, 2)  # what the decoders read
+RAW_VERSION = 1
+KIND_RAW = 1
+KIND_QUANTIZED = 2
+FLAG_DITHERED = 0x01
+
+#: the frame layout table (docs/wire-formats.md): each header field's name, struct code and
+#: numpy dtype, in order; COMMON, QUANT_EXT and the decoders' dtypes all come from it
+COMMON_FIELDS = (("magic", "4s", ("u1", (4,))), ("version", "B", "u1"), ("kind", "B", "u1"), ("bits", "B", "u1"),
+                 ("flags", "B", "u1"), ("seq", "Q", "<u8"), ("timestamp_ns", "q", "<i8"), ("config_id", "I", "<u4"),
+                 ("m", "I", "<u4"), ("sensor_id", "16s", ("u1", (16,))))
+#: the quantized frame's extension of the common header
+QUANT_EXT_FIELDS = (("dither_seed", "Q", "<u8"), ("alpha", "f", "<f4"), ("delta", "f", "<f4"))
+#: common header: magic, version, kind, bits, flags, seq, timestamp_ns, config_id, M, sensor_id
+COMMON = struct.Struct("<" + "".join(code for _, code, _ in COMMON_FIELDS))
+#: quantized extension: dither_seed, alpha, delta
+QUANT_EXT = struct.Struct("<" + "".join(code for _, code, _ in QUANT_EXT_FIELDS))
+#: the same headers as numpy structured dtypes (packed, little-endian)
+COMMON_DTYPE = np.dtype([(name, dt) for name, _, dt in COMMON_FIELDS])
+QUANT_DTYPE = np.dtype([(name, dt) for name, _, dt in COMMON_FIELDS + QUANT_EXT_FIELDS])
+assert all(struct.calcsize("<" + code) == np.dtype(dt).itemsize for _, code, dt in COMMON_FIELDS + QUANT_EXT_FIELDS)
+assert (COMMON_DTYPE.itemsize, QUANT_DTYPE.itemsize) == (COMMON.size, COMMON.size + QUANT_EXT.size)
+HEADER_LEN = COMMON.size  # 48
+QUANT_HEADER_LEN = COMMON.size + QUANT_EXT.size  # 64
+MAX_M = 1 << 20
+
+
+def check_sensor_id(sensor_id: str) -> str:
+    """Sensor ids: 1-16 ASCII characters from [A-Za-z0-9_-] (they are zenoh key chunks);
+    the rule of :mod:`radar_driver.limits`, failing as a WireError."""
+    return limits.check_sensor_id(sensor_id, WireError)
+
+
+@dataclass(frozen=True, eq=False)
+class RawFrameMsg:
+    """A full-resolution frame Gamma: ``data`` (M, 2) complex64, full-scale units."""
+
+    sensor_id: str
+    seq: int
+    timestamp_ns: int
+    config_id: int
+    data: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, RawFrameMsg) and self.header() == other.header()
+                and np.array_equal(self.data, other.data))
+
+    def header(self) -> tuple:
+        return (self.sensor_id, self.seq, self.timestamp_ns, self.config_id)
+
+
+@dataclass(frozen=True, eq=False)
+class QuantizedFrameMsg:
+    """A b-bit quantized frame: ``codes`` (M, 2, 2) unsigned (measurement, antenna, I/Q),
+    step ``delta``, dither scale ``alpha``, ``dither_seed`` and the dither ``generator``
+    (the dither of frame ``seq`` is reproducible from them, see pipeline.dsp.quantize; the
+    format version says the generator)."""
+
+    sensor_id: str
+    seq: int
+    timestamp_ns: int
+    config_id: int
+    bits: int
+    alpha: float
+    delta: float
+    dither_seed: int
+    codes: np.ndarray
+    generator: str = DITHER_COUNTER
+
+    @property
+    def dithered(self) -> bool:
+        return self.alpha > 0
+
+    def dither(self) -> np.ndarray | None:
+        """The dither xi = alpha delta u this frame was quantized with, regenerated from
+        (dither_seed, seq): (M, 2) complex; None when the frame is not dithered."""
+        xi = quantized_batch([self]).dither()
+        return None if xi is None else xi[0]
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, QuantizedFrameMsg) and self.header() == other.header()
+                and np.array_equal(self.codes, other.codes))
+
+    def header(self) -> tuple:
+        return (self.sensor_id, self.seq, self.timestamp_ns, self.config_id, self.bits, self.alpha,
+                self.delta, self.dither_seed, self.generator)
+
+
+def int_field(values, name: str, dtype: str, n: int | None) -> np.ndarray:
+    """A header field of B frames as a (B,) array of ``dtype`` (an integer type); every
+    value must fit in it."""
+    a = as_int_array(values)
+    if a.ndim != 1 or (n is not None and a.shape[0] != n):
+        raise WireError(f"{name} must have shape ({'B' if n is None else n},), got {a.shape}")
+    if a.dtype == dtype:
+        return a
+    info = np.iinfo(dtype)
+    if a.dtype.kind not in "iu":
+        bad = [x for x in a.tolist()
+               if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or not info.min <= x <= info.max]
+    elif a.size and (a.min() < info.min or a.max() > info.max):
+        bad = a[(a < info.min) | (a > info.max)].tolist()
+    else:
+        bad = []
+    if bad:
+        raise WireError(f"{name}={bad[0]!r} does not fit in {dtype}")
+    return a.astype(dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameHeaders:
+    """The per-frame header fields of B frames: ``sensor_id`` (B strings), ``seq`` (B,)
+    uint64, ``timestamp_ns`` (B,) int64 (sensor time, ns since the epoch), ``config_id``
+    (B,) uint32. Built from any integer sequences and checked when built (each distinct
+    sensor id once); a value out of range is a WireError. The decoders build them from
+    fields they checked already (:meth:`checked`), and :meth:`take` subsets without checks."""
+
+    sensor_id: list[str]
+    seq: np.ndarray
+    timestamp_ns: np.ndarray
+    config_id: np.ndarray
+
+    def __post_init__(self) -> None:
+        ids = list(self.sensor_id)
+        for sid in set(ids):
+            check_sensor_id(sid)
+        object.__setattr__(self, "sensor_id", ids)
+        object.__setattr__(self, "seq", int_field(self.seq, "seq", "uint64", len(ids)))
+        object.__setattr__(self, "timestamp_ns", int_field(self.timestamp_ns, "timestamp_ns", "int64", len(ids)))
+        object.__setattr__(self, "config_id", int_field(self.config_id, "config_id", "uint32", len(ids)))
+
+    @classmethod
+    def checked(cls, sensor_id: list[str], seq: np.ndarray, timestamp_ns: np.ndarray,
+                config_id: np.ndarray) -> "FrameHeaders":
+        """Headers of fields already checked (valid ids, arrays of the field dtypes)."""
+        h = object.__new__(cls)
+        for name, value in zip(("sensor_id", "seq", "timestamp_ns", "config_id"),
+                               (sensor_id, seq, timestamp_ns, config_id)):
+            object.__setattr__(h, name, value)
+        return h
+
+    def __len__(self) -> int:
+        return len(self.sensor_id)
+
+    def take(self, index) -> "FrameHeaders":
+        """The headers of the frames ``index`` (an int index array or a (B,) bool mask)."""
+        idx = np.asarray(index)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.intp).ravel()
+        return FrameHeaders.checked([self.sensor_id[i] for i in idx.tolist()], self.seq[idx],
+                                    self.timestamp_ns[idx], self.config_id[idx])
+
+
+@dataclass(frozen=True, eq=False)
+class QuantizedGroup:
+    """Decoded quantized frames of one M and one bit depth: ``index`` (B,) are their
+    positions in the list of payloads given to the decoder."""
+
+    headers: FrameHeaders
+    frames: QuantizedFrames
+    index: np.ndarray
+
+    def messages(self) -> list[QuantizedFrameMsg]:
+        h, q = self.headers, self.frames
+        gens = np.broadcast_to(np.asarray(q.generator), (len(h),)).tolist()
+        return [QuantizedFrameMsg(sid, seq, ts, cid, q.bits, alpha, delta, seed, codes, gen)
+                for sid, seq, ts, cid, alpha, delta, seed, codes, gen in zip(
+                    h.sensor_id, h.seq.tolist(), h.timestamp_ns.tolist(), h.config_id.tolist(),
+                    np.broadcast_to(q.alpha, (len(h),)).tolist(), q.delta.tolist(),
+                    np.broadcast_to(np.asarray(q.dither_seed, dtype=np.uint64), (len(h),)).tolist(), q.codes, gens)]
+
+
+@dataclass(frozen=True, eq=False)
+class RawGroup:
+    """Decoded raw frames of one M, the typed raw batch: ``data`` (B, M, 2) complex64;
+    ``index`` (B,) are their positions in the list of payloads given to the decoder."""
+
+    headers: FrameHeaders
+    data: np.ndarray
+    index: np.ndarray
+
+    def messages(self) -> list[RawFrameMsg]:
+        h = self.headers
+        return [RawFrameMsg(sid, seq, ts, cid, data) for sid, seq, ts, cid, data in zip(
+            h.sensor_id, h.seq.tolist(), h.timestamp_ns.tolist(), h.config_id.tolist(), self.data)]
+
+
+def _one_header(msg) -> FrameHeaders:
+    return FrameHeaders([msg.sensor_id], [msg.seq], [msg.timestamp_ns], [msg.config_id])
+
+
+# -- encoding ---------------------------------------------------------------------------------
+def _headers(headers: FrameHeaders, dtype: np.dtype, kind: int, bits: int, version, m: int) -> np.ndarray:
+    """The binary headers of B frames as a (B,) structured array of ``dtype``."""
+    if not 1 <= m <= MAX_M:
+        raise WireError(f"M={m} must be in [1, {MAX_M}]")
+    rec = np.zeros(len(headers), dtype=dtype)
+    rec["magic"] = np.frombuffer(MAGIC, dtype=np.uint8)
+    rec["version"] = version
+    rec["kind"] = kind
+    rec["bits"] = bits
+    rec["seq"] = headers.seq
+    rec["timestamp_ns"] = headers.timestamp_ns
+    rec["config_id"] = headers.config_id
+    rec["m"] = m
+    rec["sensor_id"] = np.array(headers.sensor_id, dtype=f"S{SENSOR_ID_MAX}").view(np.uint8).reshape(-1, SENSOR_ID_MAX)
+    return rec
+
+
+def _split(head: np.ndarray, body: np.ndarray) -> list[bytes]:
+    """One payload per frame: header records (B,) then body bytes (B, n)."""
+    rows = np.concatenate([head.view(np.uint8).reshape(head.shape[0], -1), body.reshape(body.shape[0], -1)], axis=1)
+    buf, n = rows.tobytes(), rows.shape[1]
+    return [buf[i:i + n] for i in range(0, len(buf), n)]
+
+
+def encode_raw_batch(headers: FrameHeaders, data: np.ndarray) -> list[bytes]:
+    """Raw frame payloads (format version 1) of B frames: ``data`` (B, M, 2) complex
+    (written as complex64)."""
+    data = np.asarray(data)
+    if data.ndim != 3 or data.shape[2] != 2 or data.shape[0] != len(headers):
+        raise WireError(f"raw frame data must have shape ({len(headers)}, M, 2), got {data.shape}")
+    head = _headers(headers, COMMON_DTYPE, KIND_RAW, 0, RAW_VERSION, data.shape[1])
+    return _split(head, data.astype("<c8", copy=False).view(np.uint8))
+
+
+def encode_raw(msg: RawFrameMsg) -> bytes:
+    """One raw frame payload: :func:`encode_raw_batch` of one frame."""
+    data = np.asarray(msg.data)
+    if data.ndim != 2:
+        raise WireError(f"raw frame data must have shape (M, 2), got {data.shape}")
+    return encode_raw_batch(_one_header(msg), data[None])[0]
+
+
+def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
+    """One float or one per frame as a (B,) float array."""
+    if isinstance(values, (bool, str, bytes)):
+        raise WireError(f"{name}={values!r} must be a number or one per frame")
+    try:
+        a = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise WireError(f"{name}={values!r} must be a number or one per frame") from None
+    if a.ndim > 1 or (a.ndim == 1 and a.shape[0] != n):
+        raise WireError(f"{name} must be one value or one per frame ({n}), got shape {a.shape}")
+    return np.broadcast_to(a, (n,))
+
+
+def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[bytes]:
+    """Quantized frame payloads of B frames (the quantizer's output for them): each of
+    format version 1 or 2 after its dither generator."""
+    b = len(headers)
+    codes = np.asarray(q.codes)
+    try:
+        bits = limits.check_bits(q.bits, WireError)
+        if codes.ndim != 4 or codes.shape[0] != b or codes.shape[2:] != (2, 2):
+            raise WireError(f"codes must have shape ({b}, M, 2, 2), got {codes.shape}")
+        if not np.issubdtype(codes.dtype, np.integer):
+            raise WireError(f"codes must be integers, got dtype {codes.dtype}")
+        alpha = _per_frame_floats(q.alpha, "alpha", b)
+        bad = alpha[~((alpha >= 0) & (alpha <= 1))]
+        if bad.size:
+            check_alpha(float(bad[0]))
+        delta = _per_frame_floats(q.delta, "delta", b)
+        with np.errstate(over="ignore"):
+            d32 = delta.astype(np.float32)
+        bad = delta[~(np.isfinite(d32) & (d32 > 0) & (d32 <= MAX_DELTA))]
+        if bad.size:
+            raise WireError(f"delta={float(bad[0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
+        seeds = check_uint64(q.dither_seed, "dither_seed")
+        generator = check_generator(q.generator, b)
+    except ParameterError as exc:
+        raise WireError(str(exc)) from None
+    if seeds.size not in (1, b):
+        raise WireError(f"dither_seed has {seeds.size} values, expected 1 or one per frame ({b})")
+    if isinstance(generator, str):
+        version = GENERATOR_VERSIONS[generator]
+    else:
+        version = np.where(generator == DITHER_SEEDSEQ, GENERATOR_VERSIONS[DITHER_SEEDSEQ],
+                           GENERATOR_VERSIONS[DITHER_COUNTER])
+    head = _headers(headers, QUANT_DTYPE, KIND_QUANTIZED, bits, version, codes.shape[1])
+    head["flags"] = np.where(alpha > 0, FLAG_DITHERED, 0)
+    head["dither_seed"] = seeds
+    head["alpha"] = alpha
+    head["delta"] = d32
+    return _split(head, pack_codes_unchecked(codes, bits))
+
+
+def encode_quantized(msg: QuantizedFrameMsg) -> bytes:
+    """One quantized frame payload: :func:`encode_quantized_batch` of one frame."""
+    codes = np.asarray(msg.codes)
+    if codes.ndim != 3:
+        raise WireError(f"codes must have shape (M, 2, 2), got {codes.shape}")
+    frame = QuantizedFrames(codes[None], msg.delta, msg.bits, msg.alpha, msg.dither_seed, msg.seq, msg.generator)
+    return encode_quantized_batch(_one_header(msg), frame)[0]
+
+
+# -- decoding ---------------------------------------------------------------------------------
+_NAMES = {KIND_RAW: "raw frame", KIND_QUANTIZED: "quantized frame"}
+_MAGIC_BYTES = np.frombuffer(MAGIC, dtype=np.uint8)
+_VERSION_BAD = np.ones(256, dtype=bool)
+_VERSION_BAD[list(VERSIONS)] = False
+
+
+def frame_size(kind: int, m, bits=0):
+    """The length of a frame of ``kind`` with M = ``m`` (and ``bits``), bytes: scalars or
+    (n,) arrays."""
+    if kind == KIND_RAW:
+        return HEADER_LEN + m * 16
+    return QUANT_HEADER_LEN + (m * 4 * bits + 7) // 8
+
+
+def _faults(f: dict, kind: int, size: int):
+    """The checks of the headers ``f`` (fields by name as (n,) arrays, with ``magic_bad``
+    and ``sensor_id_bad`` computed) of frames of length ``size``, in the order they apply:
+    yields (n,) bools 'bad'. The number of a check (from 1) selects its message in
+    :func:`_fault_text`; a quantized frame shorter than its header yields no checks of the
+    extension."""
+    m = f["m"]
+    yield f["magic_bad"]
+    yield _VERSION_BAD[f["version"]]
+    yield f["kind"] != kind
+    yield (m < 1) | (m > MAX_M)
+    yield f["sensor_id_bad"]
+    if kind == KIND_RAW:
+        yield size != frame_size(kind, m)
+        return
+    yield size < QUANT_HEADER_LEN
+    if size < QUANT_HEADER_LEN:
+        return
+    bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
+    yield bits_bad(bits)
+    yield (delta != delta) | (delta <= 0) | (delta > MAX_DELTA) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
+    yield ((f["flags"] & FLAG_DITHERED) != 0) != (alpha > 0)
+    yield size != frame_size(kind, m, bits)
+
+
+def _fault_text(number: int, f: dict, kind: int, size: int, source: str) -> str:
+    """The message of check ``number`` of :func:`_faults` failing for one frame (fields as
+    Python scalars; magic and sensor_id as bytes)."""
+    name = _NAMES[kind]
+    texts = [f"magic {f['magic']!r}, expected {MAGIC!r} (not a qradar frame)",
+             f"format version {f['version']} unsupported (this build reads {' and '.join(map(str, VERSIONS))})",
+             f"message kind {f['kind']}, expected {kind}",
+             f"M={f['m']} outside [1, {MAX_M}]",
+             f"sensor id {f['sensor_id']!r} is not valid"]
+    if kind == KIND_RAW:
+        texts.append(f"{size} bytes, expected {frame_size(kind, f['m'])} for M={f['m']}")
+    else:
+        texts.append(f"{size} bytes, shorter than its {QUANT_HEADER_LEN}-byte header")
+        if number > len(texts):
+            bits, alpha, delta = f["bits"], float(f["alpha"]), float(f["delta"])
+            texts += [f"bits={bits} outside [1, {MAX_BITS}]",
+                      f"delta={delta!r} or alpha={alpha!r} out of range (0 < delta <= {MAX_DELTA:g}, "
+                      f"0 <= alpha <= 1)",
+                      f"dithered flag {f['flags'] & FLAG_DITHERED} contradicts alpha={alpha}",
+                      f"{size} bytes, expected {frame_size(kind, f['m'], bits)} "
+                      f"for M={f['m']} and {bits} bits"]
+    return f"{name} from {source}: {texts[number - 1]}"
+
+
+def _short(kind: int, source: str, size: int) -> WireError:
+    return WireError(f"{_NAMES[kind]} from {source}: {size} bytes, shorter than the {HEADER_LEN}-byte header")
+
+
+def _by_length(payloads: Sequence[bytes], sources: Sequence[str]):
+    """Payloads grouped by length: yields (length, positions (n,) in the list, (n, length)
+    uint8 array of their bytes)."""
+    if len(sources) != len(payloads):
+        raise WireError(f"{len(payloads)} payloads but {len(sources)} sources")
+    lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=len(payloads))
+    if not lengths.size:
+        return
+    if lengths.min() == lengths.max():  # the usual case: one length
+        split = [(int(lengths[0]), np.arange(lengths.size))]
+    else:
+        order = np.argsort(lengths, kind="stable")
+        sizes, starts = np.unique(lengths[order], return_index=True)
+        split = zip(sizes.tolist(), np.split(order, starts[1:]))
+    for size, idx in split:
+        buf = np.frombuffer(b"".join([payloads[i] for i in idx.tolist()]), dtype=np.uint8)
+        yield size, idx, buf.reshape(idx.size, size)
+
+
+@lru_cache(maxsize=64)
+def _padded(dtype: np.dtype, itemsize: int) -> np.dtype:
+    """``dtype`` followed by padding up to ``itemsize`` bytes."""
+    return np.dtype({"names": dtype.names, "formats": [dtype.fields[n][0] for n in dtype.names],
+                     "offsets": [dtype.fields[n][1] for n in dtype.names], "itemsize": itemsize})
+
+
+def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
+    """Frames grouped by length, every check applied vectorized: returns the list
+    (position, WireError) of the bad frames, and (positions (n,), (n,) header records,
+    (n, length) bytes) of the good frames of each length."""
+    errors: list[tuple[int, WireError]] = []
+    good = []
+    for size, idx, rows in _by_length(payloads, sources):
+        if size < HEADER_LEN:
+            errors += [(i, _short(kind, sources[i], size)) for i in idx.tolist()]
+            continue
+        dtype = QUANT_DTYPE if kind == KIND_QUANTIZED and size >= QUANT_HEADER_LEN else COMMON_DTYPE
+        rec = rows.reshape(-1).view(_padded(dtype, size))
+        f = {name: rec[name].astype(np.int64) for name in ("version", "kind", "bits", "flags", "m")}  # no overflow
+        f.update({name: rec[name] for name in ("alpha", "delta") if name in dtype.names})
+        f["magic_bad"] = np.any(rec["magic"] != _MAGIC_BYTES, axis=1)
+        f["sensor_id_bad"] = sensor_id_fields_bad(rec["sensor_id"])
+        faults = np.stack(np.broadcast_arrays(*_faults(f, kind, size)))  # (checks, n)
+        failed = np.where(faults.any(axis=0), faults.argmax(axis=0) + 1, 0)  # the first check each fails
+        for j in np.flatnonzero(failed).tolist():
+            one = {name: rec[name][j].tobytes() if name in ("magic", "sensor_id") else rec[name][j].item()
+                   for name in dtype.names}
+            errors.append((int(idx[j]), WireError(_fault_text(int(failed[j]), one, kind, size, sources[idx[j]]))))
+        ok = failed == 0
+        if ok.any():
+            good.append((idx[ok], rec[ok], rows[ok]))
+    errors.sort(key=lambda e: e[0])
+    return errors, good
+
+
+def _headers_of(rec: np.ndarray) -> FrameHeaders:
+    ids = rec["sensor_id"].copy().view(f"S{SENSOR_ID_MAX}").ravel().astype(f"U{SENSOR_ID_MAX}").tolist()
+    return FrameHeaders.checked(ids, rec["seq"].copy(), rec["timestamp_ns"].copy(), rec["config_id"].copy())
+
+
+def decode_raw_batch(payloads: Sequence[bytes], sources: Sequence[str]) -> tuple[list[RawGroup], list[tuple[int, WireError]]]:
+    """Raw frame payloads (bytes-like) with the source of each (e.g. its zenoh key): the
+    good frames in groups of one M, and (position, WireError) of each bad payload."""
+    errors, good = _parse_batch(payloads, sources, KIND_RAW)
+    groups = []
+    for idx, rec, rows in good:
+        m = (rows.shape[1] - HEADER_LEN) // 16
+        data = rows[:, HEADER_LEN:].copy().view("<c8").reshape(-1, m, 2)  # aligned, writable complex64
+        groups.append(RawGroup(_headers_of(rec), data, idx))
+    groups.sort(key=lambda g: g.index[0])
+    return groups, errors
+
+
+def decode_quantized_batch(payloads: Sequence[bytes],
+                           sources: Sequence[str]) -> tuple[list[QuantizedGroup], list[tuple[int, WireError]]]:
+    """Quantized frame payloads (bytes-like) with the source of each: the good frames in
+    groups of one M and one bit depth (each frame's dither generator from its format
+    version), and (position, WireError) of each bad payload."""
+    errors, good = _parse_batch(payloads, sources, KIND_QUANTIZED)
+    groups = []
+    for idx, rec, rows in good:
+        # frames of one length may still differ in (M, bits): one group, one unpack call, each
+        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"]
+        for key in ([int(keys[0])] if keys.min() == keys.max() else np.unique(keys).tolist()):
+            sel = np.flatnonzero(keys == key)
+            m, bits = divmod(key, MAX_BITS + 1)
+            r = rec[sel]
+            codes = unpack_codes_unchecked(rows[sel, QUANT_HEADER_LEN:], bits, 4 * m).reshape(sel.size, m, 2, 2)
+            generator = np.where(r["version"] == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER)
+            frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
+                                     r["dither_seed"].copy(), r["seq"].copy(), generator)
+            groups.append(QuantizedGroup(_headers_of(r), frames, idx[sel]))
+    groups.sort(key=lambda g: g.index[0])
+    return groups, errors
+
+
+def _decode_one(decoder, payload: bytes, source: str):
+    """The one message of ``payload`` through a batch decoder; its WireError when bad."""
+    groups, errors = decoder([bytes(payload)], [source])
+    if errors:
+        raise errors[0][1]
+    return groups[0].messages()[0]
+
+
+def decode_raw(payload: bytes, source: str = "<bytes>") -> RawFrameMsg:
+    """One raw frame: :func:`decode_raw_batch` of one payload."""
+    return _decode_one(decode_raw_batch, payload, source)
+
+
+def decode_quantized(payload: bytes, source: str = "<bytes>") -> QuantizedFrameMsg:
+    """One quantized frame: :func:`decode_quantized_batch` of one payload."""
+    return _decode_one(decode_quantized_batch, payload, source)
+
+
+def quantized_batch(msgs: list[QuantizedFrameMsg]) -> QuantizedFrames:
+    """Frames of one M and one bit depth as one batch (B = len(msgs)) for the decoders;
+    alpha, dither_seed and the generator may differ per frame (frames of several sensors,
+    recordings of either version)."""
+    if not msgs or len({(m.codes.shape, m.bits) for m in msgs}) != 1:
+        raise WireError("a batch needs at least one frame, all of one M and one bit depth")
+    return QuantizedFrames(
+        codes=np.stack([m.codes for m in msgs]), delta=np.array([m.delta for m in msgs]), bits=msgs[0].bits,
+        alpha=np.array([m.alpha for m in msgs]), dither_seed=np.array([m.dither_seed for m in msgs], dtype=np.uint64),
+        seq=np.array([m.seq for m in msgs], dtype=np.uint64), generator=np.array([m.generator for m in msgs]))

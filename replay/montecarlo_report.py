@@ -1,0 +1,79 @@
+"""What a Monte Carlo run writes (summary.json, config.json, maps.npz, the PNG maps,
+error_vs_m) and the text table it prints."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import PipelineError
+from replay.montecarlo import PD_AMPLITUDE, MonteCarloResult
+
+
+def prepare_out_dir(out_dir: Path) -> Path:
+    """Create the output folder before a long run, so that a bad path fails at once."""
+    try:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(f"cannot create the output folder {out_dir}: {exc.strerror or exc}") from None
+    return Path(out_dir)
+
+
+def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, plots: bool = True) -> list[str]:
+    """Write summary.json, config.json, maps.npz, the polar error maps (PNG, unless
+    ``plots`` is False) and, when the schemes span several M, error_vs_m.json/.png to
+    ``out_dir``. Returns the report lines (the table, the slopes, what was written)."""
+    from replay.plots import detection_figure, error_vs_m, error_vs_m_figure, montecarlo_figures
+
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
+        (out_dir / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
+        np.savez_compressed(out_dir / "maps.npz", **result.maps)
+        pngs = montecarlo_figures(out_dir, result.summary, result.maps, max_range_m) if plots else []
+        if plots and result.summary.get("count", {}).get("auto"):
+            pd_png = detection_figure(out_dir / "detection.png", result.summary)
+            pngs += [pd_png] if pd_png else []
+        slopes = error_vs_m(result.summary)
+        if slopes:
+            (out_dir / "error_vs_m.json").write_text(json.dumps(slopes, indent=2) + "\n")
+            if plots:
+                pngs.append(error_vs_m_figure(out_dir / "error_vs_m.png", slopes))
+    except OSError as exc:
+        raise PipelineError(f"cannot write the Monte Carlo results to {out_dir}: {exc.strerror or exc}") from None
+    lines = [f"{label}: median error {s['error_m']} m at M = {s['M']}: slope {s['slope']:+.2f}"
+             for label, s in slopes.items()]
+    rc = result.run_config
+    lines += [format_table(result.summary), "",
+              f"{sum(rc['runs_per_k'].values()) * len(rc['schemes'])} runs (x {len(rc['algos'])} decoders) in "
+              f"{result.summary['seconds']:.1f} s; wrote {out_dir}/summary.json, maps.npz"
+              + (f" and {len(pngs)} PNG maps" if pngs else "")]
+    return lines
+
+
+def format_table(summary: dict) -> str:
+    """The summary as a fixed-width text table (one row per K and scheme; with K auto
+    the detection columns too)."""
+    cols = ["mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
+            "strong_mean_m", "weak_mean_m"]
+    heads = ["mean", "median", "p90", "med|θ|<60", "cells>5m", "strong", "weak"]
+    pd_cols = ["pd_strong", "pd_weak", f"pd_weak_amp_ge_{PD_AMPLITUDE}", "false_targets_per_frame"]
+    pd_heads = ["Pd strong", "Pd weak", f"Pd w≥{PD_AMPLITUDE}", "false/fr"]
+    auto = bool(summary.get("count", {}).get("auto"))
+    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads + (pd_heads if auto else []))]
+    for key, block in summary.items():
+        if not (key.startswith("K") and isinstance(block, dict)):
+            continue
+        for scheme, st in block.items():
+            vals = []
+            for c in cols:
+                v = st[c]
+                vals.append(f"{v:>10.1%} " if c == "cells_over_5m_within_60deg" else f"{v:>9.3f}m ")
+            if auto:
+                vals += [f"{st[c]:>10.3f} " if c == "false_targets_per_frame" else f"{st[c]:>10.1%} "
+                         for c in pd_cols]
+            lines.append(f"{key[1:]:<3} {scheme:<22}" + "".join(vals))
+    return "\n".join(lines)
