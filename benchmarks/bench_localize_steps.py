@@ -22,6 +22,7 @@ import numpy as np
 from bench_nodes import payloads
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import decode_batch
+from pipeline.nodes.intake import QueuedFrame
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, take_detections
 from pipeline.wire import encode_targets_batch
 
@@ -60,7 +61,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--passes", type=int, default=3)
     args = ap.parse_args()
-    items = [(key.split("/")[1], key, p, time.time_ns()) for key, p in payloads(500, args.frames, "quantized")]
+    items = [QueuedFrame(key.split("/")[1], key, p, time.time_ns())
+             for key, p in payloads(500, args.frames, "quantized")]
     bus = BusConfig()
     node = LocalizeNode(bus, LocalizerConfig(algo="pbp"))  # what this benchmark times (not the default cml)
     node.session = bus.open()
