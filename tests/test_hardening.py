@@ -5,6 +5,7 @@ zenoh gives the same outputs; what involves zenoh itself (wildcard keys, nodes i
 processes over 127.0.0.1) runs on real zenoh sessions. Every wait bounded."""
 
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -14,12 +15,14 @@ import numpy as np
 import pytest
 import zenoh
 
+from pipeline.bus.session import BusConfig
 from pipeline.nodes.budget import IntakeBudget
 from pipeline.nodes.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
 from pipeline.errors import ParameterError
 from pipeline.nodes.fairqueue import FairQueue
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
+from pipeline.nodes.runtime import PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
@@ -441,3 +444,34 @@ def test_a_batch_lingers_while_frames_keep_coming_and_not_for_a_lone_frame():
     stop.set()
     t.join(5)
     assert len(batch) == 20  # it waited for a full batch while frames came
+
+
+def test_stop_leaves_a_busy_workers_publishers_to_the_session(mem, caplog):
+    """A worker still in its batch when stop's wait runs out may be putting on a publisher;
+    undeclaring it under the put fails in zenoh ("Already borrowed") and killed the node's
+    exit. stop leaves those publishers to the session's close, says so, and returns."""
+    bus = BusConfig()
+    node = QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=3), session=mem, health_period_s=0.2)
+    inside, release = threading.Event(), threading.Event()
+    process = node.process
+
+    def slow(batch):
+        process(batch)
+        if node._publishers:  # the sensor's publisher is declared (after PUBLISHER_AFTER frames)
+            inside.set()
+            release.wait(10)
+
+    node.process = slow
+    node.start()
+    try:
+        for seq in range(PUBLISHER_AFTER + 2):
+            mem.put("radar/a/raw", raw("a", seq))
+        assert inside.wait(10)
+        publishers = [p for pubs in node._publishers.values() for p in pubs.values()]
+        assert publishers
+        with caplog.at_level(logging.WARNING, logger="qradar.node"):
+            node.stop(timeout_s=0.2)
+        assert "still busy" in caplog.text
+        assert all(p in mem._declared for p in publishers)  # not undeclared under the worker
+    finally:
+        release.set()

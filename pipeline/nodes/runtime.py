@@ -131,9 +131,14 @@ class Node(Counters):
         self._stopping()
         for t in self._threads:
             t.join(timeout_s)
+        busy = [t.name for t in self._threads if t.is_alive()]
         self._publish_health()  # last counters
         self.log_summary()
-        for pub in [p for pubs in self._publishers.values() for p in pubs.values()] + self._retiring:
+        if busy:  # a worker still in a batch may be putting on a publisher: undeclaring it under the
+            # put fails in zenoh ("Already borrowed"); the session's close undeclares them instead
+            log.warning("%s: %s still busy %.1f s after stop; its publishers are left to the session's close",
+                        self.name, ", ".join(busy), timeout_s)
+        for pub in [] if busy else [p for pubs in self._publishers.values() for p in pubs.values()] + self._retiring:
             try:
                 pub.undeclare()
             except TransportError:
