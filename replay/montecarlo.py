@@ -308,8 +308,9 @@ def _separated_ranges(n_runs: int, k: int, rng: np.random.Generator, scene: Scen
 
 def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig,
             noise_sigma: float = 0.0, noise_rng: np.random.Generator | None = None, estimate: bool = False):
-    """Measurements Z (n_runs, M, 2), the frequency indices (None or (n_runs, M)), the
-    dither xi (None when there is none) and delta ((n_runs,) or None); with ``estimate``
+    """Measurements: unquantized frames (n_runs, M, 2) complex64, or a quantized scheme's
+    codes (n_runs, M, 2, 2); the frequency indices (None or (n_runs, M)), the dither xi
+    (None when there is none) and delta ((n_runs,) or None); with ``estimate``
     (or an adaptive scheme) a fifth item, the noise estimated from the full frames
     ((n_runs,), :func:`pipeline.dsp.noise.estimate_noise_sigma`). ``noise_sigma``: std of each
     of I and Q of white noise added to Gamma before quantization, drawn from ``noise_rng``
@@ -332,8 +333,7 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
     alpha = auto_alpha(sigma_hat, delta)[:, None, None] if scheme.adaptive else scheme.alpha
     if scheme.adaptive or scheme.alpha > 0:
         dither = alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
-    return (dequantize(quantize(gamma, delta, scheme.bits, dither), delta, scheme.bits), indices, dither,
-            delta) + extra
+    return (quantize(gamma, delta, scheme.bits, dither), indices, dither, delta) + extra
 
 
 @dataclass
@@ -367,9 +367,14 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
         scheme_rng, radar, scene.noise_sigma, noise_rng, estimate=decoder_noise == "frames")
     noise = {"codes": None, "true": scene.noise_sigma, "frames": est[0] if est else None}[decoder_noise]
     out = {}
+    values = z if scheme.bits is None else None  # the codes' values, made once if a decoder needs them
     for algo in algos:
         decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
-        det = decode(z, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices,
+        takes_codes = scheme.bits is not None and algo == Algo.CML and indices is None  # cml: the codes as they are
+        if not takes_codes and values is None:
+            values = dequantize(z, delta, scheme.bits)
+        frames = z if takes_codes else values
+        det = decode(frames, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices,
                      noise_sigma=noise)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
         res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
