@@ -292,7 +292,7 @@ def encode_raw(msg: RawFrameMsg) -> bytes:
 
 
 def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
-    """One float or one per frame as a (B,) float array."""
+    """One float or one per frame as a () or (B,) float array."""
     if isinstance(values, (bool, str, bytes)):
         raise WireError(f"{name}={values!r} must be a number or one per frame")
     try:
@@ -301,7 +301,7 @@ def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
         raise WireError(f"{name}={values!r} must be a number or one per frame") from None
     if a.ndim > 1 or (a.ndim == 1 and a.shape[0] != n):
         raise WireError(f"{name} must be one value or one per frame ({n}), got shape {a.shape}")
-    return np.broadcast_to(a, (n,))
+    return a
 
 
 def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[bytes]:
@@ -375,21 +375,21 @@ def _faults(f: dict, kind: int, size: int):
     yields (n,) bools 'bad'. The number of a check (from 1) selects its message in
     :func:`_fault_text`; a quantized frame shorter than its header yields no checks of the
     extension."""
-    m = f["m"]
+    m = f["m"]  # uint32; every check an (n,) array
     yield f["magic_bad"]
     yield _VERSION_BAD.take(f["version"])
     yield f["kind"] != kind
-    yield (m < 1) | (m > MAX_M)
+    yield m - 1 >= MAX_M  # (M = 0 wraps to 2**32 - 1)
     yield f["sensor_id_bad"]
     if kind == KIND_RAW:
         yield size != frame_size(kind, m)
         return
-    yield size < QUANT_HEADER_LEN
+    yield np.full(m.shape, size < QUANT_HEADER_LEN)
     if size < QUANT_HEADER_LEN:
         return
     bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
     yield bits_bad(bits)
-    yield (delta != delta) | (delta <= 0) | (delta > MAX_DELTA) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
+    yield ~((delta > 0) & (delta <= MAX_DELTA) & (alpha >= 0) & (alpha <= 1))  # NaN: bad
     yield ((f["flags"] & FLAG_DITHERED) != 0) != (alpha > 0)
     yield size != frame_size(kind, m, bits)
 
@@ -471,19 +471,18 @@ def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
             continue
         dtype = QUANT_DTYPE if kind == KIND_QUANTIZED and size >= QUANT_HEADER_LEN else COMMON_DTYPE
         rec = rows.reshape(-1).view(_padded(dtype, size))
-        f = {name: rec[name] for name in ("version", "kind", "bits", "flags", "alpha", "delta") if name in dtype.names}
-        f["m"] = rec["m"].astype(np.int64)  # no overflow in the frame size
+        # m and bits unsigned: a frame size that overflows uint32 is one whose M is out of range already
+        f = {name: rec[name] for name in ("version", "kind", "bits", "flags", "m", "alpha", "delta")
+             if name in dtype.names}
         f["magic_bad"] = rec["magic"] != _MAGIC_WORD
         f["sensor_id_bad"] = sensor_id_fields_bad(rec["sensor_id"])
-        checks = list(_faults(f, kind, size))
-        bad = np.zeros(rec.shape, dtype=bool)
-        for check in checks:  # one combined 'bad'; which check fails only for the bad frames
-            np.logical_or(bad, check, out=bad)
-        if not bad.any():
+        faults = np.array(list(_faults(f, kind, size)))  # (checks, n)
+        if not np.count_nonzero(faults):  # the usual case: all good
             good.append((idx, rec, rows))
             continue
+        bad = faults.any(axis=0)
         fail = np.flatnonzero(bad)
-        first = np.stack([np.broadcast_to(c, bad.shape)[fail] for c in checks]).argmax(axis=0) + 1
+        first = faults[:, fail].argmax(axis=0) + 1  # the first check each bad frame fails
         for j, number in zip(fail.tolist(), first.tolist()):
             one = {name: rec[name][j].item() for name in dtype.names if name not in ("magic", "sensor_id")}
             one.update(magic=rows[j, :4].tobytes(), sensor_id=rows[j, 32:32 + SENSOR_ID_MAX].tobytes())
@@ -523,7 +522,7 @@ def decode_quantized_batch(payloads: Sequence[bytes],
     for idx, rec, rows in good:
         # frames of one length may still differ in (M, bits): one group, one unpack call, each
         keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"]
-        if (keys == keys[0]).all():  # the usual case: one (M, bits)
+        if len(keys) == 1 or (keys == keys[0]).all():  # the usual case: one (M, bits)
             split = [(int(keys[0]), slice(None))]
         else:
             split = [(key, np.flatnonzero(keys == key)) for key in np.unique(keys).tolist()]
@@ -532,7 +531,7 @@ def decode_quantized_batch(payloads: Sequence[bytes],
             r, body = rec[sel], rows[sel, QUANT_HEADER_LEN:]
             codes = unpack_codes_unchecked(body, bits, 4 * m).reshape(len(body), m, 2, 2)
             version = r["version"]
-            generator = (_GENERATOR_OF_VERSION[int(version[0])] if (version == version[0]).all()
+            generator = (_GENERATOR_OF_VERSION[int(version[0])] if len(version) == 1 or (version == version[0]).all()
                          else np.where(version == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER))
             frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
                                      r["dither_seed"].copy(), r["seq"].copy(), generator)
