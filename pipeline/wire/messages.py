@@ -66,9 +66,9 @@ class TargetColumns:
     def of(cls, targets: list[dict]) -> "TargetColumns":
         """One frame's targets (dicts, as :class:`TargetsMsg` holds them) as (1, K) columns."""
         rows = [_target(t) for t in targets]
-        cols = {f: np.array([[r.get(f, np.nan) for r in rows]], dtype=float).reshape(1, len(rows))
-                for f in _TARGET_COLUMNS}
-        return cls(**cols, present=np.ones((1, len(rows)), dtype=bool))
+        values = np.array([[r.get(f, np.nan) for f in _TARGET_COLUMNS] for r in rows], dtype=float)
+        values = values.reshape(len(rows), len(_TARGET_COLUMNS)).T[:, None, :]  # (fields, 1, K)
+        return cls(*values, present=np.ones((1, len(rows)), dtype=bool))
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: 
         raise WireError(f"detections must be ({b}, K) arrays for {b} frames, got {present.shape}")
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
         raise WireError(f"K={k!r} must be an integer")
-    values = np.stack(cols, axis=-1)  # (B, K, 6)
+    values = np.array(cols).transpose(1, 2, 0)  # (B, K, 6)
     finite = np.isfinite(values[..., :len(TARGET_FIELDS)])
     bad = present[..., None] & ~finite
     if bad.any():
