@@ -521,9 +521,9 @@ def decode_quantized_batch(payloads: Sequence[bytes],
     groups = []
     for idx, rec, rows in good:
         # frames of one length may still differ in (M, bits): one group, one unpack call, each
-        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"]
-        if len(keys) == 1 or (keys == keys[0]).all():  # the usual case: one (M, bits)
-            split = [(int(keys[0]), slice(None))]
+        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"] if len(rec) > 1 else None
+        if keys is None or (keys == keys[0]).all():  # the usual case: one (M, bits)
+            split = [(int(rec["m"][0]) * (MAX_BITS + 1) + int(rec["bits"][0]), slice(None))]
         else:
             split = [(key, np.flatnonzero(keys == key)) for key in np.unique(keys).tolist()]
         for key, sel in split:
