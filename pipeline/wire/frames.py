@@ -316,15 +316,15 @@ def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[by
         if not np.issubdtype(codes.dtype, np.integer):
             raise WireError(f"codes must be integers, got dtype {codes.dtype}")
         alpha = _per_frame_floats(q.alpha, "alpha", b)
-        bad = alpha[~((alpha >= 0) & (alpha <= 1))]
-        if bad.size:
-            check_alpha(float(bad[0]))
+        ok = (alpha >= 0) & (alpha <= 1)
+        if np.count_nonzero(ok) != ok.size:
+            check_alpha(float(alpha[~ok][0]))
         delta = _per_frame_floats(q.delta, "delta", b)
         with np.errstate(over="ignore"):
             d32 = delta.astype(np.float32)
-        bad = delta[~(np.isfinite(d32) & (d32 > 0) & (d32 <= MAX_DELTA))]
-        if bad.size:
-            raise WireError(f"delta={float(bad[0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
+        ok = (d32 > 0) & (d32 <= MAX_DELTA)  # (NaN is not)
+        if np.count_nonzero(ok) != ok.size:
+            raise WireError(f"delta={float(delta[~ok][0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
         seeds = check_uint64(q.dither_seed, "dither_seed")
         generator = check_generator(q.generator, b)
     except ParameterError as exc:
