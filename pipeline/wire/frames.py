@@ -530,9 +530,7 @@ def decode_quantized_batch(payloads: Sequence[bytes],
             m, bits = divmod(key, MAX_BITS + 1)
             r, body = rec[sel], rows[sel, QUANT_HEADER_LEN:]
             codes = unpack_codes_unchecked(body, bits, 4 * m).reshape(len(body), m, 2, 2)
-            version = r["version"]
-            generator = (_GENERATOR_OF_VERSION[int(version[0])] if len(version) == 1 or (version == version[0]).all()
-                         else np.where(version == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER))
+            generator = np.where(r["version"] == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER)
             frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
                                      r["dither_seed"].copy(), r["seq"].copy(), generator)
             groups.append(QuantizedGroup(_headers_of(r), frames, idx[sel]))
