@@ -30,6 +30,10 @@ SENSOR_ID_FIELD = re.compile(rb"[A-Za-z0-9_-]{1,%d}\0*" % SENSOR_ID_MAX)
 #: (256,) bool: the bytes a sensor id may hold
 SENSOR_ID_BYTES = np.zeros(256, dtype=bool)
 SENSOR_ID_BYTES[list(SENSOR_ID_CHARS.encode())] = True
+#: (256,) uint8: the class of each byte of a sensor id field: 1 = a byte an id may hold,
+#: 0 = NUL (padding), 2 = any other; a valid field's classes never rise and start with 1
+_ID_FIELD_CLASS = np.where(SENSOR_ID_BYTES, 1, 2).astype(np.uint8)
+_ID_FIELD_CLASS[0] = 0
 
 #: valid sensor ids seen lately (checked once each; cleared when it holds _KNOWN_IDS_MAX)
 _known_ids: set[str] = set()
@@ -68,10 +72,8 @@ def sensor_id_fields_bad(fields: bytes | np.ndarray) -> bool | np.ndarray:
     (n, 16) uint8 -> (n,) bool (valid: 1-16 bytes of [A-Za-z0-9_-], then NULs only)."""
     if isinstance(fields, bytes):
         return SENSOR_ID_FIELD.fullmatch(fields) is None
-    nonzero = fields != 0
-    length = np.where(nonzero.any(axis=1), SENSOR_ID_MAX - np.argmax(nonzero[:, ::-1], axis=1), 0)
-    inside = np.arange(SENSOR_ID_MAX) < length[:, None]
-    return (length < 1) | np.any(~SENSOR_ID_BYTES[fields] & inside, axis=1)
+    cls = _ID_FIELD_CLASS.take(fields)  # (n, 16): 1...1 then 0...0 when valid
+    return ~(cls[:, :-1] >= cls[:, 1:]).all(axis=1) | (cls[:, 0] != 1)
 
 
 def bits_problem(bits: object) -> str | None:

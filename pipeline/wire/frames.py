@@ -128,12 +128,17 @@ class QuantizedFrameMsg:
 def int_field(values, name: str, dtype: str, n: int | None) -> np.ndarray:
     """A header field of B frames as a (B,) array of ``dtype`` (an integer type); every
     value must fit in it."""
+    if type(values) is list and (n is None or len(values) == n) and all(type(x) is int for x in values):
+        try:  # the usual case: Python ints (the checks below when one does not fit)
+            return np.array(values, dtype=dtype)
+        except OverflowError:
+            pass
     a = as_int_array(values)
     if a.ndim != 1 or (n is not None and a.shape[0] != n):
         raise WireError(f"{name} must have shape ({'B' if n is None else n},), got {a.shape}")
     if a.dtype == dtype:
         return a
-    info = np.iinfo(dtype)
+    info = _iinfo(dtype)
     if a.dtype.kind not in "iu":
         bad = [x for x in a.tolist()
                if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or not info.min <= x <= info.max]
@@ -144,6 +149,11 @@ def int_field(values, name: str, dtype: str, n: int | None) -> np.ndarray:
     if bad:
         raise WireError(f"{name}={bad[0]!r} does not fit in {dtype}")
     return a.astype(dtype)
+
+
+@lru_cache(maxsize=None)
+def _iinfo(dtype: str) -> np.iinfo:
+    return np.iinfo(dtype)
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,6 +199,13 @@ class FrameHeaders:
                                     self.timestamp_ns[idx], self.config_id[idx])
 
 
+def _each(value, n: int) -> list:
+    """One value for the batch or (n,) values, as a list of n Python values."""
+    if isinstance(value, str) or np.ndim(value) == 0:
+        return [value.item() if isinstance(value, np.generic) else value] * n
+    return np.asarray(value).tolist()
+
+
 @dataclass(frozen=True, eq=False)
 class QuantizedGroup:
     """Decoded quantized frames of one M and one bit depth: ``index`` (B,) are their
@@ -199,13 +216,12 @@ class QuantizedGroup:
     index: np.ndarray
 
     def messages(self) -> list[QuantizedFrameMsg]:
-        h, q = self.headers, self.frames
-        gens = np.broadcast_to(np.asarray(q.generator), (len(h),)).tolist()
+        h, q, n = self.headers, self.frames, len(self.headers)
         return [QuantizedFrameMsg(sid, seq, ts, cid, q.bits, alpha, delta, seed, codes, gen)
                 for sid, seq, ts, cid, alpha, delta, seed, codes, gen in zip(
-                    h.sensor_id, h.seq.tolist(), h.timestamp_ns.tolist(), h.config_id.tolist(),
-                    np.broadcast_to(q.alpha, (len(h),)).tolist(), q.delta.tolist(),
-                    np.broadcast_to(np.asarray(q.dither_seed, dtype=np.uint64), (len(h),)).tolist(), q.codes, gens)]
+                    h.sensor_id, h.seq.tolist(), h.timestamp_ns.tolist(), h.config_id.tolist(), _each(q.alpha, n),
+                    q.delta.tolist(), _each(np.asarray(q.dither_seed, dtype=np.uint64), n), q.codes,
+                    _each(q.generator, n))]
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,28 +244,33 @@ def _one_header(msg) -> FrameHeaders:
 
 
 # -- encoding ---------------------------------------------------------------------------------
-def _headers(headers: FrameHeaders, dtype: np.dtype, kind: int, bits: int, version, m: int) -> np.ndarray:
-    """The binary headers of B frames as a (B,) structured array of ``dtype``."""
+def _payloads(headers: FrameHeaders, dtype: np.dtype, kind: int, bits: int, version, m: int, body: np.ndarray):
+    """B frames of M = ``m``: returns their (B, length) bytes, header of ``dtype`` then
+    ``body`` (B, n) uint8, and the header records (B,) over them, the fields every frame
+    has written."""
     if not 1 <= m <= MAX_M:
         raise WireError(f"M={m} must be in [1, {MAX_M}]")
-    rec = np.zeros(len(headers), dtype=dtype)
-    rec["magic"] = np.frombuffer(MAGIC, dtype=np.uint8)
+    b, head_len = len(headers), dtype.itemsize
+    out = np.empty((b, head_len + body.shape[1]), dtype=np.uint8)
+    out[:, :head_len] = 0
+    out[:, head_len:] = body
+    rec = out.reshape(-1).view(_padded(dtype, out.shape[1]))
+    rec["magic"] = _MAGIC_WORD
     rec["version"] = version
     rec["kind"] = kind
     rec["bits"] = bits
+    rec["m"] = m
     rec["seq"] = headers.seq
     rec["timestamp_ns"] = headers.timestamp_ns
     rec["config_id"] = headers.config_id
-    rec["m"] = m
     rec["sensor_id"] = np.array(headers.sensor_id, dtype=f"S{SENSOR_ID_MAX}").view(np.uint8).reshape(-1, SENSOR_ID_MAX)
-    return rec
+    return out, rec
 
 
-def _split(head: np.ndarray, body: np.ndarray) -> list[bytes]:
-    """One payload per frame: header records (B,) then body bytes (B, n)."""
-    rows = np.concatenate([head.view(np.uint8).reshape(head.shape[0], -1), body.reshape(body.shape[0], -1)], axis=1)
-    buf, n = rows.tobytes(), rows.shape[1]
-    return [buf[i:i + n] for i in range(0, len(buf), n)]
+def _split(out: np.ndarray) -> list[bytes]:
+    """One payload per row of (B, length) bytes."""
+    buf, n = out.tobytes(), out.shape[1]
+    return [buf] if out.shape[0] == 1 else [buf[i:i + n] for i in range(0, len(buf), n)]
 
 
 def encode_raw_batch(headers: FrameHeaders, data: np.ndarray) -> list[bytes]:
@@ -258,8 +279,8 @@ def encode_raw_batch(headers: FrameHeaders, data: np.ndarray) -> list[bytes]:
     data = np.asarray(data)
     if data.ndim != 3 or data.shape[2] != 2 or data.shape[0] != len(headers):
         raise WireError(f"raw frame data must have shape ({len(headers)}, M, 2), got {data.shape}")
-    head = _headers(headers, COMMON_DTYPE, KIND_RAW, 0, RAW_VERSION, data.shape[1])
-    return _split(head, data.astype("<c8", copy=False).view(np.uint8))
+    body = np.ascontiguousarray(data, dtype="<c8").reshape(len(headers), -1).view(np.uint8)
+    return _split(_payloads(headers, COMMON_DTYPE, KIND_RAW, 0, RAW_VERSION, data.shape[1], body)[0])
 
 
 def encode_raw(msg: RawFrameMsg) -> bytes:
@@ -271,7 +292,7 @@ def encode_raw(msg: RawFrameMsg) -> bytes:
 
 
 def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
-    """One float or one per frame as a (B,) float array."""
+    """One float or one per frame as a () or (B,) float array."""
     if isinstance(values, (bool, str, bytes)):
         raise WireError(f"{name}={values!r} must be a number or one per frame")
     try:
@@ -280,7 +301,7 @@ def _per_frame_floats(values, name: str, n: int) -> np.ndarray:
         raise WireError(f"{name}={values!r} must be a number or one per frame") from None
     if a.ndim > 1 or (a.ndim == 1 and a.shape[0] != n):
         raise WireError(f"{name} must be one value or one per frame ({n}), got shape {a.shape}")
-    return np.broadcast_to(a, (n,))
+    return a
 
 
 def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[bytes]:
@@ -295,15 +316,15 @@ def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[by
         if not np.issubdtype(codes.dtype, np.integer):
             raise WireError(f"codes must be integers, got dtype {codes.dtype}")
         alpha = _per_frame_floats(q.alpha, "alpha", b)
-        bad = alpha[~((alpha >= 0) & (alpha <= 1))]
-        if bad.size:
-            check_alpha(float(bad[0]))
+        ok = (alpha >= 0) & (alpha <= 1)
+        if np.count_nonzero(ok) != ok.size:
+            check_alpha(float(alpha[~ok][0]))
         delta = _per_frame_floats(q.delta, "delta", b)
         with np.errstate(over="ignore"):
             d32 = delta.astype(np.float32)
-        bad = delta[~(np.isfinite(d32) & (d32 > 0) & (d32 <= MAX_DELTA))]
-        if bad.size:
-            raise WireError(f"delta={float(bad[0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
+        ok = (d32 > 0) & (d32 <= MAX_DELTA)  # (NaN is not)
+        if np.count_nonzero(ok) != ok.size:
+            raise WireError(f"delta={float(delta[~ok][0])!r} must be in (0, {MAX_DELTA:g}] (as a float32)")
         seeds = check_uint64(q.dither_seed, "dither_seed")
         generator = check_generator(q.generator, b)
     except ParameterError as exc:
@@ -315,12 +336,13 @@ def encode_quantized_batch(headers: FrameHeaders, q: QuantizedFrames) -> list[by
     else:
         version = np.where(generator == DITHER_SEEDSEQ, GENERATOR_VERSIONS[DITHER_SEEDSEQ],
                            GENERATOR_VERSIONS[DITHER_COUNTER])
-    head = _headers(headers, QUANT_DTYPE, KIND_QUANTIZED, bits, version, codes.shape[1])
+    out, head = _payloads(headers, QUANT_DTYPE, KIND_QUANTIZED, bits, version, codes.shape[1],
+                          pack_codes_unchecked(codes, bits))
     head["flags"] = np.where(alpha > 0, FLAG_DITHERED, 0)
     head["dither_seed"] = seeds
     head["alpha"] = alpha
     head["delta"] = d32
-    return _split(head, pack_codes_unchecked(codes, bits))
+    return _split(out)
 
 
 def encode_quantized(msg: QuantizedFrameMsg) -> bytes:
@@ -334,7 +356,7 @@ def encode_quantized(msg: QuantizedFrameMsg) -> bytes:
 
 # -- decoding ---------------------------------------------------------------------------------
 _NAMES = {KIND_RAW: "raw frame", KIND_QUANTIZED: "quantized frame"}
-_MAGIC_BYTES = np.frombuffer(MAGIC, dtype=np.uint8)
+_MAGIC_WORD = np.frombuffer(MAGIC, dtype="<u4")[0]
 _VERSION_BAD = np.ones(256, dtype=bool)
 _VERSION_BAD[list(VERSIONS)] = False
 
@@ -353,21 +375,21 @@ def _faults(f: dict, kind: int, size: int):
     yields (n,) bools 'bad'. The number of a check (from 1) selects its message in
     :func:`_fault_text`; a quantized frame shorter than its header yields no checks of the
     extension."""
-    m = f["m"]
+    m = f["m"]  # uint32; every check an (n,) array
     yield f["magic_bad"]
-    yield _VERSION_BAD[f["version"]]
+    yield _VERSION_BAD.take(f["version"])
     yield f["kind"] != kind
-    yield (m < 1) | (m > MAX_M)
+    yield m - 1 >= MAX_M  # (M = 0 wraps to 2**32 - 1)
     yield f["sensor_id_bad"]
     if kind == KIND_RAW:
         yield size != frame_size(kind, m)
         return
-    yield size < QUANT_HEADER_LEN
+    yield np.full(m.shape, size < QUANT_HEADER_LEN)
     if size < QUANT_HEADER_LEN:
         return
     bits, alpha, delta = f["bits"], f["alpha"], f["delta"]
     yield bits_bad(bits)
-    yield (delta != delta) | (delta <= 0) | (delta > MAX_DELTA) | (alpha != alpha) | (alpha < 0) | (alpha > 1)
+    yield ~((delta > 0) & (delta <= MAX_DELTA) & (alpha >= 0) & (alpha <= 1))  # NaN: bad
     yield ((f["flags"] & FLAG_DITHERED) != 0) != (alpha > 0)
     yield size != frame_size(kind, m, bits)
 
@@ -405,24 +427,35 @@ def _by_length(payloads: Sequence[bytes], sources: Sequence[str]):
     uint8 array of their bytes)."""
     if len(sources) != len(payloads):
         raise WireError(f"{len(payloads)} payloads but {len(sources)} sources")
-    lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=len(payloads))
-    if not lengths.size:
+    lengths = list(map(len, payloads))
+    if not lengths:
         return
-    if lengths.min() == lengths.max():  # the usual case: one length
-        split = [(int(lengths[0]), np.arange(lengths.size))]
-    else:
-        order = np.argsort(lengths, kind="stable")
-        sizes, starts = np.unique(lengths[order], return_index=True)
-        split = zip(sizes.tolist(), np.split(order, starts[1:]))
-    for size, idx in split:
+    if min(lengths) == max(lengths):  # the usual case: one length, the payloads in order
+        yield lengths[0], _positions(len(lengths)), np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(
+            len(lengths), lengths[0])
+        return
+    lengths = np.array(lengths, dtype=np.int64)
+    order = np.argsort(lengths, kind="stable")
+    sizes, starts = np.unique(lengths[order], return_index=True)
+    for size, idx in zip(sizes.tolist(), np.split(order, starts[1:])):
         buf = np.frombuffer(b"".join([payloads[i] for i in idx.tolist()]), dtype=np.uint8)
         yield size, idx, buf.reshape(idx.size, size)
 
 
+@lru_cache(maxsize=16)
+def _positions(n: int) -> np.ndarray:
+    """0 ... n-1, read-only (the positions of a batch of one length)."""
+    idx = np.arange(n)
+    idx.flags.writeable = False
+    return idx
+
+
 @lru_cache(maxsize=64)
 def _padded(dtype: np.dtype, itemsize: int) -> np.dtype:
-    """``dtype`` followed by padding up to ``itemsize`` bytes."""
-    return np.dtype({"names": dtype.names, "formats": [dtype.fields[n][0] for n in dtype.names],
+    """``dtype`` followed by padding up to ``itemsize`` bytes, its magic read as one
+    little-endian word (compared with one call)."""
+    formats = [np.dtype("<u4") if n == "magic" else dtype.fields[n][0] for n in dtype.names]
+    return np.dtype({"names": dtype.names, "formats": formats,
                      "offsets": [dtype.fields[n][1] for n in dtype.names], "itemsize": itemsize})
 
 
@@ -438,17 +471,23 @@ def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
             continue
         dtype = QUANT_DTYPE if kind == KIND_QUANTIZED and size >= QUANT_HEADER_LEN else COMMON_DTYPE
         rec = rows.reshape(-1).view(_padded(dtype, size))
-        f = {name: rec[name].astype(np.int64) for name in ("version", "kind", "bits", "flags", "m")}  # no overflow
-        f.update({name: rec[name] for name in ("alpha", "delta") if name in dtype.names})
-        f["magic_bad"] = np.any(rec["magic"] != _MAGIC_BYTES, axis=1)
+        # m and bits unsigned: a frame size that overflows uint32 is one whose M is out of range already
+        f = {name: rec[name] for name in ("version", "kind", "bits", "flags", "m", "alpha", "delta")
+             if name in dtype.names}
+        f["magic_bad"] = rec["magic"] != _MAGIC_WORD
         f["sensor_id_bad"] = sensor_id_fields_bad(rec["sensor_id"])
-        faults = np.stack(np.broadcast_arrays(*_faults(f, kind, size)))  # (checks, n)
-        failed = np.where(faults.any(axis=0), faults.argmax(axis=0) + 1, 0)  # the first check each fails
-        for j in np.flatnonzero(failed).tolist():
-            one = {name: rec[name][j].tobytes() if name in ("magic", "sensor_id") else rec[name][j].item()
-                   for name in dtype.names}
-            errors.append((int(idx[j]), WireError(_fault_text(int(failed[j]), one, kind, size, sources[idx[j]]))))
-        ok = failed == 0
+        faults = np.array(list(_faults(f, kind, size)))  # (checks, n)
+        if not np.count_nonzero(faults):  # the usual case: all good
+            good.append((idx, rec, rows))
+            continue
+        bad = faults.any(axis=0)
+        fail = np.flatnonzero(bad)
+        first = faults[:, fail].argmax(axis=0) + 1  # the first check each bad frame fails
+        for j, number in zip(fail.tolist(), first.tolist()):
+            one = {name: rec[name][j].item() for name in dtype.names if name not in ("magic", "sensor_id")}
+            one.update(magic=rows[j, :4].tobytes(), sensor_id=rows[j, 32:32 + SENSOR_ID_MAX].tobytes())
+            errors.append((int(idx[j]), WireError(_fault_text(number, one, kind, size, sources[idx[j]]))))
+        ok = ~bad
         if ok.any():
             good.append((idx[ok], rec[ok], rows[ok]))
     errors.sort(key=lambda e: e[0])
@@ -456,7 +495,7 @@ def _parse_batch(payloads: Sequence[bytes], sources: Sequence[str], kind: int):
 
 
 def _headers_of(rec: np.ndarray) -> FrameHeaders:
-    ids = rec["sensor_id"].copy().view(f"S{SENSOR_ID_MAX}").ravel().astype(f"U{SENSOR_ID_MAX}").tolist()
+    ids = [sid.decode("ascii") for sid in rec["sensor_id"].copy().view(f"S{SENSOR_ID_MAX}").ravel().tolist()]
     return FrameHeaders.checked(ids, rec["seq"].copy(), rec["timestamp_ns"].copy(), rec["config_id"].copy())
 
 
@@ -482,12 +521,15 @@ def decode_quantized_batch(payloads: Sequence[bytes],
     groups = []
     for idx, rec, rows in good:
         # frames of one length may still differ in (M, bits): one group, one unpack call, each
-        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"]
-        for key in ([int(keys[0])] if keys.min() == keys.max() else np.unique(keys).tolist()):
-            sel = np.flatnonzero(keys == key)
+        keys = rec["m"].astype(np.int64) * (MAX_BITS + 1) + rec["bits"] if len(rec) > 1 else None
+        if keys is None or (keys == keys[0]).all():  # the usual case: one (M, bits)
+            split = [(int(rec["m"][0]) * (MAX_BITS + 1) + int(rec["bits"][0]), slice(None))]
+        else:
+            split = [(key, np.flatnonzero(keys == key)) for key in np.unique(keys).tolist()]
+        for key, sel in split:
             m, bits = divmod(key, MAX_BITS + 1)
-            r = rec[sel]
-            codes = unpack_codes_unchecked(rows[sel, QUANT_HEADER_LEN:], bits, 4 * m).reshape(sel.size, m, 2, 2)
+            r, body = rec[sel], rows[sel, QUANT_HEADER_LEN:]
+            codes = unpack_codes_unchecked(body, bits, 4 * m).reshape(len(body), m, 2, 2)
             generator = np.where(r["version"] == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER)
             frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
                                      r["dither_seed"].copy(), r["seq"].copy(), generator)

@@ -6,6 +6,7 @@ failure is a :class:`WireError` naming the field (and, when decoding, the source
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
@@ -33,7 +34,7 @@ def _target(t: dict) -> dict[str, float]:
         out.update({f: float(t[f]) for f in OPTIONAL_TARGET_FIELDS if t.get(f) is not None})
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise WireError(f"target {t!r}: missing or bad field ({exc!r})") from None
-    bad = [f for f, v in out.items() if not np.isfinite(v)]
+    bad = [f for f, v in out.items() if not math.isfinite(v)]
     if bad:
         raise WireError(f"target field {bad[0]}={out[bad[0]]} is not finite")
     return out
@@ -65,9 +66,9 @@ class TargetColumns:
     def of(cls, targets: list[dict]) -> "TargetColumns":
         """One frame's targets (dicts, as :class:`TargetsMsg` holds them) as (1, K) columns."""
         rows = [_target(t) for t in targets]
-        cols = {f: np.array([[r.get(f, np.nan) for r in rows]], dtype=float).reshape(1, len(rows))
-                for f in _TARGET_COLUMNS}
-        return cls(**cols, present=np.ones((1, len(rows)), dtype=bool))
+        values = np.array([[r.get(f, np.nan) for f in _TARGET_COLUMNS] for r in rows], dtype=float)
+        values = values.reshape(len(rows), len(_TARGET_COLUMNS)).T[:, None, :]  # (fields, 1, K)
+        return cls(*values, present=np.ones((1, len(rows)), dtype=bool))
 
 
 @dataclass(frozen=True)
@@ -130,18 +131,21 @@ def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: 
         raise WireError(f"detections must be ({b}, K) arrays for {b} frames, got {present.shape}")
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
         raise WireError(f"K={k!r} must be an integer")
-    values = np.stack(cols, axis=-1)  # (B, K, 6)
+    values = np.array(cols).transpose(1, 2, 0)  # (B, K, 6)
     finite = np.isfinite(values[..., :len(TARGET_FIELDS)])
     bad = present[..., None] & ~finite
     if bad.any():
         i, j, f = np.argwhere(bad)[0]
         raise WireError(f"target field {TARGET_FIELDS[f]}={float(values[i, j, f])} is not finite")
-    # the present targets of each frame first, in order
-    order = np.argsort(~present, axis=1, kind="stable")
-    values = np.take_along_axis(values, order[..., None], axis=1).reshape(b, -1)
-    has_stat = np.take_along_axis(present & np.isfinite(cols[-1]), order, axis=1)
+    has_stat = present & np.isfinite(cols[-1])
+    if not (present[:, :-1] >= present[:, 1:]).all():  # the present targets of each frame first, in order
+        order = np.argsort(~present, axis=1, kind="stable")
+        values = np.take_along_axis(values, order[..., None], axis=1)
+        has_stat = np.take_along_axis(has_stat, order, axis=1)
+    values = values.reshape(b, -1)
     count = present.sum(axis=1)
-    published = int_field(np.broadcast_to(np.asarray(published_ns), (b,)), "published_ns", "int64", b).tolist()
+    published = int_field([published_ns] * b if np.ndim(published_ns) == 0 else published_ns, "published_ns",
+                          "int64", b).tolist()
     quoted = {sid: _quoted(sid, "sensor_id") for sid in set(headers.sensor_id)}
     head = ('{"version":%d,"type":"targets","sensor_id":%%s,"seq":%%d,"timestamp_ns":%%d,"config_id":%%d,'
             % JSON_VERSION + '"algo":' + _quoted(algo, "algo") + ',"K":%d' % int(k)
@@ -155,7 +159,8 @@ def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: 
     for pattern, frames in by_pattern.items():
         targets, columns = _targets_template(tuple(bool(x) for x in pattern[1:]))
         template = head + targets + "}"
-        rows = values[np.ix_(frames, columns)].tolist() if columns else [[]] * len(frames)
+        rows = (values if len(frames) == b else values.take(frames, axis=0)).take(columns, axis=1).tolist() \
+            if columns else [[]] * len(frames)
         for i, row in zip(frames, rows):
             out[i] = (template % (quoted[headers.sensor_id[i]], seqs[i], stamps[i], configs[i], published[i],
                                   *row)).encode()
