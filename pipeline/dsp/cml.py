@@ -75,12 +75,13 @@ import numpy as np
 from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
-from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _residual, detect_compiled
+from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
+    detect_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate, check_gate
-from pipeline.dsp.localize import Detections, cfar_threshold, to_db
+from pipeline.dsp.localize import STATISTIC_CAP_DB, Detections, cfar_threshold, to_db
 
 _ready = threading.Event()
 _warming_lock = threading.Lock()
@@ -526,6 +527,13 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     last), present ones strongest first."""
     n, ramps = codes.n, codes.ramps
     b, t = fit.nu.shape
+    if fit.engine != "numpy":  # the same, compiled (pipeline.dsp.cml_detect_kernels.result)
+        out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+        detect_kernels().result(np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex),
+                                np.ascontiguousarray(fit.live), np.ascontiguousarray(_residual(codes, fit)),
+                                float(fit.kc[0]), ramps, config.range_resolution_m,
+                                4.0 * np.pi / config.c_m_s * config.f0_hz, fit.gate is None, STATISTIC_CAP_DB, *out)
+        return CmlResult(out[0], out[1], out[2], sigma, out[3])
     # the axis is circular; inside a gate (within [0, N] bins) a range is not wrapped
     range_m = (fit.nu if fit.gate is not None else fit.nu % n) * config.range_resolution_m
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)

@@ -259,6 +259,15 @@ def _model(nu, amp, kc, w, mu):
 
 
 @njit(cache=True, nogil=True)
+def models(nu, amp, kc, mu):
+    """The model ``mu`` (B, N, 4) of targets ``nu`` (B, K) bins, ``amp`` (B, K, 2) (as
+    :func:`refine` builds it)."""
+    w = np.empty((nu.shape[1], 2, kc.shape[0]))
+    for f in range(nu.shape[0]):
+        _model(nu[f], amp[f], kc, w, mu[f])
+
+
+@njit(cache=True, nogil=True)
 def _solve(m, rhs):
     """``m x = rhs`` by Gaussian elimination with partial pivoting (m and rhs overwritten)."""
     p = m.shape[0]
