@@ -167,7 +167,8 @@ def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     angle = angle_from_antennas_rad(a[..., 0], a[..., 1], config)
     x, y = polar_to_xy(result.range_m, angle)
     amp = np.sqrt((np.abs(a) ** 2).sum(axis=-1) / 2.0)
-    bins = np.rint(np.nan_to_num(result.range_m) / config.range_resolution_m).astype(np.int64) % \
+    r = result.range_m
+    bins = np.rint(np.where(np.isnan(r), 0.0, r) / config.range_resolution_m).astype(np.int64) % \
         config.samples_per_ramp
     det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
     return det if result.present.all() else det.masked(result.present)
