@@ -192,6 +192,9 @@ def _is_int(v) -> bool:
 
 def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and (
+            ((value > 0) if positive else (value >= 0)) & (value < np.inf)).all():  # the common case, checked at once
+        return value.copy()
     try:
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
