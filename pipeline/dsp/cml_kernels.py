@@ -53,21 +53,26 @@ _TABLE = _logistic_table(TABLE_REACH, TABLE_STEP)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _logistic(u: float):
-    """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
-    if u >= TABLE_REACH:
-        return 0.0, 0.0, 0.0
-    if u <= -TABLE_REACH:
-        return -u, 1.0, 0.0
+def _hermite(u: float):
+    """The node j of _TABLE below u (|u| < TABLE_REACH) and the cubic Hermite weights of
+    the values and derivatives at nodes j and j + 1."""
     x = (u + TABLE_REACH) * (1.0 / TABLE_STEP)
     j = int(x)
     t = x - j
     t2 = t * t
     t3 = t2 * t
     h00 = 2.0 * t3 - 3.0 * t2 + 1.0
-    h01 = 1.0 - h00
-    h10 = (t3 - 2.0 * t2 + t) * TABLE_STEP
-    h11 = (t3 - t2) * TABLE_STEP
+    return j, h00, 1.0 - h00, (t3 - 2.0 * t2 + t) * TABLE_STEP, (t3 - t2) * TABLE_STEP
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _logistic(u: float):
+    """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
+    if u >= TABLE_REACH:
+        return 0.0, 0.0, 0.0
+    if u <= -TABLE_REACH:
+        return -u, 1.0, 0.0
+    j, h00, h01, h10, h11 = _hermite(u)
     a = _TABLE[j]
     b = _TABLE[j + 1]
     return (h00 * a[0] + h10 * a[1] + h01 * b[0] + h11 * b[1],
@@ -77,18 +82,10 @@ def _logistic(u: float):
 
 @njit(cache=True, nogil=True, inline="always")
 def _logistic_nll(u: float) -> float:
-    """The first value of :func:`_logistic` alone (the same arithmetic: bit for bit)."""
+    """The first value of :func:`_logistic` alone (the same arithmetic: bit for bit), u < TABLE_REACH."""
     if u <= -TABLE_REACH:
         return -u
-    x = (u + TABLE_REACH) * (1.0 / TABLE_STEP)
-    j = int(x)
-    t = x - j
-    t2 = t * t
-    t3 = t2 * t
-    h00 = 2.0 * t3 - 3.0 * t2 + 1.0
-    h01 = 1.0 - h00
-    h10 = (t3 - 2.0 * t2 + t) * TABLE_STEP
-    h11 = (t3 - t2) * TABLE_STEP
+    j, h00, h01, h10, h11 = _hermite(u)
     return h00 * _TABLE[j, 0] + h10 * _TABLE[j, 1] + h01 * _TABLE[j + 1, 0] + h11 * _TABLE[j + 1, 1]
 
 
