@@ -510,7 +510,8 @@ class QuantizedFrames:
     @property
     def dithered(self) -> bool:
         """True when every frame is dithered (alpha > 0); a decoder can then regenerate xi."""
-        return bool(np.all(np.asarray(self.alpha) > 0))
+        alpha = self.alpha
+        return alpha > 0 if isinstance(alpha, float) else bool(np.all(np.asarray(alpha) > 0))
 
     def dither(self) -> np.ndarray | None:
         """The dither xi added before quantization, regenerated from the seeds: (B, M, 2);
@@ -529,7 +530,7 @@ class QuantizedFrames:
             u = _counter_dither(seeds, seq, self.codes.shape[1])
         else:
             u = unit_dither(seed, seq, self.codes.shape[1], self.generator)
-        alpha = np.broadcast_to(np.asarray(self.alpha, dtype=float), self.delta.shape)
+        alpha = np.asarray(self.alpha, dtype=float)  # one for the batch, or (B,)
         return (alpha * self.delta)[:, None, None] * u
 
 
