@@ -215,6 +215,21 @@ def test_quantize_frames_regenerates_its_dither(cfg):
     assert_allclose(fixed.delta, [0.25, 0.25])
 
 
+def test_dither_of_a_batch_equals_unit_dither_bit_for_bit_for_every_form_of_seed(cfg):
+    """QuantizedFrames.dither skips unit_dither's checks for the counter generator's common
+    forms (one int seed, or uint64 seeds per frame): the values must not change."""
+    from dataclasses import replace
+
+    g = simulate_frames([[30.0], [12.0], [80.0]], [[10.0], [-5.0], [40.0]], [[1.0], [0.5], [0.2]], cfg)
+    seqs = np.array([0, 7, 2**64 - 1], np.uint64)
+    for seed in (0, 2**64 - 1, np.uint64(5), sensor_dither_seeds(3, ["a", "b", "c"])):
+        q = quantize_frames(g, QuantizerConfig(alpha=0.8), seqs, dither_seed=seed)
+        want = unit_dither(seed, seqs, 512) * (q.alpha * q.delta)[:, None, None]
+        assert_array_equal(q.dither(), want)
+        assert_array_equal(replace(q, seq=seqs.tolist()).dither(), want)  # the checked path: the same
+        assert_array_equal(quantize(g, q.delta, 1, q.dither()), q.codes)
+
+
 @pytest.mark.parametrize("bits", [1, 2, 3, 5, 8, 11, 16])
 def test_pack_unpack_round_trip(bits, rng):
     codes = rng.integers(0, 1 << bits, (4, 37, 2, 2))

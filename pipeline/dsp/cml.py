@@ -75,12 +75,13 @@ import numpy as np
 from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
-from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _residual, detect_compiled
+from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
+    detect_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate, check_gate
-from pipeline.dsp.localize import Detections, cfar_threshold, to_db
+from pipeline.dsp.localize import STATISTIC_CAP_DB, Detections, cfar_threshold, to_db
 
 _ready = threading.Event()
 _warming_lock = threading.Lock()
@@ -166,7 +167,8 @@ def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     angle = angle_from_antennas_rad(a[..., 0], a[..., 1], config)
     x, y = polar_to_xy(result.range_m, angle)
     amp = np.sqrt((np.abs(a) ** 2).sum(axis=-1) / 2.0)
-    bins = np.rint(np.nan_to_num(result.range_m) / config.range_resolution_m).astype(np.int64) % \
+    r = result.range_m
+    bins = np.rint(np.where(np.isnan(r), 0.0, r) / config.range_resolution_m).astype(np.int64) % \
         config.samples_per_ramp
     det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
     return det if result.present.all() else det.masked(result.present)
@@ -190,6 +192,9 @@ def _is_int(v) -> bool:
 
 def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and (
+            ((value > 0) if positive else (value >= 0)) & (value < np.inf)).all():  # the common case, checked at once
+        return value.copy()
     try:
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -526,6 +531,13 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     last), present ones strongest first."""
     n, ramps = codes.n, codes.ramps
     b, t = fit.nu.shape
+    if fit.engine != "numpy":  # the same, compiled (pipeline.dsp.cml_detect_kernels.result)
+        out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+        detect_kernels().result(np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex),
+                                np.ascontiguousarray(fit.live), np.ascontiguousarray(_residual(codes, fit)),
+                                float(fit.kc[0]), ramps, config.range_resolution_m,
+                                4.0 * np.pi / config.c_m_s * config.f0_hz, fit.gate is None, STATISTIC_CAP_DB, *out)
+        return CmlResult(out[0], out[1], out[2], sigma, out[3])
     # the axis is circular; inside a gate (within [0, N] bins) a range is not wrapped
     range_m = (fit.nu if fit.gate is not None else fit.nu % n) * config.range_resolution_m
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)

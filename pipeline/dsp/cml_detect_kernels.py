@@ -114,3 +114,65 @@ def detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outsid
             a2 += w * y[f, i, 1]
         amp0[f, 0] = a1 * scale
         amp0[f, 1] = a2 * scale
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def result(nu, amp, live, y, kc0, ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present):
+    """:func:`pipeline.dsp.cml._result` per frame: the targets ``nu`` (B, T) bins, ``amp``
+    (B, T, 2) (mid-sweep) and ``live`` (B, T) of the fit, ``y`` (B, N, 2) the residual summed
+    over the ramps, ``carrier`` = 4 pi f0 / c (rad/m), ``wrap``: ranges modulo N (no gate),
+    ``cap``: the statistic's cap, dB. Writes ``range_m`` (B, K) m, ``amp_out`` (B, K, 2),
+    ``stat`` (B, K) dB and ``present`` (B, K), present targets first, strongest first."""
+    nb, t = nu.shape
+    k = range_m.shape[1]
+    n = y.shape[1]
+    power = np.empty(k)
+    order = np.empty(k, dtype=np.int64)
+    for f in range(nb):
+        noise = 0.0
+        for i in range(n):
+            for p in range(2):
+                v = y[f, i, p]
+                noise += v.real * v.real + v.imag * v.imag
+        noise /= float(n * ramps) ** 2
+        for j in range(k):
+            power[j] = 0.0
+            if j < t:
+                a1, a2 = amp[f, j, 0], amp[f, j, 1]
+                power[j] = (a1.real * a1.real + a1.imag * a1.imag) + (a2.real * a2.real + a2.imag * a2.imag)
+            # stable insertion: present first, then strongest first (as numpy's lexsort)
+            alive = j < t and live[f, j]
+            pos = j
+            while pos > 0:
+                o = order[pos - 1]
+                o_alive = o < t and live[f, o]
+                if o_alive > alive or (o_alive == alive and power[o] >= power[j]):
+                    break
+                order[pos] = o
+                pos -= 1
+            order[pos] = j
+        for pos in range(k):
+            j = order[pos]
+            if j >= t:
+                range_m[f, pos] = np.nan
+                amp_out[f, pos, 0] = 0.0
+                amp_out[f, pos, 1] = 0.0
+                stat[f, pos] = np.nan
+                present[f, pos] = False
+                continue
+            v = nu[f, j] % n if wrap else nu[f, j]
+            r = v * range_res
+            # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
+            e = np.exp(complex(0.0, ((-2.0 * math.pi / n) * nu[f, j]) * kc0)) / np.exp(complex(0.0, -(carrier * r)))
+            range_m[f, pos] = r
+            amp_out[f, pos, 0] = amp[f, j, 0] * e
+            amp_out[f, pos, 1] = amp[f, j, 1] * e
+            ratio = power[j] / noise
+            if ratio != ratio or ratio <= 0.0:
+                db = -cap
+            elif ratio == math.inf:
+                db = cap
+            else:
+                db = min(max(10.0 * math.log10(ratio), -cap), cap)
+            stat[f, pos] = db
+            present[f, pos] = live[f, j]

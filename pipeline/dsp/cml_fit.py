@@ -276,8 +276,14 @@ class _Fit:
         """Targets (B, K) in bins, amplitudes (B, K, 2); ``live`` (B, K): the targets
         that move (the others stay where they are: zero amplitude, past a frame's count)."""
         self.nu, self.amp, self.live = nu, amp, live
-        self.w = _atoms(nu, self.kc)
-        self.mu = self._mu(self.w, amp)
+        if self.engine == "numpy":
+            self.w = _atoms(nu, self.kc)
+            self.mu = self._mu(self.w, amp)
+        else:  # the compiled model (the atoms are only the numpy step's)
+            b, n = nu.shape[0], self.kc.size
+            self.w, self.mu = None, np.empty((b, n, 2, 2))
+            _kernels().models(np.ascontiguousarray(nu, dtype=float), np.ascontiguousarray(amp, dtype=complex),
+                              self.kc, self.mu.reshape(b, n, 4))
         self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
 
     @staticmethod

@@ -53,26 +53,40 @@ _TABLE = _logistic_table(TABLE_REACH, TABLE_STEP)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _logistic(u: float):
-    """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
-    if u >= TABLE_REACH:
-        return 0.0, 0.0, 0.0
-    if u <= -TABLE_REACH:
-        return -u, 1.0, 0.0
+def _hermite(u: float):
+    """The node j of _TABLE below u (|u| < TABLE_REACH) and the cubic Hermite weights of
+    the values and derivatives at nodes j and j + 1."""
     x = (u + TABLE_REACH) * (1.0 / TABLE_STEP)
     j = int(x)
     t = x - j
     t2 = t * t
     t3 = t2 * t
     h00 = 2.0 * t3 - 3.0 * t2 + 1.0
-    h01 = 1.0 - h00
-    h10 = (t3 - 2.0 * t2 + t) * TABLE_STEP
-    h11 = (t3 - t2) * TABLE_STEP
+    return j, h00, 1.0 - h00, (t3 - 2.0 * t2 + t) * TABLE_STEP, (t3 - t2) * TABLE_STEP
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _logistic(u: float):
+    """``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` by cubic Hermite interpolation of _TABLE."""
+    if u >= TABLE_REACH:
+        return 0.0, 0.0, 0.0
+    if u <= -TABLE_REACH:
+        return -u, 1.0, 0.0
+    j, h00, h01, h10, h11 = _hermite(u)
     a = _TABLE[j]
     b = _TABLE[j + 1]
     return (h00 * a[0] + h10 * a[1] + h01 * b[0] + h11 * b[1],
             h00 * a[2] + h10 * a[3] + h01 * b[2] + h11 * b[3],
             h00 * a[4] + h10 * a[5] + h01 * b[4] + h11 * b[5])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _logistic_nll(u: float) -> float:
+    """The first value of :func:`_logistic` alone (the same arithmetic: bit for bit), u < TABLE_REACH."""
+    if u <= -TABLE_REACH:
+        return -u
+    j, h00, h01, h10, h11 = _hermite(u)
+    return h00 * _TABLE[j, 0] + h10 * _TABLE[j, 1] + h01 * _TABLE[j + 1, 0] + h11 * _TABLE[j + 1, 1]
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -215,6 +229,25 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _nll_frame(a, b, mu, sigma) -> float:
+    """The NLL of :func:`_evaluate_frame` (bit for bit) without its derivatives, for
+    1-bit codes and the logistic likelihood."""
+    ramps, m4 = a.shape[0], a.shape[1] * 4
+    inv = 1.702 / sigma
+    af = a.reshape(ramps, m4)
+    bf = b.reshape(ramps, m4)
+    muf = mu.reshape(m4)
+    total = 0.0
+    for r in range(ramps):
+        for i in range(m4):
+            u = (float(af[r, i]) * muf[i] + float(bf[r, i])) * inv
+            if u >= TABLE_REACH:
+                continue
+            total += _logistic_nll(u)
+    return total
+
+
+@njit(cache=True, nogil=True)
 def _wrong_rms(kind, a, b, mu) -> float:
     """RMS distance of the codes ``mu`` gets wrong to their cells (0 when none is)."""
     ramps, n = a.shape[0], a.shape[1]
@@ -256,6 +289,15 @@ def _model(nu, amp, kc, w, mu):
             mu[i, 1] += a1r * wi + a1i * wr
             mu[i, 2] += a2r * wr - a2i * wi
             mu[i, 3] += a2r * wi + a2i * wr
+
+
+@njit(cache=True, nogil=True)
+def models(nu, amp, kc, mu):
+    """The model ``mu`` (B, N, 4) of targets ``nu`` (B, K) bins, ``amp`` (B, K, 2) (as
+    :func:`refine` builds it)."""
+    w = np.empty((nu.shape[1], 2, kc.shape[0]))
+    for f in range(nu.shape[0]):
+        _model(nu[f], amp[f], kc, w, mu[f])
 
 
 @njit(cache=True, nogil=True)
@@ -351,7 +393,8 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
            use_gate, max_range_step, mu, g, h, nll, sigma_out):
     """Levenberg--Marquardt steps of every frame, as :meth:`pipeline.dsp.cml._Fit.step`:
     step j at noise std ``levels[f, j]`` (``adapt``: not below the wrong codes' RMS
-    distance over ``wrong_per_sigma``), re-evaluating the likelihood when the level changes;
+    distance over ``wrong_per_sigma``), re-evaluating the likelihood when the level changes
+    (a candidate whose derivatives the next step does not use gets its NLL alone);
     a step is kept only when the NLL does not grow. Updates ``nu``, ``amp``, ``lm``, ``mu``,
     ``g``, ``h``, ``nll`` in place and writes each frame's last level to ``sigma_out``.
     ``nll`` on entry: the NLL at ``sigma_out`` (the current level; -1: none)."""
@@ -369,16 +412,19 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
     grad = np.empty(5 * k)
     nu2 = np.empty(k)
     amp2 = np.empty((k, 2), dtype=np.complex128)
+    nll_only = kind == ONE_BIT and lik == LOGISTIC  # a cheaper NLL alone (_nll_frame)
     for f in range(nb):
         _model(nu[f], amp[f], kc, w, mu[f])
         current = sigma_out[f]
+        fresh = True  # g, h hold the derivatives at mu and the current level
         for s in range(steps):
             level = levels[f, s]
             if adapt:
                 level = max(level, _wrong_rms(kind, a[f], b[f], mu[f]) / wrong_per_sigma)
-            if level != current:
+            if level != current or not fresh:
                 nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], level, g[f], h[f])
                 current = level
+                fresh = True
             _normal_equations(w, kc, amp[f], g[f], h[f], hess, grad)
             dmax = 0.0
             for q in range(5 * k):
@@ -404,16 +450,24 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
                 for p in range(2):
                     amp2[t, p] = amp[f, t, p] + complex(step[5 * t + 1 + 2 * p] * cut, step[5 * t + 2 + 2 * p] * cut)
             _model(nu2, amp2, kc, w2, mu2)
-            cand = _evaluate_frame(kind, lik, a[f], b[f], mu2, current, g2, h2)
+            # the candidate's derivatives only when the next step is at this level (known
+            # unless adapted) or this is the last step; else the NLL alone
+            derivs = not nll_only or s == steps - 1 or (not adapt and levels[f, s + 1] == current)
+            if derivs:
+                cand = _evaluate_frame(kind, lik, a[f], b[f], mu2, current, g2, h2)
+            else:
+                cand = _nll_frame(a[f], b[f], mu2, current)
             if cand <= nll[f]:
+                fresh = derivs
                 lm[f] = max(lm[f] / 3.0, 1e-9)
                 nll[f] = cand
                 nu[f, :] = nu2
                 amp[f, :, :] = amp2
                 w[:, :, :] = w2
                 mu[f, :, :] = mu2
-                g[f, :, :] = g2
-                h[f, :, :] = h2
+                if derivs:
+                    g[f, :, :] = g2
+                    h[f, :, :] = h2
             else:
                 lm[f] = min(lm[f] * 8.0, 1e9)
         sigma_out[f] = current

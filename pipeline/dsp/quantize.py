@@ -510,15 +510,27 @@ class QuantizedFrames:
     @property
     def dithered(self) -> bool:
         """True when every frame is dithered (alpha > 0); a decoder can then regenerate xi."""
-        return bool(np.all(np.asarray(self.alpha) > 0))
+        alpha = self.alpha
+        return alpha > 0 if isinstance(alpha, float) else bool(np.all(np.asarray(alpha) > 0))
 
     def dither(self) -> np.ndarray | None:
         """The dither xi added before quantization, regenerated from the seeds: (B, M, 2);
         None when the frames are not all dithered (there is no dither to use)."""
         if not self.dithered:
             return None
-        u = unit_dither(self.dither_seed, self.seq, self.codes.shape[1], self.generator)
-        alpha = np.broadcast_to(np.asarray(self.alpha, dtype=float), self.delta.shape)
+        seed, seq = self.dither_seed, self.seq
+        seeds = None
+        if isinstance(self.generator, str) and self.generator == DITHER_COUNTER and isinstance(seq, np.ndarray) \
+                and seq.dtype == np.uint64 and seq.ndim == 1:  # what unit_dither does, without its checks
+            if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and 0 <= seed < 2**64:
+                seeds = np.full(seq.shape, seed, dtype=np.uint64)
+            elif isinstance(seed, np.ndarray) and seed.dtype == np.uint64 and seed.shape == seq.shape:
+                seeds = seed
+        if seeds is not None:
+            u = _counter_dither(seeds, seq, self.codes.shape[1])
+        else:
+            u = unit_dither(seed, seq, self.codes.shape[1], self.generator)
+        alpha = np.asarray(self.alpha, dtype=float)  # one for the batch, or (B,)
         return (alpha * self.delta)[:, None, None] * u
 
 
