@@ -167,7 +167,7 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
     keep = np.flatnonzero(~bad)
     if not keep.size:
         return
-    frames = data[keep].astype(np.complex128)
+    frames = (data if keep.size == len(data) else data[keep]).astype(np.complex128)  # one copy when all are kept
     kept = headers.take(keep)
     if calibration is not None:
         frames, ok = calibration.apply(frames, kept.sensor_id, kept.config_id)
