@@ -125,6 +125,11 @@ def _compile_all() -> None:
                 init_range_m=np.array([[30.0, np.nan]]))
     _ready.set()
 
+#: refinement steps after each detection: one is enough, the annealing refines all the targets
+#: together after the last detection (measured, 2 000 off-grid scenes a case, K 1-3, K auto,
+#: alpha 1 and 0.45, sigma 0-0.1, unquantized: errors the same or smaller than with 3 steps;
+#: with none the weaker of two targets is found worse at alpha 0.45)
+DEFAULT_ITERS = 1
 #: first sigma_eff, in units of delta
 SIGMA_START = 0.25
 #: frames decoded at once: the likelihood's work arrays (B x 4M float32 each) stay in cache
@@ -258,7 +263,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
 
 # -- the decoder ----------------------------------------------------------------------------
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
-        noise_sigma=None, iters: int = 3, anneal: int = 6, oversample: int = 8,
+        noise_sigma=None, iters: int = DEFAULT_ITERS, anneal: int = 6, oversample: int = 8,
         pfa: float | None = None, gate: RangeGate | None = None, engine: str | None = None,
         likelihood: str | None = None, init_range_m: np.ndarray | None = None) -> CmlResult:
     """Greedy continuous-range maximum likelihood decoder (see the module docstring).
@@ -315,8 +320,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     block): with a fixed ``k`` a frame's result does not depend on the others. With
     ``pfa``, a frame whose count is decided keeps taking refinement steps while others
     of its block look for more targets, so its estimates can move slightly with the
-    batch (about 1e-5 m in range and 1 % in amplitude in a 4-bit case). About 20 evaluations of the
-    likelihood and 12 Gauss--Newton systems for K = 2: ~1 ms a frame (M = 512).
+    batch (about 1e-5 m in range and 1 % in amplitude in a 4-bit case). About 14 evaluations of the
+    likelihood and 8 Gauss--Newton systems for K = 2 (M = 512).
     """
     z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
     engine = DEFAULT_ENGINE if engine is None else engine
