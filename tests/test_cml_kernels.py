@@ -4,9 +4,10 @@ the compiled detection and count test (pipeline.dsp.cml_detect_kernels) against 
 reference (pipeline.dsp.cml_detect) on every kind of scene, and codes against values.
 
 Tolerance: the two engines take the same steps in a different floating-point order (the
-reference evaluates the likelihood in float32, the kernels in float64), so a range agrees
-to 1e-4 m and an amplitude to 1e-3 of the strongest one (the frames here sit far from a
-step kept by one engine and refused by the other; measured: about 1e-8 m and 1e-5).
+reference evaluates the likelihood in float32, the kernels in float64; both sum the
+Gauss--Newton Hessian in float32), so a range agrees to 1e-4 m and an amplitude to 1e-3 of
+the strongest one (the frames here sit far from a step kept by one engine and refused by
+the other; measured over these scenes: at most 1.6e-5 m and 2.6e-4).
 
 Detection and the count test take the same FFT and the same sums but for the count's
 mean (numpy sums pairwise, the kernel in order): statistics agree to 1e-9 relative, the
@@ -20,6 +21,7 @@ from test_cml import measure, random_scenes
 
 from pipeline.dsp import cml_kernels
 from pipeline.dsp.cml import _Codes, _Gate, _start, cml
+from pipeline.dsp.cml_fit import _coefficients
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
@@ -244,3 +246,55 @@ def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
         cml(codes, q.dither(), q.delta, 1, cfg, 1)
     with pytest.raises(ParameterError, match="bits given"):
         cml(q.codes, None, None, None, cfg, 1)
+
+
+def test_model_is_the_atoms_times_the_amplitudes():
+    """The compiled model (blocks of 32 samples by products) against exp() directly, also
+    for N not a multiple of the block."""
+    rng = np.random.default_rng(50)
+    for n in (256, 100, 7):
+        kc = np.arange(n) - (n - 1) / 2.0
+        nu = rng.uniform(0, n, 3)
+        amp = rng.standard_normal((3, 2)) + 1j * rng.standard_normal((3, 2))
+        w, mu = np.empty((3, 2, n)), np.empty((n, 4))
+        cml_kernels._model(nu, amp, kc, w, mu)
+        atoms = np.exp((-2j * np.pi / n) * nu[:, None] * kc)
+        np.testing.assert_allclose(w[:, 0] + 1j * w[:, 1], atoms, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(mu.view(complex), atoms.T @ amp, rtol=0, atol=1e-12)
+
+
+def test_normal_equations_are_the_jacobians():
+    """The Gauss--Newton system from the weighted sums against ``sum_j J_j^T diag(h_j) J_j``
+    and ``sum_j J_j^T g_j`` with the numpy reference's Jacobians (float64): the Hessian's
+    sums are float32 (as the reference's), so it agrees to 1e-6 of its largest entry."""
+    rng = np.random.default_rng(51)
+    n, k = 256, 2
+    kc = np.arange(n) - (n - 1) / 2.0
+    nu = np.array([40.3, 41.9])
+    amp = rng.standard_normal((k, 2)) + 1j * rng.standard_normal((k, 2))
+    g, h = rng.standard_normal((n, 4)), rng.uniform(0.0, 2.0, (n, 4))
+    w, mu = np.empty((k, 2, n)), np.empty((n, 4))
+    cml_kernels._model(nu, amp, kc, w, mu)
+    cw = 2.0 * np.pi * kc / n
+    gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
+    cml_kernels._sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((4, n)),
+                      np.empty((2 * k, n), np.float32), gram, proj)
+    hess, grad = np.empty((5 * k, 5 * k)), np.empty(5 * k)
+    cml_kernels._normal_equations(amp, gram, proj, hess, grad)
+    atoms = w[:, 0] + 1j * w[:, 1]
+    dw = atoms * (-1j * cw)
+    r = np.concatenate([atoms.real, dw.real, atoms.imag, dw.imag])  # the reference's rows (4K, N)
+    zc = _coefficients(amp[None])[0]  # (4, 4K, 5K)
+    jac = np.einsum("rn,jrq->jnq", r, zc)
+    np.testing.assert_allclose(hess, np.einsum("jnq,nj,jnp->qp", jac, h, jac), rtol=0, atol=1e-6 * np.abs(hess).max())
+    np.testing.assert_allclose(grad, np.einsum("jnq,nj->q", jac, g), rtol=1e-9, atol=1e-12 * np.abs(grad).max())
+
+
+def test_solve_by_cholesky_and_by_elimination():
+    rng = np.random.default_rng(52)
+    a = rng.standard_normal((10, 10))
+    rhs = rng.standard_normal(10)
+    lw, x = np.empty((10, 10)), np.empty(10)
+    for m in (a @ a.T + 1e-3 * np.eye(10), a + a.T):  # positive definite; indefinite: the fall-back
+        cml_kernels._solve(m.copy(), rhs.copy(), lw, x)
+        np.testing.assert_allclose(x, np.linalg.solve(m, rhs), rtol=1e-9, atol=1e-12)

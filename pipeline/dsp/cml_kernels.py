@@ -317,28 +317,54 @@ def _wrong_rms(kind, a, b, mu) -> float:
     return math.sqrt(acc / max(wrong, 1))
 
 
-@njit(cache=True, nogil=True)
+#: the model's block (samples): the first block by a recurrence, each later one that block
+#: times ``exp(i ph b)`` at its start
+_BLOCK = 32
+#: the vectorized kernels' options: no zero-division checks (they stop LLVM's vectorizer),
+#: reassociated float sums
+_FAST = dict(cache=True, nogil=True, error_model="numpy", fastmath=True)
+
+
+@njit(**_FAST)
 def _model(nu, amp, kc, w, mu):
-    """Atoms ``w`` (K, 2, N) (real and imaginary parts) and the model ``mu`` (N, 4)."""
+    """Atoms ``w`` (K, 2, N) (real and imaginary parts) and the model ``mu`` (N, 4) of
+    targets ``nu`` (K,) bins, ``amp`` (K, 2); ``kc`` (N,) in unit steps. ``w_t[i] =
+    exp(i ph kc[i])``, ``ph = -2 pi nu_t / N``: three cos/sin pairs a target, the rest
+    products (relative error ~1e-14)."""
     k = nu.shape[0]
     n = kc.shape[0]
-    mu[:] = 0.0
+    muf = mu.reshape(4 * n)
     for t in range(k):
         ph = -2.0 * math.pi * nu[t] / n
-        cr, ci = math.cos(ph), math.sin(ph)  # w[t, i + 1] = w[t, i] exp(i ph), anchored every 32
-        wr, wi = 1.0, 0.0
+        cr, ci = math.cos(ph), math.sin(ph)
+        wr, wi = w[t, 0], w[t, 1]
+        m = min(_BLOCK, n)
+        wr[0], wi[0] = math.cos(ph * kc[0]), math.sin(ph * kc[0])
+        for i in range(1, m):
+            wr[i] = wr[i - 1] * cr - wi[i - 1] * ci
+            wi[i] = wr[i - 1] * ci + wi[i - 1] * cr
+        sr, si = math.cos(ph * _BLOCK), math.sin(ph * _BLOCK)
+        br, bi = sr, si  # exp(i ph i0)
+        for i0 in range(_BLOCK, n, _BLOCK):
+            for i in range(min(_BLOCK, n - i0)):
+                wr[i0 + i] = br * wr[i] - bi * wi[i]
+                wi[i0 + i] = br * wi[i] + bi * wr[i]
+            br, bi = br * sr - bi * si, br * si + bi * sr
         a1r, a1i, a2r, a2i = amp[t, 0].real, amp[t, 0].imag, amp[t, 1].real, amp[t, 1].imag
-        for i in range(n):
-            if i % 32 == 0:
-                wr, wi = math.cos(ph * kc[i]), math.sin(ph * kc[i])
-            else:
-                wr, wi = wr * cr - wi * ci, wr * ci + wi * cr
-            w[t, 0, i] = wr
-            w[t, 1, i] = wi
-            mu[i, 0] += a1r * wr - a1i * wi
-            mu[i, 1] += a1r * wi + a1i * wr
-            mu[i, 2] += a2r * wr - a2i * wi
-            mu[i, 3] += a2r * wi + a2i * wr
+        if t == 0:
+            for i in range(n):
+                muf[4 * i] = a1r * wr[i] - a1i * wi[i]
+                muf[4 * i + 1] = a1r * wi[i] + a1i * wr[i]
+                muf[4 * i + 2] = a2r * wr[i] - a2i * wi[i]
+                muf[4 * i + 3] = a2r * wi[i] + a2i * wr[i]
+        else:
+            for i in range(n):
+                muf[4 * i] += a1r * wr[i] - a1i * wi[i]
+                muf[4 * i + 1] += a1r * wi[i] + a1i * wr[i]
+                muf[4 * i + 2] += a2r * wr[i] - a2i * wi[i]
+                muf[4 * i + 3] += a2r * wi[i] + a2i * wr[i]
+    if k == 0:
+        mu[:] = 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -351,7 +377,7 @@ def models(nu, amp, kc, mu):
 
 
 @njit(cache=True, nogil=True)
-def _solve(m, rhs):
+def _eliminate(m, rhs, x):
     """``m x = rhs`` by Gaussian elimination with partial pivoting (m and rhs overwritten)."""
     p = m.shape[0]
     for col in range(p):
@@ -372,72 +398,150 @@ def _solve(m, rhs):
                 for c in range(col, p):
                     m[r, c] -= fct * m[col, c]
                 rhs[r] -= fct * rhs[col]
-    x = np.zeros(p)
     for r in range(p - 1, -1, -1):
         acc = rhs[r]
         for c in range(r + 1, p):
             acc -= m[r, c] * x[c]
         x[r] = acc / m[r, r]
-    return x
 
 
-@njit(cache=True, nogil=True, fastmath=True)
-def _normal_equations(w, kc, amp, g, h, hess, grad):
-    """The Gauss--Newton system of one frame: ``hess`` (5K, 5K) and ``grad`` (5K,), the
-    parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t; ``w`` (K, 2, N)
-    the atoms' real and imaginary parts."""
+@njit(cache=True, nogil=True)
+def _solve(m, rhs, lw, x):
+    """``x`` (P,) with ``m x = rhs``, m (P, P) symmetric: by Cholesky into ``lw`` (P, P) (the
+    lower triangle), or, if m is not positive definite, by Gaussian elimination with partial
+    pivoting (m and rhs then overwritten)."""
+    p = m.shape[0]
+    for j in range(p):
+        d = m[j, j]
+        for c in range(j):
+            d -= lw[j, c] * lw[j, c]
+        if not d > 0.0:
+            _eliminate(m, rhs, x)
+            return
+        d = math.sqrt(d)
+        lw[j, j] = d
+        inv = 1.0 / d
+        for r in range(j + 1, p):
+            acc = m[r, j]
+            for c in range(j):
+                acc -= lw[r, c] * lw[j, c]
+            lw[r, j] = acc * inv
+    for r in range(p):  # L y = rhs, then L^T x = y
+        acc = rhs[r]
+        for c in range(r):
+            acc -= lw[r, c] * x[c]
+        x[r] = acc / lw[r, r]
+    for r in range(p - 1, -1, -1):
+        acc = x[r]
+        for c in range(r + 1, p):
+            acc -= lw[c, r] * x[c]
+        x[r] = acc / lw[r, r]
+
+
+@njit(**_FAST)
+def _sums(w, cw, cw32, g, h, ht, gt, bw, gram, proj):
+    """The weighted sums of the atoms the Gauss--Newton system is made of, for each real part
+    j of the model and power l of ``cw`` (N,) (= 2 pi kc / N, the derivative's factor;
+    ``cw32`` in float32):
+    ``gram[l, j, m1, m2] = sum_i h[i, j] cw^l e_m1 e_m2`` (l < 3; float32 sums, as the numpy
+    reference's) and ``proj[l, j, m] = sum_i g[i, j] cw^l e_m`` (l < 2; float64), e_m the
+    rows of ``w`` (K, 2, N) (e_2t = Re w_t, e_2t+1 = Im w_t). Work arrays: ``ht`` (4, N)
+    float32, ``gt`` (4, N), ``bw`` (2K, N) float32."""
     k, n = w.shape[0], w.shape[2]
-    nb = 4 * k
-    basis = np.empty((nb, n))  # rows: Re w, Re dw, Im w, Im dw; dw = w (-i 2 pi kc / N)
-    for t in range(k):
+    nm = 2 * k
+    for j in range(4):
         for i in range(n):
-            c = 2.0 * math.pi * kc[i] / n
-            basis[t, i] = w[t, 0, i]
-            basis[k + t, i] = c * w[t, 1, i]
-            basis[2 * k + t, i] = w[t, 1, i]
-            basis[3 * k + t, i] = -c * w[t, 0, i]
+            ht[j, i] = h[i, j]
+            gt[j, i] = g[i, j]
+    for t in range(k):
+        for s in range(2):
+            for i in range(n):
+                bw[2 * t + s, i] = w[t, s, i]
+    h0, h1, h2, h3 = ht[0], ht[1], ht[2], ht[3]
+    g0, g1, g2, g3 = gt[0], gt[1], gt[2], gt[3]
+    for m1 in range(nm):
+        x = bw[m1]
+        for m2 in range(m1, nm):
+            y = bw[m2]
+            a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = np.float32(0.0)
+            for i in range(n):
+                v = x[i] * y[i]
+                vc = v * cw32[i]
+                vcc = vc * cw32[i]
+                a0 += h0[i] * v
+                a1 += h1[i] * v
+                a2 += h2[i] * v
+                a3 += h3[i] * v
+                a4 += h0[i] * vc
+                a5 += h1[i] * vc
+                a6 += h2[i] * vc
+                a7 += h3[i] * vc
+                a8 += h0[i] * vcc
+                a9 += h1[i] * vcc
+                a10 += h2[i] * vcc
+                a11 += h3[i] * vcc
+            acc = (a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11)
+            for q in range(12):
+                gram[q // 4, q % 4, m1, m2] = acc[q]
+                gram[q // 4, q % 4, m2, m1] = acc[q]
+        xs = w[m1 // 2, m1 % 2]
+        p0 = p1 = p2 = p3 = p4 = p5 = p6 = p7 = 0.0
+        for i in range(n):
+            v = xs[i]
+            vc = v * cw[i]
+            p0 += g0[i] * v
+            p1 += g1[i] * v
+            p2 += g2[i] * v
+            p3 += g3[i] * v
+            p4 += g0[i] * vc
+            p5 += g1[i] * vc
+            p6 += g2[i] * vc
+            p7 += g3[i] * vc
+        pr = (p0, p1, p2, p3, p4, p5, p6, p7)
+        for q in range(8):
+            proj[q // 4, q % 4, m1] = pr[q]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _column(t, u, p, c, ar, ai):
+    """Column u (0: nu_t, 1: Re b_tp, 2: Im b_tp) of the Jacobian of part c of antenna p's
+    model: the parameter's index, the power of cw, and two atoms' rows with their
+    coefficients (see :func:`_normal_equations`)."""
+    re, im = 2 * t, 2 * t + 1
+    if u == 0:
+        if c == 0:
+            return 5 * t, 1, im, ar, re, ai
+        return 5 * t, 1, im, ai, re, -ar
+    if u == 1:
+        return 5 * t + 1 + 2 * p, 0, re if c == 0 else im, 1.0, re, 0.0
+    return 5 * t + 2 + 2 * p, 0, im if c == 0 else re, -1.0 if c == 0 else 1.0, re, 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _normal_equations(amp, gram, proj, hess, grad):
+    """The Gauss--Newton system of one frame: ``hess`` (5K, 5K) and ``grad`` (5K,), the
+    parameters of target t being [nu, Re b1, Im b1, Re b2, Im b2] at 5 t, from the sums of
+    :func:`_sums`. Part j = 2 p + c of the model (antenna p, c = 0 real, 1 imaginary) moves
+    with the parameters of ``b_tp`` and ``nu_t`` alone, each along at most two atoms' rows:
+    Re part: ``d/dRe b = Re w``, ``d/dIm b = -Im w``, ``d/dnu = cw (Re b Im w + Im b Re w)``;
+    Im part: ``Im w``, ``Re w``, ``cw (Im b Im w - Re b Re w)``."""
+    k = amp.shape[0]
     hess[:] = 0.0
     grad[:] = 0.0
-    ht = np.ascontiguousarray(h.T)
-    gt = np.ascontiguousarray(g.T)
-    gram = np.empty((nb, nb))
-    proj = np.empty(nb)
-    coef = np.zeros((nb, 5 * k))
     for j in range(4):
         p, c = j // 2, j % 2
-        hw = ht[j]
-        gw = gt[j]
-        for r1 in range(nb):
-            b1 = basis[r1]
-            acc_g = 0.0
-            for i in range(n):
-                acc_g += b1[i] * gw[i]
-            proj[r1] = acc_g
-            for r2 in range(r1, nb):
-                b2 = basis[r2]
-                acc = 0.0
-                for i in range(n):
-                    acc += hw[i] * b1[i] * b2[i]
-                gram[r1, r2] = acc
-                gram[r2, r1] = acc
-        # coef[:, q]: the derivative of part c of mu_p in parameter q is basis^T coef[:, q]
-        coef[:] = 0.0
-        for t in range(k):
-            if c == 0:
-                coef[t, 5 * t + 1 + 2 * p] = 1.0
-                coef[2 * k + t, 5 * t + 2 + 2 * p] = -1.0
-                coef[k + t, 5 * t] = amp[t, p].real
-                coef[3 * k + t, 5 * t] = -amp[t, p].imag
-            else:
-                coef[2 * k + t, 5 * t + 1 + 2 * p] = 1.0
-                coef[t, 5 * t + 2 + 2 * p] = 1.0
-                coef[k + t, 5 * t] = amp[t, p].imag
-                coef[3 * k + t, 5 * t] = amp[t, p].real
-        tmp = gram @ coef
-        hess += coef.T @ tmp
-        grad += coef.T @ proj
-
-
+        for x in range(3 * k):
+            t1 = x // 3
+            q1, l1, r1, c1, s1, d1 = _column(t1, x % 3, p, c, amp[t1, p].real, amp[t1, p].imag)
+            grad[q1] += c1 * proj[l1, j, r1] + d1 * proj[l1, j, s1]
+            for y in range(x, 3 * k):
+                t2 = y // 3
+                q2, l2, r2, c2, s2, d2 = _column(t2, y % 3, p, c, amp[t2, p].real, amp[t2, p].imag)
+                sg = gram[l1 + l2, j]
+                hess[q1, q2] += c1 * (c2 * sg[r1, r2] + d2 * sg[r1, s2]) + d1 * (c2 * sg[s1, r2] + d2 * sg[s1, s2])
+    for q in range(5 * k):
+        for r in range(q):
+            hess[q, r] = hess[r, q]
 @njit(cache=True, nogil=True)
 def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
            use_gate, max_range_step, mu, g, h, nll, sigma_out):
@@ -453,36 +557,50 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
     steps = levels.shape[1]
     if k == 0:
         return
-    w = np.empty((k, 2, n))
-    w2 = np.empty((k, 2, n))
-    mu2 = np.empty((n, 4))
-    g2 = np.empty((n, 4))
-    h2 = np.empty((n, 4))
-    hess = np.empty((5 * k, 5 * k))
-    grad = np.empty(5 * k)
+    npar = 5 * k
+    # the work arrays, once a call: the current state and the candidate swap places (cur)
+    w = np.empty((2, k, 2, n))
+    mus = np.empty((2, n, 4))
+    gs = np.empty((2, n, 4))
+    hs = np.empty((2, n, 4))
+    cw = 2.0 * math.pi * kc / n
+    cw32 = cw.astype(np.float32)
+    ht = np.empty((4, n), dtype=np.float32)
+    gt = np.empty((4, n))
+    bw = np.empty((2 * k, n), dtype=np.float32)
+    gram = np.empty((3, 4, 2 * k, 2 * k))
+    proj = np.empty((2, 4, 2 * k))
+    hess = np.empty((npar, npar))
+    grad = np.empty(npar)
+    lw = np.empty((npar, npar))
+    step = np.empty(npar)
     nu2 = np.empty(k)
     amp2 = np.empty((k, 2), dtype=np.complex128)
     nll_only = kind == ONE_BIT and lik == LOGISTIC  # a cheaper NLL alone (_nll_frame)
     for f in range(nb):
-        _model(nu[f], amp[f], kc, w, mu[f])
+        cur = 0
+        _model(nu[f], amp[f], kc, w[0], mus[0])
+        gs[0] = g[f]
+        hs[0] = h[f]
         current = sigma_out[f]
-        fresh = True  # g, h hold the derivatives at mu and the current level
+        fresh = True  # gs[cur], hs[cur] hold the derivatives at mus[cur] and the current level
         for s in range(steps):
             level = levels[f, s]
             if adapt:
-                level = max(level, _wrong_rms(kind, a[f], b[f], mu[f]) / wrong_per_sigma)
+                level = max(level, _wrong_rms(kind, a[f], b[f], mus[cur]) / wrong_per_sigma)
             if level != current or not fresh:
-                nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], level, g[f], h[f])
+                nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mus[cur], level, gs[cur], hs[cur])
                 current = level
                 fresh = True
-            _normal_equations(w, kc, amp[f], g[f], h[f], hess, grad)
+            _sums(w[cur], cw, cw32, gs[cur], hs[cur], ht, gt, bw, gram, proj)
+            _normal_equations(amp[f], gram, proj, hess, grad)
             dmax = 0.0
-            for q in range(5 * k):
+            for q in range(npar):
                 dmax = max(dmax, hess[q, q])
-            for q in range(5 * k):
+            for q in range(npar):
                 hess[q, q] += lm[f] * hess[q, q] + 1e-9 * dmax + 1e-300
                 grad[q] = -grad[q]
-            step = _solve(hess, grad)
+            _solve(hess, grad, lw, step)
             for t in range(k):
                 if not live[f, t]:
                     for q in range(5):
@@ -499,25 +617,25 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
                 nu2[t] = v
                 for p in range(2):
                     amp2[t, p] = amp[f, t, p] + complex(step[5 * t + 1 + 2 * p] * cut, step[5 * t + 2 + 2 * p] * cut)
-            _model(nu2, amp2, kc, w2, mu2)
+            o = 1 - cur
+            _model(nu2, amp2, kc, w[o], mus[o])
             # the candidate's derivatives only when the next step is at this level (known
             # unless adapted) or this is the last step; else the NLL alone
             derivs = not nll_only or s == steps - 1 or (not adapt and levels[f, s + 1] == current)
             if derivs:
-                cand = _evaluate_frame(kind, lik, a[f], b[f], mu2, current, g2, h2)
+                cand = _evaluate_frame(kind, lik, a[f], b[f], mus[o], current, gs[o], hs[o])
             else:
-                cand = _nll_frame(a[f], b[f], mu2, current)
+                cand = _nll_frame(a[f], b[f], mus[o], current)
             if cand <= nll[f]:
                 fresh = derivs
                 lm[f] = max(lm[f] / 3.0, 1e-9)
                 nll[f] = cand
                 nu[f, :] = nu2
                 amp[f, :, :] = amp2
-                w[:, :, :] = w2
-                mu[f, :, :] = mu2
-                if derivs:
-                    g[f, :, :] = g2
-                    h[f, :, :] = h2
+                cur = o
             else:
                 lm[f] = min(lm[f] * 8.0, 1e9)
+        mu[f, :, :] = mus[cur]
+        g[f, :, :] = gs[cur]
+        h[f, :, :] = hs[cur]
         sigma_out[f] = current
