@@ -1,14 +1,15 @@
 #!/usr/bin/env python3
 """Where the localizer's worker spends a batch: the steps of ``LocalizeNode.process`` timed
 one by one in one process (PBP, 1-bit chamber frames of 500 sensors, K = 2), per batch
-size. Steps: parse (payloads -> headers and codes, with the node's checks), take (the
+size (``--algo``: pbp by default, whose decode is cheap, so the node's own costs stand
+out). Steps: parse (payloads -> headers and codes, with the node's checks), take (the
 frames of one configuration), decode (``decode_batch``), encode (targets JSON), publish
 (``publish_many`` on an isolated zenoh session, no subscriber) and latency (the health
 histograms). Every batch of the ``--frames`` is processed once per pass, best of
 ``--passes`` passes (the figure least disturbed by a shared machine); µs per batch and
 per frame.
 
-    .venv/bin/python benchmarks/bench_localize_steps.py [--batches 1,16,32,128] [--frames 3000]
+    .venv/bin/python benchmarks/bench_localize_steps.py [--batches 1,16,32,128] [--frames 3000] [--algo cml]
 """
 
 from __future__ import annotations
@@ -60,11 +61,12 @@ def main() -> None:
     ap.add_argument("--batches", default="1,16,32,128")
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--passes", type=int, default=3)
+    ap.add_argument("--algo", default="pbp", help="the decoder (default pbp: the node's own costs stand out)")
     args = ap.parse_args()
     items = [QueuedFrame(key.split("/")[1], key, p, time.time_ns())
              for key, p in payloads(500, args.frames, "quantized")]
     bus = BusConfig()
-    node = LocalizeNode(bus, LocalizerConfig(algo="pbp"))  # what this benchmark times (not the default cml)
+    node = LocalizeNode(bus, LocalizerConfig(algo=args.algo))
     node.session = bus.open()
     try:
         print("| batch | " + " | ".join(f"{s} (µs)" for s in STEPS) + " | µs per batch | µs per frame |")

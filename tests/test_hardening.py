@@ -446,6 +446,43 @@ def test_a_batch_lingers_while_frames_keep_coming_and_not_for_a_lone_frame():
     assert len(batch) == 20  # it waited for a full batch while frames came
 
 
+def test_a_getter_is_woken_by_its_first_frame_and_by_a_full_batch_and_a_lull_runs_from_the_last_frame():
+    """The queue wakes a waiting getter only when it has a reason to look (its first frame, its
+    full batch); a lull is lull_s without a frame, counted from the last one queued."""
+    q = FairQueue(max_frames=1000)
+
+    def later(delay_s, frames):
+        def run():
+            time.sleep(delay_s)
+            for i in range(frames):
+                q.put(f"s{i}", i, 1)
+        threading.Thread(target=run, daemon=True).start()
+
+    later(0.05, 1)
+    t0 = time.monotonic()
+    assert q.get_batch(8, 10.0) == [0] and time.monotonic() - t0 < 5.0  # the first frame wakes it
+    q.put("first", "x", 1)
+    later(0.05, 19)  # all at once: the batch is full
+    t0 = time.monotonic()
+    batch = q.get_batch(20, 1.0, linger_s=10.0, lull_s=5.0)
+    assert len(batch) == 20 and time.monotonic() - t0 < 4.0  # woken by the full batch, not the lull's end
+    stop = threading.Event()
+
+    def send():
+        for i in range(20):  # every 5 ms for 0.1 s, then silence
+            if stop.wait(0.005):
+                return
+            q.put(f"t{i}", i, 1)
+    q.put("first", "y", 1)
+    t = threading.Thread(target=send, daemon=True)
+    t.start()
+    t0 = time.monotonic()
+    batch = q.get_batch(500, 1.0, linger_s=10.0, lull_s=0.5)
+    stop.set()
+    t.join(5)
+    assert len(batch) == 21 and time.monotonic() - t0 < 5.0  # every frame, and a lull after the last one
+
+
 def test_stop_leaves_a_busy_workers_publishers_to_the_session(mem, caplog):
     """A worker still in its batch when stop's wait runs out may be putting on a publisher;
     undeclaring it under the put fails in zenoh ("Already borrowed") and killed the node's

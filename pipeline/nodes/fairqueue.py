@@ -36,6 +36,11 @@ class FairQueue:
         self._frames = 0
         self._bytes = 0
         self._cond = threading.Condition()
+        #: the frame counts the getters now waiting want to be woken at (1: a first frame; a
+        #: lingering getter: its full batch); put wakes them at the least, not at every frame
+        self._wants: list[int] = []
+        self._wake_at = 0  # min(_wants), 0 with no getter waiting
+        self._last_put = 0.0  # time.monotonic() of the last frame queued
 
     def __len__(self) -> int:
         return self._frames
@@ -69,8 +74,20 @@ class FairQueue:
                 self._ring.append(sensor)
             fifo.append((item, nbytes))
             self._account(sensor, 1, nbytes)
-            self._cond.notify()
+            self._last_put = time.monotonic()
+            if self._wake_at and self._frames >= self._wake_at:  # a getter wants to look now
+                self._cond.notify_all()
         return dropped
+
+    def _wait(self, want: int, timeout_s: float) -> None:
+        """Wait (holding the condition) up to ``timeout_s``, woken early once ``want`` frames wait."""
+        self._wants.append(want)
+        self._wake_at = min(self._wants)
+        try:
+            self._cond.wait(timeout_s)
+        finally:
+            self._wants.remove(want)
+            self._wake_at = min(self._wants) if self._wants else 0
 
     def _account(self, sensor: Hashable, frames: int, nbytes: int) -> None:
         self._frames += frames
@@ -97,16 +114,20 @@ class FairQueue:
         with self._cond:
             while not self._frames:
                 left = deadline - time.monotonic()
-                if left <= 0 or not self._cond.wait(left):
-                    if not self._frames:
-                        return out
+                if left <= 0:
+                    return out
+                self._wait(1, left)
             if linger_s > 0 and self._frames < max_items:
-                until = time.monotonic() + linger_s
-                while self._frames < max_items and (left := until - time.monotonic()) > 0:
-                    before = self._frames
-                    self._cond.wait(min(left, lull_s))
-                    if self._frames == before:  # a lull: no one else is sending now
+                # not woken by each frame (a thread switch each): by a full batch, or at the end of
+                # a lull (lull_s since the later of the linger's start and the last frame) or of the linger
+                start = time.monotonic()
+                until = start + linger_s
+                while self._frames < max_items:
+                    now = time.monotonic()
+                    quiet = now - max(start, self._last_put)
+                    if now >= until or quiet >= lull_s:  # the linger is over, or a lull: no one else is sending now
                         break
+                    self._wait(max_items, min(until - now, lull_s - quiet))
             taken: dict[Hashable, int] = {}
             full: list[Hashable] = []  # sensors whose share of this batch is taken
             while self._ring and len(out) < max_items:

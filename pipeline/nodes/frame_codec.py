@@ -111,7 +111,9 @@ class QuantizedCodec:
                        frames=group.frames.take(keep))
 
     def frames(self, group: QuantizedGroup) -> tuple[QuantizedFrames, np.ndarray, None]:
-        dithered = np.broadcast_to(np.asarray(group.frames.alpha) > 0, (len(group.headers),))
+        dithered = np.asarray(group.frames.alpha) > 0  # one alpha for the batch, or one per frame
+        if dithered.ndim == 0:
+            dithered = np.full(len(group.headers), bool(dithered))
         return group.frames, dithered, None
 
     def select(self, frames: QuantizedFrames, idx: np.ndarray) -> QuantizedFrames:

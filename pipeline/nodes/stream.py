@@ -258,7 +258,8 @@ class FrameNode(ProcessingNode):
                     ok[j] = False
                     self.count(batch[i].sensor, "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
                                "not match the key")
-            for cid in np.unique(h.config_id).tolist():
+            cids = h.config_id
+            for cid in ([int(cids[0])] if (cids == cids[0]).all() else np.unique(cids).tolist()):
                 radar = self._configs.get(cid)
                 if radar is not None and radar.n_measurements == m:
                     continue
@@ -451,13 +452,15 @@ class LocalizeNode(FrameNode):
         return init
 
     def _remember(self, sensors: list[str], init: np.ndarray, ranges: np.ndarray) -> None:
+        full = np.isnan(init).all(axis=1).tolist()  # the frames searched from scratch
+        ranges = np.asarray(ranges, dtype=float)
         with self._lock:
             for i, sid in enumerate(sensors):
                 if sid not in self.stats:  # expired meanwhile (or never counted): keep nothing
                     continue
                 last = self._last.get(sid)
-                since = 0 if np.isnan(init[i]).all() or last is None else last[0] + 1
-                self._last[sid] = (since, np.array(ranges[i], dtype=float))
+                since = 0 if full[i] or last is None else last[0] + 1
+                self._last[sid] = (since, ranges[i].copy())  # a copy: not a view keeping the batch's array
 
     def process(self, batch: list[QueuedFrame]) -> None:
         groups, keys = self.decode(batch)
@@ -469,12 +472,17 @@ class LocalizeNode(FrameNode):
                     self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from {keys[g.index[j]]}: "
                                f"a sample is not finite or beyond {MAX_SAMPLE:g} full scale")
             # one decoder call per configuration (and dither), whatever the sensors
+            cids = h.config_id
+            if bad is None and (cids == cids[0]).all() and (dithered == dithered[0]).all():
+                # the usual batch: one configuration, every frame, nothing to copy
+                self._localize(self._configs[int(cids[0])], h, frames, [keys[i] for i in g.index.tolist()])
+                continue
             for cid, dith in {(c, d) for c, d in zip(h.config_id.tolist(), dithered.tolist())}:
                 sel = (h.config_id == cid) & (dithered == dith)
                 if bad is not None:
                     sel &= ~bad
                 idx = np.flatnonzero(sel)
-                if idx.size == len(h):  # the usual batch: one configuration, nothing to copy
+                if idx.size == len(h):  # one configuration, nothing to copy
                     self._localize(self._configs[cid], h, frames, [keys[i] for i in g.index.tolist()])
                 elif idx.size:
                     self._localize(self._configs[cid], h.take(idx), self.codec.select(frames, idx),
