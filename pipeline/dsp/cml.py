@@ -76,7 +76,7 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    detect_compiled
+    detect_compiled, residual_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
@@ -207,7 +207,7 @@ def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     return np.broadcast_to(v, (b,)).astype(float)
 
 
-def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None):
+def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None, compiled=False):
     z = np.asarray(z)
     codes = z.ndim == 4 and np.issubdtype(z.dtype, np.integer)  # the quantizer's codes
     if codes and (z.shape[-2:] != (2, 2) or bits is None):
@@ -231,12 +231,12 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
         noise_sigma = _per_frame("noise_sigma", noise_sigma, b, positive=False)
     if check_gate(gate) is not None:
         gate.check(config)
-    z = z if codes else z.astype(complex)
+    z = z if codes else np.asarray(z, dtype=complex)
     if bits is None:
         return z, None, None, noise_sigma
     if not _is_int(bits) or not 1 <= bits <= MAX_BITS:
         raise ParameterError(f"cml: bits={bits!r} must be None (unquantized) or an integer in [1, {MAX_BITS}]")
-    xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi)
+    xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi, dtype=complex)
     if xi.shape != z.shape[:3]:
         raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape[:3]}")
     if not np.all(np.isfinite(xi)):
@@ -246,14 +246,22 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
         if z.size and (z.min() < 0 or z.max() >= 1 << bits):
             raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
                                  f"[{z.min()}, {z.max()}]")
-        return z, xi.astype(complex), d, noise_sigma
-    level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
+        return z, xi, d, noise_sigma
     half = 1 << (bits - 1)
+    if compiled:  # one pass, no temporaries (pipeline.dsp.cml_detect_kernels.levels_off)
+        z = np.ascontiguousarray(z)
+        if z.size and detect_kernels().levels_off(z.view(float).reshape(b, -1), d, half):
+            raise ParameterError(_NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+        return z, xi, d, noise_sigma
+    level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     if level.size and (np.any(np.abs(level - np.rint(level)) > 1e-6) or level.min() < -half - 1e-6
                        or level.max() > half - 1 + 1e-6):
-        raise ParameterError(f"cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary "
-                             f"parts must be delta (q + 1/2) with q an integer in [{-half}, {half - 1}]")
-    return z, xi.astype(complex), d, noise_sigma
+        raise ParameterError(_NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+    return z, xi, d, noise_sigma
+
+
+_NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary parts must be "
+               "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
 
 
 # -- the decoder ----------------------------------------------------------------------------
@@ -318,7 +326,6 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     batch (about 1e-5 m in range and 1 % in amplitude in a 4-bit case). About 20 evaluations of the
     likelihood and 12 Gauss--Newton systems for K = 2: ~1 ms a frame (M = 512).
     """
-    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
     engine = DEFAULT_ENGINE if engine is None else engine
     likelihood = DEFAULT_LIKELIHOOD if likelihood is None else likelihood
     if engine not in ENGINES or (engine == "numba" and not HAVE_NUMBA):
@@ -326,6 +333,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
                              f"{', '.join(e for e in ENGINES if e != 'numba' or HAVE_NUMBA)}")
     if likelihood not in LIKELIHOODS:
         raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
+    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate,
+                                       engine == "numba")
     cgate = _gate(gate, config, oversample)
     threshold = None if pfa is None else _threshold(pfa, config, cgate)
     if z.shape[0] == 0:
@@ -433,13 +442,19 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     of a step (the quantizer's half range)."""
     b, m = z.shape[:2]
     n = config.samples_per_ramp
-    codes = _Codes(z, xi, delta, bits, n)
-    fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
+    codes = _Codes(z, xi, delta, bits, n, compiled=engine != "numpy")
+    fit = _Fit(codes, _kc(n), b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
     noise = np.zeros(b) if noise_sigma is None else noise_sigma
     return (codes, fit, np.maximum(SIGMA_START * delta, noise), np.maximum(delta / m, noise),
             delta * (1 << (bits - 1)))
+
+
+@lru_cache(maxsize=8)
+def _kc(n: int) -> np.ndarray:
+    """The sample indices about mid-ramp, ``n - (N - 1) / 2`` (N,) (shared: not to be written)."""
+    return np.arange(n) - (n - 1) / 2.0
 
 
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
@@ -458,8 +473,7 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
                  detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
         amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
         fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
-    fit.evaluate(sigma)
-    fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+    fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
     if bits is not None and anneal:
         levels_n = min(anneal, WARM_ANNEAL)
         ratio = (floor / sigma) ** (1.0 / levels_n)
@@ -509,15 +523,13 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         amp0 = np.where(active[:, None], amp_t, 0.0)
         fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                 np.concatenate([fit.live, active[:, None]], axis=1))
-        fit.evaluate(sigma)
-        fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
+        fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], iters, axis=1), amp_cap)
     if bits is not None and anneal:
         ratio = (floor / sigma) ** (1.0 / anneal)
         levels = np.empty((b, anneal))
-        level = sigma
-        for j in range(anneal):
-            level = level * ratio
-            levels[:, j] = level
+        levels[:] = ratio[:, None]
+        levels[:, 0] *= sigma
+        np.multiply.accumulate(levels, axis=1, out=levels)  # sigma ratio^j, as repeated products
         fit.run(levels, amp_cap, adapt=noise_sigma is None)  # adapt: not sharper than the noise the model leaves
         sigma = fit.sigma
     if bits is None:
@@ -534,7 +546,7 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     if fit.engine != "numpy":  # the same, compiled (pipeline.dsp.cml_detect_kernels.result)
         out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
         detect_kernels().result(np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex),
-                                np.ascontiguousarray(fit.live), np.ascontiguousarray(_residual(codes, fit)),
+                                np.ascontiguousarray(fit.live), residual_compiled(codes, fit)[0],
                                 float(fit.kc[0]), ramps, config.range_resolution_m,
                                 4.0 * np.pi / config.c_m_s * config.f0_hz, fit.gate is None, STATISTIC_CAP_DB, *out)
         return CmlResult(out[0], out[1], out[2], sigma, out[3])

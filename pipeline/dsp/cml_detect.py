@@ -6,6 +6,8 @@ Shapes: a block of B frames of N samples a ramp, 2 antennas; ranges in bins."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from pipeline.dsp.cml_fit import _atoms, _Codes, _Fit
@@ -134,33 +136,64 @@ def _ifft(x: np.ndarray, size: int | None = None, axis: int = -1) -> np.ndarray:
 _fft_module = None
 
 
+_buffers = threading.local()
+
+
+def _padded(shape: tuple[int, int, int, int]) -> np.ndarray:
+    """A (B, S, 2, L) complex buffer of this thread whose points beyond N stay zero (the
+    inverse FFT's padding: only the first N points of each row are ever written)."""
+    cache = getattr(_buffers, "cache", None)
+    if cache is None:
+        cache = _buffers.cache = {}
+    buf = cache.get(shape)
+    if buf is None:
+        if len(cache) > 16:  # a few shapes live at once (block sizes): keep the memory bounded
+            cache.clear()
+        buf = cache[shape] = np.zeros(shape, dtype=complex)
+    return buf
+
+
+def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: bool = False,
+                      oversample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_residual` (B, N, 2) compiled, and a (B, S, 2, ``oversample`` N) buffer whose
+    first N points per antenna hold the residual (``residual``) then the score ``-g``
+    (``score``), the rest zeros (:func:`pipeline.dsp.cml_detect_kernels.sources`)."""
+    if codes.folded is None:
+        _residual(codes, fit)
+    b, n = fit.mu.shape[:2]
+    y = np.empty((b, n, 2), dtype=complex)
+    buf = _padded((b, int(residual) + int(score), 2, oversample * n))
+    g = fit.g if score else fit.mu
+    _kernels().sources(codes.folded.view(float).reshape(b, n, 4), fit.mu.reshape(b, n, 4), g.reshape(b, n, 4),
+                       float(codes.ramps), residual, score, y.view(float).reshape(b, n, 4), buf)
+    return y, buf
+
+
 def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """:func:`_count_statistic` (``count``; else None), :func:`_detect` (unless ``nu0`` (B,)
     bins is given) and :func:`_amplitude_at` there, with the per-frame work compiled
-    (:func:`pipeline.dsp.cml_detect_kernels.detect`): one inverse FFT of the block, then one
-    kernel call. Returns the statistic (B,), the ranges (B,) in bins and the amplitudes (B, 2)."""
-    y = _residual(codes, fit)
-    b, n = y.shape[:2]
+    (:func:`pipeline.dsp.cml_detect_kernels.detect`): the residuals written by one kernel,
+    one inverse FFT of the block, then one kernel call. Returns the statistic (B,), the
+    ranges (B,) in bins and the amplitudes (B, 2)."""
     t = fit.nu.shape[1]
     on_score = codes.bits is not None and nu0 is None and t > 0  # detection on the likelihood's score
-    sources = [y] if count or (nu0 is None and not on_score) else []
-    if codes.bits is not None and (count or on_score):  # the score, (B, N, 2)
-        sources.append(np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex))
-    stack = np.empty((b, len(sources), 2, n), dtype=complex)  # (B, S, 2, N)
-    for j, src in enumerate(sources):
-        stack[:, j] = src.transpose(0, 2, 1)
-    u = _ifft(stack, oversample * n) if sources else np.empty((b, 0, 2, oversample * n), dtype=complex)
+    with_residual = count or (nu0 is None and not on_score)
+    with_score = codes.bits is not None and (count or on_score)
+    y, buf = residual_compiled(codes, fit, with_score, with_residual, oversample)
+    b = y.shape[0]
+    u = _ifft(buf) if buf.shape[1] else buf
     gate = fit.gate
     outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
     stat = np.zeros(b)
     given = nu0 is not None
     nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
     amp = np.empty((b, 2), dtype=complex)
-    _kernels().detect(u, np.ascontiguousarray(y), fit.kc.astype(float), codes.ramps,
-                      np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.live), oversample,
+    sources = buf.shape[1]
+    _kernels().detect(u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+                      np.ascontiguousarray(fit.live), oversample,
                       COUNT_GUARD_BINS, MIN_SEPARATION_BINS, outside, gate is not None,
                       0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
-                      len(sources) if count else 0, -1 if given else len(sources) - 1 if on_score else 0,
+                      sources if count else 0, -1 if given else sources - 1 if on_score else 0,
                       stat, nu_out, amp)
     return (stat if count else None), nu_out, amp

@@ -176,3 +176,79 @@ def result(nu, amp, live, y, kc0, ramps, range_res, carrier, wrap, cap, range_m,
                 db = min(max(10.0 * math.log10(ratio), -cap), cap)
             stat[f, pos] = db
             present[f, pos] = live[f, j]
+
+
+# -- the codes' arrays and the residuals ------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def levels_off(z, delta, half) -> bool:
+    """Whether the quantized values ``z`` (B, J) float (the real parts of (B, M, 2) complex)
+    are not all ``delta[f] (q + 1/2)`` with q an integer in [-half, half) (to 1e-6 of delta),
+    as :func:`pipeline.dsp.cml._check`."""
+    for f in range(z.shape[0]):
+        d = delta[f]
+        for i in range(z.shape[1]):
+            level = z[f, i] / d - 0.5
+            if not (abs(level - np.rint(level)) <= 1e-6 and level >= -half - 1e-6 and level <= half - 1 + 1e-6):
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def codes_arrays(z, from_codes, xi, delta, bits, ka, kb, folded):
+    """:class:`pipeline.dsp.cml_fit._Codes`' kernel arrays of quantized frames in one pass.
+
+    z : (B, R, N, 4) the quantizer's integer codes (``from_codes``) or the real parts of the
+    values ``Z``; xi : (B, R, N, 4) float the dither's; delta : (B,). Writes ``ka``, ``kb``
+    (B, R, N, 4) float32 (1 bit: the sign s and ``s xi``; b bits: the cell ``[lo, hi)`` of
+    lambda) and ``folded`` (B, N, 4) float, ``Z - xi`` summed over the ramps."""
+    nb, ramps, n = z.shape[0], z.shape[1], z.shape[2]
+    half = 1 << (bits - 1)
+    for f in range(nb):
+        d = delta[f]
+        for i in range(n):
+            for j in range(4):
+                folded[f, i, j] = 0.0
+        for r in range(ramps):
+            for i in range(n):
+                for j in range(4):
+                    x = xi[f, r, i, j]
+                    if from_codes:
+                        q = float(z[f, r, i, j]) - half
+                        v = d * (q + 0.5)
+                    else:
+                        v = float(z[f, r, i, j])
+                        q = np.rint(v / d - 0.5)  # v = (q + 1/2) delta
+                    folded[f, i, j] += v - x
+                    if bits == 1:
+                        s = 1.0 if q >= 0.0 else -1.0
+                        ka[f, r, i, j] = s
+                        kb[f, r, i, j] = s * x
+                    else:
+                        lo = -math.inf if q <= -half else q * d
+                        hi = math.inf if q >= half - 1 else (q + 1.0) * d
+                        ka[f, r, i, j] = lo - x
+                        kb[f, r, i, j] = hi - x
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def sources(folded, mu, g, ramps, residual, score, y, buf):
+    """The residuals detection back-projects: ``y`` (B, N, 4) the linear residual
+    ``folded - ramps mu`` (folded, mu (B, N, 4)), and into ``buf`` (B, S, 2, L) complex,
+    per antenna, its first N points: source 0 that residual (``residual``), then the
+    likelihood's score ``-g`` (``score``; g (B, N, 4)). The points beyond N are left as
+    they are (zeros: the FFT's padding)."""
+    nb, n = mu.shape[0], mu.shape[1]
+    for f in range(nb):
+        for i in range(n):
+            for j in range(4):
+                y[f, i, j] = folded[f, i, j] - ramps * mu[f, i, j]
+        s = 0
+        if residual:
+            for p in range(2):
+                for i in range(n):
+                    buf[f, s, p, i] = complex(y[f, i, 2 * p], y[f, i, 2 * p + 1])
+            s += 1
+        if score:
+            for p in range(2):
+                for i in range(n):
+                    buf[f, s, p, i] = complex(-g[f, i, 2 * p], -g[f, i, 2 * p + 1])
