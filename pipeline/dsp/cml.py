@@ -76,7 +76,7 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    detect_compiled, residual_compiled
+    add_target_compiled, detect_compiled, residual_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
@@ -514,10 +514,10 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
                 active &= _count_statistic(fit, codes, oversample) >= threshold
             nu0 = None if not active.any() else _detect(fit, codes, oversample)
             amp_t = None if nu0 is None else _amplitude_at(codes, fit, nu0)
-        else:  # the statistic, the detection and the amplitudes in one kernel call
-            stat, nu0, amp_t = detect_compiled(codes, fit, oversample, threshold is not None)
-            if threshold is not None:
-                active &= stat >= threshold
+        elif add_target_compiled(codes, fit, oversample, threshold, active, sigma, iters, amp_cap):
+            continue  # the statistic, the detection, the amplitudes and the refinement in one kernel call
+        else:
+            break
         if not active.any():
             break
         amp0 = np.where(active[:, None], amp_t, 0.0)

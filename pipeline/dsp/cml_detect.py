@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-from pipeline.dsp.cml_fit import _atoms, _Codes, _Fit
+from pipeline.dsp.cml_fit import _LIK, MAX_RANGE_STEP_BINS, _atoms, _Codes, _Fit
 
 _kernels_module = None
 
@@ -169,6 +169,27 @@ def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: b
     return y, buf
 
 
+def _back_projections(codes: _Codes, fit: _Fit, oversample: int, count: bool, given: bool):
+    """What the detect kernel reads: the linear residual (B, N, 2), the inverse FFTs (B, S, 2,
+    L) of the sources it needs, how many the count test reads and which detection reads."""
+    on_score = codes.bits is not None and not given and fit.nu.shape[1] > 0  # detection on the likelihood's score
+    with_residual = count or (not given and not on_score)
+    with_score = codes.bits is not None and (count or on_score)
+    y, buf = residual_compiled(codes, fit, with_score, with_residual, oversample)
+    sources = buf.shape[1]
+    u = _ifft(buf) if sources else buf
+    return y, u, (sources if count else 0), (-1 if given else sources - 1 if on_score else 0)
+
+
+def _gate_args(gate):
+    return (_NO_GATE if gate is None else gate.outside, gate is not None, 0.0 if gate is None else float(gate.lo),
+            0.0 if gate is None else float(gate.hi))
+
+
+_NO_GATE = np.zeros(1, dtype=bool)
+_NO_GATE.flags.writeable = False  # as a gate's (pipeline.dsp.cml._gate): one compiled signature
+
+
 def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """:func:`_count_statistic` (``count``; else None), :func:`_detect` (unless ``nu0`` (B,)
@@ -176,24 +197,35 @@ def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0:
     (:func:`pipeline.dsp.cml_detect_kernels.detect`): the residuals written by one kernel,
     one inverse FFT of the block, then one kernel call. Returns the statistic (B,), the
     ranges (B,) in bins and the amplitudes (B, 2)."""
-    t = fit.nu.shape[1]
-    on_score = codes.bits is not None and nu0 is None and t > 0  # detection on the likelihood's score
-    with_residual = count or (nu0 is None and not on_score)
-    with_score = codes.bits is not None and (count or on_score)
-    y, buf = residual_compiled(codes, fit, with_score, with_residual, oversample)
-    b = y.shape[0]
-    u = _ifft(buf) if buf.shape[1] else buf
-    gate = fit.gate
-    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
-    stat = np.zeros(b)
     given = nu0 is not None
+    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, count, given)
+    b = y.shape[0]
+    stat = np.zeros(b)
     nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
     amp = np.empty((b, 2), dtype=complex)
-    sources = buf.shape[1]
     _kernels().detect(u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
-                      np.ascontiguousarray(fit.live), oversample,
-                      COUNT_GUARD_BINS, MIN_SEPARATION_BINS, outside, gate is not None,
-                      0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
-                      sources if count else 0, -1 if given else sources - 1 if on_score else 0,
-                      stat, nu_out, amp)
+                      np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS,
+                      *_gate_args(fit.gate), count_sources, detect_source, stat, nu_out, amp)
     return (stat if count else None), nu_out, amp
+
+
+def add_target_compiled(codes: _Codes, fit: _Fit, oversample: int, threshold: float | None, active: np.ndarray,
+                        sigma: np.ndarray, iters: int, amp_cap: np.ndarray) -> bool:
+    """One greedy stage, compiled: the count test (``threshold``, linear; None: none) updating
+    ``active`` (B,) bool in place, the detection of a new target, its amplitudes and
+    ``iters`` refinement steps at ``sigma`` (B,) of all the targets
+    (:func:`pipeline.dsp.cml_detect_kernels.add_target`). Returns False (``fit`` unchanged)
+    when no frame holds a new target."""
+    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, threshold is not None, False)
+    b, n = fit.mu.shape[:2]
+    mu, g, h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+    found, nu, amp, live, lm, nll, level = _kernels().add_target(
+        u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+        np.ascontiguousarray(fit.amp, dtype=complex), np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS,
+        MIN_SEPARATION_BINS, *_gate_args(fit.gate), count_sources, detect_source,
+        -1.0 if threshold is None else float(threshold), active, codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb,
+        sigma, iters, amp_cap, MAX_RANGE_STEP_BINS, mu.reshape(b, n, 4), g.reshape(b, n, 4), h.reshape(b, n, 4))
+    if found:
+        fit.nu, fit.amp, fit.live, fit.lm, fit.nll, fit.sigma = nu, amp, live, lm, nll, level
+        fit.mu, fit.g, fit.h, fit.w = mu, g, h, None
+    return found

@@ -18,6 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
+from pipeline.dsp.cml_kernels import evaluate, models, refine
+
 
 @njit(cache=True, nogil=True)
 def _energy(u, nu, live, oversample, guard_bins, energy, near):
@@ -252,3 +254,56 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
             for p in range(2):
                 for i in range(n):
                     buf[f, s, p, i] = complex(-g[f, i, 2 * p], -g[f, i, 2 * p + 1])
+
+
+@njit(cache=True, nogil=True)
+def add_target(u, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo,
+               gate_hi, count_sources, detect_source, threshold, active, kind, lik, a, b, sigma, iters, amp_cap,
+               max_range_step, mu, g, h):
+    """One greedy stage of :func:`pipeline.dsp.cml._decode` in one call: :func:`detect` (the
+    count test when ``threshold`` >= 0: ``active`` (B,) bool updated in place), the new
+    target (amplitude 0 in inactive frames) appended to ``nu`` (B, T), ``amp``, ``live``, the
+    model into ``mu`` (B, N, 4), then ``iters`` refinement steps at ``sigma`` (B,)
+    (:func:`pipeline.dsp.cml_kernels.refine`, its first step evaluating the likelihood).
+    Returns whether a frame is active, and the fit's ``nu``, ``amp``, ``live`` (B, T + 1),
+    damping ``lm``, ``nll`` and level (B,); with no active frame the fit is unchanged."""
+    nb, t = nu.shape
+    stat = np.zeros(nb)
+    nu0 = np.empty(nb)
+    amp0 = np.empty((nb, 2), dtype=np.complex128)
+    detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo, gate_hi,
+           count_sources, detect_source, stat, nu0, amp0)
+    any_active = False
+    for f in range(nb):
+        if threshold >= 0.0:
+            active[f] = active[f] and stat[f] >= threshold
+        any_active = any_active or active[f]
+    nu2 = np.empty((nb, t + 1))
+    amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
+    live2 = np.empty((nb, t + 1), dtype=np.bool_)
+    lm = np.full(nb, 1e-3)
+    nll = np.zeros(nb)
+    level = np.full(nb, np.nan)  # no level evaluated yet: refine's first step evaluates
+    if not any_active:
+        return False, nu2, amp2, live2, lm, nll, level
+    for f in range(nb):
+        for j in range(t):
+            nu2[f, j] = nu[f, j]
+            amp2[f, j, 0] = amp[f, j, 0]
+            amp2[f, j, 1] = amp[f, j, 1]
+            live2[f, j] = live[f, j]
+        nu2[f, t] = nu0[f]
+        amp2[f, t, 0] = amp0[f, 0] if active[f] else 0.0
+        amp2[f, t, 1] = amp0[f, 1] if active[f] else 0.0
+        live2[f, t] = active[f]
+    models(nu2, amp2, kc, mu)
+    if iters == 0:
+        nll[:] = evaluate(kind, lik, a, b, mu, sigma, g, h)
+        level[:] = sigma
+        return True, nu2, amp2, live2, lm, nll, level
+    levels = np.empty((nb, iters))
+    for f in range(nb):
+        levels[f, :] = sigma[f]
+    refine(kind, lik, a, b, kc, nu2, amp2, live2, lm, levels, False, 1.0, amp_cap, gate_lo, gate_hi, use_gate,
+           max_range_step, mu, g, h, nll, level)
+    return True, nu2, amp2, live2, lm, nll, level
