@@ -307,3 +307,24 @@ def add_target(u, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guar
     refine(kind, lik, a, b, kc, nu2, amp2, live2, lm, levels, False, 1.0, amp_cap, gate_lo, gate_hi, use_gate,
            max_range_step, mu, g, h, nll, level)
     return True, nu2, amp2, live2, lm, nll, level
+
+
+@njit(cache=True, nogil=True)
+def finish(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+           use_gate, max_range_step, mu, g, h, nll, level, folded, ramps, range_res, carrier, wrap, cap, range_m,
+           amp_out, stat, present):
+    """The end of :func:`pipeline.dsp.cml._decode` in one call: the annealing's refinement
+    steps at ``levels`` (B, S) (:func:`pipeline.dsp.cml_kernels.refine`, its arguments up to
+    ``level``), the residual ``folded - ramps mu`` and :func:`result` (its arguments from
+    ``range_res``)."""
+    if levels.shape[1]:
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    nb, n = mu.shape[0], mu.shape[1]
+    y = np.empty((nb, n, 2), dtype=np.complex128)
+    for f in range(nb):
+        for i in range(n):
+            for p in range(2):
+                y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
+                                     folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
+    result(nu, amp, live, y, kc[0], ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present)
