@@ -212,6 +212,36 @@ def test_codes_decode_as_their_values(cfg, bits):
                                            atol=1e-12, err_msg=f"{name} {kw} {engine}")
 
 
+@pytest.mark.parametrize("bits", [1, 3])
+def test_compiled_codes_arrays_are_numpys(cfg, bits):
+    """The kernels' arrays built by one kernel (from values and from codes) are those of the
+    numpy reference, bit for bit; so is Z - xi folded over the ramps."""
+    (r, a, x), _ = off_grid(3, 2, 42)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(3))
+    n = cfg.samples_per_ramp
+    delta = np.broadcast_to(q.delta, (3,)).astype(float)
+    ref = _Codes(q.values(), q.dither(), delta, bits, n)
+    ref_folded = q.values().reshape(3, -1, n, 2).sum(axis=1) - q.dither().reshape(3, -1, n, 2).sum(axis=1)
+    for z in (q.values(), q.codes):
+        got = _Codes(z, q.dither(), delta, bits, n, compiled=True)
+        assert got.kind == ref.kind
+        np.testing.assert_array_equal(got.ka, ref.ka)
+        np.testing.assert_array_equal(got.kb, ref.kb)
+        np.testing.assert_allclose(got.folded, ref_folded, rtol=0, atol=1e-12)
+        mu = np.random.default_rng(0).normal(size=(3, n, 2, 2)) * delta[:, None, None, None]
+        np.testing.assert_array_equal(got.wrong_rms(mu), ref.wrong_rms(mu))
+
+
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_values_off_the_levels_are_a_parameter_error(cfg, engine):
+    (r, a, x), rng = off_grid(2, 1, 43)
+    z, xi, delta = measure(r, a, x, cfg, rng, bits=3)
+    cml(z, xi, delta, 3, cfg, 1, engine=engine)
+    for bad in (z * (1 + 1e-3), z * 8):  # between the levels; beyond the top one
+        with pytest.raises(ParameterError, match="not a 3-bit quantized frame"):
+            cml(bad, xi, delta, 3, cfg, 1, engine=engine)
+
+
 def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
     (r, a, x), _ = off_grid(2, 1, 41)
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(2))

@@ -123,6 +123,9 @@ def _compile_all() -> None:
             cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik)
             cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
                 init_range_m=np.array([[30.0, np.nan]]))
+        if bits is not None:  # the quantizer's codes (uint8)
+            codes = np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half
+            cml(np.rint(codes).astype(np.uint8), xi, delta, bits, cfg, 2, engine="numba")
     _ready.set()
 
 #: first sigma_eff, in units of delta
