@@ -223,8 +223,9 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     n = config.samples_per_ramp
     if m == 0 or m % n:
         raise ParameterError(f"cml: M={m} is not a whole number of ramps of N={n} samples")
-    if not codes and not np.all(np.isfinite(z)):
-        raise ParameterError("cml: Z holds values that are not finite")
+    in_kernel = compiled and bits is not None  # the finite and level checks in one compiled pass
+    if not codes and not in_kernel and not np.all(np.isfinite(z)):
+        raise ParameterError(_NOT_FINITE)
     if not _is_int(k) or not 1 <= k <= n // 2:
         raise ParameterError(f"cml: k={k!r} must be an integer in [1, N/2 = {n // 2}]")
     for name, value, lo in (("iters", iters, 0), ("anneal", anneal, 0), ("oversample", oversample, 1)):
@@ -242,19 +243,23 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi, dtype=complex)
     if xi.shape != z.shape[:3]:
         raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape[:3]}")
-    if not np.all(np.isfinite(xi)):
-        raise ParameterError("cml: the dither holds values that are not finite")
+    if not in_kernel and not np.all(np.isfinite(xi)):
+        raise ParameterError(_NOT_FINITE_DITHER)
     d = _per_frame("delta", delta, b, positive=True)
+    half = 1 << (bits - 1)
+    if in_kernel and b:  # pipeline.dsp.cml_detect_kernels.frame_faults
+        z, xi = (z, xi) if codes else (np.ascontiguousarray(z), xi)
+        zr = np.empty((b, 0)) if codes else z.view(float).reshape(b, -1)
+        fault = detect_kernels().frame_faults(zr, np.ascontiguousarray(xi).view(float).reshape(b, -1), d, half)
+        if fault:
+            raise ParameterError({1: _NOT_FINITE, 2: _NOT_FINITE_DITHER}.get(fault) or
+                                 _NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
     if codes:  # levels by construction: only their range is checked
         if z.size and (z.min() < 0 or z.max() >= 1 << bits):
             raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
                                  f"[{z.min()}, {z.max()}]")
         return z, xi, d, noise_sigma
-    half = 1 << (bits - 1)
-    if compiled:  # one pass, no temporaries (pipeline.dsp.cml_detect_kernels.levels_off)
-        z = np.ascontiguousarray(z)
-        if z.size and detect_kernels().levels_off(z.view(float).reshape(b, -1), d, half):
-            raise ParameterError(_NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+    if in_kernel:
         return z, xi, d, noise_sigma
     level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     if level.size and (np.any(np.abs(level - np.rint(level)) > 1e-6) or level.min() < -half - 1e-6
@@ -263,6 +268,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     return z, xi, d, noise_sigma
 
 
+_NOT_FINITE = "cml: Z holds values that are not finite"
+_NOT_FINITE_DITHER = "cml: the dither holds values that are not finite"
 _NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary parts must be "
                "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
 

@@ -182,17 +182,26 @@ def result(nu, amp, live, y, kc0, ramps, range_res, carrier, wrap, cap, range_m,
 
 # -- the codes' arrays and the residuals ------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
-def levels_off(z, delta, half) -> bool:
-    """Whether the quantized values ``z`` (B, J) float (the real parts of (B, M, 2) complex)
-    are not all ``delta[f] (q + 1/2)`` with q an integer in [-half, half) (to 1e-6 of delta),
-    as :func:`pipeline.dsp.cml._check`."""
+def frame_faults(z, xi, delta, half) -> int:
+    """What is wrong with quantized frames, as :func:`pipeline.dsp.cml._check` asks, in one
+    pass: 1 ``z`` (B, J) float (the real parts of the values; J = 0 for codes) holds values
+    that are not finite, else 2 the dither's ``xi`` (B, J') float does, else 3 a value is not
+    ``delta[f] (q + 1/2)`` with q an integer in [-half, half) (to 1e-6 of delta); 0 none."""
+    bad_z = bad_xi = off = False
     for f in range(z.shape[0]):
         d = delta[f]
         for i in range(z.shape[1]):
-            level = z[f, i] / d - 0.5
+            v = z[f, i]
+            if not math.isfinite(v):
+                bad_z = True
+            level = v / d - 0.5
             if not (abs(level - np.rint(level)) <= 1e-6 and level >= -half - 1e-6 and level <= half - 1 + 1e-6):
-                return True
-    return False
+                off = True
+    for f in range(xi.shape[0]):
+        for i in range(xi.shape[1]):
+            if not math.isfinite(xi[f, i]):
+                bad_xi = True
+    return 1 if bad_z else 2 if bad_xi else 3 if off else 0
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

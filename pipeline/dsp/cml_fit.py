@@ -300,6 +300,8 @@ class _Fit:
         if self.engine == "numpy":
             self.w = _atoms(nu, self.kc)
             self.mu = self._mu(self.w, amp)
+        elif nu.shape[1] == 0:  # no target: the model is 0
+            self.w, self.mu = None, np.zeros((nu.shape[0], self.kc.size, 2, 2))
         else:  # the compiled model (the atoms are only the numpy step's)
             b, n = nu.shape[0], self.kc.size
             self.w, self.mu = None, np.empty((b, n, 2, 2))
