@@ -76,9 +76,9 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    add_target_compiled, detect_compiled, residual_compiled
-from pipeline.dsp.cml_fit import (_LIK, DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA,  # noqa: F401
-                                  LIKELIHOODS, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _Codes, _Fit, _Gate)
+    add_target_compiled, detect_compiled, finish_compiled, residual_compiled
+from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
+                      _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate, check_gate
 from pipeline.dsp.localize import STATISTIC_CAP_DB, Detections, cfar_threshold, to_db
@@ -541,32 +541,14 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         levels[:, 0] *= sigma
         np.multiply.accumulate(levels, axis=1, out=levels)  # sigma ratio^j, as repeated products
         if engine != "numpy" and fit.nu.shape[1]:  # the annealing and the result in one kernel call
-            return _finish_compiled(fit, codes, config, levels, noise_sigma is None, amp_cap, k)
+            return CmlResult(*finish_compiled(fit, codes, config, levels, noise_sigma is None, amp_cap, k,
+                                              STATISTIC_CAP_DB))
         fit.run(levels, amp_cap, adapt=noise_sigma is None)  # adapt: not sharper than the noise the model leaves
         sigma = fit.sigma
     if bits is None:
         fit.run(np.ones((b, anneal)), amp_cap)  # least squares: polish
         sigma = codes.wrong_rms(fit.mu)
     return _result(fit, codes, config, sigma, k)
-
-
-def _finish_compiled(fit: _Fit, codes: _Codes, config: RadarConfig, levels: np.ndarray, adapt: bool,
-                     amp_cap: np.ndarray, k: int) -> CmlResult:
-    """``fit.run(levels, amp_cap, adapt)`` then :func:`_result`, in one kernel call
-    (:func:`pipeline.dsp.cml_detect_kernels.finish`)."""
-    b, n = fit.mu.shape[:2]
-    nu, amp = np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex)
-    mu, g, h = (np.ascontiguousarray(v, dtype=float).reshape(b, n, 4) for v in (fit.mu, fit.g, fit.h))
-    sigma, gate = fit.sigma.astype(float), fit.gate
-    out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
-    detect_kernels().finish(codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb, fit.kc, nu, amp,
-                            np.ascontiguousarray(fit.live), fit.lm.astype(float), levels, adapt, WRONG_RMS_PER_SIGMA,
-                            np.ascontiguousarray(amp_cap, dtype=float), 0.0 if gate is None else float(gate.lo),
-                            0.0 if gate is None else float(gate.hi), gate is not None, MAX_RANGE_STEP_BINS, mu, g, h,
-                            fit.nll.astype(float), sigma, codes.folded.view(float).reshape(b, n, 4),
-                            float(codes.ramps), config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz,
-                            gate is None, STATISTIC_CAP_DB, *out)
-    return CmlResult(out[0], out[1], out[2], sigma, out[3])
 
 
 def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k: int) -> CmlResult:

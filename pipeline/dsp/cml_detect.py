@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-from pipeline.dsp.cml_fit import _LIK, MAX_RANGE_STEP_BINS, _atoms, _Codes, _Fit
+from pipeline.dsp.cml_fit import _LIK, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _atoms, _Codes, _Fit
 
 _kernels_module = None
 
@@ -229,3 +229,22 @@ def add_target_compiled(codes: _Codes, fit: _Fit, oversample: int, threshold: fl
         fit.nu, fit.amp, fit.live, fit.lm, fit.nll, fit.sigma = nu, amp, live, lm, nll, level
         fit.mu, fit.g, fit.h, fit.w = mu, g, h, None
     return found
+
+
+def finish_compiled(fit: _Fit, codes: _Codes, config, levels: np.ndarray, adapt: bool, amp_cap: np.ndarray, k: int,
+                    cap_db: float) -> tuple:
+    """``fit.run(levels, amp_cap, adapt)`` then :func:`pipeline.dsp.cml._result` (statistic
+    capped at ``cap_db``), in one kernel call (:func:`pipeline.dsp.cml_detect_kernels.finish`).
+    Returns the fields of a :class:`pipeline.dsp.cml.CmlResult`."""
+    b, n = fit.mu.shape[:2]
+    nu, amp = np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex)
+    mu, g, h = (np.ascontiguousarray(v, dtype=float).reshape(b, n, 4) for v in (fit.mu, fit.g, fit.h))
+    sigma, gate = fit.sigma.astype(float), fit.gate
+    out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+    _kernels().finish(codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb, fit.kc, nu, amp,
+                      np.ascontiguousarray(fit.live), fit.lm.astype(float), levels, adapt, WRONG_RMS_PER_SIGMA,
+                      np.ascontiguousarray(amp_cap, dtype=float), 0.0 if gate is None else float(gate.lo),
+                      0.0 if gate is None else float(gate.hi), gate is not None, MAX_RANGE_STEP_BINS, mu, g, h,
+                      fit.nll.astype(float), sigma, codes.folded.view(float).reshape(b, n, 4), float(codes.ramps),
+                      config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, gate is None, cap_db, *out)
+    return out[0], out[1], out[2], sigma, out[3]
