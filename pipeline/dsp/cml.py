@@ -456,8 +456,9 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     fit = _Fit(codes, _kc(n), b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
-    noise = np.zeros(b) if noise_sigma is None else noise_sigma
-    return (codes, fit, np.maximum(SIGMA_START * delta, noise), np.maximum(delta / m, noise),
+    if noise_sigma is None:  # delta > 0: the maxima with a noise of 0, without computing them
+        return codes, fit, SIGMA_START * delta, delta / m, delta * (1 << (bits - 1))
+    return (codes, fit, np.maximum(SIGMA_START * delta, noise_sigma), np.maximum(delta / m, noise_sigma),
             delta * (1 << (bits - 1)))
 
 
