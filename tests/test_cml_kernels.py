@@ -24,7 +24,7 @@ from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, de
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
-from radar_driver.model import simulate_frames
+from radar_driver.model import RadarConfig, simulate_frames
 
 RANGE_TOL_M = 1e-4
 AMP_TOL = 1e-3
@@ -251,3 +251,21 @@ def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
         cml(codes, q.dither(), q.delta, 1, cfg, 1)
     with pytest.raises(ParameterError, match="bits given"):
         cml(q.codes, None, None, None, cfg, 1)
+
+
+def test_detection_buffers_are_reused_clean(cfg):
+    """The zero-padded buffers kept per thread (pipeline.dsp.cml_detect._padded) hold no
+    trace of an earlier decode: of more frames, or of a grid of as many points with more
+    samples a ramp."""
+    (r, a, x), rng = off_grid(8, 2, 44)
+    z, xi, delta = measure(r, a, x, cfg, rng)
+    first = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
+    small = RadarConfig(samples_per_ramp=cfg.samples_per_ramp // 2)
+    for zz, xx, dd, c, kw in ((z, xi, delta, cfg, {}), (z[:, :cfg.samples_per_ramp], xi[:, :cfg.samples_per_ramp],
+                                                         delta, small, {"oversample": 16})):
+        ref = cml(zz, xx, dd, 1, c, 2, engine="numpy", **kw)
+        got = cml(zz, xx, dd, 1, c, 2, **kw)
+        np.testing.assert_allclose(got.range_m, ref.range_m, atol=RANGE_TOL_M)
+    again = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
+    for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name))

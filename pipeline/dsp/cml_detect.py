@@ -139,18 +139,21 @@ _fft_module = None
 _buffers = threading.local()
 
 
-def _padded(shape: tuple[int, int, int, int]) -> np.ndarray:
+def _padded(shape: tuple[int, int, int, int], n: int) -> np.ndarray:
     """A (B, S, 2, L) complex buffer of this thread whose points beyond N stay zero (the
-    inverse FFT's padding: only the first N points of each row are ever written)."""
+    inverse FFT's padding: only the first ``n`` points of each row are ever written): the
+    first B frames of one buffer per (S, L, n), as large as the largest block seen (at most
+    :data:`pipeline.dsp.cml.BLOCK_FRAMES`: 8 MB for S = 2, L = 2048)."""
     cache = getattr(_buffers, "cache", None)
     if cache is None:
         cache = _buffers.cache = {}
-    buf = cache.get(shape)
-    if buf is None:
-        if len(cache) > 16:  # a few shapes live at once (block sizes): keep the memory bounded
+    b, key = shape[0], shape[1:] + (n,)
+    buf = cache.get(key)
+    if buf is None or buf.shape[0] < b:
+        if buf is None and len(cache) >= 4:  # a few grids live at once: keep the memory bounded
             cache.clear()
-        buf = cache[shape] = np.zeros(shape, dtype=complex)
-    return buf
+        buf = cache[key] = np.zeros(shape, dtype=complex)
+    return buf[:b]
 
 
 def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: bool = False,
@@ -162,7 +165,7 @@ def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: b
         _residual(codes, fit)
     b, n = fit.mu.shape[:2]
     y = np.empty((b, n, 2), dtype=complex)
-    buf = _padded((b, int(residual) + int(score), 2, oversample * n))
+    buf = _padded((b, int(residual) + int(score), 2, oversample * n), n)
     g = fit.g if score else fit.mu
     _kernels().sources(codes.folded.view(float).reshape(b, n, 4), fit.mu.reshape(b, n, 4), g.reshape(b, n, 4),
                        float(codes.ramps), residual, score, y.view(float).reshape(b, n, 4), buf)
