@@ -76,7 +76,7 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    add_target_compiled, detect_compiled, finish_compiled, residual_compiled
+    add_target_compiled, detect_compiled, finish_compiled, residual_compiled, warm_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
@@ -248,7 +248,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     d = _per_frame("delta", delta, b, positive=True)
     half = 1 << (bits - 1)
     if in_kernel and b:  # pipeline.dsp.cml_detect_kernels.frame_faults
-        z, xi = (z, xi) if codes else (np.ascontiguousarray(z), xi)
+        z = z if codes else np.ascontiguousarray(z)
         zr = np.empty((b, 0)) if codes else z.view(float).reshape(b, -1)
         fault = detect_kernels().frame_faults(zr, np.ascontiguousarray(xi).view(float).reshape(b, -1), d, half)
         if fault:
@@ -453,19 +453,13 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     b, m = z.shape[:2]
     n = config.samples_per_ramp
     codes = _Codes(z, xi, delta, bits, n, compiled=engine != "numpy")
-    fit = _Fit(codes, _kc(n), b, gate, engine, likelihood)
+    fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
     if noise_sigma is None:  # delta > 0: the maxima with a noise of 0, without computing them
         return codes, fit, SIGMA_START * delta, delta / m, delta * (1 << (bits - 1))
     return (codes, fit, np.maximum(SIGMA_START * delta, noise_sigma), np.maximum(delta / m, noise_sigma),
             delta * (1 << (bits - 1)))
-
-
-@lru_cache(maxsize=8)
-def _kc(n: int) -> np.ndarray:
-    """The sample indices about mid-ramp, ``n - (N - 1) / 2`` (N,) (shared: not to be written)."""
-    return np.arange(n) - (n - 1) / 2.0
 
 
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
@@ -479,22 +473,14 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     init = np.take_along_axis(init, order, axis=1)
     live_all = np.take_along_axis(live_all, order, axis=1)
     nu_all = np.nan_to_num(init) / config.range_resolution_m
-    for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
-        amp_t = (_amplitude_at(codes, fit, nu_all[:, t]) if engine == "numpy" else
-                 detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
-        amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
-        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
-    fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
-    if bits is not None and anneal:
-        levels_n = min(anneal, WARM_ANNEAL)
-        ratio = (floor / sigma) ** (1.0 / levels_n)
-        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, levels_n + 1)
-        fit.run(levels, amp_cap, adapt=noise_sigma is None)
-        sigma = fit.sigma
-    if bits is None:
-        fit.run(np.ones((b, anneal)), amp_cap)
-        sigma = codes.wrong_rms(fit.mu)
-    res = _result(fit, codes, config, sigma, k)
+    targets = int(live_all.sum(axis=1).max())
+    if engine != "numpy" and bits is not None and targets:  # the start, the steps and the result in one call
+        levels = _warm_levels(sigma, floor, anneal) if anneal else np.empty((b, 0))
+        res = CmlResult(*warm_compiled(codes, fit, config, nu_all, live_all, targets, sigma, WARM_STEPS, levels,
+                                       noise_sigma is None, amp_cap, k, STATISTIC_CAP_DB))
+    else:
+        res = _warm_steps(codes, fit, config, k, nu_all, live_all, targets, sigma, floor, amp_cap, anneal, bits,
+                          noise_sigma, oversample, engine)
     count = fit.live.sum(axis=1)
     # the residual (and the likelihood's score, at the last level) holds a peak the targets do
     # not explain: a target appeared, or one moved beyond the refinement's reach
@@ -507,6 +493,31 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
         weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
         misfit = ((count < k) & unexplained) | (weakest < to_db(np.asarray(threshold, dtype=float)))  # or vanished
     return res, misfit
+
+
+def _warm_steps(codes, fit, config, k, nu_all, live_all, targets, sigma, floor, amp_cap, anneal, bits, noise_sigma,
+                oversample, engine) -> CmlResult:
+    """:func:`_refine_warm`'s amplitudes, steps and result (the numpy engine, or unquantized)."""
+    b = fit.nu.shape[0]
+    for t in range(targets):  # amplitudes one at a time in the residual
+        amp_t = (_amplitude_at(codes, fit, nu_all[:, t]) if engine == "numpy" else
+                 detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
+        amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
+        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
+    fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+    if bits is not None and anneal:
+        fit.run(_warm_levels(sigma, floor, anneal), amp_cap, adapt=noise_sigma is None)
+        sigma = fit.sigma
+    if bits is None:
+        fit.run(np.ones((b, anneal)), amp_cap)
+        sigma = codes.wrong_rms(fit.mu)
+    return _result(fit, codes, config, sigma, k)
+
+
+def _warm_levels(sigma: np.ndarray, floor: np.ndarray, anneal: int) -> np.ndarray:
+    """The warm start's annealing levels (B, min(anneal, WARM_ANNEAL)), from ``sigma`` to ``floor``."""
+    levels_n = min(anneal, WARM_ANNEAL)
+    return sigma[:, None] * ((floor / sigma) ** (1.0 / levels_n))[:, None] ** np.arange(1, levels_n + 1)
 
 
 def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold,

@@ -251,3 +251,26 @@ def finish_compiled(fit: _Fit, codes: _Codes, config, levels: np.ndarray, adapt:
                       fit.nll.astype(float), sigma, codes.folded.view(float).reshape(b, n, 4), float(codes.ramps),
                       config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, gate is None, cap_db, *out)
     return out[0], out[1], out[2], sigma, out[3]
+
+
+def warm_compiled(codes: _Codes, fit: _Fit, config, nu_all: np.ndarray, live_all: np.ndarray, targets: int,
+                  sigma: np.ndarray, steps: int, levels: np.ndarray, adapt: bool, amp_cap: np.ndarray, k: int,
+                  cap_db: float) -> tuple:
+    """The warm start of :func:`pipeline.dsp.cml._refine_warm` from the ranges ``nu_all`` (B, K)
+    bins (``live_all``: given, first), then its result, in one kernel call
+    (:func:`pipeline.dsp.cml_detect_kernels.warm`); ``fit`` (empty) takes the refined
+    targets. Returns the fields of a :class:`pipeline.dsp.cml.CmlResult`."""
+    b, n = fit.mu.shape[:2]
+    mu, g, h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+    gate = fit.gate
+    out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+    fit.nu, fit.amp, fit.live, fit.lm, fit.nll, fit.sigma = _kernels().warm(
+        np.ascontiguousarray(nu_all, dtype=float), np.ascontiguousarray(live_all), targets, fit.kc, float(codes.ramps),
+        codes.folded.view(float).reshape(b, n, 4), codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb,
+        np.ascontiguousarray(sigma, dtype=float), steps, np.ascontiguousarray(levels, dtype=float), adapt,
+        WRONG_RMS_PER_SIGMA, np.ascontiguousarray(amp_cap, dtype=float), 0.0 if gate is None else float(gate.lo),
+        0.0 if gate is None else float(gate.hi), gate is not None, MAX_RANGE_STEP_BINS, config.range_resolution_m,
+        4.0 * np.pi / config.c_m_s * config.f0_hz, gate is None, cap_db, mu.reshape(b, n, 4), g.reshape(b, n, 4),
+        h.reshape(b, n, 4), *out)
+    fit.mu, fit.g, fit.h, fit.w = mu, g, h, None
+    return out[0], out[1], out[2], fit.sigma, out[3]

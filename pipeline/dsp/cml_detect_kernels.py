@@ -337,3 +337,67 @@ def finish(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
                 y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
                                      folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
     result(nu, amp, live, y, kc[0], ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present)
+
+
+@njit(cache=True, nogil=True)
+def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, steps, levels, adapt, wrong_per_sigma,
+         amp_cap, gate_lo, gate_hi, use_gate, max_range_step, range_res, carrier, wrap, cap, mu, g, h, range_m,
+         amp_out, stat, present):
+    """The warm start of :func:`pipeline.dsp.cml._refine_warm` in one call: the amplitudes of
+    the first ``targets`` of ``nu_all`` (B, K) bins (``live_all``: given) one at a time in
+    the residual of the model so far (as :func:`detect` with ``nu0`` given), ``steps``
+    refinement steps at ``sigma`` (B,), the annealing's at ``levels`` (B, S) (``adapt``),
+    then :func:`result`. Arguments as :func:`finish`'s; returns the fit's ``nu``, ``amp``,
+    ``live`` (B, targets), ``lm``, ``nll`` and level (B,)."""
+    nb, n = mu.shape[0], mu.shape[1]
+    y = np.empty((nb, n, 2), dtype=np.complex128)
+    none = np.empty((nb, 0, 2, 1), dtype=np.complex128)
+    no_gate = np.zeros(1, dtype=np.bool_)
+    stat0 = np.zeros(nb)
+    amp0 = np.empty((nb, 2), dtype=np.complex128)
+    amp = np.empty((nb, 0, 2), dtype=np.complex128)
+    mu[:] = 0.0
+    for t in range(targets):
+        _residual_into(folded, mu, ramps, y)
+        nu0 = nu_all[:, t].copy()
+        detect(none, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]), np.ascontiguousarray(live_all[:, :t]), 1,
+               0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, stat0, nu0, amp0)
+        amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
+        for f in range(nb):
+            for j in range(t):
+                amp2[f, j, 0] = amp[f, j, 0]
+                amp2[f, j, 1] = amp[f, j, 1]
+            amp2[f, t, 0] = amp0[f, 0] if live_all[f, t] else 0.0
+            amp2[f, t, 1] = amp0[f, 1] if live_all[f, t] else 0.0
+        amp = amp2
+        models(np.ascontiguousarray(nu_all[:, :t + 1]), amp, kc, mu)
+    nu = np.ascontiguousarray(nu_all[:, :targets])
+    live = np.ascontiguousarray(live_all[:, :targets])
+    lm = np.full(nb, 1e-3)
+    nll = np.zeros(nb)
+    level = np.full(nb, np.nan)  # no level evaluated yet: refine's first step evaluates
+    if steps == 0:
+        nll[:] = evaluate(kind, lik, a, b, mu, sigma, g, h)
+        level[:] = sigma
+    else:
+        first = np.empty((nb, steps))
+        for f in range(nb):
+            first[f, :] = sigma[f]
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, first, False, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    if levels.shape[1]:
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    _residual_into(folded, mu, ramps, y)
+    result(nu, amp, live, y, kc[0], ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present)
+    return nu, amp, live, lm, nll, level
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _residual_into(folded, mu, ramps, y):
+    """``y`` (B, N, 2) complex = ``folded - ramps mu`` (both (B, N, 4) float)."""
+    for f in range(mu.shape[0]):
+        for i in range(mu.shape[1]):
+            for p in range(2):
+                y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
+                                     folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
