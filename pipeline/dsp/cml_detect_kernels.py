@@ -14,6 +14,7 @@ Compiled on first use and cached on disk (``cache=True``), as :mod:`pipeline.dsp
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from numba import njit
@@ -401,3 +402,30 @@ def _residual_into(folded, mu, ramps, y):
             for p in range(2):
                 y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
                                      folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
+
+
+# -- numba's cache of the kernels that call another module's ----------------------------------
+def _drop_stale_cache() -> None:
+    """Drop the cached :func:`add_target`, :func:`finish` and :func:`warm` when the other cml
+    kernel modules changed since they were cached: numba keys a cache on the defining file
+    alone, so they would keep a stale copy of :func:`pipeline.dsp.cml_kernels.refine` (and of
+    what it calls). The other modules' stamp (mtime, size) is kept beside the cache."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    mine = os.path.basename(__file__)
+    try:
+        deps = sorted(f for f in os.listdir(here) if f.startswith("cml") and f.endswith("_kernels.py") and f != mine)
+        stamp = ";".join(f"{f}:{s.st_mtime_ns}:{s.st_size}" for f in deps for s in [os.stat(os.path.join(here, f))])
+        path = os.path.join(add_target._cache._cache_path, mine + ".deps")
+        if os.path.exists(path):
+            with open(path) as fh:
+                if fh.read() == stamp:
+                    return
+        for kernel in (add_target, finish, warm):
+            kernel._cache.flush()
+        with open(path, "w") as fh:
+            fh.write(stamp)
+    except (OSError, AttributeError):  # a read-only or absent cache: numba compiles in memory
+        pass
+
+
+_drop_stale_cache()
