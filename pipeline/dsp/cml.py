@@ -76,7 +76,8 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    add_target_compiled, detect_compiled, finish_compiled, residual_compiled, warm_compiled
+    _NOT_FINITE, _NOT_FINITE_DITHER, _NOT_LEVELS, add_target_compiled, check_frames_compiled, detect_compiled, \
+    finish_compiled, residual_compiled, warm_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
@@ -124,8 +125,8 @@ def _compile_all() -> None:
             cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
                 init_range_m=np.array([[30.0, np.nan]]))
         if bits is not None:  # the quantizer's codes (uint8)
-            codes = np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half
-            cml(np.rint(codes).astype(np.uint8), xi, delta, bits, cfg, 2, engine="numba")
+            cml(np.rint(np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half).astype(np.uint8), xi, delta, bits,
+                cfg, 2, engine="numba")
     _ready.set()
 
 #: first sigma_eff, in units of delta
@@ -247,31 +248,18 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
         raise ParameterError(_NOT_FINITE_DITHER)
     d = _per_frame("delta", delta, b, positive=True)
     half = 1 << (bits - 1)
-    if in_kernel and b:  # pipeline.dsp.cml_detect_kernels.frame_faults
-        z = z if codes else np.ascontiguousarray(z)
-        zr = np.empty((b, 0)) if codes else z.view(float).reshape(b, -1)
-        fault = detect_kernels().frame_faults(zr, np.ascontiguousarray(xi).view(float).reshape(b, -1), d, half)
-        if fault:
-            raise ParameterError({1: _NOT_FINITE, 2: _NOT_FINITE_DITHER}.get(fault) or
-                                 _NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
-    if codes:  # levels by construction: only their range is checked
-        if z.size and (z.min() < 0 or z.max() >= 1 << bits):
-            raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
-                                 f"[{z.min()}, {z.max()}]")
-        return z, xi, d, noise_sigma
-    if in_kernel:
+    if in_kernel and b:
+        z = check_frames_compiled(z, xi, d, bits, codes)
+    if codes and z.size and (z.min() < 0 or z.max() >= 1 << bits):  # levels by construction: only their range
+        raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
+                             f"[{z.min()}, {z.max()}]")
+    if codes or in_kernel:
         return z, xi, d, noise_sigma
     level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     if level.size and (np.any(np.abs(level - np.rint(level)) > 1e-6) or level.min() < -half - 1e-6
                        or level.max() > half - 1 + 1e-6):
         raise ParameterError(_NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
     return z, xi, d, noise_sigma
-
-
-_NOT_FINITE = "cml: Z holds values that are not finite"
-_NOT_FINITE_DITHER = "cml: the dither holds values that are not finite"
-_NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary parts must be "
-               "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
 
 
 # -- the decoder ----------------------------------------------------------------------------

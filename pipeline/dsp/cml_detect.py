@@ -11,6 +11,7 @@ import threading
 import numpy as np
 
 from pipeline.dsp.cml_fit import _LIK, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _atoms, _Codes, _Fit
+from pipeline.errors import ParameterError
 
 _kernels_module = None
 
@@ -134,6 +135,27 @@ def _ifft(x: np.ndarray, size: int | None = None, axis: int = -1) -> np.ndarray:
 
 
 _fft_module = None
+
+
+_NOT_FINITE = "cml: Z holds values that are not finite"
+_NOT_FINITE_DITHER = "cml: the dither holds values that are not finite"
+_NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary parts must be "
+               "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
+
+
+def check_frames_compiled(z: np.ndarray, xi: np.ndarray, delta: np.ndarray, bits: int, codes: bool) -> np.ndarray:
+    """:func:`pipeline.dsp.cml._check`'s finite and level checks of B quantized frames ``z``
+    (values (B, M, 2) complex, or ``codes``) and their dither ``xi`` (B, M, 2) complex in one
+    compiled pass (:func:`pipeline.dsp.cml_detect_kernels.frame_faults`); returns ``z``
+    (values: C-contiguous) or raises ParameterError."""
+    b, half = z.shape[0], 1 << (bits - 1)
+    z = z if codes else np.ascontiguousarray(z)
+    zr = np.empty((b, 0)) if codes else z.view(float).reshape(b, -1)
+    fault = _kernels().frame_faults(zr, np.ascontiguousarray(xi).view(float).reshape(b, -1), delta, half)
+    if fault:
+        raise ParameterError({1: _NOT_FINITE, 2: _NOT_FINITE_DITHER}.get(fault) or
+                             _NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+    return z
 
 
 _buffers = threading.local()
