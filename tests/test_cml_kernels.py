@@ -26,7 +26,7 @@ from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, de
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
-from radar_driver.model import simulate_frames
+from radar_driver.model import RadarConfig, simulate_frames
 
 RANGE_TOL_M = 1e-4
 AMP_TOL = 1e-3
@@ -237,6 +237,36 @@ def test_codes_decode_as_their_values(cfg, bits):
                                            atol=1e-12, err_msg=f"{name} {kw} {engine}")
 
 
+@pytest.mark.parametrize("bits", [1, 3])
+def test_compiled_codes_arrays_are_numpys(cfg, bits):
+    """The kernels' arrays built by one kernel (from values and from codes) are those of the
+    numpy reference, bit for bit; so is Z - xi folded over the ramps."""
+    (r, a, x), _ = off_grid(3, 2, 42)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(3))
+    n = cfg.samples_per_ramp
+    delta = np.broadcast_to(q.delta, (3,)).astype(float)
+    ref = _Codes(q.values(), q.dither(), delta, bits, n)
+    ref_folded = q.values().reshape(3, -1, n, 2).sum(axis=1) - q.dither().reshape(3, -1, n, 2).sum(axis=1)
+    for z in (q.values(), q.codes):
+        got = _Codes(z, q.dither(), delta, bits, n, compiled=True)
+        assert got.kind == ref.kind
+        np.testing.assert_array_equal(got.ka, ref.ka)
+        np.testing.assert_array_equal(got.kb, ref.kb)
+        np.testing.assert_allclose(got.folded, ref_folded, rtol=0, atol=1e-12)
+        mu = np.random.default_rng(0).normal(size=(3, n, 2, 2)) * delta[:, None, None, None]
+        np.testing.assert_array_equal(got.wrong_rms(mu), ref.wrong_rms(mu))
+
+
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_values_off_the_levels_are_a_parameter_error(cfg, engine):
+    (r, a, x), rng = off_grid(2, 1, 43)
+    z, xi, delta = measure(r, a, x, cfg, rng, bits=3)
+    cml(z, xi, delta, 3, cfg, 1, engine=engine)
+    for bad in (z * (1 + 1e-3), z * 8):  # between the levels; beyond the top one
+        with pytest.raises(ParameterError, match="not a 3-bit quantized frame"):
+            cml(bad, xi, delta, 3, cfg, 1, engine=engine)
+
+
 def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
     (r, a, x), _ = off_grid(2, 1, 41)
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=1.0), np.arange(2))
@@ -298,3 +328,21 @@ def test_solve_by_cholesky_and_by_elimination():
     for m in (a @ a.T + 1e-3 * np.eye(10), a + a.T):  # positive definite; indefinite: the fall-back
         cml_kernels._solve(m.copy(), rhs.copy(), lw, x)
         np.testing.assert_allclose(x, np.linalg.solve(m, rhs), rtol=1e-9, atol=1e-12)
+
+
+def test_detection_buffers_are_reused_clean(cfg):
+    """The zero-padded buffers kept per thread (pipeline.dsp.cml_detect._padded) hold no
+    trace of an earlier decode: of more frames, or of a grid of as many points with more
+    samples a ramp."""
+    (r, a, x), rng = off_grid(8, 2, 44)
+    z, xi, delta = measure(r, a, x, cfg, rng)
+    first = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
+    small = RadarConfig(samples_per_ramp=cfg.samples_per_ramp // 2)
+    for zz, xx, dd, c, kw in ((z, xi, delta, cfg, {}), (z[:, :cfg.samples_per_ramp], xi[:, :cfg.samples_per_ramp],
+                                                         delta, small, {"oversample": 16})):
+        ref = cml(zz, xx, dd, 1, c, 2, engine="numpy", **kw)
+        got = cml(zz, xx, dd, 1, c, 2, **kw)
+        np.testing.assert_allclose(got.range_m, ref.range_m, atol=RANGE_TOL_M)
+    again = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
+    for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name))

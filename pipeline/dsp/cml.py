@@ -76,7 +76,8 @@ from radar_driver.limits import MAX_BITS
 from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
-    detect_compiled
+    _NOT_FINITE, _NOT_FINITE_DITHER, _NOT_LEVELS, add_target_compiled, check_frames_compiled, detect_compiled, \
+    finish_compiled, residual_compiled, warm_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
@@ -123,6 +124,9 @@ def _compile_all() -> None:
             cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik)
             cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
                 init_range_m=np.array([[30.0, np.nan]]))
+        if bits is not None:  # the quantizer's codes (uint8)
+            cml(np.rint(np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half).astype(np.uint8), xi, delta, bits,
+                cfg, 2, engine="numba")
     _ready.set()
 
 #: refinement steps after each detection: one is enough, the annealing refines all the targets
@@ -215,7 +219,7 @@ def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     return np.broadcast_to(v, (b,)).astype(float)
 
 
-def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None):
+def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None, compiled=False):
     z = np.asarray(z)
     codes = z.ndim == 4 and np.issubdtype(z.dtype, np.integer)  # the quantizer's codes
     if codes and (z.shape[-2:] != (2, 2) or bits is None):
@@ -228,8 +232,9 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     n = config.samples_per_ramp
     if m == 0 or m % n:
         raise ParameterError(f"cml: M={m} is not a whole number of ramps of N={n} samples")
-    if not codes and not np.all(np.isfinite(z)):
-        raise ParameterError("cml: Z holds values that are not finite")
+    in_kernel = compiled and bits is not None  # the finite and level checks in one compiled pass
+    if not codes and not in_kernel and not np.all(np.isfinite(z)):
+        raise ParameterError(_NOT_FINITE)
     if not _is_int(k) or not 1 <= k <= n // 2:
         raise ParameterError(f"cml: k={k!r} must be an integer in [1, N/2 = {n // 2}]")
     for name, value, lo in (("iters", iters, 0), ("anneal", anneal, 0), ("oversample", oversample, 1)):
@@ -239,29 +244,30 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
         noise_sigma = _per_frame("noise_sigma", noise_sigma, b, positive=False)
     if check_gate(gate) is not None:
         gate.check(config)
-    z = z if codes else z.astype(complex)
+    z = z if codes else np.asarray(z, dtype=complex)
     if bits is None:
         return z, None, None, noise_sigma
     if not _is_int(bits) or not 1 <= bits <= MAX_BITS:
         raise ParameterError(f"cml: bits={bits!r} must be None (unquantized) or an integer in [1, {MAX_BITS}]")
-    xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi)
+    xi = np.zeros(z.shape[:3], dtype=complex) if xi is None else np.asarray(xi, dtype=complex)
     if xi.shape != z.shape[:3]:
         raise ParameterError(f"cml: dither shape {xi.shape} does not match Z {z.shape[:3]}")
-    if not np.all(np.isfinite(xi)):
-        raise ParameterError("cml: the dither holds values that are not finite")
+    if not in_kernel and not np.all(np.isfinite(xi)):
+        raise ParameterError(_NOT_FINITE_DITHER)
     d = _per_frame("delta", delta, b, positive=True)
-    if codes:  # levels by construction: only their range is checked
-        if z.size and (z.min() < 0 or z.max() >= 1 << bits):
-            raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
-                                 f"[{z.min()}, {z.max()}]")
-        return z, xi.astype(complex), d, noise_sigma
-    level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     half = 1 << (bits - 1)
+    if in_kernel and b:
+        z = check_frames_compiled(z, xi, d, bits, codes)
+    if codes and z.size and (z.min() < 0 or z.max() >= 1 << bits):  # levels by construction: only their range
+        raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
+                             f"[{z.min()}, {z.max()}]")
+    if codes or in_kernel:
+        return z, xi, d, noise_sigma
+    level = np.stack([z.real, z.imag]) / d[None, :, None, None] - 0.5  # an integer in [-2^(b-1), 2^(b-1))
     if level.size and (np.any(np.abs(level - np.rint(level)) > 1e-6) or level.min() < -half - 1e-6
                        or level.max() > half - 1 + 1e-6):
-        raise ParameterError(f"cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary "
-                             f"parts must be delta (q + 1/2) with q an integer in [{-half}, {half - 1}]")
-    return z, xi.astype(complex), d, noise_sigma
+        raise ParameterError(_NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+    return z, xi, d, noise_sigma
 
 
 # -- the decoder ----------------------------------------------------------------------------
@@ -329,7 +335,6 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     """
     if iters is None:
         iters = UNDITHERED_ITERS if bits is not None and xi is None else DEFAULT_ITERS
-    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate)
     engine = DEFAULT_ENGINE if engine is None else engine
     likelihood = DEFAULT_LIKELIHOOD if likelihood is None else likelihood
     if engine not in ENGINES or (engine == "numba" and not HAVE_NUMBA):
@@ -337,6 +342,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
                              f"{', '.join(e for e in ENGINES if e != 'numba' or HAVE_NUMBA)}")
     if likelihood not in LIKELIHOODS:
         raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
+    z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate,
+                                       engine == "numba")
     cgate = _gate(gate, config, oversample)
     threshold = None if pfa is None else _threshold(pfa, config, cgate)
     if z.shape[0] == 0:
@@ -444,12 +451,13 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     of a step (the quantizer's half range)."""
     b, m = z.shape[:2]
     n = config.samples_per_ramp
-    codes = _Codes(z, xi, delta, bits, n)
+    codes = _Codes(z, xi, delta, bits, n, compiled=engine != "numpy")
     fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
-    noise = np.zeros(b) if noise_sigma is None else noise_sigma
-    return (codes, fit, np.maximum(SIGMA_START * delta, noise), np.maximum(delta / m, noise),
+    if noise_sigma is None:  # delta > 0: the maxima with a noise of 0, without computing them
+        return codes, fit, SIGMA_START * delta, delta / m, delta * (1 << (bits - 1))
+    return (codes, fit, np.maximum(SIGMA_START * delta, noise_sigma), np.maximum(delta / m, noise_sigma),
             delta * (1 << (bits - 1)))
 
 
@@ -464,23 +472,14 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     init = np.take_along_axis(init, order, axis=1)
     live_all = np.take_along_axis(live_all, order, axis=1)
     nu_all = np.nan_to_num(init) / config.range_resolution_m
-    for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
-        amp_t = (_amplitude_at(codes, fit, nu_all[:, t]) if engine == "numpy" else
-                 detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
-        amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
-        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
-    fit.evaluate(sigma)
-    fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
-    if bits is not None and anneal:
-        levels_n = min(anneal, WARM_ANNEAL)
-        ratio = (floor / sigma) ** (1.0 / levels_n)
-        levels = sigma[:, None] * ratio[:, None] ** np.arange(1, levels_n + 1)
-        fit.run(levels, amp_cap, adapt=noise_sigma is None)
-        sigma = fit.sigma
-    if bits is None:
-        fit.run(np.ones((b, anneal)), amp_cap)
-        sigma = codes.wrong_rms(fit.mu)
-    res = _result(fit, codes, config, sigma, k)
+    targets = int(live_all.sum(axis=1).max())
+    if engine != "numpy" and bits is not None and targets:  # the start, the steps and the result in one call
+        levels = _warm_levels(sigma, floor, anneal) if anneal else np.empty((b, 0))
+        res = CmlResult(*warm_compiled(codes, fit, config, nu_all, live_all, targets, sigma, WARM_STEPS, levels,
+                                       noise_sigma is None, amp_cap, k, STATISTIC_CAP_DB))
+    else:
+        res = _warm_steps(codes, fit, config, k, nu_all, live_all, targets, sigma, floor, amp_cap, anneal, bits,
+                          noise_sigma, oversample, engine)
     count = fit.live.sum(axis=1)
     # the residual (and the likelihood's score, at the last level) holds a peak the targets do
     # not explain: a target appeared, or one moved beyond the refinement's reach
@@ -493,6 +492,31 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
         weakest = np.where(res.present, res.statistic_db, np.inf).min(axis=1)
         misfit = ((count < k) & unexplained) | (weakest < to_db(np.asarray(threshold, dtype=float)))  # or vanished
     return res, misfit
+
+
+def _warm_steps(codes, fit, config, k, nu_all, live_all, targets, sigma, floor, amp_cap, anneal, bits, noise_sigma,
+                oversample, engine) -> CmlResult:
+    """:func:`_refine_warm`'s amplitudes, steps and result (the numpy engine, or unquantized)."""
+    b = fit.nu.shape[0]
+    for t in range(targets):  # amplitudes one at a time in the residual
+        amp_t = (_amplitude_at(codes, fit, nu_all[:, t]) if engine == "numpy" else
+                 detect_compiled(codes, fit, oversample, False, nu_all[:, t])[2])
+        amp0 = np.where(live_all[:, t, None], amp_t, 0.0)
+        fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
+    fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+    if bits is not None and anneal:
+        fit.run(_warm_levels(sigma, floor, anneal), amp_cap, adapt=noise_sigma is None)
+        sigma = fit.sigma
+    if bits is None:
+        fit.run(np.ones((b, anneal)), amp_cap)
+        sigma = codes.wrong_rms(fit.mu)
+    return _result(fit, codes, config, sigma, k)
+
+
+def _warm_levels(sigma: np.ndarray, floor: np.ndarray, anneal: int) -> np.ndarray:
+    """The warm start's annealing levels (B, min(anneal, WARM_ANNEAL)), from ``sigma`` to ``floor``."""
+    levels_n = min(anneal, WARM_ANNEAL)
+    return sigma[:, None] * ((floor / sigma) ** (1.0 / levels_n))[:, None] ** np.arange(1, levels_n + 1)
 
 
 def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold,
@@ -511,24 +535,25 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
                 active &= _count_statistic(fit, codes, oversample) >= threshold
             nu0 = None if not active.any() else _detect(fit, codes, oversample)
             amp_t = None if nu0 is None else _amplitude_at(codes, fit, nu0)
-        else:  # the statistic, the detection and the amplitudes in one kernel call
-            stat, nu0, amp_t = detect_compiled(codes, fit, oversample, threshold is not None)
-            if threshold is not None:
-                active &= stat >= threshold
+        elif add_target_compiled(codes, fit, oversample, threshold, active, sigma, iters, amp_cap):
+            continue  # the statistic, the detection, the amplitudes and the refinement in one kernel call
+        else:
+            break
         if not active.any():
             break
         amp0 = np.where(active[:, None], amp_t, 0.0)
         fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                 np.concatenate([fit.live, active[:, None]], axis=1))
-        fit.evaluate(sigma)
-        fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
+        fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], iters, axis=1), amp_cap)
     if bits is not None and anneal:
         ratio = (floor / sigma) ** (1.0 / anneal)
         levels = np.empty((b, anneal))
-        level = sigma
-        for j in range(anneal):
-            level = level * ratio
-            levels[:, j] = level
+        levels[:] = ratio[:, None]
+        levels[:, 0] *= sigma
+        np.multiply.accumulate(levels, axis=1, out=levels)  # sigma ratio^j, as repeated products
+        if engine != "numpy" and fit.nu.shape[1]:  # the annealing and the result in one kernel call
+            return CmlResult(*finish_compiled(fit, codes, config, levels, noise_sigma is None, amp_cap, k,
+                                              STATISTIC_CAP_DB))
         fit.run(levels, amp_cap, adapt=noise_sigma is None)  # adapt: not sharper than the noise the model leaves
         sigma = fit.sigma
     if bits is None:
@@ -545,7 +570,7 @@ def _result(fit: _Fit, codes: _Codes, config: RadarConfig, sigma: np.ndarray, k:
     if fit.engine != "numpy":  # the same, compiled (pipeline.dsp.cml_detect_kernels.result)
         out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
         detect_kernels().result(np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex),
-                                np.ascontiguousarray(fit.live), np.ascontiguousarray(_residual(codes, fit)),
+                                np.ascontiguousarray(fit.live), residual_compiled(codes, fit)[0],
                                 float(fit.kc[0]), ramps, config.range_resolution_m,
                                 4.0 * np.pi / config.c_m_s * config.f0_hz, fit.gate is None, STATISTIC_CAP_DB, *out)
         return CmlResult(out[0], out[1], out[2], sigma, out[3])

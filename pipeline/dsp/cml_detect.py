@@ -6,9 +6,12 @@ Shapes: a block of B frames of N samples a ramp, 2 antennas; ranges in bins."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
-from pipeline.dsp.cml_fit import _atoms, _Codes, _Fit
+from pipeline.dsp.cml_fit import _LIK, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, _atoms, _Codes, _Fit
+from pipeline.errors import ParameterError
 
 _kernels_module = None
 
@@ -134,33 +137,162 @@ def _ifft(x: np.ndarray, size: int | None = None, axis: int = -1) -> np.ndarray:
 _fft_module = None
 
 
+_NOT_FINITE = "cml: Z holds values that are not finite"
+_NOT_FINITE_DITHER = "cml: the dither holds values that are not finite"
+_NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its real and imaginary parts must be "
+               "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
+
+
+def check_frames_compiled(z: np.ndarray, xi: np.ndarray, delta: np.ndarray, bits: int, codes: bool) -> np.ndarray:
+    """:func:`pipeline.dsp.cml._check`'s finite and level checks of B quantized frames ``z``
+    (values (B, M, 2) complex, or ``codes``) and their dither ``xi`` (B, M, 2) complex in one
+    compiled pass (:func:`pipeline.dsp.cml_detect_kernels.frame_faults`); returns ``z``
+    (values: C-contiguous) or raises ParameterError."""
+    b, half = z.shape[0], 1 << (bits - 1)
+    z = z if codes else np.ascontiguousarray(z)
+    zr = np.empty((b, 0)) if codes else z.view(float).reshape(b, -1)
+    fault = _kernels().frame_faults(zr, np.ascontiguousarray(xi).view(float).reshape(b, -1), delta, half)
+    if fault:
+        raise ParameterError({1: _NOT_FINITE, 2: _NOT_FINITE_DITHER}.get(fault) or
+                             _NOT_LEVELS.format(bits=bits, lo=-half, hi=half - 1))
+    return z
+
+
+_buffers = threading.local()
+
+
+def _padded(shape: tuple[int, int, int, int], n: int) -> np.ndarray:
+    """A (B, S, 2, L) complex buffer of this thread whose points beyond N stay zero (the
+    inverse FFT's padding: only the first ``n`` points of each row are ever written): the
+    first B frames of one buffer per (S, L, n), as large as the largest block seen (at most
+    :data:`pipeline.dsp.cml.BLOCK_FRAMES`: 8 MB for S = 2, L = 2048)."""
+    cache = getattr(_buffers, "cache", None)
+    if cache is None:
+        cache = _buffers.cache = {}
+    b, key = shape[0], shape[1:] + (n,)
+    buf = cache.get(key)
+    if buf is None or buf.shape[0] < b:
+        if buf is None and len(cache) >= 4:  # a few grids live at once: keep the memory bounded
+            cache.clear()
+        buf = cache[key] = np.zeros(shape, dtype=complex)
+    return buf[:b]
+
+
+def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: bool = False,
+                      oversample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_residual` (B, N, 2) compiled, and a (B, S, 2, ``oversample`` N) buffer whose
+    first N points per antenna hold the residual (``residual``) then the score ``-g``
+    (``score``), the rest zeros (:func:`pipeline.dsp.cml_detect_kernels.sources`)."""
+    if codes.folded is None:
+        _residual(codes, fit)
+    b, n = fit.mu.shape[:2]
+    y = np.empty((b, n, 2), dtype=complex)
+    buf = _padded((b, int(residual) + int(score), 2, oversample * n), n)
+    g = fit.g if score else fit.mu
+    _kernels().sources(codes.folded.view(float).reshape(b, n, 4), fit.mu.reshape(b, n, 4), g.reshape(b, n, 4),
+                       float(codes.ramps), residual, score, y.view(float).reshape(b, n, 4), buf)
+    return y, buf
+
+
+def _back_projections(codes: _Codes, fit: _Fit, oversample: int, count: bool, given: bool):
+    """What the detect kernel reads: the linear residual (B, N, 2), the inverse FFTs (B, S, 2,
+    L) of the sources it needs, how many the count test reads and which detection reads."""
+    on_score = codes.bits is not None and not given and fit.nu.shape[1] > 0  # detection on the likelihood's score
+    with_residual = count or (not given and not on_score)
+    with_score = codes.bits is not None and (count or on_score)
+    y, buf = residual_compiled(codes, fit, with_score, with_residual, oversample)
+    sources = buf.shape[1]
+    u = _ifft(buf) if sources else buf
+    return y, u, (sources if count else 0), (-1 if given else sources - 1 if on_score else 0)
+
+
+def _gate_args(gate):
+    return (_NO_GATE if gate is None else gate.outside, gate is not None, 0.0 if gate is None else float(gate.lo),
+            0.0 if gate is None else float(gate.hi))
+
+
+_NO_GATE = np.zeros(1, dtype=bool)
+_NO_GATE.flags.writeable = False  # as a gate's (pipeline.dsp.cml._gate): one compiled signature
+
+
 def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """:func:`_count_statistic` (``count``; else None), :func:`_detect` (unless ``nu0`` (B,)
     bins is given) and :func:`_amplitude_at` there, with the per-frame work compiled
-    (:func:`pipeline.dsp.cml_detect_kernels.detect`): one inverse FFT of the block, then one
-    kernel call. Returns the statistic (B,), the ranges (B,) in bins and the amplitudes (B, 2)."""
-    y = _residual(codes, fit)
-    b, n = y.shape[:2]
-    t = fit.nu.shape[1]
-    on_score = codes.bits is not None and nu0 is None and t > 0  # detection on the likelihood's score
-    sources = [y] if count or (nu0 is None and not on_score) else []
-    if codes.bits is not None and (count or on_score):  # the score, (B, N, 2)
-        sources.append(np.ascontiguousarray(-fit.g).reshape(b, n, 4).view(complex))
-    stack = np.empty((b, len(sources), 2, n), dtype=complex)  # (B, S, 2, N)
-    for j, src in enumerate(sources):
-        stack[:, j] = src.transpose(0, 2, 1)
-    u = _ifft(stack, oversample * n) if sources else np.empty((b, 0, 2, oversample * n), dtype=complex)
-    gate = fit.gate
-    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
-    stat = np.zeros(b)
+    (:func:`pipeline.dsp.cml_detect_kernels.detect`): the residuals written by one kernel,
+    one inverse FFT of the block, then one kernel call. Returns the statistic (B,), the
+    ranges (B,) in bins and the amplitudes (B, 2)."""
     given = nu0 is not None
+    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, count, given)
+    b = y.shape[0]
+    stat = np.zeros(b)
     nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
     amp = np.empty((b, 2), dtype=complex)
-    _kernels().detect(u, np.ascontiguousarray(y), fit.kc.astype(float), codes.ramps,
-                      np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.live), oversample,
-                      COUNT_GUARD_BINS, MIN_SEPARATION_BINS, outside, gate is not None,
-                      0.0 if gate is None else float(gate.lo), 0.0 if gate is None else float(gate.hi),
-                      len(sources) if count else 0, -1 if given else len(sources) - 1 if on_score else 0,
-                      stat, nu_out, amp)
+    _kernels().detect(u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+                      np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS,
+                      *_gate_args(fit.gate), count_sources, detect_source, stat, nu_out, amp)
     return (stat if count else None), nu_out, amp
+
+
+def add_target_compiled(codes: _Codes, fit: _Fit, oversample: int, threshold: float | None, active: np.ndarray,
+                        sigma: np.ndarray, iters: int, amp_cap: np.ndarray) -> bool:
+    """One greedy stage, compiled: the count test (``threshold``, linear; None: none) updating
+    ``active`` (B,) bool in place, the detection of a new target, its amplitudes and
+    ``iters`` refinement steps at ``sigma`` (B,) of all the targets
+    (:func:`pipeline.dsp.cml_detect_kernels.add_target`). Returns False (``fit`` unchanged)
+    when no frame holds a new target."""
+    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, threshold is not None, False)
+    b, n = fit.mu.shape[:2]
+    mu, g, h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+    found, nu, amp, live, lm, nll, level = _kernels().add_target(
+        u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+        np.ascontiguousarray(fit.amp, dtype=complex), np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS,
+        MIN_SEPARATION_BINS, *_gate_args(fit.gate), count_sources, detect_source,
+        -1.0 if threshold is None else float(threshold), active, codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb,
+        sigma, iters, amp_cap, MAX_RANGE_STEP_BINS, mu.reshape(b, n, 4), g.reshape(b, n, 4), h.reshape(b, n, 4))
+    if found:
+        fit.nu, fit.amp, fit.live, fit.lm, fit.nll, fit.sigma = nu, amp, live, lm, nll, level
+        fit.mu, fit.g, fit.h, fit.w = mu, g, h, None
+    return found
+
+
+def finish_compiled(fit: _Fit, codes: _Codes, config, levels: np.ndarray, adapt: bool, amp_cap: np.ndarray, k: int,
+                    cap_db: float) -> tuple:
+    """``fit.run(levels, amp_cap, adapt)`` then :func:`pipeline.dsp.cml._result` (statistic
+    capped at ``cap_db``), in one kernel call (:func:`pipeline.dsp.cml_detect_kernels.finish`).
+    Returns the fields of a :class:`pipeline.dsp.cml.CmlResult`."""
+    b, n = fit.mu.shape[:2]
+    nu, amp = np.ascontiguousarray(fit.nu, dtype=float), np.ascontiguousarray(fit.amp, dtype=complex)
+    mu, g, h = (np.ascontiguousarray(v, dtype=float).reshape(b, n, 4) for v in (fit.mu, fit.g, fit.h))
+    sigma, gate = fit.sigma.astype(float), fit.gate
+    out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+    _kernels().finish(codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb, fit.kc, nu, amp,
+                      np.ascontiguousarray(fit.live), fit.lm.astype(float), levels, adapt, WRONG_RMS_PER_SIGMA,
+                      np.ascontiguousarray(amp_cap, dtype=float), 0.0 if gate is None else float(gate.lo),
+                      0.0 if gate is None else float(gate.hi), gate is not None, MAX_RANGE_STEP_BINS, mu, g, h,
+                      fit.nll.astype(float), sigma, codes.folded.view(float).reshape(b, n, 4), float(codes.ramps),
+                      config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, gate is None, cap_db, *out)
+    return out[0], out[1], out[2], sigma, out[3]
+
+
+def warm_compiled(codes: _Codes, fit: _Fit, config, nu_all: np.ndarray, live_all: np.ndarray, targets: int,
+                  sigma: np.ndarray, steps: int, levels: np.ndarray, adapt: bool, amp_cap: np.ndarray, k: int,
+                  cap_db: float) -> tuple:
+    """The warm start of :func:`pipeline.dsp.cml._refine_warm` from the ranges ``nu_all`` (B, K)
+    bins (``live_all``: given, first), then its result, in one kernel call
+    (:func:`pipeline.dsp.cml_detect_kernels.warm`); ``fit`` (empty) takes the refined
+    targets. Returns the fields of a :class:`pipeline.dsp.cml.CmlResult`."""
+    b, n = fit.mu.shape[:2]
+    mu, g, h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+    gate = fit.gate
+    out = (np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+    fit.nu, fit.amp, fit.live, fit.lm, fit.nll, fit.sigma = _kernels().warm(
+        np.ascontiguousarray(nu_all, dtype=float), np.ascontiguousarray(live_all), targets, fit.kc, float(codes.ramps),
+        codes.folded.view(float).reshape(b, n, 4), codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb,
+        np.ascontiguousarray(sigma, dtype=float), steps, np.ascontiguousarray(levels, dtype=float), adapt,
+        WRONG_RMS_PER_SIGMA, np.ascontiguousarray(amp_cap, dtype=float), 0.0 if gate is None else float(gate.lo),
+        0.0 if gate is None else float(gate.hi), gate is not None, MAX_RANGE_STEP_BINS, config.range_resolution_m,
+        4.0 * np.pi / config.c_m_s * config.f0_hz, gate is None, cap_db, mu.reshape(b, n, 4), g.reshape(b, n, 4),
+        h.reshape(b, n, 4), *out)
+    fit.mu, fit.g, fit.h, fit.w = mu, g, h, None
+    return out[0], out[1], out[2], fit.sigma, out[3]

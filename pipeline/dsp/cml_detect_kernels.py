@@ -18,6 +18,9 @@ import math
 import numpy as np
 from numba import njit
 
+from pipeline.dsp.cml_kernels import evaluate, models, refine
+from pipeline.dsp.kernel_cache import drop_stale
+
 
 @njit(cache=True, nogil=True)
 def _energy(u, nu, live, oversample, guard_bins, energy, near):
@@ -176,3 +179,231 @@ def result(nu, amp, live, y, kc0, ramps, range_res, carrier, wrap, cap, range_m,
                 db = min(max(10.0 * math.log10(ratio), -cap), cap)
             stat[f, pos] = db
             present[f, pos] = live[f, j]
+
+
+# -- the codes' arrays and the residuals ------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def frame_faults(z, xi, delta, half) -> int:
+    """What is wrong with quantized frames, as :func:`pipeline.dsp.cml._check` asks, in one
+    pass: 1 ``z`` (B, J) float (the real parts of the values; J = 0 for codes) holds values
+    that are not finite, else 2 the dither's ``xi`` (B, J') float does, else 3 a value is not
+    ``delta[f] (q + 1/2)`` with q an integer in [-half, half) (to 1e-6 of delta); 0 none."""
+    bad_z = bad_xi = off = False
+    for f in range(z.shape[0]):
+        d = delta[f]
+        for i in range(z.shape[1]):
+            v = z[f, i]
+            if not math.isfinite(v):
+                bad_z = True
+            level = v / d - 0.5
+            if not (abs(level - np.rint(level)) <= 1e-6 and level >= -half - 1e-6 and level <= half - 1 + 1e-6):
+                off = True
+    for f in range(xi.shape[0]):
+        for i in range(xi.shape[1]):
+            if not math.isfinite(xi[f, i]):
+                bad_xi = True
+    return 1 if bad_z else 2 if bad_xi else 3 if off else 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def codes_arrays(z, from_codes, xi, delta, bits, ka, kb, folded):
+    """:class:`pipeline.dsp.cml_fit._Codes`' kernel arrays of quantized frames in one pass.
+
+    z : (B, R, N, 4) the quantizer's integer codes (``from_codes``) or the real parts of the
+    values ``Z``; xi : (B, R, N, 4) float the dither's; delta : (B,). Writes ``ka``, ``kb``
+    (B, R, N, 4) float32 (1 bit: the sign s and ``s xi``; b bits: the cell ``[lo, hi)`` of
+    lambda) and ``folded`` (B, N, 4) float, ``Z - xi`` summed over the ramps."""
+    nb, ramps, n = z.shape[0], z.shape[1], z.shape[2]
+    half = 1 << (bits - 1)
+    for f in range(nb):
+        d = delta[f]
+        for i in range(n):
+            for j in range(4):
+                folded[f, i, j] = 0.0
+        for r in range(ramps):
+            for i in range(n):
+                for j in range(4):
+                    x = xi[f, r, i, j]
+                    if from_codes:
+                        q = float(z[f, r, i, j]) - half
+                        v = d * (q + 0.5)
+                    else:
+                        v = float(z[f, r, i, j])
+                        q = np.rint(v / d - 0.5)  # v = (q + 1/2) delta
+                    folded[f, i, j] += v - x
+                    if bits == 1:
+                        s = 1.0 if q >= 0.0 else -1.0
+                        ka[f, r, i, j] = s
+                        kb[f, r, i, j] = s * x
+                    else:
+                        lo = -math.inf if q <= -half else q * d
+                        hi = math.inf if q >= half - 1 else (q + 1.0) * d
+                        ka[f, r, i, j] = lo - x
+                        kb[f, r, i, j] = hi - x
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def sources(folded, mu, g, ramps, residual, score, y, buf):
+    """The residuals detection back-projects: ``y`` (B, N, 4) the linear residual
+    ``folded - ramps mu`` (folded, mu (B, N, 4)), and into ``buf`` (B, S, 2, L) complex,
+    per antenna, its first N points: source 0 that residual (``residual``), then the
+    likelihood's score ``-g`` (``score``; g (B, N, 4)). The points beyond N are left as
+    they are (zeros: the FFT's padding)."""
+    nb, n = mu.shape[0], mu.shape[1]
+    for f in range(nb):
+        for i in range(n):
+            for j in range(4):
+                y[f, i, j] = folded[f, i, j] - ramps * mu[f, i, j]
+        s = 0
+        if residual:
+            for p in range(2):
+                for i in range(n):
+                    buf[f, s, p, i] = complex(y[f, i, 2 * p], y[f, i, 2 * p + 1])
+            s += 1
+        if score:
+            for p in range(2):
+                for i in range(n):
+                    buf[f, s, p, i] = complex(-g[f, i, 2 * p], -g[f, i, 2 * p + 1])
+
+
+@njit(cache=True, nogil=True)
+def add_target(u, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo,
+               gate_hi, count_sources, detect_source, threshold, active, kind, lik, a, b, sigma, iters, amp_cap,
+               max_range_step, mu, g, h):
+    """One greedy stage of :func:`pipeline.dsp.cml._decode` in one call: :func:`detect` (the
+    count test when ``threshold`` >= 0: ``active`` (B,) bool updated in place), the new
+    target (amplitude 0 in inactive frames) appended to ``nu`` (B, T), ``amp``, ``live``, the
+    model into ``mu`` (B, N, 4), then ``iters`` refinement steps at ``sigma`` (B,)
+    (:func:`pipeline.dsp.cml_kernels.refine`, its first step evaluating the likelihood).
+    Returns whether a frame is active, and the fit's ``nu``, ``amp``, ``live`` (B, T + 1),
+    damping ``lm``, ``nll`` and level (B,); with no active frame the fit is unchanged."""
+    nb, t = nu.shape
+    stat = np.zeros(nb)
+    nu0 = np.empty(nb)
+    amp0 = np.empty((nb, 2), dtype=np.complex128)
+    detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo, gate_hi,
+           count_sources, detect_source, stat, nu0, amp0)
+    any_active = False
+    for f in range(nb):
+        if threshold >= 0.0:
+            active[f] = active[f] and stat[f] >= threshold
+        any_active = any_active or active[f]
+    nu2 = np.empty((nb, t + 1))
+    amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
+    live2 = np.empty((nb, t + 1), dtype=np.bool_)
+    lm = np.full(nb, 1e-3)
+    nll = np.zeros(nb)
+    level = np.full(nb, np.nan)  # no level evaluated yet: refine's first step evaluates
+    if not any_active:
+        return False, nu2, amp2, live2, lm, nll, level
+    for f in range(nb):
+        for j in range(t):
+            nu2[f, j] = nu[f, j]
+            amp2[f, j, 0] = amp[f, j, 0]
+            amp2[f, j, 1] = amp[f, j, 1]
+            live2[f, j] = live[f, j]
+        nu2[f, t] = nu0[f]
+        amp2[f, t, 0] = amp0[f, 0] if active[f] else 0.0
+        amp2[f, t, 1] = amp0[f, 1] if active[f] else 0.0
+        live2[f, t] = active[f]
+    models(nu2, amp2, kc, mu)
+    if iters == 0:
+        nll[:] = evaluate(kind, lik, a, b, mu, sigma, g, h)
+        level[:] = sigma
+        return True, nu2, amp2, live2, lm, nll, level
+    levels = np.empty((nb, iters))
+    for f in range(nb):
+        levels[f, :] = sigma[f]
+    refine(kind, lik, a, b, kc, nu2, amp2, live2, lm, levels, False, 1.0, amp_cap, gate_lo, gate_hi, use_gate,
+           max_range_step, mu, g, h, nll, level)
+    return True, nu2, amp2, live2, lm, nll, level
+
+
+@njit(cache=True, nogil=True)
+def finish(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+           use_gate, max_range_step, mu, g, h, nll, level, folded, ramps, range_res, carrier, wrap, cap, range_m,
+           amp_out, stat, present):
+    """The end of :func:`pipeline.dsp.cml._decode` in one call: the annealing's refinement
+    steps at ``levels`` (B, S) (:func:`pipeline.dsp.cml_kernels.refine`, its arguments up to
+    ``level``), the residual ``folded - ramps mu`` and :func:`result` (its arguments from
+    ``range_res``)."""
+    if levels.shape[1]:
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    nb, n = mu.shape[0], mu.shape[1]
+    y = np.empty((nb, n, 2), dtype=np.complex128)
+    for f in range(nb):
+        for i in range(n):
+            for p in range(2):
+                y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
+                                     folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
+    result(nu, amp, live, y, kc[0], ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present)
+
+
+@njit(cache=True, nogil=True)
+def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, steps, levels, adapt, wrong_per_sigma,
+         amp_cap, gate_lo, gate_hi, use_gate, max_range_step, range_res, carrier, wrap, cap, mu, g, h, range_m,
+         amp_out, stat, present):
+    """The warm start of :func:`pipeline.dsp.cml._refine_warm` in one call: the amplitudes of
+    the first ``targets`` of ``nu_all`` (B, K) bins (``live_all``: given) one at a time in
+    the residual of the model so far (as :func:`detect` with ``nu0`` given), ``steps``
+    refinement steps at ``sigma`` (B,), the annealing's at ``levels`` (B, S) (``adapt``),
+    then :func:`result`. Arguments as :func:`finish`'s; returns the fit's ``nu``, ``amp``,
+    ``live`` (B, targets), ``lm``, ``nll`` and level (B,)."""
+    nb, n = mu.shape[0], mu.shape[1]
+    y = np.empty((nb, n, 2), dtype=np.complex128)
+    none = np.empty((nb, 0, 2, 1), dtype=np.complex128)
+    no_gate = np.zeros(1, dtype=np.bool_)
+    stat0 = np.zeros(nb)
+    amp0 = np.empty((nb, 2), dtype=np.complex128)
+    amp = np.empty((nb, 0, 2), dtype=np.complex128)
+    mu[:] = 0.0
+    for t in range(targets):
+        _residual_into(folded, mu, ramps, y)
+        nu0 = nu_all[:, t].copy()
+        detect(none, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]), np.ascontiguousarray(live_all[:, :t]), 1,
+               0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, stat0, nu0, amp0)
+        amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
+        for f in range(nb):
+            for j in range(t):
+                amp2[f, j, 0] = amp[f, j, 0]
+                amp2[f, j, 1] = amp[f, j, 1]
+            amp2[f, t, 0] = amp0[f, 0] if live_all[f, t] else 0.0
+            amp2[f, t, 1] = amp0[f, 1] if live_all[f, t] else 0.0
+        amp = amp2
+        models(np.ascontiguousarray(nu_all[:, :t + 1]), amp, kc, mu)
+    nu = np.ascontiguousarray(nu_all[:, :targets])
+    live = np.ascontiguousarray(live_all[:, :targets])
+    lm = np.full(nb, 1e-3)
+    nll = np.zeros(nb)
+    level = np.full(nb, np.nan)  # no level evaluated yet: refine's first step evaluates
+    if steps == 0:
+        nll[:] = evaluate(kind, lik, a, b, mu, sigma, g, h)
+        level[:] = sigma
+    else:
+        first = np.empty((nb, steps))
+        for f in range(nb):
+            first[f, :] = sigma[f]
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, first, False, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    if levels.shape[1]:
+        refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigma, amp_cap, gate_lo, gate_hi,
+               use_gate, max_range_step, mu, g, h, nll, level)
+    _residual_into(folded, mu, ramps, y)
+    result(nu, amp, live, y, kc[0], ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present)
+    return nu, amp, live, lm, nll, level
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _residual_into(folded, mu, ramps, y):
+    """``y`` (B, N, 2) complex = ``folded - ramps mu`` (both (B, N, 4) float)."""
+    for f in range(mu.shape[0]):
+        for i in range(mu.shape[1]):
+            for p in range(2):
+                y[f, i, p] = complex(folded[f, i, 2 * p] - ramps * mu[f, i, 2 * p],
+                                     folded[f, i, 2 * p + 1] - ramps * mu[f, i, 2 * p + 1])
+
+
+# numba keys a cached kernel on this file alone: the kernels that call cml_kernels' refine
+# (and the likelihood it calls) are dropped from the cache when those files change
+drop_stale(__file__, (add_target, finish, warm), ("cml_kernels.py", "cml_likelihood_kernels.py"))

@@ -57,14 +57,18 @@ class _Codes:
     evaluated about 20 times."""
 
     def __init__(self, z: np.ndarray, xi: np.ndarray | None, delta: np.ndarray | None, bits: int | None,
-                 n: int):
+                 n: int, compiled: bool = False):
         """z: (B, M, 2) complex values, or (B, M, 2, 2) integer codes of ``bits`` bits
         (:class:`pipeline.dsp.quantize.QuantizedFrames`' codes: their levels are taken as they
-        are, not recovered from the values)."""
+        are, not recovered from the values). ``compiled``: only what the compiled engine reads
+        (``ka``, ``kb``, ``folded``), built by one kernel."""
         b, m = z.shape[:2]
         self.bits, self.ramps, self.n = bits, m // n, n
         self.folded = None  # Z - xi (or Z) summed over the ramps, (B, N, 2) complex: set on first use
         shape = (b, self.ramps, n, 2, 2)
+        if compiled and bits is not None:
+            self._compiled(z, xi, delta, bits, (b, self.ramps, n, 4))
+            return
         q = None
         if z.ndim == 4:  # codes: the levels q in [-2^(b-1), 2^(b-1)), Z = delta (q + 1/2)
             q = z.reshape(shape).astype(np.float64) - (1 << (bits - 1))
@@ -95,6 +99,21 @@ class _Codes:
         self.hi = (np.where(q >= half - 1, np.inf, (q + 1) * d) - xr).astype(np.float32)
         self.kind = 2  # MULTI_BIT
         self.ka, self.kb = self.lo.reshape(b, self.ramps, n, 4), self.hi.reshape(b, self.ramps, n, 4)
+
+    def _compiled(self, z, xi, delta, bits, shape) -> None:
+        from pipeline.dsp.cml_detect_kernels import codes_arrays
+
+        from_codes = z.ndim == 4
+        if from_codes:
+            zk = (z if z.dtype == np.uint8 else z.astype(np.int64)).reshape(shape)
+        else:
+            zk = np.ascontiguousarray(z, dtype=complex).view(float).reshape(shape)
+        self.ka, self.kb = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
+        self.folded = np.empty((shape[0], shape[2], 2), dtype=complex)
+        codes_arrays(zk, from_codes, np.ascontiguousarray(xi, dtype=complex).view(float).reshape(shape),
+                     np.ascontiguousarray(delta, dtype=float), bits, self.ka, self.kb,
+                     self.folded.view(float).reshape(shape[0], shape[2], 4))
+        self.kind = 1 if bits == 1 else 2  # the kernels' ONE_BIT, MULTI_BIT
 
     def evaluate(self, mu: np.ndarray, sigma: np.ndarray, likelihood: str = DEFAULT_LIKELIHOOD):
         """NLL (B,) and its first and second derivatives in each real measurement, summed
@@ -190,15 +209,17 @@ class _Codes:
         if self.bits is None:
             return np.sqrt(np.mean((mu[:, None] - self.y).reshape(b, -1) ** 2, axis=1))
         mu = mu[:, None].astype(np.float32)
-        v, t = self.work[0], self.work[1]
+        shape = (b, self.ramps, self.n, 2, 2)
+        ka, kb = self.ka.reshape(shape), self.kb.reshape(shape)  # s and s xi, or lo and hi
+        v, t = self.work[:2] if hasattr(self, "work") else (np.empty(shape, dtype=np.float32) for _ in range(2))
         if self.bits == 1:
-            np.multiply(self.s, mu, out=v)
-            v += self.so
+            np.multiply(ka, mu, out=v)
+            v += kb
             np.minimum(v, 0.0, out=v)
         else:
-            np.subtract(self.lo, mu, out=v)
+            np.subtract(ka, mu, out=v)
             np.maximum(v, 0.0, out=v)
-            np.subtract(mu, self.hi, out=t)
+            np.subtract(mu, kb, out=t)
             np.maximum(t, 0.0, out=t)
             v += t
         miss = v.reshape(b, -1)
@@ -279,6 +300,8 @@ class _Fit:
         if self.engine == "numpy":
             self.w = _atoms(nu, self.kc)
             self.mu = self._mu(self.w, amp)
+        elif nu.shape[1] == 0:  # no target: the model is 0
+            self.w, self.mu = None, np.zeros((nu.shape[0], self.kc.size, 2, 2))
         else:  # the compiled model (the atoms are only the numpy step's)
             b, n = nu.shape[0], self.kc.size
             self.w, self.mu = None, np.empty((b, n, 2, 2))
@@ -306,6 +329,20 @@ class _Fit:
         self.nll = _kernels().evaluate(self.codes.kind, _LIK[self.likelihood], self.codes.ka, self.codes.kb,
                                      np.ascontiguousarray(self.mu).reshape(b, n, 4), self.sigma,
                                      self.g.reshape(b, n, 4), self.h.reshape(b, n, 4))
+
+    def evaluate_and_run(self, sigma: np.ndarray, levels: np.ndarray, amp_cap: np.ndarray) -> None:
+        """:meth:`evaluate` at ``sigma`` (B,) then :meth:`run` (``levels[:, 0]`` equal to
+        ``sigma``); compiled, the evaluation is the refinement kernel's first (the same
+        numbers, one call fewer)."""
+        if self.engine == "numpy" or self.nu.shape[1] == 0 or levels.shape[1] == 0 or \
+                not np.array_equal(levels[:, 0], sigma):
+            self.evaluate(sigma)
+            self.run(levels, amp_cap)
+            return
+        b, n = self.mu.shape[:2]
+        self.g, self.h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
+        self.nll, self.sigma = np.zeros(b), np.full(b, np.nan)  # NaN: no level evaluated yet
+        self.run(levels, amp_cap)
 
     def run(self, levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> None:
         """One step a level: at noise std ``levels[:, j]`` (B, S) (``adapt``: not below

@@ -33,6 +33,7 @@ from numba import njit
 from pipeline.dsp.cml_likelihood_kernels import (GAUSSIAN, LOGISTIC, LSQ, MULTI_BIT, ONE_BIT,  # noqa: F401
                                                _evaluate_frame, _nll_frame, _softplus, _wrong_rms, evaluate,
                                                log_ndtr)
+from pipeline.dsp.kernel_cache import drop_stale
 
 
 #: the model's block (samples): the first block by a recurrence, each later one that block
@@ -357,3 +358,8 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
         g[f, :, :] = gs[cur]
         h[f, :, :] = hs[cur]
         sigma_out[f] = current
+
+
+# numba keys a cached kernel on this file alone: refine is dropped from the cache when the
+# likelihood's kernels (which it calls) change
+drop_stale(__file__, (refine,), ("cml_likelihood_kernels.py",))
