@@ -346,3 +346,17 @@ def test_detection_buffers_are_reused_clean(cfg):
     again = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
     for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
         np.testing.assert_array_equal(getattr(again, name), getattr(first, name))
+
+
+def test_warm_up_loads_the_kernels_of_1_bit_codes_first():
+    """A localizer waits for the kernels of 1-bit codes (``wait="common"``); the other kinds
+    follow in the same thread. In a fresh process, from numba's cache."""
+    import subprocess
+    import sys
+
+    code = ("from pipeline.dsp.cml import warm_up_kernels, kernels_ready\n"
+            "warm_up_kernels(wait='common'); first = kernels_ready(common=True)\n"
+            "warm_up_kernels(wait=True); print(first, kernels_ready(common=True), kernels_ready())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True", "True", "True"]

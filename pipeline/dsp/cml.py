@@ -66,7 +66,6 @@ strongest first; amplitudes (B, K, 2).
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, fields
 from functools import lru_cache
 
@@ -81,53 +80,17 @@ from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _k
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
                       _Codes, _Fit, _Gate)
 from pipeline.errors import ParameterError
+from pipeline.dsp import cml_warmup
+from pipeline.dsp.cml_warmup import kernels_ready  # noqa: F401 (cml's API)
 from pipeline.dsp.gate import RangeGate, check_gate
 from pipeline.dsp.localize import STATISTIC_CAP_DB, Detections, cfar_threshold, to_db
 
-_ready = threading.Event()
-_warming_lock = threading.Lock()
-_warming: list[threading.Thread] = []
+def warm_up_kernels(wait: bool | str = False) -> None:
+    """Load (or compile) :func:`cml`'s kernels in a daemon thread started once, 1-bit codes
+    first; ``wait``: True until every kind is loaded, ``"common"`` until 1-bit codes' are
+    (:func:`pipeline.dsp.cml_warmup.warm_up_kernels`)."""
+    cml_warmup.warm_up_kernels(cml, wait)
 
-
-def kernels_ready() -> bool:
-    """Whether :func:`warm_up_kernels` has compiled (or loaded from numba's cache) the kernels."""
-    return HAVE_NUMBA and _ready.is_set()
-
-
-def warm_up_kernels(wait: bool = False) -> None:
-    """Compile the kernels for every kind of frame (or load them from numba's on-disk cache:
-    about 0.5 s; a first compile takes tens of seconds), in a daemon thread started once;
-    ``wait``: until done. A live localizer decodes with the numpy engine meanwhile."""
-    if not HAVE_NUMBA:
-        return
-    with _warming_lock:
-        if not _warming:
-            _warming.append(threading.Thread(target=_compile_all, name="cml-jit", daemon=True))
-            _warming[0].start()
-    if wait:
-        _warming[0].join()
-
-
-def _compile_all() -> None:
-    cfg = RadarConfig()
-    n = cfg.samples_per_ramp
-    rng = np.random.default_rng(0)
-    g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
-    xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
-    gate = RangeGate(5.0, 100.0)
-    for bits in (1, 3, None):
-        delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
-        half = 0 if bits is None else 1 << (bits - 1)
-        z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
-            np.clip(np.floor((g + xi).imag / delta), -half, half - 1) + 0.5))
-        for lik in LIKELIHOODS:
-            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik)
-            cml(z, xi, delta, bits, cfg, 2, engine="numba", likelihood=lik, pfa=1e-3, gate=gate,
-                init_range_m=np.array([[30.0, np.nan]]))
-        if bits is not None:  # the quantizer's codes (uint8)
-            cml(np.rint(np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half).astype(np.uint8), xi, delta, bits,
-                cfg, 2, engine="numba")
-    _ready.set()
 
 #: refinement steps after each detection: one is enough, the annealing refines all the targets
 #: together after the last detection (measured, 2 000 off-grid scenes a case, K 1-3, K auto,

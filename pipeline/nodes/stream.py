@@ -420,9 +420,9 @@ class LocalizeNode(FrameNode):
 
     def start(self) -> "LocalizeNode":
         if self.config.algo == Algo.CML:
-            # cml's kernels, from numba's cache (~0.5 s; `make` compiles them at install), before
-            # subscribing: the session already listens, and every frame gets the same engine
-            warm_up_kernels(wait=True)
+            # cml's kernels of 1-bit codes from numba's cache (~1 s; `make` compiles them at install)
+            # before subscribing (the session already listens), the other kinds' after in the thread
+            warm_up_kernels(wait="common")
         return super().start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
@@ -491,8 +491,8 @@ class LocalizeNode(FrameNode):
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
         decoder = self._decoder
-        if decoder.algo == Algo.CML and not kernels_ready():  # a node never started (tests)
-            warm_up_kernels(wait=True)
+        if decoder.algo == Algo.CML and not kernels_ready(common=True):  # a node never started (tests)
+            warm_up_kernels(wait="common")
         n = len(headers)
         sensors = [str(s) for s in headers.sensor_id]
         init = self._init_ranges(sensors)
