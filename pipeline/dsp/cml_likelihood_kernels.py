@@ -79,9 +79,9 @@ def _softplus_nll(u):
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
 def _one_bit_logistic(s, so, mu32, inv, g, h) -> float:
     """The 1-bit logistic NLL of the codes' signs ``s`` and ``s xi`` (R, 4N) float32 at the
-    model ``mu32`` (4N,) float32 and inverse logistic scale ``inv``; adds its derivatives
-    in lambda (times 1/inv and 1/inv^2) to ``g``, ``h`` (4N,) float64. One flat loop the
-    compiler vectorizes (8 codes an instruction)."""
+    model ``mu32`` (4N,) float32 and inverse logistic scale ``inv``; writes its derivatives
+    in lambda to ``g``, ``h`` (4N,) float64. One flat loop the compiler vectorizes (8 codes
+    an instruction)."""
     ramps, m4 = s.shape
     inv32 = _F32(inv)
     ga, ha = np.zeros(m4, dtype=np.float32), np.zeros(m4, dtype=np.float32)
@@ -96,7 +96,7 @@ def _one_bit_logistic(s, so, mu32, inv, g, h) -> float:
             ga[i] -= sr[i] * fneg
             ha[i] += ff
         total += part
-    _add(g, h, ga, ha)
+    _store(g, h, ga, ha, inv)
     return total
 
 
@@ -120,7 +120,7 @@ def _one_bit_logistic_nll(s, so, mu32, inv) -> float:
 def _multi_bit_logistic(lo, hi, mu32, inv, g, h) -> float:
     """The b-bit logistic NLL ``-log F((mu - lo) / T) - log F((hi - mu) / T)`` (+ const) of
     the cells ``[lo, hi)`` (R, 4N) float32 (open ends infinite) at ``mu32``, ``inv = 1 / T``;
-    adds its derivatives (times T and T^2) to ``g``, ``h``, as :func:`_one_bit_logistic`."""
+    writes its derivatives to ``g``, ``h``, as :func:`_one_bit_logistic`."""
     ramps, m4 = lo.shape
     inv32 = _F32(inv)
     ga, ha = np.zeros(m4, dtype=np.float32), np.zeros(m4, dtype=np.float32)
@@ -136,15 +136,17 @@ def _multi_bit_logistic(lo, hi, mu32, inv, g, h) -> float:
             ga[i] += f2 - f1
             ha[i] += h1 + h2
         total += part
-    _add(g, h, ga, ha)
+    _store(g, h, ga, ha, inv)
     return total
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
-def _add(g, h, ga, ha):
+def _store(g, h, ga, ha, inv):
+    """The derivatives in u summed in float32, ``ga``, ``ha``, as derivatives in lambda."""
+    inv2 = inv * inv
     for i in range(g.shape[0]):
-        g[i] += ga[i]
-        h[i] += ha[i]
+        g[i] = ga[i] * inv
+        h[i] = ha[i] * inv2
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -205,6 +207,13 @@ def evaluate(kind: int, lik: int, a, b, mu, sigma, g, h):
 @njit(cache=True, nogil=True)
 def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
     ramps, n = a.shape[0], a.shape[1]
+    if lik == LOGISTIC and kind != LSQ:  # vectorized, float32 (as the numpy reference)
+        m4 = n * 4
+        mu32 = mu.reshape(m4).astype(np.float32)
+        gf, hf = g.reshape(m4), h.reshape(m4)
+        if kind == ONE_BIT:
+            return _one_bit_logistic(a.reshape(ramps, m4), b.reshape(ramps, m4), mu32, 1.702 / sigma, gf, hf)
+        return _multi_bit_logistic(a.reshape(ramps, m4), b.reshape(ramps, m4), mu32, 1.702 / sigma, gf, hf)
     g[:] = 0.0
     h[:] = 0.0
     total = 0.0
@@ -216,17 +225,6 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
                     total += 0.5 * d * d
                     g[i, j] += d
                     h[i, j] += 1.0
-        return total
-    if lik == LOGISTIC:  # vectorized, float32 (as the numpy reference), derivatives scaled at the end
-        inv = 1.702 / sigma
-        m4 = n * 4
-        mu32 = _as_float32(mu.reshape(m4))
-        gf, hf = g.reshape(m4), h.reshape(m4)
-        if kind == ONE_BIT:
-            total = _one_bit_logistic(a.reshape(ramps, m4), b.reshape(ramps, m4), mu32, inv, gf, hf)
-        else:
-            total = _multi_bit_logistic(a.reshape(ramps, m4), b.reshape(ramps, m4), mu32, inv, gf, hf)
-        _scale(gf, hf, inv)
         return total
     inv = 1.0 / sigma
     inv2 = inv * inv
@@ -251,28 +249,12 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h) -> float:
     return total
 
 
-@njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
-def _as_float32(x):
-    out = np.empty(x.shape[0], dtype=np.float32)
-    for i in range(x.shape[0]):
-        out[i] = x[i]
-    return out
-
-
-@njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
-def _scale(g, h, inv):
-    inv2 = inv * inv
-    for i in range(g.shape[0]):
-        g[i] *= inv
-        h[i] *= inv2
-
-
 @njit(cache=True, nogil=True)
 def _nll_frame(a, b, mu, sigma) -> float:
     """The NLL of :func:`_evaluate_frame` (the same arithmetic) without its derivatives,
     for 1-bit codes and the logistic likelihood."""
     ramps, m4 = a.shape[0], a.shape[1] * 4
-    return _one_bit_logistic_nll(a.reshape(ramps, m4), b.reshape(ramps, m4), _as_float32(mu.reshape(m4)),
+    return _one_bit_logistic_nll(a.reshape(ramps, m4), b.reshape(ramps, m4), mu.reshape(m4).astype(np.float32),
                                  1.702 / sigma)
 
 
