@@ -295,6 +295,7 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
     step = np.empty(npar)
     nu2 = np.empty(k)
     amp2 = np.empty((k, 2), dtype=np.complex128)
+    work = np.empty((3, 4 * n), dtype=np.float32)
     nll_only = kind == ONE_BIT and lik == LOGISTIC  # a cheaper NLL alone (_nll_frame)
     for f in range(nb):
         cur = 0
@@ -308,7 +309,7 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
             if adapt:
                 level = max(level, _wrong_rms(kind, a[f], b[f], mus[cur]) / wrong_per_sigma)
             if level != current or not fresh:
-                nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mus[cur], level, gs[cur], hs[cur])
+                nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mus[cur], level, gs[cur], hs[cur], work)
                 current = level
                 fresh = True
             _sums(w[cur], cw, cw32, gs[cur], hs[cur], ht, gt, bw, gram, proj)
@@ -342,9 +343,9 @@ def refine(kind, lik, a, b, kc, nu, amp, live, lm, levels, adapt, wrong_per_sigm
             # unless adapted) or this is the last step; else the NLL alone
             derivs = not nll_only or s == steps - 1 or (not adapt and levels[f, s + 1] == current)
             if derivs:
-                cand = _evaluate_frame(kind, lik, a[f], b[f], mus[o], current, gs[o], hs[o])
+                cand = _evaluate_frame(kind, lik, a[f], b[f], mus[o], current, gs[o], hs[o], work)
             else:
-                cand = _nll_frame(a[f], b[f], mus[o], current)
+                cand = _nll_frame(a[f], b[f], mus[o], current, work)
             if cand <= nll[f]:
                 fresh = derivs
                 lm[f] = max(lm[f] / 3.0, 1e-9)
