@@ -307,8 +307,8 @@ def test_normal_equations_are_the_jacobians():
     cml_kernels._model(nu, amp, kc, w, mu)
     cw = 2.0 * np.pi * kc / n
     gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
-    cml_kernels._sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((4, n)),
-                      np.empty((2 * k, n), np.float32), gram, proj)
+    cml_kernels._sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((2 * k, n), np.float32),
+                      gram, proj)
     hess, grad = np.empty((5 * k, 5 * k)), np.empty(5 * k)
     cml_kernels._normal_equations(amp, gram, proj, hess, grad)
     atoms = w[:, 0] + 1j * w[:, 1]
