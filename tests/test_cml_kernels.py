@@ -20,6 +20,7 @@ from scipy.special import ndtr
 from test_cml import measure, random_scenes
 
 from pipeline.dsp import cml_kernels
+from pipeline.dsp import cml_likelihood_kernels as lik
 from pipeline.dsp.cml import _Codes, _Gate, _start, cml
 from pipeline.dsp.cml_fit import _coefficients
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
@@ -105,8 +106,9 @@ def test_k_auto_and_gate(cfg):
 def test_the_compiled_logistic_likelihood_matches_the_reference(cfg):
     """The kernels' branch-free float32 logistic (a polynomial exp and log1p, vectorized) against
     the numpy reference's exact one, from the greedy stage's scale to the annealing's floor:
-    the NLL to 1e-6 relative, its derivatives to 1e-5 of their largest (measured: 1.3e-7, 1.1e-6
-    and 1.7e-6); a multi-bit cell's open (infinite) end adds nothing."""
+    the NLL to 1e-6 relative, its derivatives to 1e-5 of their largest (measured: 2.5e-7, 3.2e-7
+    and 6.4e-7); a multi-bit cell's open (infinite) end adds nothing. The NLL alone
+    (``_nll_frame``, the LM candidates' test) is the same NLL."""
     (r, a, x), rng = off_grid(4, 2, 21)
     n = cfg.samples_per_ramp
     for bits in (1, 3):
@@ -122,7 +124,24 @@ def test_the_compiled_logistic_likelihood_matches_the_reference(cfg):
             np.testing.assert_allclose(knll, nll, rtol=1e-6)
             np.testing.assert_allclose(kg, g.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(g).max())
             np.testing.assert_allclose(kh, h.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(h).max())
+            if bits == 1:
+                work = np.empty((3, 4 * n), np.float32)
+                alone = [cml_kernels._nll_frame(codes.ka[f], codes.kb[f], np.ascontiguousarray(mu[f]).reshape(n, 4),
+                                                sigma[f], work) for f in range(4)]
+                np.testing.assert_allclose(alone, knll, rtol=1e-6)
     assert cml_kernels._softplus(np.float32(np.inf))[0] < 1e-17  # -log F(+inf) = 0
+
+
+def test_the_likelihoods_polynomial_exp_and_log1p():
+    """``exp(-a)`` on [0, 40] (a polynomial squared 5 times) and ``log(1 + e)`` on [0, 1] (a
+    polynomial in e, also for e down to exp(-40)) against numpy's in float64, relative
+    (measured: 1.0e-5 and 1.1e-7)."""
+    a = np.linspace(0.0, lik.SOFTPLUS_REACH, 4001).astype(np.float32)
+    got = np.array([lik._exp_neg(v) for v in a])
+    np.testing.assert_allclose(got, np.exp(-a.astype(float)), rtol=1.5e-5, atol=0)
+    e = np.concatenate([np.linspace(0.0, 1.0, 2001), np.exp(-np.linspace(0.0, 40.0, 401))]).astype(np.float32)
+    got = np.array([lik._log1p_small(v) for v in e])
+    np.testing.assert_allclose(got, np.log1p(e.astype(float)), rtol=2e-7, atol=0)
 
 
 def test_the_gaussian_likelihood_is_the_probability_of_the_code(cfg):
@@ -291,6 +310,21 @@ def test_model_is_the_atoms_times_the_amplitudes():
         atoms = np.exp((-2j * np.pi / n) * nu[:, None] * kc)
         np.testing.assert_allclose(w[:, 0] + 1j * w[:, 1], atoms, rtol=0, atol=1e-13)
         np.testing.assert_allclose(mu.view(complex), atoms.T @ amp, rtol=0, atol=1e-12)
+
+
+def test_matched_filter_is_the_sum_of_exponentials():
+    """``_matched``: ``sum_i exp(i 2 pi nu kc[i] / N) y[i, p]`` from the atom (six cos/sin and
+    products) against numpy's exp, to 1e-12 of the largest, also for N not a multiple of the
+    atom's block."""
+    rng = np.random.default_rng(53)
+    for n in (256, 100, 7):
+        kc = np.arange(n) - n / 2.0
+        y = rng.standard_normal((n, 2)) + 1j * rng.standard_normal((n, 2))
+        wr, wi = np.empty(n), np.empty(n)
+        for nu in rng.uniform(0.0, n, 20):
+            got = np.array(cml_kernels._matched(nu, kc, y, wr, wi))
+            ref = np.exp(2j * np.pi * nu * kc / n) @ y
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
 def test_normal_equations_are_the_jacobians():
