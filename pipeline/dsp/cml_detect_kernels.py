@@ -88,24 +88,173 @@ def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_
     return nu0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _fine_energy(x, n, p, table):
+    """Joint energy at point ``p`` of the inverse FFT of ``x`` (2, >= N) zero-padded to L =
+    ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
+    ``|U1|^2 + |U2|^2``, ``U = (1 / L) sum_i x[i] exp(2 pi i i p / L)`` summed directly."""
+    size = table.shape[0]
+    ar = ai = br = bi = 0.0
+    k = 0
+    for i in range(n):
+        w = table[k]
+        a = x[0, i]
+        b = x[1, i]
+        ar += a.real * w.real - a.imag * w.imag
+        ai += a.real * w.imag + a.imag * w.real
+        br += b.real * w.real - b.imag * w.imag
+        bi += b.real * w.imag + b.imag * w.real
+        k += p
+        if k >= size:
+            k -= size
+    inv = 1.0 / size
+    ar *= inv
+    ai *= inv
+    br *= inv
+    bi *= inv
+    return (ar * ar + br * br) + (ai * ai + bi * bi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fine_value(x, n, p, table, near, energy, known) -> float:
+    """:func:`_energy`'s ``energy[p]`` (0 within the guard ``near``), computed once
+    (:func:`_fine_energy`) and kept in ``energy`` (``known``)."""
+    if near[p]:
+        return 0.0
+    if not known[p]:
+        energy[p] = _fine_energy(x, n, p, table)
+        known[p] = True
+    return energy[p]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_cell(c, ratio, half, size, outside, use_gate) -> bool:
+    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
+    if not use_gate:
+        return True
+    for d in range(-half, half + 1):
+        if not outside[(c * ratio + d) % size]:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mark_edge(lo, hi, ratio, lc, edge):
+    """``edge[c]`` = True for the coarse points ``c`` within ``ratio`` fine points of the
+    fine points ``lo..hi`` (masked ones), modulo ``lc``."""
+    for c in range(-((ratio - lo) // ratio), (hi + ratio) // ratio + 1):  # ceil((lo - ratio) / ratio) ...
+        edge[c % lc] = True
+
+
 @njit(cache=True, nogil=True)
-def detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo, gate_hi,
-           count_sources, detect_source, stat, nu0, amp0):
+def _peak_coarse(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, rho, table,
+                 energy, known, near, coarse, edge) -> float:
+    """:func:`_peak` (the same fine-grid peak of L = ``table.shape[0]`` points and parabola)
+    from the inverse FFT ``uc`` (2, Lc) on a grid ``ratio = L / Lc`` times coarser, of
+    ``x`` (2, >= N) (first ``n`` points): the fine energy is summed directly
+    (:func:`_fine_energy`) at the fine points within ``ratio // 2`` of every coarse point
+    whose energy reaches ``rho`` times the best one found, and at the parabola's
+    neighbours. A maximum of ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps
+    more than ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone:
+    0.81); a peak against the guard or the gate need not be a maximum, so a coarse point
+    within a coarse step of a masked fine point (``edge``) counts its neighbours' energy
+    too. ``energy``, ``known``, ``near`` (L,), ``coarse``, ``edge`` (Lc,): work."""
+    size = table.shape[0]
+    lc = uc.shape[1]
+    ratio = size // lc
+    half = ratio // 2
+    for i in range(size):
+        near[i] = False
+        known[i] = False
+    for c in range(lc):
+        edge[c] = False
+    reach = int(math.ceil(guard_bins * oversample)) - 1
+    for j in range(nu.shape[0]):
+        c = int(np.rint(nu[j] * oversample))
+        for d in range(-reach, reach + 1):
+            near[(c + d) % size] = live[j]  # later targets overwrite, as put_along_axis
+        if live[j]:
+            _mark_edge(c - reach, c + reach, ratio, lc, edge)
+    if use_gate:
+        for i in range(size):
+            if outside[i] and not outside[i - 1]:  # a run of points beyond the gate (wrapping)
+                e = i
+                while e + 1 < i + size and outside[(e + 1) % size]:
+                    e += 1
+                _mark_edge(i, e, ratio, lc, edge)
+    sc = lc / size  # the coarse FFT's 1 / Lc to the fine one's 1 / L
+    floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
+    for c in range(lc):
+        a = uc[0, c] * sc
+        b = uc[1, c] * sc
+        e = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
+        coarse[c] = e
+        p = c * ratio
+        energy[p] = 0.0 if near[p] else e
+        known[p] = True
+        v = -1.0 if use_gate and outside[p] else energy[p]
+        floor = max(floor, v)
+    first = -1
+    for c in range(lc):  # the cell of the largest coarse energy first: the others then mostly fall short
+        if coarse[c] >= rho * floor and (first < 0 or coarse[c] > coarse[first]) and \
+                _open_cell(c, ratio, half, size, outside, use_gate):
+            first = c
+    top = -math.inf
+    best = 0
+    for step in range(lc + 1):
+        c = first if step == 0 else step - 1
+        if c < 0 or (step > 0 and c == first):
+            continue
+        reach_c = coarse[c]
+        if edge[c]:
+            reach_c = max(reach_c, max(coarse[c - 1], coarse[(c + 1) % lc]))
+        if reach_c < rho * max(floor, top) or not _open_cell(c, ratio, half, size, outside, use_gate):
+            continue
+        for d in range(-half, half + 1):
+            p = (c * ratio + d) % size
+            v = -1.0 if use_gate and outside[p] else _fine_value(x, n, p, table, near, energy, known)
+            if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
+                top = v
+                best = p
+    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
+    centre = _fine_value(x, n, best, table, near, energy, known)
+    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
+    curv = left - 2.0 * centre + right
+    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
+    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
+    if use_gate:
+        nu0 = min(max(nu0, gate_lo), gate_hi)
+    return nu0
+
+
+@njit(cache=True, nogil=True)
+def detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate,
+           gate_lo, gate_hi, count_sources, detect_source, stat, nu0, amp0):
     """Per frame: the count test's statistic into ``stat`` (B,) (the smaller peak ratio of
     the first ``count_sources`` residuals of ``u``; 0 sources: left alone), the detected
     range into ``nu0`` (B,) (residual ``detect_source`` of ``u``; -1: ``nu0`` given), and
-    the least-squares amplitudes (B, 2) of one target at ``nu0`` in ``y`` into ``amp0``."""
+    the least-squares amplitudes (B, 2) of one target at ``nu0`` in ``y`` into ``amp0``.
+    ``u`` coarser than ``oversample`` N points (no count test): :func:`_peak_coarse` of
+    ``src`` (B, S, 2, >= N) (the sources before their FFT), ``table`` (``oversample`` N,) and
+    ``rho``; else both unused."""
     nb = u.shape[0]
-    size = u.shape[3]
     n = y.shape[1]
+    size = oversample * n
     energy = np.empty(size)
     near = np.empty(size, dtype=np.bool_)
+    known = np.empty(size if u.shape[3] < size else 0, dtype=np.bool_)
+    coarse = np.empty(u.shape[3])
+    edge = np.empty(u.shape[3], dtype=np.bool_)
     scale = 1.0 / (ramps * n)
     for f in range(nb):
         for s in range(count_sources):
             r = _peak_ratio(u[f, s], nu[f], live[f], oversample, count_guard, outside, use_gate, energy, near)
             stat[f] = r if s == 0 else min(stat[f], r)
-        if detect_source >= 0:
+        if detect_source >= 0 and u.shape[3] < size:
+            nu0[f] = _peak_coarse(u[f, detect_source], src[f, detect_source], n, nu[f], live[f], oversample,
+                                  sep_guard, outside, use_gate, gate_lo, gate_hi, rho, table, energy, known, near,
+                                  coarse, edge)
+        elif detect_source >= 0:
             nu0[f] = _peak(u[f, detect_source], nu[f], live[f], oversample, sep_guard, outside, use_gate, gate_lo,
                            gate_hi, energy, near)
         ph = 2.0 * math.pi * nu0[f] / n
@@ -267,9 +416,9 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
 
 
 @njit(cache=True, nogil=True)
-def add_target(u, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo,
-               gate_hi, count_sources, detect_source, threshold, active, kind, lik, a, b, sigma, iters, amp_cap,
-               max_range_step, mu, g, h):
+def add_target(u, src, table, rho, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guard, outside,
+               use_gate, gate_lo, gate_hi, count_sources, detect_source, threshold, active, kind, lik, a, b, sigma,
+               iters, amp_cap, max_range_step, mu, g, h):
     """One greedy stage of :func:`pipeline.dsp.cml._decode` in one call: :func:`detect` (the
     count test when ``threshold`` >= 0: ``active`` (B,) bool updated in place), the new
     target (amplitude 0 in inactive frames) appended to ``nu`` (B, T), ``amp``, ``live``, the
@@ -281,8 +430,8 @@ def add_target(u, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guar
     stat = np.zeros(nb)
     nu0 = np.empty(nb)
     amp0 = np.empty((nb, 2), dtype=np.complex128)
-    detect(u, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo, gate_hi,
-           count_sources, detect_source, stat, nu0, amp0)
+    detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo,
+           gate_hi, count_sources, detect_source, stat, nu0, amp0)
     any_active = False
     for f in range(nb):
         if threshold >= 0.0:
@@ -354,6 +503,7 @@ def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, s
     y = np.empty((nb, n, 2), dtype=np.complex128)
     none = np.empty((nb, 0, 2, 1), dtype=np.complex128)
     no_gate = np.zeros(1, dtype=np.bool_)
+    no_table = np.empty(0, dtype=np.complex128)
     stat0 = np.zeros(nb)
     amp0 = np.empty((nb, 2), dtype=np.complex128)
     amp = np.empty((nb, 0, 2), dtype=np.complex128)
@@ -361,8 +511,8 @@ def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, s
     for t in range(targets):
         _residual_into(folded, mu, ramps, y)
         nu0 = nu_all[:, t].copy()
-        detect(none, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]), np.ascontiguousarray(live_all[:, :t]), 1,
-               0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, stat0, nu0, amp0)
+        detect(none, none, no_table, 0.0, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]),
+               np.ascontiguousarray(live_all[:, :t]), 1, 0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, stat0, nu0, amp0)
         amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
         for f in range(nb):
             for j in range(t):
