@@ -31,9 +31,13 @@ def peaks(x, oversample, nu=(), live=(), outside=None, guard_bins=1.0, gate=(0.0
     coarse = np.fft.ifft(x, n=small, axis=1)
     args = (nu, live, oversample, guard_bins, outside, use_gate, *gate)
     full = kernels._peak(fine, *args, np.empty(size), np.empty(size, dtype=bool))
-    fast = kernels._peak_coarse(coarse, np.ascontiguousarray(x), n, *args, COARSE_RHO, _twiddles(size),
-                                np.empty(size), np.empty(size, dtype=bool), np.empty(size, dtype=bool),
-                                np.empty(small), np.empty(small, dtype=bool))
+    table, half = _twiddles(size), oversample // COARSE_PER_BIN // 2
+    d = np.r_[-half:0, 1:half + 1]
+    steps = table[np.outer(d, np.arange(n)) % size]
+    fast = kernels._peak_coarse(coarse, np.ascontiguousarray(x), n, *args, COARSE_RHO, table,
+                                np.ascontiguousarray([steps.real, steps.imag]), np.empty(size),
+                                np.empty(size, dtype=bool), np.empty(size, dtype=bool), np.empty(small),
+                                np.empty(small, dtype=bool), np.empty((4, n)), np.empty(2 * half))
     return full, fast
 
 
@@ -52,7 +56,8 @@ def test_coarse_peak_is_the_fine_grids_on_tones_and_noise(oversample):
         k = 1 + trial % 3
         nu = rng.uniform(0, n, k)
         amp = rng.standard_normal((k, 2)) + 1j * rng.standard_normal((k, 2))
-        x = tones(rng, n, nu, amp) + rng.uniform(0, 2) * (rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n)))
+        noise = rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n))
+        x = tones(rng, n, nu, amp) + rng.uniform(0, 2) * noise
         full, fast = peaks(x, oversample)
         assert abs(full - fast) <= TOL_BINS, (trial, full, fast)
         # the strongest tone found: the next peak away from it (a guard of 1 bin), some not live

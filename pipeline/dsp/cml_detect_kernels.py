@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.dsp.cml_kernels import evaluate, models, refine
+from pipeline.dsp.cml_kernels import _FAST, evaluate, models, refine
 from pipeline.dsp.kernel_cache import drop_stale
 
 
@@ -107,11 +107,8 @@ def _fine_energy(x, n, p, table):
         k += p
         if k >= size:
             k -= size
-    inv = 1.0 / size
-    ar *= inv
-    ai *= inv
-    br *= inv
-    bi *= inv
+    inv = 1.0 / size  # as the FFT's, before squaring
+    ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
     return (ar * ar + br * br) + (ai * ai + bi * bi)
 
 
@@ -127,13 +124,41 @@ def _fine_value(x, n, p, table, near, energy, known) -> float:
     return energy[p]
 
 
+@njit(**_FAST)
+def _cell_energies(x, n, s, table, offsets, v, out):
+    """:func:`_fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
+    (2, D, N) (real and imaginary parts of ``exp(2 pi i i d / L)``) into ``out`` (D,), in one
+    pass: ``x`` turned by the twiddles of point ``s`` into ``v`` (4, N) (work), then one
+    vectorized sum a point."""
+    size = table.shape[0]
+    k = 0
+    for i in range(n):
+        w = table[k]
+        a = x[0, i]
+        b = x[1, i]
+        v[0, i], v[1, i] = a.real * w.real - a.imag * w.imag, a.real * w.imag + a.imag * w.real
+        v[2, i], v[3, i] = b.real * w.real - b.imag * w.imag, b.real * w.imag + b.imag * w.real
+        k += s
+        if k >= size:
+            k -= size
+    inv = 1.0 / size
+    for j in range(offsets.shape[1]):
+        dr, di = offsets[0, j], offsets[1, j]
+        ar = ai = br = bi = 0.0
+        for i in range(n):
+            ar += v[0, i] * dr[i] - v[1, i] * di[i]
+            ai += v[0, i] * di[i] + v[1, i] * dr[i]
+            br += v[2, i] * dr[i] - v[3, i] * di[i]
+            bi += v[2, i] * di[i] + v[3, i] * dr[i]
+        ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
+        out[j] = (ar * ar + br * br) + (ai * ai + bi * bi)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _open_cell(c, ratio, half, size, outside, use_gate) -> bool:
     """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
-    if not use_gate:
-        return True
     for d in range(-half, half + 1):
-        if not outside[(c * ratio + d) % size]:
+        if not use_gate or not outside[(c * ratio + d) % size]:
             return True
     return False
 
@@ -148,26 +173,26 @@ def _mark_edge(lo, hi, ratio, lc, edge):
 
 @njit(cache=True, nogil=True)
 def _peak_coarse(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, rho, table,
-                 energy, known, near, coarse, edge) -> float:
+                 offsets, energy, known, near, coarse, edge, turned, cell) -> float:
     """:func:`_peak` (the same fine-grid peak of L = ``table.shape[0]`` points and parabola)
     from the inverse FFT ``uc`` (2, Lc) on a grid ``ratio = L / Lc`` times coarser, of
     ``x`` (2, >= N) (first ``n`` points): the fine energy is summed directly
-    (:func:`_fine_energy`) at the fine points within ``ratio // 2`` of every coarse point
+    (:func:`_cell_energies`) at the fine points within ``ratio // 2`` of every coarse point
     whose energy reaches ``rho`` times the best one found, and at the parabola's
     neighbours. A maximum of ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps
     more than ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone:
     0.81); a peak against the guard or the gate need not be a maximum, so a coarse point
     within a coarse step of a masked fine point (``edge``) counts its neighbours' energy
-    too. ``energy``, ``known``, ``near`` (L,), ``coarse``, ``edge`` (Lc,): work."""
+    too. ``offsets`` (2, 2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
+    ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``energy``, ``known``, ``near`` (L,), ``coarse``,
+    ``edge`` (Lc,), ``turned`` (4, N), ``cell`` (2 (ratio // 2),): work."""
     size = table.shape[0]
     lc = uc.shape[1]
     ratio = size // lc
     half = ratio // 2
-    for i in range(size):
-        near[i] = False
-        known[i] = False
-    for c in range(lc):
-        edge[c] = False
+    near[:] = False
+    known[:] = False
+    edge[:] = False
     reach = int(math.ceil(guard_bins * oversample)) - 1
     for j in range(nu.shape[0]):
         c = int(np.rint(nu[j] * oversample))
@@ -205,11 +230,15 @@ def _peak_coarse(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, 
         c = first if step == 0 else step - 1
         if c < 0 or (step > 0 and c == first):
             continue
-        reach_c = coarse[c]
-        if edge[c]:
-            reach_c = max(reach_c, max(coarse[c - 1], coarse[(c + 1) % lc]))
+        reach_c = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
         if reach_c < rho * max(floor, top) or not _open_cell(c, ratio, half, size, outside, use_gate):
             continue
+        _cell_energies(x, n, c * ratio, table, offsets, turned, cell)
+        for j in range(2 * half):
+            p = (c * ratio + j - half + (j >= half)) % size
+            if not known[p]:
+                energy[p] = cell[j]
+                known[p] = True
         for d in range(-half, half + 1):
             p = (c * ratio + d) % size
             v = -1.0 if use_gate and outside[p] else _fine_value(x, n, p, table, near, energy, known)
@@ -242,18 +271,29 @@ def detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, 
     size = oversample * n
     energy = np.empty(size)
     near = np.empty(size, dtype=np.bool_)
-    known = np.empty(size if u.shape[3] < size else 0, dtype=np.bool_)
-    coarse = np.empty(u.shape[3])
-    edge = np.empty(u.shape[3], dtype=np.bool_)
+    on_coarse = detect_source >= 0 and u.shape[3] < size
+    known = np.empty(size if on_coarse else 0, dtype=np.bool_)
+    coarse = np.empty(u.shape[3] if on_coarse else 0)
+    edge = np.empty(u.shape[3] if on_coarse else 0, dtype=np.bool_)
+    half = (size // u.shape[3]) // 2 if on_coarse else 0
+    offsets = np.empty((2, 2 * half, n))  # the fine offsets' twiddles (_cell_energies)
+    if on_coarse:
+        for j in range(2 * half):
+            d = j - half + (j >= half)
+            for i in range(n):
+                w = table[(i * d) % size]
+                offsets[0, j, i], offsets[1, j, i] = w.real, w.imag
+    turned = np.empty((4, n))
+    cell = np.empty(2 * half)
     scale = 1.0 / (ramps * n)
     for f in range(nb):
         for s in range(count_sources):
             r = _peak_ratio(u[f, s], nu[f], live[f], oversample, count_guard, outside, use_gate, energy, near)
             stat[f] = r if s == 0 else min(stat[f], r)
-        if detect_source >= 0 and u.shape[3] < size:
+        if on_coarse:
             nu0[f] = _peak_coarse(u[f, detect_source], src[f, detect_source], n, nu[f], live[f], oversample,
-                                  sep_guard, outside, use_gate, gate_lo, gate_hi, rho, table, energy, known, near,
-                                  coarse, edge)
+                                  sep_guard, outside, use_gate, gate_lo, gate_hi, rho, table, offsets, energy, known,
+                                  near, coarse, edge, turned, cell)
         elif detect_source >= 0:
             nu0[f] = _peak(u[f, detect_source], nu[f], live[f], oversample, sep_guard, outside, use_gate, gate_lo,
                            gate_hi, energy, near)
