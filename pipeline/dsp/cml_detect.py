@@ -33,8 +33,11 @@ MIN_SEPARATION_BINS = 1.0
 #: (:func:`pipeline.dsp.cml_detect_kernels._peak_coarse`)
 COARSE_PER_BIN = 2
 #: ... those whose energy reaches this fraction of the best fine energy found: the fine peak's
-#: nearest coarse point (at most 1 / (2 COARSE_PER_BIN) bin away) holds more (a tone's: 0.81;
-#: measured on detections of realistic frames: README)
+#: nearest coarse point (at most 1 / (2 COARSE_PER_BIN) bin away) holds more (a maximum of the
+#: energy: over cos^2(pi / 4) = 1/2, Riesz; a tone's: 0.81; a peak against the guard or the gate:
+#: its coarse neighbours count too). Measured against the full grid on 288 000 detections of
+#: 1-bit and unquantized frames (K = 1..3, alpha 1 and 0.45, noise 0 and 0.1, gated or not,
+#: targets 0.3 or 1.5 m apart): the same fine point every time, ranges within 3e-14 bins
 COARSE_RHO = 0.5
 #: the count test looks for a peak this far from the targets found, range bins (a guard
 #: band: a strong target's 1-bit fit leaves residual energy up to ~2 bins away)
