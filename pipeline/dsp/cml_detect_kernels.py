@@ -279,10 +279,10 @@ def detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, 
     offsets = np.empty((2, 2 * half, n))  # the fine offsets' twiddles (_cell_energies)
     if on_coarse:
         for j in range(2 * half):
-            d = j - half + (j >= half)
+            d, k = (j - half + (j >= half)) % size, 0  # exp(2 pi i i d / L) = table[i d mod L]
             for i in range(n):
-                w = table[(i * d) % size]
-                offsets[0, j, i], offsets[1, j, i] = w.real, w.imag
+                offsets[0, j, i], offsets[1, j, i] = table[k].real, table[k].imag
+                k = k + d - size if k + d >= size else k + d
     turned = np.empty((4, n))
     cell = np.empty(2 * half)
     scale = 1.0 / (ramps * n)
