@@ -27,6 +27,18 @@ def _kernels():
 
 #: a detection keeps at least this far from the targets already found, range bins
 MIN_SEPARATION_BINS = 1.0
+#: detection without a count test (``k`` fixed) takes its inverse FFT on a grid of this many
+#: points a bin, coarser than ``oversample``, and finds the same fine-grid peak by summing the
+#: fine energy directly around the coarse points that could hold it
+#: (:func:`pipeline.dsp.cml_detect_kernels._peak_coarse`)
+COARSE_PER_BIN = 2
+#: ... those whose energy reaches this fraction of the best fine energy found: the fine peak's
+#: nearest coarse point (at most 1 / (2 COARSE_PER_BIN) bin away) holds more (a maximum of the
+#: energy: over cos^2(pi / 4) = 1/2, Riesz; a tone's: 0.81; a peak against the guard or the gate:
+#: its coarse neighbours count too). Measured against the full grid on 288 000 detections of
+#: 1-bit and unquantized frames (K = 1..3, alpha 1 and 0.45, noise 0 and 0.1, gated or not,
+#: targets 0.3 or 1.5 m apart): the same fine point every time, ranges within 3e-14 bins
+COARSE_RHO = 0.5
 #: the count test looks for a peak this far from the targets found, range bins (a guard
 #: band: a strong target's 1-bit fit leaves residual energy up to ~2 bins away)
 COUNT_GUARD_BINS = 2.0
@@ -196,14 +208,36 @@ def residual_compiled(codes: _Codes, fit: _Fit, score: bool = False, residual: b
 
 def _back_projections(codes: _Codes, fit: _Fit, oversample: int, count: bool, given: bool):
     """What the detect kernel reads: the linear residual (B, N, 2), the inverse FFTs (B, S, 2,
-    L) of the sources it needs, how many the count test reads and which detection reads."""
+    L) of the sources it needs, how many the count test reads and which detection reads, the
+    sources before their FFT (B, S, 2, L) and the twiddles of the fine grid: without a count
+    test L = COARSE_PER_BIN N (:func:`pipeline.dsp.cml_detect_kernels._peak_coarse`, when
+    ``oversample`` is a multiple of it beyond it), else ``oversample`` N."""
     on_score = codes.bits is not None and not given and fit.nu.shape[1] > 0  # detection on the likelihood's score
     with_residual = count or (not given and not on_score)
     with_score = codes.bits is not None and (count or on_score)
-    y, buf = residual_compiled(codes, fit, with_score, with_residual, oversample)
+    coarse = not count and not given and oversample % COARSE_PER_BIN == 0 and oversample > COARSE_PER_BIN
+    y, buf = residual_compiled(codes, fit, with_score, with_residual, COARSE_PER_BIN if coarse else oversample)
     sources = buf.shape[1]
     u = _ifft(buf) if sources else buf
-    return y, u, (sources if count else 0), (-1 if given else sources - 1 if on_score else 0)
+    table = _twiddles(oversample * codes.n) if coarse else _NO_TABLE
+    return y, u, (sources if count else 0), (-1 if given else sources - 1 if on_score else 0), buf, table
+
+
+def _twiddles(size: int) -> np.ndarray:
+    """``exp(2 pi i k / size)`` (size,) complex, kept per size (read-only)."""
+    table = _twiddle_tables.get(size)
+    if table is None:
+        if len(_twiddle_tables) >= 8:
+            _twiddle_tables.clear()
+        table = np.exp(2j * np.pi * np.arange(size) / size)
+        table.flags.writeable = False
+        _twiddle_tables[size] = table
+    return table
+
+
+_twiddle_tables: dict[int, np.ndarray] = {}
+_NO_TABLE = np.zeros(0, dtype=complex)
+_NO_TABLE.flags.writeable = False
 
 
 def _gate_args(gate):
@@ -223,12 +257,12 @@ def detect_compiled(codes: _Codes, fit: _Fit, oversample: int, count: bool, nu0:
     one inverse FFT of the block, then one kernel call. Returns the statistic (B,), the
     ranges (B,) in bins and the amplitudes (B, 2)."""
     given = nu0 is not None
-    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, count, given)
+    y, u, count_sources, detect_source, src, table = _back_projections(codes, fit, oversample, count, given)
     b = y.shape[0]
     stat = np.zeros(b)
     nu_out = np.array(nu0, dtype=float) if given else np.empty(b)
     amp = np.empty((b, 2), dtype=complex)
-    _kernels().detect(u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+    _kernels().detect(u, src, table, COARSE_RHO, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
                       np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS,
                       *_gate_args(fit.gate), count_sources, detect_source, stat, nu_out, amp)
     return (stat if count else None), nu_out, amp
@@ -241,11 +275,12 @@ def add_target_compiled(codes: _Codes, fit: _Fit, oversample: int, threshold: fl
     ``iters`` refinement steps at ``sigma`` (B,) of all the targets
     (:func:`pipeline.dsp.cml_detect_kernels.add_target`). Returns False (``fit`` unchanged)
     when no frame holds a new target."""
-    y, u, count_sources, detect_source = _back_projections(codes, fit, oversample, threshold is not None, False)
+    y, u, count_sources, detect_source, src, table = _back_projections(codes, fit, oversample, threshold is not None,
+                                                                       False)
     b, n = fit.mu.shape[:2]
     mu, g, h = np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2)), np.empty((b, n, 2, 2))
     found, nu, amp, live, lm, nll, level = _kernels().add_target(
-        u, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
+        u, src, table, COARSE_RHO, y, fit.kc, codes.ramps, np.ascontiguousarray(fit.nu, dtype=float),
         np.ascontiguousarray(fit.amp, dtype=complex), np.ascontiguousarray(fit.live), oversample, COUNT_GUARD_BINS,
         MIN_SEPARATION_BINS, *_gate_args(fit.gate), count_sources, detect_source,
         -1.0 if threshold is None else float(threshold), active, codes.kind, _LIK[fit.likelihood], codes.ka, codes.kb,

@@ -1,0 +1,145 @@
+"""Detection on a coarse inverse FFT (pipeline.dsp.cml_detect_kernels._peak_coarse: the
+FFT on COARSE_PER_BIN N points, the fine energy summed directly around the coarse points
+that could hold the peak) against the full fine grid (``_peak``, the kernel the count test
+keeps) and the numpy reference (pipeline.dsp.cml_detect._detect).
+
+Tolerance: the same fine-grid point and parabola, from energies summed in another order
+(an FFT of another size, direct sums): ranges agree to 1e-9 bins (measured: 3e-14)."""
+
+import numpy as np
+import pytest
+from test_cml import measure, random_scenes
+from test_cml_kernels import detection_agrees
+
+from pipeline.dsp import cml_detect_kernels as kernels
+from pipeline.dsp.cml import cml
+from pipeline.dsp.cml_detect import COARSE_PER_BIN, COARSE_RHO, _twiddles
+from pipeline.dsp.gate import RangeGate
+
+TOL_BINS = 1e-9
+
+
+def peaks(x, oversample, nu=(), live=(), outside=None, guard_bins=1.0, gate=(0.0, 0.0)):
+    """The peak (bins) of the sources ``x`` (2, N) complex by the full fine grid and by the
+    coarse grid, the same guard (targets ``nu`` bins, ``live``) and gate (``outside`` (L,))."""
+    n = x.shape[1]
+    size, small = oversample * n, COARSE_PER_BIN * n
+    nu, live = np.asarray(nu, dtype=float), np.asarray(live, dtype=bool)
+    use_gate = outside is not None
+    outside = np.zeros(1, dtype=bool) if outside is None else outside
+    fine = np.fft.ifft(x, n=size, axis=1)
+    coarse = np.fft.ifft(x, n=small, axis=1)
+    args = (nu, live, oversample, guard_bins, outside, use_gate, *gate)
+    full = kernels._peak(fine, *args, np.empty(size), np.empty(size, dtype=bool))
+    table, half = _twiddles(size), oversample // COARSE_PER_BIN // 2
+    d = np.r_[-half:0, 1:half + 1]
+    steps = table[np.outer(d, np.arange(n)) % size]
+    fast = kernels._peak_coarse(coarse, np.ascontiguousarray(x), n, *args, COARSE_RHO, table,
+                                np.ascontiguousarray([steps.real, steps.imag]), np.empty(size),
+                                np.empty(size, dtype=bool), np.empty(size, dtype=bool), np.empty(small),
+                                np.empty(small, dtype=bool), np.empty((4, n)), np.empty(2 * half))
+    return full, fast
+
+
+def tones(rng, n, nu, amp):
+    """(2, N) complex: tones at ``nu`` (bins), amplitudes ``amp`` (K, 2), as the back
+    projection sees a target (``exp(2 pi i nu k / N)`` peaks at ``nu``)."""
+    k = np.arange(n)
+    return sum(np.exp(-2j * np.pi * v * k / n)[None, :] * np.asarray(a)[:, None] for v, a in zip(nu, amp))
+
+
+@pytest.mark.parametrize("oversample", [4, 8, 16])
+def test_coarse_peak_is_the_fine_grids_on_tones_and_noise(oversample):
+    rng = np.random.default_rng(oversample)
+    n = 64
+    for trial in range(300):
+        k = 1 + trial % 3
+        nu = rng.uniform(0, n, k)
+        amp = rng.standard_normal((k, 2)) + 1j * rng.standard_normal((k, 2))
+        noise = rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n))
+        x = tones(rng, n, nu, amp) + rng.uniform(0, 2) * noise
+        full, fast = peaks(x, oversample)
+        assert abs(full - fast) <= TOL_BINS, (trial, full, fast)
+        # the strongest tone found: the next peak away from it (a guard of 1 bin), some not live
+        full, fast = peaks(x, oversample, nu[:1], [trial % 4 != 0])
+        assert abs(full - fast) <= TOL_BINS, (trial, full, fast)
+
+
+def test_coarse_peak_against_the_guard_and_the_gate():
+    """A peak whose top is masked (a tone 0.5 bin inside the guard of a target found, or
+    just beyond the gate) leaves the largest energy outside on its flank: the fine grid's
+    point there, not a coarse point's."""
+    rng = np.random.default_rng(1)
+    n, oversample = 64, 8
+    size = n * oversample
+    for trial in range(200):
+        found = rng.uniform(10, 50)
+        side = 1 if trial % 2 else -1
+        nu = [found, found + side * rng.uniform(0.3, 1.2)]
+        x = tones(rng, n, nu, [[0.05, 0.05j], [1.0, 0.5]]) + 0.01 * rng.standard_normal((2, n))
+        full, fast = peaks(x, oversample, [found], [True])
+        assert abs(full - fast) <= TOL_BINS, (trial, full, fast)
+        lo, hi = found - rng.uniform(5, 9), found + rng.uniform(-1.0, 0.3)  # the tone near or beyond the top
+        grid = np.arange(size) / oversample
+        outside = (grid < lo) | (grid > hi)
+        full, fast = peaks(tones(rng, n, [found + rng.uniform(-0.3, 0.3)], [[1, 1j]]), oversample, outside=outside,
+                           gate=(lo, hi))
+        assert abs(full - fast) <= TOL_BINS, (trial, full, fast)
+
+
+def test_coarse_peak_of_nothing_is_the_full_grids():
+    """No energy: the first point inside the gate (argmax's first of equal values); all beyond it: point 0."""
+    n, oversample = 32, 8
+    x = np.zeros((2, n), dtype=complex)
+    assert peaks(x, oversample) == (0.0, 0.0)
+    outside = np.ones(n * oversample, dtype=bool)
+    outside[37:90] = False
+    full, fast = peaks(x, oversample, outside=outside, gate=(37 / 8, 89 / 8))
+    assert full == fast == 37 / 8
+    full, fast = peaks(x, oversample, outside=np.ones(n * oversample, dtype=bool), gate=(1.0, 2.0))
+    assert full == fast == 1.0
+
+
+def test_fine_energy_is_the_zero_padded_ffts():
+    rng = np.random.default_rng(2)
+    n, size = 48, 48 * 8
+    x = rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n))
+    u = np.fft.ifft(x, n=size, axis=1)
+    ref = np.abs(u[0]) ** 2 + np.abs(u[1]) ** 2
+    got = np.array([kernels._fine_energy(x, n, p, _twiddles(size)) for p in range(size)])
+    np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize("oversample", [3, 4, 16])
+def test_compiled_detection_agrees_with_numpy_on_other_grids(cfg, oversample):
+    """Grids of 4 and 16 points a bin (coarse ratios 2 and 8) and 3 (not a multiple of
+    COARSE_PER_BIN: the full grid) against the numpy reference."""
+    rng = np.random.default_rng(50 + oversample)
+    r, a, x = random_scenes(8, 2, rng)
+    z, xi, delta = measure(r, a, x, cfg, rng)
+    detection_agrees(z, xi, delta, 1, cfg, oversample=oversample)
+
+
+def test_compiled_detection_agrees_with_numpy_on_close_targets_and_a_gate(cfg):
+    rng = np.random.default_rng(60)
+    r, a, x = random_scenes(12, 3, rng, separation_m=0.4)
+    r = 21.0 + (r - 3.0) * (78.0 / 147.0)
+    z, xi, delta = measure(r, a, x, cfg, rng, noise=0.05)
+    detection_agrees(z, xi, delta, 1, cfg, RangeGate(min_range_m=20.0, max_range_m=100.0))
+
+
+def test_decoder_with_k_fixed_matches_the_full_grids(cfg, monkeypatch):
+    """cml with k fixed (the coarse grid) gives the same targets as with the coarse grid
+    switched off (the full fine grid) to the last bits' run-to-run variation."""
+    from pipeline.dsp import cml_detect
+    rng = np.random.default_rng(70)
+    r, a, x = random_scenes(16, 2, rng)
+    z, xi, delta = measure(r, a, x, cfg, rng, alpha=0.45, noise=0.1)
+    gate = RangeGate(min_range_m=2.0, max_range_m=140.0)
+    for kw in ({}, {"gate": gate}):
+        got = cml(z, xi, delta, 1, cfg, 2, **kw)
+        monkeypatch.setattr(cml_detect, "COARSE_PER_BIN", 8)  # = oversample: no coarse grid
+        ref = cml(z, xi, delta, 1, cfg, 2, **kw)
+        monkeypatch.undo()
+        np.testing.assert_allclose(got.range_m, ref.range_m, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got.amplitudes, ref.amplitudes, rtol=0, atol=1e-9)
