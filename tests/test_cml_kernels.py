@@ -312,21 +312,6 @@ def test_model_is_the_atoms_times_the_amplitudes():
         np.testing.assert_allclose(mu.view(complex), atoms.T @ amp, rtol=0, atol=1e-12)
 
 
-def test_matched_filter_is_the_sum_of_exponentials():
-    """``_matched``: ``sum_i exp(i 2 pi nu kc[i] / N) y[i, p]`` from the atom (six cos/sin and
-    products) against numpy's exp, to 1e-12 of the largest, also for N not a multiple of the
-    atom's block."""
-    rng = np.random.default_rng(53)
-    for n in (256, 100, 7):
-        kc = np.arange(n) - n / 2.0
-        y = rng.standard_normal((n, 2)) + 1j * rng.standard_normal((n, 2))
-        wr, wi = np.empty(n), np.empty(n)
-        for nu in rng.uniform(0.0, n, 20):
-            got = np.array(cml_kernels._matched(nu, kc, y, wr, wi))
-            ref = np.exp(2j * np.pi * nu * kc / n) @ y
-            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
-
-
 def test_normal_equations_are_the_jacobians():
     """The Gauss--Newton system from the weighted sums against ``sum_j J_j^T diag(h_j) J_j``
     and ``sum_j J_j^T g_j`` with the numpy reference's Jacobians (float64): the Hessian's

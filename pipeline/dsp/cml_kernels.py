@@ -95,23 +95,6 @@ def _model(nu, amp, kc, w, mu):
         mu[:] = 0.0
 
 
-@njit(**_FAST)
-def _matched(nu_t, kc, y, wr, wi):
-    """The matched filter of a target at ``nu_t`` bins on ``y`` (N, 2) complex:
-    ``sum_i conj(w[i]) y[i, p]`` for p = 0, 1, w the atom of :func:`_atom` (written to the
-    work arrays ``wr``, ``wi`` (N,)); what ``sum_i exp(i 2 pi nu_t kc[i] / N) y[i, p]``
-    costs with 2 N cos/sin, with six (relative error ~1e-14)."""
-    _atom(nu_t, kc, wr, wi)
-    s0r = s0i = s1r = s1i = 0.0
-    for i in range(kc.shape[0]):
-        y0, y1 = y[i, 0], y[i, 1]
-        s0r += wr[i] * y0.real + wi[i] * y0.imag
-        s0i += wr[i] * y0.imag - wi[i] * y0.real
-        s1r += wr[i] * y1.real + wi[i] * y1.imag
-        s1i += wr[i] * y1.imag - wi[i] * y1.real
-    return complex(s0r, s0i), complex(s1r, s1i)
-
-
 @njit(cache=True, nogil=True)
 def models(nu, amp, kc, mu):
     """The model ``mu`` (B, N, 4) of targets ``nu`` (B, K) bins, ``amp`` (B, K, 2) (as
