@@ -416,9 +416,9 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     z = np.asarray(z)
     pfa = decoder.pfa if decoder.auto_k else None
     gate = None if decoder.gate is None else decoder.gate.check(config)
-    if decoder.algo == Algo.PBP:
+    if decoder.algo is Algo.PBP:  # DecoderConfig holds an Algo
         return localize(z, config, k, indices, pfa, gate)
-    if decoder.algo == Algo.CML and indices is None:
+    if decoder.algo is Algo.CML and indices is None:
         return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
                    noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa, gate=gate,
                    engine=decoder.engine, likelihood=decoder.likelihood,
