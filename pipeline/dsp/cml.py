@@ -153,8 +153,14 @@ def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     np.square(power, out=power)
     amp = np.sqrt((power[..., 0] + power[..., 1]) / 2.0)  # the sum over the 2 antennas
     bins = np.rint(np.where(np.isnan(r), 0.0, r) / dr).astype(np.int64) % n
-    det = Detections(r, np.rad2deg(angle), p.real, p.imag, amp, bins, result.statistic_db)
-    return det if result.present.all() else det.masked(result.present)
+    values = (r, np.rad2deg(angle), p.real, p.imag, amp)
+    present = result.present
+    if present.all():
+        return Detections(*values, bins, result.statistic_db)
+    # what Detections.masked(present) gives, without building the unmasked Detections first
+    present = present.astype(bool)  # a copy
+    return Detections(*(np.where(present, v, np.nan) for v in values), np.where(present, bins, -1),
+                      np.where(present, result.statistic_db, np.nan), present)
 
 
 @lru_cache(maxsize=16)
@@ -406,18 +412,24 @@ def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, ove
 
     widx = np.flatnonzero(warm)
     if widx.size:
+        whole = widx.size == b <= BLOCK_FRAMES  # one block of warm frames (a live node's call): no copies
         for lo in range(0, widx.size, BLOCK_FRAMES):
             idx = widx[lo:lo + BLOCK_FRAMES]
-            zz, xx, dd, nn = sub(idx)
+            zz, xx, dd, nn = (z, xi, delta, noise_sigma) if whole else sub(idx)
             res, misfit = _refine_warm(zz, xx, dd, bits, config, k, nn, anneal, threshold, cgate, engine, likelihood,
-                                       init[idx], oversample, warm_threshold)
+                                       init if whole else init[idx], oversample, warm_threshold)
+            if whole and not misfit.any():
+                return res
             for j, i in enumerate(idx.tolist()):
                 out[i] = None if misfit[j] else _row(res, j)
         cold = np.flatnonzero([o is None for o in out])
+    whole = cold.size == b <= BLOCK_FRAMES  # one block, every frame from scratch: no copies
     for lo in range(0, cold.size, BLOCK_FRAMES):
         idx = cold[lo:lo + BLOCK_FRAMES]
-        zz, xx, dd, nn = sub(idx)
+        zz, xx, dd, nn = (z, xi, delta, noise_sigma) if whole else sub(idx)
         res = _decode(zz, xx, dd, bits, config, k, nn, iters, anneal, oversample, threshold, cgate, engine, likelihood)
+        if whole:
+            return res
         for j, i in enumerate(idx.tolist()):
             out[i] = _row(res, j)
     return CmlResult(*(np.stack([getattr(o, f.name) for o in out]) for f in fields(CmlResult)))
