@@ -78,7 +78,7 @@ from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _k
     _NOT_FINITE, _NOT_FINITE_DITHER, _NOT_LEVELS, add_target_compiled, check_frames_compiled, detect_compiled, \
     finish_compiled, residual_compiled, warm_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
-                      _Codes, _Fit, _Gate)
+                      _Codes, _Fit, _Gate, centred_indices)
 from pipeline.errors import ParameterError
 from pipeline.dsp import cml_warmup
 from pipeline.dsp.cml_warmup import kernels_ready  # noqa: F401 (cml's API)
@@ -137,11 +137,9 @@ class CmlResult:
 
 def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     """Range, angle (from the phase between the antennas), position, amplitude
-    ``sqrt((|a1|^2 + |a2|^2) / 2)`` and nearest range bin of each target of ``result``.
-
-    The operations of :func:`radar_driver.model.angle_from_antennas_rad` and
-    :func:`~radar_driver.model.polar_to_xy`, in their order (the same numbers to the bit),
-    with fewer numpy calls: at batch 1 a call's overhead is the cost."""
+    ``sqrt((|a1|^2 + |a2|^2) / 2)`` and nearest range bin of each target of ``result``: the
+    operations of :func:`radar_driver.model.angle_from_antennas_rad` and
+    :func:`~radar_driver.model.polar_to_xy` in their order (the same bits), fewer numpy calls."""
     a = result.amplitudes
     c, per_phase, dr, n = _detection_constants(config)
     x = a[..., 1] * np.conj(a[..., 0])
@@ -157,16 +155,14 @@ def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     present = result.present
     if present.all():
         return Detections(*values, bins, result.statistic_db)
-    # what Detections.masked(present) gives, without building the unmasked Detections first
-    present = present.astype(bool)  # a copy
+    present = present.astype(bool)  # a copy; then Detections.masked(present)'s, without the unmasked Detections
     return Detections(*(np.where(present, v, np.nan) for v in values), np.where(present, bins, -1),
                       np.where(present, result.statistic_db, np.nan), present)
 
 
 @lru_cache(maxsize=16)
 def _detection_constants(config: RadarConfig) -> tuple[float, float, float, int]:
-    """c (m/s), the phase (rad) a unit of the arcsin's argument is worth, dR (m) and N, as
-    :func:`radar_driver.model.angle_from_antennas_rad` and :func:`cml_detections` compute them."""
+    """c (m/s), the phase (rad) per unit of the arcsin's argument, dR (m) and N, computed as the model does."""
     return (config.c_m_s, 2.0 * np.pi * config.f0_hz * config.d_m, config.range_resolution_m,
             config.samples_per_ramp)
 
@@ -189,15 +185,17 @@ def _is_int(v) -> bool:
 
 @lru_cache(maxsize=32)
 def _dtype_kind(dtype: np.dtype) -> tuple[bool, bool]:
-    """Whether ``dtype`` is an integer (the quantizer's codes) and whether it is a number,
-    once per dtype (``np.issubdtype`` costs microseconds a call)."""
+    """Whether ``dtype`` is an integer (codes) and a number, once per dtype (issubdtype is slow)."""
     return bool(np.issubdtype(dtype, np.integer)), bool(np.issubdtype(dtype, np.number))
+
+
+_MIN, _MAX = np.minimum.reduce, np.maximum.reduce  # ndarray.min and max without their Python wrappers
 
 
 def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
     """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats."""
     if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and b and (
-            (value.min() > 0.0) if positive else (value.min() >= 0.0)) and value.max() < np.inf:
+            (_MIN(value) > 0.0) if positive else (_MIN(value) >= 0.0)) and _MAX(value) < np.inf:
         return value  # the common case, two reductions (NaN fails both); only read downstream
     try:
         v = np.asarray(value, dtype=float)
@@ -251,8 +249,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     half = 1 << (bits - 1)
     if in_kernel and b:
         z = check_frames_compiled(z, xi, d, bits, codes)
-    # codes are levels by construction: only their range (unsigned ones are never below 0)
-    if codes and z.size and ((z.dtype.kind != "u" and z.min() < 0) or z.max() >= 1 << bits):
+    if codes and z.size and ((z.dtype.kind != "u" and z.min() < 0) or z.max() >= 1 << bits):  # levels: the range
         raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
                              f"[{z.min()}, {z.max()}]")
     if codes or in_kernel:
@@ -456,28 +453,13 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     b, m = z.shape[:2]
     n = config.samples_per_ramp
     codes = _Codes(z, xi, delta, bits, n, compiled=engine != "numpy")
-    fit = _Fit(codes, _centred(n), b, gate, engine, likelihood)
+    fit = _Fit(codes, centred_indices(n), b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
     if noise_sigma is None:  # delta > 0: the maxima with a noise of 0, without computing them
         return codes, fit, SIGMA_START * delta, delta / m, delta * (1 << (bits - 1))
     return (codes, fit, np.maximum(SIGMA_START * delta, noise_sigma), np.maximum(delta / m, noise_sigma),
             delta * (1 << (bits - 1)))
-
-
-@lru_cache(maxsize=8)
-def _ones(n: int) -> np.ndarray:
-    """(n,) ones, read-only, once per n."""
-    ones = np.ones(n)
-    ones.flags.writeable = False
-    return ones
-
-
-@lru_cache(maxsize=8)
-def _centred(n: int) -> np.ndarray:
-    """The sample indices of a ramp from its middle, ``kc = n - (N - 1) / 2`` (N,), once per N.
-    Shared by every fit and only read; writeable, as the compiled kernels' signatures take it."""
-    return np.arange(n) - (n - 1) / 2.0
 
 
 def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, gate, engine, likelihood, init,
@@ -545,8 +527,7 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
     (linear), or None; ``gate``: the range gate, or None."""
     b = z.shape[0]
     codes, fit, sigma, floor, amp_cap = _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood)
-    active = np.empty(b, dtype=bool)  # frames whose residual may still hold a target
-    active.fill(True)
+    active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
     if threshold is not None:
         fit.evaluate(sigma)  # the score of the empty model, for the first count test
     for t in range(k):
@@ -567,8 +548,9 @@ def _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversampl
         fit.evaluate_and_run(sigma, np.repeat(sigma[:, None], iters, axis=1), amp_cap)
     if bits is not None and anneal:
         ratio = (floor / sigma) ** (1.0 / anneal)
-        levels = np.multiply.outer(ratio, _ones(anneal))  # (B, anneal), every column ratio
-        np.multiply(ratio, sigma, out=levels[:, 0])
+        levels = np.empty((b, anneal))
+        levels[:] = ratio[:, None]
+        levels[:, 0] *= sigma
         np.multiply.accumulate(levels, axis=1, out=levels)  # sigma ratio^j, as repeated products
         if engine != "numpy" and fit.nu.shape[1]:  # the annealing and the result in one kernel call
             return CmlResult(*finish_compiled(fit, codes, config, levels, noise_sigma is None, amp_cap, k,

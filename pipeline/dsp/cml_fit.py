@@ -7,6 +7,7 @@ Shapes: a block of B frames of R ramps of N samples; the real parts of a sample 
 from __future__ import annotations
 
 import importlib.util
+from functools import lru_cache
 
 import numpy as np
 
@@ -48,6 +49,13 @@ WRONG_RMS_PER_SIGMA = np.sqrt(2.0 / 3.0)
 
 
 _codes_arrays = None  # pipeline.dsp.cml_detect_kernels.codes_arrays, imported on first use
+
+
+@lru_cache(maxsize=8)
+def centred_indices(n: int) -> np.ndarray:
+    """The sample indices of a ramp from its middle, ``kc = n - (N - 1) / 2`` (N,), once per N:
+    shared by every :class:`_Fit` and only read (writeable: the compiled kernels' signatures)."""
+    return np.arange(n) - (n - 1) / 2.0
 
 
 # -- the likelihood ---------------------------------------------------------------------
