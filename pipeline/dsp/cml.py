@@ -193,10 +193,11 @@ _MIN, _MAX = np.minimum.reduce, np.maximum.reduce  # ndarray.min and max without
 
 
 def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
-    """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats."""
+    """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats (the
+    common case, (B,) float64, by two reductions: NaN fails both)."""
     if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and b and (
             (_MIN(value) > 0.0) if positive else (_MIN(value) >= 0.0)) and _MAX(value) < np.inf:
-        return value  # the common case, two reductions (NaN fails both); only read downstream
+        return value if value.flags.c_contiguous and value.flags.writeable else value.copy()  # numba's signature
     try:
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -359,9 +360,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
 
 @lru_cache(maxsize=64)
 def _gate(gate: RangeGate | None, config: RadarConfig, oversample: int) -> _Gate | None:
-    """The range gate in cml's terms (None: none), checked against the radar
-    (:meth:`RangeGate.check`) and built once per gate, radar and grid (a live node decodes
-    every frame with the same)."""
+    """The range gate in cml's terms (None: none), checked (:meth:`RangeGate.check`) and built once
+    per gate, radar and grid (a live node decodes every frame with the same)."""
     if gate is None:
         return None
     cgate = _Gate(gate.check(config), config, oversample)
