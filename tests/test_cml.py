@@ -7,7 +7,7 @@ from pipeline.dsp.cml import BLOCK_FRAMES, CmlResult, cml, cml_detections, model
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import Detections, localize, nearest_estimates, position_error_m
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
-from radar_driver.model import RadarConfig, antenna_phase_rad, simulate_frames
+from radar_driver.model import RadarConfig, angle_from_antennas_rad, antenna_phase_rad, polar_to_xy, simulate_frames
 
 
 def measure(r, a, x, cfg, rng, bits=1, alpha=1.0, noise=0.0):
@@ -152,6 +152,43 @@ def test_detections_follow_the_conventions(cfg):
     assert det.frame(0)[0]["range_m"] == pytest.approx(20.0, abs=1e-6)
 
 
+def reference_detections(result: CmlResult, config: RadarConfig) -> Detections:
+    """cml_detections from the model's functions (:func:`angle_from_antennas_rad`,
+    :func:`polar_to_xy`) and :meth:`Detections.masked`, as written before it was inlined."""
+    a = result.amplitudes
+    angle = angle_from_antennas_rad(a[..., 0], a[..., 1], config)
+    x, y = polar_to_xy(result.range_m, angle)
+    amp = np.sqrt((np.abs(a) ** 2).sum(axis=-1) / 2.0)
+    r = result.range_m
+    bins = np.rint(np.where(np.isnan(r), 0.0, r) / config.range_resolution_m).astype(np.int64) % \
+        config.samples_per_ramp
+    det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
+    return det if result.present.all() else det.masked(result.present)
+
+
+@pytest.mark.parametrize("spacing_m", [None, 0.011])  # 0.011 m: beyond half a wavelength, the arcsin clipped
+def test_detections_are_the_model_functions_to_the_bit(cfg, spacing_m):
+    config = RadarConfig(antenna_spacing_m=spacing_m)
+    rng = np.random.default_rng(12)
+    b, k = 500, 3
+    present = rng.random((b, k)) < 0.7
+    present[: b // 2] = True  # frames with every target (one Detections) and without (masked)
+    r = np.where(present, rng.uniform(0, config.max_range_m, (b, k)), np.nan)
+    r[0, 0] = config.max_range_m - 1e-9  # the last bin wraps to 0
+    amp = (rng.standard_normal((b, k, 2)) + 1j * rng.standard_normal((b, k, 2))) * 10.0 ** rng.uniform(-4, 2, (b, k, 1))
+    amp[1, 0, 1] = -amp[1, 0, 0]  # a phase difference of pi
+    amp = np.where(present[..., None], amp, 0.0)
+    stat = np.where(present, rng.uniform(5, 60, (b, k)), np.nan)
+    for sl in (slice(0, 1), slice(0, b // 2), slice(b // 2, b // 2 + 1), slice(0, b)):
+        res = CmlResult(r[sl], amp[sl], stat[sl], np.ones(sl.stop - sl.start), present[sl])
+        got, want = cml_detections(res, config), reference_detections(res, config)
+        for name in Detections.__dataclass_fields__:
+            g, w = getattr(got, name), getattr(want, name)
+            assert g.dtype == w.dtype and g.shape == w.shape, name
+            np.testing.assert_array_equal(np.ascontiguousarray(g).view(np.uint8),
+                                          np.ascontiguousarray(w).view(np.uint8), err_msg=name)
+
+
 def test_frames_are_decoded_independently_of_the_batch(cfg):
     rng = np.random.default_rng(11)
     b = BLOCK_FRAMES + 6
@@ -189,6 +226,11 @@ def test_other_radar_configurations():
     (dict(delta=-1.0), "delta must be a finite value > 0"),
     (dict(delta=np.ones(3)), r"delta must be .* \(2,\)"),
     (dict(delta=0.25), "not a 1-bit quantized frame"),
+    (dict(delta=np.array([1.0, np.nan])), "delta must be a finite value > 0"),  # (B,) floats: the fast check
+    (dict(delta=np.array([0.0, 1.0])), "delta must be a finite value > 0"),
+    (dict(delta=np.array([1.0, np.inf])), "delta must be a finite value > 0"),
+    (dict(noise_sigma=np.array([0.1, np.inf])), "noise_sigma must be a finite value >= 0"),
+    (dict(noise_sigma=np.array([-0.1, 0.1])), "noise_sigma must be a finite value >= 0"),
     (dict(bits=0), "bits=0"),
     (dict(noise_sigma=-0.1), "noise_sigma"),
     (dict(oversample=0), "oversample=0"),

@@ -379,3 +379,23 @@ def test_warm_up_loads_the_kernels_of_1_bit_codes_first():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["True", "True", "True"]
+
+
+def test_a_read_only_or_strided_delta_gives_the_same_result_and_no_new_kernel(cfg):
+    """delta (B,) float64 is taken as it is when numba's signature holds (C-contiguous,
+    writeable), else copied: a read-only or strided one decodes the same, compiling nothing."""
+    from pipeline.dsp import cml_detect_kernels
+
+    (r, a, x), rng = off_grid(3, 2, 44)
+    z, xi, delta = measure(r, a, x, cfg, rng)
+    want = cml(z, xi, delta, 1, cfg, 2)
+    kernels = (cml_detect_kernels.codes_arrays, cml_detect_kernels.frame_faults)
+    signatures = [len(k.signatures) for k in kernels]
+    read_only = delta.copy()
+    read_only.flags.writeable = False
+    for d in (read_only, np.repeat(delta, 2)[::2]):
+        got = cml(z, xi, d, 1, cfg, 2)
+        for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    assert [len(k.signatures) for k in kernels] == signatures
+    assert read_only.flags.writeable is False  # the caller's array untouched

@@ -52,6 +52,29 @@ def test_warm_is_as_accurate_as_cold_on_a_monte_carlo_batch(cfg):
     assert warm[:, 1].mean() <= cold[:, 1].mean() * 1.05 + 0.01  # weakest target
 
 
+@pytest.mark.parametrize("pfa", [None, PFA])
+def test_a_block_of_warm_or_of_cold_frames_is_decoded_as_in_a_mixed_batch(cfg, pfa):
+    """A call whose frames are all warm (or all without a start) takes a shortcut (no copies,
+    no re-stacking): each frame's result is the same to the bit as in a batch that mixes
+    warm and cold frames, and as a frame decoded without a start."""
+    rng = np.random.default_rng(3)
+    r, a, x = random_scenes(12, 2, rng)
+    z, xi, delta = measure(r, a, x, cfg, rng, noise=0.01)
+    k = 2 if pfa is None else 3
+    init = np.concatenate([r + rng.uniform(-0.05, 0.05, r.shape), np.full((12, k - 2), np.nan)], axis=1)
+    init[0, 1] = init[1, 0] = np.nan  # warm frames with one start
+    mixed_init = init.copy()
+    mixed_init[6:] = np.nan  # frames 6.. from scratch
+    mixed = cml(z, xi, delta, 1, cfg, k, pfa=pfa, init_range_m=mixed_init)
+    warm = cml(z[:6], xi[:6], delta[:6], 1, cfg, k, pfa=pfa, init_range_m=init[:6])
+    cold = cml(z[6:], xi[6:], delta[6:], 1, cfg, k, pfa=pfa, init_range_m=mixed_init[6:])
+    scratch = cml(z[6:], xi[6:], delta[6:], 1, cfg, k, pfa=pfa)
+    for name in CmlResult.__dataclass_fields__:
+        both = np.concatenate([getattr(warm, name), getattr(cold, name)])
+        np.testing.assert_array_equal(both, getattr(mixed, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(cold, name), getattr(scratch, name), err_msg=name)
+
+
 def stream(r, x, cfg, rng, angles=(20.0, -30.0)):
     """1-bit frames of targets at ranges r (T, 2) and amplitudes x (T, 2) (0: absent)."""
     a = np.tile(angles, (r.shape[0], 1))

@@ -72,13 +72,13 @@ from functools import lru_cache
 import numpy as np
 
 from radar_driver.limits import MAX_BITS
-from radar_driver.model import RadarConfig, angle_from_antennas_rad, polar_to_xy, range_phase
+from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, _kernels as detect_kernels, _residual, \
     _NOT_FINITE, _NOT_FINITE_DITHER, _NOT_LEVELS, add_target_compiled, check_frames_compiled, detect_compiled, \
     finish_compiled, residual_compiled, warm_compiled
 from pipeline.dsp.cml_fit import (DEFAULT_ENGINE, DEFAULT_LIKELIHOOD, ENGINES, HAVE_NUMBA, LIKELIHOODS,  # noqa: F401
-                      _Codes, _Fit, _Gate)
+                      _Codes, _Fit, _Gate, centred_indices)
 from pipeline.errors import ParameterError
 from pipeline.dsp import cml_warmup
 from pipeline.dsp.cml_warmup import kernels_ready  # noqa: F401 (cml's API)
@@ -137,16 +137,34 @@ class CmlResult:
 
 def cml_detections(result: CmlResult, config: RadarConfig) -> Detections:
     """Range, angle (from the phase between the antennas), position, amplitude
-    ``sqrt((|a1|^2 + |a2|^2) / 2)`` and nearest range bin of each target of ``result``."""
+    ``sqrt((|a1|^2 + |a2|^2) / 2)`` and nearest range bin of each target of ``result``: the
+    operations of :func:`radar_driver.model.angle_from_antennas_rad` and
+    :func:`~radar_driver.model.polar_to_xy` in their order (the same bits), fewer numpy calls."""
     a = result.amplitudes
-    angle = angle_from_antennas_rad(a[..., 0], a[..., 1], config)
-    x, y = polar_to_xy(result.range_m, angle)
-    amp = np.sqrt((np.abs(a) ** 2).sum(axis=-1) / 2.0)
+    c, per_phase, dr, n = _detection_constants(config)
+    x = a[..., 1] * np.conj(a[..., 0])
+    s = c * np.arctan2(x.imag, x.real) / per_phase  # np.angle, then the arcsin's argument
+    angle = np.arcsin(np.minimum(np.maximum(s, -1.0), 1.0))  # np.clip's result, NaN kept
     r = result.range_m
-    bins = np.rint(np.where(np.isnan(r), 0.0, r) / config.range_resolution_m).astype(np.int64) % \
-        config.samples_per_ramp
-    det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
-    return det if result.present.all() else det.masked(result.present)
+    p = r * np.exp(1j * angle)
+    power = np.abs(a)
+    np.square(power, out=power)
+    amp = np.sqrt((power[..., 0] + power[..., 1]) / 2.0)  # the sum over the 2 antennas
+    bins = np.rint(np.where(np.isnan(r), 0.0, r) / dr).astype(np.int64) % n
+    values = (r, np.rad2deg(angle), p.real, p.imag, amp)
+    present = result.present
+    if present.all():
+        return Detections(*values, bins, result.statistic_db)
+    present = present.astype(bool)  # a copy; then Detections.masked(present)'s, without the unmasked Detections
+    return Detections(*(np.where(present, v, np.nan) for v in values), np.where(present, bins, -1),
+                      np.where(present, result.statistic_db, np.nan), present)
+
+
+@lru_cache(maxsize=16)
+def _detection_constants(config: RadarConfig) -> tuple[float, float, float, int]:
+    """c (m/s), the phase (rad) per unit of the arcsin's argument, dR (m) and N, computed as the model does."""
+    return (config.c_m_s, 2.0 * np.pi * config.f0_hz * config.d_m, config.range_resolution_m,
+            config.samples_per_ramp)
 
 
 def model_frames(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarConfig, ramps: int) -> np.ndarray:
@@ -162,14 +180,24 @@ def model_frames(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarConfi
 
 # -- checks -------------------------------------------------------------------------------
 def _is_int(v) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+    return type(v) is int or (isinstance(v, (int, np.integer)) and not isinstance(v, bool))
+
+
+@lru_cache(maxsize=32)
+def _dtype_kind(dtype: np.dtype) -> tuple[bool, bool]:
+    """Whether ``dtype`` is an integer (codes) and a number, once per dtype (issubdtype is slow)."""
+    return bool(np.issubdtype(dtype, np.integer)), bool(np.issubdtype(dtype, np.number))
+
+
+_MIN, _MAX = np.minimum.reduce, np.maximum.reduce  # ndarray.min and max without their Python wrappers
 
 
 def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
-    """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats."""
-    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and (
-            ((value > 0) if positive else (value >= 0)) & (value < np.inf)).all():  # the common case, checked at once
-        return value.copy()
+    """A scalar or (B,) array of finite values > 0 (``positive``) or >= 0, as (B,) floats (the
+    common case, (B,) float64, by two reductions: NaN fails both)."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (b,) and b and (
+            (_MIN(value) > 0.0) if positive else (_MIN(value) >= 0.0)) and _MAX(value) < np.inf:
+        return value if value.flags.c_contiguous and value.flags.writeable else value.copy()  # numba's signature
     try:
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -184,12 +212,13 @@ def _per_frame(name: str, value, b: int, positive: bool) -> np.ndarray:
 
 def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate=None, compiled=False):
     z = np.asarray(z)
-    codes = z.ndim == 4 and np.issubdtype(z.dtype, np.integer)  # the quantizer's codes
+    integer, number = _dtype_kind(z.dtype)
+    codes = z.ndim == 4 and integer  # the quantizer's codes
     if codes and (z.shape[-2:] != (2, 2) or bits is None):
         raise ParameterError(f"cml: codes must have shape (B, M, 2, 2) and bits given, got {z.shape}, bits={bits!r}")
     if not codes and (z.ndim != 3 or z.shape[-1] != 2):
         raise ParameterError(f"cml: Z must have shape (B, M, 2) (or codes (B, M, 2, 2) integers), got {z.shape}")
-    if not np.issubdtype(z.dtype, np.number):
+    if not number:
         raise ParameterError(f"cml: Z must be numbers, got dtype {z.dtype}")
     b, m = z.shape[:2]
     n = config.samples_per_ramp
@@ -205,8 +234,8 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
             raise ParameterError(f"cml: {name}={value!r} must be an integer in [{lo}, 1000]")
     if noise_sigma is not None:
         noise_sigma = _per_frame("noise_sigma", noise_sigma, b, positive=False)
-    if check_gate(gate) is not None:
-        gate.check(config)
+    if gate is not None and check_gate(gate) is not None:
+        _gate(gate, config, oversample)  # checked against the radar once per gate, radar and grid
     z = z if codes else np.asarray(z, dtype=complex)
     if bits is None:
         return z, None, None, noise_sigma
@@ -221,7 +250,7 @@ def _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample
     half = 1 << (bits - 1)
     if in_kernel and b:
         z = check_frames_compiled(z, xi, d, bits, codes)
-    if codes and z.size and (z.min() < 0 or z.max() >= 1 << bits):  # levels by construction: only their range
+    if codes and z.size and ((z.dtype.kind != "u" and z.min() < 0) or z.max() >= 1 << bits):  # levels: the range
         raise ParameterError(f"cml: codes must be integers in [0, {(1 << bits) - 1}] for {bits} bits, got "
                              f"[{z.min()}, {z.max()}]")
     if codes or in_kernel:
@@ -307,7 +336,7 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
         raise ParameterError(f"cml: likelihood={likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
     z, xi, delta, noise_sigma = _check(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, gate,
                                        engine == "numba")
-    cgate = _gate(gate, config, oversample)
+    cgate = None if gate is None else _gate(gate, config, oversample)
     threshold = None if pfa is None else _threshold(pfa, config, cgate)
     if z.shape[0] == 0:
         return CmlResult(np.zeros((0, k)), np.zeros((0, k, 2), dtype=complex), np.zeros((0, k)), np.zeros(0),
@@ -315,6 +344,9 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     if init_range_m is not None:
         return _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate,
                              engine, likelihood, _check_init(init_range_m, z.shape[0], k, config, gate))
+    if z.shape[0] <= BLOCK_FRAMES:  # one block: the arrays as they are
+        return _decode(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, oversample, threshold, cgate, engine,
+                       likelihood)
     parts = []
     for lo in range(0, z.shape[0], BLOCK_FRAMES):  # blocks small enough for the work arrays to stay in cache
         sl = slice(lo, lo + BLOCK_FRAMES)
@@ -328,11 +360,11 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
 
 @lru_cache(maxsize=64)
 def _gate(gate: RangeGate | None, config: RadarConfig, oversample: int) -> _Gate | None:
-    """The range gate in cml's terms (None: none), built once per gate, radar and grid
-    (a live node decodes every frame with the same)."""
+    """The range gate in cml's terms (None: none), checked (:meth:`RangeGate.check`) and built once
+    per gate, radar and grid (a live node decodes every frame with the same)."""
     if gate is None:
         return None
-    cgate = _Gate(gate, config, oversample)
+    cgate = _Gate(gate.check(config), config, oversample)
     cgate.outside.flags.writeable = False
     return cgate
 
@@ -377,18 +409,24 @@ def _warm_or_cold(z, xi, delta, bits, config, k, noise_sigma, iters, anneal, ove
 
     widx = np.flatnonzero(warm)
     if widx.size:
+        whole = widx.size == b <= BLOCK_FRAMES  # one block of warm frames (a live node's call): no copies
         for lo in range(0, widx.size, BLOCK_FRAMES):
             idx = widx[lo:lo + BLOCK_FRAMES]
-            zz, xx, dd, nn = sub(idx)
+            zz, xx, dd, nn = (z, xi, delta, noise_sigma) if whole else sub(idx)
             res, misfit = _refine_warm(zz, xx, dd, bits, config, k, nn, anneal, threshold, cgate, engine, likelihood,
-                                       init[idx], oversample, warm_threshold)
+                                       init if whole else init[idx], oversample, warm_threshold)
+            if whole and not misfit.any():
+                return res
             for j, i in enumerate(idx.tolist()):
                 out[i] = None if misfit[j] else _row(res, j)
         cold = np.flatnonzero([o is None for o in out])
+    whole = cold.size == b <= BLOCK_FRAMES  # one block, every frame from scratch: no copies
     for lo in range(0, cold.size, BLOCK_FRAMES):
         idx = cold[lo:lo + BLOCK_FRAMES]
-        zz, xx, dd, nn = sub(idx)
+        zz, xx, dd, nn = (z, xi, delta, noise_sigma) if whole else sub(idx)
         res = _decode(zz, xx, dd, bits, config, k, nn, iters, anneal, oversample, threshold, cgate, engine, likelihood)
+        if whole:
+            return res
         for j, i in enumerate(idx.tolist()):
             out[i] = _row(res, j)
     return CmlResult(*(np.stack([getattr(o, f.name) for o in out]) for f in fields(CmlResult)))
@@ -415,7 +453,7 @@ def _start(z, xi, delta, bits, config, noise_sigma, gate, engine, likelihood):
     b, m = z.shape[:2]
     n = config.samples_per_ramp
     codes = _Codes(z, xi, delta, bits, n, compiled=engine != "numpy")
-    fit = _Fit(codes, np.arange(n) - (n - 1) / 2.0, b, gate, engine, likelihood)
+    fit = _Fit(codes, centred_indices(n), b, gate, engine, likelihood)
     if bits is None:  # least squares: the scale plays no part
         return codes, fit, np.ones(b), None, np.full(b, np.inf)
     if noise_sigma is None:  # delta > 0: the maxima with a noise of 0, without computing them

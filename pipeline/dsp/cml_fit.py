@@ -7,6 +7,7 @@ Shapes: a block of B frames of R ramps of N samples; the real parts of a sample 
 from __future__ import annotations
 
 import importlib.util
+from functools import lru_cache
 
 import numpy as np
 
@@ -45,6 +46,16 @@ LOGISTIC_PER_SIGMA = 1.702
 MAX_RANGE_STEP_BINS = 0.5
 #: RMS distance of the wrong codes to their cells, in units of the noise std (:mod:`pipeline.dsp.cml`)
 WRONG_RMS_PER_SIGMA = np.sqrt(2.0 / 3.0)
+
+
+_codes_arrays = None  # pipeline.dsp.cml_detect_kernels.codes_arrays, imported on first use
+
+
+@lru_cache(maxsize=8)
+def centred_indices(n: int) -> np.ndarray:
+    """The sample indices of a ramp from its middle, ``kc = n - (N - 1) / 2`` (N,), once per N:
+    shared by every :class:`_Fit` and only read (writeable: the compiled kernels' signatures)."""
+    return np.arange(n) - (n - 1) / 2.0
 
 
 # -- the likelihood ---------------------------------------------------------------------
@@ -101,18 +112,21 @@ class _Codes:
         self.ka, self.kb = self.lo.reshape(b, self.ramps, n, 4), self.hi.reshape(b, self.ramps, n, 4)
 
     def _compiled(self, z, xi, delta, bits, shape) -> None:
-        from pipeline.dsp.cml_detect_kernels import codes_arrays
+        global _codes_arrays
+        if _codes_arrays is None:  # imported on first use (it imports numba)
+            from pipeline.dsp.cml_detect_kernels import codes_arrays as _codes_arrays
 
         from_codes = z.ndim == 4
         if from_codes:
             zk = (z if z.dtype == np.uint8 else z.astype(np.int64)).reshape(shape)
         else:
             zk = np.ascontiguousarray(z, dtype=complex).view(float).reshape(shape)
-        self.ka, self.kb = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
-        self.folded = np.empty((shape[0], shape[2], 2), dtype=complex)
-        codes_arrays(zk, from_codes, np.ascontiguousarray(xi, dtype=complex).view(float).reshape(shape),
-                     np.ascontiguousarray(delta, dtype=float), bits, self.ka, self.kb,
-                     self.folded.view(float).reshape(shape[0], shape[2], 4))
+        ka = self.ka = np.empty(shape, dtype=np.float32)
+        kb = self.kb = np.empty(shape, dtype=np.float32)
+        folded = self.folded = np.empty((shape[0], shape[2], 2), dtype=complex)
+        _codes_arrays(zk, from_codes, np.ascontiguousarray(xi, dtype=complex).view(float).reshape(shape),
+                      np.ascontiguousarray(delta, dtype=float), bits, ka, kb,
+                      folded.view(float).reshape(shape[0], shape[2], 4))
         self.kind = 1 if bits == 1 else 2  # the kernels' ONE_BIT, MULTI_BIT
 
     def evaluate(self, mu: np.ndarray, sigma: np.ndarray, likelihood: str = DEFAULT_LIKELIHOOD):
@@ -307,7 +321,8 @@ class _Fit:
             self.w, self.mu = None, np.empty((b, n, 2, 2))
             _kernels().models(np.ascontiguousarray(nu, dtype=float), np.ascontiguousarray(amp, dtype=complex),
                               self.kc, self.mu.reshape(b, n, 4))
-        self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
+        self.lm = np.empty(nu.shape[0])  # damping, per frame
+        self.lm.fill(1e-3)
 
     @staticmethod
     def _mu(w: np.ndarray, amp: np.ndarray) -> np.ndarray:

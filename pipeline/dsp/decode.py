@@ -415,14 +415,14 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     the others ignore it."""
     z = np.asarray(z)
     pfa = decoder.pfa if decoder.auto_k else None
+    if decoder.algo == Algo.CML and indices is None:  # cml checks the gate (once per gate and radar)
+        return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
+                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa,
+                   gate=decoder.gate, engine=decoder.engine, likelihood=decoder.likelihood,
+                   init_range_m=init_range_m).detections(config)
     gate = None if decoder.gate is None else decoder.gate.check(config)
     if decoder.algo == Algo.PBP:
         return localize(z, config, k, indices, pfa, gate)
-    if decoder.algo == Algo.CML and indices is None:
-        return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa, gate=gate,
-                   engine=decoder.engine, likelihood=decoder.likelihood,
-                   init_range_m=init_range_m).detections(config)
     if xi is None or bits is None or indices is not None:
         if decoder.fallback_pbp:
             return localize(z, config, k, indices, pfa, gate)
