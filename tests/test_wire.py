@@ -365,6 +365,9 @@ def test_quantized_batch_decoder_equals_the_single_one():
         assert f.codes.shape[1:] == ref.codes.shape[1:] and f.bits == ref.bits
         for name in ("codes", "delta", "alpha", "dither_seed", "seq", "generator"):
             a, b = np.asarray(getattr(f, name)), np.asarray(getattr(ref, name))
+            if name == "generator" and a.ndim == 0:  # one name for a group of one generator
+                assert len(set(b.tolist())) == 1, name
+                a = np.broadcast_to(a, b.shape)
             assert a.dtype.kind == b.dtype.kind and np.array_equal(a, b), name
         assert f.seq.dtype == np.uint64 and f.dither_seed.dtype == np.uint64
     mixed = [g for g in groups if len(set(np.asarray(g.frames.generator).tolist())) == 2]
@@ -539,3 +542,20 @@ def test_sensor_id_rule_is_one_rule():
             want = True
         assert _sensor_id_bad(raw) == bad == want, raw
     assert 1000 < int((~batch).sum()) < 2000
+
+
+def test_a_group_of_one_generator_names_it_once():
+    """Frames that all have one dither generator decode with that one name (dither() then
+    regenerates the batch in one call); its dither is bit for bit the per-frame one."""
+    for gen in (DITHER_COUNTER, DITHER_SEEDSEQ):
+        msgs = [quant_msg(1, 512, 0.5, gen, 40 + i, f"s{i}", 2**40 + i) for i in range(5)]
+        groups, errors = decode_quantized_batch([encode_quantized(m) for m in msgs], [f"k{i}" for i in range(5)])
+        assert not errors and len(groups) == 1 and groups[0].frames.generator == gen
+        want = np.stack([QuantizedFrames(m.codes[None], np.array([m.delta]), 1, np.array([m.alpha]),
+                                         np.array([m.dither_seed], dtype=np.uint64),
+                                         np.array([m.seq], dtype=np.uint64), np.array([gen])).dither()[0]
+                         for m in msgs])
+        assert np.array_equal(groups[0].frames.dither(), want)
+    mixed = [quant_msg(1, 512, 0.5, (DITHER_COUNTER, DITHER_SEEDSEQ)[i % 2], 40 + i, f"s{i}") for i in range(4)]
+    groups, _ = decode_quantized_batch([encode_quantized(m) for m in mixed], [f"k{i}" for i in range(4)])
+    assert np.asarray(groups[0].frames.generator).tolist() == [m.generator for m in mixed]

@@ -512,11 +512,21 @@ def decode_raw_batch(payloads: Sequence[bytes], sources: Sequence[str]) -> tuple
     return groups, errors
 
 
+def _generators(version: np.ndarray) -> str | np.ndarray:
+    """The dither generator of frames of format ``version`` (n,): one name when they all
+    have the same (the usual batch: QuantizedFrames.dither then regenerates the batch's
+    dither in one call, no per-generator masks and copies), else (n,) names."""
+    seedseq = version == GENERATOR_VERSIONS[DITHER_SEEDSEQ]
+    if not seedseq.any():
+        return DITHER_COUNTER
+    return DITHER_SEEDSEQ if seedseq.all() else np.where(seedseq, DITHER_SEEDSEQ, DITHER_COUNTER)
+
+
 def decode_quantized_batch(payloads: Sequence[bytes],
                            sources: Sequence[str]) -> tuple[list[QuantizedGroup], list[tuple[int, WireError]]]:
     """Quantized frame payloads (bytes-like) with the source of each: the good frames in
     groups of one M and one bit depth (each frame's dither generator from its format
-    version), and (position, WireError) of each bad payload."""
+    version: one name for the group when its frames share it), and (position, WireError) of each bad payload."""
     errors, good = _parse_batch(payloads, sources, KIND_QUANTIZED)
     groups = []
     for idx, rec, rows in good:
@@ -530,7 +540,7 @@ def decode_quantized_batch(payloads: Sequence[bytes],
             m, bits = divmod(key, MAX_BITS + 1)
             r, body = rec[sel], rows[sel, QUANT_HEADER_LEN:]
             codes = unpack_codes_unchecked(body, bits, 4 * m).reshape(len(body), m, 2, 2)
-            generator = np.where(r["version"] == GENERATOR_VERSIONS[DITHER_SEEDSEQ], DITHER_SEEDSEQ, DITHER_COUNTER)
+            generator = _generators(r["version"])
             frames = QuantizedFrames(codes, r["delta"].astype(float), bits, r["alpha"].astype(float),
                                      r["dither_seed"].copy(), r["seq"].copy(), generator)
             groups.append(QuantizedGroup(_headers_of(r), frames, idx[sel]))
