@@ -64,10 +64,20 @@ def _peak_ratio(u, nu, live, oversample, guard_bins, outside, use_gate, energy, 
     return peak / mean if mean > 0.0 else 0.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi) -> float:
+    """Range (bins) of grid point ``best`` refined by a parabola through its energy and its neighbours'."""
+    curv = left - 2.0 * centre + right
+    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
+    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
+    if use_gate:
+        nu0 = min(max(nu0, gate_lo), gate_hi)
+    return nu0
+
+
 @njit(cache=True, nogil=True)
 def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, energy, near) -> float:
-    """Range (bins) of the peak of the joint energy, refined by a parabola through it and
-    its neighbours; inside the gate (``use_gate``)."""
+    """Range (bins) of the peak of the joint energy (:func:`_parabola`), inside the gate (``use_gate``)."""
     _energy(u, nu, live, oversample, guard_bins, energy, near)
     size = energy.shape[0]
     best = 0
@@ -80,12 +90,7 @@ def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_
     left = energy[(best - 1) % size]
     centre = energy[best]
     right = energy[(best + 1) % size]
-    curv = left - 2.0 * centre + right
-    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
-    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
-    if use_gate:
-        nu0 = min(max(nu0, gate_lo), gate_hi)
-    return nu0
+    return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -248,12 +253,7 @@ def _peak_coarse(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, 
     left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
     centre = _fine_value(x, n, best, table, near, energy, known)
     right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
-    curv = left - 2.0 * centre + right
-    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
-    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
-    if use_gate:
-        nu0 = min(max(nu0, gate_lo), gate_hi)
-    return nu0
+    return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
 
 
 @njit(cache=True, nogil=True)
