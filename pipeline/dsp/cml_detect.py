@@ -28,10 +28,13 @@ def _kernels():
 
 #: a detection keeps at least this far from the targets already found, range bins
 MIN_SEPARATION_BINS = 1.0
-#: detection without a count test (``k`` fixed) takes its inverse FFT on a grid of this many
-#: points a bin, coarser than ``oversample``, and finds the same fine-grid peak by summing the
-#: fine energy directly around the coarse points that could hold it
-#: (:func:`pipeline.dsp.cml_detect_kernels._peak_coarse`)
+#: detection and the count test take their inverse FFT on a grid of this many points a bin,
+#: coarser than ``oversample``, and find the same fine-grid peak by summing the fine energy
+#: directly around the coarse points that could hold it
+#: (:func:`pipeline.dsp.cml_count_kernels.coarse_peak`); the count test's mean, the fine
+#: energy summed over the points not masked, by sums over runs of fine points from the
+#: coarse energies (:func:`pipeline.dsp.cml_count_kernels.open_sum`; measured against the
+#: full grid: within 5e-15 relative; K auto on 80 040 frames: the same counts as the full grid)
 COARSE_PER_BIN = 2
 #: ... those whose energy reaches this fraction of the best fine energy found: the fine peak's
 #: nearest coarse point (at most 1 / (2 COARSE_PER_BIN) bin away) holds more (a maximum of the

@@ -3,7 +3,9 @@ time inside the kernel (a frame costs the same in a batch of 1 or of 64). The nu
 functions of :mod:`pipeline.dsp.cml_detect` are the reference (tests/test_cml_kernels.py).
 
 Layouts (one block of B frames, N samples a ramp, L = oversample N grid points, T targets
-found so far): ``u`` (B, S, 2, L) complex, the zero-padded inverse FFTs of S residuals
+found so far): ``u`` (B, S, 2, L) complex (or on the coarse grid, L / ratio points: the fine
+grid's peak and mean from it, :mod:`pipeline.dsp.cml_count_kernels`), the zero-padded
+inverse FFTs of S residuals
 (0: the linear residual ``Z - xi - model`` summed over the ramps, 1: the likelihood's
 score) per antenna; ``y`` (B, N, 2) complex the linear residual; ``nu`` (B, T) ranges in
 bins, ``live`` (B, T) bool; ``outside`` (L,) bool the grid points beyond the range gate.
