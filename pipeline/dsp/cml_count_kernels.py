@@ -206,16 +206,21 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     ratio = size // lc
     half = ratio // 2
     floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
+    at = 0
     first = -1  # the cell of the largest coarse energy first (the first of equal ones): the others then mostly fall short
     for c in range(lc):
         p = c * ratio
         v = -1.0 if use_gate and outside[p] else (0.0 if near[p] else coarse[c])
-        floor = max(floor, v)
+        if v > floor:
+            floor = v
+            at = p
         if (first < 0 or coarse[c] > coarse[first]) and (not use_gate or _open_cell(c, ratio, half, size, outside,
                                                                                       use_gate)):
             first = c
         # what a cell may hold: its coarse energy, by a masked point its neighbours' too
         span[c] = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
+    if stop and floor >= bar:  # a coarse point reaches it
+        return at, floor
     floor = max(floor, bar)
     if first >= 0 and coarse[first] < rho * floor:
         first = -1
