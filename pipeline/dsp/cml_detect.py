@@ -261,23 +261,22 @@ def _run_tables(n: int, size: int, lc: int) -> np.ndarray:
     """(ratio, 2 Lc) float, ratio = ``size`` / ``lc``: ``tables[phi, j] = G(phi + ((-j) mod Lc)
     ratio)``, where ``G(x) = F(x) - x / Lc``, ``F(x) = sum_{j < x} f(j)`` and ``f(j) = (1 / Lc)
     sin((2N - 1) pi j / L) / sin(pi j / L)`` interpolates the fine energy (L = ``size``
-    points) from the coarse one: ``E_fine[l] = sum_k E_coarse[k] f(l - k ratio)``. In closed
-    form, ``G(x) = (2 / Lc) sum_{d=1}^{N-1} cos(pi d (x - 1) / L) sin(pi d x / L) / sin(pi d / L)``
-    (``F``'s geometric sums; G is L-periodic). Kept per grid (read-only)."""
+    points) from the coarse one: ``E_fine[l] = sum_k E_coarse[k] f(l - k ratio)``; G is
+    L-periodic (f sums to L / Lc over a period). The prefix sums in extended precision
+    (``np.longdouble``; where it is a double, G to ~1e-14). Kept per grid (read-only)."""
     key = (n, size, lc)
     table = _run_table_cache.get(key)
     if table is None:
         if len(_run_table_cache) >= 8:
             _run_table_cache.clear()
-        x = np.arange(size)
-        g = np.zeros(size)
-        for lo in range(1, n, 64):
-            d = np.arange(lo, min(lo + 64, n))[:, None]
-            g += (np.cos(np.pi * ((d * (x - 1)) % (2 * size)) / size) * np.sin(np.pi * ((d * x) % (2 * size)) / size)
-                  / np.sin(np.pi * d / size)).sum(axis=0)
-        g *= 2.0 / lc
-        ratio, j = size // lc, np.arange(2 * lc)
-        table = g[(np.arange(ratio)[:, None] + ((-j) % lc)[None, :] * ratio) % size]
+        j = np.arange(size)
+        pi = np.longdouble("3.14159265358979323846264338327950288")
+        num = np.sin(pi * ((2 * n - 1) * j % (2 * size)) / size)  # arguments reduced exactly, then scaled
+        den = np.sin(pi * j / size)
+        f = np.divide(num, den, out=np.full(size, np.longdouble(2 * n - 1)), where=j > 0) / lc
+        g = (np.concatenate([np.zeros(1, dtype=np.longdouble), np.cumsum(f)[:-1]]) - j / np.longdouble(lc))
+        ratio, k = size // lc, np.arange(2 * lc)
+        table = np.ascontiguousarray(g[(np.arange(ratio)[:, None] + ((-k) % lc)[None, :] * ratio) % size], dtype=float)
         table.flags.writeable = False
         _run_table_cache[key] = table
     return table
