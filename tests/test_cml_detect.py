@@ -1,4 +1,4 @@
-"""Detection on a coarse inverse FFT (pipeline.dsp.cml_detect_kernels._peak_coarse: the
+"""Detection on a coarse inverse FFT (pipeline.dsp.cml_count_kernels.coarse_peak: the
 FFT on COARSE_PER_BIN N points, the fine energy summed directly around the coarse points
 that could hold the peak) against the full fine grid (``_peak``, the kernel the count test
 keeps) and the numpy reference (pipeline.dsp.cml_detect._detect).
@@ -11,6 +11,7 @@ import pytest
 from test_cml import measure, random_scenes
 from test_cml_kernels import detection_agrees
 
+from pipeline.dsp import cml_count_kernels as count_kernels
 from pipeline.dsp import cml_detect_kernels as kernels
 from pipeline.dsp.cml import cml
 from pipeline.dsp.cml_detect import COARSE_PER_BIN, COARSE_RHO, _twiddles
@@ -34,10 +35,14 @@ def peaks(x, oversample, nu=(), live=(), outside=None, guard_bins=1.0, gate=(0.0
     table, half = _twiddles(size), oversample // COARSE_PER_BIN // 2
     d = np.r_[-half:0, 1:half + 1]
     steps = table[np.outer(d, np.arange(n)) % size]
-    fast = kernels._peak_coarse(coarse, np.ascontiguousarray(x), n, *args, COARSE_RHO, table,
-                                np.ascontiguousarray([steps.real, steps.imag]), np.empty(size),
-                                np.empty(size, dtype=bool), np.empty(size, dtype=bool), np.empty(small),
-                                np.empty(small, dtype=bool), np.empty((4, n)), np.empty(2 * half))
+    gate_edges = np.zeros(small, dtype=bool)
+    if use_gate:
+        count_kernels.gate_edge(outside, small, gate_edges)
+    fast = kernels._coarse_range(coarse, np.ascontiguousarray(x), n, *args, gate_edges, COARSE_RHO, table,
+                                 np.empty(small), np.empty(size), np.empty(size, dtype=bool),
+                                 np.empty(size, dtype=bool), np.empty(small, dtype=bool),
+                                 np.ascontiguousarray([steps.real, steps.imag]), np.empty((4, n)), np.empty(2 * half),
+                                 np.empty(small), False)
     return full, fast
 
 
@@ -106,7 +111,7 @@ def test_fine_energy_is_the_zero_padded_ffts():
     x = rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n))
     u = np.fft.ifft(x, n=size, axis=1)
     ref = np.abs(u[0]) ** 2 + np.abs(u[1]) ** 2
-    got = np.array([kernels._fine_energy(x, n, p, _twiddles(size)) for p in range(size)])
+    got = np.array([count_kernels._fine_energy(x, n, p, _twiddles(size)) for p in range(size)])
     np.testing.assert_allclose(got, ref, rtol=1e-12)
 
 

@@ -484,9 +484,9 @@ def _refine_warm(z, xi, delta, bits, config, k, noise_sigma, anneal, threshold, 
     count = fit.live.sum(axis=1)
     # the residual (and the likelihood's score, at the last level) holds a peak the targets do
     # not explain: a target appeared, or one moved beyond the refinement's reach
-    stat = (_count_statistic(fit, codes, oversample) if engine == "numpy" else
-            detect_compiled(codes, fit, oversample, True, np.zeros(b))[0])
-    unexplained = stat >= (warm_threshold if threshold is None else threshold)
+    at = warm_threshold if threshold is None else threshold  # compiled: the statistic only decides stat >= at
+    unexplained = (_count_statistic(fit, codes, oversample) if engine == "numpy" else
+                   detect_compiled(codes, fit, oversample, True, np.zeros(b), at)[0]) >= at
     if threshold is None:  # k targets a frame, whatever their strength
         misfit = (count < k) | unexplained
     else:

@@ -3,7 +3,9 @@ time inside the kernel (a frame costs the same in a batch of 1 or of 64). The nu
 functions of :mod:`pipeline.dsp.cml_detect` are the reference (tests/test_cml_kernels.py).
 
 Layouts (one block of B frames, N samples a ramp, L = oversample N grid points, T targets
-found so far): ``u`` (B, S, 2, L) complex, the zero-padded inverse FFTs of S residuals
+found so far): ``u`` (B, S, 2, L) complex (or on the coarse grid, L / ratio points: the fine
+grid's peak and mean from it, :mod:`pipeline.dsp.cml_count_kernels`), the zero-padded
+inverse FFTs of S residuals
 (0: the linear residual ``Z - xi - model`` summed over the ramps, 1: the likelihood's
 score) per antenna; ``y`` (B, N, 2) complex the linear residual; ``nu`` (B, T) ranges in
 bins, ``live`` (B, T) bool; ``outside`` (L,) bool the grid points beyond the range gate.
@@ -18,7 +20,9 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.dsp.cml_kernels import _FAST, evaluate, models, refine
+from pipeline.dsp.cml_count_kernels import _parabola, coarse_energies, coarse_peak, gate_edge, gate_weights, guard, \
+    open_sum, peak_range
+from pipeline.dsp.cml_kernels import evaluate, models, refine
 from pipeline.dsp.kernel_cache import drop_stale
 
 
@@ -64,17 +68,6 @@ def _peak_ratio(u, nu, live, oversample, guard_bins, outside, use_gate, energy, 
     return peak / mean if mean > 0.0 else 0.0
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi) -> float:
-    """Range (bins) of grid point ``best`` refined by a parabola through its energy and its neighbours'."""
-    curv = left - 2.0 * centre + right
-    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
-    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
-    if use_gate:
-        nu0 = min(max(nu0, gate_lo), gate_hi)
-    return nu0
-
-
 @njit(cache=True, nogil=True)
 def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, energy, near) -> float:
     """Range (bins) of the peak of the joint energy (:func:`_parabola`), inside the gate (``use_gate``)."""
@@ -93,189 +86,73 @@ def _peak(u, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_
     return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _fine_energy(x, n, p, table):
-    """Joint energy at point ``p`` of the inverse FFT of ``x`` (2, >= N) zero-padded to L =
-    ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
-    ``|U1|^2 + |U2|^2``, ``U = (1 / L) sum_i x[i] exp(2 pi i i p / L)`` summed directly."""
-    size = table.shape[0]
-    ar = ai = br = bi = 0.0
-    k = 0
-    for i in range(n):
-        w = table[k]
-        a = x[0, i]
-        b = x[1, i]
-        ar += a.real * w.real - a.imag * w.imag
-        ai += a.real * w.imag + a.imag * w.real
-        br += b.real * w.real - b.imag * w.imag
-        bi += b.real * w.imag + b.imag * w.real
-        k += p
-        if k >= size:
-            k -= size
-    inv = 1.0 / size  # as the FFT's, before squaring
-    ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
-    return (ar * ar + br * br) + (ai * ai + bi * bi)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _fine_value(x, n, p, table, near, energy, known) -> float:
-    """:func:`_energy`'s ``energy[p]`` (0 within the guard ``near``), computed once
-    (:func:`_fine_energy`) and kept in ``energy`` (``known``)."""
-    if near[p]:
-        return 0.0
-    if not known[p]:
-        energy[p] = _fine_energy(x, n, p, table)
-        known[p] = True
-    return energy[p]
-
-
-@njit(**_FAST)
-def _cell_energies(x, n, s, table, offsets, v, out):
-    """:func:`_fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
-    (2, D, N) (real and imaginary parts of ``exp(2 pi i i d / L)``) into ``out`` (D,), in one
-    pass: ``x`` turned by the twiddles of point ``s`` into ``v`` (4, N) (work), then one
-    vectorized sum a point."""
-    size = table.shape[0]
-    k = 0
-    for i in range(n):
-        w = table[k]
-        a = x[0, i]
-        b = x[1, i]
-        v[0, i], v[1, i] = a.real * w.real - a.imag * w.imag, a.real * w.imag + a.imag * w.real
-        v[2, i], v[3, i] = b.real * w.real - b.imag * w.imag, b.real * w.imag + b.imag * w.real
-        k += s
-        if k >= size:
-            k -= size
-    inv = 1.0 / size
-    for j in range(offsets.shape[1]):
-        dr, di = offsets[0, j], offsets[1, j]
-        ar = ai = br = bi = 0.0
-        for i in range(n):
-            ar += v[0, i] * dr[i] - v[1, i] * di[i]
-            ai += v[0, i] * di[i] + v[1, i] * dr[i]
-            br += v[2, i] * dr[i] - v[3, i] * di[i]
-            bi += v[2, i] * di[i] + v[3, i] * dr[i]
-        ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
-        out[j] = (ar * ar + br * br) + (ai * ai + bi * bi)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _open_cell(c, ratio, half, size, outside, use_gate) -> bool:
-    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
-    for d in range(-half, half + 1):
-        if not use_gate or not outside[(c * ratio + d) % size]:
-            return True
-    return False
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _mark_edge(lo, hi, ratio, lc, edge):
-    """``edge[c]`` = True for the coarse points ``c`` within ``ratio`` fine points of the
-    fine points ``lo..hi`` (masked ones), modulo ``lc``."""
-    for c in range(-((ratio - lo) // ratio), (hi + ratio) // ratio + 1):  # ceil((lo - ratio) / ratio) ...
-        edge[c % lc] = True
+@njit(cache=True, nogil=True)
+def _coarse_ratio(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, gate_edges, gate_w, inside, rho,
+                  table, tables, coarse, energy, known, near, edge, seen, offsets, turned, cell, span, threshold):
+    """:func:`_peak_ratio` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N):
+    the mean by :func:`pipeline.dsp.cml_count_kernels.open_sum`, the peak by
+    :func:`pipeline.dsp.cml_count_kernels.coarse_peak`, sought only as far as it decides
+    ``ratio >= threshold`` (< 0: the ratio itself; else a ratio that reaches ``threshold``
+    exactly when the ratio does). Returns the ratio and the peak's point; ``energy``,
+    ``known``, ``near`` then hold the fine energies found and the guard."""
+    total = coarse_energies(uc, table.shape[0], coarse, energy, known)
+    reach = guard(nu, live, oversample, guard_bins, use_gate, gate_edges, near, edge)
+    kept, cells = open_sum(coarse, total, tables, nu, oversample, reach, near, outside, use_gate, gate_w, inside, seen)
+    mean = kept / max(cells, 1)
+    bar = threshold * mean if threshold >= 0.0 and mean > 0.0 else -math.inf
+    best, top = coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho, table, offsets, turned,
+                            cell, span, bar, threshold >= 0.0)
+    return (max(top, 0.0) / mean if mean > 0.0 else 0.0), best
 
 
 @njit(cache=True, nogil=True)
-def _peak_coarse(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, rho, table,
-                 offsets, energy, known, near, coarse, edge, turned, cell) -> float:
-    """:func:`_peak` (the same fine-grid peak of L = ``table.shape[0]`` points and parabola)
-    from the inverse FFT ``uc`` (2, Lc) on a grid ``ratio = L / Lc`` times coarser, of
-    ``x`` (2, >= N) (first ``n`` points): the fine energy is summed directly
-    (:func:`_cell_energies`) at the fine points within ``ratio // 2`` of every coarse point
-    whose energy reaches ``rho`` times the best one found, and at the parabola's
-    neighbours. A maximum of ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps
-    more than ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone:
-    0.81); a peak against the guard or the gate need not be a maximum, so a coarse point
-    within a coarse step of a masked fine point (``edge``) counts its neighbours' energy
-    too. ``offsets`` (2, 2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
-    ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``energy``, ``known``, ``near`` (L,), ``coarse``,
-    ``edge`` (Lc,), ``turned`` (4, N), ``cell`` (2 (ratio // 2),): work."""
-    size = table.shape[0]
-    lc = uc.shape[1]
-    ratio = size // lc
-    half = ratio // 2
-    near[:] = False
-    known[:] = False
-    edge[:] = False
-    reach = int(math.ceil(guard_bins * oversample)) - 1
-    for j in range(nu.shape[0]):
-        c = int(np.rint(nu[j] * oversample))
-        for d in range(-reach, reach + 1):
-            near[(c + d) % size] = live[j]  # later targets overwrite, as put_along_axis
-        if live[j]:
-            _mark_edge(c - reach, c + reach, ratio, lc, edge)
-    if use_gate:
-        for i in range(size):
-            if outside[i] and not outside[i - 1]:  # a run of points beyond the gate (wrapping)
-                e = i
-                while e + 1 < i + size and outside[(e + 1) % size]:
-                    e += 1
-                _mark_edge(i, e, ratio, lc, edge)
-    sc = lc / size  # the coarse FFT's 1 / Lc to the fine one's 1 / L
-    floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
-    for c in range(lc):
-        a = uc[0, c] * sc
-        b = uc[1, c] * sc
-        e = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
-        coarse[c] = e
-        p = c * ratio
-        energy[p] = 0.0 if near[p] else e
-        known[p] = True
-        v = -1.0 if use_gate and outside[p] else energy[p]
-        floor = max(floor, v)
-    first = -1
-    for c in range(lc):  # the cell of the largest coarse energy first: the others then mostly fall short
-        if coarse[c] >= rho * floor and (first < 0 or coarse[c] > coarse[first]) and \
-                _open_cell(c, ratio, half, size, outside, use_gate):
-            first = c
-    top = -math.inf
-    best = 0
-    for step in range(lc + 1):
-        c = first if step == 0 else step - 1
-        if c < 0 or (step > 0 and c == first):
-            continue
-        reach_c = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
-        if reach_c < rho * max(floor, top) or not _open_cell(c, ratio, half, size, outside, use_gate):
-            continue
-        _cell_energies(x, n, c * ratio, table, offsets, turned, cell)
-        for j in range(2 * half):
-            p = (c * ratio + j - half + (j >= half)) % size
-            if not known[p]:
-                energy[p] = cell[j]
-                known[p] = True
-        for d in range(-half, half + 1):
-            p = (c * ratio + d) % size
-            v = -1.0 if use_gate and outside[p] else _fine_value(x, n, p, table, near, energy, known)
-            if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
-                top = v
-                best = p
-    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
-    centre = _fine_value(x, n, best, table, near, energy, known)
-    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
-    return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
+def _coarse_range(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate, gate_lo, gate_hi, gate_edges, rho,
+                  table, coarse, energy, known, near, edge, offsets, turned, cell, span, prepared) -> float:
+    """:func:`_peak` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N)
+    (:func:`pipeline.dsp.cml_count_kernels.coarse_peak`); ``prepared``: ``coarse``,
+    ``energy`` and ``known`` hold ``uc``'s already (:func:`_coarse_ratio`)."""
+    if not prepared:
+        coarse_energies(uc, table.shape[0], coarse, energy, known)
+    guard(nu, live, oversample, guard_bins, use_gate, gate_edges, near, edge)
+    best, _ = coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho, table, offsets, turned, cell,
+                          span, -math.inf, False)
+    return peak_range(x, n, best, oversample, table, near, energy, known, use_gate, gate_lo, gate_hi)
 
 
 @njit(cache=True, nogil=True)
-def detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate,
-           gate_lo, gate_hi, count_sources, detect_source, stat, nu0, amp0):
+def detect(u, src, table, rho, tables, gate_w, inside, y, kc, ramps, nu, live, oversample, count_guard, sep_guard,
+           outside, use_gate, gate_lo, gate_hi, count_sources, detect_source, threshold, active, stat, nu0,
+           amp0) -> bool:
     """Per frame: the count test's statistic into ``stat`` (B,) (the smaller peak ratio of
-    the first ``count_sources`` residuals of ``u``; 0 sources: left alone), the detected
-    range into ``nu0`` (B,) (residual ``detect_source`` of ``u``; -1: ``nu0`` given), and
-    the least-squares amplitudes (B, 2) of one target at ``nu0`` in ``y`` into ``amp0``.
-    ``u`` coarser than ``oversample`` N points (no count test): :func:`_peak_coarse` of
-    ``src`` (B, S, 2, >= N) (the sources before their FFT), ``table`` (``oversample`` N,) and
-    ``rho``; else both unused."""
+    the first ``count_sources`` residuals of ``u``; 0 sources: left alone), with
+    ``threshold`` >= 0 the count's decision (``active`` (B,) bool, updated in place: a frame
+    stays active when its statistic reaches ``threshold``; the statistic is then only that
+    decision: at or beyond ``threshold`` exactly when the exact one is, 0 in frames
+    inactive already), the
+    detected range into ``nu0`` (B,) (residual ``detect_source`` of ``u``; -1: ``nu0``
+    given), and the least-squares amplitudes (B, 2) of one target at ``nu0`` in ``y`` into
+    ``amp0``. Returns whether a frame is active (``threshold`` < 0: True); with none, the
+    ranges and amplitudes are left alone. ``u`` coarser than ``oversample`` N points: the
+    fine grid's peak and mean from it (:mod:`pipeline.dsp.cml_count_kernels`) with ``src``
+    (B, S, 2, >= N) (the sources before their FFT), ``table`` (``oversample`` N,), ``rho``,
+    ``tables`` (:func:`pipeline.dsp.cml_detect._run_tables`) and the gate's ``gate_w``,
+    ``inside`` (:func:`pipeline.dsp.cml_count_kernels.gate_weights`); else those unused."""
     nb = u.shape[0]
     n = y.shape[1]
     size = oversample * n
     energy = np.empty(size)
     near = np.empty(size, dtype=np.bool_)
-    on_coarse = detect_source >= 0 and u.shape[3] < size
+    on_coarse = u.shape[3] < size and (detect_source >= 0 or count_sources > 0)
+    lc = u.shape[3] if on_coarse else 0
     known = np.empty(size if on_coarse else 0, dtype=np.bool_)
-    coarse = np.empty(u.shape[3] if on_coarse else 0)
-    edge = np.empty(u.shape[3] if on_coarse else 0, dtype=np.bool_)
-    half = (size // u.shape[3]) // 2 if on_coarse else 0
+    seen = np.zeros(size if on_coarse else 0, dtype=np.bool_)
+    coarse = np.empty(lc)
+    span = np.empty(lc)
+    edge = np.empty(lc, dtype=np.bool_)
+    gate_edges = np.zeros(lc, dtype=np.bool_)
+    if on_coarse and use_gate:
+        gate_edge(outside, lc, gate_edges)
+    half = (size // lc) // 2 if on_coarse else 0
     offsets = np.empty((2, 2 * half, n))  # the fine offsets' twiddles (_cell_energies)
     if on_coarse:
         for j in range(2 * half):
@@ -285,29 +162,72 @@ def detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, 
                 k = k + d - size if k + d >= size else k + d
     turned = np.empty((4, n))
     cell = np.empty(2 * half)
-    scale = 1.0 / (ramps * n)
+    pending = np.zeros(nb, dtype=np.bool_)
+    any_active = threshold < 0.0
+    decide = threshold >= 0.0
     for f in range(nb):
-        for s in range(count_sources):
-            r = _peak_ratio(u[f, s], nu[f], live[f], oversample, count_guard, outside, use_gate, energy, near)
-            stat[f] = r if s == 0 else min(stat[f], r)
-        if on_coarse:
-            nu0[f] = _peak_coarse(u[f, detect_source], src[f, detect_source], n, nu[f], live[f], oversample,
-                                  sep_guard, outside, use_gate, gate_lo, gate_hi, rho, table, offsets, energy, known,
-                                  near, coarse, edge, turned, cell)
+        prepared = False  # the fine energies of the detection's source found by the count test
+        best = 0
+        for step in range(count_sources):  # the detection's source last
+            if decide and (not active[f] or (step > 0 and stat[f] < threshold)):
+                break  # decided: inactive already, or a source's peak falls short
+            s = step if detect_source < 0 or detect_source >= count_sources else \
+                (step + detect_source + 1) % count_sources
+            if on_coarse:
+                r, best = _coarse_ratio(u[f, s], src[f, s], n, nu[f], live[f], oversample, count_guard, outside,
+                                        use_gate, gate_edges, gate_w, inside, rho, table, tables, coarse, energy,
+                                        known, near, edge, seen, offsets, turned, cell, span, threshold)
+                prepared = s == detect_source
+            else:
+                r = _peak_ratio(u[f, s], nu[f], live[f], oversample, count_guard, outside, use_gate, energy, near)
+            stat[f] = r if step == 0 else min(stat[f], r)
+        if decide:
+            active[f] = active[f] and stat[f] >= threshold
+            any_active = any_active or active[f]
+            if not active[f] and detect_source >= 0:  # its detection matters only if another frame goes on
+                pending[f] = True
+                continue
+        if prepared and not decide and not live[f].any():  # no guard: the count test's peak is the detection's
+            nu0[f] = peak_range(src[f, detect_source], n, best, oversample, table, near, energy, known, use_gate,
+                                gate_lo, gate_hi)
+        elif on_coarse and detect_source >= 0:
+            nu0[f] = _coarse_range(u[f, detect_source], src[f, detect_source], n, nu[f], live[f], oversample,
+                                   sep_guard, outside, use_gate, gate_lo, gate_hi, gate_edges, rho, table, coarse,
+                                   energy, known, near, edge, offsets, turned, cell, span, prepared)
         elif detect_source >= 0:
             nu0[f] = _peak(u[f, detect_source], nu[f], live[f], oversample, sep_guard, outside, use_gate, gate_lo,
                            gate_hi, energy, near)
-        ph = 2.0 * math.pi * nu0[f] / n
-        a1 = a2 = 0.0 + 0.0j
-        w = complex(math.cos(ph * kc[0]), math.sin(ph * kc[0]))  # conj(exp(-i 2 pi kc nu / N)); kc in unit steps
-        turn = complex(math.cos(ph), math.sin(ph))  # by a recurrence (relative error ~1e-14)
-        for i in range(n):
-            a1 += w * y[f, i, 0]
-            a2 += w * y[f, i, 1]
-            w *= turn
-        amp0[f, 0] = a1 * scale
-        amp0[f, 1] = a2 * scale
+        _amplitude(y[f], nu0[f], kc, ramps, amp0[f])
+    if not any_active:
+        return False
+    for f in range(nb):
+        if pending[f]:
+            if on_coarse:
+                nu0[f] = _coarse_range(u[f, detect_source], src[f, detect_source], n, nu[f], live[f], oversample,
+                                       sep_guard, outside, use_gate, gate_lo, gate_hi, gate_edges, rho, table, coarse,
+                                       energy, known, near, edge, offsets, turned, cell, span, False)
+            else:
+                nu0[f] = _peak(u[f, detect_source], nu[f], live[f], oversample, sep_guard, outside, use_gate,
+                               gate_lo, gate_hi, energy, near)
+            _amplitude(y[f], nu0[f], kc, ramps, amp0[f])
+    return True
 
+
+@njit(cache=True, nogil=True, inline="always")
+def _amplitude(y, nu0, kc, ramps, amp0):
+    """Least-squares amplitudes ``amp0`` (2,) of one target at ``nu0`` bins in ``y`` (N, 2)."""
+    n = y.shape[0]
+    ph = 2.0 * math.pi * nu0 / n
+    a1 = a2 = 0.0 + 0.0j
+    w = complex(math.cos(ph * kc[0]), math.sin(ph * kc[0]))  # conj(exp(-i 2 pi kc nu / N)); kc in unit steps
+    turn = complex(math.cos(ph), math.sin(ph))  # by a recurrence (relative error ~1e-14)
+    for i in range(n):
+        a1 += w * y[i, 0]
+        a2 += w * y[i, 1]
+        w *= turn
+    scale = 1.0 / (ramps * n)
+    amp0[0] = a1 * scale
+    amp0[1] = a2 * scale
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def result(nu, amp, live, y, kc0, ramps, range_res, carrier, wrap, cap, range_m, amp_out, stat, present):
@@ -457,9 +377,9 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
 
 
 @njit(cache=True, nogil=True)
-def add_target(u, src, table, rho, y, kc, ramps, nu, amp, live, oversample, count_guard, sep_guard, outside,
-               use_gate, gate_lo, gate_hi, count_sources, detect_source, threshold, active, kind, lik, a, b, sigma,
-               iters, amp_cap, max_range_step, mu, g, h):
+def add_target(u, src, table, rho, tables, gate_w, inside, y, kc, ramps, nu, amp, live, oversample, count_guard,
+               sep_guard, outside, use_gate, gate_lo, gate_hi, count_sources, detect_source, threshold, active, kind,
+               lik, a, b, sigma, iters, amp_cap, max_range_step, mu, g, h):
     """One greedy stage of :func:`pipeline.dsp.cml._decode` in one call: :func:`detect` (the
     count test when ``threshold`` >= 0: ``active`` (B,) bool updated in place), the new
     target (amplitude 0 in inactive frames) appended to ``nu`` (B, T), ``amp``, ``live``, the
@@ -471,13 +391,13 @@ def add_target(u, src, table, rho, y, kc, ramps, nu, amp, live, oversample, coun
     stat = np.zeros(nb)
     nu0 = np.empty(nb)
     amp0 = np.empty((nb, 2), dtype=np.complex128)
-    detect(u, src, table, rho, y, kc, ramps, nu, live, oversample, count_guard, sep_guard, outside, use_gate, gate_lo,
-           gate_hi, count_sources, detect_source, stat, nu0, amp0)
-    any_active = False
-    for f in range(nb):
-        if threshold >= 0.0:
-            active[f] = active[f] and stat[f] >= threshold
-        any_active = any_active or active[f]
+    any_active = detect(u, src, table, rho, tables, gate_w, inside, y, kc, ramps, nu, live, oversample, count_guard,
+                        sep_guard, outside, use_gate, gate_lo, gate_hi, count_sources, detect_source, threshold, active,
+                        stat, nu0, amp0)
+    if threshold < 0.0:
+        any_active = False
+        for f in range(nb):
+            any_active = any_active or active[f]
     nu2 = np.empty((nb, t + 1))
     amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
     live2 = np.empty((nb, t + 1), dtype=np.bool_)
@@ -545,6 +465,9 @@ def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, s
     none = np.empty((nb, 0, 2, 1), dtype=np.complex128)
     no_gate = np.zeros(1, dtype=np.bool_)
     no_table = np.empty(0, dtype=np.complex128)
+    no_tables = np.empty((0, 0))
+    no_weights = np.empty(0)
+    no_active = np.ones(nb, dtype=np.bool_)
     stat0 = np.zeros(nb)
     amp0 = np.empty((nb, 2), dtype=np.complex128)
     amp = np.empty((nb, 0, 2), dtype=np.complex128)
@@ -552,8 +475,9 @@ def warm(nu_all, live_all, targets, kc, ramps, folded, kind, lik, a, b, sigma, s
     for t in range(targets):
         _residual_into(folded, mu, ramps, y)
         nu0 = nu_all[:, t].copy()
-        detect(none, none, no_table, 0.0, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]),
-               np.ascontiguousarray(live_all[:, :t]), 1, 0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, stat0, nu0, amp0)
+        detect(none, none, no_table, 0.0, no_tables, no_weights, 0, y, kc, ramps, np.ascontiguousarray(nu_all[:, :t]),
+               np.ascontiguousarray(live_all[:, :t]), 1, 0.0, 0.0, no_gate, False, 0.0, 0.0, 0, -1, -1.0, no_active,
+               stat0, nu0, amp0)
         amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
         for f in range(nb):
             for j in range(t):
@@ -596,5 +520,7 @@ def _residual_into(folded, mu, ramps, y):
 
 
 # numba keys a cached kernel on this file alone: the kernels that call cml_kernels' refine
-# (and the likelihood it calls) are dropped from the cache when those files change
-drop_stale(__file__, (add_target, finish, warm), ("cml_kernels.py", "cml_likelihood_kernels.py"))
+# (and the likelihood it calls) or cml_count_kernels' search are dropped from the cache when
+# those files change
+drop_stale(__file__, (add_target, finish, warm, detect, _coarse_ratio, _coarse_range),
+           ("cml_kernels.py", "cml_likelihood_kernels.py", "cml_count_kernels.py"))

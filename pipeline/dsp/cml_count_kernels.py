@@ -1,0 +1,366 @@
+"""Compiled (numba) search of the oversampled range grid from a coarser inverse FFT, for
+:mod:`pipeline.dsp.cml_detect_kernels`: the peak of the joint energy (detection, and the
+count test's numerator) and the mean of that energy over the points not masked (the count
+test's denominator), both exactly the fine grid's, without the fine grid's FFT.
+
+Grids: the fine one of L = ``oversample`` N points (``table`` (L,) its twiddles
+``exp(2 pi i k / L)``), the coarse one of Lc = L / ``ratio`` points, ``uc`` (2, Lc) the
+zero-padded inverse FFT per antenna of ``x`` (2, >= N) (its first N points). Energies in the
+fine FFT's scale (``|ifft(x, L)|^2`` summed over the antennas). ``near`` (L,) bool: within the
+guard of the targets found; ``outside`` (L,) bool: beyond the range gate."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from pipeline.dsp.cml_kernels import _FAST
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi) -> float:
+    """Range (bins) of grid point ``best`` refined by a parabola through its energy and its neighbours'."""
+    curv = left - 2.0 * centre + right
+    off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
+    nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
+    if use_gate:
+        nu0 = min(max(nu0, gate_lo), gate_hi)
+    return nu0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fine_energy(x, n, p, table):
+    """Joint energy at point ``p`` of the inverse FFT of ``x`` (2, >= N) zero-padded to L =
+    ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
+    ``|U1|^2 + |U2|^2``, ``U = (1 / L) sum_i x[i] exp(2 pi i i p / L)`` summed directly."""
+    size = table.shape[0]
+    ar = ai = br = bi = 0.0
+    k = 0
+    for i in range(n):
+        w = table[k]
+        a = x[0, i]
+        b = x[1, i]
+        ar += a.real * w.real - a.imag * w.imag
+        ai += a.real * w.imag + a.imag * w.real
+        br += b.real * w.real - b.imag * w.imag
+        bi += b.real * w.imag + b.imag * w.real
+        k += p
+        if k >= size:
+            k -= size
+    inv = 1.0 / size  # as the FFT's, before squaring
+    ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
+    return (ar * ar + br * br) + (ai * ai + bi * bi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fine_value(x, n, p, table, near, energy, known) -> float:
+    """The masked fine energy at ``p`` (0 within the guard ``near``), computed once
+    (:func:`_fine_energy`) and kept in ``energy`` (``known``)."""
+    if near[p]:
+        return 0.0
+    if not known[p]:
+        energy[p] = _fine_energy(x, n, p, table)
+        known[p] = True
+    return energy[p]
+
+
+@njit(**_FAST)
+def _cell_energies(x, n, s, table, offsets, v, out):
+    """:func:`_fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
+    (2, D, N) (real and imaginary parts of ``exp(2 pi i i d / L)``) into ``out`` (D,), in one
+    pass: ``x`` turned by the twiddles of point ``s`` into ``v`` (4, N) (work), then one
+    vectorized sum a point."""
+    size = table.shape[0]
+    k = 0
+    for i in range(n):
+        w = table[k]
+        a = x[0, i]
+        b = x[1, i]
+        v[0, i], v[1, i] = a.real * w.real - a.imag * w.imag, a.real * w.imag + a.imag * w.real
+        v[2, i], v[3, i] = b.real * w.real - b.imag * w.imag, b.real * w.imag + b.imag * w.real
+        k += s
+        if k >= size:
+            k -= size
+    inv = 1.0 / size
+    for j in range(offsets.shape[1]):
+        dr, di = offsets[0, j], offsets[1, j]
+        ar = ai = br = bi = 0.0
+        for i in range(n):
+            ar += v[0, i] * dr[i] - v[1, i] * di[i]
+            ai += v[0, i] * di[i] + v[1, i] * dr[i]
+            br += v[2, i] * dr[i] - v[3, i] * di[i]
+            bi += v[2, i] * di[i] + v[3, i] * dr[i]
+        ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
+        out[j] = (ar * ar + br * br) + (ai * ai + bi * bi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_cell(c, ratio, half, size, outside, use_gate) -> bool:
+    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
+    for d in range(-half, half + 1):
+        if not use_gate or not outside[(c * ratio + d) % size]:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mark_edge(lo, hi, ratio, lc, edge):
+    """``edge[c]`` = True for the coarse points ``c`` within ``ratio`` fine points of the
+    fine points ``lo..hi`` (masked ones), modulo ``lc``."""
+    for c in range(-((ratio - lo) // ratio), (hi + ratio) // ratio + 1):  # ceil((lo - ratio) / ratio) ...
+        edge[c % lc] = True
+
+
+@njit(cache=True, nogil=True)
+def gate_edge(outside, lc, edge):
+    """``edge`` (Lc,) bool: the coarse points within a coarse step of a point beyond the gate
+    (``outside`` (L,)), as :func:`guard` marks them."""
+    size = outside.shape[0]
+    ratio = size // lc
+    edge[:] = False
+    for i in range(size):
+        if outside[i] and not outside[i - 1]:  # a run of points beyond the gate (wrapping)
+            e = i
+            while e + 1 < i + size and outside[(e + 1) % size]:
+                e += 1
+            _mark_edge(i, e, ratio, lc, edge)
+
+
+@njit(cache=True, nogil=True)
+def coarse_energies(uc, size, coarse, energy, known) -> float:
+    """The joint energy of the coarse inverse FFT ``uc`` (2, Lc) in the fine FFT's scale
+    (L = ``size`` points) into ``coarse`` (Lc,), and into ``energy`` (L,) at the fine points
+    it samples (``known`` (L,) then True there only). Returns its sum over the Lc points."""
+    lc = uc.shape[1]
+    ratio = size // lc
+    known[:] = False
+    sc = lc / size  # the coarse FFT's 1 / Lc to the fine one's 1 / L
+    for c in range(lc):
+        a = uc[0, c] * sc
+        b = uc[1, c] * sc
+        coarse[c] = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
+    for c in range(lc):
+        energy[c * ratio] = coarse[c]
+        known[c * ratio] = True
+    return _sum(coarse)
+
+
+@njit(**_FAST)
+def _sum(v) -> float:
+    """``sum(v)`` (v (J,) float), vectorized."""
+    total = 0.0
+    for i in range(v.shape[0]):
+        total += v[i]
+    return total
+
+
+@njit(cache=True, nogil=True)
+def guard(nu, live, oversample, guard_bins, use_gate, gate_edges, near, edge):
+    """``near`` (L,) = the fine points within ``guard_bins`` of the live targets ``nu`` (T,)
+    bins (later targets overwrite earlier ones, as :func:`pipeline.dsp.cml_detect._energy`),
+    and ``edge`` (Lc,) the coarse points within a coarse step of a live target's guard or
+    (``use_gate``) of ``gate_edges`` (Lc,) (:func:`gate_edge`). Returns the guard's reach
+    (fine points either side of a target's nearest one)."""
+    size, lc = near.shape[0], edge.shape[0]
+    ratio = size // lc
+    near[:] = False
+    if use_gate:
+        edge[:] = gate_edges
+    else:
+        edge[:] = False
+    reach = int(math.ceil(guard_bins * oversample)) - 1
+    for j in range(nu.shape[0]):
+        c = int(np.rint(nu[j] * oversample))
+        for d in range(-reach, reach + 1):
+            near[(c + d) % size] = live[j]  # later targets overwrite, as put_along_axis
+        if live[j]:
+            _mark_edge(c - reach, c + reach, ratio, lc, edge)
+    return reach
+
+
+@njit(cache=True, nogil=True)
+def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho, table, offsets, turned, cell, span,
+                bar, stop):
+    """The fine grid's peak (the first of equal ones, as argmax) of the joint energy, 0
+    within the guard ``near``, among the points inside the gate (``use_gate``): its point
+    and its energy (-1 when no point is inside). From the coarse energies ``coarse`` (Lc,)
+    (:func:`coarse_energies`, which also fills ``energy``, ``known`` (L,)): the fine energy
+    is summed directly (:func:`_cell_energies`) at the fine points within ``ratio // 2`` of
+    every coarse point whose energy reaches ``rho`` times the best one found. A maximum of
+    ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps more than
+    ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone: 0.81); a peak
+    against the guard or the gate need not be a maximum, so a coarse point within a coarse
+    step of a masked fine point (``edge`` (Lc,), :func:`guard`) counts its neighbours'
+    energy too. ``offsets`` (2, 2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
+    ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``turned`` (4, N), ``cell`` (2 (ratio // 2),),
+    ``span`` (Lc,): work.
+
+    ``bar``: only a peak reaching it is sought (the count test's threshold times the mean:
+    the cells that cannot reach it are skipped): the peak found is the same when it does,
+    else an energy below ``bar`` (-inf: always the peak); ``stop``: the first point found
+    reaching ``bar`` instead (whether one does, all the count test asks)."""
+    size = table.shape[0]
+    lc = coarse.shape[0]
+    ratio = size // lc
+    half = ratio // 2
+    floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
+    at = 0
+    first = -1  # the cell of the largest coarse energy first (the first of equal ones): the others then mostly fall short
+    for c in range(lc):
+        p = c * ratio
+        v = -1.0 if use_gate and outside[p] else (0.0 if near[p] else coarse[c])
+        if v > floor:
+            floor = v
+            at = p
+        if (first < 0 or coarse[c] > coarse[first]) and (not use_gate or _open_cell(c, ratio, half, size, outside,
+                                                                                      use_gate)):
+            first = c
+        # what a cell may hold: its coarse energy, by a masked point its neighbours' too
+        span[c] = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
+    if stop and floor >= bar:  # a coarse point reaches it
+        return at, floor
+    floor = max(floor, bar)
+    if first >= 0 and coarse[first] < rho * floor:
+        first = -1
+    top = -math.inf
+    best = 0
+    lim = rho * floor
+    for step in range(lc + 1):
+        c = first if step == 0 else step - 1
+        if c < 0 or (step > 0 and c == first) or span[c] < lim or not _open_cell(c, ratio, half, size, outside,
+                                                                                     use_gate):
+            continue
+        fresh = False  # a point of the cell not summed yet (by another search of the same energies)
+        for j in range(2 * half):
+            fresh = fresh or not known[(c * ratio + j - half + (j >= half)) % size]
+        if fresh:
+            _cell_energies(x, n, c * ratio, table, offsets, turned, cell)
+            for j in range(2 * half):
+                p = (c * ratio + j - half + (j >= half)) % size
+                if not known[p]:
+                    energy[p] = cell[j]
+                    known[p] = True
+        for d in range(-half, half + 1):
+            p = (c * ratio + d) % size
+            v = -1.0 if use_gate and outside[p] else _fine_value(x, n, p, table, near, energy, known)
+            if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
+                top = v
+                best = p
+        lim = rho * max(floor, top)
+        if stop and top >= bar:
+            break
+    return best, top
+
+
+@njit(cache=True, nogil=True)
+def peak_range(x, n, best, oversample, table, near, energy, known, use_gate, gate_lo, gate_hi) -> float:
+    """Range (bins) of fine point ``best`` refined by the parabola through its masked energy
+    and its neighbours' (:func:`_parabola`), in the gate (``use_gate``)."""
+    size = table.shape[0]
+    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
+    centre = _fine_value(x, n, best, table, near, energy, known)
+    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
+    return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
+
+
+# -- the mean: sums of the fine energy over runs of fine points, from the coarse energies ------
+@njit(**_FAST)
+def _cumulative(coarse, tables, e, size) -> float:
+    """``Psi(e) = sum_k coarse[k] G(e - k ratio)`` (:func:`run_tables`) for fine point ``e``
+    (any integer): a dot product of length Lc with a contiguous slice of ``tables``."""
+    lc = coarse.shape[0]
+    ratio = size // lc
+    e %= size
+    row = tables[e % ratio]
+    s = (lc - e // ratio) % lc
+    acc = 0.0
+    for k in range(lc):
+        acc += coarse[k] * row[s + k]
+    return acc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _run_sum(coarse, total, tables, a, b, size) -> float:
+    """The fine energy summed over the fine points ``a..b`` (an unwrapped run, b >= a) from
+    the coarse energies ``coarse`` (Lc,) (sum ``total``):
+    ``(b - a + 1) total / Lc + Psi(b + 1) - Psi(a)`` (:func:`_cumulative`)."""
+    lc = coarse.shape[0]
+    return (b - a + 1) * total / lc + _cumulative(coarse, tables, b + 1, size) - _cumulative(coarse, tables, a, size)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_cumulative(tables, p, sign, ratio, weights):
+    """``weights[k] += sign G(p - k ratio)`` for k < Lc (fine point ``p`` in [0, L))."""
+    lc = weights.shape[0] - 1
+    row = tables[p % ratio]
+    s = (lc - p // ratio) % lc
+    for k in range(lc):
+        weights[k] += sign * row[s + k]
+
+
+@njit(cache=True, nogil=True)
+def gate_weights(outside, tables, lc, weights) -> int:
+    """``weights`` (Lc + 1,): the sum of the fine energy over the points inside the gate
+    (``outside`` (L,) False) is ``sum_k weights[k] coarse[k] + weights[Lc] total``
+    (:func:`open_sum`). Returns how many points are inside."""
+    size = outside.shape[0]
+    ratio = size // lc
+    weights[:] = 0.0
+    inside = 0
+    for i in range(size):
+        if not outside[i] and outside[i - 1]:  # a run of points inside the gate (wrapping)
+            e = i
+            while e + 1 < i + size and not outside[(e + 1) % size]:
+                e += 1
+            inside += e - i + 1
+            weights[lc] += (e - i + 1) / lc
+            _add_cumulative(tables, (e + 1) % size, 1.0, ratio, weights)
+            _add_cumulative(tables, i, -1.0, ratio, weights)
+    if inside == 0 and not outside[0]:  # no point beyond the gate: all of them
+        weights[lc] = size / lc
+        inside = size
+    return inside
+
+
+@njit(cache=True, nogil=True)
+def open_sum(coarse, total, tables, nu, oversample, reach, near, outside, use_gate, weights, inside, seen):
+    """The sum of the fine energy over the points inside the gate (``use_gate``: ``weights``
+    (Lc + 1,) and ``inside`` of :func:`gate_weights`) and not within the guard (``near``
+    (L,), :func:`guard` of ``reach`` fine points about the targets ``nu`` (T,) bins), and
+    how many those points are: the sum inside less the guard's points inside, summed by
+    runs (:func:`_run_sum`) from the coarse energies ``coarse`` (Lc,) (sum ``total``).
+    ``seen`` (L,) bool: work, all False (left so)."""
+    size = near.shape[0]
+    lc = coarse.shape[0]
+    if use_gate:
+        kept = weights[lc] * total
+        for k in range(lc):
+            kept += weights[k] * coarse[k]
+        cells = inside
+    else:
+        kept = (size // lc) * total
+        cells = size
+    for j in range(nu.shape[0]):  # the guard's points inside the gate, each once, by runs
+        c = int(np.rint(nu[j] * oversample))
+        start = c - reach
+        run = False
+        for d in range(-reach, reach + 1):
+            p = (c + d) % size
+            if near[p] and not (use_gate and outside[p]) and not seen[p]:
+                seen[p] = True
+                cells -= 1
+                if not run:
+                    start = c + d
+                    run = True
+            elif run:
+                kept -= _run_sum(coarse, total, tables, start, c + d - 1, size)
+                run = False
+        if run:
+            kept -= _run_sum(coarse, total, tables, start, c + reach, size)
+    for j in range(nu.shape[0]):
+        c = int(np.rint(nu[j] * oversample))
+        for d in range(-reach, reach + 1):
+            seen[(c + d) % size] = False
+    return (kept if cells > 0 else 0.0), cells

@@ -1,0 +1,214 @@
+"""The count test of cml on the coarse grid (pipeline.dsp.cml_count_kernels, the detect
+kernel's ``_coarse_ratio``) against the numpy reference (pipeline.dsp.cml_detect._peak_ratio,
+_count_statistic) on the full fine grid: the mean of the joint energy by sums over runs of
+fine points from the coarse energies, the peak by the coarse search.
+
+Tolerances: a run's sum to 1e-12 of the energy's total (measured: 6e-16); the statistic
+to 1e-9 relative (measured: 5e-15); the decided statistic (a threshold given) reaches the
+threshold exactly when the exact one does, thresholds 1e-9 either side of it included."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from test_cml import measure, random_scenes
+from test_cml_kernels import RANGE_TOL_M, agree
+
+from pipeline.dsp import cml_count_kernels as count_kernels
+from pipeline.dsp import cml_detect_kernels as kernels
+from pipeline.dsp.cml import cml
+from pipeline.dsp.cml_detect import COARSE_PER_BIN, COARSE_RHO, COUNT_GUARD_BINS, _coarse_grid, _peak_ratio, \
+    _run_tables, _twiddles
+from pipeline.dsp.cml_fit import _Gate
+from pipeline.dsp.gate import RangeGate
+
+N, OVERSAMPLE = 256, 8
+SIZE, SMALL = N * OVERSAMPLE, N * COARSE_PER_BIN
+STAT_RTOL = 1e-9
+
+
+def energies(x):
+    """The fine grid's joint energy (L,) of ``x`` (2, N) and the coarse one's, as the kernel keeps it."""
+    fine = (np.abs(np.fft.ifft(x, n=SIZE, axis=1)) ** 2).sum(axis=0)
+    coarse, energy, known = np.empty(SMALL), np.empty(SIZE), np.empty(SIZE, dtype=bool)
+    total = count_kernels.coarse_energies(np.fft.ifft(x, n=SMALL, axis=1), SIZE, coarse, energy, known)
+    return fine, coarse, total
+
+
+def coarse_ratio(x, nu, live, gate=None, threshold=-1.0):
+    """The coarse grid's count statistic of ``x`` (2, N) (targets ``nu`` bins, ``live``;
+    ``gate`` a _Gate or None), decided at ``threshold`` (< 0: exact)."""
+    grid = _coarse_grid(N, OVERSAMPLE, gate)
+    table, rho, tables, weights, inside = grid
+    half = OVERSAMPLE // COARSE_PER_BIN // 2
+    d = np.r_[-half:0, 1:half + 1]
+    steps = table[np.outer(d, np.arange(N)) % SIZE]
+    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
+    gate_edges = np.zeros(SMALL, dtype=bool)
+    if gate is not None:
+        count_kernels.gate_edge(outside, SMALL, gate_edges)
+    ratio, _ = kernels._coarse_ratio(
+        np.fft.ifft(x, n=SMALL, axis=1), np.ascontiguousarray(x), N, np.asarray(nu, dtype=float),
+        np.asarray(live, dtype=bool), OVERSAMPLE, COUNT_GUARD_BINS, outside, gate is not None, gate_edges, weights,
+        inside, rho, table, tables, np.empty(SMALL), np.empty(SIZE), np.empty(SIZE, dtype=bool),
+        np.empty(SIZE, dtype=bool), np.empty(SMALL, dtype=bool), np.zeros(SIZE, dtype=bool),
+        np.ascontiguousarray([steps.real, steps.imag]), np.empty((4, N)), np.empty(2 * half), np.empty(SMALL),
+        threshold)
+    return ratio
+
+
+def reference_ratio(x, nu, live, gate=None):
+    """numpy's (pipeline.dsp.cml_detect._peak_ratio) on the full fine grid."""
+    fit = SimpleNamespace(nu=np.asarray(nu, dtype=float)[None], live=np.asarray(live, dtype=bool)[None], gate=gate)
+    return _peak_ratio(x.T[None], fit, OVERSAMPLE)[0]
+
+
+def tones(nu, amp, noise, rng):
+    """(2, N) complex: tones at ``nu`` (bins), amplitudes ``amp`` (K, 2), white noise of std ``noise``."""
+    k = np.arange(N)
+    x = noise * (rng.standard_normal((2, N)) + 1j * rng.standard_normal((2, N)))
+    for v, a in zip(nu, amp):
+        x = x + np.exp(-2j * np.pi * v * k / N)[None, :] * np.asarray(a)[:, None]
+    return x
+
+
+def gate_of(lo_m, hi_m, cfg):
+    return _Gate(RangeGate(min_range_m=lo_m, max_range_m=hi_m), cfg, OVERSAMPLE)
+
+
+def test_run_sums_are_the_fine_grids():
+    """The fine energy summed over runs of points (any start, wrapping, 1 to 300 points)
+    from the coarse energies, against the zero-padded FFT's."""
+    rng = np.random.default_rng(0)
+    tables = _run_tables(N, SIZE, SMALL)
+    for trial in range(40):
+        x = tones(rng.uniform(0, N, 2), [[30.0, 3j], [0.3, 0.1]], 1.0 if trial % 2 else 0.0, rng)
+        fine, coarse, total = energies(x)
+        for a in rng.integers(-SIZE, SIZE, 25):
+            m = int(rng.integers(1, 300))
+            got = count_kernels._run_sum(coarse, total, tables, a, a + m - 1, SIZE)
+            assert abs(got - fine[np.arange(a, a + m) % SIZE].sum()) <= 1e-12 * fine.sum()
+
+
+def test_run_tables_match_the_prefix_sums_of_the_interpolating_kernel():
+    n, size, small = 16, 128, 32
+    j = np.arange(size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(j == 0, 2 * n - 1, np.sin((2 * n - 1) * np.pi * j / size) / np.sin(np.pi * j / size)) / small
+    g = np.concatenate([[0.0], np.cumsum(f)[:-1]]) - j / small  # F(x) - x / Lc
+    tables = _run_tables(n, size, small)
+    ratio = size // small
+    for phi in range(ratio):
+        for k in range(2 * small):
+            assert abs(tables[phi, k] - g[(phi + ((-k) % small) * ratio) % size]) < 1e-13
+
+
+@pytest.mark.parametrize("case", ["empty", "guard", "overlapping_guards", "dead_overwrites", "wrapping"])
+def test_statistic_matches_numpy_without_a_gate(case):
+    rng = np.random.default_rng(1)
+    for trial in range(60):
+        found = rng.uniform(0, N, 3)
+        if case == "empty":
+            nu, live = np.zeros(0), np.zeros(0, dtype=bool)
+        elif case == "guard":
+            nu, live = found[:2], [True, True]
+        elif case == "overlapping_guards":  # guards overlap: each point counted once
+            nu, live = [found[0], found[0] + rng.uniform(0.1, 3.5)], [True, True]
+        elif case == "dead_overwrites":  # a later target not live clears an earlier one's guard
+            nu, live = [found[0], found[0] + rng.uniform(-2.0, 2.0), found[1]], [True, False, True]
+        else:
+            nu, live = [rng.uniform(-1.0, 0.5), N - rng.uniform(0, 1.5)], [True, True]
+        # tones at the targets (their residual), one beyond the guard or inside it, noise or none
+        near = np.r_[np.asarray(nu, dtype=float), [found[2], found[0] + rng.choice([-1, 1]) * rng.uniform(1.5, 2.5)]]
+        amp = rng.standard_normal((near.size, 2)) + 1j * rng.standard_normal((near.size, 2))
+        x = tones(near, amp * rng.uniform(0.01, 3.0, (near.size, 1)), (0.0, 0.1, 1.0)[trial % 3], rng)
+        ref = reference_ratio(x, nu, live)
+        assert coarse_ratio(x, nu, live) == pytest.approx(ref, rel=STAT_RTOL), (trial, ref)
+
+
+def test_statistic_matches_numpy_with_a_gate(cfg):
+    """Gates of a few bins to nearly all of them, targets and tones near their ends and
+    guards reaching beyond them."""
+    rng = np.random.default_rng(2)
+    for trial in range(80):
+        lo = rng.uniform(1.0, 60.0)
+        hi = lo + (rng.uniform(0.3, 3.0) if trial % 4 == 0 else rng.uniform(5.0, 80.0))
+        gate = gate_of(lo, hi, cfg)
+        lo_b, hi_b = gate.lo, gate.hi
+        nu = [lo_b + rng.uniform(-1.0, 1.0), hi_b + rng.uniform(-1.0, 1.0), rng.uniform(lo_b, hi_b)][:trial % 4]
+        live = [True, trial % 3 != 0, True][:len(nu)]
+        near = np.r_[np.asarray(nu, dtype=float), [lo_b - 0.3, hi_b + 0.2, rng.uniform(lo_b, hi_b)]]
+        amp = rng.standard_normal((near.size, 2)) + 1j * rng.standard_normal((near.size, 2))
+        x = tones(near, amp, (0.0, 0.1)[trial % 2], rng)
+        ref = reference_ratio(x, nu, live, gate)
+        assert coarse_ratio(x, nu, live, gate) == pytest.approx(ref, rel=STAT_RTOL), (trial, lo, hi, ref)
+
+
+def test_statistic_of_nothing_and_of_a_gate_all_guarded_is_numpys(cfg):
+    x = np.zeros((2, N), dtype=complex)
+    assert coarse_ratio(x, [], []) == reference_ratio(x, [], []) == 0.0
+    gate = gate_of(30.0, 30.5, cfg)  # a gate narrower than the guard: every point inside it masked
+    x = tones([gate.lo + 0.1], [[1.0, 1.0j]], 0.1, np.random.default_rng(3))
+    nu = [0.5 * (gate.lo + gate.hi)]
+    assert coarse_ratio(x, nu, [True], gate) == reference_ratio(x, nu, [True], gate) == 0.0
+
+
+def test_decided_statistic_reaches_the_threshold_exactly_when_the_exact_one_does(cfg):
+    """Thresholds at, just above and just below the exact statistic, and far either side:
+    the same decision; and the decision of a statistic near a threshold by a few cells only."""
+    rng = np.random.default_rng(4)
+    gate = gate_of(10.0, 120.0, cfg)
+    for trial in range(60):
+        g = gate if trial % 2 else None
+        nu = rng.uniform(30.0, 100.0, trial % 3)
+        live = np.ones(nu.size, dtype=bool)
+        x = tones(np.r_[nu, rng.uniform(20.0, 110.0)], rng.standard_normal((nu.size + 1, 2)) * rng.uniform(0.02, 2.0),
+                  1.0, rng)
+        exact = coarse_ratio(x, nu, live, g)
+        assert exact == pytest.approx(reference_ratio(x, nu, live, g), rel=STAT_RTOL)
+        for thr in (exact * (1 - 1e-9), exact * (1 + 1e-9), 0.5 * exact, 2.0 * exact, 8.2):
+            assert (coarse_ratio(x, nu, live, g, thr) >= thr) == (exact >= thr), (trial, exact, thr)
+
+
+def test_gate_weights_count_the_points_inside(cfg):
+    tables = _run_tables(N, SIZE, SMALL)
+    for lo, hi in ((0.0, 1.0), (5.0, 150.0), (100.0, 100.2), (0.0, 200.0)):
+        gate = gate_of(lo, hi, cfg)
+        weights = np.empty(SMALL + 1)
+        assert count_kernels.gate_weights(gate.outside, tables, SMALL, weights) == (~gate.outside).sum()
+
+
+@pytest.mark.parametrize("bits,alpha,noise", [(1, 1.0, 0.0), (1, 0.45, 0.1), (None, 1.0, 0.0), (None, 1.0, 0.1)])
+def test_k_auto_counts_agree_with_numpy(cfg, bits, alpha, noise):
+    """K auto (pfa 1e-3, at most 4) on scenes of 0 to 4 targets inside the gate, gated or
+    not: the compiled decoder (the count test on the coarse grid, decided) against the numpy
+    reference, the same counts and ranges (noiseless unquantized frames: the same counts,
+    phantoms fitted to the rounding of an exact fit whose ranges the engines need not
+    share). Amplitudes: as main's compiled path (alpha 0.45 with noise: the engines' differ
+    by up to 5e-3, before this change too)."""
+    rng = np.random.default_rng(5)
+    gate = RangeGate(min_range_m=20.0, max_range_m=100.0)
+    for k in range(5):
+        r, a, x = random_scenes(6, max(k, 1), rng)
+        r = 21.0 + (r - 3.0) * (78.0 / 147.0)
+        if k == 0:
+            x[:] = 0.0
+        z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, alpha=alpha, noise=noise if k else max(noise, 0.1))
+        for kw in ({}, {"gate": gate}):
+            ref = cml(z, xi, delta, bits, cfg, 4, engine="numpy", pfa=1e-3, **kw)
+            got = cml(z, xi, delta, bits, cfg, 4, engine="numba", pfa=1e-3, **kw)
+            np.testing.assert_array_equal(got.present, ref.present)
+            if not (bits is None and noise == 0.0):
+                np.testing.assert_allclose(got.range_m[ref.present], ref.range_m[ref.present], atol=RANGE_TOL_M)
+
+
+def test_warm_start_misfit_decisions_agree_with_numpy(cfg):
+    """The warm start's count test (decided at the warm threshold): a target that appeared
+    sends a frame back to the full search in both engines."""
+    rng = np.random.default_rng(6)
+    r, a, x = random_scenes(12, 2, rng)
+    z, xi, delta = measure(r, a, x, cfg, rng, noise=0.05)
+    init = r.copy()
+    init[::3, 1] = np.nan  # the second target not known: it appeared
+    for kw in ({}, {"pfa": 1e-3}):
+        agree(z, xi, delta, 1, cfg, 2, init_range_m=init, **kw)
