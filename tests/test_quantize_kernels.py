@@ -96,3 +96,25 @@ def test_quantized_batch_names_one_generator_once():
     for j, gen in enumerate((DITHER_COUNTER, DITHER_SEEDSEQ, DITHER_COUNTER)):
         assert_array_equal(mixed.dither()[j], msg(j, gen).dither())
     assert_array_equal(one.dither()[1], msg(1, DITHER_COUNTER).dither())
+
+
+def test_quantize_frames_with_the_compiled_dither_gives_the_reference_codes(monkeypatch):
+    """The quantizer draws the counter dither already scaled by alpha delta: the codes are
+    the numpy reference's, bit for bit, for one seed or one per frame, fixed or per-frame
+    alpha ("auto") and 1 or 3 bits."""
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+
+    rng = np.random.default_rng(8)
+    g = (rng.normal(size=(6, 64, 2)) + 1j * rng.normal(size=(6, 64, 2))) * 0.3
+    g[0, :3] = 0.0  # zeros: the sign of a zero dither cannot move a code
+    seqs = np.array([0, 1, 2**63, 2**64 - 1, 17, 5], np.uint64)
+    cases = [(QuantizerConfig(alpha=0.8), 11, None), (QuantizerConfig(bits=3, alpha=1.0), None, None),
+             (QuantizerConfig(alpha="auto"), sensor_dither_seeds(2, list("abcdef")), np.array([0, 0.05, 0.2, 1e-9, 3.0, 0.1]))]
+    for cfg, seed, sigma in cases:
+        got = quantize_frames(g, cfg, seqs, dither_seed=seed, noise_sigma=sigma)
+        with monkeypatch.context() as mp:
+            mp.setattr(dither, "_dither_kernel", lambda: None)
+            want = quantize_frames(g, cfg, seqs, dither_seed=seed, noise_sigma=sigma)
+        assert _same(got.codes, want.codes) and _same(np.asarray(got.alpha), np.asarray(want.alpha))
+        if cfg.alpha == "auto":  # one alpha per frame
+            assert len(set(np.asarray(got.alpha).tolist())) > 2

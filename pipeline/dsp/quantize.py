@@ -508,7 +508,10 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
         alpha = float(np.float32(config.alpha))
         dithered = alpha > 0
     dither = None
-    if dithered:
+    if dithered and isinstance(generator, str) and generator == DITHER_COUNTER:  # scaled as it is drawn
+        seeds = np.broadcast_to(np.asarray(seed, dtype=np.uint64), seqs.shape)
+        dither = counter_dither(seeds, seqs, f.shape[1], np.broadcast_to(alpha * delta, seqs.shape))
+    elif dithered:
         dither = unit_dither(seed, seqs, f.shape[1], generator)
         dither *= (alpha * delta)[:, None, None]
     codes = _quantize(f, delta, config.bits, dither)  # bits checked by the config, delta made here
