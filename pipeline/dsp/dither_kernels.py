@@ -1,8 +1,9 @@
 """The counter generator's dither (:mod:`pipeline.dsp.quantize`) as one compiled (numba)
 kernel: a frame's 2M SplitMix64 words hashed, split into their 32-bit halves and scaled in
-one pass, with no (B, 2M) uint64 temporaries. The numpy code in
-:func:`pipeline.dsp.quantize._counter_dither` is the reference this kernel is tested
-against, bit for bit (tests/test_quantize_kernels.py).
+one pass, with no (B, 2M) uint64 temporaries. The numpy code of
+:func:`pipeline.dsp.dither.counter_dither_numpy` is the reference this kernel is tested
+against, bit for bit (tests/test_quantize_kernels.py). Its constants are repeated here, not
+imported: numba's on-disk cache is keyed on this file alone.
 
 Compiled on first use and cached on disk (``cache=True``: ``__pycache__`` beside this
 file, or ``NUMBA_CACHE_DIR``).
