@@ -25,6 +25,7 @@ from radar_driver.source import FrameSource, RawFrame, frame_batches
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.cml import kernels_ready, warm_up_kernels
+from pipeline.dsp.dither import warm_up as warm_up_dither
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
 from pipeline.errors import ParameterError
 from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
@@ -423,6 +424,8 @@ class LocalizeNode(FrameNode):
             # cml's kernels of 1-bit codes from numba's cache (~1 s; `make` compiles them at install)
             # before subscribing (the session already listens), the other kinds' after in the thread
             warm_up_kernels(wait="common")
+        if self.config.algo != Algo.PBP:
+            warm_up_dither()  # the compiled dither (pipeline.dsp.dither_kernels), from the same cache
         return super().start()
 
     def stop(self, timeout_s: float = 5.0) -> None:

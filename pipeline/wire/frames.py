@@ -569,10 +569,13 @@ def decode_quantized(payload: bytes, source: str = "<bytes>") -> QuantizedFrameM
 def quantized_batch(msgs: list[QuantizedFrameMsg]) -> QuantizedFrames:
     """Frames of one M and one bit depth as one batch (B = len(msgs)) for the decoders;
     alpha, dither_seed and the generator may differ per frame (frames of several sensors,
-    recordings of either version)."""
+    recordings of either version). One generator for every frame is one name (as the
+    batch decoder gives it: the dither is then regenerated in one call)."""
     if not msgs or len({(m.codes.shape, m.bits) for m in msgs}) != 1:
         raise WireError("a batch needs at least one frame, all of one M and one bit depth")
+    gens = [m.generator for m in msgs]
     return QuantizedFrames(
         codes=np.stack([m.codes for m in msgs]), delta=np.array([m.delta for m in msgs]), bits=msgs[0].bits,
         alpha=np.array([m.alpha for m in msgs]), dither_seed=np.array([m.dither_seed for m in msgs], dtype=np.uint64),
-        seq=np.array([m.seq for m in msgs], dtype=np.uint64), generator=np.array([m.generator for m in msgs]))
+        seq=np.array([m.seq for m in msgs], dtype=np.uint64),
+        generator=gens[0] if gens.count(gens[0]) == len(gens) else np.array(gens))

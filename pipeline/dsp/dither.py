@@ -1,0 +1,112 @@
+"""The counter generator of the dither (:mod:`pipeline.dsp.quantize`'s module docstring
+gives its definition): the frames' keys, the numpy reference :func:`counter_dither_numpy`
+and :func:`counter_dither`, which runs the compiled kernel of
+:mod:`pipeline.dsp.dither_kernels` when numba is installed, bit for bit the same."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+#: the counter generator's constants: SplitMix64's increment (2**64 / golden ratio) and
+#: the multipliers of its finalizer (Stafford's "Mix13")
+SPLITMIX_GAMMA = 0x9E3779B97F4A7C15
+SPLITMIX_C1 = 0xBF58476D1CE4E5B9
+SPLITMIX_C2 = 0x94D049BB133111EB
+_U64 = np.uint64
+_GAMMA, _C1, _C2 = _U64(SPLITMIX_GAMMA), _U64(SPLITMIX_C1), _U64(SPLITMIX_C2)
+#: 64-bit words per block of the counter generator (a block stays in the CPU cache)
+_BLOCK = 1 << 15
+_HALVES = _U64(0x8000000080000000)
+
+
+def _mix64(z: np.ndarray, tmp: np.ndarray) -> np.ndarray:
+    """SplitMix64's finalizer on a uint64 array, in place (``tmp``: scratch of its shape);
+    products wrap mod 2**64."""
+    np.right_shift(z, _U64(30), out=tmp)
+    z ^= tmp
+    z *= _C1
+    np.right_shift(z, _U64(27), out=tmp)
+    z ^= tmp
+    z *= _C2
+    np.right_shift(z, _U64(31), out=tmp)
+    z ^= tmp
+    return z
+
+
+@lru_cache(maxsize=16)
+def _counter_offsets(n_words: int) -> np.ndarray:
+    """``(w + 1) G`` mod 2**64 for the words w = 0 .. n_words - 1 of a frame (read-only)."""
+    out = (np.arange(n_words, dtype=np.uint64) + _U64(1)) * _GAMMA
+    out.flags.writeable = False
+    return out
+
+
+def counter_keys(seeds: np.ndarray, seqs: np.ndarray) -> np.ndarray:
+    """Frame keys of the counter generator, ``mix(seed ^ mix(seq + G))``: (B,) uint64."""
+    key = seqs.astype(np.uint64) + _GAMMA
+    tmp = np.empty_like(key)
+    _mix64(key, tmp)
+    key ^= seeds.astype(np.uint64, copy=False)
+    return _mix64(key, tmp)
+
+
+def counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int,
+                    scale: np.ndarray | None = None) -> np.ndarray:
+    """The counter generator's dither of frames (seeds[b], seqs[b]) times ``scale`` (B,)
+    float (None: the unit dither): (B, M, 2) complex. One compiled pass
+    (:mod:`pipeline.dsp.dither_kernels`) when numba is installed, else the numpy reference
+    :func:`counter_dither_numpy`; bit for bit the same (``scale * u`` rounded once)."""
+    kernel = _dither_kernel()
+    if kernel is None:
+        u = counter_dither_numpy(seeds, seqs, n_measurements)
+        return u if scale is None else scale[:, None, None] * u
+    b = seqs.size
+    out = np.empty((b, 4 * n_measurements))
+    kernel(np.ascontiguousarray(seeds, dtype=np.uint64), np.ascontiguousarray(seqs, dtype=np.uint64),
+           np.ones(b) if scale is None else np.ascontiguousarray(scale, dtype=float), out)
+    return out.view(complex).reshape(b, n_measurements, 2)
+
+
+@lru_cache(maxsize=None)
+def _dither_kernel():
+    """The compiled dither, imported on first use (importing this module stays cheap); None without numba."""
+    try:
+        from pipeline.dsp.dither_kernels import counter_dither_into
+    except ImportError:
+        return None
+    return counter_dither_into
+
+
+def warm_up() -> None:
+    """Load the compiled dither from numba's on-disk cache (or compile it: about 1 s), so
+    that a node's first frame does not wait for it; nothing without numba."""
+    counter_dither(np.zeros(1, np.uint64), np.zeros(1, np.uint64), 1, np.ones(1))
+
+
+def counter_dither_numpy(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) -> np.ndarray:
+    """The counter generator's unit dither of frames (seeds[b], seqs[b]) in numpy: (B, M, 2) complex.
+
+    Words ``x_w = mix(k + (w + 1) G)``, w < 2M, give the 4M 32-bit values
+    ``v_2w = x_w mod 2**32``, ``v_2w+1 = x_w >> 32`` (the words' little-endian halves);
+    ``u_i = v_i 2**-32 - 1/2``: real parts u_0 .. u_2M-1, imaginary parts u_2M .. u_4M-1."""
+    keys = counter_keys(seeds, seqs)
+    n = 2 * n_measurements  # words per frame = entries of the (M, 2) array
+    offsets = _counter_offsets(n)
+    out = np.empty((keys.size, 2 * n), dtype=float)  # Re, Im interleaved: a complex (B, M, 2)
+    rows = max(1, _BLOCK // max(n, 1))
+    z = np.empty((min(rows, keys.size), n), dtype=np.uint64)
+    tmp = np.empty_like(z)
+    for start in range(0, keys.size, rows):  # blocks of frames, not one frame at a time
+        k = keys[start:start + rows]
+        zz, tt, oo = z[:k.size], tmp[:k.size], out[start:start + rows]
+        np.add(k[:, None], offsets, out=zz)
+        _mix64(zz, tt)
+        zz ^= _HALVES  # v_i - 2**31 as int32: (v_i - 2**31) 2**-32 = u_i, exactly
+        v = zz.view("<i4")  # (rows, 4M) 32-bit values
+        np.multiply(v[:, :n], 2.0**-32, out=oo[:, 0::2])
+        np.multiply(v[:, n:], 2.0**-32, out=oo[:, 1::2])
+    return out.view(complex).reshape(keys.size, n_measurements, 2)
+
+

@@ -1,0 +1,120 @@
+"""The compiled counter dither (pipeline.dsp.dither_kernels) against its numpy reference
+(pipeline.dsp.dither.counter_dither_numpy), bit for bit, and the paths that reach it."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_array_equal
+
+from pipeline.dsp import dither
+from pipeline.dsp.dither import counter_dither, counter_dither_numpy
+from pipeline.dsp.quantize import DITHER_COUNTER, DITHER_SEEDSEQ, QuantizedFrames, unit_dither
+from pipeline.wire import QuantizedFrameMsg, quantized_batch
+
+needs_numba = pytest.mark.skipif(dither._dither_kernel() is None, reason="numba is not installed")
+
+
+def _seeds_seqs(rng, b):
+    seeds = rng.integers(0, 2**64, b, dtype=np.uint64, endpoint=False)
+    seqs = rng.integers(0, 2**64, b, dtype=np.uint64, endpoint=False)
+    seeds[:2], seqs[:2] = [0, 2**64 - 1][:b], [2**64 - 1, 0][:b]  # the extremes wrap alike
+    return seeds, seqs
+
+
+def _same(a, b):
+    """Equal bit for bit (values, signs of zeros, dtype and shape)."""
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@needs_numba
+@pytest.mark.parametrize("b", [1, 2, 3, 17, 64])
+@pytest.mark.parametrize("m", [0, 1, 7, 512])
+def test_the_compiled_dither_is_the_numpy_one_bit_for_bit(b, m):
+    rng = np.random.default_rng(1000 * b + m)
+    seeds, seqs = _seeds_seqs(rng, b)
+    ref = counter_dither_numpy(seeds, seqs, m)
+    assert _same(counter_dither(seeds, seqs, m), ref)
+    # scaled in the kernel: alpha delta of float32 values (as the wire carries them), from tiny to large
+    alpha = rng.random(b).astype(np.float32).astype(float)
+    delta = np.exp(rng.uniform(np.log(1.2e-38), np.log(1e3), b)).astype(np.float32).astype(float)
+    scale = alpha * delta
+    assert _same(counter_dither(seeds, seqs, m, scale), scale[:, None, None] * ref)
+
+
+@needs_numba
+def test_the_compiled_dither_takes_any_layout_of_seeds():
+    """A broadcast seed (unit_dither with one seed for the batch) and strided arrays give
+    what contiguous ones do."""
+    seqs = np.arange(0, 20, 2, dtype=np.uint64)[::2]
+    want = counter_dither_numpy(np.full(5, 9, np.uint64), np.ascontiguousarray(seqs), 64)
+    assert _same(counter_dither(np.broadcast_to(np.uint64(9), (5,)), seqs, 64), want)
+    assert _same(unit_dither(9, seqs, 64), want)
+
+
+def test_without_numba_the_numpy_reference_runs(monkeypatch):
+    rng = np.random.default_rng(5)
+    seeds, seqs = _seeds_seqs(rng, 4)
+    scale = rng.random(4)
+    want = scale[:, None, None] * counter_dither_numpy(seeds, seqs, 32)
+    monkeypatch.setattr(dither, "_dither_kernel", lambda: None)
+    assert _same(counter_dither(seeds, seqs, 32, scale), want)
+    assert _same(counter_dither(seeds, seqs, 32), counter_dither_numpy(seeds, seqs, 32))
+
+
+def _frames(rng, b, generator, seed=None):
+    seeds, seqs = _seeds_seqs(rng, b)
+    return QuantizedFrames(rng.integers(0, 2, (b, 16, 2, 2), dtype=np.uint8),
+                           np.float32(rng.random(b) + 0.1).astype(float), 1,
+                           np.float32(rng.random(b) + 0.01).astype(float), seeds if seed is None else seed,
+                           seqs, generator)
+
+
+def test_a_batch_dither_is_the_per_frame_reference_for_every_form_of_generator():
+    """QuantizedFrames.dither: one name, a uniform (B,) array of names (taken as one name)
+    and a mixed one all give alpha delta u of the numpy reference (seedseq: its own)."""
+    rng = np.random.default_rng(6)
+    for gen in (DITHER_COUNTER, np.array([DITHER_COUNTER] * 5), np.array([DITHER_SEEDSEQ] * 5),
+                np.array([DITHER_COUNTER, DITHER_SEEDSEQ] * 2 + [DITHER_COUNTER])):
+        q = _frames(rng, 5, gen)
+        names = np.broadcast_to(np.asarray(gen), (5,))
+        for j in range(5):
+            ref = (counter_dither_numpy(q.dither_seed[j:j + 1], q.seq[j:j + 1], 16) if names[j] == DITHER_COUNTER
+                   else unit_dither(q.dither_seed[j], q.seq[j], 16, DITHER_SEEDSEQ))
+            assert _same(q.dither()[j], (q.alpha[j] * q.delta[j]) * ref[0])
+    q = _frames(rng, 3, DITHER_COUNTER, seed=7)  # one int seed for the batch
+    want = (q.alpha * q.delta)[:, None, None] * counter_dither_numpy(np.full(3, 7, np.uint64), q.seq, 16)
+    assert _same(q.dither(), want)
+
+
+def test_quantized_batch_names_one_generator_once():
+    def msg(i, gen):
+        return QuantizedFrameMsg(f"s{i}", 10 + i, 0, 0, 1, 0.5, 0.25, 3 + i, np.zeros((8, 2, 2), np.uint8), gen)
+
+    one = quantized_batch([msg(i, DITHER_COUNTER) for i in range(3)])
+    assert one.generator == DITHER_COUNTER
+    mixed = quantized_batch([msg(i, (DITHER_COUNTER, DITHER_SEEDSEQ)[i % 2]) for i in range(3)])
+    assert mixed.generator.tolist() == [DITHER_COUNTER, DITHER_SEEDSEQ, DITHER_COUNTER]
+    for j, gen in enumerate((DITHER_COUNTER, DITHER_SEEDSEQ, DITHER_COUNTER)):
+        assert_array_equal(mixed.dither()[j], msg(j, gen).dither())
+    assert_array_equal(one.dither()[1], msg(1, DITHER_COUNTER).dither())
+
+
+def test_quantize_frames_with_the_compiled_dither_gives_the_reference_codes(monkeypatch):
+    """The quantizer draws the counter dither already scaled by alpha delta: the codes are
+    the numpy reference's, bit for bit, for one seed or one per frame, fixed or per-frame
+    alpha ("auto") and 1 or 3 bits."""
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
+
+    rng = np.random.default_rng(8)
+    g = (rng.normal(size=(6, 64, 2)) + 1j * rng.normal(size=(6, 64, 2))) * 0.3
+    g[0, :3] = 0.0  # zeros: the sign of a zero dither cannot move a code
+    seqs = np.array([0, 1, 2**63, 2**64 - 1, 17, 5], np.uint64)
+    cases = [(QuantizerConfig(alpha=0.8), 11, None), (QuantizerConfig(bits=3, alpha=1.0), None, None),
+             (QuantizerConfig(alpha="auto"), sensor_dither_seeds(2, list("abcdef")), np.array([0, 0.05, 0.2, 1e-9, 3.0, 0.1]))]
+    for cfg, seed, sigma in cases:
+        got = quantize_frames(g, cfg, seqs, dither_seed=seed, noise_sigma=sigma)
+        with monkeypatch.context() as mp:
+            mp.setattr(dither, "_dither_kernel", lambda: None)
+            want = quantize_frames(g, cfg, seqs, dither_seed=seed, noise_sigma=sigma)
+        assert _same(got.codes, want.codes) and _same(np.asarray(got.alpha), np.asarray(want.alpha))
+        if cfg.alpha == "auto":  # one alpha per frame
+            assert len(set(np.asarray(got.alpha).tolist())) > 2
