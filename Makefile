@@ -12,8 +12,9 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
-	# cml's compiled kernels, into numba's on-disk cache: a localizer's first frame then loads them (~0.5 s)
+	# cml's and the dither's compiled kernels, into numba's on-disk cache: a node's first frame then loads them (~0.5 s)
 	$(PY) -c 'from pipeline.dsp.cml import warm_up_kernels; warm_up_kernels(wait=True)'
+	$(PY) -c 'from pipeline.dsp.dither import warm_up; warm_up()'
 	@touch $(STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
