@@ -109,7 +109,8 @@ def test_quantize_frames_with_the_compiled_dither_gives_the_reference_codes(monk
     g[0, :3] = 0.0  # zeros: the sign of a zero dither cannot move a code
     seqs = np.array([0, 1, 2**63, 2**64 - 1, 17, 5], np.uint64)
     cases = [(QuantizerConfig(alpha=0.8), 11, None), (QuantizerConfig(bits=3, alpha=1.0), None, None),
-             (QuantizerConfig(alpha="auto"), sensor_dither_seeds(2, list("abcdef")), np.array([0, 0.05, 0.2, 1e-9, 3.0, 0.1]))]
+             (QuantizerConfig(alpha="auto"), sensor_dither_seeds(2, list("abcdef")),
+              np.array([0, 0.05, 0.2, 1e-9, 3.0, 0.1]))]
     for cfg, seed, sigma in cases:
         got = quantize_frames(g, cfg, seqs, dither_seed=seed, noise_sigma=sigma)
         with monkeypatch.context() as mp:
@@ -118,3 +119,33 @@ def test_quantize_frames_with_the_compiled_dither_gives_the_reference_codes(monk
         assert _same(got.codes, want.codes) and _same(np.asarray(got.alpha), np.asarray(want.alpha))
         if cfg.alpha == "auto":  # one alpha per frame
             assert len(set(np.asarray(got.alpha).tolist())) > 2
+
+
+@needs_numba
+def test_every_layout_reaches_the_one_compiled_signature():
+    """Broadcast (read-only) seeds and scales, strided sequence numbers and one frame all reach
+    the kernel as contiguous writeable arrays: the signature the warm-up loads, no compile at
+    a node's first frame."""
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+
+    dither.warm_up()
+    rng = np.random.default_rng(2)
+    for b in (1, 6):
+        g = rng.normal(size=(b, 32, 2)) + 1j * rng.normal(size=(b, 32, 2))
+        quantize_frames(g, QuantizerConfig(alpha=0.7), np.arange(b, dtype=np.uint64), dither_seed=3)
+        unit_dither(4, np.arange(0, 4 * b, 4, dtype=np.uint64)[::2], 16)
+        counter_dither(np.broadcast_to(np.uint64(5), (b,)), np.arange(b, dtype=np.uint64), 8,
+                       np.broadcast_to(0.5, (b,)))
+    assert len(dither._dither_kernel().signatures) == 1
+
+
+@needs_numba
+def test_seeds_or_scales_of_another_length_are_refused():
+    """A seed or scale per frame, or a clear error (the kernel reads one per frame unchecked)."""
+    from pipeline.errors import ParameterError
+
+    seqs = np.arange(4, dtype=np.uint64)
+    with pytest.raises(ParameterError, match="3 seeds and no scales for 4 frames"):
+        counter_dither(np.zeros(3, np.uint64), seqs, 8)
+    with pytest.raises(ParameterError, match="4 seeds and 2 scales for 4 frames"):
+        counter_dither(np.zeros(4, np.uint64), seqs, 8, np.ones(2))

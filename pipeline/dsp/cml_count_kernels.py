@@ -1,7 +1,9 @@
 """Compiled (numba) search of the oversampled range grid from a coarser inverse FFT, for
 :mod:`pipeline.dsp.cml_detect_kernels`: the peak of the joint energy (detection, and the
 count test's numerator) and the mean of that energy over the points not masked (the count
-test's denominator), both exactly the fine grid's, without the fine grid's FFT.
+test's denominator), without the fine grid's FFT: the mean exactly the fine grid's (to
+rounding), the peak the fine grid's by a bound (Riesz) at a maximum and every cell by a
+masked point summed, measured against the full grid (tests/test_cml_count.py).
 
 Grids: the fine one of L = ``oversample`` N points (``table`` (L,) its twiddles
 ``exp(2 pi i k / L)``), the coarse one of Lc = L / ``ratio`` points, ``uc`` (2, Lc) the
@@ -17,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.dsp.cml_kernels import _FAST
+from pipeline.dsp.kernel_cache import drop_stale
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -185,7 +188,7 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
                 bar, stop):
     """The fine grid's peak (the first of equal ones, as argmax) of the joint energy, 0
     within the guard ``near``, among the points inside the gate (``use_gate``): its point
-    and its energy (-1 when no point is inside). From the coarse energies ``coarse`` (Lc,)
+    and its energy (-inf when no point is inside). From the coarse energies ``coarse`` (Lc,)
     (:func:`coarse_energies`, which also fills ``energy``, ``known`` (L,)): the fine energy
     is summed directly (:func:`_cell_energies`) at the fine points within ``ratio // 2`` of
     every coarse point whose energy reaches ``rho`` times the best one found. A maximum of
@@ -193,7 +196,8 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone: 0.81); a peak
     against the guard or the gate need not be a maximum, so a coarse point within a coarse
     step of a masked fine point (``edge`` (Lc,), :func:`guard`) counts its neighbours'
-    energy too. ``offsets`` (2, 2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
+    energy too, and is never skipped (its peak need not be a maximum). ``offsets`` (2,
+    2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
     ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``turned`` (4, N), ``cell`` (2 (ratio // 2),),
     ``span`` (Lc,): work.
 
@@ -207,7 +211,8 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     half = ratio // 2
     floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
     at = 0
-    first = -1  # the cell of the largest coarse energy first (the first of equal ones): the others then mostly fall short
+    # the cell of the largest coarse energy first (the first of equal ones): the others then mostly fall short
+    first = -1
     for c in range(lc):
         p = c * ratio
         v = -1.0 if use_gate and outside[p] else (0.0 if near[p] else coarse[c])
@@ -229,8 +234,9 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     lim = rho * floor
     for step in range(lc + 1):
         c = first if step == 0 else step - 1
-        if c < 0 or (step > 0 and c == first) or span[c] < lim or not _open_cell(c, ratio, half, size, outside,
-                                                                                     use_gate):
+        # a cell by a masked point is always summed: its peak need not be a maximum of |U|^2
+        if c < 0 or (step > 0 and c == first) or (span[c] < lim and not edge[c]) or not _open_cell(
+                c, ratio, half, size, outside, use_gate):
             continue
         fresh = False  # a point of the cell not summed yet (by another search of the same energies)
         for j in range(2 * half):
@@ -364,3 +370,9 @@ def open_sum(coarse, total, tables, nu, oversample, reach, near, outside, use_ga
         for d in range(-reach, reach + 1):
             seen[(c + d) % size] = False
     return (kept if cells > 0 else 0.0), cells
+
+
+# numba keys a cached kernel on this file alone: the kernels compiled with cml_kernels' flags
+# (_FAST), and those that call them, are dropped from the cache when that file changes
+drop_stale(__file__, (_cell_energies, _sum, _cumulative, coarse_energies, coarse_peak, open_sum, gate_weights),
+           ("cml_kernels.py",))

@@ -234,7 +234,7 @@ def _coarse_grid(n: int, oversample: int, gate) -> tuple:
     """The coarse grid's constants of the detect kernel: the fine grid's twiddles
     (:func:`_twiddles`), COARSE_RHO, the run tables (:func:`_run_tables`), and the gate's
     weights (Lc + 1,) and count of points inside
-    (:func:`pipeline.dsp.cml_count_kernels.gate_weights`; no gate: empty, 0), kept per grid
+    (:func:`pipeline.dsp.cml_count_kernels.gate_weights`; no gate: one unused 0, and 0), kept per grid
     and gate."""
     size, lc = oversample * n, COARSE_PER_BIN * n
     tables = _run_tables(n, size, lc)

@@ -102,6 +102,8 @@ def _coarse_ratio(uc, x, n, nu, live, oversample, guard_bins, outside, use_gate,
     bar = threshold * mean if threshold >= 0.0 and mean > 0.0 else -math.inf
     best, top = coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho, table, offsets, turned,
                             cell, span, bar, threshold >= 0.0)
+    if threshold >= 0.0 and mean > 0.0 and top >= bar:  # decided: at the threshold even where top / mean rounds below
+        return max(top / mean, threshold), best
     return (max(top, 0.0) / mean if mean > 0.0 else 0.0), best
 
 
@@ -522,5 +524,5 @@ def _residual_into(folded, mu, ramps, y):
 # numba keys a cached kernel on this file alone: the kernels that call cml_kernels' refine
 # (and the likelihood it calls) or cml_count_kernels' search are dropped from the cache when
 # those files change
-drop_stale(__file__, (add_target, finish, warm, detect, _coarse_ratio, _coarse_range),
+drop_stale(__file__, (add_target, finish, warm, detect, _peak, _coarse_ratio, _coarse_range),
            ("cml_kernels.py", "cml_likelihood_kernels.py", "cml_count_kernels.py"))

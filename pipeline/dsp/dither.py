@@ -9,6 +9,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from pipeline.errors import ParameterError
+
 #: the counter generator's constants: SplitMix64's increment (2**64 / golden ratio) and
 #: the multipliers of its finalizer (Stafford's "Mix13")
 SPLITMIX_GAMMA = 0x9E3779B97F4A7C15
@@ -63,9 +65,13 @@ def counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int,
         u = counter_dither_numpy(seeds, seqs, n_measurements)
         return u if scale is None else scale[:, None, None] * u
     b = seqs.size
+    if np.size(seeds) != b or (scale is not None and np.size(scale) != b):
+        raise ParameterError(f"counter_dither: {np.size(seeds)} seeds and "
+                             f"{'no' if scale is None else np.size(scale)} scales for {b} frames")
     out = np.empty((b, 4 * n_measurements))
-    kernel(np.ascontiguousarray(seeds, dtype=np.uint64), np.ascontiguousarray(seqs, dtype=np.uint64),
-           np.ones(b) if scale is None else np.ascontiguousarray(scale, dtype=float), out)
+    # contiguous and writeable (a read-only view, e.g. np.broadcast_to, is another compiled signature)
+    kernel(np.require(seeds, np.uint64, "CW").reshape(b), np.require(seqs, np.uint64, "CW").reshape(b),
+           np.ones(b) if scale is None else np.require(scale, float, "CW").reshape(b), out)
     return out.view(complex).reshape(b, n_measurements, 2)
 
 

@@ -39,10 +39,10 @@ def counter_dither_into(seeds, seqs, scale, out):
     times ``scale`` (B,) float64 (alpha delta, or 1 for the unit dither), into ``out``
     (B, 4M) float64: the (B, M, 2) complex array's real and imaginary parts interleaved.
     Frame b's key is ``k_b = mix(seed ^ mix(seq + G))``
-    (:func:`pipeline.dsp.dither.counter_keys`), its word w < 2M ``x_w = mix(k_b + (w + 1) G)``; its low then high 32-bit halves are the values 2w and
-    2w + 1; value i < 2M is the real part of entry i, value 2M + i its imaginary part. So
-    words w and M + w give entries 2w and 2w + 1, four consecutive floats (AVX2: 4 words a
-    step). ``u = (v - 2**31) 2**-32`` is exact and ``scale * u`` rounded once, as numpy's."""
+    (:func:`pipeline.dsp.dither.counter_keys`), its word w < 2M ``x_w = mix(k_b + (w + 1) G)``;
+    its low then high 32-bit halves are the values 2w and 2w + 1; value i < 2M is the real
+    part of entry i, value 2M + i its imaginary part. So words w and M + w give entries 2w
+    and 2w + 1, four consecutive floats (AVX2: 4 words a step). ``u = (v - 2**31) 2**-32`` is exact and ``scale * u`` rounded once, as numpy's."""
     half = out.shape[1] // 4  # = M
     for b in range(seqs.shape[0]):
         s = scale[b] * _SCALE  # scale times a power of two: exact (scale is a normal float)

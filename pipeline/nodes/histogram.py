@@ -44,7 +44,8 @@ class LogHistogram:
         if not math.isfinite(value):
             return
         v = min(max(value, self.lo), self.hi)
-        i = min(int((math.log10(v) - self._log_lo) * self._per_decade), self.n_bins - 1)
+        # numpy's log10, as :meth:`bins` (math's may differ by an ulp where numpy's is SIMD: a bin edge)
+        i = min(int((float(np.log10(v)) - self._log_lo) * self._per_decade), self.n_bins - 1)
         self.counts[i] += 1
         self.count += 1
         self.total += value
