@@ -196,7 +196,8 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone: 0.81); a peak
     against the guard or the gate need not be a maximum, so a coarse point within a coarse
     step of a masked fine point (``edge`` (Lc,), :func:`guard`) counts its neighbours'
-    energy too, and is never skipped (its peak need not be a maximum). ``offsets`` (2,
+    energy too, and its points against the mask are summed whatever its energy (a peak there
+    need not be a maximum: :func:`_against_mask`). ``offsets`` (2,
     2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
     ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``turned`` (4, N), ``cell`` (2 (ratio // 2),),
     ``span`` (Lc,): work.
@@ -234,9 +235,14 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
     lim = rho * floor
     for step in range(lc + 1):
         c = first if step == 0 else step - 1
-        # a cell by a masked point is always summed: its peak need not be a maximum of |U|^2
         if c < 0 or (step > 0 and c == first) or (span[c] < lim and not edge[c]) or not _open_cell(
                 c, ratio, half, size, outside, use_gate):
+            continue
+        if span[c] < lim:  # by a masked point: only its points against the mask (a peak there need not be a maximum)
+            top, best = _against_mask(x, n, c * ratio, half, table, near, energy, known, outside, use_gate, top, best)
+            lim = rho * max(floor, top)
+            if stop and top >= bar:
+                break
             continue
         fresh = False  # a point of the cell not summed yet (by another search of the same energies)
         for j in range(2 * half):
@@ -258,6 +264,25 @@ def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho,
         if stop and top >= bar:
             break
     return best, top
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _against_mask(x, n, p0, half, table, near, energy, known, outside, use_gate, top, best):
+    """``(top, best)`` updated with the fine points within ``half`` of ``p0`` that are not
+    masked but have a masked neighbour (within the guard ``near`` or beyond the gate): the
+    grid's peak is a maximum of the energy or such a point."""
+    size = table.shape[0]
+    for d in range(-half, half + 1):
+        p = (p0 + d) % size
+        lo, hi = (p - 1) % size, (p + 1) % size
+        if near[p] or (use_gate and outside[p]):
+            continue
+        if near[lo] or near[hi] or (use_gate and (outside[lo] or outside[hi])):
+            v = _fine_value(x, n, p, table, near, energy, known)
+            if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
+                top = v
+                best = p
+    return top, best
 
 
 @njit(cache=True, nogil=True)
