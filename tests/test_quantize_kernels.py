@@ -13,6 +13,12 @@ from pipeline.wire import QuantizedFrameMsg, quantized_batch
 needs_numba = pytest.mark.skipif(dither._dither_kernel() is None, reason="numba is not installed")
 
 
+@pytest.fixture(autouse=True)
+def _compiled():
+    """The compiled dither in use (as in a localizer, which loads it at start)."""
+    dither.warm_up()
+
+
 def _seeds_seqs(rng, b):
     seeds = rng.integers(0, 2**64, b, dtype=np.uint64, endpoint=False)
     seqs = rng.integers(0, 2**64, b, dtype=np.uint64, endpoint=False)
@@ -149,3 +155,16 @@ def test_seeds_or_scales_of_another_length_are_refused():
         counter_dither(np.zeros(3, np.uint64), seqs, 8)
     with pytest.raises(ParameterError, match="4 seeds and 2 scales for 4 frames"):
         counter_dither(np.zeros(4, np.uint64), seqs, 8, np.ones(2))
+
+
+def test_a_process_that_only_quantizes_does_not_import_numba():
+    """The quantize node and an edge sensor draw the dither in numpy (bit for bit the
+    compiled one): no numba, no ~100 MB, no second of start-up in those processes."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; from pipeline.dsp.quantize import QuantizerConfig, quantize_frames; "
+            "quantize_frames(np.ones((2, 8, 2), complex), QuantizerConfig(), np.arange(2, dtype=np.uint64), "
+            "dither_seed=3).codes; print('numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]

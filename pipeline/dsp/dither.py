@@ -58,9 +58,10 @@ def counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int,
                     scale: np.ndarray | None = None) -> np.ndarray:
     """The counter generator's dither of frames (seeds[b], seqs[b]) times ``scale`` (B,)
     float (None: the unit dither): (B, M, 2) complex. One compiled pass
-    (:mod:`pipeline.dsp.dither_kernels`) when numba is installed, else the numpy reference
+    (:mod:`pipeline.dsp.dither_kernels`) once :func:`warm_up` loaded it (the localizer does;
+    a process that only quantizes never imports numba), else the numpy reference
     :func:`counter_dither_numpy`; bit for bit the same (``scale * u`` rounded once)."""
-    kernel = _dither_kernel()
+    kernel = _dither_kernel() if _loaded else None
     if kernel is None:
         u = counter_dither_numpy(seeds, seqs, n_measurements)
         return u if scale is None else scale[:, None, None] * u
@@ -85,9 +86,16 @@ def _dither_kernel():
     return counter_dither_into
 
 
+#: whether :func:`warm_up` loaded the compiled dither: :func:`counter_dither` uses it from then on
+_loaded = False
+
+
 def warm_up() -> None:
-    """Load the compiled dither from numba's on-disk cache (or compile it: about 1 s), so
-    that a node's first frame does not wait for it; nothing without numba."""
+    """Load the compiled dither from numba's on-disk cache (or compile it: about 1 s) and use
+    it from then on in this process; nothing without numba. Importing numba costs a process
+    ~1 s and ~100 MB, so only the localizer, which imports it for cml anyway, calls this."""
+    global _loaded
+    _loaded = True
     counter_dither(np.zeros(1, np.uint64), np.zeros(1, np.uint64), 1, np.ones(1))
 
 

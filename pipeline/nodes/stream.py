@@ -87,8 +87,6 @@ class SourceNode(Node):
         self.done = threading.Event()
 
     def _start(self) -> None:
-        if self.quantizer is not None:
-            warm_up_dither()  # the compiled dither before the first frame, not while the reader waits for it
         self._spawn(self._read_loop, "reader", after=self.done.set)  # done once an error is recorded
 
     def _read_loop(self) -> None:
@@ -318,10 +316,6 @@ class QuantizeNode(FrameNode):
         self.config = config
         self.calibration = calibration
         self.noise = noise_tracker(config, radar)
-
-    def start(self) -> "QuantizeNode":
-        warm_up_dither()  # the compiled dither (pipeline.dsp.dither_kernels) before subscribing
-        return super().start()
 
     def process(self, batch: list[QueuedFrame]) -> None:
         groups, _ = self.decode(batch)
