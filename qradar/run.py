@@ -343,11 +343,17 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
                          "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
                          "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
                          "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
-                         "undecodable_targets": monitor.bad_targets},
+                         "undecodable_targets": monitor.bad_targets, "undecodable_health": monitor.bad_health,
+                         "monitor_errors": monitor.failed_messages},
         # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
-        # quantizer is missing at every later stage too
+        # quantizer is missing at every later stage too (pipeline.nodes.counters.judge_seq)
         "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
                            "targets": monitor.targets_missing},
+        # restarts of a sender's count, and numbers out of line (forged or replayed), at each stage
+        "seq_resets": {"quantize": q_tot["seq_resets"], "localize": l_tot["seq_resets"],
+                       "targets": monitor.targets_seq_resets},
+        "implausible_seq": {"quantize": q_tot["implausible_seq"], "localize": l_tot["implausible_seq"],
+                            "targets": monitor.targets_implausible_seq},
         "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
         "latency_ms": {"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
         "position_error_m": {"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),

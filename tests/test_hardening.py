@@ -17,7 +17,7 @@ import zenoh
 
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.budget import IntakeBudget
-from pipeline.nodes.counters import MAX_SEQ_GAP, NO_SENSOR, UNKNOWN_SENSOR
+from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, NO_SENSOR, SEQ_AHEAD_S, UNKNOWN_SENSOR
 from pipeline.errors import ParameterError
 from pipeline.nodes.fairqueue import FairQueue
 from pipeline.dsp.quantize import QuantizerConfig
@@ -282,8 +282,9 @@ def test_sequence_gaps_are_counted_at_every_stage(bus, mem):
 
 
 def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, mem):
-    """One frame with seq 2^63 on an honest key is a reset, not 2^63 frames missing; the
-    honest frames after it are a reset again, and a real gap is still counted."""
+    """One frame with seq 2^63 on an honest key is out of line (implausible_seq), not 2^63
+    frames missing, and moves nothing: the honest frames after it count nothing; a real
+    gap is still counted, and one beyond what the elapsed time allows is not missing."""
     q, loc = chain(bus, mem)
     try:
         for s in [0, 1, 2, 2**63, 3, 4, 6]:
@@ -291,11 +292,13 @@ def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, mem):
         wait_until(lambda: loc.totals()["frames_out"] == 7, 10, "7 targets")
         for node in (q, loc):
             t = node.totals()
-            assert (t["frames_missing"], t["seq_resets"]) == (1, 2), (node.name, t)
-        gap = MAX_SEQ_GAP + 7  # the largest gap that still counts, from 6
-        mem.put("radar/h0/raw", raw("h0", gap))
-        wait_until(lambda: loc.totals()["frames_out"] == 8, 10, "8 targets")
-        assert q.totals()["frames_missing"] == 1 + MAX_SEQ_GAP
+            assert (t["frames_missing"], t["seq_resets"], t["implausible_seq"]) == (1, 0, 1), (node.name, t)
+        allowed = int(DEFAULT_SEQ_RATE_HZ * SEQ_AHEAD_S)  # frames at once: the time since allows a few more
+        for s in (6 + 10 * allowed, 7):  # far beyond, then the honest next one
+            mem.put("radar/h0/raw", raw("h0", s))
+        wait_until(lambda: loc.totals()["frames_out"] == 9, 10, "9 targets")
+        t = q.totals()
+        assert (t["frames_missing"], t["seq_resets"], t["implausible_seq"]) == (1, 0, 2), t
     finally:
         q.stop()
         loc.stop()

@@ -299,7 +299,8 @@ class Node(Counters):
                     bytes_out_per_s=(st.bytes_out - b_out) / max(dt, 1e-9),
                     invalid_frames=st.invalid_frames, processing_errors=st.processing_errors,
                     frames_missing=st.frames_missing, seq_resets=st.seq_resets, worker_restarts=restarts,
-                    over_budget=st.over_budget, refused=st.refused,
+                    over_budget=st.over_budget, refused=st.refused, implausible_seq=st.implausible_seq,
+                    denied_puts=st.denied_puts,
                 )
                 st._last_bytes = (st.bytes_in, st.bytes_out, now_ns)
                 snapshot.append(msg)
