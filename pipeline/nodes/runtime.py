@@ -26,7 +26,7 @@ import zenoh
 
 from radar_driver.errors import RadarError
 
-from pipeline.bus import audit
+from pipeline.bus import audit, router_check
 from pipeline.bus.session import BusConfig, zenoh_reason
 from pipeline.nodes.counters import HEALTH_SLICES, NO_SENSOR, UNKNOWN_SENSOR, Counters
 from pipeline.errors import ParameterError, PipelineError, WireError
@@ -78,6 +78,8 @@ class Node(Counters):
         self._released = 0  # sensors forgotten since the C heap was last trimmed
         self._token: Declared | None = None
         self.errors: list[BaseException] = []
+        if self.session is not None and bus.secure is not None:  # a link to an impostor ends the node
+            router_check.watch(self.session, self.errors.append)
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> "Node":
