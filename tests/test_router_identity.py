@@ -178,3 +178,38 @@ def test_commands_refuse_an_impostor_naming_the_host_in_one_line(dirs):
             assert "'sensor-s1', not a router identity" in line, line
     finally:
         imp.close()
+
+
+def test_a_publisher_the_policy_denies_says_so_in_one_line(dirs):
+    """A source speaking as sensor-s1 publishes sensor s0's frames through the real router
+    under --secure: the router would drop every put, so none is sent; the source says so in
+    one line and its summary counts them in denied_puts, not as frames sent; a subscriber
+    sees none. The same source speaking as sensor-s0 sends all 20."""
+    lab, _ = dirs
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    router = BusConfig(mode="router", listen=(ep,), secure=SecureConfig(lab, "router")).open()
+    viewer = client(lab, "viewer", port).open()
+    got = []
+    sub = viewer.declare_subscriber("radar/*/raw", lambda s: got.append(str(s.key_expr)))
+    try:
+        runs = {}
+        for identity in ("sensor-s1", "sensor-s0"):
+            out = subprocess.run([sys.executable, "-m", "qradar", "source", "--secure", str(lab), "--identity",
+                                  identity, "--mode", "client", "--connect", ep, "--id-prefix", "s", "--frames",
+                                  "20", "--rate", "100"], capture_output=True, text=True, timeout=60)
+            assert out.returncode == 0, out.stderr
+            runs[identity] = (json.loads(out.stdout.strip().splitlines()[-1]), out.stderr)
+        denied, err = runs["sensor-s1"]
+        assert denied["frames_out"] == 0 and denied["denied_puts"] >= 20, denied
+        lines = [ln for ln in err.splitlines() if "denied" in ln]
+        assert len(lines) == 1 and "access policy" in lines[0] and "'sensor-s1'" in lines[0], err
+        assert "radar/s0/raw" in lines[0] and "counted in denied_puts" in lines[0]
+        ok, err = runs["sensor-s0"]
+        assert ok["frames_out"] == 20 and ok["denied_puts"] == 0 and "access policy" not in err
+        wait_until(lambda: len(got) == 20, 10, "the 20 frames the policy allows")
+        assert set(got) == {"radar/s0/raw"}
+    finally:
+        sub.undeclare()
+        viewer.close()
+        router.close()
