@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import threading
 import time
 import tomllib
@@ -27,6 +25,7 @@ from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.audit import format_counts
 from pipeline.bus.session import BusConfig
+from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import DEFAULT_PFA
@@ -41,22 +40,11 @@ from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
-from .drivers import DriverProcess, driver_bus
+from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
 from .monitor import Monitor
+from .rundir import remove_run_dirs, run_directory
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
-
-#: the temporary directories of the runs in progress (pty links, the zenoh socket)
-_RUN_DIRS: set[str] = set()
-
-
-def remove_run_dirs() -> None:
-    """For an exit at once (a second Ctrl-C while a run stops, no time to stop in order):
-    the runs' temporary directories removed, pty links and zenoh socket (their driver
-    processes stop by themselves). Quick, and raises nothing."""
-    for path in list(_RUN_DIRS):
-        shutil.rmtree(path, ignore_errors=True)
-
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
 REAL_SENSOR_K = 2
@@ -102,6 +90,10 @@ class RunConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.dsp.track), None: none
+    # a driver that dies is started again after driver_backoff_s, doubled each time it dies again soon;
+    # its sensor is given up after driver_restarts such deaths in a row (qradar.drivers.SupervisedDriver)
+    driver_backoff_s: float = RESTART_BACKOFF_S
+    driver_restarts: int = MAX_RESTARTS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -139,6 +131,9 @@ class RunConfig:
         object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
         if self.outstanding not in (1, 2):
             raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
+        if not (self.driver_backoff_s > 0 and isinstance(self.driver_restarts, int) and self.driver_restarts >= 0):
+            raise ParameterError(f"driver_backoff_s={self.driver_backoff_s!r} must be > 0 and "
+                                 f"driver_restarts={self.driver_restarts!r} an integer >= 0")
 
     @property
     def real(self) -> bool:
@@ -175,8 +170,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     if cfg.real:
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     t_start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
-        _RUN_DIRS.add(tmp)
+    with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
         sims = [] if cfg.real else [
@@ -195,17 +189,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
-            if cfg.driver_process:
-                drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
-                                         outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                         profile=s.profile, chirp_select=s.chirp_select,
-                                         received=lambda sid=s.sensor_id: monitor.raw_by_sensor.get(sid, 0))
-                           for s in specs]
-            else:
-                drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
-                                      session=session, frames=cfg.frames) for s in specs]
+            stop = stop or threading.Event()
+            drivers = supervised_drivers(cfg, specs, bus, session, monitor, live, stop)
             if cfg.frames is not None:
-                stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
@@ -230,7 +216,6 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             session.close()
             for sim in sims:
                 sim.stop()
-            _RUN_DIRS.discard(tmp)
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
                         simulator=simulator_lateness(sims) if sims else None, truth=truth)
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
@@ -238,6 +223,47 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     if view is not None:
         summary["foxglove"] = view.summary()
     return summary
+
+
+def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: Monitor, live: TextIO | None,
+                       stop: threading.Event) -> list[SupervisedDriver]:
+    """A driver per sensor (a process of its own, or a thread of this one), each
+    restarted with backoff when it dies while the others go on (:class:`SupervisedDriver`):
+    a death and a restart are said on the live stream and in the sensor's health (node
+    ``run``, ``extra.driver``: state, restarts, why); once every sensor is given up,
+    ``stop`` is set (the run ends with its summary)."""
+    drivers: list[SupervisedDriver] = []
+
+    def report(sensor_id: str, state: str, detail: str) -> None:
+        sup = next(d for d in drivers if d.sensor_id == sensor_id)
+        if live is not None:
+            print(f"{sensor_id}: {detail}", file=live, flush=True)
+        health = HealthMsg("run", sensor_id, time.time_ns(), extra={"driver": {
+            "state": state, "restarts": sup.restarts, "exits": len(sup.exits), "last_exit": detail}})
+        try:
+            session.put(cfg.bus.key(sensor_id, "health"), health.to_json())
+        except Exception:  # a closing session: the live line and the summary say it
+            pass
+        if state == "gone" and all(d.gone.is_set() or d is sup for d in drivers):
+            stop.set()
+
+    def maker(s: SensorSpec):
+        def make(frames_done: int):
+            frames = None if cfg.frames is None else max(cfg.frames - frames_done, 1)
+            if not cfg.driver_process:
+                return SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)), session=session,
+                                  frames=frames)
+            base = monitor.raw_by_sensor.get(s.sensor_id, 0)  # this driver's frames are those after
+            return DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=frames,
+                                 outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
+                                 profile=s.profile, chirp_select=s.chirp_select,
+                                 received=lambda: monitor.raw_by_sensor.get(s.sensor_id, 0) - base)
+        return make
+
+    for s in specs:
+        drivers.append(SupervisedDriver(s.sensor_id, maker(s), lambda sid=s.sensor_id: monitor.raw_by_sensor.get(
+            sid, 0), on_event=report, backoff_s=cfg.driver_backoff_s, max_restarts=cfg.driver_restarts))
+    return drivers
 
 
 def load_truth(name_or_path: str | Path) -> SimScene:
@@ -374,6 +400,11 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
            if cfg.tracking is not None else {}),
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
+        # drivers that died and were started again (qradar.drivers.SupervisedDriver): how often, why, and the
+        # sensors given up after too many deaths in a row
+        "driver_restarts": {d.sensor_id: d.restarts for d in drivers if hasattr(d, "restarts")},
+        "driver_exits": {d.sensor_id: list(d.exits) for d in drivers if getattr(d, "exits", None)},
+        "sensors_gone": [d.sensor_id for d in drivers if hasattr(d, "gone") and d.gone.is_set()],
         # the simulated sensors' own late writes (device clock held): apart from every loss above;
         # null with real sensors
         "simulator": simulator,
@@ -398,6 +429,12 @@ def format_summary(s: dict) -> str:
         f"  drops       {s['drops']} ({s['drops_detail']})",
         f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
     ]
+    for sid, n in (s.get("driver_restarts") or {}).items():
+        exits = (s.get("driver_exits") or {}).get(sid) or []
+        if n or exits:
+            gone = sid in (s.get("sensors_gone") or [])
+            lines.append(f"  driver      {sid}: restarted {n} time(s){', then given up' if gone else ''}"
+                         + (f" (last: {exits[-1]})" if exits else ""))
     if s.get("simulator") is not None:
         lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
                      f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")

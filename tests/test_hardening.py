@@ -26,7 +26,7 @@ from pipeline.nodes.runtime import PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import Collector, wait_port, wait_until
 
 SCENE = resolve_scene("single")
 CONFIG_ID = SCENE.radar.config_id()
@@ -343,12 +343,21 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
         procs[victim].kill()
         procs[victim].communicate(timeout=20)
         send(25)  # sent while it is down: lost
+        before = len(targets.of("r0/targets"))
         procs[victim] = _qradar("router", "--listen", ep, "--duration", "90") if victim == "router" else \
             _qradar("quantize", "--duration", "90", *client)
+        if victim == "router":
+            wait_port(free_port)
+        up = time.monotonic()
+        first_s = None
         for _ in range(300):  # keep the stream going until the new quantizer is in it (bounded)
             send(1)
+            if first_s is None and len(targets.of("r0/targets")) > before:
+                first_s = time.monotonic() - up
             if len(targets.of("r0/targets")) >= 40 and alive("quantize") == 1:
                 break
+        if victim == "router":  # held: the nodes reconnect and targets come 1.0 s after the router is back
+            assert first_s is not None and first_s < 5.0, f"first targets {first_s} s after the router came back"
         send(10)
         last = seq - 1
         wait_until(lambda: any(decode_targets(p).seq == last for p in targets.of("r0/targets")), 20,
