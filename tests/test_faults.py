@@ -28,6 +28,7 @@ from qradar.monitor import Monitor
 from qradar.run import RunConfig, format_summary, run
 from qradar.view import FoxgloveView, ViewConfig
 from replay.recorder import RecorderNode
+from test_hardening import raw
 from test_orphans import alive, drivers_of, kill_all, wait_for
 from zenoh_helpers import free_port, wait_until
 
@@ -101,7 +102,8 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
     its live stream and in kmd2-0's health (recorded), starts it again, and goes on to the
     end of its duration with both sensors; its summary counts the restart and why, and
     nothing was missing. Meanwhile an attacker puts nested JSON on a targets and a health
-    key of the run: counted (undecodable_targets, undecodable_health), no traceback."""
+    key of the run: counted (undecodable_targets, undecodable_health), no traceback; and
+    a raw frame of kmd2-1 with seq 2^63: implausible at every stage, nothing missing."""
     port = free_port()
     record = tmp_path / "run.mcap"
     proc = subprocess.Popen([*QRADAR, "run", "--sensors", "2", "--duration", "9", "--record", str(record), "--json",
@@ -119,6 +121,7 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
         for _ in range(5):
             attacker.put("radar/kmd2-1/targets", DEEP)
             attacker.put("radar/kmd2-1/health", DEEP_HEALTH)
+        attacker.put("radar/kmd2-1/raw", raw("kmd2-1", 2**63))  # one forged sequence number
         again = wait_for(lambda: [p for p in drivers_of(proc.pid) if p not in drivers], 15.0)
         assert again, "kmd2-0's driver was not started again"
         out, err = proc.communicate(timeout=60)
@@ -132,7 +135,9 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
     assert s["driver_restarts"] == {"kmd2-0": 1, "kmd2-1": 0} and s["sensors_gone"] == []
     assert s["driver_exits"] == {"kmd2-0": ["the driver of kmd2-0 exited with status -9"]}
     assert set(s["rate_hz"]) == {"kmd2-0", "kmd2-1"} and s["seconds"] >= 9
-    assert s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0}
+    assert s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0}  # not 2^63
+    assert s["implausible_seq"] == {"quantize": 1, "localize": 1, "targets": 1}
+    assert s["seq_resets"] == {"quantize": 1, "localize": 1, "targets": 1}  # kmd2-0's new driver counts from 0
     assert s["drops_detail"]["undecodable_targets"] >= 5 and s["drops_detail"]["undecodable_health"] >= 5
     assert "Traceback" not in err and "RecursionError" not in err
     assert "kmd2-0: the driver of kmd2-0 exited with status -9; restarting in 0.5 s (restart 1)" in err
