@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from pipeline.bus.audit import admin_links
 from pipeline.bus.security import Identity, Policy, SecureConfig
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.quantize import QuantizerConfig
@@ -108,7 +109,8 @@ def test_an_impostor_router_is_refused_by_every_node_kind(dirs, tmp_path):
     """Each non-router identity as the router, without host names (zenoh's TLS refuses:
     the certificate names no host dialled) and with them (the node's own check refuses:
     not a router identity), met by each node kind as a zenoh client (and a quantize node as
-    a peer, by the impostors that name hosts). Each refusal is one BusError line."""
+    a peer, and a router identity dialling it, by the impostors that name hosts). Each
+    refusal is one BusError line."""
     lab, old = dirs
     refused = {}
     cases = [(directory, hosts, name, free_port()) for directory, hosts in ((lab, False), (old, True))
@@ -130,6 +132,9 @@ def test_an_impostor_router_is_refused_by_every_node_kind(dirs, tmp_path):
                     else:
                         assert "cannot open zenoh session" in line and "only the router's own" in line, line
                     refused[(name, hosts, kind, mode)] = True
+            if hosts:  # a router identity that dials (qradar run --connect, routers joined) checks whom too
+                with pytest.raises(BusError, match=f"presents the certificate of {name!r}"):
+                    client(lab, "router", port, "peer").open().close()
     finally:
         for imp in imps:
             imp.close()
@@ -148,6 +153,9 @@ def test_the_real_router_is_accepted_and_an_impostor_after_it_is_refused(dirs, t
     q = QuantizeNode(client(lab, "quantizer", port), QuantizerConfig()).start()
     try:
         assert [link.auth_identifier for link in q.session.info.links()] == ["router"]
+        # what the check reads where zenoh-python has no SessionInfo.links (before 1.7): the same
+        assert [(str(link["dst"]), link["auth_identifier"]) for link in admin_links(q.session)] == \
+            [(str(link.dst), link.auth_identifier) for link in q.session.info.links()]
         assert not q.errors
         router.close()
         imp = impostor(old, "sensor-s1", port)

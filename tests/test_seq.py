@@ -9,20 +9,17 @@ from __future__ import annotations
 
 import random
 
-import pytest
-
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.nodes.counters import (DEFAULT_SEQ_RATE_HZ, SEQ_AHEAD_S, SEQ_RATE_SLACK, SensorStats, judge_seq,
                                      seq_allowance)
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode
-from pipeline.nodes.transport import MemoryTransport
 from qradar.api import open_recording
 from qradar.monitor import Monitor
 from qradar.view import FoxgloveView, ViewConfig
 from replay.recorder import RecorderNode
 from replay.source import RecordingSource
-from test_hardening import raw
+from test_hardening import mem, raw  # noqa: F401  (mem: the in-memory transport fixture)
 from zenoh_helpers import wait_until
 
 #: honest 0..9, then 2^63, 2^64 - 1, one back (3) and one 10^6 ahead, each between honest
@@ -86,15 +83,6 @@ def test_skipped_frames_are_in_the_sequence_not_missing():
     st.note_seq("raw", 2**63, 0.01)  # out of line: the skipped frames are still ahead of the line
     st.note_seq("raw", 6, 0.02)
     assert (st.frames_missing, st.seq_resets, st.implausible_seq) == (0, 0, 1)
-
-
-@pytest.fixture
-def mem():
-    transport = MemoryTransport()
-    try:
-        yield transport
-    finally:
-        transport.close()
 
 
 def counts(d):

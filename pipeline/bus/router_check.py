@@ -22,13 +22,13 @@ which ends its command), so nothing more is sent to an impostor.
 
 from __future__ import annotations
 
-import json
 import logging
 import socket
 import threading
 import time
 from typing import Callable, Iterable
 
+from pipeline.bus.audit import admin_links
 from pipeline.errors import BusError
 
 log = logging.getLogger("qradar.bus")
@@ -96,16 +96,8 @@ class RouterCheck:
         info = self.session.info
         if hasattr(info, "links"):
             return [(str(link.dst), link.auth_identifier) for link in info.links()]
-        out = []  # zenoh-python before 1.7: the admin space says the same
-        for reply in self.session.get(f"@/{self.key}/session/transport/unicast/*/link/*", timeout=1.0):
-            if reply.ok is None:
-                continue
-            try:
-                link = json.loads(reply.ok.payload.to_bytes())
-            except ValueError:
-                continue
-            out.append((str(link.get("dst", "")), link.get("auth_identifier")))
-        return out
+        # zenoh-python before 1.7: the admin space says the same
+        return [(str(link.get("dst", "")), link.get("auth_identifier")) for link in admin_links(self.session)]
 
     def check_now(self) -> None:
         """Raise the error of the first link refused (the session is closed first)."""
