@@ -153,7 +153,7 @@ def test_the_real_router_is_accepted_and_an_impostor_after_it_is_refused(dirs, t
     q = QuantizeNode(client(lab, "quantizer", port), QuantizerConfig()).start()
     try:
         assert [link.auth_identifier for link in q.session.info.links()] == ["router"]
-        # what the check reads where zenoh-python has no SessionInfo.links (before 1.7): the same
+        # what the check reads where zenoh-python has no SessionInfo.links : the same
         assert [(str(link["dst"]), link["auth_identifier"]) for link in admin_links(q.session)] == \
             [(str(link.dst), link.auth_identifier) for link in q.session.info.links()]
         assert not q.errors

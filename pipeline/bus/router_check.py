@@ -7,8 +7,8 @@ that it names the host dialled; a certificate of another role that names that ho
 issued before only the router's could, or a stolen one) would pass. zenoh 1.x tells a
 session who is at the other end of each of its links: ``session.info.links()``, each
 with ``auth_identifier``, the common name of the peer's certificate, and
-``session.info.declare_link_events_listener`` for links made later (zenoh-python 1.7 and
-later; before, the admin space ``@/<zid>/session/transport/unicast/*/link/*`` says the
+``session.info.declare_link_events_listener`` for links made later (zenoh-python 1.10 has both;
+a version without them: the admin space ``@/<zid>/session/transport/unicast/*/link/*`` says the
 same, polled). Which links are checked: every TLS link of a session whose own identity
 is not a router's (such a node meets only routers under ``--secure``); the links a router
 identity (``qradar router``, ``qradar run``) dialled, those whose destination is one of
@@ -96,7 +96,7 @@ class RouterCheck:
         info = self.session.info
         if hasattr(info, "links"):
             return [(str(link.dst), link.auth_identifier) for link in info.links()]
-        # zenoh-python before 1.7: the admin space says the same
+        # a zenoh-python without SessionInfo.links: the admin space says the same
         return [(str(link.get("dst", "")), link.get("auth_identifier")) for link in admin_links(self.session)]
 
     def check_now(self) -> None:
