@@ -45,6 +45,7 @@ from .monitor import Monitor
 from .rundir import remove_run_dirs, run_directory
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
+from .web import WebConfig, WebView
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
 REAL_SENSOR_K = 2
@@ -74,6 +75,7 @@ class RunConfig:
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
+    web: WebConfig | None = None  # serve the live stream as a web page (qradar.web) on its host and port
     driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
     record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
@@ -201,17 +203,23 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
-            view = None
+            view = web = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
+            if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
+                web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
+                              truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                if live is not None:
+                    print(f"web: page on {web.url}", file=live, flush=True)
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
                 monitor.stop()
-                if view is not None:
-                    view.stop()
+                for v in (view, web):
+                    if v is not None:
+                        v.stop()
         finally:
             session.close()
             for sim in sims:
@@ -222,6 +230,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         summary["recording"] = recorder[0].summary()
     if view is not None:
         summary["foxglove"] = view.summary()
+    if web is not None:
+        summary["web"] = web.summary()
     return summary
 
 
