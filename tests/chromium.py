@@ -144,7 +144,9 @@ class Chromium:
         elif msg.get("method") == "Runtime.exceptionThrown":
             details = msg["params"]["exceptionDetails"]
             with self._lock:
-                self._console.append(f"exception: {details.get('exception', {}).get('description', details)}")
+                where = f" at {details.get('url', '')}:{details.get('lineNumber')}"
+                self._console.append(f"exception: {details.get('exception', {}).get('description', details.get('text'))}"
+                                     f"{where}")
 
     def console(self) -> list[str]:
         """The pages' console lines and uncaught exceptions so far."""
