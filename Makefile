@@ -49,9 +49,11 @@ run: $(STAMP)
 montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
-# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them).
+# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them), and
+# the web view's screenshot in the README (headless chromium on the README's command).
 docs-figures: $(STAMP)
 	$(PY) docs/figures/regenerate.py
+	$(PY) docs/figures/web_view.py
 
 # The whole suite, slow tests included (CI runs this).
 test: $(STAMP) $(JS_STAMP)

@@ -152,7 +152,11 @@ class Handler(BaseHTTPRequestHandler):
         return True
 
     def do_HEAD(self) -> None:  # noqa: N802 (http.server's names)
-        self.do_GET()
+        if urlsplit(self.path).path == "/events":  # what a GET would answer, without starting a stream
+            if self._allowed(needs_token=True):
+                self._send(HTTPStatus.OK, b"", "text/event-stream")
+        else:
+            self.do_GET()
 
     def do_GET(self) -> None:  # noqa: N802
         path = urlsplit(self.path).path

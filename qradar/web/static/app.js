@@ -122,8 +122,6 @@
                     points: { show: false, size: 5, width: 0 }, width: 0 });
       series.push({ label: s.id + " targets", stroke: "#000", fill: s.color, paths: pointsPath,
                     points: { show: false, size: 10, width: 1 }, width: 1 });
-      series.push({ label: s.id + " truth", stroke: s.color, fill: "rgba(0,0,0,0)", paths: pointsPath,
-                    points: { show: false, size: 18, width: 2 }, width: 2 });
     }
     xy = new uPlot({
       mode: 2, width: el.clientWidth, height: Math.max(el.clientHeight, 100),
@@ -141,9 +139,7 @@
       const ok = fresh(s, s.targetsAt);
       const past = ok ? s.trail.flat() : [];
       const now = ok ? s.targets : [];
-      const truth = s.truth || [];
-      data.push([past.map(t => t.x), past.map(t => t.y)], [now.map(t => t.x), now.map(t => t.y)],
-                [truth.map(p => p[0]), truth.map(p => p[1])]);
+      data.push([past.map(t => t.x), past.map(t => t.y)], [now.map(t => t.x), now.map(t => t.y)]);
     }
     return data;
   }
@@ -186,7 +182,7 @@
     ctx.save();
     ctx.beginPath(); ctx.rect(u.bbox.left, u.bbox.top, u.bbox.width, u.bbox.height); ctx.clip();
     ctx.font = `${11 * pr}px system-ui, sans-serif`;
-    let ellipses = 0, tracks = 0, index = 0;
+    let ellipses = 0, tracks = 0, index = 0, truth = 0;
     for (const s of sensors.values()) {
       const [px, py, yaw] = pose(s.id), a = -yaw * Math.PI / 180, sx = X(px), sy = Y(py), r = 9 * pr;
       ctx.fillStyle = s.color; ctx.beginPath();  // the sensor: a wedge along its boresight
@@ -195,6 +191,12 @@
       ctx.lineTo(sx + r * Math.cos(a - 2.5), sy + r * Math.sin(a - 2.5));
       ctx.fill();
       ctx.fillText(s.id, sx + 6 * pr, sy + (16 + 12 * index++) * pr);  // stacked: sensors may share a place
+      ctx.strokeStyle = "#222"; ctx.lineWidth = 2 * pr;  // the truth: a cross
+      for (const q of s.truth || []) {
+        const qx = X(q[0]), qy = Y(q[1]), c = 7 * pr;
+        ctx.beginPath(); ctx.moveTo(qx - c, qy - c); ctx.lineTo(qx + c, qy + c); ctx.moveTo(qx - c, qy + c);
+        ctx.lineTo(qx + c, qy - c); ctx.stroke(); truth++;
+      }
       ctx.strokeStyle = s.color; ctx.lineWidth = 1.5 * pr;
       if (fresh(s, s.targetsAt)) {
         for (const t of s.targets) {
@@ -214,12 +216,12 @@
         }
         ctx.fillStyle = "#111";
         const speed = Math.hypot(t.vx, t.vy);
-        ctx.fillText(`#${t.id}` + (t.static ? "" : ` ${speed.toFixed(1)} m/s`), tx + rad + 3 * pr, ty - 3 * pr);
+        ctx.fillText(`#${t.id}` + (t.static ? "" : ` ${speed.toFixed(1)} m/s`), tx + rad + 6 * pr, ty - rad - 4 * pr);
         tracks++;
       }
     }
     ctx.restore();
-    perf.ellipsesDrawn = ellipses; perf.tracksDrawn = tracks;
+    perf.ellipsesDrawn = ellipses; perf.tracksDrawn = tracks; perf.truthDrawn = truth;
   }
   function renderXY() {
     if (!sensors.size) return;  // nothing to plot yet (uPlot's x-y mode needs a series)
@@ -231,9 +233,9 @@
       xy.setScale("y", { min: b[2], max: b[3] });
       xy.setData(data, false);
     });
-    let n = 0, truth = 0;
-    for (let i = 1; i < data.length; i += 3) { n += data[i + 1][0].length; truth += data[i + 2][0].length; }
-    perf.targetsDrawn = n; perf.truthDrawn = truth;
+    let n = 0;
+    for (let i = 1; i < data.length; i += 2) n += data[i + 1][0].length;
+    perf.targetsDrawn = n;
   }
 
   // -- range profiles --------------------------------------------------------------------------
@@ -279,8 +281,9 @@
     const top = Math.ceil(hi / 10) * 10 + 5, bottom = Math.max(Math.floor(lo / 10) * 10, top - DB_SPAN);
     const r = s.yRange;  // kept while the data fit it and fill it, so the axis does not jump each frame
     if (!r || top > r[1] || top < r[1] - 20 || bottom < r[0] - 10 || bottom > r[0] + 20) s.yRange = [bottom, top];
+    const full = p.r0 + "/" + p.dr + "/" + n;  // x is set when the bins change, so a zoom (drag) stays
     s.plot.batch(() => {
-      s.plot.setScale("x", { min: p.r0, max: p.r0 + (n - 1) * p.dr });
+      if (s.xFull !== full) { s.xFull = full; s.plot.setScale("x", { min: p.r0, max: p.r0 + (n - 1) * p.dr }); }
       s.plot.setScale("y", { min: s.yRange[0], max: s.yRange[1] });
       s.plot.setData([s.xs, p.rx1, p.rx2], false);
     });
