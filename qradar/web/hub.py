@@ -99,7 +99,8 @@ class EventHub:
         with self._lock:
             self._hello = dict(data)
 
-    def publish(self, kind: str, data: dict, key: tuple | None = None) -> None:
+    def publish(self, kind: str, data: dict, key: tuple | None = None) -> int:
+        """Offer the event to every page (and keep it as the latest under ``key``); its size, bytes."""
         frame = sse(kind, data)
         with self._lock:
             if key is not None:
@@ -111,6 +112,7 @@ class EventHub:
             self.published += 1
         for c in clients:
             c.offer(frame)
+        return len(frame)
 
     def reset(self, data: dict) -> None:
         """Forget the latest events (a recording was sought) and tell the pages (``reset``)."""

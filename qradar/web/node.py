@@ -90,11 +90,7 @@ class WebView(LiveView):
         def state(s: dict) -> None:
             view.hub.publish("replay", s, key=("replay",))
 
-        def seek(s: dict) -> None:
-            view.hub.reset(s)
-            view.forget_shown()
-
-        player = RecordingPlayer(path, transport, bus, on_state=state, on_seek=seek)
+        player = RecordingPlayer(path, transport, bus, on_state=state, on_seek=lambda s: view.hub.reset(s))
         view = cls(bus, replace(config, radar=player.radar), session=transport, truth=player.truth,
                    truth_t0_ns=player.first_log_ns, recording=player, health_period_s=health_period_s)
         return view
@@ -145,11 +141,6 @@ class WebView(LiveView):
             self._refused = {"refused_token": self.server.refused_token, "refused_host": self.server.refused_host}
             self.server = None
 
-    def forget_shown(self) -> None:
-        """A recording was sought: the truth's clock starts again with the next frames."""
-        with self._lock:
-            self._t0_by_sensor.clear()
-
     # -- the worker ------------------------------------------------------------------------------
     def _truth_at(self, sensor: str, timestamp_ns: int) -> list[dict] | None:
         if self.truth is None:
@@ -169,21 +160,20 @@ class WebView(LiveView):
         if b'"sigma_' in payload and not any(f in t for t in msg.targets for f in TARGET_SIGMA_FIELDS):
             raw = json.loads(payload).get("targets")  # fields the wire decoder does not keep (yet)
         event = targets_event(msg, self.config.poses.get(sensor), self._truth_at(sensor, msg.timestamp_ns), raw)
-        self.hub.publish("targets", event, key=("targets", sensor))
-        self._count_out(sensor, 1, len(payload), self._latency_ms(msg.timestamp_ns))
+        size = self.hub.publish("targets", event, key=("targets", sensor))
+        self._count_out(sensor, 1, size, self._latency_ms(msg.timestamp_ns))
 
     def show_tracks(self, sensor: str, msg: TracksMsg, payload: bytes) -> None:
-        self.hub.publish("tracks", tracks_event(msg, self.config.poses.get(sensor)), key=("tracks", sensor))
-        self._count_out(sensor, 1, len(payload))
+        size = self.hub.publish("tracks", tracks_event(msg, self.config.poses.get(sensor)), key=("tracks", sensor))
+        self._count_out(sensor, 1, size)
 
     def show_profile(self, sensor: str, msg: QuantizedFrameMsg, radar: RadarConfig) -> None:
         event = profile_event(sensor, msg.seq, msg.timestamp_ns, profile_magnitude(msg, radar), radar)
-        self.hub.publish("profile", event, key=("profile", sensor))
-        self._count_out(sensor, 1, len(msg.codes))
+        self._count_out(sensor, 1, self.hub.publish("profile", event, key=("profile", sensor)))
 
     def show_health(self, sensor: str, msg: HealthMsg, payload: bytes) -> None:
-        self.hub.publish("health", health_event(sensor, msg), key=("health", sensor, msg.node))
-        self._count_out(sensor, 1, len(payload))
+        size = self.hub.publish("health", health_event(sensor, msg), key=("health", sensor, msg.node))
+        self._count_out(sensor, 1, size)
 
     # -- health ---------------------------------------------------------------------------------
     def health_extra(self, sensor_id: str) -> dict:

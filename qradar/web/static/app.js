@@ -182,7 +182,8 @@
     ctx.save();
     ctx.beginPath(); ctx.rect(u.bbox.left, u.bbox.top, u.bbox.width, u.bbox.height); ctx.clip();
     ctx.font = `${11 * pr}px system-ui, sans-serif`;
-    let ellipses = 0, tracks = 0, index = 0, truth = 0;
+    let ellipses = 0, tracks = 0, truth = 0;
+    const places = new Map();  // sensors standing at the same place get their labels stacked
     for (const s of sensors.values()) {
       const [px, py, yaw] = pose(s.id), a = -yaw * Math.PI / 180, sx = X(px), sy = Y(py), r = 9 * pr;
       ctx.fillStyle = s.color; ctx.beginPath();  // the sensor: a wedge along its boresight
@@ -190,7 +191,9 @@
       ctx.lineTo(sx + r * Math.cos(a + 2.5), sy + r * Math.sin(a + 2.5));
       ctx.lineTo(sx + r * Math.cos(a - 2.5), sy + r * Math.sin(a - 2.5));
       ctx.fill();
-      ctx.fillText(s.id, sx + 6 * pr, sy + (16 + 12 * index++) * pr);  // stacked: sensors may share a place
+      const place = `${px},${py}`, below = places.get(place) || 0;
+      places.set(place, below + 1);
+      ctx.fillText(s.id, sx + 6 * pr, sy + (16 + 12 * below) * pr);
       ctx.strokeStyle = "#222"; ctx.lineWidth = 2 * pr;  // the truth: a cross
       for (const q of s.truth || []) {
         const qx = X(q[0]), qy = Y(q[1]), c = 7 * pr;
