@@ -209,8 +209,13 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
             if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
-                web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
-                              truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                try:
+                    web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
+                                  truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                except BaseException:  # a busy port: the Foxglove view ends too
+                    if view is not None:
+                        view.stop()
+                    raise
                 if live is not None:
                     print(f"web: page on {web.url}", file=live, flush=True)
             try:
