@@ -43,7 +43,7 @@ from replay.recorder import OnWriteError, RecorderNode
 from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
 from .monitor import Monitor
 from .rundir import remove_run_dirs, run_directory
-from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
+from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors, resolve_auto
 from .view import FoxgloveView, ViewConfig
 from .web import WebConfig, WebView
 
@@ -170,6 +170,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                     auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
                                     max_range_m=cfg.max_range_m)  # checked before anything starts
     if cfg.real:
+        cfg = replace(cfg, sensor_specs=resolve_auto(cfg.sensor_specs))  # --sensor auto: the one K-MD2 found
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     t_start = time.monotonic()
     with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start

@@ -6,6 +6,7 @@
 - :mod:`.analysis`: ``montecarlo``, ``montecarlo-time``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)
+- :mod:`.ports`: ``ports`` (the serial adapters; ``--probe``: which answer as a K-MD2)
 - :mod:`.security`: ``security init|add|remove|list`` (certificates for ``--secure``)
 
 A command function parses its arguments into the libraries' configs and delegates.
@@ -32,7 +33,7 @@ from pipeline.errors import PipelineError
 from radar_driver.errors import RadarError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, calibrate, record, security, sensor, stream, view
+from . import analysis, bringup, calibrate, ports, record, security, sensor, stream, view
 from .. import __version__
 from .common import DefaultsFormatter
 
@@ -55,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     analysis.add_reprocess(sub)
     view.add_commands(sub)
     bringup.add_commands(sub)
+    ports.add_commands(sub)
     security.add_commands(sub)
     calibrate.add_commands(sub)
     for p in sub.choices.values():

@@ -123,7 +123,9 @@ def add_commands(sub) -> None:
                        "or --truth's), then a summary.")
     p.add_argument("--sensor", dest="sensor_specs", action="append", default=[], metavar="URL,id=NAME[,KEY=VALUE]",
                    help="a real sensor instead of the simulated ones (repeatable, one each): a pyserial URL (a device "
-                   "path, socket://HOST:PORT, rfc2217://HOST:PORT), then its id (required) and the driver's "
+                   "path, socket://HOST:PORT, rfc2217://HOST:PORT) or auto (the one K-MD2 that answers on this "
+                   "host's serial adapters, probed with INIT and GBYE as `qradar ports --probe` does), then its id "
+                   "(required) and the driver's "
                    "options: profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays "
                    "at 115200), ramps=R (default 2), chirp-select=first|stride; e.g. "
                    "/dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, --sensors, --rate")
