@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from pipeline.bus.session import BusConfig
-from radar_driver.errors import RadarError
+from radar_driver.errors import RadarError, SetupError
 
 
 def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
@@ -111,7 +111,7 @@ class DriverProcess:
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:
-            if self.log is not None:
+            if self.log is not None and not line.startswith("qradar drive: error:"):  # the run says it itself
                 self.log.write(f"[driver {self.sensor_id}] {line}")
                 self.log.flush()
 
@@ -120,8 +120,9 @@ class DriverProcess:
         for t in self._threads[:2]:
             t.join(5.0)
         last = last_json_object(self._out)
-        if "error" in last:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
+        if "error" in last:  # a wrong set-up (SetupError: not to be restarted) or another failure
+            kind = SetupError if last.get("setup") else RadarError
+            self.errors.append(kind(f"the driver of {self.sensor_id} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
             self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
         else:

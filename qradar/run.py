@@ -19,7 +19,7 @@ import tempfile
 import threading
 import time
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -28,20 +28,23 @@ from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.audit import format_counts
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
-from pipeline.errors import ParameterError
+from pipeline.errors import ParameterError, RunSetupError
 from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
+from pipeline.dsp.score import score_text
 from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
+from replay.outputs import check_new_file
 from replay.recorder import OnWriteError, RecorderNode
 
 from .drivers import DriverProcess, driver_bus
+from .figures import counts, round_sig, sig
 from .monitor import Monitor
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
@@ -91,6 +94,7 @@ class RunConfig:
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
     record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
+    record_overwrite: bool = False  # --force: an existing file at record (a name given) is replaced
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
     # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer. None: 2 with
     # simulated sensors, 1 (drive's default: no assumption) with real ones
@@ -150,8 +154,16 @@ class RunConfig:
         return len(self.sensor_specs) or self.sensors
 
 
-def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
-    """Run the pipeline; returns the summary dict."""
+#: a run whose first REFUSED_AFTER raw frames (or more) were all refused, none decoded, ends
+#: with a RunSetupError (the frames cannot be processed as set up)
+REFUSED_AFTER = 10
+
+
+def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> "RunSummary":
+    """Run the pipeline; returns its summary. A wrong set-up ends it with an error of the
+    libraries' roots (one line): a calibration that does not fit a sensor's first frame
+    (CalibrationError), frames that never assemble (the driver's SetupError), frames that
+    arrive but are every one refused (RunSetupError)."""
     scene = None if cfg.real else resolve_scene(cfg.scene)
     if cfg.empty and scene is not None:
         scene = scene.without_targets()
@@ -163,8 +175,10 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         for sid in ([s.sensor_id for s in cfg.sensor_specs] if cfg.real else
                     [f"kmd2-{i}" for i in range(cfg.sensors)]):
             calibration.check_sensor(sid)
-    if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
-        raise RecordingExists.at(cfg.record)  # before anything starts
+    if cfg.record is not None and not cfg.record_new_name_if_taken:  # before anything starts
+        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
+            raise RecordingExists.at(cfg.record)
+        check_new_file(cfg.record, cfg.record_overwrite, "recording")  # its folder, one level at most
     if scene is not None:
         k = cfg.k or max(1, len(scene.targets))
     else:
@@ -174,7 +188,11 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                     max_range_m=cfg.max_range_m)  # checked before anything starts
     if cfg.real:
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
+    if live is not None:
+        print(run_header(cfg, scene, truth, localizer_cfg, calibration), file=live, flush=True)
     t_start = time.monotonic()
+    stop = stop or threading.Event()
+    refused: list[RunSetupError] = []
     with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
         _RUN_DIRS.add(tmp)
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
@@ -192,9 +210,11 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
-            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
+            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real,
+                              calibration=None if calibration is None else calibration.source).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
+            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration,
+                                     calibration_required=True)  # a file that does not fit: refused at the first frame
             if cfg.driver_process:
                 drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
                                          outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
@@ -205,8 +225,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
                                       session=session, frames=cfg.frames) for s in specs]
             if cfg.frames is not None:
-                stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
+            threading.Thread(target=watch_refusals, args=(monitor, quantizer, localizer, stop, refused),
+                             name="refusals", daemon=True).start()
             recorder = []
             if cfg.record is not None:
                 recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
@@ -214,7 +235,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                                                localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
-                                         new_name_if_taken=cfg.record_new_name_if_taken)]
+                                         new_name_if_taken=cfg.record_new_name_if_taken,
+                                         overwrite=cfg.record_overwrite)]
             view = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
@@ -231,13 +253,61 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             for sim in sims:
                 sim.stop()
             _RUN_DIRS.discard(tmp)
+    if refused:
+        raise refused[0]
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
-                        simulator=simulator_lateness(sims) if sims else None, truth=truth)
+                        simulator=simulator_lateness(sims) if sims else None, truth=truth, calibration=calibration)
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
-        summary["recording"] = recorder[0].summary()
+        summary.recording = recorder[0].summary()
     if view is not None:
-        summary["foxglove"] = view.summary()
+        summary.foxglove = view.summary()
     return summary
+
+
+def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event, out: list) -> None:
+    """Until ``stop``: once REFUSED_AFTER raw frames (or more) have arrived and every one was
+    refused (none reached the targets), a RunSetupError into ``out`` and ``stop`` set."""
+    while not stop.wait(0.5):
+        raw, targets = monitor.count["raw"], monitor.count["targets"]
+        if raw < REFUSED_AFTER or targets:
+            continue
+        q, lo = quantizer.totals(), localizer.totals()
+        kinds = ("invalid_frames", "decode_errors", "processing_errors")
+        n_q, n_l = sum(q[k] for k in kinds), sum(lo[k] for k in kinds)
+        if n_q + n_l < raw:
+            continue
+        node = quantizer if n_q else localizer
+        why = next((node.last_reason[k] for k in kinds if k in node.last_reason), "no reason logged")
+        out.append(RunSetupError(f"{raw} raw frames arrived and every one was refused, none decoded (quantize "
+                                 f"refused {n_q}, localize {n_l}); the last reason: {why}"))
+        stop.set()
+        return
+
+
+def run_header(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, localizer: LocalizerConfig,
+               calibration: Calibration | None) -> str:
+    """The run's first lines: what runs, against which truth, and whether its frames are calibrated."""
+    where = (", ".join(f"{s.sensor_id} on {s.url}" for s in cfg.sensor_specs) if cfg.real else
+             f"scene {scene.name}{' (empty)' if cfg.empty else ''}, {cfg.sensors} simulated sensor(s) at "
+             f"{cfg.rate_hz:g} frames/s")
+    gate = localizer.gate
+    k = f"K auto (at most {localizer.k})" if cfg.auto_k else f"K = {localizer.k}"
+    q = cfg.quantizer
+    lines = [f"qradar run: {where}; {cfg.algo} {k} in {gate.min_range_m:g}-{gate.max_range_m:g} m, {q.bits}-bit "
+             f"alpha {q.alpha}; truth: " + ("none (no position error)" if truth is None else
+                                            "the simulated scene" if truth is scene else str(cfg.truth))]
+    if calibration is not None:
+        made = calibration.meta.get("created_utc", "at an unknown time")
+        lines.append(f"  calibration {calibration.source} (made {made}, for {', '.join(sorted(calibration.sensors))}); "
+                     "each sensor's first frame is checked against it")
+    elif scene is not None and not scene.front_end.ideal:
+        lines.append(f"  calibration none: the frames are uncalibrated, and the simulated scene {scene.name} has a "
+                     "front end (DC offset, TX leakage, receiver mismatch): expect the warning below (a calibrated "
+                     "run: --calibration recordings/chamber-cal.json)")
+    else:
+        lines.append("  calibration none: the frames are uncalibrated (a warning follows if the localizer sees a "
+                     "front end's leakage)")
+    return "\n".join(lines)
 
 
 def load_truth(name_or_path: str | Path) -> SimScene:
@@ -299,7 +369,8 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
 
 
 def _stat(value: float | None) -> float | None:
-    return None if value is None else round(float(value), 4)
+    """A figure of a fixed-size histogram (within 2 % of the exact one), to its meaningful digits."""
+    return round_sig(None if value is None else float(value))
 
 
 def simulator_lateness(sims: list[SimulatorServer]) -> dict:
@@ -310,11 +381,71 @@ def simulator_lateness(sims: list[SimulatorServer]) -> dict:
     return {"late_writes": sum(d.late_writes for d in devs), "late_s": round(sum(d.late_s for d in devs), 4)}
 
 
+@dataclass
+class RunSummary:
+    """What a run measured: the JSON object of ``--json`` (:meth:`to_dict`, keys in field
+    order; the optional parts, None, left out) and the text of :func:`format_summary`.
+    A new figure is a new plain field (a JSON-ready value). Read as the JSON object too:
+    ``summary["frames_raw"]``."""
+
+    scene: str | None
+    sensors: int
+    sensor_urls: dict[str, str] | None  # real sensors: where each one is (--sensor); simulated ones: null
+    truth: str | None  # "simulated", the --truth file, or null (no position error)
+    seconds: float
+    frames_raw: int
+    frames_quantized: int
+    frames_targets: int
+    rate_hz: dict[str, float]  # targets per second of each sensor (first to last frame)
+    drops: int
+    drops_detail: dict[str, int]
+    # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
+    # quantizer is missing at every later stage too
+    frames_missing: dict[str, int]
+    worker_restarts: int
+    latency_ms: dict[str, float | None]
+    # the honest score (pipeline.dsp.score): per true target its detection rate and the median
+    # error of its detections, false targets and targets a frame; null without a truth
+    score: dict | None
+    position_error_m: dict[str, float | None]  # each true target to the nearest target (median of nearest)
+    bytes_per_raw_frame: float | None
+    bytes_per_quantized_frame: float | None
+    quantizer: dict
+    localizer: dict
+    calibration: dict | None  # {file, made, sensor_ids} or null: uncalibrated
+    front_end: dict[str, dict]  # per sensor: calibrated (file or false), frames checked, leakage seen
+    warnings: list[str]
+    driver: dict[str, dict[str, int]]
+    driver_process: bool
+    # the simulated sensors' own late writes (device clock held): apart from every loss above; null
+    # with real sensors
+    simulator: dict | None
+    tracks: dict | None = None
+    recording: dict | None = None  # state, files, written, dropped (queue), lost (write errors, by topic), error
+    foxglove: dict | None = None
+    interrupted: bool | None = None  # ended by Ctrl-C / SIGTERM
+    audit: dict | None = None  # --secure: refused handshakes, denied messages
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if not (getattr(self, f.name) is None and f.default is None)}
+
+    def __getitem__(self, key: str):
+        return self.to_dict()[key]
+
+    def get(self, key: str, default=None):
+        return self.to_dict().get(key, default)
+
+    def format(self) -> str:
+        return format_summary(self)
+
+
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
-              simulator: dict | None = None, truth: SimScene | None = None) -> dict:
+              simulator: dict | None = None, truth: SimScene | None = None,
+              calibration: Calibration | None = None) -> RunSummary:
     """The run's summary. ``simulator``: the simulated sensors' lateness (None with real
     sensors); ``truth``: the true positions the errors were measured against (None: no
-    error, ``position_error_m`` all None)."""
+    error, ``position_error_m`` all None, no score)."""
     driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
     driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
     q_tot, l_tot = quantizer.totals(), localizer.totals()
@@ -327,54 +458,58 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
         truth_name = "simulated"
     else:
         truth_name = str(cfg.truth)
-    return {
-        "scene": scene.name if scene is not None else None,
-        "sensors": cfg.n_sensors,
-        # real sensors: where each one is (--sensor); simulated ones: null
-        "sensor_urls": {s.sensor_id: s.url for s in cfg.sensor_specs} if cfg.real else None,
-        "truth": truth_name,  # "simulated", the --truth file, or null (no position error)
-        "seconds": round(seconds, 2),
-        "frames_raw": cnt["raw"],
-        "frames_quantized": cnt["quantized"],
-        "frames_targets": cnt["targets"],
-        "rate_hz": monitor.rates_hz(),  # targets per second of each sensor (first to last frame)
-        "drops": driver_drops + queue_drops,
-        "drops_detail": {"sensor_frames": driver_drops, "node_queues": queue_drops,
-                         "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
-                         "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
-                         "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
-                         "undecodable_targets": monitor.bad_targets},
-        # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
-        # quantizer is missing at every later stage too
-        "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
-                           "targets": monitor.targets_missing},
-        "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
-        "latency_ms": {"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
-        "position_error_m": {"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
-                             "p90": _stat(err.percentile(90))},
-        "bytes_per_raw_frame": round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
-        "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
-        "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
-                      "dither_seed": cfg.quantizer.dither_seed,
-                      # alpha auto: each sensor's noise estimate and the alpha of its last frame
-                      **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
-        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
-                      **localizer.config.gate.to_dict()},
-        **({"tracks": {"messages": cnt["tracks"], "last_track_id": dict(sorted(monitor.track_ids.items())),
-                       "integrate_s": cfg.tracking.integrate_s,
-                       # each static true target to the nearest static track (within 1 m), every message
-                       "static_track_error_m": {"median": _stat(monitor.static_track_errors_m.percentile(50)),
-                                                "p90": _stat(monitor.static_track_errors_m.percentile(90))}}}
-           if cfg.tracking is not None else {}),
-        "driver": driver_stats,
-        "driver_process": cfg.driver_process,
-        # the simulated sensors' own late writes (device clock held): apart from every loss above;
-        # null with real sensors
-        "simulator": simulator,
-    }
+    score = monitor.score()
+    tracks = None
+    if cfg.tracking is not None:
+        tracks = {"messages": cnt["tracks"], "last_track_id": dict(sorted(monitor.track_ids.items())),
+                  "integrate_s": cfg.tracking.integrate_s,
+                  # each static true target to the nearest static track (within 1 m), every message
+                  "static_track_error_m": {"median": _stat(monitor.static_track_errors_m.percentile(50)),
+                                           "p90": _stat(monitor.static_track_errors_m.percentile(90))}}
+    return RunSummary(
+        scene=scene.name if scene is not None else None,
+        sensors=cfg.n_sensors,
+        sensor_urls={s.sensor_id: s.url for s in cfg.sensor_specs} if cfg.real else None,
+        truth=truth_name,
+        seconds=round(seconds, 2),
+        frames_raw=cnt["raw"], frames_quantized=cnt["quantized"], frames_targets=cnt["targets"],
+        rate_hz=monitor.rates_hz(),
+        drops=driver_drops + queue_drops,
+        drops_detail={"sensor_frames": driver_drops, "node_queues": queue_drops,
+                      "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
+                      "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
+                      "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
+                      "undecodable_targets": monitor.bad_targets},
+        frames_missing={"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
+                        "targets": monitor.targets_missing},
+        worker_restarts=q_tot["worker_restarts"] + l_tot["worker_restarts"],
+        latency_ms={"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
+        score=None if score is None else score.to_dict(truth.truth(0.0)),
+        position_error_m={"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
+                          "p90": _stat(err.percentile(90))},
+        bytes_per_raw_frame=round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
+        bytes_per_quantized_frame=round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
+        quantizer={"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
+                   "dither_seed": cfg.quantizer.dither_seed,
+                   # alpha auto: each sensor's noise estimate and the alpha of its last frame
+                   **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
+        localizer={"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
+                   **localizer.config.gate.to_dict()},
+        calibration=None if calibration is None else {
+            "file": calibration.source, "made": calibration.meta.get("created_utc"),
+            "sensor_ids": sorted(calibration.sensors)},
+        front_end={sid: dict(st) for sid, st in sorted(monitor.front_end.items())},
+        warnings=list(monitor.warnings.values()),
+        driver=driver_stats,
+        driver_process=cfg.driver_process,
+        simulator=simulator,
+        tracks=tracks,
+    )
 
 
-def format_summary(s: dict) -> str:
+def format_summary(s: "dict | RunSummary") -> str:
+    """The human summary of a run's summary (or of its JSON object, :meth:`RunSummary.to_dict`)."""
+    s = s.to_dict() if isinstance(s, RunSummary) else s
     lat, err = s["latency_ms"], s["position_error_m"]
     urls = s.get("sensor_urls")
     where = (f"{len(urls)} sensor(s) " + ", ".join(f"{sid} on {url}" for sid, url in urls.items()) if urls
@@ -389,38 +524,50 @@ def format_summary(s: dict) -> str:
         lines.append(f"  rate        {rates[0]:.1f} frames/s" if len(rates) == 1 else
                      f"  rate        {min(rates):.1f} to {max(rates):.1f} frames/s per sensor")
     lines += [
-        f"  drops       {s['drops']} ({s['drops_detail']})",
-        f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
+        f"  drops       {s['drops']} ({counts(s['drops_detail'], skip_zero=True)})",
+        f"  missing     {counts(s['frames_missing'])} (sequence gaps noticed at each stage)",
     ]
     if s.get("simulator") is not None:
         lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
                      f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")
-    lines.append(f"  latency     p50 {lat['p50']} ms, p99 {lat['p99']} ms (sensor timestamp -> targets published)")
+    lines.append(f"  latency     p50 {sig(lat['p50'])} ms, p99 {sig(lat['p99'])} ms (sensor timestamp -> targets "
+                 "published)")
+    cal = s.get("calibration")
+    if "calibration" in s or "front_end" in s:
+        lines.append(f"  calibration {cal['file']} (made {cal['made'] or 'n/a'})" if cal else
+                     "  calibration none: the frames are uncalibrated")
+    for w in s.get("warnings") or []:
+        lines.append(f"  warning     {w}")
     if s.get("truth", "simulated") is None:
         lines.append("  error       none: no true positions (--truth SCENE.toml gives the reflectors' measured ones)")
     else:
-        lines.append(f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true "
-                     f"target to the nearest estimate" + (f"; truth {s['truth']}" if s.get("truth") not in
-                                                          (None, "simulated") else "") + ")")
+        if s.get("score"):
+            lines.append(f"  score       {score_text(s['score'])}, over {s['score']['frames']} frames")
+        lines.append(f"  error       median {sig(err['median'])} m, mean {sig(err.get('mean'))} m, p90 "
+                     f"{sig(err.get('p90'))} m (each true target to the nearest target, found or not: false targets "
+                     "cost nothing here" + (f"; truth {s['truth']}" if s.get("truth") not in (None, "simulated")
+                                            else "") + ")")
     tr = s.get("tracks")
     if tr is not None:
         e = tr["static_track_error_m"]
-        lines.append(f"  tracks      {tr['messages']} messages, last track id {tr['last_track_id']}; static tracks' error "
-                     f"median {e['median']} m, p90 {e['p90']} m (--integrate {tr['integrate_s']:g} s)")
-    lines.append(f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
-                 f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
+        ids = counts(tr["last_track_id"]) if tr["last_track_id"] else "none"
+        lines.append(f"  tracks      {tr['messages']} messages, last track id {ids}; static tracks' error "
+                     f"median {sig(e['median'])} m, p90 {sig(e['p90'])} m (--integrate {tr['integrate_s']:g} s)")
+    raw_b, q_b = s["bytes_per_raw_frame"], s["bytes_per_quantized_frame"]
+    lines.append(f"  bytes/frame raw {'n/a' if raw_b is None else f'{raw_b:g}'}, quantized "
+                 f"{'n/a' if q_b is None else f'{q_b:g}'} ({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
     rec = s.get("recording")
     if rec is not None:
         lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
                      f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
-                     + (f" {rec['lost_by_topic']}" if rec["lost"] else "")
+                     + (f" ({counts(rec['lost_by_topic'])})" if rec["lost"] else "")
                      + (f"; last write error: {rec['error']}" if rec["error"] else ""))
-    counts = s.get("audit")
-    if counts is not None:
-        lines.append(f"  audit       {format_counts(counts)} (--secure; docs/security.md)")
+    audit_counts = s.get("audit")
+    if audit_counts is not None:
+        lines.append(f"  audit       {format_counts(audit_counts)} (--secure; docs/security.md)")
     return "\n".join(lines)
 
 
-def print_json(summary: dict, stream: TextIO = sys.stdout) -> None:
-    stream.write(json.dumps(summary) + "\n")
+def print_json(summary: "RunSummary | dict", stream: TextIO = sys.stdout) -> None:
+    stream.write(json.dumps(summary.to_dict() if isinstance(summary, RunSummary) else summary) + "\n")
     stream.flush()

@@ -58,6 +58,13 @@ class WrongDevice(LinkError):
     """A device path that now names another device than the one first opened."""
 
 
+class SetupError(RadarError):
+    """A wrong set-up, which retrying does not mend: the sensor answers, but what it sends does
+    not go with what it was asked to be (its frame layout is not the sensor profile's); the
+    message names the likely cause and the command that shows it. A supervisor does not
+    restart a driver that ended with one."""
+
+
 class LinkDown(RadarError):
     """The simulated link has no peer or was closed."""
 
