@@ -202,10 +202,7 @@ class Monitor:
                 if scored.false_targets[0]:
                     line += f" +{scored.false_targets[0]} false"
             line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
-            front = self.front_end.get(msg.sensor_id, {})
-            if leakage_shown(front):
-                line += "   calibration does not fit" if front.get("calibrated") else "   UNCALIBRATED"
-            print(line, file=self.live, flush=True)
+            print(line + "   " + self.calibration_tag(msg.sensor_id), file=self.live, flush=True)
 
     def _on_tracks(self, key: str, payload: bytes) -> None:
         """A tracks message: its largest id, and with a truth the static tracks' errors."""
@@ -231,6 +228,14 @@ class Monitor:
             self.track_ids[msg.sensor_id] = max([self.track_ids.get(msg.sensor_id, 0)]
                                                 + [t["track_id"] for t in msg.tracks])
             self.static_track_errors_m.add_many(errors)
+
+    def calibration_tag(self, sensor_id: str) -> str:
+        """What a live line says of a sensor's calibration: ``calibrated`` or ``uncalibrated``,
+        in capitals with the leakage seen (or ``calibration does not fit``)."""
+        front = self.front_end.get(sensor_id) or {"calibrated": self.calibration or False}
+        if not leakage_shown(front):
+            return "calibrated" if front.get("calibrated") else "uncalibrated"
+        return "calibration does not fit (leakage seen)" if front.get("calibrated") else "UNCALIBRATED (leakage seen)"
 
     def _tally(self, scored) -> None:
         """Add one frame's score (``_lock`` held)."""

@@ -402,6 +402,11 @@ def track_recording(result: SweepResult, index: int, radar: RadarConfig, trackin
     return payloads, summary
 
 
+def metres(v: float | None) -> str:
+    """A figure in metres to its digits, or n/a."""
+    return "n/a" if v is None else f"{v:.3g} m"
+
+
 # -- the whole job -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ReprocessConfig:
@@ -525,13 +530,14 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
         raise ReplayError(f"cannot write the re-processing results ({exc.filename or cfg.out}): "
                           f"{exc.strerror or exc}") from None
     lines = [f"{rec.sensor_id}: {first.rec.frames.shape[0]} frames"]
-    lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {s['error_at_best_m']} m; at alpha 0: "
-              f"{s['error_at_alpha0_m']} m)" + (f"; frames without any target: {max(s['frames_without_targets'])} at "
+    m = metres
+    lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {m(s['error_at_best_m'])}; at alpha 0: "
+              f"{m(s['error_at_alpha0_m'])})" + (f"; frames without any target: {max(s['frames_without_targets'])} at "
                                                "worst" if any(s["frames_without_targets"]) else "")
               + "\n        at it: " + score_text(s["score"][results[a].best_index]) for a, s in summaries.items()]
     if "tracks" in summary:
         t = summary["tracks"]
-        lines.append(f"  tracks: ids {t['track_ids']}; static tracks' median error {t['static_track_error_median_m']} m "
-                     f"after {t['integrate_s']:g} s of integration (targets: {t['target_error_median_m']} m)")
+        lines.append(f"  tracks: ids {t['track_ids']}; static tracks' median error {m(t['static_track_error_median_m'])} "
+                     f"after {t['integrate_s']:g} s of integration (targets: {m(t['target_error_median_m'])})")
     lines.append(f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:]))
     return ReprocessResult(summary, written, notes, lines)

@@ -68,7 +68,8 @@ def test_1_an_uncalibrated_run_says_so_in_its_header_live_lines_summary_json_and
     warnings = [ln for ln in live if ln.startswith("warning: ")]
     assert len(warnings) == 1 and "kmd2-0: uncalibrated" in warnings[0], warnings
     assert "`qradar calibrate`" in warnings[0] and "docs/chamber.md" in warnings[0]
-    assert any(ln.startswith("kmd2-0 #") and ln.endswith("UNCALIBRATED") for ln in live), live
+    lines = [ln for ln in live if ln.startswith("kmd2-0 #")]
+    assert lines[-1].endswith("UNCALIBRATED (leakage seen)") and all("calibrated" in ln for ln in lines), lines
     assert s["calibration"] is None and s["warnings"] == [warnings[0][len("warning: "):]]
     fe = s["front_end"]["kmd2-0"]  # what the nodes' health said: the quantizer's state, the localizer's check
     assert fe["calibrated"] is False and fe["checked"] >= 20 and fe["leakage"] > 0.9 * fe["checked"]
@@ -83,6 +84,7 @@ def test_1_a_calibrated_run_names_its_file_and_a_calibration_of_another_front_en
     fe = s["front_end"]["kmd2-0"]
     assert fe["calibrated"] == str(CAL) and fe["leakage"] <= 0.1 * fe["checked"] and fe["checked"] >= 20
     assert f"calibration {CAL} (made " in out.stderr.splitlines()[1]
+    assert all(ln.endswith("   calibrated") for ln in out.stderr.splitlines() if ln.startswith("kmd2-0 #"))
     # the same sensor id, another front end (the ideal sensor): the chamber's background subtracted
     # from frames that have none puts a leakage in them: named, not accepted silently
     other = qradar("run", "--scene", "chamber-ideal", "--frames", 60, "--no-record", "--json", "--calibration", CAL)
@@ -337,13 +339,13 @@ def test_8_the_set_up_says_each_step_with_its_expected_time():
     lines = out.getvalue().splitlines()
     assert lines[0].startswith("compiling cml's kernels into numba's cache") and "first time" in lines[0]
     steps = lines[1:]
-    assert len(steps) == len(cml_warmup.KINDS) and all(re.search(r"expect (~\d+ s|under a second)", ln) and
+    assert len(steps) == len(cml_warmup.KINDS) and all(re.search(r"expect (\d+-\d+ (s|min)|under a second)", ln) and
                                                       re.search(r"\.\.\. [0-9.]+ s$", ln) for ln in steps), steps
     make = (ROOT / "Makefile").read_text()
     stamp = make[make.index("$(STAMP): pyproject.toml"):make.index("@touch $(STAMP)")]
     assert "compile_verbose" in stamp and "~0.5 s" not in stamp and stamp.count("@echo") >= 3
     readme = (ROOT / "README.md").read_text()
-    assert "about a minute" not in readme and re.search(r"measured: \d+ s", readme)
+    assert "about a minute" not in readme and re.search(r"measured:\s+\d+ s", readme)
 
 
 # -- 9. figures to their meaningful digits, n/a, text not dicts -----------------------------------------

@@ -121,6 +121,8 @@ class SourceNode(Node):
 
     def health_extra(self, sensor_id: str) -> dict:
         extra = {"source": self._source_stats.get(sensor_id, {})}
+        if self.quantizer is not None:  # edge quantization: whether its frames are calibrated, as the quantizer's
+            extra["calibrated"] = self.calibration.source if self.calibration is not None else False
         if self.noise is not None:
             extra.update(self.noise.health(sensor_id))
         return extra
