@@ -226,7 +226,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                       session=session, frames=cfg.frames) for s in specs]
             if cfg.frames is not None:
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
-            threading.Thread(target=watch_refusals, args=(monitor, quantizer, localizer, stop, refused),
+            ended = threading.Event()  # the run's nodes have stopped: the watch ends too
+            threading.Thread(target=watch_refusals, args=(monitor, quantizer, localizer, stop, refused, ended),
                              name="refusals", daemon=True).start()
             recorder = []
             if cfg.record is not None:
@@ -245,6 +246,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
+                ended.set()
                 monitor.stop()
                 if view is not None:
                     view.stop()
@@ -264,10 +266,11 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     return summary
 
 
-def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event, out: list) -> None:
-    """Until ``stop``: once REFUSED_AFTER raw frames (or more) have arrived and every one was
-    refused (none reached the targets), a RunSetupError into ``out`` and ``stop`` set."""
-    while not stop.wait(0.5):
+def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event, out: list,
+                   ended: threading.Event) -> None:
+    """Until ``stop`` or ``ended``: once REFUSED_AFTER raw frames (or more) have arrived and every
+    one was refused (none reached the targets), a RunSetupError into ``out`` and ``stop`` set."""
+    while not (stop.is_set() or ended.wait(0.5)):
         raw, targets = monitor.count["raw"], monitor.count["targets"]
         if raw < REFUSED_AFTER or targets:
             continue
