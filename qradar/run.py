@@ -13,27 +13,24 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import threading
 import time
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
-from pipeline.bus.audit import format_counts
 from pipeline.bus.session import BusConfig
+from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError, RunSetupError
 from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
-from pipeline.dsp.score import score_text
 from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
@@ -43,23 +40,12 @@ from replay.errors import RecordingExists
 from replay.outputs import check_new_file
 from replay.recorder import OnWriteError, RecorderNode
 
-from .drivers import DriverProcess, driver_bus
-from .figures import counts, round_sig, sig
+from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
 from .monitor import Monitor
+from .summary import RunSummary, format_summary, print_json, simulator_lateness, summarize  # noqa: F401 (run's API)
+from .rundir import remove_run_dirs, run_directory
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
-
-#: the temporary directories of the runs in progress (pty links, the zenoh socket)
-_RUN_DIRS: set[str] = set()
-
-
-def remove_run_dirs() -> None:
-    """For an exit at once (a second Ctrl-C while a run stops, no time to stop in order):
-    the runs' temporary directories removed, pty links and zenoh socket (their driver
-    processes stop by themselves). Quick, and raises nothing."""
-    for path in list(_RUN_DIRS):
-        shutil.rmtree(path, ignore_errors=True)
-
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
 REAL_SENSOR_K = 2
@@ -106,6 +92,10 @@ class RunConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.dsp.track), None: none
+    # a driver that dies is started again after driver_backoff_s, doubled each time it dies again soon;
+    # its sensor is given up after driver_restarts such deaths in a row (qradar.drivers.SupervisedDriver)
+    driver_backoff_s: float = RESTART_BACKOFF_S
+    driver_restarts: int = MAX_RESTARTS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -143,6 +133,9 @@ class RunConfig:
         object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
         if self.outstanding not in (1, 2):
             raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
+        if not (self.driver_backoff_s > 0 and isinstance(self.driver_restarts, int) and self.driver_restarts >= 0):
+            raise ParameterError(f"driver_backoff_s={self.driver_backoff_s!r} must be > 0 and "
+                                 f"driver_restarts={self.driver_restarts!r} an integer >= 0")
 
     @property
     def real(self) -> bool:
@@ -193,8 +186,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     t_start = time.monotonic()
     stop = stop or threading.Event()
     refused: list[RunSetupError] = []
-    with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
-        _RUN_DIRS.add(tmp)
+    with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
         sims = [] if cfg.real else [
@@ -215,15 +207,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration,
                                      calibration_required=True)  # a file that does not fit: refused at the first frame
-            if cfg.driver_process:
-                drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
-                                         outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                         profile=s.profile, chirp_select=s.chirp_select,
-                                         received=lambda sid=s.sensor_id: monitor.raw_by_sensor.get(sid, 0))
-                           for s in specs]
-            else:
-                drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
-                                      session=session, frames=cfg.frames) for s in specs]
+            drivers = supervised_drivers(cfg, specs, bus, session, monitor, live, stop)
             if cfg.frames is not None:
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             ended = threading.Event()  # the run's nodes have stopped: the watch ends too
@@ -254,7 +238,6 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             session.close()
             for sim in sims:
                 sim.stop()
-            _RUN_DIRS.discard(tmp)
     if refused:
         raise refused[0]
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
@@ -313,6 +296,47 @@ def run_header(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, l
     return "\n".join(lines)
 
 
+def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: Monitor, live: TextIO | None,
+                       stop: threading.Event) -> list[SupervisedDriver]:
+    """A driver per sensor (a process of its own, or a thread of this one), each
+    restarted with backoff when it dies while the others go on (:class:`SupervisedDriver`):
+    a death and a restart are said on the live stream and in the sensor's health (node
+    ``run``, ``extra.driver``: state, restarts, why); once every sensor is given up,
+    ``stop`` is set (the run ends with its summary)."""
+    drivers: list[SupervisedDriver] = []
+
+    def report(sensor_id: str, state: str, detail: str) -> None:
+        sup = next(d for d in drivers if d.sensor_id == sensor_id)
+        if live is not None:
+            print(f"{sensor_id}: {detail}", file=live, flush=True)
+        health = HealthMsg("run", sensor_id, time.time_ns(), extra={"driver": {
+            "state": state, "restarts": sup.restarts, "exits": len(sup.exits), "last_exit": detail}})
+        try:
+            session.put(cfg.bus.key(sensor_id, "health"), health.to_json())
+        except Exception:  # a closing session: the live line and the summary say it
+            pass
+        if state == "gone" and all(d.gone.is_set() or d is sup for d in drivers):
+            stop.set()
+
+    def maker(s: SensorSpec):
+        def make(frames_done: int):
+            frames = None if cfg.frames is None else max(cfg.frames - frames_done, 1)
+            if not cfg.driver_process:
+                return SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)), session=session,
+                                  frames=frames)
+            base = monitor.raw_by_sensor.get(s.sensor_id, 0)  # this driver's frames are those after
+            return DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=frames,
+                                 outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
+                                 profile=s.profile, chirp_select=s.chirp_select,
+                                 received=lambda: monitor.raw_by_sensor.get(s.sensor_id, 0) - base)
+        return make
+
+    for s in specs:
+        drivers.append(SupervisedDriver(s.sensor_id, maker(s), lambda sid=s.sensor_id: monitor.raw_by_sensor.get(
+            sid, 0), on_event=report, backoff_s=cfg.driver_backoff_s, max_restarts=cfg.driver_restarts))
+    return drivers
+
+
 def load_truth(name_or_path: str | Path) -> SimScene:
     """The true positions of ``--truth``: a scene file as :mod:`radar_driver.scene` reads
     (or a packaged scene's name), of which only the targets' ranges and angles (and a
@@ -369,208 +393,3 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
         if scene is not None:
             meta["qradar.simulated_scene"] = {"scene": json.dumps(scene.to_dict()), "rate_hz": str(cfg.rate_hz)}
     return meta
-
-
-def _stat(value: float | None) -> float | None:
-    """A figure of a fixed-size histogram (within 2 % of the exact one), to its meaningful digits."""
-    return round_sig(None if value is None else float(value))
-
-
-def simulator_lateness(sims: list[SimulatorServer]) -> dict:
-    """The simulated sensors' own lateness (their process was not scheduled in time): late
-    writes and seconds, for which each held its device clock. Not frames lost: a real
-    K-MD2 measures on its own clock."""
-    devs = [d for sim in sims for d in sim.devices]
-    return {"late_writes": sum(d.late_writes for d in devs), "late_s": round(sum(d.late_s for d in devs), 4)}
-
-
-@dataclass
-class RunSummary:
-    """What a run measured: the JSON object of ``--json`` (:meth:`to_dict`, keys in field
-    order; the optional parts, None, left out) and the text of :func:`format_summary`.
-    A new figure is a new plain field (a JSON-ready value). Read as the JSON object too:
-    ``summary["frames_raw"]``."""
-
-    scene: str | None
-    sensors: int
-    sensor_urls: dict[str, str] | None  # real sensors: where each one is (--sensor); simulated ones: null
-    truth: str | None  # "simulated", the --truth file, or null (no position error)
-    seconds: float
-    frames_raw: int
-    frames_quantized: int
-    frames_targets: int
-    rate_hz: dict[str, float]  # targets per second of each sensor (first to last frame)
-    drops: int
-    drops_detail: dict[str, int]
-    # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
-    # quantizer is missing at every later stage too
-    frames_missing: dict[str, int]
-    worker_restarts: int
-    latency_ms: dict[str, float | None]
-    # the honest score (pipeline.dsp.score): per true target its detection rate and the median
-    # error of its detections, false targets and targets a frame; null without a truth
-    score: dict | None
-    position_error_m: dict[str, float | None]  # each true target to the nearest target (median of nearest)
-    bytes_per_raw_frame: float | None
-    bytes_per_quantized_frame: float | None
-    quantizer: dict
-    localizer: dict
-    calibration: dict | None  # {file, made, sensor_ids} or null: uncalibrated
-    front_end: dict[str, dict]  # per sensor: calibrated (file or false), frames checked, leakage seen
-    warnings: list[str]
-    driver: dict[str, dict[str, int]]
-    driver_process: bool
-    # the simulated sensors' own late writes (device clock held): apart from every loss above; null
-    # with real sensors
-    simulator: dict | None
-    tracks: dict | None = None
-    recording: dict | None = None  # state, files, written, dropped (queue), lost (write errors, by topic), error
-    foxglove: dict | None = None
-    interrupted: bool | None = None  # ended by Ctrl-C / SIGTERM
-    audit: dict | None = None  # --secure: refused handshakes, denied messages
-
-    def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if not (getattr(self, f.name) is None and f.default is None)}
-
-    def __getitem__(self, key: str):
-        return self.to_dict()[key]
-
-    def get(self, key: str, default=None):
-        return self.to_dict().get(key, default)
-
-    def format(self) -> str:
-        return format_summary(self)
-
-
-def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
-              simulator: dict | None = None, truth: SimScene | None = None,
-              calibration: Calibration | None = None) -> RunSummary:
-    """The run's summary. ``simulator``: the simulated sensors' lateness (None with real
-    sensors); ``truth``: the true positions the errors were measured against (None: no
-    error, ``position_error_m`` all None, no score)."""
-    driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
-    driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
-    q_tot, l_tot = quantizer.totals(), localizer.totals()
-    queue_drops = l_tot["drops"] + q_tot["drops"]
-    cnt, size = monitor.count, monitor.bytes
-    lat, err = monitor.latency_ms, monitor.errors_m  # fixed-size histograms: within 2 % of the exact figures
-    if truth is None:
-        truth_name = None
-    elif truth is scene:
-        truth_name = "simulated"
-    else:
-        truth_name = str(cfg.truth)
-    score = monitor.score()
-    tracks = None
-    if cfg.tracking is not None:
-        tracks = {"messages": cnt["tracks"], "last_track_id": dict(sorted(monitor.track_ids.items())),
-                  "integrate_s": cfg.tracking.integrate_s,
-                  # each static true target to the nearest static track (within 1 m), every message
-                  "static_track_error_m": {"median": _stat(monitor.static_track_errors_m.percentile(50)),
-                                           "p90": _stat(monitor.static_track_errors_m.percentile(90))}}
-    return RunSummary(
-        scene=scene.name if scene is not None else None,
-        sensors=cfg.n_sensors,
-        sensor_urls={s.sensor_id: s.url for s in cfg.sensor_specs} if cfg.real else None,
-        truth=truth_name,
-        seconds=round(seconds, 2),
-        frames_raw=cnt["raw"], frames_quantized=cnt["quantized"], frames_targets=cnt["targets"],
-        rate_hz=monitor.rates_hz(),
-        drops=driver_drops + queue_drops,
-        drops_detail={"sensor_frames": driver_drops, "node_queues": queue_drops,
-                      "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
-                      "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
-                      "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
-                      "undecodable_targets": monitor.bad_targets},
-        frames_missing={"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
-                        "targets": monitor.targets_missing},
-        worker_restarts=q_tot["worker_restarts"] + l_tot["worker_restarts"],
-        latency_ms={"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
-        score=None if score is None else score.to_dict(truth.truth(0.0)),
-        position_error_m={"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
-                          "p90": _stat(err.percentile(90))},
-        bytes_per_raw_frame=round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
-        bytes_per_quantized_frame=round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
-        quantizer={"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
-                   "dither_seed": cfg.quantizer.dither_seed,
-                   # alpha auto: each sensor's noise estimate and the alpha of its last frame
-                   **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
-        localizer={"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
-                   **localizer.config.gate.to_dict()},
-        calibration=None if calibration is None else {
-            "file": calibration.source, "made": calibration.meta.get("created_utc"),
-            "sensor_ids": sorted(calibration.sensors)},
-        front_end={sid: dict(st) for sid, st in sorted(monitor.front_end.items())},
-        warnings=list(monitor.warnings.values()),
-        driver=driver_stats,
-        driver_process=cfg.driver_process,
-        simulator=simulator,
-        tracks=tracks,
-    )
-
-
-def format_summary(s: "dict | RunSummary") -> str:
-    """The human summary of a run's summary (or of its JSON object, :meth:`RunSummary.to_dict`)."""
-    s = s.to_dict() if isinstance(s, RunSummary) else s
-    lat, err = s["latency_ms"], s["position_error_m"]
-    urls = s.get("sensor_urls")
-    where = (f"{len(urls)} sensor(s) " + ", ".join(f"{sid} on {url}" for sid, url in urls.items()) if urls
-             else f"scene {s['scene']}, {s['sensors']} sensor(s)")
-    rates = list((s.get("rate_hz") or {}).values())
-    lines = [
-        f"qradar run: {where}, {s['seconds']} s"
-        + (", ended by Ctrl-C / SIGTERM" if s.get("interrupted") else ""),
-        f"  frames      raw {s['frames_raw']}, quantized {s['frames_quantized']}, targets {s['frames_targets']}",
-    ]
-    if rates:
-        lines.append(f"  rate        {rates[0]:.1f} frames/s" if len(rates) == 1 else
-                     f"  rate        {min(rates):.1f} to {max(rates):.1f} frames/s per sensor")
-    lines += [
-        f"  drops       {s['drops']} ({counts(s['drops_detail'], skip_zero=True)})",
-        f"  missing     {counts(s['frames_missing'])} (sequence gaps noticed at each stage)",
-    ]
-    if s.get("simulator") is not None:
-        lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
-                     f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")
-    lines.append(f"  latency     p50 {sig(lat['p50'])} ms, p99 {sig(lat['p99'])} ms (sensor timestamp -> targets "
-                 "published)")
-    cal = s.get("calibration")
-    if "calibration" in s or "front_end" in s:
-        lines.append(f"  calibration {cal['file']} (made {cal['made'] or 'n/a'})" if cal else
-                     "  calibration none: the frames are uncalibrated")
-    for w in s.get("warnings") or []:
-        lines.append(f"  warning     {w}")
-    if s.get("truth", "simulated") is None:
-        lines.append("  error       none: no true positions (--truth SCENE.toml gives the reflectors' measured ones)")
-    else:
-        if s.get("score"):
-            lines.append(f"  score       {score_text(s['score'])}, over {s['score']['frames']} frames")
-        lines.append(f"  error       median {sig(err['median'])} m, mean {sig(err.get('mean'))} m, p90 "
-                     f"{sig(err.get('p90'))} m (each true target to the nearest target, found or not: false targets "
-                     "cost nothing here" + (f"; truth {s['truth']}" if s.get("truth") not in (None, "simulated")
-                                            else "") + ")")
-    tr = s.get("tracks")
-    if tr is not None:
-        e = tr["static_track_error_m"]
-        ids = counts(tr["last_track_id"]) if tr["last_track_id"] else "none"
-        lines.append(f"  tracks      {tr['messages']} messages, last track id {ids}; static tracks' error "
-                     f"median {sig(e['median'])} m, p90 {sig(e['p90'])} m (--integrate {tr['integrate_s']:g} s)")
-    raw_b, q_b = s["bytes_per_raw_frame"], s["bytes_per_quantized_frame"]
-    lines.append(f"  bytes/frame raw {'n/a' if raw_b is None else f'{raw_b:g}'}, quantized "
-                 f"{'n/a' if q_b is None else f'{q_b:g}'} ({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
-    rec = s.get("recording")
-    if rec is not None:
-        lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
-                     f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
-                     + (f" ({counts(rec['lost_by_topic'])})" if rec["lost"] else "")
-                     + (f"; last write error: {rec['error']}" if rec["error"] else ""))
-    audit_counts = s.get("audit")
-    if audit_counts is not None:
-        lines.append(f"  audit       {format_counts(audit_counts)} (--secure; docs/security.md)")
-    return "\n".join(lines)
-
-
-def print_json(summary: "RunSummary | dict", stream: TextIO = sys.stdout) -> None:
-    stream.write(json.dumps(summary.to_dict() if isinstance(summary, RunSummary) else summary) + "\n")
-    stream.flush()

@@ -422,7 +422,7 @@ class FoxgloveView(ProcessingNode):
                     if st is not None:  # skipped on purpose is not missing: its seq moves the count on
                         head = sample.payload.to_bytes()[:HEADER_LEN]
                         if len(head) == HEADER_LEN and head[:4] == MAGIC:
-                            st.note_seq("quantized", SEQ.unpack_from(head, SEQ_OFFSET)[0])
+                            st.note_seq("quantized", SEQ.unpack_from(head, SEQ_OFFSET)[0], now, self.intake.rate_hz)
                     return
                 if len(self._last_profile) >= 4 * self.config.max_sensors:  # keys of garbage: bounded
                     self._last_profile.clear()

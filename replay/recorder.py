@@ -37,7 +37,7 @@ from pipeline.bus.session import BusConfig, zenoh_reason
 from pipeline.nodes.counters import NO_SENSOR
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.nodes.transport import Transport
-from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
+from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets, load_json
 
 from .errors import RecordingExists, ReplayError
 from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
@@ -93,7 +93,7 @@ def message_times(topic: str, payload: bytes, log_time_ns: int) -> tuple[int, in
             if magic == MAGIC:
                 return int(ts), int(seq)
         elif topic in ("targets", "tracks", "health"):
-            obj = json.loads(payload)
+            obj = load_json(payload, topic)  # bounded in size and depth: a WireError (a ValueError)
             return int(obj.get("timestamp_ns", log_time_ns)), int(obj.get("seq", 0))
     except (struct.error, ValueError, TypeError, AttributeError):
         pass

@@ -246,7 +246,9 @@ def test_the_security_recipe_works_as_written(workdir):
     run_step(lines[0], workdir)
     listed = run_step(lines[1], workdir).stdout
     assert "sensor-kmd2-0" in listed and "router" in listed
-    out = run_step(lines[2], workdir).stdout
+    checked = run_step(lines[2], workdir).stdout
+    assert "none but a router's names hosts" in checked and "FLAGGED" not in checked
+    out = run_step(lines[3], workdir).stdout
     assert "0 refused_handshakes" in out and "frames" in out
 
 
