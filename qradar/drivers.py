@@ -107,7 +107,8 @@ class DriverProcess:
             final = last_json_object([line])
             if final:
                 self._final = final
-                self.done.set()
+                if "error" not in final:  # an error: done once _watch has it in errors (a supervisor reads them)
+                    self.done.set()
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:

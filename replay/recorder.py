@@ -168,7 +168,7 @@ class RecorderNode(ProcessingNode):
         self.retry_s = float(retry_s)
         self.resume_free_bytes = int(resume_free_mb * 1e6)
         self.paths: list[Path] = []
-        self.new_name_if_taken, self.overwrite = new_name_if_taken, overwrite and not new_name_if_taken  # -1, -2, ...; --force
+        self.new_name_if_taken, self.overwrite = new_name_if_taken, overwrite and not new_name_if_taken
         self._part = 0  # the number of the next split file (names taken by others are skipped)
         self.written = 0  # messages kept in the files (not those cut off by a write error)
         self.unparsed = 0
