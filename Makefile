@@ -8,13 +8,16 @@ OUT    ?= out
 
 .PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures clean
 
+# Set-up, once: a line per step with the time it takes on a busy 2-core host (3-4 min in all, measured).
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
+	@echo "qradar set-up, once: a virtual environment in $(VENV), its packages, then cml's compiled kernels"
 	$(PYTHON) -m venv $(VENV)
+	@echo "installing qradar and its dependencies with pip (numpy, scipy, numba, zenoh, mcap, ...): 1-2 min"
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
-	# cml's and the dither's compiled kernels, into numba's on-disk cache: a node's first frame then loads them (~0.5 s)
-	$(PY) -c 'from pipeline.dsp.cml import warm_up_kernels; warm_up_kernels(wait=True)'
-	$(PY) -c 'from pipeline.dsp.dither import warm_up; warm_up()'
+	@$(PY) -c 'from pipeline.dsp import cml, cml_warmup; cml_warmup.compile_verbose(cml.cml)'
+	@$(PY) -c 'from pipeline.dsp.dither import warm_up; warm_up()'
+	@echo "set-up done: the next commands start at once"
 	@touch $(STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
@@ -72,4 +75,4 @@ montecarlo-paper: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --out $(OUT)/montecarlo-paper
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info tests/js/node_modules
+	rm -rf $(VENV) $(OUT)/* .pytest_cache *.egg-info tests/js/node_modules  # out/ itself stays: outputs go into it

@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.dsp.localize import Detections, position_error_m
+from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, Score, score, score_frames
 from replay.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from pipeline.dsp.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, judge_seq
@@ -39,7 +40,8 @@ from replay.reprocess import run as run_reprocess
 __all__ = ["Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
            "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
            "QuantizerConfig", "DecoderConfig", "RadarConfig", "Detections", "SimScene", "load_scene",
-           "position_error_m"]  # qradar._API lists the same
+           "position_error_m", "score", "score_frames", "Score", "FrameScores",
+           "DETECTION_DISTANCE_M"]  # qradar._API lists the same
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from pipeline.bus.session import BusConfig
-from radar_driver.errors import RadarError
+from radar_driver.errors import RadarError, SetupError
 
 
 def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
@@ -107,11 +107,12 @@ class DriverProcess:
             final = last_json_object([line])
             if final:
                 self._final = final
-                self.done.set()
+                if "error" not in final:  # an error: done once _watch has it in errors (a supervisor reads them)
+                    self.done.set()
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:
-            if self.log is not None:
+            if self.log is not None and not line.startswith("qradar drive: error:"):  # the run says it itself
                 self.log.write(f"[driver {self.sensor_id}] {line}")
                 self.log.flush()
 
@@ -120,8 +121,9 @@ class DriverProcess:
         for t in self._threads[:2]:
             t.join(5.0)
         last = last_json_object(self._out)
-        if "error" in last:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
+        if "error" in last:  # a wrong set-up (SetupError: not to be restarted) or another failure
+            kind = SetupError if last.get("setup") else RadarError
+            self.errors.append(kind(f"the driver of {self.sensor_id} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
             self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
         else:
@@ -181,7 +183,9 @@ class SupervisedDriver:
     """One sensor's driver (a :class:`DriverProcess`, or any :class:`Runnable` with
     ``done`` and ``errors``), started again with backoff when it dies, while the others go
     on: :class:`~pipeline.nodes.runtime.Runnable` by :func:`run_nodes`, whose ``errors``
-    stay empty (a dead driver ends nothing else). ``make(frames_done)`` makes a new driver
+    stay empty (a dead driver ends nothing else) but for a driver that ended with a
+    :class:`~radar_driver.errors.SetupError` (its sensor's frames never assemble): that is
+    not restarted, and ends the run. ``make(frames_done)`` makes a new driver
     (``frames_done``: the frames its sensor's earlier drivers delivered, for a frame
     limit). ``on_event(sensor_id, state, detail)``, if given, hears of each death
     (``state`` "restarting" or "gone") and restart ("running"): the run reports them
@@ -225,6 +229,11 @@ class SupervisedDriver:
             if self._stop.is_set():
                 return
             if not driver.errors:  # it finished (its frame limit): the sensor is done
+                self.done.set()
+                return
+            if isinstance(driver.errors[0], SetupError):  # a wrong set-up, which no restart mends: it
+                self.errors.append(driver.errors[0])  # ends the run, in one line (run_nodes raises it)
+                self.state = "failed"
                 self.done.set()
                 return
             why = str(driver.errors[0])

@@ -128,18 +128,28 @@ def default_identities(sensors, hosts=()) -> list[Identity]:
             Identity("recorder", "recorder"), Identity("viewer", "viewer")]
 
 
-def init(directory: Path, sensors, hosts=(), days: int = DEFAULT_DAYS, ca_days: int = CA_DAYS) -> Policy:
-    """A new CA and the :func:`default_identities` in ``directory`` (made 0700); refuses
-    a directory that has a CA already."""
-    directory = Path(directory)
+#: where ``qradar security init`` makes its CA without a folder given: outside any checkout
+DEFAULT_DIR = Path("~/.qradar-pki")
+
+
+def init(directory: Path, sensors, hosts=(), days: int = DEFAULT_DAYS, ca_days: int = CA_DAYS,
+         force: bool = False) -> Policy:
+    """A new CA and the :func:`default_identities` in ``directory`` (made 0700 if missing,
+    when its parent exists); refuses a directory that has a CA already unless ``force``
+    (which replaces the CA and every identity)."""
+    directory = Path(directory).expanduser()
     _check_days(days, ca_days)
-    if (directory / CA_KEY).exists() or (directory / CA_CERT).exists() or (directory / POLICY_FILE).exists():
-        raise BusError(f"{directory} has a CA already; add identities with `qradar security add {directory} ...` "
-                       "or choose another directory")
+    if not force and ((directory / CA_KEY).exists() or (directory / CA_CERT).exists()
+                      or (directory / POLICY_FILE).exists()):
+        raise BusError(f"{directory} has a CA already; add identities with `qradar security add {directory} ...`, "
+                       "choose another directory, or replace it with --force")
     idents = default_identities(sensors, hosts)
     Policy(tuple(idents))  # duplicate names (a sensor id given twice) before anything is written
+    if not directory.parent.is_dir():
+        raise BusError(f"cannot make {directory}: {directory.parent} does not exist (qradar makes only its output's "
+                       "own folder)")
     try:
-        directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+        directory.mkdir(mode=0o700, exist_ok=True)
         os.chmod(directory, 0o700)
     except OSError as exc:
         raise BusError(f"cannot make {directory}: {exc.strerror}") from None
@@ -147,6 +157,22 @@ def init(directory: Path, sensors, hosts=(), days: int = DEFAULT_DAYS, ca_days: 
     policy = Policy(tuple(issue(directory, i, days) for i in idents))
     policy.save(directory)
     return policy
+
+
+def git_exposure(path: Path) -> str | None:
+    """The git checkout ``path`` lies in when no ``.gitignore`` covers it (its files could be
+    committed), else None (outside a checkout, ignored there, or no ``git`` to ask)."""
+    path = Path(path).resolve()
+    try:
+        top = subprocess.run(["git", "-C", str(path), "rev-parse", "--show-toplevel"], capture_output=True, text=True,
+                             timeout=10)
+        if top.returncode != 0:
+            return None  # not in a work tree
+        ignored = subprocess.run(["git", "-C", str(path), "check-ignore", "-q", str(path / CA_KEY)],
+                                 capture_output=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return None if ignored.returncode == 0 else top.stdout.strip()
 
 
 def check_hosts(ident: Identity) -> None:

@@ -13,9 +13,14 @@ class NoQradarChannelsError(ReplayError):
     """The MCAP file holds no qradar channels."""
 
 
-class RecordingExists(ReplayError):
+class OutputExists(ReplayError):
+    """An output exists already and the command was not told to replace it (``--force``)."""
+
+
+class RecordingExists(OutputExists):
     """A recording's path exists already (recordings are created exclusively)."""
 
     @classmethod
     def at(cls, path) -> "RecordingExists":
-        return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it")
+        return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it "
+                   "(--force replaces it)")

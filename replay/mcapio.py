@@ -37,6 +37,7 @@ from zstandard import ZstdError
 from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TRACK_FIELDS, TargetsMsg
 
 from .errors import NotMcapError, RecordingExists, ReplayError
+from .outputs import own_folder
 
 WIRE_ENCODING = "qradar/wire-v1"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
@@ -177,8 +178,8 @@ class McapSink:
 
     def __init__(self, path: Path, chunk_size: int = 1 << 20, overwrite: bool = False):
         self.path = Path(path)
+        own_folder(self.path.parent, self.path)  # the recording's own folder, never the folders above it
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fh = _RecordFile(self.path, overwrite)
         except FileExistsError:
             raise RecordingExists.at(self.path) from None
@@ -369,11 +370,13 @@ def qradar_channels(channels: dict[int, Channel]) -> dict[int, Channel]:
     return {cid: ch for cid, ch in channels.items() if topic_of(ch.topic) in TOPICS}
 
 
-def recover(src: str | Path, dst: str | Path) -> dict:
-    """Write a complete, indexed MCAP from whatever ``src`` holds (e.g. after SIGKILL).
-    Returns {"messages", "truncated", "reason"}."""
+def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict:
+    """Write a complete, indexed MCAP from whatever ``src`` holds (e.g. after SIGKILL), a new
+    file unless ``overwrite``. Returns {"messages", "truncated", "reason"}."""
+    if Path(src).resolve() == Path(dst).resolve():
+        raise ReplayError(f"recover reads {src} and writes a new file: give another output than the file itself")
     f = McapFile(src)
-    sink = McapSink(Path(dst))
+    sink = McapSink(Path(dst), overwrite=overwrite)
     n = 0
     try:
         for ch, msg in f.messages():

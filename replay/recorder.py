@@ -136,13 +136,13 @@ class RecorderNode(ProcessingNode):
                  session: zenoh.Session | Transport | None = None, split_size_mb: float | None = None,
                  split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
                  queue_size: int = 20000, on_write_error: OnWriteError | str = OnWriteError.RESUME,
-                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False, **kw):
+                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken=False, overwrite=False, **kw):
         kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
         super().__init__(bus, session, queue_size=queue_size, batch_max=512, **kw)
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
             raise ReplayError(f"recording path {self.base_path} must end in .mcap")
-        if not new_name_if_taken and os.path.lexists(self.base_path):
+        if not (new_name_if_taken or overwrite) and os.path.lexists(self.base_path):
             raise RecordingExists.at(self.base_path)  # at once (and again, exclusively, at the start)
         if split_size_mb is not None and not split_size_mb > 0:
             raise ReplayError(f"split size {split_size_mb!r} MB must be > 0")
@@ -168,7 +168,7 @@ class RecorderNode(ProcessingNode):
         self.retry_s = float(retry_s)
         self.resume_free_bytes = int(resume_free_mb * 1e6)
         self.paths: list[Path] = []
-        self.new_name_if_taken = new_name_if_taken  # a default name: -1, -2, ... when taken (else refused)
+        self.new_name_if_taken, self.overwrite = new_name_if_taken, overwrite and not new_name_if_taken
         self._part = 0  # the number of the next split file (names taken by others are skipped)
         self.written = 0  # messages kept in the files (not those cut off by a write error)
         self.unparsed = 0
@@ -226,7 +226,7 @@ class RecorderNode(ProcessingNode):
             path = self._next_path()
             self._part += 1
             try:
-                sink = McapSink(path)  # creates the folder; ReplayError naming the path if it cannot
+                sink = McapSink(path, overwrite=self.overwrite and not self.paths)  # ReplayError naming the path
                 break
             except RecordingExists as exc:
                 if not self.paths and not self.new_name_if_taken:

@@ -234,6 +234,7 @@ class Counters:
         self._lock = threading.Lock()
         self._last_log: dict[str, float] = {}
         self._tally: dict[str, dict[str, int]] = {}  # kind -> sender -> count since the last summary
+        self.last_reason: dict[str, str] = {}  # kind -> the reason of the last failure counted
         self._last_summary = time.monotonic()
 
     def sensor_stats(self, sensor_id: str) -> SensorStats:
@@ -261,6 +262,7 @@ class Counters:
             st = self.sensor_stats(sensor_id)
             setattr(st, kind, getattr(st, kind) + n)
             self._note(kind, sensor_id, n)
+            self.last_reason[kind] = str(reason)
         self.log_limited(kind, "%s: %s (counted in %s; node keeps running)", self.name, reason, kind)
 
     def _note(self, kind: str, sensor_id: str, n: int = 1) -> None:

@@ -27,7 +27,8 @@ from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.cml import kernels_ready, warm_up_kernels
 from pipeline.dsp.dither import warm_up as warm_up_dither
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
-from pipeline.errors import ParameterError
+from pipeline.errors import CalibrationError, ParameterError
+from pipeline.nodes.front_end import FrontEndCheck
 from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
 from pipeline.dsp.gate import RangeGate
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
@@ -120,6 +121,8 @@ class SourceNode(Node):
 
     def health_extra(self, sensor_id: str) -> dict:
         extra = {"source": self._source_stats.get(sensor_id, {})}
+        if self.quantizer is not None:  # edge quantization: whether its frames are calibrated, as the quantizer's
+            extra["calibrated"] = self.calibration.source if self.calibration is not None else False
         if self.noise is not None:
             extra.update(self.noise.health(sensor_id))
         return extra
@@ -311,23 +314,44 @@ class QuantizeNode(FrameNode):
 
     def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | Transport | None = None,
                  radar: RadarConfig | None = None, max_ramps: int = 16, calibration: Calibration | None = None,
-                 **kw):
+                 calibration_required: bool = False, **kw):
+        """``calibration_required``: a sensor whose first frame the ``calibration`` has no
+        entry for (its id, config id, M) is a wrong set-up: a CalibrationError in
+        :attr:`errors`, which ends a run (``qradar run``); else such frames are counted
+        (``invalid_frames``) and dropped, and the node goes on."""
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
         self.calibration = calibration
+        self.calibration_required = calibration_required and calibration is not None
+        self._checked: set[str] = set()  # sensors whose first frame was checked against the calibration
         self.noise = noise_tracker(config, radar)
 
     def process(self, batch: list[QueuedFrame]) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
+            if self.calibration_required:
+                self._check_calibration(g.headers, g.data.shape[1])
             quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration, self.noise)
 
+    def _check_calibration(self, headers: FrameHeaders, m: int) -> None:
+        """At each sensor's first frame: the calibration has an entry for it, or the node fails."""
+        for i, sid in enumerate(headers.sensor_id):
+            if sid in self._checked:
+                continue
+            self._checked.add(sid)
+            why = self.calibration.mismatch(sid, int(headers.config_id[i]), m)
+            if why is not None and not self.errors:
+                self.errors.append(CalibrationError(why))
+
     def health_extra(self, sensor_id: str) -> dict:
-        """With alpha auto: the sensor's noise estimate and the alpha of its last frame."""
-        return {} if self.noise is None else self.noise.health(sensor_id)
+        """Whether the sensor's frames are calibrated (``calibrated``: the file, or false);
+        with alpha auto: the sensor's noise estimate and the alpha of its last frame."""
+        extra = {"calibrated": self.calibration.source if self.calibration is not None else False}
+        return extra if self.noise is None else {**extra, **self.noise.health(sensor_id)}
 
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)
+        self._checked.discard(sensor_id)
         if self.noise is not None:
             self.noise.forget(sensor_id)
 
@@ -418,6 +442,9 @@ class LocalizeNode(FrameNode):
         self._last: dict[str, tuple[int, np.ndarray]] = {}
         self._warm = config.algo == Algo.CML and config.full_search_every > 1
         self._decoder = config.decoder()  # checked once, not per batch
+        self.front_end = FrontEndCheck()  # a front end's return in the first range bins, per sensor
+        #: the targets of the last frame published: (sensor id, seq, targets as dicts), for a status line
+        self.last_targets: tuple[str, int, list[dict]] | None = None
 
     def start(self) -> "LocalizeNode":
         if self.config.algo == Algo.CML:
@@ -436,8 +463,14 @@ class LocalizeNode(FrameNode):
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)
         self._last.pop(sensor_id, None)
+        self.front_end.forget(sensor_id)
         if self.tracker is not None:
             self.tracker.forget(sensor_id)
+
+    def health_extra(self, sensor_id: str) -> dict:
+        """``front_end``: frames checked for a front end's return in the first range bins and
+        those that showed one (:mod:`pipeline.nodes.front_end`)."""
+        return self.front_end.health(sensor_id)
 
     def _init_ranges(self, sensors: list[str]) -> np.ndarray | None:
         """The warm start's ranges (B, k) of frames from ``sensors`` (NaN: a full search)."""
@@ -509,6 +542,10 @@ class LocalizeNode(FrameNode):
         def failed(i, exc):
             self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)
 
+        try:
+            self.front_end.check(radar, sensors, frames, lambda sid: sid in self.stats)
+        except Exception as exc:  # a check, never a frame's loss
+            self.log_limited("front_end", "%s: front-end check failed (%s: %s)", self.name, type(exc).__name__, exc)
         for idx, det in isolate(compute, np.arange(n), failed):
             idx = np.atleast_1d(np.asarray(idx))
             now = time.time_ns()
@@ -526,6 +563,8 @@ class LocalizeNode(FrameNode):
                 part = part_of(j)  # a non-finite target loses its own frame only
                 self.publish_many(part.sensor_id, "targets", payloads, "application/json")
                 self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
+                last = int(idx[j[-1]])
+                self.last_targets = (sensors[last], int(headers.seq[last]), det.frame(int(j[-1])))
             if self.tracker is not None:
                 publish_tracks(self, self.tracker, part_of(np.arange(idx.size)), det, frames if len(idx) == n
                                else frames.take(idx) if isinstance(frames, QuantizedFrames) else None, radar)

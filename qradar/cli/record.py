@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 
 from pipeline.bus import audit
+from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
@@ -16,7 +17,8 @@ from replay.mcapio import recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
-from .common import StopOnSignals, bus_from_args, bus_options, install_sigterm, intake_budget, intake_options, pos_float
+from .common import (StopOnSignals, bus_from_args, bus_options, force_option, install_sigterm, intake_budget,
+                     intake_options, pos_float)
 
 
 def add_commands(sub) -> None:
@@ -28,6 +30,8 @@ def add_commands(sub) -> None:
     p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     write_error_options(p, "exit with status 2 (a recorder with nothing left to record ends)")
+    force_option(p, "the -o file")
+    p.add_argument("--quiet", action="store_true", help="no status line every few seconds on stderr")
     intake_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_record)
@@ -35,6 +39,7 @@ def add_commands(sub) -> None:
     p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
     p.add_argument("file", type=Path, help="the cut-short MCAP file (read, never changed)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
+    force_option(p, "the -o file")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
@@ -69,13 +74,16 @@ def cmd_record(args) -> int:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
     node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
                         split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
-                        retry_s=args.write_retry, intake=intake_budget(args))
+                        retry_s=args.write_retry, intake=intake_budget(args), overwrite=args.force)
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
     install_sigterm("record")
+    status = StatusLines(node, quiet=args.quiet, announce=False).start()
     try:
         run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
         pass
+    finally:
+        status.stop()
     print(json.dumps({"node": node.name, **node.totals(), **node.summary(), **audit.finish()}), flush=True)
     if node.state is RecordingState.STOPPED:
         raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
@@ -83,7 +91,7 @@ def cmd_record(args) -> int:
 
 
 def cmd_recover(args) -> int:
-    r = recover(args.file, args.output)
+    r = recover(args.file, args.output, overwrite=args.force)
     print(json.dumps({"file": str(args.output), **r}))
     return 0
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from pipeline.errors import ParameterError
@@ -30,11 +31,15 @@ def add_commands(sub) -> None:
 
     q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
                       "viewer")
-    q.add_argument("dir", type=Path, help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each")
+    q.add_argument("dir", type=Path, nargs="?", default=security.DEFAULT_DIR,
+                   help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each (default "
+                   f"{security.DEFAULT_DIR}, outside any checkout; a folder in a git checkout should be one its "
+                   ".gitignore covers, as lab-pki/ is qradar's)")
     q.add_argument("--sensors", type=names, action="extend", default=None, metavar="ID[,ID...]",
                    help="sensor ids, one sensor identity each (default: sim0, the first of `qradar source`)")
     _cert_options(q)
     q.add_argument("--ca-days", type=pos_int, default=security.CA_DAYS, help="validity of the CA in days")
+    q.add_argument("--force", action="store_true", help="replace a CA (and every identity) already in DIR")
     q.set_defaults(func=cmd_init)
 
     q = ss.add_parser("add", help="issue one more identity with the CA of DIR (restart the router to apply)")
@@ -84,8 +89,17 @@ def _cert_options(q) -> None:
 
 
 def cmd_init(args) -> int:
-    policy = security.init(args.dir, args.sensors or ["sim0"], args.host, days=args.days, ca_days=args.ca_days)
-    _show(args, policy.identities, f"made a CA and {len(policy.identities)} identities in {args.dir}")
+    directory = Path(args.dir).expanduser()
+    policy = security.init(directory, args.sensors or ["sim0"], args.host, days=args.days, ca_days=args.ca_days,
+                           force=args.force)
+    _show(args, policy.identities, f"made a CA and {len(policy.identities)} identities in {directory}")
+    key = (directory / CA_KEY).resolve()
+    print(f"the CA's private key is {key}: it signs every identity, so keep it on this machine only (another host "
+          f"gets ca.pem, {POLICY_FILE} and its own NAME.pem, NAME.key)", file=sys.stderr)
+    checkout = security.git_exposure(directory)
+    if checkout is not None:
+        print(f"warning: {directory} is inside the git checkout {checkout} and no .gitignore covers it: the CA's "
+              f"private key could be committed; add {directory.name}/ to .gitignore or move it out", file=sys.stderr)
     return 0
 
 
