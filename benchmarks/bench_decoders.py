@@ -55,7 +55,7 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
     import numpy as np
 
     from pipeline.dsp.decode import DecoderConfig, decode
-    from replay.montecarlo import SceneSpec, draw_scenes
+    from experiments.montecarlo import SceneSpec, draw_scenes
     from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
     from radar_driver.model import RadarConfig, simulate_frames
 

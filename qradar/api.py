@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.dsp.localize import Detections, position_error_m
 from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, Score, score, score_frames
-from replay.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
+from experiments.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from pipeline.dsp.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, judge_seq
 from pipeline.wire import (COMMON, MAGIC, TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized_batch,
@@ -322,7 +322,7 @@ def montecarlo(config: MonteCarloConfig | None = None, progress: bool = False, *
     """The Monte Carlo of the paper (``qradar montecarlo``): a :class:`MonteCarloConfig` or
     its fields as keywords (``ks=(1,), runs=2000, algos=("cml",), off_grid=True``). The
     result's ``summary`` is the dict the command writes as ``summary.json``; write it all with
-    :func:`replay.montecarlo_report.write_outputs`."""
+    :func:`experiments.report.write_outputs`."""
     if config is None:
         config = MonteCarloConfig(**kwargs)
     elif kwargs:

@@ -32,7 +32,7 @@ from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
-from .outputs import check_new_file, check_output_folder
+from .outputs import check_new_file, check_output_folder, pyplot
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
@@ -251,9 +251,7 @@ def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
     """Fig. 5a: mean position error against alpha. One decoder: a curve per target and
     their mean; several: the mean of the targets, one curve per decoder (each target's
     curve dotted, in the decoder's colour), each decoder's best alpha marked."""
-    from replay.plots import _pyplot
-
-    plt = _pyplot()
+    plt = pyplot()
     first = next(iter(results.values()))
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
     if len(results) == 1:
@@ -306,9 +304,7 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
     """Mean estimated position of each target with its 2-sigma ellipse over the frames,
     alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. Lateral
     y (m) across, boresight x (m) up; the radar at (0, 0)."""
-    from replay.plots import _pyplot
-
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
     first = int(np.argmin(result.alphas))
     cases = [(result.best_index, "tab:blue", "-", "o"), (first, "tab:red", "--", "s")]

@@ -1,4 +1,4 @@
-"""The packages import one way: radar_driver <- pipeline <- replay <- qradar, and inside
+"""The packages import one way: radar_driver <- pipeline <- replay <- experiments <- qradar, and inside
 pipeline its jobs: the base (errors, defaults, keys) <- dsp <- wire <- bus <- nodes.
 
 Every import of every module (also the ones inside functions) is read from the source,
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-ORDER = ["radar_driver", "pipeline", "replay", "qradar"]
+ORDER = ["radar_driver", "pipeline", "replay", "experiments", "qradar"]
 
 
 def modules() -> dict[str, Path]:
@@ -65,7 +65,7 @@ def test_every_import_follows_the_package_order():
     rank = {pkg: i for i, pkg in enumerate(ORDER)}
     wrong = [f"{m} imports {d}" for m, deps in graph().items() for d in sorted(deps)
              if rank[d.split(".")[0]] > rank[m.split(".")[0]]]
-    assert not wrong, "imports against radar_driver <- pipeline <- replay <- qradar:\n" + "\n".join(wrong)
+    assert not wrong, "imports against " + " <- ".join(ORDER) + ":\n" + "\n".join(wrong)
 
 
 def test_no_import_cycle():
@@ -102,8 +102,9 @@ def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
 
 @pytest.mark.parametrize("module, absent", [
     ("radar_driver.session", ["pipeline", "replay", "qradar", "zenoh", "mcap"]),
-    ("replay.montecarlo", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
-    ("replay.reprocess", ["qradar", "zenoh"]),
+    ("experiments.montecarlo", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
+    ("experiments.report", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
+    ("replay.reprocess", ["qradar", "zenoh", "experiments"]),
 ])
 def test_offline_modules_do_not_pull_in_the_bus(module, absent):
     code = (f"import sys, {module}; bad = [m for m in {absent!r} if m in sys.modules]; "

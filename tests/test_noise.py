@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from pipeline.errors import ParameterError
-from replay.montecarlo import SceneSpec, draw_scenes
+from experiments.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.noise import (AUTO_ALPHA_BEST, AUTO_ALPHA_RHO, NOISE_SMOOTHING_FRAMES, NoiseTracker, auto_alpha,
                             estimate_noise_sigma)
 from pipeline.dsp.quantize import QuantizerConfig, quantize, quantize_frames, unit_dither
@@ -192,7 +192,7 @@ def test_a_bad_alpha_is_one_line(cmd):
 
 
 def test_the_monte_carlo_auto_alpha_scheme():
-    from replay.montecarlo import MonteCarloConfig, Scheme, measure
+    from experiments.montecarlo import MonteCarloConfig, Scheme, measure
 
     cfg = RadarConfig()
     s = Scheme.parse("dither_aauto_m512", cfg)

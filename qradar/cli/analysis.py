@@ -12,10 +12,10 @@ from pipeline.dsp.decode import ALGOS, DEFAULT_ALGO, Algo
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.integrate import time_monte_carlo
 from pipeline.dsp.localize import DEFAULT_PFA
-from replay.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
+from experiments.montecarlo import (DECODER_NOISE, DEFAULT_SCHEMES, RANGE_PLACEMENTS, CountSpec, MonteCarloConfig, SceneSpec,
                                  run_montecarlo)
-from replay.montecarlo_report import prepare_out_dir, write_outputs
-from replay.plots import error_vs_frames_figure
+from experiments.report import prepare_out_dir, write_outputs
+from experiments.plots import error_vs_frames_figure
 from radar_driver.model import RadarConfig
 from replay.reprocess import ReprocessConfig, parse_alphas
 from replay.reprocess import run as run_reprocess
