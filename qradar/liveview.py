@@ -46,6 +46,7 @@ from pipeline.wire import (
 )
 from radar_driver.errors import RadarError
 from radar_driver.model import RadarConfig
+from radar_driver.options import OptionValueError, option, pos_int
 
 #: profile values below this magnitude (full-scale units) are shown as it: -240 dB
 PROFILE_FLOOR = 1e-12
@@ -59,6 +60,17 @@ class ViewError(PipelineError):
     """A view's server could not start (a busy port, an unknown host)."""
 
 
+def tcp_port(text: str) -> int:
+    """A TCP port to listen on: 0 (any free one) to 65535."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise OptionValueError("is not an integer") from None
+    if not 0 <= v <= 65535:
+        raise OptionValueError("must be a TCP port in [0, 65535] (0: any free port)")
+    return v
+
+
 @dataclass(frozen=True)
 class ViewConfig:
     """host: the address the view's server binds (127.0.0.1: this host only). port: its
@@ -67,12 +79,13 @@ class ViewConfig:
     configuration of the range profiles; frames of 1..max_ramps whole ramps are shown.
     queue_size: bounded input queue (messages). max_sensors: sensors shown at most."""
 
-    host: str = "127.0.0.1"
-    port: int = 8765
+    host: str = option("127.0.0.1", "address the server binds (default 127.0.0.1: this host only; 0.0.0.0: every "
+                       "interface)")
+    port: int = option(8765, "Foxglove's TCP port (default 8765; 0: any free port)", parse=tcp_port)
     profile_rate_hz: float = 2.0
     radar: RadarConfig = field(default_factory=RadarConfig)
     max_ramps: int = 16
-    queue_size: int = 256
+    queue_size: int = option(256, "bounded input queue (messages)", flag="--queue", parse=pos_int)
     max_sensors: int = 64
     name: str = "qradar"
     #: sensor id -> (x_m, y_m, yaw_deg) of the sensor in the world (:func:`load_poses`)

@@ -33,11 +33,12 @@ from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
-from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
+from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.outputs import check_new_file
+from radar_driver.options import option, pos_float, pos_int
 from replay.recorder import OnWriteError, RecorderNode
 
 from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
@@ -61,34 +62,64 @@ class RunConfig:
     name) whose targets are the reflectors' true positions, for the position errors;
     None: the simulated scene, or no error with real sensors."""
 
-    scene: str | None = None
-    empty: bool = False  # the simulated scene without its targets (front end and noise only)
-    sensors: int | None = None
-    duration_s: float | None = 15.0
-    rate_hz: float | None = None
+    scene: str | None = option(None, "the simulated sensors' scene: file or packaged name (default chamber)")
+    empty: bool = option(False, "the scene without its targets: the empty chamber, front end (DC, leakage) and "
+                         "noise only (simulated sensors; for `qradar calibrate --empty`)")
+    sensors: int | None = option(None, "simulated sensors at once (default 1)", parse=pos_int)
+    duration_s: float | None = option(
+        15.0, "seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with "
+        "\"interrupted\": true) and status 0; a second one while it stops exits at once with 130", flag="--duration",
+        parse=pos_float)
+    rate_hz: float | None = option(None, "frames per second per simulated sensor (default 20)", flag="--rate",
+                                   parse=pos_float)
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
     k: int | None = None  # None = the scene's (or --truth's) count, else REAL_SENSOR_K; with auto_k the most a frame has
     algo: Algo = DEFAULT_ALGO
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000  # the simulated sensors' line speed after INIT (a real one's: its spec's baud)
     record: Path | None = None  # MCAP path, or None for no recording
-    frames: int | None = None  # stop after this many frames per sensor
+    frames: int | None = option(None, "stop after N frames per sensor", parse=pos_int)
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
     web: WebConfig | None = None  # serve the live stream as a web page (qradar.web) on its host and port
-    driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
-    record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
-    record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
-    record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
+    # each sensor's driver in its own process (False: a thread of this one)
+    driver_process: bool = option(True, "run the serial drivers as threads of this process (default: a process "
+                                  "each)", flag="--driver-in-process", negate=True)
+    record_on_error: OnWriteError = option(
+        OnWriteError.RESUME, "after a write error (a full disk, EFBIG, EIO, a removed folder) the file is closed up to "
+        "its last flushed chunk; resume: keep running, count the messages that cannot be written (by topic) and go on "
+        "in a new file (NAME_0001.mcap, ...) when space returns; stop: end the recording and go on without it (the "
+        "pipeline keeps running; the summary says so). A file that cannot be created at the start is an error either "
+        "way", flag="--on-write-error", choices=tuple(m.value for m in OnWriteError))
+    record_retry_s: float = option(5.0, "while paused after a write error, look for space every S seconds",
+                                   flag="--write-retry", metavar="S", parse=pos_float)
+    record_split_mb: float | None = option(
+        None, "record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps each chunk's "
+        "index in memory until its file ends: at most 0.7 KB a chunk (one a second, or each MB) plus 70 B for each "
+        "channel in it", flag="--split-size", metavar="MB", parse=pos_float)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
     record_overwrite: bool = False  # --force: an existing file at record (a name given) is replaced
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
     # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer. None: 2 with
     # simulated sensors, 1 (drive's default: no assumption) with real ones
-    outstanding: int | None = None
-    sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
-    truth: str | Path | None = None  # scene file of the true positions
+    outstanding: int | None = option(
+        None, "GNFD requests each driver keeps in flight: 2 lets the sensor hold one while its driver is late on a "
+        "busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to). Default 2 with simulated "
+        "sensors, 1 with --sensor", choices=(1, 2), parse=int)
+    sensor_specs: tuple[SensorSpec | str, ...] = option(
+        (), "a real sensor instead of the simulated ones (repeatable, one each): a pyserial URL (a device path, "
+        "socket://HOST:PORT, rfc2217://HOST:PORT) or auto (the one K-MD2 that answers on this host's serial adapters, "
+        "probed with INIT and GBYE as `qradar ports --probe` does), then its id (required) and the driver's options: "
+        "profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays at 115200), ramps=R "
+        "(default 2), chirp-select=first|stride; e.g. /dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, "
+        "--sensors, --rate", flag="--sensor", metavar="URL,id=NAME[,KEY=VALUE]", many="append",
+        parse=SensorSpec.parse, table=SensorSpec)
+    truth: str | Path | None = option(
+        None, "a scene file whose targets are the reflectors' true (measured) positions, in the world (with sensors' "
+        "poses: each sees them from where it stands): the live lines and the summary give the position errors "
+        "against them (only the targets' ranges and angles count). Default: the simulated scene; with --sensor, no "
+        "error", metavar="SCENE.toml", kinds=frozenset({"str"}))
     calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
     # the localizer's range gate, m (None: the radar's default, pipeline.dsp.gate.RangeGate.default)
     min_range_m: float | None = None
@@ -118,7 +149,7 @@ class RunConfig:
                                      "chamber itself and record it")
             check_sensor_specs(specs)
         else:
-            for name, default in (("scene", "chamber"), ("sensors", 1), ("rate_hz", 20.0)):
+            for name, default in (("scene", DEFAULT_SCENE), ("sensors", 1), ("rate_hz", SIM_RATE_HZ)):
                 if getattr(self, name) is None:
                     object.__setattr__(self, name, default)
         if self.outstanding is None:

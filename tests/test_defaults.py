@@ -15,7 +15,7 @@ from pipeline.dsp.gate import RangeGate
 from pipeline.nodes.stream import LocalizerConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from qradar.cli import build_parser
-from qradar.cli.common import edge_quantizer, quantizer_config
+from qradar.cli.parts import edge_quantizer, quantizer_of as quantizer_config
 from qradar.cli.stream import run_alpha
 from qradar.run import RunConfig
 from replay import reprocess
