@@ -45,8 +45,9 @@ from pipeline.wire import (
     decode_tracks,
 )
 from radar_driver.errors import RadarError
-from radar_driver.model import RadarConfig
+from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.options import OptionValueError, option, pos_int
+from radar_driver.scene import SimScene
 
 #: profile values below this magnitude (full-scale units) are shown as it: -240 dB
 PROFILE_FLOOR = 1e-12
@@ -197,6 +198,29 @@ def to_world(x_m: np.ndarray, y_m: np.ndarray, pose: tuple[float, float, float] 
     px, py, yaw = pose
     c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
     return px + c * np.asarray(x_m) - s * np.asarray(y_m), py + s * np.asarray(x_m) + c * np.asarray(y_m)
+
+
+def seen_from(truth: SimScene, pose: tuple[float, float, float] | None, sensor_id: str = "") -> SimScene:
+    """The true positions of ``truth`` (ranges and angles in the world's frame: as seen
+    from its origin along its x) as a sensor standing at ``pose`` sees them: the inverse of
+    :func:`to_world`. A moving target, or one behind the sensor, is a ParameterError."""
+    if pose is None or tuple(pose) == (0.0, 0.0, 0.0):
+        return truth
+    px, py, yaw = pose
+    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    targets = []
+    for i, t in enumerate(truth.targets):
+        if t.velocity_m_s:
+            raise ParameterError(f"sensor {sensor_id}: the truth's target {i + 1} moves; a truth seen from a sensor's "
+                                 "pose holds static targets only")
+        x, y = polar_to_xy(t.range_m, math.radians(t.angle_deg))
+        dx, dy = x - px, y - py
+        xs, ys = c * dx + s * dy, -s * dx + c * dy
+        if xs <= 0:
+            raise ParameterError(f"sensor {sensor_id}: the truth's target {i + 1} ({t.range_m:g} m, "
+                                 f"{t.angle_deg:+g} deg) is behind it, seen from its pose {list(pose)}")
+        targets.append(replace(t, range_m=float(math.hypot(xs, ys)), angle_deg=math.degrees(math.atan2(ys, xs))))
+    return replace(truth, targets=tuple(targets))
 
 
 # -- the node ------------------------------------------------------------------------------

@@ -270,7 +270,8 @@ def read_value(opt: Option, hint: Any, value: Any) -> Any:
     kinds = opt.kinds or file_kinds(hint) or frozenset({"str"})
     kind = _kind(value)
     if kind not in kinds:
-        wanted = " or ".join(sorted({_KIND_NAMES[k] for k in kinds if k in _KIND_NAMES}))
+        wanted = " or ".join(sorted({_KIND_NAMES[k] for k in kinds if k in _KIND_NAMES
+                                     and not (k == "int" and "float" in kinds)}))
         raise OptionValueError(f"must be {wanted}, not {_KIND_NAMES.get(kind, kind)}")
     return read_text(opt, hint, value if isinstance(value, str) else repr(value) if kind == "float" else str(value))
 

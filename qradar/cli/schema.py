@@ -320,6 +320,8 @@ class Schema:
                     raise LabError(f"{at}: [[{e.key}]] {i + 1}: {exc}") from None
             out[e.dest] = items
             return
+        if e is None and len(path) == 1 and isinstance(value, dict):
+            raise LabError(f"{where(path)}: unknown table [{path[0]}]; tables: {', '.join(self.tables)}")
         if e is None:
             table = path[0] if len(path) > 1 else None
             known = [x.key for x in self.entries if x.table == table]
@@ -341,7 +343,7 @@ class Schema:
             if e.dest not in values:
                 continue
             value = values[e.dest]
-            if value is None or (skip_defaults and value == e.default):
+            if value is None or (skip_defaults and value == e.default) or (value == [] and not e.default):
                 continue
             (out.setdefault(e.table, {}) if e.table else out)[e.key] = e.show(value)
         return out

@@ -25,7 +25,7 @@ from replay.outputs import check_new_file
 
 from .common import bus_from_args, install_sigterm, load_calibration, watch_parent
 from .parts import edge_parts, edge_quantizer, force_help, node_part, switches, zenoh_parts
-from .schema import Part, add_command
+from .schema import Part, Schema, add_command
 
 
 #: at most this long, ``drive --linger-stdin`` keeps its zenoh session open after the counters, s
@@ -75,26 +75,41 @@ class Drive:
                                 "lost)")
 
 
+SIM_PARTS = [Part(Sim, only=("scene", "empty", "link", "tcp", "rate", "seed")), Part(SimFaults, "faults"),
+             Part(Sim, only=("line_rate", "hold_clock_when_late", "profile"))]
+DRIVE_PARTS = [
+    Part(SessionConfig, only=("url",)), Part(Drive, only=("frames",)),
+    Part(SessionConfig, only=("baud", "ramps_per_frame", "timeout_s", "profile", "outstanding", "chirp_select")),
+    Part(Drive, only=("out",)), switches(force=force_help("the --out file"), json="end with one JSON object on "
+                                        "stdout: the counters, or the error and exit code"),
+    node_part("quiet", quiet="no line per frame"), Part(SessionConfig, only=("sensor_id",)),
+    Part(Drive, only=("no_publish",)), *edge_parts("--quantize"), Part(Drive, only=("linger_stdin",)),
+    node_part("parent_pid", parent_pid="stop (GBYE, counters) within a second once process PID is no longer this "
+              "one's parent, however it died (qradar run sets it for its drivers)"), *zenoh_parts()]
+
+
 def add_commands(sub) -> None:
-    p = add_command(sub, "sim", [
-        Part(Sim, only=("scene", "empty", "link", "tcp", "rate", "seed")), Part(SimFaults, "faults"),
-        Part(Sim, only=("line_rate", "hold_clock_when_late", "profile"))], cmd_sim,
-        help="serve a simulated K-MD2 on a pty and/or TCP until interrupted",
-        description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from the paper's model of a TOML "
-        "scene through its front end, with noise, 12-bit ADC and optional faults.")
+    p = add_command(sub, "sim", SIM_PARTS, cmd_sim, help="serve a simulated K-MD2 on a pty and/or TCP until "
+                    "interrupted", description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
+                    "the paper's model of a TOML scene through its front end, with noise, 12-bit ADC and optional "
+                    "faults.")
     p.set_defaults(parser=p)
-    add_command(sub, "drive", [
-        Part(SessionConfig, only=("url",)), Part(Drive, only=("frames",)),
-        Part(SessionConfig, only=("baud", "ramps_per_frame", "timeout_s", "profile", "outstanding", "chirp_select")),
-        Part(Drive, only=("out",)), switches(force=force_help("the --out file"), json="end with one JSON object on "
-                                            "stdout: the counters, or the error and exit code"),
-        node_part("quiet", quiet="no line per frame"), Part(SessionConfig, only=("sensor_id",)),
-        Part(Drive, only=("no_publish",)), *edge_parts("--quantize"), Part(Drive, only=("linger_stdin",)),
-        node_part("parent_pid", parent_pid="stop (GBYE, counters) within a second once process PID is no longer this "
-                  "one's parent, however it died (qradar run sets it for its drivers)"), *zenoh_parts()],
-        cmd_drive, config_json=True, help="read frames from a K-MD2 (real or simulated)",
-        description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, socket://host:port, "
-        "rfc2217://host:port), 8E1, reconnecting on errors.")
+    add_command(sub, "drive", DRIVE_PARTS, cmd_drive, config_json=True,
+                help="read frames from a K-MD2 (real or simulated)",
+                description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, socket://host:port, "
+                "rfc2217://host:port), 8E1, reconnecting on errors.")
+
+
+def drive_config(spec, bus, frames: int | None = None, outstanding: int = 1, parent_pid: int | None = None,
+                 linger: bool = False) -> dict:
+    """``qradar drive``'s options for a sensor's driver (``spec``: a
+    :class:`~qradar.sensors.SensorSpec`) publishing on ``bus``, as a lab file's mapping:
+    what a run hands its driver process (``--config-json``), with ``--json --quiet``."""
+    values = {"url": spec.url, "sensor_id": spec.sensor_id, "baud": spec.baud, "ramps_per_frame": spec.ramps,
+              "profile": spec.profile, "chirp_select": spec.chirp_select, "outstanding": outstanding,
+              "frames": frames, "json": True, "quiet": True, "parent_pid": parent_pid, "linger_stdin": linger,
+              "mode": bus.mode, "connect": list(bus.connect), "prefix": bus.prefix, "config_file": bus.config_file}
+    return Schema("drive", DRIVE_PARTS).mapping(values)
 
 
 def cmd_sim(args) -> int:
