@@ -55,11 +55,13 @@ class NodeProcess:
     ``received()``: what the parent has received of it; with it the child keeps its zenoh
     session open after its summary until the parent has received everything the summary
     counts (``frames``, at most ``ack_timeout_s``), and only then is its stdin closed:
-    zenoh can lose a put made just before its session closes."""
+    zenoh can lose a put made just before its session closes. ``on_start(node)``: told
+    once it has started (its pid)."""
 
     def __init__(self, command: str, config: dict, name: str, log: TextIO | None = sys.stderr,
-                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0):
-        self.command, self.config, self.name = command, config, name
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0,
+                 on_start: Callable[["NodeProcess"], None] | None = None):
+        self.command, self.config, self.name, self.on_start = command, config, name, on_start
         self.cmd = [sys.executable, "-m", "qradar", command, "--config-json", json.dumps(config)]
         self.received, self.ack_timeout_s = received, ack_timeout_s
         self.log = log
@@ -70,6 +72,7 @@ class NodeProcess:
         self._stopping = False
         self._out: list[str] = []
         self._final: dict = {}  # the JSON object the child ends with (its summary, or its error)
+        self._error_line = ""  # the one line of its error, on its stderr
         self._exited = threading.Event()
         self._threads: list[threading.Thread] = []
 
@@ -93,6 +96,8 @@ class NodeProcess:
             t = threading.Thread(target=target, name=f"{self.name}-{target.__name__}", daemon=True)
             t.start()
             self._threads.append(t)
+        if self.on_start is not None:
+            self.on_start(self)
         return self
 
     def _read_stdout(self) -> None:
@@ -106,8 +111,12 @@ class NodeProcess:
                     self.done.set()
 
     def _read_stderr(self) -> None:
+        prefix = f"qradar {self.command}: error: "
         for line in self._proc.stderr:
-            if self.log is not None and not line.startswith(f"qradar {self.command}: error:"):  # said by its parent
+            if line.startswith(prefix):  # said by its parent, in the error of its exit
+                self._error_line = line[len(prefix):].strip()
+                continue
+            if self.log is not None:
                 try:
                     self.log.write(f"[{self.name}] {line}")
                     self.log.flush()
@@ -123,7 +132,8 @@ class NodeProcess:
             kind = SetupError if last.get("setup") else RadarError
             self.errors.append(kind(f"{self.what} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
-            self.errors.append(RadarError(f"{self.what} exited with status {rc}"))
+            why = f": {self._error_line}" if self._error_line else ""
+            self.errors.append(RadarError(f"{self.what} exited with status {rc}{why}"))
         else:
             self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
         self._exited.set()
@@ -219,14 +229,14 @@ class SupervisedDriver:
     (``state`` "restarting" or "gone") and restart ("running"): the run reports them
     (health, live line). What the run may read: ``restarts``, ``exits`` (why each died),
     ``state``, ``gone`` (given up after ``max_restarts`` quick deaths in a row: ``done``
-    is then set too)."""
+    is then set too). ``what``: the supervised node in the messages ("its driver")."""
 
     name = "driver"
 
     def __init__(self, sensor_id: str, make: Callable[[int], object], frames_done: Callable[[], int] = lambda: 0,
                  on_event: Callable[[str, str, str], None] | None = None, backoff_s: float = RESTART_BACKOFF_S,
-                 max_restarts: int = MAX_RESTARTS, healthy_s: float = HEALTHY_S):
-        self.sensor_id = sensor_id
+                 max_restarts: int = MAX_RESTARTS, healthy_s: float = HEALTHY_S, what: str = "its driver"):
+        self.sensor_id, self.what = sensor_id, what
         self.make, self.frames_done, self.on_event = make, frames_done, on_event
         self.backoff_s, self.max_restarts, self.healthy_s = backoff_s, max_restarts, healthy_s
         self.errors: list[BaseException] = []  # stays empty: a dead driver is restarted, not raised
@@ -298,7 +308,7 @@ class SupervisedDriver:
                 continue
             started = time.monotonic()
             self.state = "running"
-            self._tell("running", f"its driver started again (restart {self.restarts})")
+            self._tell("running", f"{self.what} started again (restart {self.restarts})")
 
     def _tell(self, state: str, detail: str) -> None:
         if self.on_event is not None:

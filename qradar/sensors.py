@@ -64,6 +64,8 @@ class SensorSpec:
     pose: tuple[float, ...] | None = option(
         None, "where the sensor stands in the world: [x_m, y_m, yaw_deg] (yaw counter-clockwise; boresight along "
         "the world's x at 0); default: at the origin", cli=False, many=3, parse=finite_float, metavar="X_M Y_M YAW")
+    host: str | None = option(None, "qradar up: the host whose `up --host` starts this sensor's driver (default: "
+                              "[hosts] default)", cli=False)
     text: str = field(default="", compare=False)  # the spec as given, for messages
 
     def __post_init__(self) -> None:

@@ -33,7 +33,7 @@ from pipeline.errors import PipelineError
 from radar_driver.errors import RadarError, SetupError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, calibrate, lab, ports, record, security, sensor, stream, view
+from . import analysis, bringup, calibrate, lab, ports, record, security, sensor, stream, up, view
 from .. import __version__
 from .common import DefaultsFormatter
 
@@ -60,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     analysis.add_montecarlo_time(sub)
     sensor.add_commands(sub)
     stream.add_commands(sub)
+    up.add_commands(sub)
     record.add_commands(sub)
     analysis.add_reprocess(sub)
     view.add_commands(sub)

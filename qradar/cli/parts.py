@@ -295,3 +295,27 @@ def edge_quantizer(args) -> tuple[QuantizerConfig | None, int | None]:
 def quantizer_of(args, alpha: float | str | None = None) -> QuantizerConfig:
     return QuantizerConfig(bits=args.bits, alpha=args.alpha if alpha is None else alpha, delta=args.delta,
                            delta_margin=args.delta_margin, dither_seed=args.dither_seed)
+
+
+# -- qradar up: which host runs which node ----------------------------------------------------------
+#: the name of the host of every node a lab file's [hosts] table does not place
+LOCALHOST = "localhost"
+
+
+@dataclass(frozen=True)
+class Hosts:
+    """``[hosts]`` of a lab file: the host whose ``qradar up --host NAME`` starts each node
+    (a sensor's driver: its ``[[sensor]]`` table's ``host``); ``qradar run`` runs them all
+    in one process and reads none of it."""
+
+    default: str = option(LOCALHOST, "qradar up: the host of every node not placed otherwise", cli=False)
+    router: str | None = option(None, "qradar up: the host of the zenoh router every node joins", cli=False)
+    sources: str | None = option(None, "qradar up: the host of the simulated sensors (qradar source), without "
+                                 "[[sensor]]", cli=False)
+    quantize: str | None = option(None, "qradar up: the host of the quantizer", cli=False)
+    localize: str | None = option(None, "qradar up: the host of the localizer", cli=False)
+    record: str | None = option(None, "qradar up: the host of the recorder", cli=False)
+    view: str | None = option(None, "qradar up: the host of the views ([views] foxglove, web)", cli=False)
+
+
+HOSTS = Part(Hosts, "hosts", dests={f: f"host_{f}" for f in Hosts.__dataclass_fields__})

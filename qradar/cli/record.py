@@ -61,13 +61,15 @@ def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
         "help": help.replace("go on without it (the pipeline keeps running; the summary says so)", on_stop)}})
 
 
+RECORD_PARTS = [
+    Part(Record, only=("output", "topics", "split_size_mb", "split_duration_s", "scene")),
+    node_part("duration_s"), write_error_part("exit with status 2 (a recorder with nothing left to record ends)"),
+    switches(force=force_help("the -o file")),
+    node_part("quiet", "parent_pid", quiet="no status line every few seconds on stderr"), INTAKE, *zenoh_parts()]
+
+
 def add_commands(sub) -> None:
-    add_command(sub, "record", [
-        Part(Record, only=("output", "topics", "split_size_mb", "split_duration_s", "scene")),
-        node_part("duration_s"), write_error_part("exit with status 2 (a recorder with nothing left to record ends)"),
-        switches(force=force_help("the -o file")),
-        node_part("quiet", "parent_pid", quiet="no status line every few seconds on stderr"), INTAKE, *zenoh_parts()],
-        cmd_record, config_json=True, help="record radar/** from zenoh into MCAP")
+    add_command(sub, "record", RECORD_PARTS, cmd_record, config_json=True, help="record radar/** from zenoh into MCAP")
     add_command(sub, "recover", [Part(Recover), switches(force=force_help("the -o file"))], cmd_recover,
                 help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
     add_command(sub, "replay", [Part(Recording), Part(PlayConfig, exclusive=(("rate", "fast"),), dests={"prefix": "replay_prefix"}), *zenoh_parts()],

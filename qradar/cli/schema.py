@@ -264,8 +264,11 @@ class Schema:
             for names in part.exclusive:
                 g = target.add_mutually_exclusive_group()
                 exclusive.update({n: g for n in names})
-            for e in (e for e in self.entries if e.part is part and e.option.cli):
-                _add(exclusive.get(e.name, target), e)
+            for e in (e for e in self.entries if e.part is part):
+                if e.option.cli:
+                    _add(exclusive.get(e.name, target), e)
+                else:  # a key of lab files only: its default is the parsed value's unless a file gives it
+                    parser.set_defaults(**{e.dest: e.default})
 
     def check_required(self, args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
         """argparse's message for a required option left out of the command line and the file."""

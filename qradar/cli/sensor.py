@@ -100,16 +100,20 @@ def add_commands(sub) -> None:
                 "rfc2217://host:port), 8E1, reconnecting on errors.")
 
 
-def drive_config(spec, bus, frames: int | None = None, outstanding: int = 1, parent_pid: int | None = None,
+def drive_values(spec, bus, frames: int | None = None, outstanding: int = 1, parent_pid: int | None = None,
                  linger: bool = False) -> dict:
-    """``qradar drive``'s options for a sensor's driver (``spec``: a
-    :class:`~qradar.sensors.SensorSpec`) publishing on ``bus``, as a lab file's mapping:
-    what a run hands its driver process (``--config-json``), with ``--json --quiet``."""
-    values = {"url": spec.url, "sensor_id": spec.sensor_id, "baud": spec.baud, "ramps_per_frame": spec.ramps,
-              "profile": spec.profile, "chirp_select": spec.chirp_select, "outstanding": outstanding,
-              "frames": frames, "json": True, "quiet": True, "parent_pid": parent_pid, "linger_stdin": linger,
-              "mode": bus.mode, "connect": list(bus.connect), "prefix": bus.prefix, "config_file": bus.config_file}
-    return Schema("drive", DRIVE_PARTS).mapping(values)
+    """``qradar drive``'s options (by dest) for a sensor's driver (``spec``: a
+    :class:`~qradar.sensors.SensorSpec`) publishing on ``bus``, with ``--json --quiet``."""
+    return {"url": spec.url, "sensor_id": spec.sensor_id, "baud": spec.baud, "ramps_per_frame": spec.ramps,
+            "profile": spec.profile, "chirp_select": spec.chirp_select, "outstanding": outstanding,
+            "frames": frames, "json": True, "quiet": True, "parent_pid": parent_pid, "linger_stdin": linger,
+            "mode": bus.mode, "connect": list(bus.connect), "prefix": bus.prefix, "config_file": bus.config_file}
+
+
+def drive_config(spec, bus, **kw) -> dict:
+    """:func:`drive_values` as a lab file's mapping: what a run hands its driver process
+    (``--config-json``)."""
+    return Schema("drive", DRIVE_PARTS).mapping(drive_values(spec, bus, **kw))
 
 
 def cmd_sim(args) -> int:

@@ -29,7 +29,7 @@ from ..run import RunConfig, print_json, remove_run_dirs, run
 from ..view import ViewConfig, parse_endpoint
 from . import lab
 from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, load_calibration, watch_parent
-from .parts import (CALIBRATION, GATE, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts,
+from .parts import (CALIBRATION, GATE, HOSTS, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts,
                     edge_quantizer, force_help, node_part, quantizer_of, quantizer_part, switches, tracker_of,
                     zenoh_parts)
 from .schema import Part, add_command, values_of
@@ -83,27 +83,29 @@ RUN_PARTS = [
     switches(json="print exactly one JSON summary object on stdout"),
     Part(Recording, "recording", only=("record", "folder", "no_record", "force")),
     Part(RunConfig, "recording", only=("record_split_mb", "record_on_error", "record_retry_s")),
-    Part(Views, "views"), *zenoh_parts(),
+    Part(Views, "views"), *zenoh_parts(), HOSTS,
 ]
 
 
+QUANTIZE_PARTS = [quantizer_part(), CALIBRATION, QUEUE, INTAKE, SERVE, node_part(), *zenoh_parts()]
+LOCALIZE_PARTS = [
+    *decoder_parts(algo_help="cml: continuous ranges (the most accurate off the range grid); pbp: the paper's; "
+                   "qiht: dither-aware on the range grid (needs dithered frames)",
+                   extra=("fallback_pbp", "source", "full_search_every")),
+    GATE, *TRACKS, QUEUE, INTAKE, SERVE, node_part(), *zenoh_parts()]
+SOURCE_PARTS = [Part(Source, only=("scene",)), Part(SimSourceConfig, "source"), Part(Source, only=("rate",)),
+                *edge_parts("--quantized"), Part(Source, only=("recording",)), node_part(), *zenoh_parts()]
+ROUTER_PARTS = [node_part("duration_s", "parent_pid"), *zenoh_parts(modes=("router",))]
+
+
 def add_commands(sub) -> None:
-    add_command(sub, "quantize", [quantizer_part(), CALIBRATION, QUEUE, INTAKE, SERVE, node_part(), *zenoh_parts()],
-                cmd_quantize, config_json=True, help=NODE_HELP["quantize"])
-    add_command(sub, "localize", [
-        *decoder_parts(algo_help="cml: continuous ranges (the most accurate off the range grid); pbp: the paper's; "
-                       "qiht: dither-aware on the range grid (needs dithered frames)",
-                       extra=("fallback_pbp", "source", "full_search_every")),
-        GATE, *TRACKS, QUEUE, INTAKE, SERVE, node_part(), *zenoh_parts()], cmd_localize, config_json=True,
-        help=NODE_HELP["localize"])
-    add_command(sub, "source", [
-        Part(Source, only=("scene",)), Part(SimSourceConfig, "source"), Part(Source, only=("rate",)),
-        *edge_parts("--quantized"), Part(Source, only=("recording",)), node_part(), *zenoh_parts()],
-        cmd_source, config_json=True, help=NODE_HELP["source"],
-        description="Simulated sensors that publish raw frames of a scene directly, bypassing the serial protocol: "
-        "for benchmarks and many-sensor set-ups. With --recording, the raw frames of an MCAP file instead.")
-    add_command(sub, "router", [node_part("duration_s", "parent_pid"), *zenoh_parts(modes=("router",))], cmd_router,
-                config_json=True, help="a zenoh router for multi-host set-ups",
+    add_command(sub, "quantize", QUANTIZE_PARTS, cmd_quantize, config_json=True, help=NODE_HELP["quantize"])
+    add_command(sub, "localize", LOCALIZE_PARTS, cmd_localize, config_json=True, help=NODE_HELP["localize"])
+    add_command(sub, "source", SOURCE_PARTS, cmd_source, config_json=True, help=NODE_HELP["source"],
+                description="Simulated sensors that publish raw frames of a scene directly, bypassing the serial "
+                "protocol: for benchmarks and many-sensor set-ups. With --recording, the raw frames of an MCAP file "
+                "instead.")
+    add_command(sub, "router", ROUTER_PARTS, cmd_router, config_json=True, help="a zenoh router for multi-host set-ups",
                 description="A zenoh router the nodes join as clients (--mode client --connect ...). It listens on "
                 f"--listen, else on the --zenoh-config file's listen/endpoints, else on {ROUTER_LISTEN} "
                 f"({ROUTER_LISTEN_SECURE} with --secure).")

@@ -63,11 +63,14 @@ class ViewOptions:
 VIEWS = Part(Views, "views", only=("web", "web_token_file"))
 
 
+VIEW_PARTS = [Part(ViewConfig, "view", only=("host", "port")), VIEWS, Part(ViewOptions, "view"),
+              Part(ViewConfig, "view", only=("queue_size",)), Part(Views, "views", only=("sensor_poses",)),
+              node_part("duration_s", "parent_pid"), INTAKE, *zenoh_parts()]
+
+
 def add_commands(sub) -> None:
-    add_command(sub, "view", [
-        Part(ViewConfig, "view", only=("host", "port")), VIEWS, Part(ViewOptions, "view"),
-        Part(ViewConfig, "view", only=("queue_size",)), Part(Views, "views", only=("sensor_poses",)),
-        node_part("duration_s", "parent_pid"), INTAKE, *zenoh_parts()], cmd_view, config_json=True,
+    add_command(
+        sub, "view", VIEW_PARTS, cmd_view, config_json=True,
         help="the live stream in Foxglove (WebSocket) or, with --web, in a web page: targets, range profiles, health",
         description="Subscribes <prefix>/*/{targets,tracks,quantized,health} and serves them over the Foxglove "
         "WebSocket protocol: targets as foxglove.PointCloud in the frame radar_<sensor>, range profiles and health as "
