@@ -209,7 +209,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, radar=radar,
                                          metadata=run_metadata(cfg, scene, truth, radar, k, calibration,
                                                                localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
@@ -414,6 +414,9 @@ def format_summary(s: dict) -> str:
         lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
                      f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
                      + (f" {rec['lost_by_topic']}" if rec["lost"] else "")
+                     + "".join(f", {k.replace('_', ' ')} {rec[k]}" for k in ("refused_time", "refused_size",
+                                                                            "refused_shape", "refused_topic",
+                                                                            "verify_errors") if rec.get(k))
                      + (f"; last write error: {rec['error']}" if rec["error"] else ""))
     counts = s.get("audit")
     if counts is not None:

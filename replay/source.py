@@ -8,7 +8,9 @@ Frames come in file order, as fast as they are read, or at their recorded pace s
 by ``rate``. A frame that does not decode is counted (``bad_frames``), logged and
 skipped; a gap in a sensor's sequence numbers is counted in ``dropped``. The wire
 format carries no ramp counters, so the frames' ``counters`` are empty. A file cut short
-yields the frames of its complete chunks and sets ``truncated``.
+yields the frames of its complete chunks and sets ``truncated``. Every chunk's CRC is
+checked (:class:`replay.mcapio.McapFile`): a damaged chunk's frames are never yielded;
+it is logged, and its messages are counted in ``lost`` (``damaged``: the chunks).
 """
 
 from __future__ import annotations
@@ -85,6 +87,8 @@ class RecordingSource(StoppableSource):
         self.rate = rate
         self.file = McapFile(self.path)
         self.truncated = False
+        self.lost = 0  # messages of damaged chunks (never yielded), once the file was read
+        self.damaged: list[str] = []  # one line per damaged chunk or problem
         self._stats: dict[str, _RecordedSensorStats] = {}
 
     def __enter__(self) -> "RecordingSource":
@@ -131,3 +135,6 @@ class RecordingSource(StoppableSource):
         if self.truncated:
             log.warning("%s is cut short (%s); read up to its last complete chunk", self.path,
                         self.file.truncation_reason)
+        if self.file.complete:
+            self.lost, self.damaged = self.file.lost, self.file.damage_lines()
+            self.file.warn(log, "its frames are not read")
