@@ -78,6 +78,9 @@ LISTED_SENDERS = 16
 #: channels of sensors no longer live that a file may hold before the next file starts
 #: (mcap's Writer keeps ~0.5 KB of each channel until its file ends)
 DEAD_CHANNELS_MAX = 4096
+#: the health messages of one slice of sensors share one summary of the recorder (it sums
+#: every sensor's counters), at most this old, s
+HEALTH_SUMMARY_S = 0.05
 #: a new file starts before this many channels (MCAP's channel ids are uint16); a batch
 #: adds at most two channels a message (a targets message and its pointcloud)
 FILE_CHANNELS_MAX = MAX_FILE_CHANNELS - 2 * 512
@@ -197,6 +200,9 @@ class RecordingFiles(ProcessingNode):
     def _final_counters(self) -> dict[str, str]:
         """More counters for a file's closing ``qradar.recorder_counters`` metadata."""
         return {}
+
+    def _before_flush(self) -> None:
+        """Called by the worker after each batch and when idle, before a flush is due."""
 
     # -- files ------------------------------------------------------------------------------
     #: names tried for one file before giving up (another program taking them all)
@@ -344,6 +350,7 @@ class RecordingFiles(ProcessingNode):
         self._maybe_flush_or_split()
 
     def _maybe_flush_or_split(self) -> None:
+        self._before_flush()
         if self._sink is None:
             if self.state is RecordingState.PAUSED and time.monotonic() >= self._next_probe:
                 self._probe()
@@ -409,7 +416,9 @@ class RecorderNode(RecordingFiles):
         self.admission = Admission(radar, max_ramps)
         self.max_dead_channels = max_dead_channels
         self._dead_check_at = max_dead_channels  # the file's channel count at which dead ones are counted next
+        self._recheck_channels = False  # sensors expired: count the file's dead channels again
         self.refusals = RefusalCounts()  # by live sensor (or NO_SENSOR) and kind, under _lock
+        self._health_summary: tuple[float, dict] | None = None  # (when, summary) for health_extra
         self.topics = topics or f"{bus.prefix}/**"
         try:
             zenoh.KeyExpr(self.topics)
@@ -434,9 +443,11 @@ class RecorderNode(RecordingFiles):
             self.refusals.add(sensor if sensor in self.stats else NO_SENSOR, kind, n)
 
     def forget(self, sensor_id: str) -> None:
-        """An expired sensor's refusal counts go into the totals (called with _lock held)."""
+        """An expired sensor's refusal counts go into the totals, and its channels count as
+        dead at the worker's next look (called with _lock held)."""
         super().forget(sensor_id)
         self.refusals.retire(sensor_id)
+        self._recheck_channels = True
 
     def refused(self) -> dict[str, int]:
         """Messages refused, by kind (REFUSED_KINDS), expired sensors included."""
@@ -506,7 +517,7 @@ class RecorderNode(RecordingFiles):
         n = sink.n_channels
         with self._lock:
             live = set(self.stats)
-        dead = sum(1 for key in sink.keys() if self.sensor_of(key) not in live)
+        dead = sum(1 for key in sink.keys() if self.bus.sensor_of(key) not in live)  # (no id check: it caches ids)
         if dead < self.max_dead_channels and n < FILE_CHANNELS_MAX:
             self._dead_check_at = n - dead + self.max_dead_channels
             return
@@ -516,6 +527,11 @@ class RecorderNode(RecordingFiles):
 
     def _file_opened(self) -> None:
         self._dead_check_at = self.max_dead_channels
+
+    def _before_flush(self) -> None:
+        if self._recheck_channels and self._sink is not None:
+            self._recheck_channels = False
+            self._check_channels()
 
     # -- reporting -----------------------------------------------------------------------------
     def summary(self, all_files: bool = True) -> dict:
@@ -539,9 +555,14 @@ class RecorderNode(RecordingFiles):
                 "channels": 0 if self._sink is None else self._sink.n_channels}
 
     def health_extra(self, sensor_id: str) -> dict:
-        """The recorder's state and counters, and what it refused of this sensor."""
-        out = self.summary(all_files=False)
-        del out["refused_by_sensor"]
+        """The recorder's state and counters (summed over every sensor: computed once for
+        the health messages of one slice, HEALTH_SUMMARY_S), and what it refused of this sensor."""
+        now = time.monotonic()
+        if self._health_summary is None or now - self._health_summary[0] >= HEALTH_SUMMARY_S:
+            summary = self.summary(all_files=False)
+            del summary["refused_by_sensor"]
+            self._health_summary = (now, summary)
+        out = dict(self._health_summary[1])
         with self._lock:
             out["sensor_refused"] = self.refusals.of(NO_SENSOR if sensor_id == UNKNOWN_SENSOR else sensor_id)
         return {"recorder": out}
