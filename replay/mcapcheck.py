@@ -32,7 +32,7 @@ from mcap.records import Channel, ChunkIndex, Message, MessageIndex, Metadata, M
 from mcap.summary import Summary
 from zstandard import ZstdDecompressor, ZstdError, frame_content_size
 
-from .errors import ReplayError
+from .errors import Damage
 
 MAGIC = b"\x89MCAP0\r\n"
 #: a record's opcode (uint8) and the length of what follows (uint64)
@@ -52,10 +52,6 @@ COMPRESSIONS = ("", "zstd", "lz4")
 METADATA_CRC_KEY = "qradar.crc32"
 #: what mcap's record parsers raise on bytes that are not the record they expect
 PARSE_ERRORS = (McapError, struct.error, ValueError, OverflowError, MemoryError, UnicodeDecodeError)
-
-
-class Damage(ReplayError):
-    """Bytes of an MCAP file that do not read as the record they should be."""
 
 
 def frame(buf, pos: int, end: int) -> tuple[int, int] | None:
@@ -155,18 +151,42 @@ class ChunkRecords:
     checked: bool = True
 
 
-def open_chunk(body: bytes) -> ChunkRecords:
-    """A chunk record's ``body`` decompressed, its size and CRC checked (:class:`Damage`
-    when either is wrong: none of its records is returned), split into its records."""
+def _chunk_data(body: bytes) -> tuple[ChunkHead, bytes]:
+    """A chunk record's head and its records, decompressed, their size and CRC checked."""
     head = chunk_head(body)
     data = _decompress(head, body[head.data_start:head.data_end])
     if len(data) != head.uncompressed_size:
         raise Damage(f"it decompresses to {len(data)} bytes, its record says {head.uncompressed_size}")
-    out = ChunkRecords(head.start_ns, head.end_ns, checked=head.uncompressed_crc != 0)
-    if out.checked:
+    if head.uncompressed_crc:
         crc = zlib.crc32(data)
         if crc != head.uncompressed_crc:
             raise Damage(f"CRC mismatch (records {crc:#010x}, recorded {head.uncompressed_crc:#010x})")
+    return head, data
+
+
+def count_chunk_messages(body: bytes) -> tuple[Counter, str | None]:
+    """The messages of a chunk record's ``body`` by channel id (its size and CRC checked:
+    :class:`Damage`), and where its records stop framing (None: they frame to its end);
+    no message is copied."""
+    _, data = _chunk_data(body)
+    counts: Counter = Counter()
+    pos, end = 0, len(data)
+    while pos < end:
+        rec = frame(data, pos, end)
+        if rec is None or not plausible_opcode(rec[0]) or (
+                rec[0] == Opcode.MESSAGE and rec[1] - pos - RECORD_HEAD.size < MESSAGE_HEAD.size):
+            return counts, f"the record at byte {pos} of its {end} bytes does not frame"
+        if rec[0] == Opcode.MESSAGE:
+            counts[struct.unpack_from("<H", data, pos + RECORD_HEAD.size)[0]] += 1
+        pos = rec[1]
+    return counts, None
+
+
+def open_chunk(body: bytes) -> ChunkRecords:
+    """A chunk record's ``body`` decompressed, its size and CRC checked (:class:`Damage`
+    when either is wrong: none of its records is returned), split into its records."""
+    head, data = _chunk_data(body)
+    out = ChunkRecords(head.start_ns, head.end_ns, checked=head.uncompressed_crc != 0)
     pos, end = 0, len(data)
     while pos < end:
         rec = frame(data, pos, end)
@@ -302,13 +322,13 @@ def written_counts(buf: bytes, base: int) -> WrittenCounts:
         opcode, stop = rec
         if opcode == Opcode.CHUNK:
             try:
-                chunk = open_chunk(buf[pos + RECORD_HEAD.size:stop])
+                counts, error = count_chunk_messages(buf[pos + RECORD_HEAD.size:stop])
             except Damage as exc:
                 out.problems.append(f"the chunk at byte {base + pos}: {exc}")
             else:
-                out.messages.update(m.channel_id for m in chunk.messages)
-                if chunk.error:
-                    out.problems.append(f"the chunk at byte {base + pos}: {chunk.error}")
+                out.messages.update(counts)
+                if error:
+                    out.problems.append(f"the chunk at byte {base + pos}: {error}")
         elif opcode == Opcode.MESSAGE:
             if stop - pos - RECORD_HEAD.size >= MESSAGE_HEAD.size:
                 out.messages[MESSAGE_HEAD.unpack_from(buf, pos + RECORD_HEAD.size)[0]] += 1

@@ -38,12 +38,11 @@ from mcap.writer import CompressionType, Writer
 
 from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TRACK_FIELDS, TargetsMsg
 
-from .errors import RecordingExists, ReplayError
+from .errors import RecordingExists, ReplayError, UnwritableMessage
 from .mcapcheck import MAGIC, METADATA_CRC_KEY, metadata_crc, read_summary, written_counts
 from .mcapread import DamagedChunk, McapFile
 
-__all__ = ["DamagedChunk", "McapFile", "McapSink", "UnwritableMessage", "pointcloud_json", "qradar_channels",
-           "recover", "topic_of"]
+__all__ = ["DamagedChunk", "McapFile", "McapSink", "pointcloud_json", "qradar_channels", "recover", "topic_of"]
 
 WIRE_ENCODING = "qradar/wire-v1"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
@@ -188,15 +187,6 @@ MAX_FILE_CHANNELS = 65535
 MAX_TIME_NS = 2**63
 
 
-class UnwritableMessage(ReplayError):
-    """A message a recording cannot hold (a time out of range, a file's channels all taken),
-    refused before any byte of it is written. ``kind``: ``time`` or ``channels``."""
-
-    def __init__(self, kind: str, reason: str):
-        super().__init__(reason)
-        self.kind = kind
-
-
 def check_time(name: str, value) -> int:
     """``value`` as an int in [0, 2**63) (ns), else :class:`UnwritableMessage` naming it."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value < MAX_TIME_NS:
@@ -258,6 +248,7 @@ class McapSink:
         self._writer_stats = getattr(self.writer, "_Writer__statistics", None)
         self._chunk_no = -1
         self._in_chunk: set[int] = set()  # channels defined in the chunk being built
+        self._channel_records: dict[int, bytes] = {}  # each channel's record, as written (~80 B each)
         self.messages = 0
         self.kept_bytes = self._fh.pos  # the magic and the header
         self.kept_messages = 0
@@ -328,7 +319,12 @@ class McapSink:
         self._new_chunk()
         if cid in self._in_chunk or self._chunk_builder is None or self._writer_channels is None:
             return
-        self._chunk_builder.add_channel(self._writer_channels[cid])
+        record = self._channel_records.get(cid)
+        if record is None:
+            builder = RecordBuilder()
+            self._writer_channels[cid].write(builder)
+            record = self._channel_records[cid] = bytes(builder.end())
+        self._chunk_builder.record_writer.write(record)
         self._in_chunk.add(cid)
 
     def write(self, key: str, data: bytes, log_time_ns: int, publish_time_ns: int, sequence: int) -> None:

@@ -22,8 +22,8 @@ from typing import Iterator
 from mcap.opcode import Opcode
 from mcap.records import Channel, Message, Metadata, Schema
 
-from .errors import NotMcapError, ReplayError
-from .mcapcheck import (MAGIC, MESSAGE_HEAD, METADATA_CRC_KEY, RECORD_HEAD, Damage, check_metadata, chunk_head, frame,
+from .errors import Damage, NotMcapError, ReplayError
+from .mcapcheck import (MAGIC, MESSAGE_HEAD, METADATA_CRC_KEY, RECORD_HEAD, check_metadata, chunk_head, frame,
                         message_index_count, open_chunk, parse_record, plausible_opcode, read_summary, resync)
 
 
@@ -376,6 +376,10 @@ class McapFile(ReadFindings):
                     else:
                         self._metadata(r)
             elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary (if any) follows: read apart
+                if buf[size - len(MAGIC):size] != MAGIC:
+                    self.truncated = True
+                    self.truncation_reason = (f"cut short after its data section (byte {pos}; its summary or footer "
+                                              "is incomplete): every message was read")
                 break
             pos = stop
         if pending is not None:

@@ -52,9 +52,8 @@ from pipeline.nodes.transport import Transport
 from radar_driver.model import RadarConfig
 
 from .admission import Admission, RefusalCounts
-from .errors import RecordingExists, ReplayError
-from .mcapio import (MAX_FILE_CHANNELS, FlushCheck, McapSink, UnwritableMessage, describe_os_error, pointcloud_json,
-                     topic_of)
+from .errors import RecordingExists, ReplayError, UnwritableMessage
+from .mcapio import MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, pointcloud_json, topic_of
 
 log = logging.getLogger("qradar.record")
 

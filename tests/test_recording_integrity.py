@@ -34,7 +34,8 @@ from pipeline.wire import (HealthMsg, QuantizedFrameMsg, RawFrameMsg, TargetsMsg
                            encode_raw)
 from radar_driver.model import RadarConfig
 from replay.admission import MAX_JSON_BYTES, REFUSED_KINDS
-from replay.mcapio import McapFile, McapSink, UnwritableMessage, recover
+from replay.errors import UnwritableMessage
+from replay.mcapio import McapFile, McapSink
 from replay.player import PlayConfig, play
 from replay.recorder import DEAD_CHANNELS_MAX, RecorderNode
 from replay.reprocess import load_raw
