@@ -419,31 +419,41 @@ def check_run_recording(summary: dict, path: Path, frames: int, forged: int) -> 
     assert rec["written"] == f.read - len(by_topic["pointcloud"])
 
 
-def test_bad_timestamps_from_a_peer_lose_nothing_of_a_run_recording(tmp_path, free_port, connect_when_ready):
-    """`qradar run --listen EP --record rec.mcap` and a peer sending health with timestamps
-    no recording holds (which broke the recorder's open chunk: frames missing, "lost": 0)."""
-    ep = f"tcp/127.0.0.1:{free_port}"
+def run_with_forged_health(tmp_path: Path, run_args: list[str], connect, n: int, pause_s: float) -> dict:
+    """``qradar run RUN_ARGS --record rec.mcap`` for RUN_FRAMES frames, and ``n`` forged
+    health messages put on kmd2-0's health key from the session ``connect()`` opens, once
+    frames flow; returns the run's JSON summary after checking its recording."""
     path = tmp_path / "rec.mcap"
-    frames = 60
-    run = subprocess.Popen([*QRADAR, "run", "--listen", ep, "--record", str(path), "--frames", str(frames),
-                            "--scene", "single", "--K", "1", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True, cwd=tmp_path)
-    forged = 0
+    run = subprocess.Popen([*QRADAR, "run", *run_args, "--record", str(path), "--frames", str(RUN_FRAMES), "--scene",
+                            "single", "--K", "1", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           cwd=tmp_path)
     try:
-        peer = connect_when_ready(ep, timeout_s=30)
-        col = Collector(peer, "radar/kmd2-0/raw")
+        session = connect()
+        col = Collector(session, "radar/kmd2-0/raw")
         wait_until(lambda: len(col.items) >= 5 or run.poll() is not None, 60, "the run's first frames")
-        for i in range(9):  # three each of -1, 1e30 and 2**64, while frames flow
-            peer.put("radar/kmd2-0/health", forged_health("kmd2-0", i))
-            forged += 1
-            time.sleep(0.1)
+        for i in range(n):  # while frames flow
+            session.put("radar/kmd2-0/health", forged_health("kmd2-0", i))
+            time.sleep(pause_s)
         out, err = run.communicate(timeout=120)
     finally:
         if run.poll() is None:
             run.kill()
             run.communicate(timeout=20)
     assert run.returncode == 0, err
-    check_run_recording(json.loads(out), path, frames, forged)
+    summary = json.loads(out)
+    check_run_recording(summary, path, RUN_FRAMES, n)
+    return summary
+
+
+RUN_FRAMES = 60
+
+
+def test_bad_timestamps_from_a_peer_lose_nothing_of_a_run_recording(tmp_path, free_port, connect_when_ready):
+    """`qradar run --listen EP --record rec.mcap` and a peer sending health with timestamps
+    no recording holds (which broke the recorder's open chunk: frames missing, "lost": 0):
+    three each of -1, 1e30 and 2**64."""
+    ep = f"tcp/127.0.0.1:{free_port}"
+    run_with_forged_health(tmp_path, ["--listen", ep], lambda: connect_when_ready(ep, timeout_s=30), 9, 0.1)
 
 
 @pytest.mark.skipif(subprocess.run(["which", "openssl"], capture_output=True).returncode != 0,
@@ -458,22 +468,6 @@ def test_the_viewer_identity_cannot_harm_a_secure_run_recording(tmp_path, free_p
     proc = subprocess.run([*QRADAR, "security", "init", str(lab)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     ep = f"tls/127.0.0.1:{free_port}"
-    path = tmp_path / "rec.mcap"
-    frames = 60
-    run = subprocess.Popen([*QRADAR, "run", "--secure", str(lab), "--listen", ep, "--record", str(path), "--frames",
-                            str(frames), "--scene", "single", "--K", "1", "--json"], stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    try:
-        viewer = connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer"))
-        col = Collector(viewer, "radar/kmd2-0/raw")
-        wait_until(lambda: len(col.items) >= 5 or run.poll() is not None, 60, "the run's first frames")
-        for i in range(20):
-            viewer.put("radar/kmd2-0/health", forged_health("kmd2-0", i))
-            time.sleep(0.05)
-        out, err = run.communicate(timeout=120)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.communicate(timeout=20)
-    assert run.returncode == 0, err
-    check_run_recording(json.loads(out), path, frames, 20)
+    run_with_forged_health(tmp_path, ["--secure", str(lab), "--listen", ep],
+                           lambda: connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer")),
+                           20, 0.05)
