@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast js-deps bench montecarlo-quick montecarlo-paper docs-figures clean
+.PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
@@ -24,6 +24,23 @@ $(JS_STAMP): tests/js/package.json tests/js/package-lock.json
 
 js-deps: $(JS_STAMP)
 
+# The web page's plotting library, vendored (qradar/web/static/vendor/uplot/README.md): uPlot from
+# npm at a pinned version, its tarball checked against the registry's integrity hash, then its
+# minified script, its style and its licence copied beside the page.
+UPLOT_VERSION   := 1.6.32
+UPLOT_INTEGRITY := sha512-KIMVnG68zvu5XXUbC4LQEPnhwOxBuLyW1AHtpm6IKTXImkbLgkMy+jabjLgSLMasNuGGzQm/ep3tOkyTxpiQIw==
+UPLOT_DIR       := qradar/web/static/vendor/uplot
+
+web-vendor:
+	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && cd "$$tmp" \
+	&& npm pack --silent uplot@$(UPLOT_VERSION) >/dev/null \
+	&& got="sha512-$$(openssl dgst -sha512 -binary uplot-$(UPLOT_VERSION).tgz | base64 -w0)" \
+	&& if [ "$$got" != "$(UPLOT_INTEGRITY)" ]; then \
+	     echo "uplot-$(UPLOT_VERSION).tgz: integrity $$got, expected $(UPLOT_INTEGRITY)" >&2; exit 1; fi \
+	&& tar xzf uplot-$(UPLOT_VERSION).tgz \
+	&& cp package/dist/uPlot.iife.min.js package/dist/uPlot.min.css package/LICENSE "$(CURDIR)/$(UPLOT_DIR)/" \
+	&& echo "vendored uplot@$(UPLOT_VERSION) ($(UPLOT_INTEGRITY)) into $(UPLOT_DIR)"
+
 # The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
 run: $(STAMP)
 	$(VENV)/bin/qradar run --duration 15 --calibration recordings/chamber-cal.json
@@ -32,9 +49,11 @@ run: $(STAMP)
 montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
-# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them).
+# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them), and
+# the web view's screenshot in the README (headless chromium on the README's command).
 docs-figures: $(STAMP)
 	$(PY) docs/figures/regenerate.py
+	$(PY) docs/figures/web_view.py
 
 # The whole suite, slow tests included (CI runs this).
 test: $(STAMP) $(JS_STAMP)

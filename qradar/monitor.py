@@ -13,6 +13,7 @@ import numpy as np
 import zenoh
 
 from pipeline.bus.session import BusConfig
+from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
 from pipeline.dsp.localize import position_error_m
 from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
@@ -37,10 +38,13 @@ class Monitor:
     MAX_SENSORS = 1024
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
-                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False):
+                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False,
+                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ):
         """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
         with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
-        scene starts moving with its first measured frame, after its driver connected)."""
+        scene starts moving with its first measured frame, after its driver connected).
+        ``seq_rate_hz``: the sensors' frame rate, which bounds what a gap in the targets'
+        sequence numbers can count as missing (:func:`~pipeline.nodes.counters.judge_seq`)."""
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
         self.clock_per_sensor = clock_per_sensor
         self._t0_by_sensor: dict[str, int] = {}
@@ -49,14 +53,20 @@ class Monitor:
         self.bytes: dict[str, int] = defaultdict(int)
         self.latency_ms = LogHistogram(lo=1e-3, hi=1e6)  # sensor timestamp -> targets published, ms
         self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
-        self.bad_targets = 0
+        self.bad_targets = 0  # targets or tracks that do not decode (counted, never raised)
+        self.bad_health = 0  # health that does not decode
+        self.failed_messages = 0  # messages whose handling failed otherwise
         # tracks (--track): each static true target to the nearest static track within 1 m, m;
         # the largest track id seen per sensor (ids count up from 1)
         self.static_track_errors_m = LogHistogram(lo=1e-4, hi=1e4)
         self.track_ids: dict[str, int] = {}
-        self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
+        # the targets' sequence numbers judged per sensor (judge_seq): gaps, restarts, numbers out of line
+        self.targets_missing = 0
+        self.targets_seq_resets = 0
+        self.targets_implausible_seq = 0
+        self.seq_rate_hz = seq_rate_hz
         self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
-        self._last_seq: dict[str, int] = {}
+        self._last_seq: dict[str, SeqTrack] = {}
         # per sensor: [monotonic s of the last live line, targets since, sequence gaps, frames the
         # sensor's link lost (its driver's health), targets in all, first and last timestamp_ns]
         self._sensor: dict[str, list] = {}
@@ -73,7 +83,11 @@ class Monitor:
             self._sub = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.on_message(str(sample.key_expr), sample.payload.to_bytes())
+        try:
+            self.on_message(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:  # nothing a sender puts may raise in zenoh's callback: counted instead
+            with self._lock:
+                self.failed_messages += 1
 
     def _state(self, sensor: str) -> list:
         st = self._sensor.get(sensor)
@@ -124,14 +138,15 @@ class Monitor:
                                est_r, est_a)[0] if truth and msg.targets else np.array([])
         now = time.monotonic()
         with self._lock:
-            last = self._last_seq.get(msg.sensor_id)
-            if last is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
+            track = self._last_seq.get(msg.sensor_id)
+            if track is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
                 self._last_seq.clear()
             st = self._state(msg.sensor_id)
-            if last is not None and msg.seq > last + 1:
-                self.targets_missing += msg.seq - last - 1
-                st[2] += msg.seq - last - 1
-            self._last_seq[msg.sensor_id] = msg.seq
+            self._last_seq[msg.sensor_id], verdict = judge_seq(track, msg.seq, now, self.seq_rate_hz)
+            self.targets_missing += verdict.missing
+            self.targets_seq_resets += verdict.resets
+            self.targets_implausible_seq += verdict.implausible
+            st[2] += verdict.missing
             self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
             self.errors_m.add_many(err)
             st[1] += 1
@@ -185,6 +200,8 @@ class Monitor:
         try:
             msg = decode_health(payload, key)
         except WireError:
+            with self._lock:
+                self.bad_health += 1
             return
         with self._lock:
             self._state(msg.sensor_id)[3] = msg.drops

@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import threading
 import time
 import tomllib
@@ -27,6 +25,7 @@ from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.audit import format_counts
 from pipeline.bus.session import BusConfig
+from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import DEFAULT_PFA
@@ -41,22 +40,12 @@ from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.recorder import OnWriteError, RecorderNode
 
-from .drivers import DriverProcess, driver_bus
+from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
 from .monitor import Monitor
+from .rundir import remove_run_dirs, run_directory
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
 from .view import FoxgloveView, ViewConfig
-
-#: the temporary directories of the runs in progress (pty links, the zenoh socket)
-_RUN_DIRS: set[str] = set()
-
-
-def remove_run_dirs() -> None:
-    """For an exit at once (a second Ctrl-C while a run stops, no time to stop in order):
-    the runs' temporary directories removed, pty links and zenoh socket (their driver
-    processes stop by themselves). Quick, and raises nothing."""
-    for path in list(_RUN_DIRS):
-        shutil.rmtree(path, ignore_errors=True)
-
+from .web import WebConfig, WebView
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
 REAL_SENSOR_K = 2
@@ -86,6 +75,7 @@ class RunConfig:
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
+    web: WebConfig | None = None  # serve the live stream as a web page (qradar.web) on its host and port
     driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
     record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
@@ -102,6 +92,10 @@ class RunConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.dsp.track), None: none
+    # a driver that dies is started again after driver_backoff_s, doubled each time it dies again soon;
+    # its sensor is given up after driver_restarts such deaths in a row (qradar.drivers.SupervisedDriver)
+    driver_backoff_s: float = RESTART_BACKOFF_S
+    driver_restarts: int = MAX_RESTARTS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -139,6 +133,9 @@ class RunConfig:
         object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
         if self.outstanding not in (1, 2):
             raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
+        if not (self.driver_backoff_s > 0 and isinstance(self.driver_restarts, int) and self.driver_restarts >= 0):
+            raise ParameterError(f"driver_backoff_s={self.driver_backoff_s!r} must be > 0 and "
+                                 f"driver_restarts={self.driver_restarts!r} an integer >= 0")
 
     @property
     def real(self) -> bool:
@@ -175,8 +172,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
     if cfg.real:
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     t_start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
-        _RUN_DIRS.add(tmp)
+    with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
         sims = [] if cfg.real else [
@@ -195,17 +191,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
-            if cfg.driver_process:
-                drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
-                                         outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                         profile=s.profile, chirp_select=s.chirp_select,
-                                         received=lambda sid=s.sensor_id: monitor.raw_by_sensor.get(sid, 0))
-                           for s in specs]
-            else:
-                drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
-                                      session=session, frames=cfg.frames) for s in specs]
+            stop = stop or threading.Event()
+            drivers = supervised_drivers(cfg, specs, bus, session, monitor, live, stop)
             if cfg.frames is not None:
-                stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
             recorder = []
             if cfg.record is not None:
@@ -215,29 +203,82 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken)]
-            view = None
+            view = web = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
+            if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
+                try:
+                    web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
+                                  truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                except BaseException:  # a busy port: the Foxglove view ends too
+                    if view is not None:
+                        view.stop()
+                    raise
+                if live is not None:
+                    print(f"web: page on {web.url}", file=live, flush=True)
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
                 monitor.stop()
-                if view is not None:
-                    view.stop()
+                for v in (view, web):
+                    if v is not None:
+                        v.stop()
         finally:
             session.close()
             for sim in sims:
                 sim.stop()
-            _RUN_DIRS.discard(tmp)
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
                         simulator=simulator_lateness(sims) if sims else None, truth=truth)
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
         summary["recording"] = recorder[0].summary()
     if view is not None:
         summary["foxglove"] = view.summary()
+    if web is not None:
+        summary["web"] = web.summary()
     return summary
+
+
+def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: Monitor, live: TextIO | None,
+                       stop: threading.Event) -> list[SupervisedDriver]:
+    """A driver per sensor (a process of its own, or a thread of this one), each
+    restarted with backoff when it dies while the others go on (:class:`SupervisedDriver`):
+    a death and a restart are said on the live stream and in the sensor's health (node
+    ``run``, ``extra.driver``: state, restarts, why); once every sensor is given up,
+    ``stop`` is set (the run ends with its summary)."""
+    drivers: list[SupervisedDriver] = []
+
+    def report(sensor_id: str, state: str, detail: str) -> None:
+        sup = next(d for d in drivers if d.sensor_id == sensor_id)
+        if live is not None:
+            print(f"{sensor_id}: {detail}", file=live, flush=True)
+        health = HealthMsg("run", sensor_id, time.time_ns(), extra={"driver": {
+            "state": state, "restarts": sup.restarts, "exits": len(sup.exits), "last_exit": detail}})
+        try:
+            session.put(cfg.bus.key(sensor_id, "health"), health.to_json())
+        except Exception:  # a closing session: the live line and the summary say it
+            pass
+        if state == "gone" and all(d.gone.is_set() or d is sup for d in drivers):
+            stop.set()
+
+    def maker(s: SensorSpec):
+        def make(frames_done: int):
+            frames = None if cfg.frames is None else max(cfg.frames - frames_done, 1)
+            if not cfg.driver_process:
+                return SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)), session=session,
+                                  frames=frames)
+            base = monitor.raw_by_sensor.get(s.sensor_id, 0)  # this driver's frames are those after
+            return DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=frames,
+                                 outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
+                                 profile=s.profile, chirp_select=s.chirp_select,
+                                 received=lambda: monitor.raw_by_sensor.get(s.sensor_id, 0) - base)
+        return make
+
+    for s in specs:
+        drivers.append(SupervisedDriver(s.sensor_id, maker(s), lambda sid=s.sensor_id: monitor.raw_by_sensor.get(
+            sid, 0), on_event=report, backoff_s=cfg.driver_backoff_s, max_restarts=cfg.driver_restarts))
+    return drivers
 
 
 def load_truth(name_or_path: str | Path) -> SimScene:
@@ -343,11 +384,17 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
                          "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
                          "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
                          "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
-                         "undecodable_targets": monitor.bad_targets},
+                         "undecodable_targets": monitor.bad_targets, "undecodable_health": monitor.bad_health,
+                         "monitor_errors": monitor.failed_messages},
         # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
-        # quantizer is missing at every later stage too
+        # quantizer is missing at every later stage too (pipeline.nodes.counters.judge_seq)
         "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
                            "targets": monitor.targets_missing},
+        # restarts of a sender's count, and numbers out of line (forged or replayed), at each stage
+        "seq_resets": {"quantize": q_tot["seq_resets"], "localize": l_tot["seq_resets"],
+                       "targets": monitor.targets_seq_resets},
+        "implausible_seq": {"quantize": q_tot["implausible_seq"], "localize": l_tot["implausible_seq"],
+                            "targets": monitor.targets_implausible_seq},
         "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
         "latency_ms": {"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
         "position_error_m": {"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
@@ -368,6 +415,11 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
            if cfg.tracking is not None else {}),
         "driver": driver_stats,
         "driver_process": cfg.driver_process,
+        # drivers that died and were started again (qradar.drivers.SupervisedDriver): how often, why, and the
+        # sensors given up after too many deaths in a row
+        "driver_restarts": {d.sensor_id: d.restarts for d in drivers if hasattr(d, "restarts")},
+        "driver_exits": {d.sensor_id: list(d.exits) for d in drivers if getattr(d, "exits", None)},
+        "sensors_gone": [d.sensor_id for d in drivers if hasattr(d, "gone") and d.gone.is_set()],
         # the simulated sensors' own late writes (device clock held): apart from every loss above;
         # null with real sensors
         "simulator": simulator,
@@ -392,6 +444,12 @@ def format_summary(s: dict) -> str:
         f"  drops       {s['drops']} ({s['drops_detail']})",
         f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
     ]
+    for sid, n in (s.get("driver_restarts") or {}).items():
+        exits = (s.get("driver_exits") or {}).get(sid) or []
+        if n or exits:
+            gone = sid in (s.get("sensors_gone") or [])
+            lines.append(f"  driver      {sid}: restarted {n} time(s){', then given up' if gone else ''}"
+                         + (f" (last: {exits[-1]})" if exits else ""))
     if s.get("simulator") is not None:
         lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
                      f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")

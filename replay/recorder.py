@@ -36,7 +36,6 @@ import json
 import logging
 import os
 import platform
-import struct
 import threading
 import time
 from enum import Enum

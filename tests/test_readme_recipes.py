@@ -240,12 +240,22 @@ def test_the_foxglove_recipe_works_as_written(workdir):
 
 
 @pytest.mark.slow
+def test_the_web_recipe_works_as_written(workdir):
+    (line,) = steps("web")
+    port = free_port()
+    out = run_step(line.replace("8080", str(port)) + " --duration 5", workdir)
+    assert f"web: page on http://127.0.0.1:{port}/" in out.stdout
+
+
+@pytest.mark.slow
 def test_the_security_recipe_works_as_written(workdir):
     lines = steps("security")
     run_step(lines[0], workdir)
     listed = run_step(lines[1], workdir).stdout
     assert "sensor-kmd2-0" in listed and "router" in listed
-    out = run_step(lines[2], workdir).stdout
+    checked = run_step(lines[2], workdir).stdout
+    assert "none but a router's names hosts" in checked and "FLAGGED" not in checked
+    out = run_step(lines[3], workdir).stdout
     assert "0 refused_handshakes" in out and "frames" in out
 
 

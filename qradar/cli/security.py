@@ -26,7 +26,7 @@ def add_commands(sub) -> None:
                        description="A certificate authority of your own and one certificate per node identity, "
                        "for --secure DIR on every node and the router. The CA key (ca.key) stays on the machine "
                        "that runs init; another host gets ca.pem, identities.json and its own NAME.pem, NAME.key.")
-    ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list}")
+    ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list,check}")
 
     q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
                       "viewer")
@@ -60,6 +60,15 @@ def add_commands(sub) -> None:
     q.add_argument("--prefix", default="radar", help="key prefix")
     q.add_argument("--json", action="store_true", help="print the identities as JSON")
     q.set_defaults(func=cmd_list)
+
+    q = ss.add_parser("check", help="every certificate's names and role; flags any but a router's naming hosts",
+                      description="Lists, per identity of DIR, the common name, role and host names of its "
+                      "certificate, and flags what could pose as the router (an identity other than a router's "
+                      "whose certificate names hosts: made before `security add` refused that) or contradicts "
+                      "the policy. Exit status 1 when anything is flagged.")
+    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
+    q.add_argument("--json", action="store_true", help="print the findings as JSON")
+    q.set_defaults(func=cmd_check)
     for q in ss.choices.values():  # as build_parser does for the first level
         q.formatter_class = DefaultsFormatter
         q.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
@@ -68,8 +77,8 @@ def add_commands(sub) -> None:
 
 def _cert_options(q) -> None:
     q.add_argument("--host", action="append", default=[], metavar="NAME|IP",
-                   help="a DNS name or IP address the certificate is valid for (repeat; localhost and 127.0.0.1 "
-                   "always); needed on a host where the identity listens (the router)")
+                   help="a DNS name or IP address the router's certificate is valid for (repeat; localhost and "
+                   "127.0.0.1 always); router identities only: any other is a client and names no host")
     q.add_argument("--days", type=pos_int, default=security.DEFAULT_DAYS, help="validity of a certificate in days")
     q.add_argument("--json", action="store_true", help="print the identities as JSON")
 
@@ -110,6 +119,21 @@ def cmd_list(args) -> int:
     _show(args, policy.identities, f"{len(policy.identities)} identities in {args.dir}"
           + ("" if (Path(args.dir) / CA_KEY).exists() else " (no CA key here: add issues nothing)"))
     return 0
+
+
+def cmd_check(args) -> int:
+    found = security.check(args.dir)
+    flagged = [c for c in found if c.problems]
+    if args.json:
+        print(json.dumps([c.to_dict() for c in found]))
+        return 1 if flagged else 0
+    print(f"{len(found)} certificates in {args.dir}: "
+          + (f"{len(flagged)} flagged" if flagged else "none but a router's names hosts"))
+    for c in found:
+        hosts = "not on this host" if c.hosts is None else ("hosts " + ", ".join(c.hosts) if c.hosts else "no hosts")
+        print(f"  {c.name:<20} {c.role:<10} CN={c.common_name or '?'}; {hosts}"
+              + "".join(f"\n    FLAGGED: {p}" for p in c.problems))
+    return 1 if flagged else 0
 
 
 def _show(args, idents, head: str) -> None:

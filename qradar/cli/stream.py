@@ -52,7 +52,7 @@ from .common import (
     load_calibration,
 )
 from .record import write_error_options
-from .view import foxglove_arg, poses_option
+from .view import foxglove_arg, poses_option, web_config, web_options
 
 
 def add_commands(sub) -> None:
@@ -168,6 +168,7 @@ def add_commands(sub) -> None:
                    help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
                    "127.0.0.1)")
     poses_option(p)
+    web_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -335,7 +336,7 @@ def cmd_run(args) -> int:
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
                     calibration=args.calibration, empty=args.empty, min_range_m=args.min_range_m,
-                    max_range_m=args.max_range_m, tracking=tracker_config(args))
+                    max_range_m=args.max_range_m, tracking=tracker_config(args), web=web_config(args))
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
