@@ -218,7 +218,7 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                              name="refusals", daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, radar=radar,
                                          metadata=run_metadata(cfg, scene, truth, radar, k, calibration,
                                                                localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,

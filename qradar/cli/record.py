@@ -1,5 +1,6 @@
-"""Recording commands: ``record`` (zenoh -> MCAP), ``recover`` (a cut-short MCAP -> a
-complete one) and ``replay`` (MCAP -> zenoh)."""
+"""Recording commands: ``record`` (zenoh -> MCAP; ``record --verify`` checks files),
+``recover`` (a cut-short or damaged MCAP -> a complete one of what reads) and ``replay``
+(MCAP -> zenoh)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
-from replay.mcapio import recover
+from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
@@ -22,8 +23,11 @@ from .common import (StopOnSignals, bus_from_args, bus_options, force_option, in
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP")
-    p.add_argument("-o", "--output", type=Path, required=True, help="FILE.mcap")
+    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP (or --verify recordings)")
+    p.add_argument("-o", "--output", type=Path, default=None, help="FILE.mcap (required unless --verify)")
+    p.add_argument("--verify", type=Path, nargs="+", default=None, metavar="FILE",
+                   help="record nothing: read each MCAP file whole, every chunk's CRC checked, and print what it "
+                   "holds and lost (one JSON line each); exit 1 if any is damaged, cut short or lost messages")
     p.add_argument("--topics", default=None, help="key expression (default <prefix>/**)")
     p.add_argument("--split-size", type=float, default=None, metavar="MB", help="new file every MB megabytes")
     p.add_argument("--split-duration", type=float, default=None, metavar="S", help="new file every S seconds")
@@ -36,8 +40,9 @@ def add_commands(sub) -> None:
     bus_options(p)
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
-    p.add_argument("file", type=Path, help="the cut-short MCAP file (read, never changed)")
+    p = sub.add_parser("recover", help="rewrite a cut-short or damaged MCAP (e.g. after SIGKILL) as a complete, "
+                       "indexed file of every message that reads back (damaged chunks are left out, and named)")
+    p.add_argument("file", type=Path, help="the cut-short or damaged MCAP file (read, never changed)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
     force_option(p, "the -o file")
     p.set_defaults(func=cmd_recover)
@@ -68,7 +73,30 @@ def write_error_options(p, on_stop: str) -> None:
                    help="while paused after a write error, look for space every S seconds")
 
 
+def cmd_verify(paths: list[Path]) -> int:
+    """``record --verify``: one JSON line per file on stdout, one line per damage on stderr;
+    1 when a file is not intact."""
+    bad = 0
+    for path in paths:
+        f = McapFile(path)
+        f.scan()
+        for line in f.damage_lines():
+            print(f"qradar record --verify: {path}: {line}", file=sys.stderr)
+        if f.truncated:
+            print(f"qradar record --verify: {path}: {f.truncation_reason} (qradar recover completes it)",
+                  file=sys.stderr)
+        bad += not f.intact
+        print(json.dumps(f.report()), flush=True)
+    return 1 if bad else 0
+
+
 def cmd_record(args) -> int:
+    if args.verify is not None:
+        if args.output is not None:
+            raise ReplayError("--verify checks files and records nothing: give -o or --verify, not both")
+        return cmd_verify(args.verify)
+    if args.output is None:
+        raise ReplayError("give -o FILE.mcap to record to (or --verify FILE to check a recording)")
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
@@ -92,7 +120,11 @@ def cmd_record(args) -> int:
 
 def cmd_recover(args) -> int:
     r = recover(args.file, args.output, overwrite=args.force)
-    print(json.dumps({"file": str(args.output), **r}))
+    if r["lost"] or r["damaged_chunks"] or r["problems"]:
+        print(f"qradar recover: {args.file}: {len(r['damaged_chunks'])} damaged chunk(s) left out of {args.output}, "
+              f"{r['lost']} messages lost {r['lost_by_topic']}; each named in the JSON line and in its "
+              "qradar.recovery metadata", file=sys.stderr)
+    print(json.dumps({**r, "source": str(args.file), "file": str(args.output)}))
     return 0
 
 
@@ -103,6 +135,7 @@ def cmd_replay(args) -> int:
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
     result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
+                      "lost": result.lost, "damaged_chunks": result.damaged,
                       "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None,
                       **audit.finish()}))
     return 0
