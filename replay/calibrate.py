@@ -9,7 +9,7 @@ from pathlib import Path
 from pipeline.dsp.calibration import FrontEndCorrection, estimate_front_end, save
 from radar_driver.model import RadarConfig
 
-from .errors import ReplayError
+from .errors import CalibrationRefused, ReplayError
 from .outputs import check_new_file
 from .reprocess import load_raw, radar_for
 
@@ -68,5 +68,3 @@ def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:
     return entries
 
 
-class CalibrationRefused(ReplayError):
-    """A calibration whose checks say its inputs are wrong (not written)."""

@@ -37,3 +37,7 @@ class RecordingExists(OutputExists):
     def at(cls, path) -> "RecordingExists":
         return cls(f"{path} exists: qradar does not overwrite a recording; choose another name or remove it "
                    "(--force replaces it)")
+
+
+class CalibrationRefused(ReplayError):
+    """A calibration whose checks say its inputs are wrong (not written)."""
