@@ -17,6 +17,7 @@ Shapes are batch first; units are in the names (m, deg, ns). Errors are the pack
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,6 +37,8 @@ from replay.errors import ReplayError
 from replay.mcapio import McapFile, topic_of
 from replay.reprocess import ReprocessConfig, ReprocessResult
 from replay.reprocess import run as run_reprocess
+
+log = logging.getLogger("qradar.api")
 
 __all__ = ["Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
            "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
@@ -110,13 +113,18 @@ class Recording:
     ids with frames or targets in it; ``metadata``: the file's metadata records
     (name -> dict); ``radar``: its radar configuration (``qradar.radar`` metadata, else the
     default K-MD2's); ``truncated``: the file was cut short (its complete chunks are read).
-    Messages that do not parse are counted in ``unparsed`` (topic -> count), not raised."""
+    Messages that do not parse are counted in ``unparsed`` (topic -> count), not raised.
+    Every chunk's CRC is checked: the messages of a damaged chunk are never returned, they
+    are counted in ``lost`` (topic -> count) and each damaged chunk is named in ``damaged``
+    (offset, log time range, topics; also logged as a warning)."""
 
     path: Path
     metadata: dict[str, dict[str, str]]
     sensors: list[str]
     truncated: bool
     unparsed: dict[str, int] = field(default_factory=dict)
+    lost: dict[str, int] = field(default_factory=dict)
+    damaged: list[str] = field(default_factory=list)
     _payloads: dict[tuple[str, str], list[bytes]] = field(default_factory=dict, repr=False)
     _log_ns: dict[tuple[str, str], list[int]] = field(default_factory=dict, repr=False)  # each message's log time
 
@@ -270,7 +278,9 @@ def open_recording(path: str | Path) -> Recording:
         payloads.setdefault((sensor, topic), []).append(bytes(msg.data))
         log_ns.setdefault((sensor, topic), []).append(msg.log_time)
     sensors = sorted({s for s, t in payloads if t != "health"})
-    return Recording(Path(path), f.metadata_dict(), sensors, f.truncated, {}, payloads, log_ns)
+    f.warn(log, "its messages are not returned")
+    return Recording(Path(path), f.metadata_dict(), sensors, f.truncated, lost=f.lost_by_topic,
+                     damaged=f.damage_lines(), _payloads=payloads, _log_ns=log_ns)
 
 
 def quantize(frames: Frames | np.ndarray, alpha: float | None = None, bits: int = 1, dither_seed: int = 0,

@@ -315,7 +315,7 @@ class RunNodes:
                                                       self.refused, self.ended), name="refusals", daemon=True).start()
         if cfg.record is not None:
             self.recorder = [RecorderNode(
-                cfg.bus, cfg.record, session=session, on_write_error=cfg.record_on_error,
+                cfg.bus, cfg.record, session=session, radar=p.radar, on_write_error=cfg.record_on_error,
                 metadata=run_metadata(cfg, p.scene, p.truth, p.radar, p.localizer.k, p.calibration,
                                       p.localizer.gate),
                 retry_s=cfg.record_retry_s, split_size_mb=cfg.record_split_mb,

@@ -235,7 +235,10 @@ def format_summary(s: "dict | RunSummary") -> str:
         lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
                      f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
                      + (f" ({counts(rec['lost_by_topic'])})" if rec["lost"] else "")
-                     + (f"; last write error: {rec['error']}" if rec["error"] else ""))
+                     + "".join(f", {k.replace('_', ' ')} {rec[k]}" for k in ("refused_time", "refused_size",
+                                                                            "refused_shape", "refused_topic",
+                                                                            "verify_errors") if rec.get(k))
+                     + (f"; last write or read-back error: {rec['error']}" if rec["error"] else ""))
     audit_counts = s.get("audit")
     if audit_counts is not None:
         lines.append(f"  audit       {format_counts(audit_counts)} (--secure; docs/security.md)")

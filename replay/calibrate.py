@@ -11,7 +11,7 @@ from pipeline.dsp.calibration import (MAX_EMPTY_RETURN_DB, MAX_RANGE_SHIFT_BINS,
 from radar_driver.model import RadarConfig
 from radar_driver.options import option
 
-from .errors import ReplayError
+from .errors import CalibrationRefused, ReplayError
 from .outputs import check_new_file
 from .reprocess import load_raw, radar_for
 
@@ -78,5 +78,3 @@ def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:
     return entries
 
 
-class CalibrationRefused(ReplayError):
-    """A calibration whose checks say its inputs are wrong (not written)."""

@@ -83,6 +83,8 @@ class RawRecording:
     metadata: dict[str, dict[str, str]]
     sensors: list[str]
     truncated: bool
+    lost: int = 0  # messages of damaged chunks (never re-processed)
+    damaged: list[str] = field(default_factory=list)  # one line per damaged chunk or problem
 
 
 def load_raw(path, sensor: str | None = None) -> RawRecording:
@@ -107,7 +109,7 @@ def load_raw(path, sensor: str | None = None) -> RawRecording:
         raise ReplayError(f"{path}: frames of {sensor} change M or radar config mid-recording; split the file")
     return RawRecording(sensor, np.stack([f.data for f in got]).astype(np.complex128),
                         np.array([f.seq for f in got]), np.array([f.timestamp_ns for f in got]),
-                        got[0].config_id, src.metadata, sensors, src.truncated)
+                        got[0].config_id, src.metadata, sensors, src.truncated, src.lost, src.damaged)
 
 
 def calibrated(rec: RawRecording, calibration: Calibration) -> RawRecording:
@@ -512,7 +514,11 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     first = next(iter(results.values()))
     summaries = {a: r.summary() for a, r in results.items()}
     summary = summaries[str(cfg.algos[0])] | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
-                                              "truncated": rec.truncated}
+                                              "truncated": rec.truncated, "lost_messages": rec.lost,
+                                              "damage": rec.damaged}
+    if rec.damaged:
+        notes.append(f"warning: {cfg.file} is damaged: {rec.lost} messages lost, not re-processed "
+                     f"({len(rec.damaged)} damaged chunk(s) or problem(s), in results.json's \"damage\")")
     if calibration is not None:
         summary["calibration"] = calibration.summary()
     if len(results) > 1:

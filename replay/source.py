@@ -10,7 +10,9 @@ skipped; a gap in a sensor's sequence numbers is counted in ``dropped``, as far 
 recorded time allows, a restarted count in ``seq_resets`` and a number out of line in
 ``implausible_seq`` (:func:`pipeline.nodes.counters.judge_seq`, on the log times). The wire
 format carries no ramp counters, so the frames' ``counters`` are empty. A file cut short
-yields the frames of its complete chunks and sets ``truncated``.
+yields the frames of its complete chunks and sets ``truncated``. Every chunk's CRC is
+checked (:class:`replay.mcapio.McapFile`): a damaged chunk's frames are never yielded;
+it is logged, and its messages are counted in ``lost`` (``damaged``: the chunks).
 """
 
 from __future__ import annotations
@@ -90,6 +92,8 @@ class RecordingSource(StoppableSource):
         self.rate = rate
         self.file = McapFile(self.path)
         self.truncated = False
+        self.lost = 0  # messages of damaged chunks (never yielded), once the file was read
+        self.damaged: list[str] = []  # one line per damaged chunk or problem
         self._stats: dict[str, _RecordedSensorStats] = {}
 
     def __enter__(self) -> "RecordingSource":
@@ -138,3 +142,6 @@ class RecordingSource(StoppableSource):
         if self.truncated:
             log.warning("%s is cut short (%s); read up to its last complete chunk", self.path,
                         self.file.truncation_reason)
+        if self.file.complete:
+            self.lost, self.damaged = self.file.lost, self.file.damage_lines()
+            self.file.warn(log, "its frames are not read")

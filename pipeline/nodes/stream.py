@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable
 
 import numpy as np
@@ -29,7 +29,8 @@ from pipeline.dsp.dither import warm_up as warm_up_dither
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
 from pipeline.errors import CalibrationError, ParameterError
 from pipeline.nodes.front_end import FrontEndCheck
-from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
+from pipeline.nodes.frame_codec import (CODECS, MAX_SAMPLE, FrameCodec, bad_samples, check_frames, codec_for,
+                                        radar_configs)
 from pipeline.dsp.gate import RangeGate
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.dsp.localize import DEFAULT_PFA, Detections
@@ -213,13 +214,6 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
 #: (PBP edge 131 against 150; qiht 10, not 17): the wait itself is latency.
 BATCH_LINGER_S = 0.002
 
-def radar_configs(radar: RadarConfig, max_ramps: int) -> dict[int, RadarConfig]:
-    """The announced configurations: ``radar`` with 1..max_ramps ramps per frame, by config id."""
-    if not (isinstance(max_ramps, int) and max_ramps >= 1):
-        raise ParameterError(f"max_ramps={max_ramps!r} must be an integer >= 1")
-    return {c.config_id(): c for c in (replace(radar, ramps_per_frame=r) for r in range(1, max_ramps + 1))}
-
-
 class FrameNode(ProcessingNode):
     """A processing node of radar frames: it refuses, before copying, payloads whose
     length no announced configuration (``radar`` with 1..max_ramps ramps) has, and
@@ -246,37 +240,13 @@ class FrameNode(ProcessingNode):
     def decode(self, batch: list[QueuedFrame]) -> tuple[list, list[str]]:
         """Decode a batch of queued frames with the input's codec, in one vectorized call per
         length: the groups of frames whose sensor id matches the key, whose config id is
-        announced and whose M is that configuration's, each with the keys of its frames
-        (in order). The others are counted (decode_errors, invalid_frames)."""
+        announced and whose M is that configuration's (:func:`check_frames`), each with the
+        keys of its frames (in order). The others are counted (decode_errors, invalid_frames)."""
         keys = [item.key for item in batch]
-        groups, errors = self.codec.decode([item.payload for item in batch], keys)
-        for i, exc in errors:
-            self.count(batch[i].sensor, "decode_errors", exc)
-        out = []
-        for g in groups:
-            h = g.headers
-            m = self.codec.n_measurements(g)
-            ok = np.ones(len(h), dtype=bool)
-            for j, (i, sid) in enumerate(zip(g.index.tolist(), h.sensor_id)):
-                if sid != batch[i].sensor:
-                    ok[j] = False
-                    self.count(batch[i].sensor, "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
-                               "not match the key")
-            cids = h.config_id
-            for cid in ([int(cids[0])] if (cids == cids[0]).all() else np.unique(cids).tolist()):
-                radar = self._configs.get(cid)
-                if radar is not None and radar.n_measurements == m:
-                    continue
-                why = (f"unknown radar config id {cid:#010x}" if radar is None else
-                       f"M={m} but its radar config has M={radar.n_measurements}")
-                for j in np.flatnonzero(ok & (h.config_id == cid)).tolist():
-                    ok[j] = False
-                    self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from "
-                               f"{keys[g.index[j]]}: {why}")
-            if ok.all():
-                out.append(g)
-            elif ok.any():
-                out.append(self.codec.take(g, np.flatnonzero(ok)))
+        out, refused = check_frames(self.codec, self._configs, [item.payload for item in batch], keys,
+                                    [item.sensor for item in batch])
+        for i, kind, why in refused:
+            self.count(batch[i].sensor, kind, why)
         return out, keys
 
 

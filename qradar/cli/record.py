@@ -1,5 +1,6 @@
-"""Recording commands: ``record`` (zenoh -> MCAP), ``recover`` (a cut-short MCAP -> a
-complete one) and ``replay`` (MCAP -> zenoh)."""
+"""Recording commands: ``record`` (zenoh -> MCAP; ``record --verify`` checks files),
+``recover`` (a cut-short or damaged MCAP -> a complete one of what reads) and ``replay``
+(MCAP -> zenoh)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,9 @@ from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
-from replay.mcapio import recover
+from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode, RecordingState
-
 from radar_driver.options import META, option, pos_float
 
 from ..run import RunConfig
@@ -30,7 +30,11 @@ from .schema import Part, add_command
 class Record:
     """Where ``qradar record`` writes and what it records."""
 
-    output: Path = option(help="FILE.mcap", aliases=("-o",), required=True)
+    output: Path | None = option(None, "FILE.mcap (required unless --verify)", aliases=("-o",))
+    verify: tuple[Path, ...] | None = option(None, "record nothing: read each MCAP file whole, every chunk's CRC "
+                                             "checked, and print what it holds and lost (one JSON line each); exit 1 "
+                                             "if any is damaged, cut short or lost messages", many="+",
+                                             metavar="FILE")
     topics: str | None = option(None, "key expression (default <prefix>/**)")
     split_size_mb: float | None = option(None, "new file every MB megabytes", flag="--split-size", metavar="MB",
                                          parse=pos_float)
@@ -43,7 +47,8 @@ class Record:
 class Recover:
     """``qradar recover FILE -o NEW``."""
 
-    file: Path = option(help="the cut-short MCAP file (read, never changed)", positional=True, required=True)
+    file: Path = option(help="the cut-short or damaged MCAP file (read, never changed)", positional=True,
+                        required=True)
     output: Path = option(help="the recovered FILE.mcap (a new file)", aliases=("-o",), required=True)
 
 
@@ -62,21 +67,47 @@ def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
 
 
 RECORD_PARTS = [
-    Part(Record, only=("output", "topics", "split_size_mb", "split_duration_s", "scene")),
+    Part(Record, only=("output", "verify", "topics", "split_size_mb", "split_duration_s", "scene")),
     node_part("duration_s"), write_error_part("exit with status 2 (a recorder with nothing left to record ends)"),
     switches(force=force_help("the -o file")),
     node_part("quiet", "parent_pid", quiet="no status line every few seconds on stderr"), INTAKE, *zenoh_parts()]
 
 
 def add_commands(sub) -> None:
-    add_command(sub, "record", RECORD_PARTS, cmd_record, config_json=True, help="record radar/** from zenoh into MCAP")
+    add_command(sub, "record", RECORD_PARTS, cmd_record, config_json=True,
+                help="record radar/** from zenoh into MCAP (or --verify recordings)")
     add_command(sub, "recover", [Part(Recover), switches(force=force_help("the -o file"))], cmd_recover,
-                help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
-    add_command(sub, "replay", [Part(Recording), Part(PlayConfig, exclusive=(("rate", "fast"),), dests={"prefix": "replay_prefix"}), *zenoh_parts()],
+                help="rewrite a cut-short or damaged MCAP (e.g. after SIGKILL) as a complete, indexed file of every "
+                "message that reads back (damaged chunks are left out, and named)")
+    add_command(sub, "replay", [Part(Recording), Part(PlayConfig, exclusive=(("rate", "fast"),),
+                                                      dests={"prefix": "replay_prefix"}), *zenoh_parts()],
                 cmd_replay, help="publish an MCAP recording back onto zenoh")
 
 
+def cmd_verify(paths: list[Path]) -> int:
+    """``record --verify``: one JSON line per file on stdout, one line per damage on stderr;
+    1 when a file is not intact."""
+    bad = 0
+    for path in paths:
+        f = McapFile(path)
+        f.scan()
+        for line in f.damage_lines():
+            print(f"qradar record --verify: {path}: {line}", file=sys.stderr)
+        if f.truncated:
+            print(f"qradar record --verify: {path}: {f.truncation_reason} (qradar recover completes it)",
+                  file=sys.stderr)
+        bad += not f.intact
+        print(json.dumps(f.report()), flush=True)
+    return 1 if bad else 0
+
+
 def cmd_record(args) -> int:
+    if args.verify is not None:
+        if args.output is not None:
+            raise ReplayError("--verify checks files and records nothing: give -o or --verify, not both")
+        return cmd_verify(args.verify)
+    if args.output is None:
+        raise ReplayError("give -o FILE.mcap to record to (or --verify FILE to check a recording)")
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
@@ -102,7 +133,11 @@ def cmd_record(args) -> int:
 
 def cmd_recover(args) -> int:
     r = recover(args.file, args.output, overwrite=args.force)
-    print(json.dumps({"file": str(args.output), **r}))
+    if r["lost"] or r["damaged_chunks"] or r["problems"]:
+        print(f"qradar recover: {args.file}: {len(r['damaged_chunks'])} damaged chunk(s) left out of {args.output}, "
+              f"{r['lost']} messages lost {r['lost_by_topic']}; each named in the JSON line and in its "
+              "qradar.recovery metadata", file=sys.stderr)
+    print(json.dumps({**r, "source": str(args.file), "file": str(args.output)}))
     return 0
 
 
@@ -112,6 +147,7 @@ def cmd_replay(args) -> int:
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
     result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
+                      "lost": result.lost, "damaged_chunks": result.damaged,
                       "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None,
                       **audit.finish()}))
     return 0
