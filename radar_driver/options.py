@@ -77,7 +77,8 @@ class Option:
         """The command line's spellings (none for a positional argument)."""
         if self.positional:
             return []
-        return [self.flag or "--" + name.replace("_", "-"), *self.aliases]
+        short = [a for a in self.aliases if not a.startswith("--")]  # -o first, as argparse's usage shows it
+        return [*short, self.flag or "--" + name.replace("_", "-"), *(a for a in self.aliases if a not in short)]
 
 
 def option(default: Any = MISSING, help: str = "", *, default_factory: Any = MISSING, **kw) -> Any:
@@ -265,6 +266,8 @@ def read_value(opt: Option, hint: Any, value: Any) -> Any:
     if opt.many is not None:
         if not isinstance(value, list):
             raise OptionValueError(f"must be an array, not {_KIND_NAMES.get(_kind(value), _kind(value))}")
+        if isinstance(opt.many, int) and len(value) != opt.many:
+            raise OptionValueError(f"must be an array of {opt.many} values, not {len(value)}")
         items = [read_value(dataclasses.replace(opt, many=None), hint, v) for v in value]
         return [x for v in items for x in v] if opt.many == "extend" else items
     kinds = opt.kinds or file_kinds(hint) or frozenset({"str"})

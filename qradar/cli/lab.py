@@ -169,7 +169,8 @@ def type_words(e: Entry) -> str:
 
 
 def _cell(text: str) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
+    """Text for a Markdown table's cell (argparse's ``%%`` as ``%``)."""
+    return " ".join(str(text).replace("%%", "%").split()).replace("|", "\\|")
 
 
 def docs(schema: Schema, heading: str = "###") -> str:
@@ -199,3 +200,21 @@ def _table_entries(e: Entry) -> list[Entry]:
     from .schema import Part
 
     return Part(e.option.table).entries()
+
+
+#: where docs/lab.md holds the generated tables
+DOCS_BEGIN, DOCS_END = "<!-- schema: begin -->\n", "<!-- schema: end -->"
+
+
+def update_docs(path: Path) -> bool:
+    """Write the schema of ``qradar run``'s lab files between the markers of ``path``
+    (docs/lab.md); whether it changed."""
+    from .stream import RUN_PARTS
+
+    text = path.read_text()
+    head, _, rest = text.partition(DOCS_BEGIN)
+    _, _, tail = rest.partition(DOCS_END)
+    new = head + DOCS_BEGIN + docs(Schema("run", RUN_PARTS)) + DOCS_END + tail
+    path.write_text(new)
+    return new != text
+

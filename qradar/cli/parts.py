@@ -195,8 +195,7 @@ def zenoh_parts(modes: tuple[str, ...] = ("peer", "client")) -> list[Part]:
     """The session's options (``--mode`` among ``modes``, none for one mode) and ``--secure``."""
     only = ("config_file", "connect", "listen", "mode", "prefix") if len(modes) > 1 else \
         ("config_file", "connect", "listen", "prefix")
-    return [Part(BusConfig, "zenoh", only=only, change={"mode": {"choices": modes}}, defaults={"mode": modes[0]}
-                 if len(modes) > 1 else {}),
+    return [Part(BusConfig, "zenoh", only=only, change={"mode": {"choices": modes}}),
             Part(Security, "security", group="zenoh")]
 
 

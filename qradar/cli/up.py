@@ -44,6 +44,7 @@ from replay.recorder import default_recording_path
 
 from ..drivers import NodeProcess, SupervisedDriver
 from ..run import REAL_SENSOR_K, load_truth
+from ..sensors import check_sensor_specs
 from ..rundir import remove_run_dirs, run_directory
 from . import lab
 from .common import StopOnSignals
@@ -198,7 +199,8 @@ def source_nodes(args, base: dict, hosts: dict) -> list[Node]:
         raise ParameterError("qradar up: empty = true (the empty chamber) is for `qradar run`'s simulated K-MD2s; "
                              "up's simulated sensors (qradar source) hold the scene's targets")
     if args.sensor_specs:
-        bus = BusConfig(**{k: base[k] for k in ("mode", "connect", "prefix", "config_file")})
+        bus = BusConfig(mode="client", connect=tuple(base["connect"]), prefix=base["prefix"],
+                        config_file=base["config_file"])
         return [Node(f"driver {s.sensor_id}", "drive", {
             **drive_values(s, bus, frames=args.frames, outstanding=args.outstanding or 1, parent_pid=os.getpid()),
             "secure": args.secure}, s.host or args.host_default) for s in args.sensor_specs]
@@ -221,6 +223,7 @@ def cmd_up(args) -> int:
             raise ParameterError(f"qradar up: no node of {args.lab} runs on host {host!r}; its hosts: "
                                  f"{', '.join(places)} ([hosts] in docs/lab.md)")
         check_reachable(run_args, nodes, host)
+        check_sensors(run_args)
         supervised = [supervise(n) for n in mine]
         try:
             run_nodes(supervised, duration, stop)
@@ -228,6 +231,18 @@ def cmd_up(args) -> int:
             pass
     print(json.dumps({"up": {"host": host, "nodes": {s.sensor_id: report(s) for s in supervised}}}), flush=True)
     return 0
+
+
+def check_sensors(args) -> None:
+    """Each sensor's id is its own; on each host, each port has one sensor and the sensors
+    make frames of one radar configuration (:func:`~qradar.sensors.check_sensor_specs`)."""
+    ids: dict[str, str] = {}
+    for s in args.sensor_specs:
+        if s.sensor_id in ids:
+            raise ParameterError(f"[[sensor]] id {s.sensor_id!r} is given twice; each sensor needs its own id")
+        ids[s.sensor_id] = s.host or args.host_default
+    for host in sorted(set(ids.values())):
+        check_sensor_specs(tuple(s for s in args.sensor_specs if (s.host or args.host_default) == host))
 
 
 def check_reachable(args, nodes: list[Node], host: str) -> None:
