@@ -61,7 +61,8 @@ docs-figures: $(STAMP)
 # The whole suite, slow tests included (CI runs this).
 # docs/lab.md's tables of the lab file's keys, from the options' definitions (tests/test_lab.py checks them).
 docs-lab: $(STAMP)
-	$(PY) -c 'from pathlib import Path; from qradar.cli.lab import update_docs; update_docs(Path("docs/lab.md"))'
+	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
+	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
 test: $(STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q

@@ -206,15 +206,13 @@ def _table_entries(e: Entry) -> list[Entry]:
 DOCS_BEGIN, DOCS_END = "<!-- schema: begin -->\n", "<!-- schema: end -->"
 
 
-def update_docs(path: Path) -> bool:
-    """Write the schema of ``qradar run``'s lab files between the markers of ``path``
-    (docs/lab.md); whether it changed."""
-    from .stream import RUN_PARTS
-
+def update_docs(path: Path, schema: Schema) -> bool:
+    """Write ``schema``'s tables (``qradar run``'s: a lab file's) between the markers of
+    ``path`` (docs/lab.md); whether it changed."""
     text = path.read_text()
     head, _, rest = text.partition(DOCS_BEGIN)
     _, _, tail = rest.partition(DOCS_END)
-    new = head + DOCS_BEGIN + docs(Schema("run", RUN_PARTS)) + DOCS_END + tail
+    new = head + DOCS_BEGIN + docs(schema) + DOCS_END + tail
     path.write_text(new)
     return new != text
 

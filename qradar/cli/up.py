@@ -98,9 +98,15 @@ class Node:
     values: dict
     host: str
 
-    def config(self) -> dict:
-        """The command's options as a lab file's mapping (what ``--config-json`` carries)."""
-        return Schema(self.command, NODE_PARTS[self.command]).mapping(self.values)
+    def config(self, start: int = 0) -> dict:
+        """The command's options as a lab file's mapping (what ``--config-json`` carries) for
+        its ``start``-th start: a recorder started again records to a new file
+        (``NAME-1.mcap``, ...), never over what it wrote before."""
+        values = self.values
+        if self.command == "record" and start:
+            out = Path(values["output"])
+            values = {**values, "output": out.with_name(f"{out.stem}-{start}{out.suffix}"), "force": False}
+        return Schema(self.command, NODE_PARTS[self.command]).mapping(values)
 
 
 def read_lab(path: Path):
@@ -225,6 +231,9 @@ def cmd_up(args) -> int:
         check_reachable(run_args, nodes, host)
         check_sensors(run_args)
         supervised = [supervise(n) for n in mine]
+        sources = [s for s, n in zip(supervised, mine) if n.command in ("drive", "source")]
+        if run_args.frames is not None and sources:  # as run: the set-up ends once its sensors' frames are sent
+            threading.Thread(target=lambda: ([s.done.wait() for s in sources], stop.set()), daemon=True).start()
         try:
             run_nodes(supervised, duration, stop)
         except KeyboardInterrupt:
@@ -265,9 +274,13 @@ def supervise(node: Node) -> SupervisedDriver:
         if node.command == "router":
             wait_listening(node.values["listen"], proc)
 
-    return SupervisedDriver(node.name, lambda _done: NodeProcess(node.command, node.config(), node.name,
-                                                                 on_start=started), on_event=say,
-                            what="it")
+    starts = []
+
+    def make(_frames_done: int) -> NodeProcess:
+        starts.append(None)
+        return NodeProcess(node.command, node.config(len(starts) - 1), node.name, on_start=started)
+
+    return SupervisedDriver(node.name, make, on_event=say, what="it")
 
 
 def wait_listening(endpoints: list[str], proc: NodeProcess, timeout_s: float = ROUTER_READY_S) -> bool:
