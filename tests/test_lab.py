@@ -256,3 +256,47 @@ def test_the_two_sensor_chamber_is_one_file_of_at_most_40_lines(tmp_path, capsys
     before = (ROOT / "docs" / "lab.md").read_text().split("<!-- lab: chamber2.toml -->")[0]
     figure = re.search(r"(\d+) lines", before.rstrip().rsplit("\n\n", 1)[-1])
     assert figure and int(figure.group(1)) == len(text.splitlines())  # the count the docs give is this file's
+
+
+def test_two_sensors_standing_apart_are_scored_against_one_measured_room(tmp_path):
+    """Two simulated K-MD2s on ptys, the second standing 1.2 m to the side and turned 15
+    deg (its simulator shows it the room's reflectors from there); one truth file measured
+    from the room's origin. With their poses in the lab file each is scored against the
+    truth as it sees it: both find both reflectors; without, the second misses one."""
+    import subprocess
+    import sys
+
+    from qradar.liveview import seen_from
+    from radar_driver.scene import resolve_scene
+    from radar_driver.simulator import SimulatorServer
+
+    room = resolve_scene("chamber-ideal")
+    pose = (0.0, 1.2, -15.0)
+    (tmp_path / "measured.toml").write_text("".join(f"[[target]]\nrange_m = {t.range_m}\nangle_deg = {t.angle_deg}\n"
+                                                    for t in room.targets))
+    sims = [SimulatorServer(scene, link_path=tmp_path / f"kmd2-{i}", rate_hz=20.0, seed=i, hold_clock_when_late=True)
+            for i, scene in enumerate((room, seen_from(room, pose)))]
+    text = ('truth = "measured.toml"\nframes = 30\njson = true\n\n[recording]\nno-record = true\n'
+            + "".join(f'\n[[sensor]]\nurl = "{tmp_path / f"kmd2-{i}"}"\nid = "kmd2-{i}"\npose = {list(p)}\n'
+                      for i, p in enumerate(((0.0, 0.0, 0.0), pose))))
+    (tmp_path / "lab.toml").write_text(text)
+    (tmp_path / "unposed.toml").write_text(re.sub(r"pose = .*\n", "", text))
+    for sim in sims:
+        sim.start()
+    try:
+        out = {}
+        for name in ("lab", "unposed"):
+            proc = subprocess.run([sys.executable, "-m", "qradar", "run", f"{name}.toml"], cwd=tmp_path,
+                                  capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+            assert proc.returncode == 0, proc.stderr[-3000:]
+            out[name] = json.loads(proc.stdout)
+    finally:
+        for sim in sims:
+            sim.stop()
+    posed, unposed = out["lab"]["score"], out["unposed"]["score"]
+    assert posed["frames"] >= 50 and min(t["detection_rate"] for t in posed["targets"]) > 0.9, posed
+    assert out["lab"]["position_error_m"]["median"] < 0.3, out["lab"]["position_error_m"]
+    # unposed, the second sensor's frames are scored against the room as the first sees it: its view of the far
+    # reflector lies 1.2 m from there, missed in half the frames
+    assert min(t["detection_rate"] for t in unposed["targets"]) < 0.6, unposed
+    assert out["unposed"]["position_error_m"]["median"] > 2 * out["lab"]["position_error_m"]["median"]
