@@ -118,8 +118,8 @@ class RunConfig:
         parse=SensorSpec.parse, table=SensorSpec)
     truth: str | Path | None = option(
         None, "a scene file whose targets are the reflectors' true (measured) positions (a sensor with a pose in a lab "
-        "file's [[sensor]] table sees them from where it stands): the live lines and the summary give the position errors "
-        "against them (only the targets' ranges and angles count). Default: the simulated scene; with --sensor, no "
+        "file's [[sensor]] table sees them from where it stands): the live lines and the summary give the position "
+        "errors against them (only the targets' ranges and angles count). Default: the simulated scene; with --sensor, no "
         "error", metavar="SCENE.toml", kinds=frozenset({"str"}))
     calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
     # the localizer's range gate, m (None: the radar's default, pipeline.dsp.gate.RangeGate.default)

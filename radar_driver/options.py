@@ -45,14 +45,15 @@ class Option:
     whose name without dashes is its key in a lab file (default: the field's name, ``_``
     as ``-``). aliases: other spellings on the command line (``-o``, ``--dither-seed``).
     parse: text -> value, raising ValueError with what it expected (None: by the field's
-    type). many: ``"append"`` (repeated, one value each), ``"extend"`` (repeated, a
-    list each), ``"+"``, ``"*"`` or a count (values in a row); a list in a file. scale: the field holds the option's value times
-    this (``--queue-mb`` in MB, the field in bytes). negate: a switch that sets the
-    field False (``--driver-in-process``: ``driver_process``). positional: an argument
-    without a flag. required: no default. cli: False for a key of lab files only (a
-    sensor's pose). table: the values are tables of this dataclass in a file (a lab
-    file's ``[[sensor]]``), text for ``parse`` on a command line. kinds: the TOML types
-    a file value may have (default: from the field's annotation, :func:`file_kinds`)."""
+    type). many: ``"append"`` (repeated, one value each), ``"extend"`` (repeated, a list
+    each), ``"+"``, ``"*"`` or a count (values in a row); a list in a file. scale: the
+    field holds the option's value times this (``--queue-mb`` in MB, the field in bytes).
+    negate: a switch that sets the field False (``--driver-in-process``:
+    ``driver_process``). positional: an argument without a flag. required: no default.
+    cli: False for a key of lab files only (a sensor's pose). table: the values are tables
+    of this dataclass in a file (a lab file's ``[[sensor]]``), text for ``parse`` on a
+    command line. kinds: the TOML types a file value may have (default: from the field's
+    annotation, :func:`file_kinds`)."""
 
     help: str = ""
     flag: str | None = None

@@ -187,7 +187,8 @@ def test_a_missing_file_is_one_line(tmp_path, capsys):
 
 
 def test_the_lines_of_keys_in_tables_arrays_and_after_multi_line_strings():
-    text = ('a = 1\ns = """x\ny = 2\n"""\n[t]\n"b" = 2\n[[arr]]\nc = 3\n[[arr]]\n  c = 4 # comment\n[t2]\nd = [\n 1,\n]\n')
+    text = ('a = 1\ns = """x\ny = 2\n"""\n[t]\n"b" = 2\n[[arr]]\nc = 3\n[[arr]]\n  c = 4 # comment\n'
+            '[t2]\nd = [\n 1,\n]\n')
     lines = lab.key_lines(text)
     assert lines[("a",)] == 1 and ("y",) not in lines and lines[("t", "b")] == 6
     assert lines[("arr", 0, "c")] == 8 and lines[("arr", 1, "c")] == 10 and lines[("arr", 1)] == 9

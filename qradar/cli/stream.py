@@ -110,8 +110,8 @@ def add_commands(sub) -> None:
                 f"--listen, else on the --zenoh-config file's listen/endpoints, else on {ROUTER_LISTEN} "
                 f"({ROUTER_LISTEN_SECURE} with --secure).")
     add_command(
-        sub, "run", RUN_PARTS, cmd_run, lab=True, help="the main job: K-MD2 (simulated, or real with --sensor) -> driver -> "
-        "quantize -> localize over zenoh",
+        sub, "run", RUN_PARTS, cmd_run, lab=True,
+        help="the main job: K-MD2 (simulated, or real with --sensor) -> driver -> quantize -> localize over zenoh",
         description="Simulated K-MD2(s) on ptys, or real sensors on their ports (--sensor), the serial driver of "
         f"each, the 1-bit dithered quantizer and the localizer (--algo, default {DEFAULT_ALGO}) over an embedded "
         "zenoh peer; live targets beside the true positions (the simulated scene's, or --truth's), then a summary. "
