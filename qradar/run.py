@@ -211,16 +211,8 @@ def plan(cfg: RunConfig) -> Plan:
         scene = scene.without_targets()
     truth = load_truth(cfg.truth) if cfg.truth is not None else scene
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
-    calibration = None
-    if cfg.calibration is not None:  # a file for other sensors: refused before anything starts
-        calibration = load_calibration(cfg.calibration)
-        for sid in ([s.sensor_id for s in cfg.sensor_specs] if cfg.real else
-                    [f"kmd2-{i}" for i in range(cfg.sensors)]):
-            calibration.check_sensor(sid)
-    if cfg.record is not None and not cfg.record_new_name_if_taken:  # before anything starts
-        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
-            raise RecordingExists.at(cfg.record)
-        check_new_file(cfg.record, cfg.record_overwrite, "recording")  # its folder, one level at most
+    calibration = check_calibration(cfg)
+    check_record(cfg)
     if scene is not None:
         k = cfg.k or max(1, len(scene.targets))
     else:
@@ -235,6 +227,25 @@ def plan(cfg: RunConfig) -> Plan:
         cfg = replace(cfg, sensor_specs=resolve_auto(cfg.sensor_specs))  # --sensor auto: the one K-MD2 found
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     return Plan(cfg, scene, truth, truths, radar, calibration, localizer)
+
+
+def check_calibration(cfg: RunConfig) -> Calibration | None:
+    """The run's calibration file (None: none), refused when it has no entry for one of its sensors."""
+    if cfg.calibration is None:
+        return None
+    calibration = load_calibration(cfg.calibration)
+    for sid in [s.sensor_id for s in cfg.sensor_specs] if cfg.real else [f"kmd2-{i}" for i in range(cfg.sensors)]:
+        calibration.check_sensor(sid)
+    return calibration
+
+
+def check_record(cfg: RunConfig) -> None:
+    """A recording's file given by name: refused if it exists (unless ``record_overwrite``)
+    or its folder cannot be made (one level at most)."""
+    if cfg.record is not None and not cfg.record_new_name_if_taken:
+        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
+            raise RecordingExists.at(cfg.record)
+        check_new_file(cfg.record, cfg.record_overwrite, "recording")
 
 
 def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> RunSummary:

@@ -136,19 +136,25 @@ def toml_value(value: Any) -> str:
 def dumps(mapping: Mapping[str, Any], header: str = "") -> str:
     """TOML text of a lab file's mapping: its top-level keys, its arrays of tables, then
     its tables (in the mapping's order)."""
-    lines = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
-    scalars = {k: v for k, v in mapping.items() if not isinstance(v, (dict, list)) or isinstance(v, list)
-               and not (v and all(isinstance(x, dict) for x in v))}
-    for k, v in scalars.items():
-        lines.append(f"{toml_key(k)} = {toml_value(v)}")
-    for k, v in mapping.items():
-        if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
-            for item in v:
-                lines += ["", f"[[{toml_key(k)}]]"] + [f"{toml_key(a)} = {toml_value(b)}" for a, b in item.items()]
-    for k, v in mapping.items():
-        if isinstance(v, dict):
-            lines += ["", f"[{toml_key(k)}]"] + [f"{toml_key(a)} = {toml_value(b)}" for a, b in v.items()]
+    lines = [f"# {h}" if h else "#" for h in header.splitlines()]
+    arrays = {k: v for k, v in mapping.items() if _tables(v)}
+    tables = {k: v for k, v in mapping.items() if isinstance(v, dict)}
+    lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in mapping.items() if k not in arrays and k not in tables]
+    for k, items in arrays.items():
+        for item in items:
+            lines += ["", f"[[{toml_key(k)}]]", *_pairs(item)]
+    for k, table in tables.items():
+        lines += ["", f"[{toml_key(k)}]", *_pairs(table)]
     return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _tables(value: Any) -> bool:
+    """An array of tables (``[[name]]``)."""
+    return isinstance(value, list) and bool(value) and all(isinstance(x, dict) for x in value)
+
+
+def _pairs(table: Mapping[str, Any]) -> list[str]:
+    return [f"{toml_key(k)} = {toml_value(v)}" for k, v in table.items()]
 
 
 # -- documentation ------------------------------------------------------------------------------------

@@ -312,16 +312,7 @@ class Schema:
 
     def _read_one(self, e: Entry | None, path: tuple, value: Any, where, out: dict) -> None:
         if e is not None and e.option.table is not None and isinstance(value, list):
-            items = []
-            for i, item in enumerate(value):
-                if not isinstance(item, dict):
-                    raise LabError(f"{where(path)}: {e.key} must be an array of tables ([[{e.key}]])")
-                try:
-                    items.append(read_table(e.option.table, item))
-                except LabError as exc:
-                    at = where((*path, i) if exc.key is None else (*path, i, exc.key))
-                    raise LabError(f"{at}: [[{e.key}]] {i + 1}: {exc}") from None
-            out[e.dest] = items
+            out[e.dest] = _read_tables(e, path, value, where)
             return
         if e is None and len(path) == 1 and isinstance(value, dict):
             raise LabError(f"{where(path)}: unknown table [{path[0]}]; tables: {', '.join(self.tables)}")
@@ -340,16 +331,32 @@ class Schema:
 
     def mapping(self, values: Mapping[str, Any], skip_defaults: bool = False) -> dict[str, Any]:
         """The file's nested mapping of ``values`` (by dest): top-level keys, then a
-        table each (values None left out: a file has no null)."""
+        table each (values None left out: a file has no null; empty lists and the
+        defaults of keys of files only too, and every default with ``skip_defaults``)."""
         out: dict[str, Any] = {}
         for e in self.entries:
             if e.dest not in values:
                 continue
             value = values[e.dest]
-            if value is None or (skip_defaults and value == e.default) or (value == [] and not e.default):
+            if value is None or value == [] and not e.default or (skip_defaults or not e.option.cli) \
+                    and value == e.default:  # (a key of files only, e.g. [hosts], is written when set)
                 continue
             (out.setdefault(e.table, {}) if e.table else out)[e.key] = e.show(value)
         return out
+
+
+def _read_tables(e: Entry, path: tuple, value: list, where: Callable[[tuple], str]) -> list:
+    """An array of tables of ``e``'s dataclass (``[[sensor]]``), each item's mistake at its line."""
+    items = []
+    for i, item in enumerate(value):
+        if not isinstance(item, dict):
+            raise LabError(f"{where(path)}: {e.key} must be an array of tables ([[{e.key}]])")
+        try:
+            items.append(read_table(e.option.table, item))
+        except LabError as exc:
+            at = where((*path, i) if exc.key is None else (*path, i, exc.key))
+            raise LabError(f"{at}: [[{e.key}]] {i + 1}: {exc}") from None
+    return items
 
 
 def _short(value: Any) -> str:
