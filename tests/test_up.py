@@ -82,6 +82,10 @@ def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
     assert set(nodes) == {"router", "record", "localize", "quantize", "sources"} and report["host"] == "localhost"
     assert all(n["restarts"] == 0 and n["exit_code"] == 0 for n in nodes.values()), nodes
     assert nodes["localize"]["summary"]["frames_out"] >= 30 and nodes["record"]["summary"]["written"] >= 90
+    # each node starts once the one before it is alive: the sensors' first frames reach the localizer
+    sent = nodes["sources"]["summary"]["frames_out"]
+    assert nodes["localize"]["summary"]["frames_in"] >= 0.9 * sent and nodes["quantize"]["summary"]["frames_in"] \
+        >= 0.9 * sent, (sent, nodes["quantize"]["summary"], nodes["localize"]["summary"])
     assert not any(alive(p) for p in pids.values()) and not socket_dir.exists()
     topics = recorded(tmp_path / "up.mcap")
     assert all(topics.count(f"radar/kmd2-0/{t}") >= 30 for t in ("raw", "quantized", "targets")), len(topics)

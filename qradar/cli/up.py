@@ -230,7 +230,11 @@ def cmd_up(args) -> int:
                                  f"{', '.join(places)} ([hosts] in docs/lab.md)")
         check_reachable(run_args, nodes, host)
         check_sensors(run_args)
-        supervised = [supervise(n) for n in mine]
+        router = next(n for n in nodes if n.name == "router")
+        connect = tuple(next(n for n in nodes if n is not router).values["connect"])
+        ready = Readiness(None if run_args.secure is not None or router.host != host else BusConfig(
+            mode="client", connect=connect, prefix=run_args.prefix))
+        supervised = [supervise(n, ready) for n in mine]
         sources = [s for s, n in zip(supervised, mine) if n.command in ("drive", "source")]
         if run_args.frames is not None and sources:  # as run: the set-up ends once its sensors' frames are sent
             threading.Thread(target=lambda: ([s.done.wait() for s in sources], stop.set()), daemon=True).start()
@@ -238,6 +242,8 @@ def cmd_up(args) -> int:
             run_nodes(supervised, duration, stop)
         except KeyboardInterrupt:
             pass
+        finally:
+            ready.close()
     print(json.dumps({"up": {"host": host, "nodes": {s.sensor_id: report(s) for s in supervised}}}), flush=True)
     return 0
 
@@ -263,24 +269,72 @@ def check_reachable(args, nodes: list[Node], host: str) -> None:
                              "[\"tcp/0.0.0.0:7447\"] for the router)")
 
 
-def supervise(node: Node) -> SupervisedDriver:
-    """``node`` as a child process, started again with backoff when it dies; the router's
-    start waits (a bounded time) until it listens, so that the others find it."""
-    def say(name: str, state: str, detail: str) -> None:
-        print(f"qradar up: {name}: {detail}", file=sys.stderr, flush=True)
+def say(name: str, state: str, detail: str) -> None:
+    print(f"qradar up: {name}: {detail}", file=sys.stderr, flush=True)
+
+
+def supervise(node: Node, ready: "Readiness") -> SupervisedDriver:
+    """``node`` as a child process, started again with backoff when it dies. Its start
+    waits (a bounded time) until it can take what the next ones send: the router until it
+    listens, a node until its liveliness token is seen (it subscribes as it declares it),
+    so that the sensors, started last, lose no frame to a node still loading."""
+    starts = []
+
+    def make(_frames_done: int) -> NodeProcess:
+        starts.append(ready.count(node.command))
+        return NodeProcess(node.command, node.config(len(starts) - 1), node.name, on_start=started)
 
     def started(proc: NodeProcess) -> None:
         say(node.name, "started", f"started (pid {proc.pid}) on {node.host}")
         if node.command == "router":
             wait_listening(node.values["listen"], proc)
-
-    starts = []
-
-    def make(_frames_done: int) -> NodeProcess:
-        starts.append(None)
-        return NodeProcess(node.command, node.config(len(starts) - 1), node.name, on_start=started)
+            ready.open()
+        elif not ready.wait(node.command, starts[-1], proc):
+            say(node.name, "started", f"not seen alive within {NODE_READY_S:g} s; going on")
 
     return SupervisedDriver(node.name, make, on_event=say, what="it")
+
+
+#: a node's liveliness token, by command (pipeline.nodes.runtime.Node.name)
+TOKEN = {"quantize": "quantize", "localize": "localize", "record": "record", "view": "view", "source": "source",
+         "drive": "source"}
+#: how long up waits for a node to be alive before it starts the next, s
+NODE_READY_S = 30.0
+
+
+class Readiness:
+    """``up``'s own zenoh session, a client of its router (none under ``--secure``, where
+    ``up`` has no identity of its own, nor on a host without the router): the liveliness
+    tokens of its nodes, counted by kind."""
+
+    def __init__(self, bus: BusConfig | None):
+        self.bus, self.session = bus, None
+
+    def open(self) -> None:
+        if self.bus is not None and self.session is None:
+            self.session = self.bus.open()
+
+    def count(self, command: str) -> int:
+        if self.session is None or command not in TOKEN:
+            return 0
+        key = f"{self.bus.prefix}/alive/{TOKEN[command]}/**"
+        return sum(r.ok is not None for r in self.session.liveliness().get(key, timeout=0.5))
+
+    def wait(self, command: str, before: int, proc: NodeProcess, timeout_s: float = NODE_READY_S) -> bool:
+        """Until a token of ``command``'s kind more than ``before`` is seen (True), ``proc``
+        ends or ``timeout_s`` (False); at once without a session."""
+        if self.session is None or command not in TOKEN:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and proc.returncode is None:
+            if self.count(command) > before:
+                return True
+        return False
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None
 
 
 def wait_listening(endpoints: list[str], proc: NodeProcess, timeout_s: float = ROUTER_READY_S) -> bool:
