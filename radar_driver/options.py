@@ -25,16 +25,14 @@ from dataclasses import MISSING, dataclass
 from pathlib import Path
 from typing import Any, Callable, Literal
 
+from .errors import OptionValueError
+
 __all__ = ["MISSING", "META", "Option", "OptionValueError", "option", "like", "options_of", "read_value", "read_text",
            "pos_int", "nonneg_int", "pos_float", "nonneg_float", "finite_float", "prob", "file_kinds",
            "with_value"]
 
 #: the metadata key of a field's Option
 META = "qradar.option"
-
-
-class OptionValueError(ValueError):
-    """A value that does not read: the message says what was expected (and what came)."""
 
 
 @dataclass(frozen=True)
