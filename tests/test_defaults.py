@@ -8,7 +8,6 @@ import inspect
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from pipeline import defaults
 from pipeline.dsp.decode import ALGOS, DEFAULT_ALGO, DEFAULT_ALPHA, DecoderConfig, default_alpha

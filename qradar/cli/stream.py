@@ -33,7 +33,7 @@ from .parts import (CALIBRATION, GATE, HOSTS, INTAKE, QUEUE, SERVE, TRACKS, coun
                     edge_quantizer, force_help, node_part, quantizer_of, quantizer_part, switches, tracker_of,
                     zenoh_parts)
 from .schema import Part, add_command, values_of
-from .view import VIEWS, Views, poses_of, web_config
+from .view import Views, poses_of, web_config
 
 NODE_HELP = {
     "quantize": "node: radar/*/raw -> dithered b-bit quantization -> radar/<sensor>/quantized",
