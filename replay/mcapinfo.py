@@ -247,8 +247,11 @@ def format_info(info: dict) -> str:
     lines.append(f"  quantizer     {_dict(info['quantizer'])}")
     lines.append(f"  decoder       {_dict(info['decoder'])}")
     cal = info["calibration"]
-    lines.append("  calibration   " + ("none (uncalibrated)" if cal is None else
-                                      f"{cal['file']} ({len(cal.get('entries', []))} entries)"))
+    if cal is None:
+        lines.append("  calibration   none (uncalibrated)")
+    else:
+        ids = [str(e.get("sensor_id")) for e in cal.get("entries", []) if isinstance(e, dict)]
+        lines.append(f"  calibration   {cal['file']} (entries for {', '.join(ids) or 'no sensor'})")
     truth = info["truth"]
     if truth is None:
         lines.append("  truth         none")

@@ -56,11 +56,14 @@ def zenoh_session(bus):
 
 @pytest.fixture(scope="session")
 def track_recording(tmp_path_factory) -> list[Path]:
-    """The files of a real ``qradar run --track --record`` of 3 s (one simulated sensor, PBP),
-    split every 0.1 MB: ``run.mcap``, ``run_0001.mcap``, ... (at least two), in order."""
+    """The files of a real ``qradar run --track --record`` of 3 s (one simulated sensor, PBP,
+    calibrated with recordings/chamber-cal.json), split every 0.1 MB: ``run.mcap``,
+    ``run_0001.mcap``, ... (at least two), in order."""
     folder = tmp_path_factory.mktemp("track-recording")
+    calibration = Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json"
     proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--track", "--algo", "pbp",
-                           "--split-size", "0.1", "--record", str(folder / "run.mcap"), "--json"],
+                           "--calibration", str(calibration), "--split-size", "0.1",
+                           "--record", str(folder / "run.mcap"), "--json"],
                           capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)
     assert proc.returncode == 0, proc.stderr[-2000:]
     files = sorted(folder.glob("run*.mcap"))

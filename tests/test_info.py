@@ -75,7 +75,9 @@ def test_a_run_recording_and_its_split_set(track_recording):
         assert info["radar"]["config_id"] == RadarConfig().config_id()
         assert info["quantizer"]["alpha"] == 0.55 and info["quantizer"]["bits"] == 1
         assert info["decoder"]["algo"] == "pbp" and info["decoder"]["K"] == 2
-        assert info["calibration"] is None and info["truth"]["simulated"] is True
+        cal = info["calibration"]
+        assert cal["file"].endswith("chamber-cal.json") and [e["sensor_id"] for e in cal["entries"]] == ["kmd2-0"]
+        assert info["truth"]["simulated"] is True
         assert [t["range_m"] for t in info["truth"]["targets"]] == [4.87, 9.23]
         assert info["recorder"]["part"] == part and info["split"] == [str(p) for p in track_recording]
         rec = info["losses"]["recorder"]
@@ -88,6 +90,7 @@ def test_a_run_recording_and_its_split_set(track_recording):
     text = qradar("info", track_recording[0])
     assert text.returncode == 0
     for words in ("radar/kmd2-0/tracks", "Hz", "quantizer", "alpha 0.55", "decoder", "algo pbp", "recovered     no",
+                  "chamber-cal.json (entries for kmd2-0)",
                   f"split         {len(track_recording)} files", "refused_shape 0", "(local "):
         assert words in text.stdout, words
 
