@@ -13,8 +13,8 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
 	# cml's and the dither's compiled kernels, into numba's on-disk cache: a node's first frame then loads them (~0.5 s)
-	$(PY) -c 'from pipeline.dsp.cml import warm_up_kernels; warm_up_kernels(wait=True)'
-	$(PY) -c 'from pipeline.dsp.dither import warm_up; warm_up()'
+	$(PY) -c 'from pipeline.dsp.cml import load_kernels; load_kernels()'
+	$(PY) -c 'from pipeline.dsp.dither import load_kernel; load_kernel()'
 	@touch $(STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
