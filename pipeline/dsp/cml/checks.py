@@ -3,7 +3,7 @@ targets, the noise and the warm start's ranges, each as the decoder takes it (:c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,8 +20,7 @@ NOT_LEVELS = ("cml: Z is not a {bits}-bit quantized frame of step delta: its rea
               "delta (q + 1/2) with q an integer in [{lo}, {hi}]")
 
 
-@dataclass(frozen=True)
-class Frames:
+class Frames(NamedTuple):
     """Checked frames: ``z`` (B, M, 2) complex or the quantizer's codes (B, M, 2, 2) integers,
     their dither ``xi`` (B, M, 2) complex (zeros without one) and step ``delta`` (B,) (both
     None unquantized), ``bits`` (None: unquantized), ``noise_sigma`` (B,) or None, and

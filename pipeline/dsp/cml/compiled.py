@@ -10,12 +10,12 @@ from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.count import COUNT_GUARD_BINS
-from pipeline.dsp.cml.detect import Buffers, Search, add_target, statistic
-from pipeline.dsp.cml.fit import empty_fit, finish_fit, fit_result, report, run, steps, targets
+from pipeline.dsp.cml.detect import Buffers, Search, add_target, decision, statistic
+from pipeline.dsp.cml.fit import empty_fit, finish_fit, fit_result, new_fit, report, run, steps, targets
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, COARSE_RHO, MIN_SEPARATION_BINS, SearchGrid, run_tables, twiddles
 from pipeline.dsp.cml.kernels.layout import Gate, Grid
 from pipeline.dsp.cml.kernels.search import gate_edge, gate_weights
-from pipeline.dsp.cml.kernels.stages import warm
+from pipeline.dsp.cml.kernels.entry import warm
 from pipeline.dsp.cml.likelihood import block_codes, check_in_kernel, evaluate_fit
 from pipeline.dsp.cml.options import CmlOptions
 from pipeline.dsp.cml.result import CmlResult
@@ -51,9 +51,9 @@ class CompiledBlocks:
                 weights, edges = np.empty(lc + 1), np.empty(lc, dtype=bool)
                 inside = int(gate_weights(outside, tables, lc, weights))
                 gate_edge(outside, lc, edges)
-        search = Search(grid, Gate(grid.use, float(grid.lo), float(grid.hi), outside, edges),
-                        Grid(grid.oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS, COARSE_RHO, table, tables, weights,
-                             inside), self._buffers)
+        gate = Gate(grid.use, float(grid.lo), float(grid.hi), outside, edges)
+        kernel = Grid(grid.oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS, COARSE_RHO, table, tables, weights, inside)
+        search = Search(grid, tuple(gate), tuple(kernel), tuple(report(self.config, not grid.use)), self._buffers)
         if len(self._searches) >= 16:
             self._searches.clear()
         self._searches[id(grid)] = (grid, search)
@@ -75,24 +75,25 @@ class CompiledBlocks:
         codes = block_codes(frames, n, self.options.likelihood)
         fit = empty_fit(b, n)
         sigma, floor, amp_cap = start(frames)
-        active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
+        # active: the frames whose residual may still hold a target; as plain tuples, read by the kernels only
+        found = tuple(decision(b, threshold, np.ones(b, dtype=bool)))
         if threshold is not None:
             fit = evaluate_fit(codes, fit, sigma)  # the score of the empty model, for the first count test
-        greedy = steps(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
+        greedy = tuple(steps(np.repeat(sigma[:, None], iters, axis=1), amp_cap))
         for _ in range(k):
-            found, fit = add_target(codes, fit, search, threshold, active, greedy, sigma)
-            if not found:
+            grew, fit = add_target(codes, fit, search, found, greedy, sigma)
+            if not grew:
                 break
         if frames.bits is not None and anneal:
             plan = steps(anneal_levels(sigma, floor, anneal), amp_cap, adapt=frames.noise_sigma is None)
             if fit.nu.shape[1]:  # the annealing and the result in one kernel call
-                return finish_fit(codes, fit, plan, search.gate, self.config, k)
+                return finish_fit(codes, fit, plan, search.gate, search.report, k)
             fit = run(codes, fit, plan, search.gate)
             sigma = fit.sigma
         if frames.bits is None:
             fit = run(codes, fit, steps(np.ones((b, anneal)), amp_cap), search.gate)  # least squares: polish
             sigma = None
-        return fit_result(codes, fit, search.gate, self.config, k, sigma)
+        return fit_result(codes, fit, search.report, k, sigma)
 
     def warm(self, frames: Frames, k: int, init: np.ndarray, grid: SearchGrid,
              at: float) -> tuple[CmlResult, np.ndarray, np.ndarray]:
@@ -117,9 +118,10 @@ class CompiledBlocks:
             plan = steps(warm_levels(sigma, floor, anneal) if anneal else np.empty((b, 0)), amp_cap,
                          adapt=frames.noise_sigma is None)
         out = targets(b, k)
-        fit = warm(codes.kernel, nu_all, live_all, int(live_all.sum(axis=1).max()),
-                   steps(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap), plan, sigma, search.gate,
-                   report(self.config, search.gate), out)
+        fit = new_fit(b, int(live_all.sum(axis=1).max()), n)
+        first = steps(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
+        warm(codes.args, (nu_all, live_all), tuple(first), tuple(plan), sigma, search.gate, search.report, tuple(out),
+             tuple(fit))
         sigma = fit.sigma if frames.bits is not None else residual_rms(codes.y, fit.mu.reshape(b, n, 2, 2))
         res = CmlResult(out.range_m, out.amp, out.stat, sigma, out.present)
         return res, fit.live.sum(axis=1), statistic(codes, fit, search, at)

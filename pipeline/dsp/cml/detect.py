@@ -14,15 +14,20 @@ sits on the few codes the current model gets wrong, which is far less noisy than
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, SearchGrid
-from pipeline.dsp.cml.kernels import stages
-from pipeline.dsp.cml.kernels.detect import detect
-from pipeline.dsp.cml.kernels.layout import Decision, Fit, Gate, Grid, Sources, Steps
-from pipeline.dsp.cml.likelihood import BlockCodes, array
+from pipeline.dsp.cml.fit import new_fit
+from pipeline.dsp.cml.kernels import entry, stages
+from pipeline.dsp.cml.kernels.layout import Decision, Fit
+from pipeline.dsp.cml.likelihood import BlockCodes
+
+try:  # scipy's FFT, imported with the compiled engine (not with cml: importing scipy costs the others' start-up)
+    from scipy.fft import ifft as _INVERSE
+except ImportError:
+    _INVERSE = np.fft.ifft
 
 
 class Buffers:
@@ -48,30 +53,29 @@ class Buffers:
         return buf[:b]
 
 
-@dataclass(frozen=True)
-class Search:
+class Search(NamedTuple):
     """A detection grid as the kernels read it: the grid (:class:`~pipeline.dsp.cml.grid.SearchGrid`),
-    its range gate and constants (:data:`~pipeline.dsp.cml.kernels.layout.Gate`,
-    :data:`~pipeline.dsp.cml.kernels.layout.Grid`) and the decoder's buffers."""
+    its range gate, its constants and what a result needs of the radar (the kernels'
+    :data:`~pipeline.dsp.cml.kernels.layout.Gate`, :data:`~pipeline.dsp.cml.kernels.layout.Grid`
+    and :data:`~pipeline.dsp.cml.kernels.layout.Report` as plain tuples, as the entry kernels
+    take them, :mod:`pipeline.dsp.cml.kernels.entry`) and the decoder's buffers."""
 
     grid: SearchGrid
-    gate: Gate
-    kernel: Grid
+    gate: tuple
+    kernel: tuple
+    report: tuple
     buffers: Buffers
 
 
 def ifft(x: np.ndarray) -> np.ndarray:
     """Inverse FFT along the last axis: scipy's when it imports (the same pocketfft as numpy's,
     with less overhead a call: most of a frame's FFT cost at B = 1), else numpy's."""
-    try:
-        from scipy.fft import ifft as inverse
-    except ImportError:
-        inverse = np.fft.ifft
-    return inverse(x, axis=-1)
+    return _INVERSE(x, axis=-1)
 
 
-def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, given: bool, decide: bool) -> Sources:
-    """What the detect kernel reads: the linear residual, the inverse FFTs of the sources it
+def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, given: bool, decide: bool) -> tuple:
+    """What the detect kernel reads (a :data:`~pipeline.dsp.cml.kernels.layout.Sources` as a
+    plain tuple): the linear residual, the inverse FFTs of the sources it
     needs (the linear residual for the count test or the first detection; the likelihood's
     score for the count test of quantized frames and later detections), how many the count
     test reads (``count``) and which one detection reads (``given``: none, the range is
@@ -91,23 +95,30 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
                    with_score, y.view(float).reshape(b, n, 4), buf)
     count_sources = buf.shape[1]
     u = ifft(buf) if count_sources else buf
-    return Sources(u, buf, y, codes.ramps, count_sources if count else 0,
-                   -1 if given else count_sources - 1 if on_score else 0)
+    # the kernels' Sources, as a plain tuple (the entry kernels take those)
+    return u, buf, y, codes.ramps, count_sources if count else 0, -1 if given else count_sources - 1 if on_score else 0
 
 
-def add_target(codes: BlockCodes, fit: Fit, search: Search, threshold: float | None, active: np.ndarray,
-               plan: Steps, sigma: np.ndarray) -> tuple[bool, Fit]:
-    """One greedy stage: the count test (``threshold``, linear; None: none) updating
-    ``active`` (B,) bool in place, the detection of a new target, its amplitudes and the
-    refinement steps ``plan`` at ``sigma`` (B,) of all the targets. Returns whether a frame
-    holds a new target, and the fit (unchanged when none does)."""
-    src = back_projections(codes, fit, search, threshold is not None, False, True)
-    b = fit.nu.shape[0]
-    decision = Decision(-1.0 if threshold is None else float(threshold), active, np.zeros(b), np.empty(b),
-                        np.empty((b, 2), dtype=complex))
-    found, new = stages.add_target(src, search.kernel, search.gate, fit, codes.kernel, plan, array(sigma, float),
-                                   decision)
-    return found, (new if found else fit)
+def decision(b: int, threshold: float | None, active: np.ndarray) -> Decision:
+    """The count test's ``threshold`` (linear; None: none) and ``active`` (B,) bool, and the
+    arrays detection writes, for ``b`` frames (reused by the greedy stages of a decode)."""
+    return Decision(-1.0 if threshold is None else float(threshold), active, np.zeros(b), np.empty(b),
+                    np.empty((b, 2), dtype=complex))
+
+
+def add_target(codes: BlockCodes, fit: Fit, search: Search, found: tuple, plan: tuple,
+               sigma: np.ndarray) -> tuple[bool, Fit]:
+    """One greedy stage: the count test (the :func:`decision` ``found``, as a plain tuple:
+    its threshold) updating its ``active`` (B,) bool in place, the detection of a new target,
+    its amplitudes (into ``found``) and the refinement steps ``plan`` (a plain tuple) at
+    ``sigma`` (B,) of all the targets. Returns whether a frame holds a new target, and the
+    fit (unchanged when none does)."""
+    src = back_projections(codes, fit, search, found[0] >= 0.0, False, True)
+    found[2].fill(0.0)  # the statistic
+    b, t = fit.nu.shape
+    new = new_fit(b, t + 1, fit.mu.shape[1])
+    grew = entry.add_target(src, search.kernel, search.gate, tuple(fit), codes.args, plan, sigma, found, tuple(new))
+    return grew, (new if grew else fit)
 
 
 def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndarray:
@@ -115,6 +126,6 @@ def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndar
     reaches ``at`` exactly when the exact statistic does (cheaper)."""
     src = back_projections(codes, fit, search, True, True, True)
     b = fit.nu.shape[0]
-    decision = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex))
-    detect(src, search.kernel, search.gate, fit.nu, fit.live, decision)
-    return decision.stat
+    test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex))
+    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(test))
+    return test.stat

@@ -19,9 +19,9 @@ import numpy as np
 
 from radar_driver.model import RadarConfig
 
-from pipeline.dsp.cml.kernels.layout import Fit, Gate, Report, Steps, Targets
-from pipeline.dsp.cml.kernels.refine import refine
-from pipeline.dsp.cml.kernels.stages import finish, result, sources
+from pipeline.dsp.cml.kernels.layout import Fit, Report, Steps, Targets
+from pipeline.dsp.cml.kernels.entry import finish, refine, result
+from pipeline.dsp.cml.kernels.stages import sources
 from pipeline.dsp.cml.likelihood import BlockCodes, array, evaluate_fit
 from pipeline.dsp.cml.options import MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA
 from pipeline.dsp.cml.result import CmlResult
@@ -31,9 +31,20 @@ from pipeline.dsp.localize import STATISTIC_CAP_DB
 
 def empty_fit(b: int, n: int) -> Fit:
     """No target yet in a block of ``b`` frames of ``n`` samples a ramp: the model is 0."""
-    nan = np.full(b, np.nan)
-    return Fit(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool), np.full(b, 1e-3),
-               nan, nan.copy(), np.zeros((b, n, 4)), np.zeros((b, n, 4)), np.zeros((b, n, 4)))
+    fit = new_fit(b, 0, n)
+    fit.mu.fill(0.0)
+    fit.nll.fill(np.nan)
+    return fit
+
+
+def new_fit(b: int, t: int, n: int) -> Fit:
+    """A fit of ``t`` targets to be filled by a kernel (``lm`` 1e-3, ``nll`` 0, ``sigma`` NaN: no
+    level evaluated yet, the first refinement step evaluates)."""
+    lm, nll, sigma = np.empty(b), np.zeros(b), np.empty(b)
+    lm.fill(1e-3)
+    sigma.fill(np.nan)
+    return Fit(np.empty((b, t)), np.empty((b, t, 2), dtype=complex), np.empty((b, t), dtype=bool), lm, nll, sigma,
+               np.empty((b, n, 4)), np.empty((b, n, 4)), np.empty((b, n, 4)))
 
 
 def steps(levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> Steps:
@@ -42,11 +53,11 @@ def steps(levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> Steps
     return Steps(array(levels, float), adapt, array(amp_cap, float), MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA)
 
 
-def run(codes: BlockCodes, fit: Fit, plan: Steps, gate: Gate) -> Fit:
+def run(codes: BlockCodes, fit: Fit, plan: Steps, gate: tuple) -> Fit:
     """``fit`` after the refinement steps ``plan``, its ``sigma`` the last level. Without a
     target only the level moves (not below the noise of the empty model when adapted)."""
     if fit.nu.shape[1]:
-        refine(codes.kernel, fit, plan, gate)
+        refine(codes.args, tuple(fit), tuple(plan), gate)
         return fit
     if plan.levels.shape[1] == 0:
         return fit
@@ -60,9 +71,9 @@ def run(codes: BlockCodes, fit: Fit, plan: Steps, gate: Gate) -> Fit:
     return evaluate_fit(codes, fit, sigma)
 
 
-def report(config: RadarConfig, gate: Gate) -> Report:
-    """What a result needs of the radar ``config`` and the range ``gate``."""
-    return Report(config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, not gate.use, STATISTIC_CAP_DB)
+def report(config: RadarConfig, wrap: bool) -> Report:
+    """What a result needs of the radar ``config``; ``wrap``: ranges modulo N bins (no gate)."""
+    return Report(config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, wrap, STATISTIC_CAP_DB)
 
 
 def targets(b: int, k: int) -> Targets:
@@ -70,24 +81,24 @@ def targets(b: int, k: int) -> Targets:
     return Targets(np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
 
 
-def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, gate: Gate, config: RadarConfig, k: int) -> CmlResult:
-    """The annealing's steps ``plan`` and the result (``k`` targets a frame), in one kernel call."""
+def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, gate: tuple, about: tuple, k: int) -> CmlResult:
+    """The annealing's steps ``plan`` inside ``gate`` and the result (``k`` targets a frame; ``about``:
+    the radar's :func:`report`), in one kernel call (the kernels' namedtuples as plain tuples)."""
     out = targets(fit.nu.shape[0], k)
-    finish(codes.kernel, fit, plan, gate, report(config, gate), out)
+    finish(codes.args, tuple(fit), tuple(plan), gate, about, tuple(out))
     return CmlResult(out.range_m, out.amp, out.stat, fit.sigma, out.present)
 
 
-def fit_result(codes: BlockCodes, fit: Fit, gate: Gate, config: RadarConfig, k: int,
-               sigma: np.ndarray | None) -> CmlResult:
-    """The fit in the model's terms, its statistic, padded to ``k`` targets (absent ones
-    last), present ones strongest first, with sigma_eff ``sigma`` (None: unquantized, the
-    RMS of the residual)."""
+def fit_result(codes: BlockCodes, fit: Fit, about: tuple, k: int, sigma: np.ndarray | None) -> CmlResult:
+    """The fit in the model's terms (``about``: the radar's :func:`report`, a plain tuple), its
+    statistic, padded to ``k`` targets (absent ones last), present ones strongest first, with
+    sigma_eff ``sigma`` (None: unquantized, the RMS of the residual)."""
     b, n = fit.mu.shape[:2]
     y = np.empty((b, n, 2), dtype=complex)
     sources(codes.kernel.folded, fit.mu, fit.mu, float(codes.ramps), False, False, y.view(float).reshape(b, n, 4),
             np.zeros((b, 0, 2, n), dtype=complex))
     out = targets(b, k)
-    result(fit, y, codes.ramps, report(config, gate), out)
+    result(tuple(fit), y, codes.ramps, about, tuple(out))
     if sigma is None:
         sigma = residual_rms(codes.y, fit.mu.reshape(b, n, 2, 2))
     return CmlResult(out.range_m, out.amp, out.stat, sigma, out.present)

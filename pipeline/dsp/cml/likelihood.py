@@ -20,13 +20,14 @@ and halves the cost of the likelihood, which is evaluated about 20 times a frame
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from pipeline.dsp.cml.checks import NOT_FINITE, NOT_FINITE_DITHER, NOT_LEVELS, Frames
 from pipeline.dsp.cml.kernels.layout import Codes, Fit
-from pipeline.dsp.cml.kernels.likelihood import GAUSSIAN, LOGISTIC, LSQ, MULTI_BIT, ONE_BIT, evaluate
+from pipeline.dsp.cml.kernels.entry import evaluate
+from pipeline.dsp.cml.kernels.likelihood import GAUSSIAN, LOGISTIC, LSQ, MULTI_BIT, ONE_BIT
 from pipeline.dsp.cml.kernels.stages import codes_arrays, frame_faults
 from pipeline.errors import ParameterError
 
@@ -38,11 +39,14 @@ def array(x, dtype) -> np.ndarray:
     """``x`` as a kernel takes it: C-contiguous, aligned and writeable, of ``dtype`` (a copy
     only if it is not one already), so that a kernel's compiled signature does not depend on
     its caller's arrays."""
+    if type(x) is np.ndarray and x.dtype == dtype:
+        flags = x.flags
+        if flags.c_contiguous and flags.aligned and flags.writeable:  # the common case, without np.require's checks
+            return x
     return np.require(x, dtype, ("C", "A", "W"))
 
 
-@dataclass(frozen=True)
-class BlockCodes:
+class BlockCodes(NamedTuple):
     """A block's measurements for the kernels: ``kernel`` (the
     :data:`~pipeline.dsp.cml.kernels.layout.Codes`), ``bits`` (None: unquantized), ``ramps``
     and ``n`` (samples a ramp), and unquantized the frames as reals ``y`` (B, R, N, 2, 2)."""
@@ -52,6 +56,11 @@ class BlockCodes:
     ramps: int
     n: int
     y: np.ndarray | None = None
+
+    @property
+    def args(self) -> tuple:
+        """``kernel`` as a plain tuple, as the entry kernels take it (:mod:`pipeline.dsp.cml.kernels.entry`)."""
+        return tuple(self.kernel)
 
 
 def block_codes(frames: Frames, n: int, likelihood: str) -> BlockCodes:
@@ -102,5 +111,5 @@ def evaluate_fit(codes: BlockCodes, fit: Fit, sigma: np.ndarray) -> Fit:
     b, n = fit.mu.shape[:2]
     g, h = np.empty((b, n, 4)), np.empty((b, n, 4))
     sigma = array(sigma, float)
-    nll = evaluate(codes.kernel, fit.mu, sigma, g, h)
+    nll = evaluate(codes.args, fit.mu, sigma, g, h)
     return fit._replace(nll=nll, sigma=sigma, g=g, h=h)

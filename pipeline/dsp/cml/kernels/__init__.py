@@ -16,10 +16,10 @@ import os
 
 from numba.core.dispatcher import Dispatcher
 
-from pipeline.dsp.cml.kernels import detect, layout, likelihood, linalg, model, refine, search, stages
+from pipeline.dsp.cml.kernels import detect, entry, layout, likelihood, linalg, model, refine, search, stages
 from pipeline.dsp.kernel_cache import drop_stale
 
-MODULES = (layout, likelihood, model, linalg, refine, search, detect, stages)
+MODULES = (layout, likelihood, model, linalg, refine, search, detect, stages, entry)
 #: every kernel of the package
 KERNELS = tuple(v for m in MODULES for v in vars(m).values() if isinstance(v, Dispatcher)
                 and v.py_func.__module__ == m.__name__)

@@ -16,7 +16,7 @@ from pipeline.dsp.cml.kernels.layout import JIT, Scratch
 from pipeline.dsp.cml.kernels.search import coarse_energies, coarse_peak, guard, open_sum, parabola, peak_range
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _energy(u, nu, live, oversample, guard_bins, energy, near):
     """Joint energy ``|U1|^2 + |U2|^2`` of ``u`` (2, L) into ``energy`` (L,), zero within
     ``guard_bins`` of the live targets ``nu`` (T,) (``near`` (L,): that mask), as the numpy
@@ -37,19 +37,19 @@ def _energy(u, nu, live, oversample, guard_bins, energy, near):
             energy[i] = 0.0
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
     """Peak over mean of the joint energy of ``u`` (2, L) beyond ``guard_bins`` of the
     targets and inside the gate (0 when the energy is 0 there); ``s``: a
     :data:`~pipeline.dsp.cml.kernels.layout.Scratch` (its ``energy``, ``near``)."""
-    energy, near = s.energy, s.near
+    energy, near, use, outside = s.energy, s.near, gate.use, gate.outside
     _energy(u, nu, live, oversample, guard_bins, energy, near)
     size = energy.shape[0]
     total = 0.0
     peak = 0.0
     cells = 0
     for i in range(size):
-        if gate.use and gate.outside[i]:
+        if use and outside[i]:
             energy[i] = 0.0
             near[i] = True
         total += energy[i]
@@ -60,17 +60,17 @@ def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
     return peak / mean if mean > 0.0 else 0.0
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def peak(u, nu, live, oversample, guard_bins, gate, s) -> float:
     """Range (bins) of the peak of the joint energy of ``u`` (2, L) beyond ``guard_bins`` of
     the targets, refined by a parabola, inside the gate (``gate.use``)."""
-    energy = s.energy
+    energy, use, outside = s.energy, gate.use, gate.outside
     _energy(u, nu, live, oversample, guard_bins, energy, s.near)
     size = energy.shape[0]
     best = 0
     top = -math.inf
     for i in range(size):
-        v = -1.0 if gate.use and gate.outside[i] else energy[i]  # -1: below any energy
+        v = -1.0 if use and outside[i] else energy[i]  # -1: below any energy
         if v > top:
             top = v
             best = i
@@ -80,7 +80,7 @@ def peak(u, nu, live, oversample, guard_bins, gate, s) -> float:
     return parabola(best, left, centre, right, oversample, gate)
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
     """:func:`peak_ratio` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N): the
     mean by :func:`~pipeline.dsp.cml.kernels.search.open_sum`, the peak by
@@ -99,7 +99,7 @@ def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
     return (max(top, 0.0) / mean if mean > 0.0 else 0.0), best
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def coarse_range(uc, x, n, nu, live, grid, gate, s, prepared) -> float:
     """:func:`peak` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N)
     (:func:`~pipeline.dsp.cml.kernels.search.coarse_peak`), detection's guard; ``prepared``:
@@ -165,7 +165,7 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
     return True
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
     """The count test's statistic of frame ``f`` into ``decision.stat[f]``, the detection's
     source last; returns whether ``s`` then holds the detection source's fine energies and
@@ -189,7 +189,7 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
     return prepared, best
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _detect_frame(sources, grid, gate, nu, live, decision, s, on_coarse, f, prepared, best):
     """Frame ``f``'s detected range into ``decision.nu0[f]`` (unless given) and its
     amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as :func:`_count` returns."""

@@ -62,15 +62,17 @@ def fine_energy(x, n, p, table):
 
 
 @njit(**JIT, inline="always")
-def _fine_value(x, n, p, table, s) -> float:
-    """The masked fine energy at ``p`` (0 within the guard ``s.near``), computed once
-    (:func:`fine_energy`) and kept in ``s.energy`` (``s.known``)."""
-    if s.near[p]:
+def _fine_value(x, n, p, table, near, energy, known) -> float:
+    """The masked fine energy at ``p`` (0 within the guard ``near``), computed once
+    (:func:`fine_energy`) and kept in ``energy`` (``known``). (The kernels' hot loops take
+    arrays, not the namedtuples holding them: a field read from a namedtuple is a reference
+    counted each time, measured 10-15 % of the search.)"""
+    if near[p]:
         return 0.0
-    if not s.known[p]:
-        s.energy[p] = fine_energy(x, n, p, table)
-        s.known[p] = True
-    return s.energy[p]
+    if not known[p]:
+        energy[p] = fine_energy(x, n, p, table)
+        known[p] = True
+    return energy[p]
 
 
 @njit(**FAST)
@@ -104,10 +106,11 @@ def _cell_energies(x, n, s, table, offsets, v, out):
 
 
 @njit(**JIT, inline="always")
-def _open_cell(c, ratio, half, size, gate) -> bool:
-    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
+def _open_cell(c, ratio, half, size, use, outside) -> bool:
+    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate
+    (``use``: a gate, ``outside`` (L,) the points beyond it)."""
     for d in range(-half, half + 1):
-        if not gate.use or not gate.outside[(c * ratio + d) % size]:
+        if not use or not outside[(c * ratio + d) % size]:
             return True
     return False
 
@@ -135,7 +138,7 @@ def gate_edge(outside, lc, edge):
             _mark_edge(i, e, ratio, lc, edge)
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def coarse_energies(uc, size, s) -> float:
     """The joint energy of the coarse inverse FFT ``uc`` (2, Lc) in the fine FFT's scale
     (L = ``size`` points) into ``s.coarse`` (Lc,), and into ``s.energy`` (L,) at the fine
@@ -165,7 +168,7 @@ def _sum(v) -> float:
     return total
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def guard(nu, live, oversample, guard_bins, gate, s):
     """``s.near`` (L,) = the fine points within ``guard_bins`` of the live targets ``nu``
     (T,) bins (later targets overwrite earlier ones, as numpy's ``put_along_axis``), and
@@ -190,7 +193,7 @@ def guard(nu, live, oversample, guard_bins, gate, s):
     return reach
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def coarse_peak(x, n, grid, gate, s, bar, stop):
     """The fine grid's peak (the first of equal ones, as argmax) of the joint energy, 0
     within the guard ``s.near``, among the points inside the gate (``gate.use``): its point
@@ -219,13 +222,14 @@ def coarse_peak(x, n, grid, gate, s, bar, stop):
     return _search_cells(x, n, grid, gate, s, first, floor, bar, stop)
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _first_cell(grid, gate, s):
     """The best coarse point as a fine one (its point and value, -1 beyond the gate), the
     cell of the largest coarse energy (the first of equal ones; -1: none inside the gate),
     and into ``s.span`` (Lc,) what each cell may hold: its coarse energy, by a masked point
     its neighbours' too."""
-    coarse, span, edge = s.coarse, s.span, s.edge
+    coarse, span, edge, near = s.coarse, s.span, s.edge, s.near
+    use, outside = gate.use, gate.outside
     size = grid.table.shape[0]
     lc = coarse.shape[0]
     ratio = size // lc
@@ -235,94 +239,96 @@ def _first_cell(grid, gate, s):
     first = -1
     for c in range(lc):
         p = c * ratio
-        v = -1.0 if gate.use and gate.outside[p] else (0.0 if s.near[p] else coarse[c])
+        v = -1.0 if use and outside[p] else (0.0 if near[p] else coarse[c])
         if v > floor:
             floor = v
             at = p
-        if (first < 0 or coarse[c] > coarse[first]) and (not gate.use or _open_cell(c, ratio, half, size, gate)):
+        if (first < 0 or coarse[c] > coarse[first]) and (not use or _open_cell(c, ratio, half, size, use, outside)):
             first = c
         span[c] = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
     return at, floor, first
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _search_cells(x, n, grid, gate, s, first, floor, bar, stop):
     """:func:`coarse_peak`'s search of the cells, ``first`` first: ``(best, top)``."""
-    table = grid.table
+    table, rho = grid.table, grid.rho
+    use, outside = gate.use, gate.outside
+    near, energy, known, span, edge = s.near, s.energy, s.known, s.span, s.edge
     size = table.shape[0]
-    lc = s.coarse.shape[0]
+    lc = span.shape[0]
     ratio = size // lc
     half = ratio // 2
     top = -math.inf
     best = 0
-    lim = grid.rho * floor
+    lim = rho * floor
     for step in range(lc + 1):
         c = first if step == 0 else step - 1
-        if c < 0 or (step > 0 and c == first) or (s.span[c] < lim and not s.edge[c]) or not _open_cell(
-                c, ratio, half, size, gate):
+        if c < 0 or (step > 0 and c == first) or (span[c] < lim and not edge[c]) or not _open_cell(
+                c, ratio, half, size, use, outside):
             continue
-        if s.span[c] < lim:  # by a masked point: only its points against the mask (a peak there need not be a maximum)
-            top, best = _against_mask(x, n, c * ratio, half, table, gate, s, top, best)
+        if span[c] < lim:  # by a masked point: only its points against the mask (a peak there need not be a maximum)
+            top, best = _against_mask(x, n, c * ratio, half, table, use, outside, near, energy, known, top, best)
         else:
-            _sum_cell(x, n, c * ratio, half, table, s)
+            _sum_cell(x, n, c * ratio, half, table, energy, known, s.offsets, s.turned, s.cell)
             for d in range(-half, half + 1):
                 p = (c * ratio + d) % size
-                v = -1.0 if gate.use and gate.outside[p] else _fine_value(x, n, p, table, s)
+                v = -1.0 if use and outside[p] else _fine_value(x, n, p, table, near, energy, known)
                 if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
                     top = v
                     best = p
-        lim = grid.rho * max(floor, top)
+        lim = rho * max(floor, top)
         if stop and top >= bar:
             break
     return best, top
 
 
 @njit(**JIT, inline="always")
-def _sum_cell(x, n, p0, half, table, s):
+def _sum_cell(x, n, p0, half, table, energy, known, offsets, turned, cell):
     """The fine energies of the points within ``half`` of ``p0`` not summed yet (by another
-    search of the same energies) into ``s.energy`` (``s.known``), in one pass."""
+    search of the same energies) into ``energy`` (``known``), in one pass
+    (:func:`_cell_energies`, its work arrays ``offsets``, ``turned``, ``cell``)."""
     size = table.shape[0]
     fresh = False
     for j in range(2 * half):
-        fresh = fresh or not s.known[(p0 + j - half + (j >= half)) % size]
+        fresh = fresh or not known[(p0 + j - half + (j >= half)) % size]
     if fresh:
-        _cell_energies(x, n, p0, table, s.offsets, s.turned, s.cell)
+        _cell_energies(x, n, p0, table, offsets, turned, cell)
         for j in range(2 * half):
             p = (p0 + j - half + (j >= half)) % size
-            if not s.known[p]:
-                s.energy[p] = s.cell[j]
-                s.known[p] = True
+            if not known[p]:
+                energy[p] = cell[j]
+                known[p] = True
 
 
 @njit(**JIT, inline="always")
-def _against_mask(x, n, p0, half, table, gate, s, top, best):
+def _against_mask(x, n, p0, half, table, use, outside, near, energy, known, top, best):
     """``(top, best)`` updated with the fine points within ``half`` of ``p0`` that are not
-    masked but have a masked neighbour (within the guard ``s.near`` or beyond the gate): the
-    grid's peak is a maximum of the energy or such a point."""
-    near, outside = s.near, gate.outside
+    masked but have a masked neighbour (within the guard ``near`` or beyond the gate, ``use``
+    and ``outside``): the grid's peak is a maximum of the energy or such a point."""
     size = table.shape[0]
     for d in range(-half, half + 1):
         p = (p0 + d) % size
         lo, hi = (p - 1) % size, (p + 1) % size
-        if near[p] or (gate.use and outside[p]):
+        if near[p] or (use and outside[p]):
             continue
-        if near[lo] or near[hi] or (gate.use and (outside[lo] or outside[hi])):
-            v = _fine_value(x, n, p, table, s)
+        if near[lo] or near[hi] or (use and (outside[lo] or outside[hi])):
+            v = _fine_value(x, n, p, table, near, energy, known)
             if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
                 top = v
                 best = p
     return top, best
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def peak_range(x, n, best, grid, gate, s) -> float:
     """Range (bins) of fine point ``best`` refined by the parabola through its masked energy
     and its neighbours' (:func:`parabola`), in the gate (``gate.use``)."""
-    table = grid.table
+    table, near, energy, known = grid.table, s.near, s.energy, s.known
     size = table.shape[0]
-    left = _fine_value(x, n, (best - 1) % size, table, s)
-    centre = _fine_value(x, n, best, table, s)
-    right = _fine_value(x, n, (best + 1) % size, table, s)
+    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
+    centre = _fine_value(x, n, best, table, near, energy, known)
+    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
     return parabola(best, left, centre, right, grid.oversample, gate)
 
 
@@ -386,7 +392,7 @@ def gate_weights(outside, tables, lc, weights) -> int:
     return inside
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def open_sum(total, nu, reach, grid, gate, s):
     """The sum of the fine energy over the points inside the gate (``gate.use``:
     ``grid.weights`` (Lc + 1,) and ``grid.inside`` of :func:`gate_weights`) and not within
@@ -394,24 +400,25 @@ def open_sum(total, nu, reach, grid, gate, s):
     ``nu`` (T,) bins), and how many those points are: the sum inside less the guard's points
     inside, summed by runs (:func:`run_sum`) from the coarse energies ``s.coarse`` (Lc,) (sum
     ``total``). ``s.seen`` (L,) bool: work, all False (left so)."""
-    coarse, near, seen, tables = s.coarse, s.near, s.seen, grid.tables
+    coarse, near, seen, tables, weights = s.coarse, s.near, s.seen, grid.tables, grid.weights
+    use, outside, oversample = gate.use, gate.outside, grid.oversample
     size = near.shape[0]
     lc = coarse.shape[0]
-    if gate.use:
-        kept = grid.weights[lc] * total
+    if use:
+        kept = weights[lc] * total
         for k in range(lc):
-            kept += grid.weights[k] * coarse[k]
+            kept += weights[k] * coarse[k]
         cells = grid.inside
     else:
         kept = (size // lc) * total
         cells = size
     for j in range(nu.shape[0]):  # the guard's points inside the gate, each once, by runs
-        c = int(np.rint(nu[j] * grid.oversample))
+        c = int(np.rint(nu[j] * oversample))
         start = c - reach
         run = False
         for d in range(-reach, reach + 1):
             p = (c + d) % size
-            if near[p] and not (gate.use and gate.outside[p]) and not seen[p]:
+            if near[p] and not (use and outside[p]) and not seen[p]:
                 seen[p] = True
                 cells -= 1
                 if not run:
@@ -423,7 +430,7 @@ def open_sum(total, nu, reach, grid, gate, s):
         if run:
             kept -= run_sum(coarse, total, tables, start, c + reach, size)
     for j in range(nu.shape[0]):
-        c = int(np.rint(nu[j] * grid.oversample))
+        c = int(np.rint(nu[j] * oversample))
         for d in range(-reach, reach + 1):
             seen[(c + d) % size] = False
     return (kept if cells > 0 else 0.0), cells

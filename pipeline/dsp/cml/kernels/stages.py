@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.dsp.cml.kernels.detect import amplitude, detect
-from pipeline.dsp.cml.kernels.layout import JIT, Fit, Steps
+from pipeline.dsp.cml.kernels.layout import JIT
 from pipeline.dsp.cml.kernels.likelihood import evaluate
 from pipeline.dsp.cml.kernels.model import centred, models
 from pipeline.dsp.cml.kernels.refine import refine
@@ -104,44 +104,49 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
 
 # -- the greedy stage, the annealing, the warm start -------------------------------------------
 @njit(**JIT)
-def add_target(sources, grid, gate, fit, codes, steps, sigma, decision):
+def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> bool:
     """One greedy stage in one call: :func:`~pipeline.dsp.cml.kernels.detect.detect` (the count
     test when ``decision.threshold`` >= 0: ``decision.active`` (B,) bool updated in place),
-    the new target (amplitude 0 in inactive frames) appended to ``fit``'s targets, their model,
-    then the refinement steps of ``steps`` (levels: ``sigma`` (B,) repeated;
-    :func:`~pipeline.dsp.cml.kernels.refine.refine`, its first step evaluating the likelihood;
-    none: the likelihood evaluated at ``sigma``). Returns whether a frame is active and the
-    new fit (T + 1 targets); with no active frame the fit is not to be used."""
+    then into ``new`` (a :data:`~pipeline.dsp.cml.kernels.layout.Fit` of T + 1 targets, its
+    ``lm`` 1e-3, ``nll`` 0 and ``sigma`` NaN: refine's first step evaluates) ``fit``'s targets
+    and the new one (amplitude 0 in inactive frames), their model, then the refinement steps
+    ``steps`` (levels: ``sigma`` (B,) repeated, :func:`~pipeline.dsp.cml.kernels.refine.refine`;
+    none: the likelihood evaluated at ``sigma``). Returns whether a frame is active; with none,
+    ``new`` is not to be used."""
     nb, t = fit.nu.shape
-    n = fit.mu.shape[1]
     any_active = detect(sources, grid, gate, fit.nu, fit.live, decision)
+    active = decision.active
     if decision.threshold < 0.0:
         any_active = False
         for f in range(nb):
-            any_active = any_active or decision.active[f]
-    new = Fit(np.empty((nb, t + 1)), np.empty((nb, t + 1, 2), dtype=np.complex128),
-              np.empty((nb, t + 1), dtype=np.bool_), np.full(nb, 1e-3), np.zeros(nb), np.full(nb, np.nan),
-              np.empty((nb, n, 4)), np.empty((nb, n, 4)), np.empty((nb, n, 4)))  # level NaN: refine's first step evaluates
+            any_active = any_active or active[f]
     if not any_active:
-        return False, new
-    for f in range(nb):
-        for j in range(t):
-            new.nu[f, j] = fit.nu[f, j]
-            new.amp[f, j, 0] = fit.amp[f, j, 0]
-            new.amp[f, j, 1] = fit.amp[f, j, 1]
-            new.live[f, j] = fit.live[f, j]
-        active = decision.active[f]
-        new.nu[f, t] = decision.nu0[f]
-        new.amp[f, t, 0] = decision.amp0[f, 0] if active else 0.0
-        new.amp[f, t, 1] = decision.amp0[f, 1] if active else 0.0
-        new.live[f, t] = active
-    models(new.nu, new.amp, centred(n), new.mu)
+        return False
+    _append(fit.nu, fit.amp, fit.live, active, decision.nu0, decision.amp0, new.nu, new.amp, new.live)
+    models(new.nu, new.amp, centred(new.mu.shape[1]), new.mu)
     if steps.levels.shape[1] == 0:
         new.nll[:] = evaluate(codes, new.mu, sigma, new.g, new.h)
         new.sigma[:] = sigma
     else:
         refine(codes, new, steps, gate)
-    return True, new
+    return True
+
+
+@njit(**JIT, inline="always")
+def _append(nu, amp, live, active, nu0, amp0, nu2, amp2, live2):
+    """``nu2`` (B, T + 1), ``amp2``, ``live2``: the targets ``nu`` (B, T), ``amp``, ``live`` and a
+    new one at ``nu0`` (B,) of amplitudes ``amp0`` (B, 2) in the ``active`` (B,) frames (else 0)."""
+    nb, t = nu.shape
+    for f in range(nb):
+        for j in range(t):
+            nu2[f, j] = nu[f, j]
+            amp2[f, j, 0] = amp[f, j, 0]
+            amp2[f, j, 1] = amp[f, j, 1]
+            live2[f, j] = live[f, j]
+        nu2[f, t] = nu0[f]
+        amp2[f, t, 0] = amp0[f, 0] if active[f] else 0.0
+        amp2[f, t, 1] = amp0[f, 1] if active[f] else 0.0
+        live2[f, t] = active[f]
 
 
 @njit(**JIT)
@@ -157,34 +162,31 @@ def finish(codes, fit, steps, gate, report, out):
 
 
 @njit(**JIT)
-def warm(codes, nu_all, live_all, targets, first, anneal, sigma, gate, report, out):
-    """The warm start in one call: the amplitudes of the first ``targets`` of ``nu_all`` (B, K)
-    bins (``live_all``: given) one at a time in the residual of the model so far (as
+def warm(codes, start, first, anneal, sigma, gate, report, out, fit):
+    """The warm start in one call: into ``fit`` (a :data:`~pipeline.dsp.cml.kernels.layout.Fit`
+    of the T given targets, its ``lm`` 1e-3, ``nll`` 0, ``sigma`` NaN), the amplitudes of the
+    targets ``start`` = (``nu_all`` (B, K) bins, ``live_all`` (B, K) the ones given, first) one
+    at a time in the residual of the model so far (as
     :func:`~pipeline.dsp.cml.kernels.detect.amplitude`), the refinement steps ``first`` (at
     ``sigma`` (B,); none: the likelihood evaluated there), those of the annealing ``anneal``,
-    then :func:`result` into ``out``. Returns the fit (``targets`` targets)."""
-    nb, n = codes.folded.shape[0], codes.folded.shape[1]
+    then :func:`result` into ``out``."""
+    nu_all, live_all = start
+    nu, amp, live, mu, folded = fit.nu, fit.amp, fit.live, fit.mu, codes.folded
+    nb, n = mu.shape[0], mu.shape[1]
     ramps = codes.a.shape[1]
     kc = centred(n)
-    mu = np.zeros((nb, n, 4))
+    mu[:] = 0.0
     y = np.empty((nb, n, 2), dtype=np.complex128)
     amp0 = np.empty((nb, 2), dtype=np.complex128)
-    amp = np.empty((nb, 0, 2), dtype=np.complex128)
-    for t in range(targets):
-        _residual_into(codes.folded, mu, ramps, y)
+    for t in range(nu.shape[1]):
+        _residual_into(folded, mu, ramps, y)
         for f in range(nb):
             amplitude(y[f], nu_all[f, t], ramps, amp0[f])
-        amp2 = np.empty((nb, t + 1, 2), dtype=np.complex128)
-        for f in range(nb):
-            for j in range(t):
-                amp2[f, j, 0] = amp[f, j, 0]
-                amp2[f, j, 1] = amp[f, j, 1]
-            amp2[f, t, 0] = amp0[f, 0] if live_all[f, t] else 0.0
-            amp2[f, t, 1] = amp0[f, 1] if live_all[f, t] else 0.0
-        amp = amp2
-        models(np.ascontiguousarray(nu_all[:, :t + 1]), amp, kc, mu)
-    fit = Fit(np.ascontiguousarray(nu_all[:, :targets]), amp, np.ascontiguousarray(live_all[:, :targets]),
-              np.full(nb, 1e-3), np.zeros(nb), np.full(nb, np.nan), mu, np.empty((nb, n, 4)), np.empty((nb, n, 4)))
+            nu[f, t] = nu_all[f, t]
+            live[f, t] = live_all[f, t]
+            amp[f, t, 0] = amp0[f, 0] if live_all[f, t] else 0.0
+            amp[f, t, 1] = amp0[f, 1] if live_all[f, t] else 0.0
+        models(np.ascontiguousarray(nu[:, :t + 1]), np.ascontiguousarray(amp[:, :t + 1]), kc, mu)
     if first.levels.shape[1] == 0:  # level NaN: refine's first step evaluates
         fit.nll[:] = evaluate(codes, mu, sigma, fit.g, fit.h)
         fit.sigma[:] = sigma
@@ -192,9 +194,8 @@ def warm(codes, nu_all, live_all, targets, first, anneal, sigma, gate, report, o
         refine(codes, fit, first, gate)
     if anneal.levels.shape[1]:
         refine(codes, fit, anneal, gate)
-    _residual_into(codes.folded, mu, ramps, y)
+    _residual_into(folded, mu, ramps, y)
     result(fit, y, ramps, report, out)
-    return fit
 
 
 @njit(**JIT, inline="always")
@@ -215,9 +216,9 @@ def result(fit, y, ramps, report, out):
     ``out`` (:data:`~pipeline.dsp.cml.kernels.layout.Targets`): ranges (B, K) m (modulo N bins
     when ``report.wrap``), amplitudes (B, K, 2) of the model, the statistic (B, K) dB (capped
     at ``report.cap``) and ``present``, present targets first, strongest first."""
-    nb = fit.nu.shape[0]
-    k = out.range_m.shape[1]
-    n = y.shape[1]
+    nu, amp, live = fit.nu, fit.amp, fit.live
+    range_m, amp_out, stat, present = out
+    (nb, t), k, n = nu.shape, range_m.shape[1], y.shape[1]
     power = np.empty(k)
     order = np.empty(k, dtype=np.int64)
     for f in range(nb):
@@ -227,12 +228,25 @@ def result(fit, y, ramps, report, out):
                 v = y[f, i, p]
                 noise += v.real * v.real + v.imag * v.imag
         noise /= float(n * ramps) ** 2
-        _order(fit.amp[f], fit.live[f], power, order)
+        _order(amp[f], live[f], power, order)
         for pos in range(k):
-            _target(fit, f, order[pos], pos, power, noise, report, out)
+            j = order[pos]
+            if j >= t:
+                range_m[f, pos] = np.nan
+                amp_out[f, pos, 0] = 0.0
+                amp_out[f, pos, 1] = 0.0
+                stat[f, pos] = np.nan
+                present[f, pos] = False
+                continue
+            r, e, db = _target(nu[f, j], n, power[j] / noise, report)
+            range_m[f, pos] = r
+            amp_out[f, pos, 0] = amp[f, j, 0] * e
+            amp_out[f, pos, 1] = amp[f, j, 1] * e
+            stat[f, pos] = db
+            present[f, pos] = live[f, j]
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def _order(amp, live, power, order):
     """``order`` (K,): the targets present first, then strongest first (a stable insertion,
     as numpy's lexsort) by their joint power into ``power`` (K,) (0 past the T targets)."""
@@ -254,36 +268,20 @@ def _order(amp, live, power, order):
         order[pos] = j
 
 
-@njit(**JIT, error_model="numpy")
-def _target(fit, f, j, pos, power, noise, report, out):
-    """Target ``j`` of frame ``f`` of ``fit`` (none past its T targets) at place ``pos`` of ``out``."""
-    if j >= fit.nu.shape[1]:
-        out.range_m[f, pos] = np.nan
-        out.amp[f, pos, 0] = 0.0
-        out.amp[f, pos, 1] = 0.0
-        out.stat[f, pos] = np.nan
-        out.present[f, pos] = False
-    else:
-        _present(fit, f, j, pos, power[j] / noise, report, out)
-
-
-@njit(**JIT, error_model="numpy")
-def _present(fit, f, j, pos, ratio, report, out):
-    """Target ``j`` of frame ``f`` of ``fit``, of power ``ratio`` times the residual's mean, at place ``pos`` of ``out``."""
-    n = fit.mu.shape[1]
+@njit(**JIT, error_model="numpy", inline="always")
+def _target(nu, n, ratio, report):
+    """A target at ``nu`` bins (N = ``n``) of joint power ``ratio`` times the residual's mean
+    per bin: its range (m), the factor from its mid-sweep amplitudes to the model's and its
+    statistic (dB)."""
     kc0 = 0.0 - (n - 1) / 2.0  # the first sample from the middle of the ramp
-    v = fit.nu[f, j] % n if report.wrap else fit.nu[f, j]
+    v = nu % n if report.wrap else nu
     r = v * report.range_res
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
-    e = np.exp(complex(0.0, ((-2.0 * math.pi / n) * fit.nu[f, j]) * kc0)) / np.exp(complex(0.0, -(report.carrier * r)))
-    out.range_m[f, pos] = r
-    out.amp[f, pos, 0] = fit.amp[f, j, 0] * e
-    out.amp[f, pos, 1] = fit.amp[f, j, 1] * e
+    e = np.exp(complex(0.0, ((-2.0 * math.pi / n) * nu) * kc0)) / np.exp(complex(0.0, -(report.carrier * r)))
     if ratio != ratio or ratio <= 0.0:
         db = -report.cap
     elif ratio == math.inf:
         db = report.cap
     else:
         db = min(max(10.0 * math.log10(ratio), -report.cap), report.cap)
-    out.stat[f, pos] = db
-    out.present[f, pos] = fit.live[f, j]
+    return r, e, db
