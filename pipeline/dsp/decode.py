@@ -424,7 +424,8 @@ class Decoder:
         return decoder
 
     def decode(self, z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, radar: RadarConfig, k: int,
-               indices: np.ndarray | None = None, noise_sigma=None, init_range_m: np.ndarray | None = None) -> Detections:
+               indices: np.ndarray | None = None, noise_sigma=None,
+               init_range_m: np.ndarray | None = None) -> Detections:
         """:func:`decode` with this decoder."""
         z = np.asarray(z)
         cfg = self.config

@@ -52,7 +52,8 @@ class CompiledBlocks:
                 inside = int(gate_weights(outside, tables, lc, weights))
                 gate_edge(outside, lc, edges)
         gate = Gate(grid.use, float(grid.lo), float(grid.hi), outside, edges)
-        kernel = Grid(grid.oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS, COARSE_RHO, table, tables, weights, inside)
+        kernel = Grid(grid.oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS, COARSE_RHO, table, tables, weights,
+                      inside)
         search = Search(grid, tuple(gate), tuple(kernel), tuple(report(self.config, not grid.use)), self._buffers)
         if len(self._searches) >= 16:
             self._searches.clear()

@@ -40,7 +40,7 @@ class CmlDecoder:
         the radar and built once per gate."""
         grid = self._grids.get(check_gate(gate))
         if grid is None:
-            grid = SearchGrid(gate, self.config, self.options.oversample)
+            grid = SearchGrid(None if gate is None else gate.check(self.config), self.config, self.options.oversample)
             if len(self._grids) >= KEPT:
                 self._grids.clear()
             self._grids[gate] = grid

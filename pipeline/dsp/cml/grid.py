@@ -31,13 +31,14 @@ COARSE_RHO = 0.5
 
 class SearchGrid:
     """The detection grid of ``oversample`` points a bin of ``config`` and the range ``gate``
-    on it (None: the whole, circular, axis; else checked against ``config``): ``lo``, ``hi``
-    its ends in bins, ``outside`` (L,) bool the grid points beyond it (None without a gate),
-    ``width_bins`` the bins the search spans (the count test's cells)."""
+    on it (None: the whole, circular, axis; checked against ``config`` by its user,
+    :meth:`RangeGate.check <pipeline.dsp.gate.RangeGate.check>`): ``lo``, ``hi`` its ends in
+    bins, ``outside`` (L,) bool the grid points beyond it (None without a gate), ``width_bins``
+    the bins the search spans (the count test's cells)."""
 
     def __init__(self, gate: RangeGate | None, config: RadarConfig, oversample: int):
         n = config.samples_per_ramp
-        self.gate = None if check_gate(gate) is None else gate.check(config)
+        self.gate = check_gate(gate)
         self.oversample = oversample
         self.size = oversample * n
         #: the grid allows the coarse FFT (a multiple of COARSE_PER_BIN points a bin, beyond it)

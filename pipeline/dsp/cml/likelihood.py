@@ -76,7 +76,8 @@ def block_codes(frames: Frames, n: int, likelihood: str) -> BlockCodes:
     if bits is None:
         zr = array(z, complex).view(float).reshape(b, ramps, n, 2, 2)
         folded = z.reshape(b, ramps, n, 2).sum(axis=1)  # Z summed over the ramps
-        kernel = Codes(LSQ, lik, zr.reshape(shape), zr.reshape(shape), array(folded.view(float).reshape(b, n, 4), float))
+        kernel = Codes(LSQ, lik, zr.reshape(shape), zr.reshape(shape),
+                       array(folded.view(float).reshape(b, n, 4), float))
         return BlockCodes(kernel, None, ramps, n, zr)
     from_codes = z.ndim == 4
     if from_codes:

@@ -153,7 +153,7 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
         if decision.threshold >= 0.0:
             decision.active[f] = decision.active[f] and decision.stat[f] >= decision.threshold
             any_active = any_active or decision.active[f]
-            if not decision.active[f] and sources.detect_source >= 0:  # its detection matters only if another frame goes on
+            if not decision.active[f] and sources.detect_source >= 0:  # detected only if another frame goes on
                 pending[f] = True
                 continue
         _detect_frame(sources, grid, gate, nu[f], live[f], decision, s, on_coarse, f, prepared, best)
