@@ -6,9 +6,10 @@ from 0.68, numba PR #10659), the kernel's own bytecode and closure, the argument
 CPU and numba's version. What
 it does not: the files of the kernels it calls and of the globals it reads, which it compiled
 in as they were (numba issue #1833; measured: a merged decoder 1.7 times slower, with other
-results, until its cache was dropped). :func:`drop_stale` covers that part alone: one stamp,
-the content of a set of files that call one another, kept beside the cache; when it differs,
-the kernels' cached code is dropped and numba compiles them again."""
+results, until its cache was dropped). :func:`drop_stale` covers that part alone: a stamp of
+the content of the files a module's kernels import (not of their own file: numba checks
+that), kept beside the cache; when it differs, the kernels' cached code is dropped and numba
+compiles them again."""
 
 from __future__ import annotations
 
@@ -18,10 +19,11 @@ from collections.abc import Sequence
 
 
 def drop_stale(kernels: Sequence, files: Sequence[str], name: str) -> bool:
-    """Flush the on-disk cache of ``kernels`` (numba dispatchers defined in ``files``) when
-    the content of ``files`` changed since the stamp ``name`` kept beside the cache; call it
-    when the files are imported, before a kernel is first used. A read-only or absent cache
-    is left alone (numba then compiles in memory). Returns whether the cache was flushed."""
+    """Flush the on-disk cache of ``kernels`` (numba dispatchers of one file) when the content
+    of ``files`` (the files whose kernels and constants they use) changed since the stamp
+    ``name`` kept beside the cache; call it when the files are imported, before a kernel is
+    first used. A read-only or absent cache is left alone (numba then compiles in memory).
+    Returns whether the cache was flushed."""
     try:
         digest = hashlib.sha256()
         for path in sorted(files):

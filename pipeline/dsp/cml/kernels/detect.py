@@ -189,7 +189,7 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
     return prepared, best
 
 
-@njit(**JIT, inline="always")
+@njit(**JIT)
 def _detect_frame(sources, grid, gate, nu, live, decision, s, on_coarse, f, prepared, best):
     """Frame ``f``'s detected range into ``decision.nu0[f]`` (unless given) and its
     amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as :func:`_count` returns."""

@@ -103,7 +103,7 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
 
 
 # -- the greedy stage, the annealing, the warm start -------------------------------------------
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> bool:
     """One greedy stage in one call: :func:`~pipeline.dsp.cml.kernels.detect.detect` (the count
     test when ``decision.threshold`` >= 0: ``decision.active`` (B,) bool updated in place),
@@ -149,7 +149,7 @@ def _append(nu, amp, live, active, nu0, amp0, nu2, amp2, live2):
         live2[f, t] = active[f]
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def finish(codes, fit, steps, gate, report, out):
     """The end of a decode in one call: the annealing's refinement steps ``steps``
     (:func:`~pipeline.dsp.cml.kernels.refine.refine`), the residual ``folded - ramps mu`` and
@@ -161,7 +161,7 @@ def finish(codes, fit, steps, gate, report, out):
     result(fit, y, codes.a.shape[1], report, out)
 
 
-@njit(**JIT)
+@njit(**JIT, inline="always")
 def warm(codes, start, first, anneal, sigma, gate, report, out, fit):
     """The warm start in one call: into ``fit`` (a :data:`~pipeline.dsp.cml.kernels.layout.Fit`
     of the T given targets, its ``lm`` 1e-3, ``nll`` 0, ``sigma`` NaN), the amplitudes of the
