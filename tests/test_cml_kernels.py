@@ -419,7 +419,8 @@ def test_load_kernels_loads_1_bit_codes_first():
     code = ("from pipeline.dsp.cml import load_kernels\n"
             "from pipeline.dsp.cml.kernels import KERNELS\n"
             "count = lambda: sum(len(k.signatures) for k in KERNELS)\n"
-            "before = count(); load_kernels(common=True); common = count(); load_kernels(); print(before, common, count())")
+            "before = count(); load_kernels(common=True); common = count(); load_kernels()\n"
+            "print(before, common, count())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     before, common, everything = map(int, out.stdout.split())

@@ -206,7 +206,8 @@ def oversized_functions(prefixes: tuple[str, ...] = ()) -> list[str]:
                           + (a.kwarg is not None))
                 lines = node.end_lineno - node.lineno + 1
                 if lines > MAX_FUNCTION_LINES or params > MAX_FUNCTION_PARAMS:
-                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {lines} lines, {params} parameters")
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {lines} lines, "
+                                 f"{params} parameters")
     return found
 
 
