@@ -6,15 +6,18 @@ STAMP  := $(VENV)/.installed-stamp
 JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast js-deps bench montecarlo-quick montecarlo-paper docs-figures clean
+.PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures clean
 
+# Set-up, once: a line per step with the time it takes on a busy 2-core host (3-5 min in all, measured).
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
+	@echo "qradar set-up, once: a virtual environment in $(VENV), its packages, then cml's compiled kernels"
 	$(PYTHON) -m venv $(VENV)
+	@echo "installing qradar and its dependencies with pip (numpy, scipy, numba, zenoh, mcap, ...): 1-2 min"
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
-	# cml's and the dither's compiled kernels, into numba's on-disk cache: a node's first frame then loads them (~0.5 s)
-	$(PY) -c 'from pipeline.dsp.cml import load_kernels; load_kernels()'
-	$(PY) -c 'from pipeline.dsp.dither import load_kernel; load_kernel()'
+	@$(PY) -c 'from pipeline.dsp.cml.loading import compile_verbose; compile_verbose()'
+	@$(PY) -c 'from pipeline.dsp.dither import load_kernel; load_kernel()'
+	@echo "set-up done: the next commands start at once"
 	@touch $(STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
@@ -24,6 +27,23 @@ $(JS_STAMP): tests/js/package.json tests/js/package-lock.json
 
 js-deps: $(JS_STAMP)
 
+# The web page's plotting library, vendored (qradar/web/static/vendor/uplot/README.md): uPlot from
+# npm at a pinned version, its tarball checked against the registry's integrity hash, then its
+# minified script, its style and its licence copied beside the page.
+UPLOT_VERSION   := 1.6.32
+UPLOT_INTEGRITY := sha512-KIMVnG68zvu5XXUbC4LQEPnhwOxBuLyW1AHtpm6IKTXImkbLgkMy+jabjLgSLMasNuGGzQm/ep3tOkyTxpiQIw==
+UPLOT_DIR       := qradar/web/static/vendor/uplot
+
+web-vendor:
+	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && cd "$$tmp" \
+	&& npm pack --silent uplot@$(UPLOT_VERSION) >/dev/null \
+	&& got="sha512-$$(openssl dgst -sha512 -binary uplot-$(UPLOT_VERSION).tgz | base64 -w0)" \
+	&& if [ "$$got" != "$(UPLOT_INTEGRITY)" ]; then \
+	     echo "uplot-$(UPLOT_VERSION).tgz: integrity $$got, expected $(UPLOT_INTEGRITY)" >&2; exit 1; fi \
+	&& tar xzf uplot-$(UPLOT_VERSION).tgz \
+	&& cp package/dist/uPlot.iife.min.js package/dist/uPlot.min.css package/LICENSE "$(CURDIR)/$(UPLOT_DIR)/" \
+	&& echo "vendored uplot@$(UPLOT_VERSION) ($(UPLOT_INTEGRITY)) into $(UPLOT_DIR)"
+
 # The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
 run: $(STAMP)
 	$(VENV)/bin/qradar run --duration 15 --calibration recordings/chamber-cal.json
@@ -32,9 +52,11 @@ run: $(STAMP)
 montecarlo-quick: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
-# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them).
+# The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them), and
+# the web view's screenshot in the README (headless chromium on the README's command).
 docs-figures: $(STAMP)
 	$(PY) docs/figures/regenerate.py
+	$(PY) docs/figures/web_view.py
 
 # The whole suite, slow tests included (CI runs this).
 test: $(STAMP) $(JS_STAMP)
@@ -53,4 +75,4 @@ montecarlo-paper: $(STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --out $(OUT)/montecarlo-paper
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info tests/js/node_modules
+	rm -rf $(VENV) $(OUT)/* .pytest_cache *.egg-info tests/js/node_modules  # out/ itself stays: outputs go into it

@@ -47,8 +47,13 @@ from pipeline.dsp.decode import Algo
 from pipeline.errors import BusError
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw
+from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, McapSink
 from replay.player import PlayConfig, play
+
+
+#: the frames' radar config id: the default K-MD2's (M = 512), which the recorder, as the nodes, announces
+CONFIG_ID = RadarConfig().config_id()
 
 
 def messages(sensors: int) -> list[tuple[str, bytes]]:
@@ -58,10 +63,10 @@ def messages(sensors: int) -> list[tuple[str, bytes]]:
     out = []
     for s in range(sensors):
         sid = f"r{s}"
-        out.append((f"radar/{sid}/raw", encode_raw(RawFrameMsg(sid, 0, 0, 7, data[s].astype(np.complex64)))))
+        out.append((f"radar/{sid}/raw", encode_raw(RawFrameMsg(sid, 0, 0, CONFIG_ID, data[s].astype(np.complex64)))))
         out.append((f"radar/{sid}/quantized", encode_quantized(QuantizedFrameMsg(
-            sid, 0, 0, 7, 1, q.alpha, float(q.delta[s]), 1, q.codes[s]))))
-        t = TargetsMsg(sid, 0, 0, 7, Algo.PBP, 2, "quantized",
+            sid, 0, 0, CONFIG_ID, 1, q.alpha, float(q.delta[s]), 1, q.codes[s]))))
+        t = TargetsMsg(sid, 0, 0, CONFIG_ID, Algo.PBP, 2, "quantized",
                        [{"range_m": 9.0, "angle_deg": 15.0, "x_m": 8.7, "y_m": 2.3, "amplitude": 0.4}] * 2, 0)
         out.append((f"radar/{sid}/targets", t.to_json()))
     return out

@@ -5,7 +5,8 @@ shortest options (a smoke run of a few seconds each, its figures not worth quoti
 without it each runs with its defaults (the documented figures; bench_stream.py's sweep
 alone takes 1-2 h). Left out, each run by hand with its own command in docs/benchmarks.md:
 bench_multihost.py (root, network namespaces), bench_ser2net.py (ser2net installed),
-bench_driver_load.py and soak.py (load trials of 10 min and more), and the accuracy studies
+bench_driver_load.py and soak.py (load trials of 10 min and more), bench_web_plotlib.py (npm and the
+registry), and the accuracy studies
 (cml_likelihood.py, chamber_frontend.py, sweep_alpha.py, track_integration.py).
 
     .venv/bin/python benchmarks/suite.py [--short] [--only bench_pbp bench_cml ...] [--list]
@@ -50,6 +51,7 @@ SUITE: tuple[Step, ...] = (
     Step("bench_secure.py", ("--messages", "2000", "--rounds", "1")),
     Step("bench_stream.py", ("--quick",)),
     Step("bench_isolation.py", ("--case", "quantized", "--seconds", "3", "--warmup", "3", "--rate", "1000")),
+    Step("bench_web.py", ("--sensors", "0", "3", "--seconds", "2", "--warmup", "1")),
 )
 
 

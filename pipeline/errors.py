@@ -24,3 +24,8 @@ class BusError(PipelineError):
 
 class CalibrationError(ParameterError):
     """A calibration file or estimate that cannot be used; the message names the file and the entry."""
+
+
+class RunSetupError(PipelineError):
+    """A run that cannot give a result as set up: frames arrive, but none is decoded (every
+    one refused); the message says how many, where and why."""

@@ -25,7 +25,16 @@ except _metadata.PackageNotFoundError:  # run from a source tree that was never 
 _API = ("Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
         "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
         "QuantizerConfig", "DecoderConfig", "RadarConfig", "Detections", "SimScene", "load_scene",
-        "position_error_m")
+        "position_error_m", "score", "score_frames", "Score", "FrameScores", "DETECTION_DISTANCE_M")
+
+
+#: the public names of ``import qradar`` (``from qradar import *``, tab completion)
+__all__ = ["__version__", *_API]
+
+
+def __dir__() -> list[str]:
+    """The module's own names and the API's (imported on first use, listed at once)."""
+    return sorted(set(globals()) | set(_API))
 
 
 def __getattr__(name: str):

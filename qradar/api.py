@@ -17,6 +17,7 @@ Shapes are batch first; units are in the names (m, deg, ns). Errors are the pack
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -24,10 +25,12 @@ import numpy as np
 
 from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.dsp.localize import Detections, position_error_m
+from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, Score, score, score_frames
 from replay.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from pipeline.dsp.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
-from pipeline.wire import (TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized_batch,
-                           decode_raw_batch, decode_targets, quantized_batch)
+from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, judge_seq
+from pipeline.wire import (COMMON, MAGIC, TARGET_FIELDS, HealthMsg, WireError, decode_health, decode_quantized_batch,
+                           decode_raw_batch, decode_targets, load_json, quantized_batch)
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 from replay.errors import ReplayError
@@ -35,10 +38,13 @@ from replay.mcapio import McapFile, topic_of
 from replay.reprocess import ReprocessConfig, ReprocessResult
 from replay.reprocess import run as run_reprocess
 
+log = logging.getLogger("qradar.api")
+
 __all__ = ["Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
            "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
            "QuantizerConfig", "DecoderConfig", "RadarConfig", "Detections", "SimScene", "load_scene",
-           "position_error_m"]  # qradar._API lists the same
+           "position_error_m", "score", "score_frames", "Score", "FrameScores",
+           "DETECTION_DISTANCE_M"]  # qradar._API lists the same
 
 
 @dataclass(frozen=True)
@@ -107,14 +113,20 @@ class Recording:
     ids with frames or targets in it; ``metadata``: the file's metadata records
     (name -> dict); ``radar``: its radar configuration (``qradar.radar`` metadata, else the
     default K-MD2's); ``truncated``: the file was cut short (its complete chunks are read).
-    Messages that do not parse are counted in ``unparsed`` (topic -> count), not raised."""
+    Messages that do not parse are counted in ``unparsed`` (topic -> count), not raised.
+    Every chunk's CRC is checked: the messages of a damaged chunk are never returned, they
+    are counted in ``lost`` (topic -> count) and each damaged chunk is named in ``damaged``
+    (offset, log time range, topics; also logged as a warning)."""
 
     path: Path
     metadata: dict[str, dict[str, str]]
     sensors: list[str]
     truncated: bool
     unparsed: dict[str, int] = field(default_factory=dict)
+    lost: dict[str, int] = field(default_factory=dict)
+    damaged: list[str] = field(default_factory=list)
     _payloads: dict[tuple[str, str], list[bytes]] = field(default_factory=dict, repr=False)
+    _log_ns: dict[tuple[str, str], list[int]] = field(default_factory=dict, repr=False)  # each message's log time
 
     @property
     def radar(self) -> RadarConfig:
@@ -195,6 +207,37 @@ class Recording:
                        np.array([len(m.targets) for m in msgs]), cols["range_m"], cols["angle_deg"],
                        cols["x_m"], cols["y_m"], cols["amplitude"], msgs[0].algo)
 
+    def losses(self, topic: str = "raw", sensor: str | None = None, rate_hz: float | None = None) -> dict[str, int]:
+        """What the sequence numbers of ``sensor``'s (the first by name if None) ``topic``
+        messages (raw, quantized, targets or tracks) say was lost, judged in file order on
+        their log times as the nodes judge them live
+        (:func:`pipeline.nodes.counters.judge_seq`): ``messages`` (with a sequence number),
+        ``frames_missing`` (gaps the elapsed time allows at ``rate_hz``), ``seq_resets``
+        (restarts of the count), ``implausible_seq`` (numbers out of line: forged or
+        replayed). ``rate_hz``: the sensor's frame rate (default: the simulated scene's,
+        else the nodes' bound, DEFAULT_SEQ_RATE_HZ)."""
+        if topic not in ("raw", "quantized", "targets", "tracks"):
+            raise ReplayError(f"topic {topic!r} carries no sequence numbers: raw, quantized, targets or tracks")
+        if sensor is None:
+            have = sorted(s for s, t in self._payloads if t == topic)
+            if not have:
+                raise ReplayError(f"{self.path} holds no {topic} messages (its sensors: {self.sensors or 'none'})")
+            sensor = have[0]
+        if rate_hz is None:
+            rate_hz = float(self.metadata.get("qradar.scene", {}).get("rate_hz") or DEFAULT_SEQ_RATE_HZ)
+        out = {"messages": 0, "frames_missing": 0, "seq_resets": 0, "implausible_seq": 0}
+        track = None
+        for payload, log_ns in zip(self._payloads.get((sensor, topic), []), self._log_ns.get((sensor, topic), [])):
+            seq = _seq_of(topic, payload)
+            if seq is None:
+                continue
+            track, verdict = judge_seq(track, seq, log_ns / 1e9, rate_hz)
+            out["messages"] += 1
+            out["frames_missing"] += verdict.missing
+            out["seq_resets"] += verdict.resets
+            out["implausible_seq"] += verdict.implausible
+        return out
+
     def health(self) -> list[HealthMsg]:
         """Every health message of the recording (all nodes and sensors), in file order."""
         out = []
@@ -208,19 +251,36 @@ class Recording:
         return sorted(out, key=lambda h: h.timestamp_ns)
 
 
+def _seq_of(topic: str, payload: bytes) -> int | None:
+    """The sequence number of a message (None when it has none that reads)."""
+    if topic in ("raw", "quantized"):
+        if len(payload) < COMMON.size or payload[:4] != MAGIC:
+            return None
+        return int(COMMON.unpack_from(payload)[5])
+    try:
+        seq = load_json(payload, topic).get("seq")
+    except (WireError, AttributeError):
+        return None
+    return seq if type(seq) is int and 0 <= seq < 2**64 else None
+
+
 def open_recording(path: str | Path) -> Recording:
     """Read a qradar MCAP recording (every message, in memory: a recording of an hour of
     one sensor is ~1 GB; split long ones with ``--split-size``)."""
     f = McapFile(path)
     payloads: dict[tuple[str, str], list[bytes]] = {}
+    log_ns: dict[tuple[str, str], list[int]] = {}
     for ch, msg in f.messages():
         topic = topic_of(ch.topic)
         if topic is None:
             continue
         sensor = ch.topic.rsplit("/", 2)[-2]
         payloads.setdefault((sensor, topic), []).append(bytes(msg.data))
+        log_ns.setdefault((sensor, topic), []).append(msg.log_time)
     sensors = sorted({s for s, t in payloads if t != "health"})
-    return Recording(Path(path), f.metadata_dict(), sensors, f.truncated, {}, payloads)
+    f.warn(log, "its messages are not returned")
+    return Recording(Path(path), f.metadata_dict(), sensors, f.truncated, lost=f.lost_by_topic,
+                     damaged=f.damage_lines(), _payloads=payloads, _log_ns=log_ns)
 
 
 def quantize(frames: Frames | np.ndarray, alpha: float | None = None, bits: int = 1, dither_seed: int = 0,

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from pipeline.bus.session import BusConfig
-from radar_driver.errors import RadarError
+from radar_driver.errors import RadarError, SetupError
 
 
 def driver_bus(bus: BusConfig, tmp: Path) -> BusConfig:
@@ -107,11 +107,12 @@ class DriverProcess:
             final = last_json_object([line])
             if final:
                 self._final = final
-                self.done.set()
+                if "error" not in final:  # an error: done once _watch has it in errors (a supervisor reads them)
+                    self.done.set()
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:
-            if self.log is not None:
+            if self.log is not None and not line.startswith("qradar drive: error:"):  # the run says it itself
                 self.log.write(f"[driver {self.sensor_id}] {line}")
                 self.log.flush()
 
@@ -120,8 +121,9 @@ class DriverProcess:
         for t in self._threads[:2]:
             t.join(5.0)
         last = last_json_object(self._out)
-        if "error" in last:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} failed: {last['error']}"))
+        if "error" in last:  # a wrong set-up (SetupError: not to be restarted) or another failure
+            kind = SetupError if last.get("setup") else RadarError
+            self.errors.append(kind(f"the driver of {self.sensor_id} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
             self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
         else:
@@ -166,3 +168,157 @@ class DriverProcess:
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {self.sensor_id: dict(self.counters)}
+
+
+#: a driver that dies is started again after RESTART_BACKOFF_S, doubled after each death
+#: that came within HEALTHY_S of its start, up to MAX_BACKOFF_S; after MAX_RESTARTS such
+#: deaths in a row its sensor is given up (gone)
+RESTART_BACKOFF_S = 0.5
+MAX_BACKOFF_S = 30.0
+HEALTHY_S = 30.0
+MAX_RESTARTS = 5
+
+
+class SupervisedDriver:
+    """One sensor's driver (a :class:`DriverProcess`, or any :class:`Runnable` with
+    ``done`` and ``errors``), started again with backoff when it dies, while the others go
+    on: :class:`~pipeline.nodes.runtime.Runnable` by :func:`run_nodes`, whose ``errors``
+    stay empty (a dead driver ends nothing else) but for a driver that ended with a
+    :class:`~radar_driver.errors.SetupError` (its sensor's frames never assemble): that is
+    not restarted, and ends the run. ``make(frames_done)`` makes a new driver
+    (``frames_done``: the frames its sensor's earlier drivers delivered, for a frame
+    limit). ``on_event(sensor_id, state, detail)``, if given, hears of each death
+    (``state`` "restarting" or "gone") and restart ("running"): the run reports them
+    (health, live line). What the run may read: ``restarts``, ``exits`` (why each died),
+    ``state``, ``gone`` (given up after ``max_restarts`` quick deaths in a row: ``done``
+    is then set too)."""
+
+    name = "driver"
+
+    def __init__(self, sensor_id: str, make: Callable[[int], object], frames_done: Callable[[], int] = lambda: 0,
+                 on_event: Callable[[str, str, str], None] | None = None, backoff_s: float = RESTART_BACKOFF_S,
+                 max_restarts: int = MAX_RESTARTS, healthy_s: float = HEALTHY_S):
+        self.sensor_id = sensor_id
+        self.make, self.frames_done, self.on_event = make, frames_done, on_event
+        self.backoff_s, self.max_restarts, self.healthy_s = backoff_s, max_restarts, healthy_s
+        self.errors: list[BaseException] = []  # stays empty: a dead driver is restarted, not raised
+        self.done = threading.Event()
+        self.gone = threading.Event()
+        self.restarts = 0
+        self.exits: list[str] = []  # why each driver died, in order
+        self.state = "starting"
+        self.current = None
+        self._counters: dict[str, int] = {}  # counters of earlier drivers that ended with them
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def start(self) -> "SupervisedDriver":
+        self.current = self.make(0).start()
+        self.state = "running"
+        self._thread = threading.Thread(target=self._supervise, name=f"supervise-{self.sensor_id}", daemon=True)
+        self._thread.start()
+        return self
+
+    def _supervise(self) -> None:
+        quick_deaths, backoff, started = 0, self.backoff_s, time.monotonic()
+        while not self._stop.is_set():
+            driver = self.current
+            while not (driver.done.wait(0.1) or self._stop.is_set()):
+                pass
+            if self._stop.is_set():
+                return
+            if not driver.errors:  # it finished (its frame limit): the sensor is done
+                self.done.set()
+                return
+            if isinstance(driver.errors[0], SetupError):  # a wrong set-up, which no restart mends: it
+                self.errors.append(driver.errors[0])  # ends the run, in one line (run_nodes raises it)
+                self.state = "failed"
+                self.done.set()
+                return
+            why = str(driver.errors[0])
+            try:
+                driver.stop()  # what is left of it (an in-process driver's threads)
+            except Exception:
+                pass
+            self._keep_counters(driver)
+            lived_s = time.monotonic() - started
+            if lived_s >= self.healthy_s:
+                quick_deaths, backoff = 0, self.backoff_s
+            quick_deaths += 1
+            with self._lock:
+                self.exits.append(why)
+            if quick_deaths > self.max_restarts:
+                self.state = "gone"
+                self._tell("gone", f"{why}; given up after {self.max_restarts} restarts in a row")
+                self.gone.set()
+                self.done.set()
+                return
+            self.state = "restarting"
+            self._tell("restarting", f"{why}; restarting in {backoff:g} s (restart {self.restarts + 1})")
+            if self._stop.wait(backoff):
+                return
+            backoff = min(backoff * 2, MAX_BACKOFF_S)
+            try:
+                with self._lock:
+                    if self._stop.is_set():
+                        return
+                    self.current = self.make(self.frames_done()).start()
+                    self.restarts += 1
+            except Exception as exc:  # could not even start: counts as one more death
+                self.current = _Failed(exc)
+                continue
+            started = time.monotonic()
+            self.state = "running"
+            self._tell("running", f"its driver started again (restart {self.restarts})")
+
+    def _tell(self, state: str, detail: str) -> None:
+        if self.on_event is not None:
+            try:
+                self.on_event(self.sensor_id, state, detail)
+            except Exception:  # a report that fails ends no supervision
+                pass
+
+    def _keep_counters(self, driver) -> None:
+        for counters in _driver_stats(driver).values():
+            for k, v in counters.items():
+                self._counters[k] = self._counters.get(k, 0) + v
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        if self.current is not None:
+            self.current.stop()
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """The counters of every driver of the sensor (those that died without their
+        counters count nothing), with ``restarts``."""
+        out = dict(self._counters)
+        for counters in _driver_stats(self.current).values():
+            for k, v in counters.items():
+                out[k] = out.get(k, 0) + v
+        return {self.sensor_id: {**out, "restarts": self.restarts}}
+
+
+def _driver_stats(driver) -> dict[str, dict[str, int]]:
+    """A driver's counters by sensor: a DriverProcess's, or an in-process SourceNode's source's."""
+    if driver is None or isinstance(driver, _Failed):
+        return {}
+    return getattr(driver, "source", driver).stats()
+
+
+class _Failed:
+    """A driver that could not start: done at once, with the reason."""
+
+    def __init__(self, exc: BaseException):
+        self.errors = [exc]
+        self.done = threading.Event()
+        self.done.set()
+
+    def stop(self) -> None:
+        pass
+
+    def stats(self) -> dict:
+        return {}

@@ -1,5 +1,6 @@
-"""The live monitor of ``qradar run``: counts and sizes per topic, latency and position
-error of the targets against the true positions, each sensor's rate and losses, the live lines."""
+"""The live monitor of ``qradar run``: counts and sizes per topic, latency, the honest score
+of the targets against the true positions (:mod:`pipeline.dsp.score`), each sensor's rate,
+losses and front-end state (calibrated or not, leakage seen), the live lines and warnings."""
 
 from __future__ import annotations
 
@@ -13,15 +14,43 @@ import numpy as np
 import zenoh
 
 from pipeline.bus.session import BusConfig
+from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
-from pipeline.dsp.localize import position_error_m
+from pipeline.dsp.gate import LEAKAGE_BINS
+from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
 from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
-from radar_driver.model import polar_to_xy
+from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene
+
+from .figures import percent
 
 
 #: topics the monitor counts by name (``other`` for the rest)
 MONITORED_TOPICS = frozenset(TOPICS)
+#: a sensor's front end shows (a warning) once this many of its frames were checked and more
+#: than LEAKAGE_SHARE of them had their strongest return in the first range bins
+LEAKAGE_MIN_CHECKED = 10
+LEAKAGE_SHARE = 0.5
+#: where a warning about the front end sends the user
+CALIBRATE_HINT = "`qradar calibrate` (docs/chamber.md, section 7)"
+
+
+def leakage_shown(front: dict) -> bool:
+    """Whether a sensor's front-end state (``checked``, ``leakage`` frames) shows its front end."""
+    return front.get("checked", 0) >= LEAKAGE_MIN_CHECKED and front.get("leakage", 0) > LEAKAGE_SHARE * front["checked"]
+
+
+def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = None) -> str:
+    """The one warning of a sensor whose frames show its front end (:func:`leakage_shown`)."""
+    near = LEAKAGE_BINS * (radar or RadarConfig()).range_resolution_m
+    seen = (f"its strongest return lies within the first {near:g} m (DC offset, TX-to-RX leakage) in "
+            f"{percent(front['leakage'] / front['checked'])} of {front['checked']} frames checked")
+    if front.get("calibrated"):
+        return (f"{sensor_id}: calibrated with {front['calibrated']}, yet {seen}: the calibration does not fit this "
+                f"sensor's front end (made on another sensor, radome or configuration?); make its own with "
+                f"{CALIBRATE_HINT}")
+    return (f"{sensor_id}: uncalibrated: {seen}; targets at the range gate's ends are that leakage and angles "
+            f"carry the receivers' mismatch: run {CALIBRATE_HINT} and give --calibration")
 
 
 class Monitor:
@@ -37,10 +66,15 @@ class Monitor:
     MAX_SENSORS = 1024
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
-                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False):
+                 live: TextIO | None = sys.stdout, clock_per_sensor: bool = False,
+                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None):
         """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
         with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
-        scene starts moving with its first measured frame, after its driver connected)."""
+        scene starts moving with its first measured frame, after its driver connected).
+        ``seq_rate_hz``: the sensors' frame rate, which bounds what a gap in the targets'
+        sequence numbers can count as missing (:func:`~pipeline.nodes.counters.judge_seq`).
+        ``calibration``: the calibration file the run's quantizer applies (None: none), until
+        a sensor's health says otherwise."""
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
         self.clock_per_sensor = clock_per_sensor
         self._t0_by_sensor: dict[str, int] = {}
@@ -49,14 +83,34 @@ class Monitor:
         self.bytes: dict[str, int] = defaultdict(int)
         self.latency_ms = LogHistogram(lo=1e-3, hi=1e6)  # sensor timestamp -> targets published, ms
         self.errors_m = LogHistogram(lo=1e-4, hi=1e4)  # each true target to the nearest estimate, m
-        self.bad_targets = 0
+        # the honest score (pipeline.dsp.score): per true target, frames in which a target was matched
+        # to it and the matched targets' errors; false targets and targets in all; frames scored
+        self.distance_m = DETECTION_DISTANCE_M
+        n_true = len(truth.targets) if truth is not None else 0
+        self.detected = np.zeros(n_true, dtype=np.int64)
+        self.detection_errors_m = [LogHistogram(lo=1e-4, hi=1e4) for _ in range(n_true)]
+        self.false_targets = 0
+        self.targets = 0
+        self.frames_scored = 0
+        # per sensor: what its health says of its front end ({"calibrated": file or False,
+        # "checked": n, "leakage": m}) and the warnings printed (one per sensor)
+        self.front_end: dict[str, dict] = {}
+        self.calibration = calibration
+        self.warnings: dict[str, str] = {}
+        self.bad_targets = 0  # targets or tracks that do not decode (counted, never raised)
+        self.bad_health = 0  # health that does not decode
+        self.failed_messages = 0  # messages whose handling failed otherwise
         # tracks (--track): each static true target to the nearest static track within 1 m, m;
         # the largest track id seen per sensor (ids count up from 1)
         self.static_track_errors_m = LogHistogram(lo=1e-4, hi=1e4)
         self.track_ids: dict[str, int] = {}
-        self.targets_missing = 0  # gaps in the targets' sequence numbers, per sensor
+        # the targets' sequence numbers judged per sensor (judge_seq): gaps, restarts, numbers out of line
+        self.targets_missing = 0
+        self.targets_seq_resets = 0
+        self.targets_implausible_seq = 0
+        self.seq_rate_hz = seq_rate_hz
         self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
-        self._last_seq: dict[str, int] = {}
+        self._last_seq: dict[str, SeqTrack] = {}
         # per sensor: [monotonic s of the last live line, targets since, sequence gaps, frames the
         # sensor's link lost (its driver's health), targets in all, first and last timestamp_ns]
         self._sensor: dict[str, list] = {}
@@ -73,7 +127,11 @@ class Monitor:
             self._sub = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.on_message(str(sample.key_expr), sample.payload.to_bytes())
+        try:
+            self.on_message(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:  # nothing a sender puts may raise in zenoh's callback: counted instead
+            with self._lock:
+                self.failed_messages += 1
 
     def _state(self, sensor: str) -> list:
         st = self._sensor.get(sensor)
@@ -118,22 +176,27 @@ class Monitor:
                 t0_ns = self._t0_by_sensor.setdefault(msg.sensor_id, msg.timestamp_ns)
         t_s = max(0.0, (msg.timestamp_ns - t0_ns) / 1e9)
         truth = self.truth.truth(t_s) if self.truth is not None else None
-        est_r = np.array([[t["range_m"] for t in msg.targets]])
-        est_a = np.array([[t["angle_deg"] for t in msg.targets]])
-        err = position_error_m(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
-                               est_r, est_a)[0] if truth and msg.targets else np.array([])
+        scored = None
+        if truth:
+            scored = score_frames(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
+                                  np.array([[t["range_m"] for t in msg.targets]]).reshape(1, -1),
+                                  np.array([[t["angle_deg"] for t in msg.targets]]).reshape(1, -1), self.distance_m)
+        err = scored.nearest_m[0][np.isfinite(scored.nearest_m[0])] if scored is not None else np.array([])
         now = time.monotonic()
         with self._lock:
-            last = self._last_seq.get(msg.sensor_id)
-            if last is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
+            track = self._last_seq.get(msg.sensor_id)
+            if track is None and len(self._last_seq) >= self.MAX_SENSORS:  # keys of garbage: bounded
                 self._last_seq.clear()
             st = self._state(msg.sensor_id)
-            if last is not None and msg.seq > last + 1:
-                self.targets_missing += msg.seq - last - 1
-                st[2] += msg.seq - last - 1
-            self._last_seq[msg.sensor_id] = msg.seq
+            self._last_seq[msg.sensor_id], verdict = judge_seq(track, msg.seq, now, self.seq_rate_hz)
+            self.targets_missing += verdict.missing
+            self.targets_seq_resets += verdict.resets
+            self.targets_implausible_seq += verdict.implausible
+            st[2] += verdict.missing
             self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
             self.errors_m.add_many(err)
+            if scored is not None:
+                self._tally(scored)
             st[1] += 1
             st[4] += 1
             if st[4] == 1:
@@ -145,13 +208,16 @@ class Monitor:
                 lost = st[2] + st[3]
                 st[0], st[1] = now, 1
         if self.live is not None and due:
-            line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + "  ".join(
-                f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets)
+            line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + ("  ".join(
+                f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets) or "none")
             if truth is not None:
                 line += "   truth " + "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
-                line += "   error m " + " ".join(f"{e:.2f}" for e in err)
+                line += "   error m " + " ".join("miss" if not np.isfinite(e) else f"{e:.2f}"
+                                                 for e in scored.error_m[0])
+                if scored.false_targets[0]:
+                    line += f" +{scored.false_targets[0]} false"
             line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
-            print(line, file=self.live, flush=True)
+            print(line + "   " + self.calibration_tag(msg.sensor_id), file=self.live, flush=True)
 
     def _on_tracks(self, key: str, payload: bytes) -> None:
         """A tracks message: its largest id, and with a truth the static tracks' errors."""
@@ -178,16 +244,68 @@ class Monitor:
                                                 + [t["track_id"] for t in msg.tracks])
             self.static_track_errors_m.add_many(errors)
 
+    def calibration_tag(self, sensor_id: str) -> str:
+        """What a live line says of a sensor's calibration: ``calibrated`` or ``uncalibrated``,
+        in capitals with the leakage seen (or ``calibration does not fit``)."""
+        front = self.front_end.get(sensor_id) or {"calibrated": self.calibration or False}
+        if not leakage_shown(front):
+            return "calibrated" if front.get("calibrated") else "uncalibrated"
+        return "calibration does not fit (leakage seen)" if front.get("calibrated") else "UNCALIBRATED (leakage seen)"
+
+    def _tally(self, scored) -> None:
+        """Add one frame's score (``_lock`` held)."""
+        found = np.isfinite(scored.error_m[0])
+        self.detected += found
+        for i in np.flatnonzero(found).tolist():
+            self.detection_errors_m[i].add(float(scored.error_m[0, i]))
+        self.false_targets += int(scored.false_targets[0])
+        self.targets += int(scored.targets[0])
+        self.frames_scored += 1
+
+    def score(self) -> Score | None:
+        """The honest score so far (medians from the histograms: within 2 %), None without a truth."""
+        if self.truth is None:
+            return None
+        with self._lock:
+            n = self.frames_scored
+            rate = self.detected / n if n else np.full(len(self.detected), np.nan)
+            med = np.array([np.nan if h.count == 0 else h.percentile(50) for h in self.detection_errors_m])
+            near = self.errors_m.percentile(50)
+            return Score(self.distance_m, n, rate, med, self.false_targets / n if n else np.nan,
+                         self.targets / n if n else np.nan, np.nan if near is None else near)
+
     def _on_health(self, key: str, payload: bytes) -> None:
-        """A driver's health: the sensor frames its link lost so far (the DONE counter's gaps)."""
-        if b'"node":"source"' not in payload:
+        """A node's health: the sensor frames its link lost (the driver's: the DONE counter's
+        gaps), whether its frames are calibrated (the quantizer's) and whether the localizer
+        sees its front end (``front_end``); a sensor whose front end shows is warned about once."""
+        if not (b'"node":"source"' in payload or b'"front_end"' in payload or b'"calibrated"' in payload):
             return
         try:
             msg = decode_health(payload, key)
         except WireError:
+            with self._lock:
+                self.bad_health += 1
             return
+        warn = None
         with self._lock:
-            self._state(msg.sensor_id)[3] = msg.drops
+            if msg.node == "source":
+                self._state(msg.sensor_id)[3] = msg.drops
+            front = self.front_end.get(msg.sensor_id)
+            if front is None:
+                if len(self.front_end) >= self.MAX_SENSORS:  # keys of garbage: bounded
+                    self.front_end.clear()
+                front = self.front_end[msg.sensor_id] = {"calibrated": self.calibration or False, "checked": 0,
+                                                         "leakage": 0}
+            if "calibrated" in msg.extra:
+                front["calibrated"] = msg.extra["calibrated"] or False
+            fe = msg.extra.get("front_end")
+            if isinstance(fe, dict):
+                front["checked"], front["leakage"] = int(fe.get("checked", 0)), int(fe.get("leakage", 0))
+            if (leakage_shown(front) and msg.sensor_id not in self.warnings
+                    and len(self.warnings) < self.MAX_SENSORS):
+                warn = self.warnings[msg.sensor_id] = front_end_warning(msg.sensor_id, front)
+        if warn is not None and self.live is not None:
+            print(f"warning: {warn}", file=self.live, flush=True)
 
     def rates_hz(self) -> dict[str, float]:
         """Each sensor's targets per second, over its first and last targets' timestamps."""

@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import threading
 import time
 import tomllib
@@ -25,10 +23,10 @@ from typing import TextIO
 
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
-from pipeline.bus.audit import format_counts
 from pipeline.bus.session import BusConfig
+from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
-from pipeline.errors import ParameterError
+from pipeline.errors import ParameterError, RunSetupError
 from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.dsp.track import TrackerConfig
@@ -39,24 +37,16 @@ from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
+from replay.outputs import check_new_file
 from replay.recorder import OnWriteError, RecorderNode
 
-from .drivers import DriverProcess, driver_bus
+from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
 from .monitor import Monitor
-from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors
+from .summary import RunSummary, format_summary, print_json, simulator_lateness, summarize  # noqa: F401 (run's API)
+from .rundir import remove_run_dirs, run_directory
+from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors, resolve_auto
 from .view import FoxgloveView, ViewConfig
-
-#: the temporary directories of the runs in progress (pty links, the zenoh socket)
-_RUN_DIRS: set[str] = set()
-
-
-def remove_run_dirs() -> None:
-    """For an exit at once (a second Ctrl-C while a run stops, no time to stop in order):
-    the runs' temporary directories removed, pty links and zenoh socket (their driver
-    processes stop by themselves). Quick, and raises nothing."""
-    for path in list(_RUN_DIRS):
-        shutil.rmtree(path, ignore_errors=True)
-
+from .web import WebConfig, WebView
 
 #: targets a frame of a real sensor holds when neither --K nor a --truth file says (the chamber's two reflectors)
 REAL_SENSOR_K = 2
@@ -86,11 +76,13 @@ class RunConfig:
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
+    web: WebConfig | None = None  # serve the live stream as a web page (qradar.web) on its host and port
     driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
     record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
     record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
     record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
+    record_overwrite: bool = False  # --force: an existing file at record (a name given) is replaced
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
     # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer. None: 2 with
     # simulated sensors, 1 (drive's default: no assumption) with real ones
@@ -102,6 +94,10 @@ class RunConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks after the localizer (pipeline.dsp.track), None: none
+    # a driver that dies is started again after driver_backoff_s, doubled each time it dies again soon;
+    # its sensor is given up after driver_restarts such deaths in a row (qradar.drivers.SupervisedDriver)
+    driver_backoff_s: float = RESTART_BACKOFF_S
+    driver_restarts: int = MAX_RESTARTS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "algo", DecoderConfig(algo=self.algo, auto_k=self.auto_k, pfa=self.pfa).algo)
@@ -139,6 +135,9 @@ class RunConfig:
         object.__setattr__(self, "record_on_error", OnWriteError(self.record_on_error))
         if self.outstanding not in (1, 2):
             raise ParameterError(f"outstanding={self.outstanding!r} must be 1 or 2")
+        if not (self.driver_backoff_s > 0 and isinstance(self.driver_restarts, int) and self.driver_restarts >= 0):
+            raise ParameterError(f"driver_backoff_s={self.driver_backoff_s!r} must be > 0 and "
+                                 f"driver_restarts={self.driver_restarts!r} an integer >= 0")
 
     @property
     def real(self) -> bool:
@@ -150,8 +149,16 @@ class RunConfig:
         return len(self.sensor_specs) or self.sensors
 
 
-def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> dict:
-    """Run the pipeline; returns the summary dict."""
+#: a run whose first REFUSED_AFTER raw frames (or more) were all refused, none decoded, ends
+#: with a RunSetupError (the frames cannot be processed as set up)
+REFUSED_AFTER = 10
+
+
+def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> "RunSummary":
+    """Run the pipeline; returns its summary. A wrong set-up ends it with an error of the
+    libraries' roots (one line): a calibration that does not fit a sensor's first frame
+    (CalibrationError), frames that never assemble (the driver's SetupError), frames that
+    arrive but are every one refused (RunSetupError)."""
     scene = None if cfg.real else resolve_scene(cfg.scene)
     if cfg.empty and scene is not None:
         scene = scene.without_targets()
@@ -163,8 +170,10 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         for sid in ([s.sensor_id for s in cfg.sensor_specs] if cfg.real else
                     [f"kmd2-{i}" for i in range(cfg.sensors)]):
             calibration.check_sensor(sid)
-    if cfg.record is not None and not cfg.record_new_name_if_taken and os.path.lexists(cfg.record):
-        raise RecordingExists.at(cfg.record)  # before anything starts
+    if cfg.record is not None and not cfg.record_new_name_if_taken:  # before anything starts
+        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
+            raise RecordingExists.at(cfg.record)
+        check_new_file(cfg.record, cfg.record_overwrite, "recording")  # its folder, one level at most
     if scene is not None:
         k = cfg.k or max(1, len(scene.targets))
     else:
@@ -173,10 +182,14 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                     auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
                                     max_range_m=cfg.max_range_m)  # checked before anything starts
     if cfg.real:
+        cfg = replace(cfg, sensor_specs=resolve_auto(cfg.sensor_specs))  # --sensor auto: the one K-MD2 found
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
+    if live is not None:
+        print(run_header(cfg, scene, truth, localizer_cfg, calibration), file=live, flush=True)
     t_start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="qradar-run-") as tmp:
-        _RUN_DIRS.add(tmp)
+    stop = stop or threading.Event()
+    refused: list[RunSetupError] = []
+    with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start
         # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
         # clock would, and counts it: the drops left are the driver's
         sims = [] if cfg.real else [
@@ -192,52 +205,152 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
-            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real).start()
+            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real,
+                              calibration=None if calibration is None else calibration.source).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration)
-            if cfg.driver_process:
-                drivers = [DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=cfg.frames,
-                                         outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                         profile=s.profile, chirp_select=s.chirp_select,
-                                         received=lambda sid=s.sensor_id: monitor.raw_by_sensor.get(sid, 0))
-                           for s in specs]
-            else:
-                drivers = [SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)),
-                                      session=session, frames=cfg.frames) for s in specs]
+            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration,
+                                     calibration_required=True)  # a file that does not fit: refused at the first frame
+            drivers = supervised_drivers(cfg, specs, bus, session, monitor, live, stop)
             if cfg.frames is not None:
-                stop = stop or threading.Event()
                 threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
+            ended = threading.Event()  # the run's nodes have stopped: the watch ends too
+            threading.Thread(target=watch_refusals, args=(monitor, quantizer, localizer, stop, refused, ended),
+                             name="refusals", daemon=True).start()
             recorder = []
             if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session,
+                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, radar=radar,
                                          metadata=run_metadata(cfg, scene, truth, radar, k, calibration,
                                                                localizer_cfg.gate),
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
-                                         new_name_if_taken=cfg.record_new_name_if_taken)]
-            view = None
+                                         new_name_if_taken=cfg.record_new_name_if_taken,
+                                         overwrite=cfg.record_overwrite)]
+            view = web = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
                 view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
+            if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
+                try:
+                    web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
+                                  truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                except BaseException:  # a busy port: the Foxglove view ends too
+                    if view is not None:
+                        view.stop()
+                    raise
+                if live is not None:
+                    print(f"web: page on {web.url}", file=live, flush=True)
             try:
                 run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
             finally:
+                ended.set()
                 monitor.stop()
-                if view is not None:
-                    view.stop()
+                for v in (view, web):
+                    if v is not None:
+                        v.stop()
         finally:
             session.close()
             for sim in sims:
                 sim.stop()
-            _RUN_DIRS.discard(tmp)
+    if refused:
+        raise refused[0]
     summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
-                        simulator=simulator_lateness(sims) if sims else None, truth=truth)
+                        simulator=simulator_lateness(sims) if sims else None, truth=truth, calibration=calibration)
     if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
-        summary["recording"] = recorder[0].summary()
+        summary.recording = recorder[0].summary()
     if view is not None:
-        summary["foxglove"] = view.summary()
+        summary.foxglove = view.summary()
+    if web is not None:
+        summary.web = web.summary()
     return summary
+
+
+def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event, out: list,
+                   ended: threading.Event) -> None:
+    """Until ``stop`` or ``ended``: once REFUSED_AFTER raw frames (or more) have arrived and every
+    one was refused (none reached the targets), a RunSetupError into ``out`` and ``stop`` set."""
+    while not (stop.is_set() or ended.wait(0.5)):
+        raw, targets = monitor.count["raw"], monitor.count["targets"]
+        if raw < REFUSED_AFTER or targets:
+            continue
+        q, lo = quantizer.totals(), localizer.totals()
+        kinds = ("invalid_frames", "decode_errors", "processing_errors")
+        n_q, n_l = sum(q[k] for k in kinds), sum(lo[k] for k in kinds)
+        if n_q + n_l < raw:
+            continue
+        node = quantizer if n_q else localizer
+        why = next((node.last_reason[k] for k in kinds if k in node.last_reason), "no reason logged")
+        out.append(RunSetupError(f"{raw} raw frames arrived and every one was refused, none decoded (quantize "
+                                 f"refused {n_q}, localize {n_l}); the last reason: {why}"))
+        stop.set()
+        return
+
+
+def run_header(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, localizer: LocalizerConfig,
+               calibration: Calibration | None) -> str:
+    """The run's first lines: what runs, against which truth, and whether its frames are calibrated."""
+    where = (", ".join(f"{s.sensor_id} on {s.url}" for s in cfg.sensor_specs) if cfg.real else
+             f"scene {scene.name}{' (empty)' if cfg.empty else ''}, {cfg.sensors} simulated sensor(s) at "
+             f"{cfg.rate_hz:g} frames/s")
+    gate = localizer.gate
+    k = f"K auto (at most {localizer.k})" if cfg.auto_k else f"K = {localizer.k}"
+    q = cfg.quantizer
+    lines = [f"qradar run: {where}; {cfg.algo} {k} in {gate.min_range_m:g}-{gate.max_range_m:g} m, {q.bits}-bit "
+             f"alpha {q.alpha}; truth: " + ("none (no position error)" if truth is None else
+                                            "the simulated scene" if truth is scene else str(cfg.truth))]
+    if calibration is not None:
+        made = calibration.meta.get("created_utc", "at an unknown time")
+        lines.append(f"  calibration {calibration.source} (made {made}, for {', '.join(sorted(calibration.sensors))}); "
+                     "each sensor's first frame is checked against it")
+    elif scene is not None and not scene.front_end.ideal:
+        lines.append(f"  calibration none: the frames are uncalibrated, and the simulated scene {scene.name} has a "
+                     "front end (DC offset, TX leakage, receiver mismatch): expect the warning below (a calibrated "
+                     "run: --calibration recordings/chamber-cal.json)")
+    else:
+        lines.append("  calibration none: the frames are uncalibrated (a warning follows if the localizer sees a "
+                     "front end's leakage)")
+    return "\n".join(lines)
+
+
+def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: Monitor, live: TextIO | None,
+                       stop: threading.Event) -> list[SupervisedDriver]:
+    """A driver per sensor (a process of its own, or a thread of this one), each
+    restarted with backoff when it dies while the others go on (:class:`SupervisedDriver`):
+    a death and a restart are said on the live stream and in the sensor's health (node
+    ``run``, ``extra.driver``: state, restarts, why); once every sensor is given up,
+    ``stop`` is set (the run ends with its summary)."""
+    drivers: list[SupervisedDriver] = []
+
+    def report(sensor_id: str, state: str, detail: str) -> None:
+        sup = next(d for d in drivers if d.sensor_id == sensor_id)
+        if live is not None:
+            print(f"{sensor_id}: {detail}", file=live, flush=True)
+        health = HealthMsg("run", sensor_id, time.time_ns(), extra={"driver": {
+            "state": state, "restarts": sup.restarts, "exits": len(sup.exits), "last_exit": detail}})
+        try:
+            session.put(cfg.bus.key(sensor_id, "health"), health.to_json())
+        except Exception:  # a closing session: the live line and the summary say it
+            pass
+        if state == "gone" and all(d.gone.is_set() or d is sup for d in drivers):
+            stop.set()
+
+    def maker(s: SensorSpec):
+        def make(frames_done: int):
+            frames = None if cfg.frames is None else max(cfg.frames - frames_done, 1)
+            if not cfg.driver_process:
+                return SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)), session=session,
+                                  frames=frames)
+            base = monitor.raw_by_sensor.get(s.sensor_id, 0)  # this driver's frames are those after
+            return DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=frames,
+                                 outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
+                                 profile=s.profile, chirp_select=s.chirp_select,
+                                 received=lambda: monitor.raw_by_sensor.get(s.sensor_id, 0) - base)
+        return make
+
+    for s in specs:
+        drivers.append(SupervisedDriver(s.sensor_id, maker(s), lambda sid=s.sensor_id: monitor.raw_by_sensor.get(
+            sid, 0), on_event=report, backoff_s=cfg.driver_backoff_s, max_restarts=cfg.driver_restarts))
+    return drivers
 
 
 def load_truth(name_or_path: str | Path) -> SimScene:
@@ -296,131 +409,3 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
         if scene is not None:
             meta["qradar.simulated_scene"] = {"scene": json.dumps(scene.to_dict()), "rate_hz": str(cfg.rate_hz)}
     return meta
-
-
-def _stat(value: float | None) -> float | None:
-    return None if value is None else round(float(value), 4)
-
-
-def simulator_lateness(sims: list[SimulatorServer]) -> dict:
-    """The simulated sensors' own lateness (their process was not scheduled in time): late
-    writes and seconds, for which each held its device clock. Not frames lost: a real
-    K-MD2 measures on its own clock."""
-    devs = [d for sim in sims for d in sim.devices]
-    return {"late_writes": sum(d.late_writes for d in devs), "late_s": round(sum(d.late_s for d in devs), 4)}
-
-
-def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
-              simulator: dict | None = None, truth: SimScene | None = None) -> dict:
-    """The run's summary. ``simulator``: the simulated sensors' lateness (None with real
-    sensors); ``truth``: the true positions the errors were measured against (None: no
-    error, ``position_error_m`` all None)."""
-    driver_stats = {sid: c for d in drivers for sid, c in getattr(d, "source", d).stats().items()}
-    driver_drops = sum(c.get("dropped", 0) for c in driver_stats.values())
-    q_tot, l_tot = quantizer.totals(), localizer.totals()
-    queue_drops = l_tot["drops"] + q_tot["drops"]
-    cnt, size = monitor.count, monitor.bytes
-    lat, err = monitor.latency_ms, monitor.errors_m  # fixed-size histograms: within 2 % of the exact figures
-    if truth is None:
-        truth_name = None
-    elif truth is scene:
-        truth_name = "simulated"
-    else:
-        truth_name = str(cfg.truth)
-    return {
-        "scene": scene.name if scene is not None else None,
-        "sensors": cfg.n_sensors,
-        # real sensors: where each one is (--sensor); simulated ones: null
-        "sensor_urls": {s.sensor_id: s.url for s in cfg.sensor_specs} if cfg.real else None,
-        "truth": truth_name,  # "simulated", the --truth file, or null (no position error)
-        "seconds": round(seconds, 2),
-        "frames_raw": cnt["raw"],
-        "frames_quantized": cnt["quantized"],
-        "frames_targets": cnt["targets"],
-        "rate_hz": monitor.rates_hz(),  # targets per second of each sensor (first to last frame)
-        "drops": driver_drops + queue_drops,
-        "drops_detail": {"sensor_frames": driver_drops, "node_queues": queue_drops,
-                         "decode_errors": l_tot["decode_errors"] + q_tot["decode_errors"],
-                         "invalid_frames": l_tot["invalid_frames"] + q_tot["invalid_frames"],
-                         "processing_errors": l_tot["processing_errors"] + q_tot["processing_errors"],
-                         "undecodable_targets": monitor.bad_targets},
-        # gaps in the sequence numbers, where each stage noticed them: a frame lost before the
-        # quantizer is missing at every later stage too
-        "frames_missing": {"quantize": q_tot["frames_missing"], "localize": l_tot["frames_missing"],
-                           "targets": monitor.targets_missing},
-        "worker_restarts": q_tot["worker_restarts"] + l_tot["worker_restarts"],
-        "latency_ms": {"p50": _stat(lat.percentile(50)), "p99": _stat(lat.percentile(99))},
-        "position_error_m": {"median": _stat(err.percentile(50)), "mean": _stat(err.mean()),
-                             "p90": _stat(err.percentile(90))},
-        "bytes_per_raw_frame": round(size["raw"] / cnt["raw"], 1) if cnt["raw"] else None,
-        "bytes_per_quantized_frame": round(size["quantized"] / cnt["quantized"], 1) if cnt["quantized"] else None,
-        "quantizer": {"bits": cfg.quantizer.bits, "alpha": cfg.quantizer.alpha, "delta": cfg.quantizer.delta,
-                      "dither_seed": cfg.quantizer.dither_seed,
-                      # alpha auto: each sensor's noise estimate and the alpha of its last frame
-                      **({"noise": quantizer.noise.snapshot()} if getattr(quantizer, "noise", None) else {})},
-        "localizer": {"algo": str(cfg.algo), "K": localizer.config.k, "K_auto": cfg.auto_k,
-                      **localizer.config.gate.to_dict()},
-        **({"tracks": {"messages": cnt["tracks"], "last_track_id": dict(sorted(monitor.track_ids.items())),
-                       "integrate_s": cfg.tracking.integrate_s,
-                       # each static true target to the nearest static track (within 1 m), every message
-                       "static_track_error_m": {"median": _stat(monitor.static_track_errors_m.percentile(50)),
-                                                "p90": _stat(monitor.static_track_errors_m.percentile(90))}}}
-           if cfg.tracking is not None else {}),
-        "driver": driver_stats,
-        "driver_process": cfg.driver_process,
-        # the simulated sensors' own late writes (device clock held): apart from every loss above;
-        # null with real sensors
-        "simulator": simulator,
-    }
-
-
-def format_summary(s: dict) -> str:
-    lat, err = s["latency_ms"], s["position_error_m"]
-    urls = s.get("sensor_urls")
-    where = (f"{len(urls)} sensor(s) " + ", ".join(f"{sid} on {url}" for sid, url in urls.items()) if urls
-             else f"scene {s['scene']}, {s['sensors']} sensor(s)")
-    rates = list((s.get("rate_hz") or {}).values())
-    lines = [
-        f"qradar run: {where}, {s['seconds']} s"
-        + (", ended by Ctrl-C / SIGTERM" if s.get("interrupted") else ""),
-        f"  frames      raw {s['frames_raw']}, quantized {s['frames_quantized']}, targets {s['frames_targets']}",
-    ]
-    if rates:
-        lines.append(f"  rate        {rates[0]:.1f} frames/s" if len(rates) == 1 else
-                     f"  rate        {min(rates):.1f} to {max(rates):.1f} frames/s per sensor")
-    lines += [
-        f"  drops       {s['drops']} ({s['drops_detail']})",
-        f"  missing     {s['frames_missing']} (sequence gaps noticed at each stage)",
-    ]
-    if s.get("simulator") is not None:
-        lines.append(f"  simulator   {s['simulator']['late_writes']} late writes, {s['simulator']['late_s'] * 1e3:.1f} ms "
-                     f"in all (the simulated sensors' own lateness on a busy host, device clock held: no frame lost)")
-    lines.append(f"  latency     p50 {lat['p50']} ms, p99 {lat['p99']} ms (sensor timestamp -> targets published)")
-    if s.get("truth", "simulated") is None:
-        lines.append("  error       none: no true positions (--truth SCENE.toml gives the reflectors' measured ones)")
-    else:
-        lines.append(f"  error       median {err['median']} m, mean {err['mean']} m, p90 {err['p90']} m (each true "
-                     f"target to the nearest estimate" + (f"; truth {s['truth']}" if s.get("truth") not in
-                                                          (None, "simulated") else "") + ")")
-    tr = s.get("tracks")
-    if tr is not None:
-        e = tr["static_track_error_m"]
-        lines.append(f"  tracks      {tr['messages']} messages, last track id {tr['last_track_id']}; static tracks' error "
-                     f"median {e['median']} m, p90 {e['p90']} m (--integrate {tr['integrate_s']:g} s)")
-    lines.append(f"  bytes/frame raw {s['bytes_per_raw_frame']}, quantized {s['bytes_per_quantized_frame']} "
-                 f"({s['quantizer']['bits']}-bit, alpha {s['quantizer']['alpha']})")
-    rec = s.get("recording")
-    if rec is not None:
-        lines.append(f"  recording   {rec['state']}, {rec['files_written']} file(s) {', '.join(rec['files'])}; "
-                     f"written {rec['written']}, dropped {rec['dropped']}, lost {rec['lost']}"
-                     + (f" {rec['lost_by_topic']}" if rec["lost"] else "")
-                     + (f"; last write error: {rec['error']}" if rec["error"] else ""))
-    counts = s.get("audit")
-    if counts is not None:
-        lines.append(f"  audit       {format_counts(counts)} (--secure; docs/security.md)")
-    return "\n".join(lines)
-
-
-def print_json(summary: dict, stream: TextIO = sys.stdout) -> None:
-    stream.write(json.dumps(summary) + "\n")
-    stream.flush()

@@ -2,7 +2,7 @@
 validated when it is read, with one-line errors that quote the spec.
 
 A spec is a pyserial URL (a device path, ``socket://host:port``, ``rfc2217://host:port``)
-and then, separated by commas, the sensor's options, as ``qradar drive`` takes them:
+or ``auto``, and then, separated by commas, the sensor's options, as ``qradar drive`` takes them:
 
 - ``id``: the sensor's id in the zenoh keys (required; 1-16 of [A-Za-z0-9_-]);
 - ``profile``: a packaged sensor profile or a TOML file (default kmd2-blocks);
@@ -11,6 +11,11 @@ and then, separated by commas, the sensor's options, as ``qradar drive`` takes t
 - ``ramps``: ramps per frame, M = 256 x ramps (default 2);
 - ``chirp-select``: with several chirps per RADC, ``first`` or ``stride``.
 
+The URL ``auto`` (``auto,id=kmd2-0[,profile=...]``) stands for the one K-MD2 that answers
+on this host's serial adapters: :func:`resolve_auto` probes them (``INIT`` and ``GBYE``,
+as ``qradar ports --probe`` does, :mod:`radar_driver.ports`) and puts that port in its
+place, or fails in one line naming what it found.
+
 Before a run starts anything, :func:`check_sensor_specs` refuses two sensors of one id or
 one port, and :func:`probe_sensors` opens each port once and closes it (a device path
 exclusively, as its driver will), so that a port that cannot be opened, or a device held
@@ -18,19 +23,25 @@ by another process, is one line naming the sensor (and the holder)."""
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, replace
 
 from pipeline.errors import ParameterError, WireError
 from pipeline.wire import check_sensor_id
-from radar_driver.errors import ConfigError, LinkError, RadarError
+from radar_driver import ports as serial_ports
+from radar_driver.errors import ConfigError, DiscoveryError, LinkError, RadarError
 from radar_driver.model import RadarConfig
 from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, resolve_profile
 from radar_driver.session import LinkKind, SensorSession, SessionConfig, link_kind
 
+log = logging.getLogger("qradar.sensors")
+
 #: the keys a spec may give after its URL
 SPEC_KEYS = ("id", "profile", "baud", "ramps", "chirp-select")
 SPEC_FORM = "URL,id=NAME[,profile=P][,baud=B][,ramps=R][,chirp-select=first|stride]"
+#: the URL of a spec that stands for the one K-MD2 found on this host's serial ports
+AUTO = "auto"
 
 
 @dataclass(frozen=True)
@@ -63,6 +74,11 @@ class SensorSpec:
         return self.profile or DEFAULT_PROFILE_NAME
 
     @property
+    def is_auto(self) -> bool:
+        """The URL is ``auto``: the port is found by :func:`resolve_auto`."""
+        return self.url == AUTO
+
+    @property
     def where(self) -> str:
         return f"--sensor {self.text or self.url!r}"
 
@@ -78,7 +94,7 @@ class SensorSpec:
         """What names the port, for telling two specs of one port apart: a device path's
         real path, a network URL's scheme, host and port."""
         kind = link_kind(self.url)
-        if kind is LinkKind.DEVICE:
+        if kind is LinkKind.DEVICE and not self.is_auto:
             return os.path.realpath(self.url)
         return self.url.split("?", 1)[0].lower()
 
@@ -139,6 +155,11 @@ def check_sensor_specs(specs: tuple[SensorSpec, ...]) -> RadarConfig:
         raise ParameterError("no sensor given")
     ids: dict[str, SensorSpec] = {}
     ports: dict[str, SensorSpec] = {}
+    autos = [s for s in specs if s.is_auto]
+    if len(autos) > 1:
+        raise ParameterError(f"{autos[1].where}: {AUTO} stands for the one K-MD2 found on this host, and "
+                             f"{autos[0].where} takes it; give the other sensors their ports (`qradar ports "
+                             f"--probe` lists them)")
     for s in specs:
         if s.sensor_id in ids:
             raise ParameterError(f"{s.where}: id {s.sensor_id!r} is taken by {ids[s.sensor_id].where}; each "
@@ -167,3 +188,33 @@ def probe_sensors(specs: tuple[SensorSpec, ...]) -> None:
             SensorSession(s.session_config()).probe()
         except LinkError as exc:
             raise LinkError(f"sensor {s.sensor_id}: {exc}") from exc
+
+
+def resolve_auto(specs: tuple[SensorSpec, ...],
+                 timeout_s: float = serial_ports.PROBE_TIMEOUT_S) -> tuple[SensorSpec, ...]:
+    """``specs`` with an ``auto`` spec's URL replaced by the port of the one K-MD2 that
+    answers on this host's serial adapters (``radar_driver.ports.list_serial_ports``, less
+    the ports the other specs name), said in one log line; a DiscoveryError (one line:
+    what was found, and ``qradar ports --probe``) when none or several answer."""
+    auto = next((s for s in specs if s.is_auto), None)
+    if auto is None:
+        return specs
+    taken = {s.port_key() for s in specs if not s.is_auto}
+    listed = serial_ports.list_serial_ports()  # the one place the candidates come from
+    candidates = [p.device for p in listed if os.path.realpath(p.device) not in taken]
+    if not candidates:
+        others = f" besides {', '.join(sorted(taken))}" if taken else ""
+        raise DiscoveryError(f"{auto.where}: no serial port found on this host{others} (is the sensor plugged in "
+                             f"and its adapter's driver loaded? `qradar ports` lists them; docs/chamber.md)")
+    results = serial_ports.probe_ports(candidates, profile=auto.profile, timeout_s=timeout_s, listed=listed)
+    found = [r for r in results if r.is_kmd2]
+    if len(found) == 1:
+        log.info("%s: the K-MD2 on %s", auto.where, found[0].name)
+        return tuple(replace(s, url=found[0].url) if s.is_auto else s for s in specs)
+    if found:
+        names = ", ".join(r.name for r in found)
+        raise DiscoveryError(f"{auto.where}: {len(found)} K-MD2s answer: {names}; give one its port, e.g. "
+                             f"--sensor {found[0].url},id={auto.sensor_id} (`qradar ports --probe` lists them)")
+    seen = "; ".join(f"{r.url}: {r.answer.words}" for r in results)
+    raise DiscoveryError(f"{auto.where}: no K-MD2 answered on the {len(results)} serial port(s) of this host "
+                         f"({seen}); `qradar ports --probe` says why for each")

@@ -67,7 +67,10 @@ class LinkSettings(Protocol):
 
 class SensorConnection:
     """The link, the codec (through ``assembler``) and the commands of a session's set-up
-    and end. ``fill`` reads the port once into ``inbox``."""
+    and end. ``fill`` reads the port once into ``inbox``. ``connected_log_level``: the level
+    of the "connected to ..." line (a probe's is DEBUG)."""
+
+    connected_log_level = logging.INFO
 
     def __init__(self, config: LinkSettings, assembler: FrameAssembler, counters: DriverCounters,
                  port_factory: Callable[..., serial.SerialBase] = serial.serial_for_url):
@@ -157,10 +160,11 @@ class SensorConnection:
             self.counters.reconnects += 1
         self.ever_connected = True
         if cfg.kind.can_change_speed:
-            log.info("connected to %s at %d baud (profile %s)", cfg.url, cfg.line_baud, self.profile.name)
+            log.log(self.connected_log_level, "connected to %s at %d baud (profile %s)", cfg.url, cfg.line_baud,
+                    self.profile.name)
         else:
-            log.info("connected to %s (%s link: the line speed stays at %d baud; profile %s)", cfg.url,
-                     cfg.kind.value, cfg.line_baud, self.profile.name)
+            log.log(self.connected_log_level, "connected to %s (%s link: the line speed stays at %d baud; profile %s)",
+                    cfg.url, cfg.kind.value, cfg.line_baud, self.profile.name)
 
     def _init(self) -> None:
         cfg, port = self.config, self.link.port

@@ -58,6 +58,25 @@ class WrongDevice(LinkError):
     """A device path that now names another device than the one first opened."""
 
 
+class PortBusy(LinkError):
+    """The port is held by another program (its exclusive lock, or the device says busy)."""
+
+
+class PortDenied(LinkError):
+    """The port may not be opened by this user (permission denied)."""
+
+
+class DiscoveryError(SensorError):
+    """``--sensor auto`` found no K-MD2 on this host's serial ports, or more than one."""
+
+
+class SetupError(RadarError):
+    """A wrong set-up, which retrying does not mend: the sensor answers, but what it sends does
+    not go with what it was asked to be (its frame layout is not the sensor profile's); the
+    message names the likely cause and the command that shows it. A supervisor does not
+    restart a driver that ended with one."""
+
+
 class LinkDown(RadarError):
     """The simulated link has no peer or was closed."""
 

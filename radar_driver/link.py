@@ -21,7 +21,7 @@ from typing import Callable
 import serial
 
 from .devices import cmdline, device_identity, lock_holders, port_holders
-from .errors import LinkError, WrongDevice
+from .errors import LinkError, PortBusy, PortDenied, WrongDevice
 
 
 class LinkKind(str, Enum):
@@ -72,11 +72,32 @@ def busy_text(url: str) -> str:
     return ", ".join(holders) if holders else "a process this user cannot see (`fuser -v` as root names it)"
 
 
-def open_error(url: str, exc: BaseException) -> str:
-    """One line for a port that would not open, with what to check."""
+def error_code(exc: BaseException) -> int | None:
+    """The errno of an exception pyserial raised (it puts it first in ``args`` at times)."""
     code = getattr(exc, "errno", None)
     if code is None and exc.args and isinstance(exc.args[0], int):
         code = exc.args[0]
+    return code
+
+
+def is_busy(exc: BaseException) -> bool:
+    """Whether an open failed because another program holds the port: its exclusive lock
+    (pyserial's ``exclusive``: flock), or a device that says busy."""
+    code = error_code(exc)
+    return code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY) or "exclusively lock" in str(exc)
+
+
+def open_failure(url: str, exc: BaseException) -> LinkError:
+    """The LinkError for a port that would not open: :class:`PortBusy`, :class:`PortDenied`
+    or a plain LinkError, with :func:`open_error`'s line."""
+    code = error_code(exc)
+    kind = PortBusy if is_busy(exc) else PortDenied if code in (errno.EACCES, errno.EPERM) else LinkError
+    return kind(open_error(url, exc))
+
+
+def open_error(url: str, exc: BaseException) -> str:
+    """One line for a port that would not open, with what to check."""
+    code = error_code(exc)
     if isinstance(exc, ConnectionRefusedError) or code == errno.ECONNREFUSED or "refused" in str(exc).lower():
         return f"cannot connect to {url}: connection refused (is the sensor, ser2net or `qradar sim --tcp` listening there?)"
     if code == errno.ENOENT:
@@ -155,7 +176,7 @@ class SerialLink:
         try:
             return self._open(port_url(self.url))
         except OPEN_ERRORS as exc:
-            raise LinkError(open_error(self.url, exc)) from exc
+            raise open_failure(self.url, exc) from exc
 
     def _open(self, url: str) -> serial.SerialBase:
         kw = dict(bytesize=serial.EIGHTBITS, parity=serial.PARITY_EVEN, stopbits=serial.STOPBITS_ONE,

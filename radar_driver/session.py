@@ -37,11 +37,11 @@ import serial
 
 from .assembly import DriverCounters, FrameAssembler, Taken
 from .connection import SensorConnection
-from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout
+from .errors import ConfigError, LinkError, RadarError, SensorError, SensorResponseError, SensorTimeout, SetupError
 from .limits import check_sensor_id
 from .link import LinkKind, SerialLink, busy_text, describe_device, link_kind, open_error, port_url
 from .model import RadarConfig
-from .profile import CHIRP_SELECT, SensorProfile, resolve_profile
+from .profile import CHIRP_SELECT, SensorProfile, packaged_profiles, resolve_profile
 from .protocol import Done, Gnfd, Radc, encode
 from .source import RawFrame
 
@@ -87,6 +87,9 @@ class SessionConfig:
     chirp_select: str = "first"
     queue_frames: int = 256
     outstanding: int = 1
+    #: connections in a row in which the sensor answered but no frame assembled, before a
+    #: session that never had one gives up with a SetupError naming the profile (None: never)
+    barren_connections: int | None = 5
 
     def __post_init__(self) -> None:
         if not isinstance(self.url, str) or not self.url:
@@ -108,6 +111,9 @@ class SessionConfig:
             raise ConfigError(f"queue_frames={self.queue_frames!r} must be an integer >= 1")
         if self.outstanding not in (1, 2):
             raise ConfigError(f"outstanding={self.outstanding!r} must be 1 or 2")
+        if self.barren_connections is not None and not (isinstance(self.barren_connections, int)
+                                                        and self.barren_connections >= 1):
+            raise ConfigError(f"barren_connections={self.barren_connections!r} must be an integer >= 1 or None")
 
     @property
     def kind(self) -> LinkKind:
@@ -162,6 +168,8 @@ class SensorSession:
         self._deadline = 0.0  # when the next answer is late (monotonic s)
         self._retries = 0  # timeouts since the last DONE
         self._last_frame_mono: float | None = None
+        self._barren = 0  # connections in a row that ended without a frame
+        self._connected_at = 0  # counters.frames when the port last connected
 
     # -- life cycle -----------------------------------------------------------------------
     def __enter__(self) -> "SensorSession":
@@ -219,6 +227,7 @@ class SensorSession:
         self._in_flight = 0
         self._retries = 0
         self._conn.connect()
+        self._connected_at = self.counters.frames
 
     # -- I/O (one method each, so that a probe can watch them) ----------------------------------
     @property
@@ -282,6 +291,7 @@ class SensorSession:
                         return
                 if not self._conn.is_open and not self._reconnect():  # LinkError once reconnect_timeout_s is spent
                     return
+                frames_before = self.counters.frames
                 try:
                     self._step()
                 except SensorError as exc:
@@ -289,8 +299,9 @@ class SensorSession:
                     if not cfg.reconnect or self._stop.is_set():
                         self._conn.goodbye()
                         raise
-                    log.warning("%s; reconnecting", exc)
                     self._conn.goodbye()
+                    self._note_barren(exc, frames_before)
+                    log.warning("%s; reconnecting", exc)
         except BaseException as exc:  # handed to the consumer, never silent
             self._queue.put(exc)
         finally:
@@ -312,6 +323,28 @@ class SensorSession:
                                     f"bytes skipped in all")
             self._in_flight = 0  # the answers are lost: ask once more
             self._top_up()
+
+    def _note_barren(self, exc: SensorError, frames_before: int) -> None:
+        """A connection lost after the sensor answered: count it if it brought no frame (the
+        frames since the connect: ``_connected_at``); once ``barren_connections`` in a row
+        have, and the session never had a frame, a SetupError: the sensor talks, but its
+        frames do not assemble in this profile's layout."""
+        if self.counters.frames > self._connected_at or self.counters.frames > frames_before:
+            self._barren = 0
+            return
+        self._barren += 1
+        limit = self.config.barren_connections
+        if limit is None or self._barren < limit or self._last_frame_mono is not None:
+            return
+        p = self.profile
+        stats = self.assembler.decoder.stats
+        raise SetupError(
+            f"no frame assembled from {self.config.url} in {self._barren} connections: the sensor answers, but "
+            f"not in the layout of sensor profile {p.name!r} (RADC of {p.radc.payload_len} bytes; "
+            f"{stats.skipped_bytes} bytes skipped, last: {exc}). The likely cause is the profile: give the "
+            f"sensor's (run --sensor URL,id=NAME,profile=..., drive --profile; packaged: "
+            f"{', '.join(packaged_profiles())}), or record the link with `qradar capture` and read it with "
+            f"`qradar inspect` (docs/sensor.md)")
 
     def _handle(self, m) -> None:
         """One message: an answer (a DONE) lets the next GNFD out before its frame is built."""

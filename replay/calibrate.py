@@ -9,7 +9,8 @@ from pathlib import Path
 from pipeline.dsp.calibration import FrontEndCorrection, estimate_front_end, save
 from radar_driver.model import RadarConfig
 
-from .errors import ReplayError
+from .errors import CalibrationRefused, ReplayError
+from .outputs import check_new_file
 from .reprocess import load_raw, radar_for
 
 
@@ -26,19 +27,22 @@ class CalibrateConfig:
     angle_deg: float = 0.0
     sensors: tuple[str, ...] | None = None
     radar: RadarConfig = RadarConfig()
+    force: bool = False  # write a calibration whose checks fail, and replace an existing out
 
     def __post_init__(self) -> None:
         if self.reflector is not None and self.range_m is None:
             raise ReplayError("--reflector needs --range-m (the reflector's measured range, m)")
         if self.reflector is None and self.range_m is not None:
             raise ReplayError("--range-m is the reflector's range: give --reflector REF.mcap too")
-        if self.out.exists():
-            raise ReplayError(f"{self.out} exists; qradar writes a new calibration file (choose another --out)")
+        check_new_file(self.out, self.force, "calibration")
 
 
 def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:
     """The calibration of every sensor (and its radar config) of the recordings, written to
-    ``cfg.out``; a sensor of the empty recording missing from the reflector's is an error."""
+    ``cfg.out``; a sensor of the empty recording missing from the reflector's is an error.
+    A calibration whose checks say the inputs are wrong (:meth:`FrontEndCorrection.problems`:
+    the fit's residual, the reflector's fitted range, a return in the empty recording) is
+    refused, nothing written, unless ``cfg.force``."""
     first = load_raw(cfg.empty)
     sensors = list(cfg.sensors or first.sensors)
     entries = []
@@ -54,6 +58,13 @@ def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:
                                   f"{empty.config_id:#010x}, M = {empty.frames.shape[1]})")
         entries.append(estimate_front_end(empty.frames, None if refl is None else refl.frames, radar,
                                           cfg.range_m, cfg.angle_deg, sid, empty.config_id))
+    problems = [f"{e.sensor_id}: {p}" for e in entries for p in e.problems(cfg.radar)]
+    if problems and not cfg.force:
+        raise CalibrationRefused(f"calibration refused, {cfg.out} not written: " + "; ".join(problems)
+                                 + " (--force writes it anyway)")
     recordings = {"empty": str(cfg.empty), **({"reflector": str(cfg.reflector)} if cfg.reflector else {})}
-    save(cfg.out, entries, {"recordings": recordings})
+    save(cfg.out, entries, {"recordings": recordings, **({"forced_past": problems} if problems else {})},
+         overwrite=cfg.force)
     return entries
+
+

@@ -35,6 +35,8 @@ from pipeline.errors import ParameterError
 from pipeline.dsp.decode import ALGOS, Algo, DecoderConfig, decode
 from pipeline.dsp.gate import RangeGate, check_gate
 from pipeline.dsp.localize import DEFAULT_PFA, check_pfa, match_detections, position_error_m
+from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames
+from pipeline.dsp.score import summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
 from replay.progress import Progress
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
@@ -345,6 +347,13 @@ class ChunkResult:
     amplitude: np.ndarray | None = None  # (n, K) true |amplitude| (K auto only)
     found: np.ndarray | None = None  # (n, K) bool (K auto only)
     false_targets: np.ndarray | None = None  # (n,) detections that are no true target (K auto only)
+    # the honest score (pipeline.dsp.score), every run: each true target's error when a target was
+    # matched to it within DETECTION_DISTANCE_M in the plane (NaN: missed) (n, K), the targets near no
+    # true target (n,), the targets reported (n,)
+    score_error_m: np.ndarray | None = None
+    score_false: np.ndarray | None = None
+    score_targets: np.ndarray | None = None
+    score_nearest_m: np.ndarray | None = None  # (n, K) each true target to the nearest target
 
 
 def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
@@ -377,11 +386,14 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
         det = decode(frames, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices,
                      noise_sigma=noise)
         err = position_error_m(r, a, det.range_m, det.angle_deg)
-        res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err)
+        sc = score_frames(r, a, det.range_m, det.angle_deg)
+        scored = dict(score_error_m=sc.error_m.astype(np.float32), score_false=sc.false_targets.astype(np.int16),
+                      score_targets=sc.targets.astype(np.int16), score_nearest_m=sc.nearest_m.astype(np.float32))
+        res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err, **scored)
         if count.auto:
             found, false_targets = match_detections(r, det.range_m, count.gate_m)
             res = ChunkResult(res.range_cell, res.angle_cell, a, np.where(found, err, np.nan), np.abs(x), found,
-                              false_targets)
+                              false_targets, **scored)
         out[algo] = res
     return out
 
@@ -442,6 +454,11 @@ def summarize(result: ChunkResult) -> tuple[dict[str, float], dict[str, np.ndarr
     }
     if result.found is not None:
         stats.update(detection_stats(result))
+    if result.score_error_m is not None:  # strongest target first, the weakest last
+        stats["score"] = summarize_scores(FrameScores(result.score_error_m.astype(float),
+                                                      result.score_nearest_m.astype(float),
+                                                      result.score_false, result.score_targets,
+                                                      DETECTION_DISTANCE_M)).to_dict()
     return stats, maps
 
 

@@ -10,15 +10,16 @@ import numpy as np
 
 from pipeline.errors import PipelineError
 from replay.montecarlo import PD_AMPLITUDE, MonteCarloResult
+from replay.outputs import check_output_folder
+
+#: the files a Monte Carlo run writes whatever its options (a folder holding one is refused unless --force)
+OUTPUT_FILES = ("summary.json", "config.json", "maps.npz")
 
 
-def prepare_out_dir(out_dir: Path) -> Path:
-    """Create the output folder before a long run, so that a bad path fails at once."""
-    try:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PipelineError(f"cannot create the output folder {out_dir}: {exc.strerror or exc}") from None
-    return Path(out_dir)
+def prepare_out_dir(out_dir: Path, names: tuple[str, ...] = OUTPUT_FILES, force: bool = False) -> Path:
+    """Check the output folder before a long run, so that a bad path or an earlier run's
+    outputs (unless ``force``) fail at once; make it (its own folder only: replay.outputs)."""
+    return check_output_folder(out_dir, names, force)
 
 
 def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, plots: bool = True) -> list[str]:
@@ -29,7 +30,6 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
 
     out_dir = Path(out_dir)
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
         (out_dir / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
         np.savez_compressed(out_dir / "maps.npz", **result.maps)
@@ -63,7 +63,9 @@ def format_table(summary: dict) -> str:
     pd_cols = ["pd_strong", "pd_weak", f"pd_weak_amp_ge_{PD_AMPLITUDE}", "false_targets_per_frame"]
     pd_heads = ["Pd strong", "Pd weak", f"Pd w≥{PD_AMPLITUDE}", "false/fr"]
     auto = bool(summary.get("count", {}).get("auto"))
-    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads + (pd_heads if auto else []))]
+    score_heads = ["found str", "found weak", "false/fr"]  # the honest score: within 1 m in the plane
+    lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads + (pd_heads if auto else [])
+                                                  + score_heads)]
     for key, block in summary.items():
         if not (key.startswith("K") and isinstance(block, dict)):
             continue
@@ -75,5 +77,10 @@ def format_table(summary: dict) -> str:
             if auto:
                 vals += [f"{st[c]:>10.3f} " if c == "false_targets_per_frame" else f"{st[c]:>10.1%} "
                          for c in pd_cols]
+            sc = st.get("score")
+            if sc is not None:
+                rates = [t["detection_rate"] for t in sc["targets"]]
+                vals += [f"{v:>10.1%} " if v is not None else f"{'n/a':>10} " for v in (rates[0], rates[-1])]
+                vals.append(f"{sc['false_targets_per_frame']:>10.3f} ")
             lines.append(f"{key[1:]:<3} {scheme:<22}" + "".join(vals))
     return "\n".join(lines)

@@ -2,7 +2,9 @@
 its original timing scaled by ``rate`` or as fast as the subscribers take it (``fast``:
 publishers block rather than drop). ``prefix`` remaps the first key chunk(s), so
 replayed data cannot be mistaken for live data. The recording is read in time by
-:func:`replay.source.recorded_messages`, as the recording frame source reads it."""
+:func:`replay.source.recorded_messages`, as the recording frame source reads it: every
+chunk's CRC checked, a damaged chunk named in the log and its messages counted in
+``lost``, never played."""
 
 from __future__ import annotations
 
@@ -45,6 +47,8 @@ class PlayResult:
     loops: int = 0
     truncated: bool = False
     seconds: float = 0.0
+    lost: int = 0  # messages of damaged chunks (not played), in one pass over the file
+    damaged: int = 0  # damaged chunks (each logged once)
 
 
 def remap(key: str, recorded_prefix: str, prefix: str | None) -> str:
@@ -86,6 +90,9 @@ def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = 
             if f.truncated and not result.truncated:
                 result.truncated = True
                 log.warning("%s is cut short (%s); played up to its last complete chunk", path, f.truncation_reason)
+            if f.complete and result.loops == 0 and not f.intact:
+                result.lost, result.damaged = f.lost, len(f.damaged)
+                f.warn(log, "not played")
             if not seen_qradar and not stop.is_set() and not qradar_channels(f.channels):
                 raise NoQradarChannelsError(
                     f"{path} has no qradar channels (<prefix>/<sensor>/raw|quantized|targets|health); "

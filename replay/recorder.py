@@ -1,12 +1,24 @@
 """The recorder node: everything under ``<prefix>/**`` (or ``topics``) into MCAP.
 
-Each message is written with its log time (arrival at the recorder, ns), its publish
-time (the message's own timestamp: sensor time for frames and targets, the node's for
-health) and its sequence number (the frame's). Targets are also written as
-``foxglove.PointCloud``. A chunk is flushed at least every second, so a recorder
-killed with SIGKILL loses at most the last second; ``qradar recover`` turns such a file
-into a complete, indexed one. Counters (received, written, dropped) go to the
-recorder's health topic and, at the end, into the file's metadata.
+Each message is checked before any byte of it is written (:mod:`replay.admission`: its
+key, size, shape and times, with the nodes' own checks); a message refused is counted
+by kind and sensor (``refused_time``, ``refused_size``, ``refused_shape``,
+``refused_topic``) and touches nothing else. Each message is written with its log time
+(arrival at the recorder, ns), its publish time (the message's own timestamp: sensor
+time for frames and targets, the node's for health) and its sequence number (the
+frame's). Targets are also written as ``foxglove.PointCloud``. A chunk is flushed at
+least every second, so a recorder killed with SIGKILL loses at most the last second;
+``qradar recover`` turns such a file into a complete, indexed one. Each flush reads back
+what it wrote: ``written`` counts the messages read back from the file (chunk CRCs
+checked), and a message written but not read back is an error (``verify_errors``,
+``error``, lost by topic), as is a summary whose statistics disagree at the file's end.
+Counters go to the recorder's health topic and, at the end, into the file's metadata.
+
+Memory is bounded: per-sensor state lives as long as the sensor (its counters are
+folded into the totals when it expires), and mcap's Writer, which keeps every channel of
+its file (~0.5 KB each) and every chunk's index until the file ends, starts a new file
+(``name_0001.mcap``, ...) once ``max_dead_channels`` of its channels belong to sensors
+no longer live, or the file nears MCAP's 65 535 channels.
 
 A write error (a full disk, EFBIG, EIO, a removed folder) never stops the node: the
 file is cut back to its last flushed chunk and closed (:meth:`McapSink.abort`), the
@@ -24,7 +36,6 @@ import json
 import logging
 import os
 import platform
-import struct
 import threading
 import time
 from enum import Enum
@@ -34,13 +45,14 @@ from pathlib import Path
 import zenoh
 
 from pipeline.bus.session import BusConfig, zenoh_reason
-from pipeline.nodes.counters import NO_SENSOR
+from pipeline.nodes.counters import NO_SENSOR, UNKNOWN_SENSOR
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.nodes.transport import Transport
-from pipeline.wire import COMMON, HEADER_LEN, MAGIC, MAX_M, QUANT_HEADER_LEN, WireError, decode_targets
+from radar_driver.model import RadarConfig
 
-from .errors import RecordingExists, ReplayError
-from .mcapio import McapSink, describe_os_error, pointcloud_json, topic_of
+from .admission import Admission, RefusalCounts
+from .errors import RecordingExists, ReplayError, UnwritableMessage
+from .mcapio import MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, pointcloud_json, topic_of
 
 log = logging.getLogger("qradar.record")
 
@@ -59,6 +71,17 @@ FLUSH_PERIOD_S = 1.0
 PAUSED_LOG_PERIOD_S = 1.0
 #: file names listed in health and summaries (the newest); ``files_written`` counts them all
 LISTED_FILES = 8
+#: senders named in the summary's ``refused_by_sensor`` (the most refused; the rest summed)
+LISTED_SENDERS = 16
+#: channels of sensors no longer live that a file may hold before the next file starts
+#: (mcap's Writer keeps ~0.5 KB of each channel until its file ends)
+DEAD_CHANNELS_MAX = 4096
+#: the health messages of one slice of sensors share one summary of the recorder (it sums
+#: every sensor's counters), at most this old, s
+HEALTH_SUMMARY_S = 0.05
+#: a new file starts before this many channels (MCAP's channel ids are uint16); a batch
+#: adds at most two channels a message (a targets message and its pointcloud)
+FILE_CHANNELS_MAX = MAX_FILE_CHANNELS - 2 * 512
 
 
 class OnWriteError(str, Enum):
@@ -85,21 +108,6 @@ def versions() -> dict[str, str]:
     return out
 
 
-def message_times(topic: str, payload: bytes, log_time_ns: int) -> tuple[int, int]:
-    """(publish_time_ns, sequence) read from a message; (log time, 0) if unreadable."""
-    try:
-        if topic in ("raw", "quantized"):
-            magic, _, _, _, _, seq, ts, _, _, _ = COMMON.unpack_from(payload)
-            if magic == MAGIC:
-                return int(ts), int(seq)
-        elif topic in ("targets", "tracks", "health"):
-            obj = json.loads(payload)
-            return int(obj.get("timestamp_ns", log_time_ns)), int(obj.get("seq", 0))
-    except (struct.error, ValueError, TypeError, AttributeError):
-        pass
-    return log_time_ns, 0
-
-
 def free_bytes(folder: Path) -> int | None:
     """Free bytes (for an unprivileged writer) in ``folder``, or in its nearest existing
     ancestor (the folder may have been removed); None if unknown."""
@@ -117,32 +125,27 @@ def free_bytes(folder: Path) -> int | None:
     return None
 
 
-class RecorderNode(ProcessingNode):
-    """Subscribes ``topics`` (default ``<prefix>/**``) and writes MCAP files.
+class RecordingFiles(ProcessingNode):
+    """The files of a recording (the recorder node's base): each created exclusively,
+    split by size (``split_size_mb``) or age (``split_duration_s``) into ``name_0001.mcap``,
+    ...; flushed at least every FLUSH_PERIOD_S and read back (``written``: messages read
+    back from the files; ``pending``: since the last flush; ``verify_errors``: read-backs
+    that disagreed with what was written); after a write error closed up to its last
+    flushed chunk, then paused (probing for space every ``retry_s``, for at least
+    ``resume_free_mb``, resuming into the next file) or stopped, by ``on_write_error``
+    (``recording_ended`` is set). ``metadata``: name -> {key: value} records written at
+    the start of every file. Messages lost (write errors, read-backs) are counted by topic."""
 
-    ``split_size_mb`` / ``split_duration_s`` start a new file (``name_0001.mcap``, ...)
-    when the current one is that large or that old. ``metadata``: name -> {key: value}
-    records written at the start of every file (radar config, node configs, scene).
-    ``on_write_error``, ``retry_s`` (s between probes while paused) and ``resume_free_mb``
-    (free space a probe wants, MB): see the module docstring. ``recording_ended`` is set
-    when recording stops for good after a write error."""
-
-    name = "record"
-    role = "recorder"
-    accepts_any_key = True  # every key under the subscription is recorded
-    batch_per_sensor = None  # writing is cheap: whole batches
-
-    def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
-                 session: zenoh.Session | Transport | None = None, split_size_mb: float | None = None,
-                 split_duration_s: float | None = None, metadata: dict[str, dict] | None = None,
-                 queue_size: int = 20000, on_write_error: OnWriteError | str = OnWriteError.RESUME,
-                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False, **kw):
-        kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
-        super().__init__(bus, session, queue_size=queue_size, batch_max=512, **kw)
+    def __init__(self, bus: BusConfig, path: str | Path, session: zenoh.Session | Transport | None = None,
+                 split_size_mb: float | None = None, split_duration_s: float | None = None,
+                 metadata: dict[str, dict] | None = None, on_write_error: OnWriteError | str = OnWriteError.RESUME,
+                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False,
+                 overwrite: bool = False, **kw):
+        super().__init__(bus, session, **kw)
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
             raise ReplayError(f"recording path {self.base_path} must end in .mcap")
-        if not new_name_if_taken and os.path.lexists(self.base_path):
+        if not (new_name_if_taken or overwrite) and os.path.lexists(self.base_path):
             raise RecordingExists.at(self.base_path)  # at once (and again, exclusively, at the start)
         if split_size_mb is not None and not split_size_mb > 0:
             raise ReplayError(f"split size {split_size_mb!r} MB must be > 0")
@@ -157,25 +160,21 @@ class RecorderNode(ProcessingNode):
             raise ReplayError(f"write-error retry period {retry_s!r} s must be > 0")
         if not resume_free_mb >= 0:
             raise ReplayError(f"resume_free_mb={resume_free_mb!r} must be >= 0")
-        self.topics = topics or f"{bus.prefix}/**"
-        try:
-            zenoh.KeyExpr(self.topics)
-        except zenoh.ZError as exc:
-            raise ReplayError(f"--topics {self.topics!r} is not a key expression: {zenoh_reason(exc)}") from None
         self.split_size = None if split_size_mb is None else int(split_size_mb * 1e6)
         self.split_duration_s = split_duration_s
         self.extra_metadata = metadata or {}
         self.retry_s = float(retry_s)
         self.resume_free_bytes = int(resume_free_mb * 1e6)
         self.paths: list[Path] = []
-        self.new_name_if_taken = new_name_if_taken  # a default name: -1, -2, ... when taken (else refused)
+        self.new_name_if_taken, self.overwrite = new_name_if_taken, overwrite and not new_name_if_taken
         self._part = 0  # the number of the next split file (names taken by others are skipped)
-        self.written = 0  # messages kept in the files (not those cut off by a write error)
-        self.unparsed = 0
+        self.written = 0  # messages read back from the files (after each flush; not those cut off by a write error)
+        self.pending = 0  # messages written since the last flush (not yet read back)
         self.state = RecordingState.WRITING
-        self.error: str | None = None  # the last write error: file and reason
+        self.error: str | None = None  # the last write or read-back error: file and reason
         self.write_errors = 0
-        self.lost_by_topic: dict[str, int] = {}  # received, not kept (write errors), by topic
+        self.verify_errors = 0
+        self.lost_by_topic: dict[str, int] = {}  # received, not kept (write errors, read-backs), by topic
         self.recording_ended = threading.Event()
         self._sink: McapSink | None = None
         self._opened_at = 0.0
@@ -190,20 +189,19 @@ class RecorderNode(ProcessingNode):
         with self._lock:
             return sum(self.lost_by_topic.values())
 
-    def admit(self, key: str, n_bytes: int) -> str | None:
-        """A raw or quantized frame of a length no frame of any M can have is refused
-        (counted in invalid_frames, not written): garbage must not grow the file's channels.
-        Anything of a possible length is recorded, whatever its configuration."""
-        topic = key.rsplit("/", 1)[-1]
-        if topic == "raw" and not (n_bytes >= HEADER_LEN + 16 and (n_bytes - HEADER_LEN) % 16 == 0
-                                   and n_bytes <= HEADER_LEN + 16 * MAX_M):
-            return f"{n_bytes} bytes, not the length of a raw frame (48 + 16 M) (not recorded)"
-        if topic == "quantized" and not QUANT_HEADER_LEN < n_bytes <= QUANT_HEADER_LEN + 8 * MAX_M:
-            return f"{n_bytes} bytes, not the length of a quantized frame (not recorded)"
-        return None
+    def _file_metadata(self) -> dict[str, dict]:
+        """The metadata records every file starts with."""
+        return self.extra_metadata
 
-    def subscription(self) -> str:
-        return self.topics
+    def _file_opened(self) -> None:
+        """Called when a file was opened."""
+
+    def _final_counters(self) -> dict[str, str]:
+        """More counters for a file's closing ``qradar.recorder_counters`` metadata."""
+        return {}
+
+    def _before_flush(self) -> None:
+        """Called by the worker after each batch and when idle, before a flush is due."""
 
     # -- files ------------------------------------------------------------------------------
     #: names tried for one file before giving up (another program taking them all)
@@ -226,7 +224,7 @@ class RecorderNode(ProcessingNode):
             path = self._next_path()
             self._part += 1
             try:
-                sink = McapSink(path)  # creates the folder; ReplayError naming the path if it cannot
+                sink = McapSink(path, overwrite=self.overwrite and not self.paths)  # ReplayError naming the path
                 break
             except RecordingExists as exc:
                 if not self.paths and not self.new_name_if_taken:
@@ -237,12 +235,9 @@ class RecorderNode(ProcessingNode):
         else:
             return f"no free file name after {self.base_path} ({self.MAX_NAME_TRIES} tried)"
         try:
-            sink.metadata("qradar.versions", versions())
-            sink.metadata("qradar.recorder", {"topics": self.topics, "prefix": self.bus.prefix,
-                                              "part": str(len(self.paths))})
-            for name, data in self.extra_metadata.items():
+            for name, data in self._file_metadata().items():
                 sink.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
-            sink.flush()
+            check = sink.flush()
         except OSError as exc:
             sink.abort()
             try:
@@ -252,6 +247,8 @@ class RecorderNode(ProcessingNode):
                 pass
             return f"cannot write {path}: {describe_os_error(exc)}"
         self._sink = sink
+        self._file_opened()
+        self._flushed(sink, check)
         self.paths.append(path)
         if len(self.paths) == 1:
             self._part = 1  # the files after the first are <its stem>_0001, _0002, ...
@@ -265,12 +262,15 @@ class RecorderNode(ProcessingNode):
         if sink is None:
             return
         try:
-            sink.flush()
+            self._flushed(sink, sink.flush())
             t = self.totals()
             sink.metadata("qradar.recorder_counters", {
                 "received": str(t["frames_in"]), "written": str(self.written), "dropped": str(t["drops"]),
-                "unparsed": str(self.unparsed), "lost": str(self.lost)})
-            sink.close()
+                "lost": str(self.lost), "verify_errors": str(self.verify_errors), **self._final_counters()})
+            problems = list(sink.problems)
+            sink.close()  # (the metadata record is no message: nothing more to read back)
+            for problem in sink.problems[len(problems):]:  # the summary disagrees with what was read back
+                self._verify_failed(problem)
         except OSError as exc:
             self._write_failed(sink, exc)
 
@@ -297,9 +297,10 @@ class RecorderNode(ProcessingNode):
         lost = 0
         for topic, n in kept["lost_by_topic"].items():
             if topic != "pointcloud":  # derived from a targets message, which is counted
-                self.written -= n
                 self._lose(topic, n)
                 lost += n
+        self.written -= sum(n for topic, n in kept["flushed_lost_by_topic"].items() if topic != "pointcloud")
+        self.pending = 0
         if sink.removed:
             detail = f"; its {lost} messages are lost with it"
         else:
@@ -339,49 +340,16 @@ class RecorderNode(ProcessingNode):
             self.state = RecordingState.WRITING
             log.warning("recording resumed into %s after %.1f s paused; %d messages lost while paused (lost in "
                         "all, by topic: %s)", self._sink.path, now - self._paused_at,
-                        self.lost - self._lost_at_pause, self.summary()["lost_by_topic"])
+                        self.lost - self._lost_at_pause, dict(self.lost_by_topic))
         elif now - self._last_state_log >= PAUSED_LOG_PERIOD_S:
             self._last_state_log = now
             log.warning("recording still paused (%s); %d messages lost so far", why, self.lost)
-
-    # -- writing -------------------------------------------------------------------------------
-    def process(self, batch: list[QueuedFrame]) -> None:
-        for item in batch:
-            sensor, key, payload, log_ns = item.sensor, item.key, item.payload, item.received_ns
-            topic = topic_of(key)
-            sink = self._sink
-            if sink is None:  # paused or stopped
-                self._lose(topic or "other")
-                continue
-            publish_ns, seq = message_times(topic or "", payload, log_ns)
-            kept = False
-            try:
-                sink.write(key, payload, log_ns, publish_ns, seq)
-                kept = True
-                self.written += 1
-                if topic == "targets":
-                    try:
-                        msg = decode_targets(payload, key)
-                    except WireError:
-                        self.unparsed += 1
-                    else:
-                        sink.write(key.rsplit("/", 1)[0] + "/pointcloud", pointcloud_json(msg), log_ns,
-                                   publish_ns, seq)
-            except OSError as exc:
-                if not kept:  # else it is among the sink's unflushed messages, counted by _write_failed
-                    self._lose(topic or "other")
-                self._write_failed(sink, exc)
-                continue
-            if topic is None:
-                self.unparsed += 1
-            with self._lock:  # a late message of an expired sensor makes no new state
-                (self.stats.get(sensor) or self.sensor_stats(NO_SENSOR)).frames_out += 1
-        self._maybe_flush_or_split()
 
     def on_idle(self) -> None:
         self._maybe_flush_or_split()
 
     def _maybe_flush_or_split(self) -> None:
+        self._before_flush()
         if self._sink is None:
             if self.state is RecordingState.PAUSED and time.monotonic() >= self._next_probe:
                 self._probe()
@@ -389,31 +357,211 @@ class RecorderNode(ProcessingNode):
         now = time.monotonic()
         try:
             if now - self._last_flush >= FLUSH_PERIOD_S:
-                self._sink.flush()
+                self._flushed(self._sink, self._sink.flush())
                 self._last_flush = now
         except OSError as exc:
             self._write_failed(self._sink, exc)
             return
         if (self.split_size and self._sink.size >= self.split_size) or \
                 (self.split_duration_s and now - self._opened_at >= self.split_duration_s):
-            self._close()
-            if self.state is RecordingState.WRITING:
-                why = self._open()
-                if why is not None:  # e.g. the folder was removed: pause (or stop) like a write error
-                    self._pause_or_stop(why)
+            self._next_file()
+
+    def _next_file(self) -> None:
+        """Close the current file and go on in the next one."""
+        self._close()
+        if self.state is RecordingState.WRITING:
+            why = self._open()
+            if why is not None:  # e.g. the folder was removed: pause (or stop) like a write error
+                self._pause_or_stop(why)
+
+    def _flushed(self, sink: McapSink, check: FlushCheck) -> None:
+        """What a flush read back: readable messages count as written; messages written and
+        not read back are lost, and an error (logged, in health and the summary)."""
+        self.written += sum(n for topic, n in check.readable.items() if topic != "pointcloud")
+        self.pending = 0
+        for topic, n in check.unreadable.items():
+            if topic != "pointcloud":
+                self._lose(topic, n)
+        for problem in check.problems:
+            self._verify_failed(f"{sink.path}: {problem}")
+
+    def _verify_failed(self, problem: str) -> None:
+        self.verify_errors += 1
+        self.error = f"read back: {problem}"
+        log.error("recorder: what was written does not read back: %s (counted in verify_errors; the messages "
+                  "concerned are lost)", problem)
+
+
+class RecorderNode(RecordingFiles):
+    """Subscribes ``topics`` (default ``<prefix>/**``) and writes MCAP files
+    (:class:`RecordingFiles`: ``split_size_mb``, ``split_duration_s``, ``metadata``,
+    ``on_write_error``, ``retry_s``, ``resume_free_mb``, ``new_name_if_taken``). ``radar``
+    and ``max_ramps``: the announced configurations frames must have (the nodes'
+    defaults); ``max_dead_channels``: see the module docstring."""
+
+    name = "record"
+    role = "recorder"
+    accepts_any_key = True  # every key under the subscription comes to admit(), which refuses what is not qradar's
+    batch_per_sensor = None  # writing is cheap: whole batches
+
+    def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
+                 session: zenoh.Session | Transport | None = None, queue_size: int = 20000,
+                 radar: RadarConfig | None = None, max_ramps: int = 16, max_dead_channels: int = DEAD_CHANNELS_MAX,
+                 **kw):
+        kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
+        super().__init__(bus, path, session, queue_size=queue_size, batch_max=512, **kw)
+        if not (isinstance(max_dead_channels, int) and max_dead_channels >= 1):
+            raise ReplayError(f"max_dead_channels={max_dead_channels!r} must be an integer >= 1")
+        self.admission = Admission(radar, max_ramps)
+        self.max_dead_channels = max_dead_channels
+        self._dead_check_at = max_dead_channels  # the file's channel count at which dead ones are counted next
+        self._recheck_channels = False  # sensors expired: count the file's dead channels again
+        self.refusals = RefusalCounts()  # by live sensor (or NO_SENSOR) and kind, under _lock
+        self._health_summary: tuple[float, dict] | None = None  # (when, summary) for health_extra
+        self.topics = topics or f"{bus.prefix}/**"
+        try:
+            zenoh.KeyExpr(self.topics)
+        except zenoh.ZError as exc:
+            raise ReplayError(f"--topics {self.topics!r} is not a key expression: {zenoh_reason(exc)}") from None
+
+    def admit(self, key: str, n_bytes: int) -> str | None:
+        """Before the copy: a key that is not qradar's, a frame of a length no announced
+        configuration gives, a JSON message over MAX_JSON_BYTES (counted by kind, and in
+        invalid_frames; not written: garbage must not grow the file's channels)."""
+        sensor = self._classify(key)[0]
+        why = self.admission.before_copy(key.rsplit("/", 1)[-1], sensor, n_bytes)
+        if why is None:
+            return None
+        self._refuse(sensor, why[0])
+        return why[1]
+
+    def _refuse(self, sensor: str, kind: str, n: int = 1) -> None:
+        """Count ``n`` messages refused of ``kind`` against ``sensor`` if it is live, else
+        against the unknown senders (a refused message makes no state)."""
+        with self._lock:
+            self.refusals.add(sensor if sensor in self.stats else NO_SENSOR, kind, n)
+
+    def forget(self, sensor_id: str) -> None:
+        """An expired sensor's refusal counts go into the totals, and its channels count as
+        dead at the worker's next look (called with _lock held)."""
+        super().forget(sensor_id)
+        self.refusals.retire(sensor_id)
+        self._recheck_channels = True
+
+    def refused(self) -> dict[str, int]:
+        """Messages refused, by kind (REFUSED_KINDS), expired sensors included."""
+        with self._lock:
+            return self.refusals.totals()
+
+    def subscription(self) -> str:
+        return self.topics
+
+    def _file_metadata(self) -> dict[str, dict]:
+        return {"qradar.versions": versions(),
+                "qradar.recorder": {"topics": self.topics, "prefix": self.bus.prefix, "part": str(len(self.paths))},
+                **self.extra_metadata}
+
+    def _final_counters(self) -> dict[str, str]:
+        return {kind: str(n) for kind, n in self.refused().items()}
+
+    # -- writing -------------------------------------------------------------------------------
+    def process(self, batch: list[QueuedFrame]) -> None:
+        sensors = [self._classify(item.key)[0] for item in batch]
+        admitted, refused = self.admission.check(batch, sensors)
+        for r in refused:
+            self._refuse(sensors[r.index], r.kind)
+            self.count(batch[r.index].sensor, r.counter, f"{r.reason} (not recorded: {r.kind})")
+        for a in admitted:
+            item = batch[a.index]
+            topic = topic_of(item.key) or "other"
+            if self._sink is not None and self._sink.n_channels >= min(self._dead_check_at, FILE_CHANNELS_MAX):
+                self._check_channels()
+            sink = self._sink
+            if sink is None:  # paused or stopped
+                self._lose(topic)
+                continue
+            written = False
+            try:
+                sink.write(item.key, item.payload, item.received_ns, a.publish_ns, a.sequence)
+                written = True
+                if a.targets is not None:
+                    sink.write(item.key.rsplit("/", 1)[0] + "/pointcloud", pointcloud_json(a.targets),
+                               item.received_ns, a.publish_ns, a.sequence)
+            except OSError as exc:
+                if not written:  # else it is among the sink's unflushed messages, counted by _write_failed
+                    self._lose(topic)
+                else:
+                    self.pending += 1
+                self._write_failed(sink, exc)
+                continue
+            except UnwritableMessage as exc:  # checked before: a check that missed is a bug, said so
+                if written:  # its pointcloud only: the targets message is in
+                    self.pending += 1
+                    log.error("recorder: the pointcloud of %s: %s", item.key, exc)
+                else:
+                    self._refuse(sensors[a.index], f"refused_{exc.kind}" if exc.kind in ("time", "shape")
+                                 else "refused_size")
+                    self.count(item.sensor, "invalid_frames", f"{item.key}: {exc} (not recorded)")
+                continue
+            self.pending += 1
+            with self._lock:  # a late message of an expired sensor makes no new state
+                (self.stats.get(item.sensor) or self.sensor_stats(NO_SENSOR)).frames_out += 1
+        self._maybe_flush_or_split()
+
+    def _check_channels(self) -> None:
+        """The file holds many channels: count those of sensors no longer live; past
+        ``max_dead_channels`` of them (or near MCAP's channel limit) the next file starts,
+        so mcap's Writer lets go of them."""
+        sink = self._sink
+        n = sink.n_channels
+        with self._lock:
+            live = set(self.stats)
+        dead = sum(1 for key in sink.keys() if self.bus.sensor_of(key) not in live)  # (no id check: it caches ids)
+        if dead < self.max_dead_channels and n < FILE_CHANNELS_MAX:
+            self._dead_check_at = n - dead + self.max_dead_channels
+            return
+        log.info("recorder: %s holds %d channels, %d of sensors no longer live: the recording goes on in a new file "
+                 "(mcap's Writer keeps every channel of a file until it ends)", sink.path, n, dead)
+        self._next_file()
+
+    def _file_opened(self) -> None:
+        self._dead_check_at = self.max_dead_channels
+
+    def _before_flush(self) -> None:
+        if self._recheck_channels and self._sink is not None:
+            self._recheck_channels = False
+            self._check_channels()
 
     # -- reporting -----------------------------------------------------------------------------
     def summary(self, all_files: bool = True) -> dict:
         """State, files (all, or the newest LISTED_FILES), counters: for health, ``qradar run``'s
-        summary and ``qradar record``."""
+        summary and ``qradar record``. ``written``: messages read back from the files;
+        ``pending``: written since the last flush; ``refused_*``: refused by kind (before
+        any byte was written) and ``refused_by_sensor`` (the LISTED_SENDERS senders with
+        the most, live ones; the others and expired ones summed); ``verify_errors``:
+        read-backs that disagreed."""
         t = self.totals()
         with self._lock:
             lost_by_topic = dict(self.lost_by_topic)
+            refused = self.refusals.totals()
+            by_sensor = self.refusals.listed(LISTED_SENDERS, UNKNOWN_SENSOR)
         files = self.paths if all_files else self.paths[-LISTED_FILES:]
         return {"state": self.state.value, "files": [str(p) for p in files],
                 "files_written": len(self.paths), "received": t["frames_in"], "written": self.written,
-                "dropped": t["drops"], "lost": sum(lost_by_topic.values()), "lost_by_topic": lost_by_topic,
-                "write_errors": self.write_errors, "error": self.error}
+                "pending": self.pending, "dropped": t["drops"], "lost": sum(lost_by_topic.values()),
+                "lost_by_topic": lost_by_topic, **refused, "refused_by_sensor": by_sensor,
+                "verify_errors": self.verify_errors, "write_errors": self.write_errors, "error": self.error,
+                "channels": 0 if self._sink is None else self._sink.n_channels}
 
     def health_extra(self, sensor_id: str) -> dict:
-        return {"recorder": self.summary(all_files=False)}
+        """The recorder's state and counters (summed over every sensor: computed once for
+        the health messages of one slice, HEALTH_SUMMARY_S), and what it refused of this sensor."""
+        now = time.monotonic()
+        if self._health_summary is None or now - self._health_summary[0] >= HEALTH_SUMMARY_S:
+            summary = self.summary(all_files=False)
+            del summary["refused_by_sensor"]
+            self._health_summary = (now, summary)
+        out = dict(self._health_summary[1])
+        with self._lock:
+            out["sensor_refused"] = self.refusals.of(NO_SENSOR if sensor_id == UNKNOWN_SENSOR else sensor_id)
+        return {"recorder": out}

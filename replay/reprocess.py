@@ -21,6 +21,8 @@ from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate, check_range_m
 from pipeline.dsp.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
+from pipeline.dsp.score import FrameScores, score_frames, score_text
+from pipeline.dsp.score import summarize as summarize_scores
 from replay.progress import Progress
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seed
 from pipeline.dsp.track import TrackerConfig
@@ -30,6 +32,7 @@ from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
+from .outputs import check_new_file, check_output_folder
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
@@ -75,6 +78,8 @@ class RawRecording:
     metadata: dict[str, dict[str, str]]
     sensors: list[str]
     truncated: bool
+    lost: int = 0  # messages of damaged chunks (never re-processed)
+    damaged: list[str] = field(default_factory=list)  # one line per damaged chunk or problem
 
 
 def load_raw(path, sensor: str | None = None) -> RawRecording:
@@ -99,7 +104,7 @@ def load_raw(path, sensor: str | None = None) -> RawRecording:
         raise ReplayError(f"{path}: frames of {sensor} change M or radar config mid-recording; split the file")
     return RawRecording(sensor, np.stack([f.data for f in got]).astype(np.complex128),
                         np.array([f.seq for f in got]), np.array([f.timestamp_ns for f in got]),
-                        got[0].config_id, src.metadata, sensors, src.truncated)
+                        got[0].config_id, src.metadata, sensors, src.truncated, src.lost, src.damaged)
 
 
 def calibrated(rec: RawRecording, calibration: Calibration) -> RawRecording:
@@ -142,6 +147,7 @@ class AlphaResult:
     errors_m: np.ndarray  # (F, T): error of each true target per frame
     nearest_xy: np.ndarray  # (F, T, 2): the estimate nearest each true target (x_m, y_m)
     detections: Detections
+    scores: FrameScores | None = None  # the honest score of each frame (pipeline.dsp.score)
 
 
 def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
@@ -158,7 +164,8 @@ def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: f
     tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
     ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
     err, pos = nearest_estimates(tr, ta, det.range_m, det.angle_deg)
-    return AlphaResult(float(alpha), err, np.stack([pos.real, pos.imag], axis=-1), det)
+    return AlphaResult(float(alpha), err, np.stack([pos.real, pos.imag], axis=-1), det,
+                       score_frames(tr, ta, det.range_m, det.angle_deg))
 
 
 @dataclass
@@ -215,6 +222,9 @@ class SweepResult:
             "best_alpha": float(self.alphas[best]),
             "error_at_best_m": m(me[best].mean()),
             "error_at_alpha0_m": None if zero is None else m(me[zero].mean()),
+            # per alpha, the honest score: each true target's detection rate (a target within
+            # distance_m) and the median error of its detections, false targets and targets a frame
+            "score": [summarize_scores(r.scores).to_dict(self.truth) for r in self.results if r.scores is not None],
             "truth": self.truth, **detection, **self.params,
         }
 
@@ -394,6 +404,11 @@ def track_recording(result: SweepResult, index: int, radar: RadarConfig, trackin
     return payloads, summary
 
 
+def metres(v: float | None) -> str:
+    """A figure in metres to its digits, or n/a."""
+    return "n/a" if v is None else f"{v:.3g} m"
+
+
 # -- the whole job -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ReprocessConfig:
@@ -428,6 +443,7 @@ class ReprocessConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks of the best (decoder, alpha)'s targets (pipeline.dsp.track)
+    force: bool = False  # replace the outputs (results.json, the plots, mcap) when they exist
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):
@@ -457,13 +473,19 @@ class ReprocessResult:
 
 
 #: what results.json keeps of each decoder's sweep under ``by_algo``
-PER_ALGO = ("mean_error_m", "mean_error_all_m", "best_alpha", "error_at_best_m", "error_at_alpha0_m")
+PER_ALGO = ("mean_error_m", "mean_error_all_m", "best_alpha", "error_at_best_m", "error_at_alpha0_m", "score")
+#: the files reprocess writes into its --out folder
+OUTPUT_FILES = ("results.json", "alpha_sweep.png", "reconstructions.png")
 
 
 def run(cfg: ReprocessConfig) -> ReprocessResult:
     """Load, sweep alpha with each decoder, write results.json, the two figures and
     (optionally) an MCAP of the best (decoder, alpha)'s targets. Returns the summary,
-    the files written, notes for the user (warnings) and the report lines."""
+    the files written, notes for the user (warnings) and the report lines. Existing outputs
+    are refused before any work unless ``cfg.force`` (:mod:`replay.outputs`)."""
+    check_output_folder(cfg.out, OUTPUT_FILES, cfg.force)
+    if cfg.mcap is not None:
+        check_new_file(cfg.mcap, cfg.force, "--mcap")
     rec = load_raw(cfg.file, cfg.sensor)
     calibration = None
     if cfg.calibration is not None:
@@ -487,7 +509,11 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     first = next(iter(results.values()))
     summaries = {a: r.summary() for a, r in results.items()}
     summary = summaries[str(cfg.algos[0])] | {"file": str(cfg.file), "first_timestamp_ns": int(rec.timestamp_ns[0]),
-                                              "truncated": rec.truncated}
+                                              "truncated": rec.truncated, "lost_messages": rec.lost,
+                                              "damage": rec.damaged}
+    if rec.damaged:
+        notes.append(f"warning: {cfg.file} is damaged: {rec.lost} messages lost, not re-processed "
+                     f"({len(rec.damaged)} damaged chunk(s) or problem(s), in results.json's \"damage\")")
     if calibration is not None:
         summary["calibration"] = calibration.summary()
     if len(results) > 1:
@@ -495,7 +521,6 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     best_algo = min(summaries, key=lambda a: np.inf if summaries[a]["error_at_best_m"] is None
                     else summaries[a]["error_at_best_m"])
     try:
-        cfg.out.mkdir(parents=True, exist_ok=True)
         (cfg.out / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
         written = [cfg.out / "results.json", plot_alpha_sweep(results, cfg.out / "alpha_sweep.png"),
                    plot_reconstructions(results[best_algo], cfg.out / "reconstructions.png")]
@@ -511,13 +536,14 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
         raise ReplayError(f"cannot write the re-processing results ({exc.filename or cfg.out}): "
                           f"{exc.strerror or exc}") from None
     lines = [f"{rec.sensor_id}: {first.rec.frames.shape[0]} frames"]
-    lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {s['error_at_best_m']} m; at alpha 0: "
-              f"{s['error_at_alpha0_m']} m)" + (f"; frames without any target: {max(s['frames_without_targets'])} at "
+    m = metres
+    lines += [f"  {a:<5} best alpha {s['best_alpha']:.2f} (mean error {m(s['error_at_best_m'])}; at alpha 0: "
+              f"{m(s['error_at_alpha0_m'])})" + (f"; frames without any target: {max(s['frames_without_targets'])} at "
                                                "worst" if any(s["frames_without_targets"]) else "")
-              for a, s in summaries.items()]
+              + "\n        at it: " + score_text(s["score"][results[a].best_index]) for a, s in summaries.items()]
     if "tracks" in summary:
         t = summary["tracks"]
-        lines.append(f"  tracks: ids {t['track_ids']}; static tracks' median error {t['static_track_error_median_m']} m "
-                     f"after {t['integrate_s']:g} s of integration (targets: {t['target_error_median_m']} m)")
+        lines.append(f"  tracks: ids {t['track_ids']}; static tracks' median error {m(t['static_track_error_median_m'])} "
+                     f"after {t['integrate_s']:g} s of integration (targets: {m(t['target_error_median_m'])})")
     lines.append(f"wrote {written[0]}, " + ", ".join(str(f) for f in written[1:]))
     return ReprocessResult(summary, written, notes, lines)

@@ -6,9 +6,13 @@ an MCAP file at their recorded pace (the player publishes them all), and
 
 Frames come in file order, as fast as they are read, or at their recorded pace scaled
 by ``rate``. A frame that does not decode is counted (``bad_frames``), logged and
-skipped; a gap in a sensor's sequence numbers is counted in ``dropped``. The wire
+skipped; a gap in a sensor's sequence numbers is counted in ``dropped``, as far as the
+recorded time allows, a restarted count in ``seq_resets`` and a number out of line in
+``implausible_seq`` (:func:`pipeline.nodes.counters.judge_seq`, on the log times). The wire
 format carries no ramp counters, so the frames' ``counters`` are empty. A file cut short
-yields the frames of its complete chunks and sets ``truncated``.
+yields the frames of its complete chunks and sets ``truncated``. Every chunk's CRC is
+checked (:class:`replay.mcapio.McapFile`): a damaged chunk's frames are never yielded;
+it is logged, and its messages are counted in ``lost`` (``damaged``: the chunks).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
+from pipeline.nodes.counters import SeqTrack, judge_seq
 from pipeline.wire import WireError, decode_raw
 from radar_driver.source import RawFrame, StoppableSource
 
@@ -67,7 +72,9 @@ class _RecordedSensorStats:
     frames: int = 0
     dropped: int = 0
     bad_frames: int = 0
-    last_seq: int | None = None
+    seq_resets: int = 0
+    implausible_seq: int = 0
+    track: SeqTrack | None = None
 
 
 class RecordingSource(StoppableSource):
@@ -85,6 +92,8 @@ class RecordingSource(StoppableSource):
         self.rate = rate
         self.file = McapFile(self.path)
         self.truncated = False
+        self.lost = 0  # messages of damaged chunks (never yielded), once the file was read
+        self.damaged: list[str] = []  # one line per damaged chunk or problem
         self._stats: dict[str, _RecordedSensorStats] = {}
 
     def __enter__(self) -> "RecordingSource":
@@ -93,7 +102,8 @@ class RecordingSource(StoppableSource):
         return self
 
     def stats(self) -> dict[str, dict[str, int]]:
-        return {sid: {"frames": st.frames, "dropped": st.dropped, "bad_frames": st.bad_frames}
+        return {sid: {"frames": st.frames, "dropped": st.dropped, "bad_frames": st.bad_frames,
+                      "seq_resets": st.seq_resets, "implausible_seq": st.implausible_seq}
                 for sid, st in self._stats.items()}
 
     @property
@@ -121,9 +131,10 @@ class RecordingSource(StoppableSource):
             if self.sensors_wanted is not None and m.sensor_id not in self.sensors_wanted:
                 continue
             st = self._stats.setdefault(m.sensor_id, _RecordedSensorStats())
-            if st.last_seq is not None and m.seq > st.last_seq + 1:
-                st.dropped += m.seq - st.last_seq - 1
-            st.last_seq = m.seq if st.last_seq is None else max(st.last_seq, m.seq)
+            st.track, verdict = judge_seq(st.track, m.seq, msg.log_time / 1e9)
+            st.dropped += verdict.missing
+            st.seq_resets += verdict.resets
+            st.implausible_seq += verdict.implausible
             st.frames += 1
             n += 1
             yield RawFrame(m.sensor_id, m.seq, m.timestamp_ns, m.data, (), m.config_id)
@@ -131,3 +142,6 @@ class RecordingSource(StoppableSource):
         if self.truncated:
             log.warning("%s is cut short (%s); read up to its last complete chunk", self.path,
                         self.file.truncation_reason)
+        if self.file.complete:
+            self.lost, self.damaged = self.file.lost, self.file.damage_lines()
+            self.file.warn(log, "its frames are not read")

@@ -180,11 +180,27 @@ def test_calibrate_from_two_short_recordings_then_run_with_it(tmp_path):
     for args in (["--empty", "--record", empty], ["--scene", "chamber-reflector", "--record", ref]):
         p = _qradar("run", "--frames", 40, "--json", *args)
         assert p.returncode == 0, p.stderr
-    p = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 3.05, "--angle-deg", 0, "--out", cal)
+    # nonsense refused, nothing written, unless --force: a wrong range (3.1 m given as 7), the
+    # recordings swapped (the "empty" one holds the reflector)
+    wrong = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal)
+    assert wrong.returncode == 2 and not cal.exists(), wrong.stderr
+    line = wrong.stderr.strip()
+    assert "\n" not in line and "calibration refused" in line and "fit residual" in line and "above -15 dB" in line
+    assert "range bins) from the given 7 m" in line and "--force" in line
+    swapped = _qradar("calibrate", "--empty", ref, "--reflector", empty, "--range-m", 3.05, "--out", cal)
+    assert swapped.returncode == 2 and not cal.exists() and "not empty" in swapped.stderr
+    alone = _qradar("calibrate", "--empty", ref, "--out", cal)  # background only, of a scene with a reflector
+    assert alone.returncode == 2 and "below the leakage: it is not empty" in alone.stderr
+    forced = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal, "--force")
+    assert forced.returncode == 0 and "warning: kmd2-0: the fit residual" in forced.stderr
+    assert json.loads(cal.read_text())["forced_past"]
+    p = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 3.05, "--angle-deg", 0, "--out", cal,
+                "--force")  # replaces the forced file
     assert p.returncode == 0, p.stderr
     (entry,) = json.loads(p.stdout)["entries"]
     assert abs(entry["rx2_phase_deg"] - 30.0) < 1.0 and abs(entry["iq_phase_deg"] - 3.0) < 0.5
-    assert "receiver 2 gain" in p.stderr
+    assert "receiver 2 gain" in p.stderr and "one reflector explains the recording" in p.stderr
+    assert entry["fit_residual_db"] < -15 and entry["empty_return_db"] < -10
     again = _qradar("calibrate", "--empty", empty, "--out", cal)
     assert again.returncode == 2 and "exists" in again.stderr and "\n" not in again.stderr.strip()
     run = _qradar("run", "--frames", 60, "--json", "--calibration", cal, "--record", tmp_path / "cal-run.mcap")

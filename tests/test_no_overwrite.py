@@ -16,6 +16,7 @@ import pytest
 
 from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.errors import ConfigError
+from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import PtyLink, SimulatorServer
 from replay.errors import ReplayError
@@ -86,7 +87,8 @@ def test_default_recording_names_are_to_the_millisecond():
 
 def put_frames(session, n: int, sensor: str = "nw") -> None:
     for i in range(n):
-        session.put(f"radar/{sensor}/raw", encode_raw(RawFrameMsg(sensor, i, i, 7, np.zeros((4, 2), np.complex64))))
+        session.put(f"radar/{sensor}/raw", encode_raw(RawFrameMsg(sensor, i, i, RadarConfig(ramps_per_frame=1).config_id(),
+                                                          np.zeros((256, 2), np.complex64))))
 
 
 def test_an_explicit_recording_path_that_exists_is_refused(tmp_path, bus, zenoh_session):

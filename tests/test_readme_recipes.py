@@ -173,6 +173,7 @@ def run_step(line: str, tmp: Path, timeout_s: float = 300) -> subprocess.Complet
 def workdir(tmp_path: Path) -> Path:
     """A folder like a checkout's: recordings/ (the committed ones) and out/."""
     (tmp_path / "recordings").symlink_to(ROOT / "recordings")
+    (tmp_path / "out").mkdir()
     return tmp_path
 
 
@@ -240,12 +241,22 @@ def test_the_foxglove_recipe_works_as_written(workdir):
 
 
 @pytest.mark.slow
+def test_the_web_recipe_works_as_written(workdir):
+    (line,) = steps("web")
+    port = free_port()
+    out = run_step(line.replace("8080", str(port)) + " --duration 5", workdir)
+    assert f"web: page on http://127.0.0.1:{port}/" in out.stdout
+
+
+@pytest.mark.slow
 def test_the_security_recipe_works_as_written(workdir):
     lines = steps("security")
     run_step(lines[0], workdir)
     listed = run_step(lines[1], workdir).stdout
     assert "sensor-kmd2-0" in listed and "router" in listed
-    out = run_step(lines[2], workdir).stdout
+    checked = run_step(lines[2], workdir).stdout
+    assert "none but a router's names hosts" in checked and "FLAGGED" not in checked
+    out = run_step(lines[3], workdir).stdout
     assert "0 refused_handshakes" in out and "frames" in out
 
 
@@ -267,3 +278,55 @@ def test_the_tracks_recipe_works_as_written(workdir):
     m = re.search(r"static tracks' error median ([0-9.]+) m", out)
     assert m, out[-3000:]
     assert float(m.group(1)) < 0.08, out[-2000:]  # one frame: ~0.12 m
+
+
+def terminals_recipe(name: str) -> list[str]:
+    """The command lines of README's block marked ``<!-- recipe-terminals: name -->``."""
+    m = re.search(rf"<!-- recipe-terminals: {re.escape(name)} -->\n```sh\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no recipe-terminals {name!r}"
+    return [re.sub(r"\s+#.*$", "", line).strip() for line in m.group(1).splitlines() if line.strip()]
+
+
+def stop_sim(sim: subprocess.Popen) -> str:
+    """Ctrl-C to a ``qradar sim`` (its process, as a terminal sends it): its summary."""
+    sim.send_signal(signal.SIGINT)
+    out, err = sim.communicate(timeout=20)
+    assert sim.returncode == 0 and "Traceback" not in err, err[-2000:]
+    return out
+
+
+@pytest.mark.slow
+def test_the_chamber_recipe_on_the_simulated_sensor_works_as_written(workdir):
+    """README's chamber steps with their simulator lines, each as written (/tmp/kmd2 in the
+    test's folder): a ``sim`` in a terminal of its own until Ctrl-C, the others in order. The
+    uncalibrated runs say so; the calibration passes its checks; the calibrated run is the
+    ideal sensor's."""
+    (workdir / "measured.toml").write_text(truth_file("measured.toml"))
+    lines = [ln.replace("/tmp/kmd2", str(workdir / "kmd2")) for ln in terminals_recipe("chamber-simulated")]
+    assert [ln.split()[1] for ln in lines] == ["sim", "run", "sim", "run", "calibrate", "sim", "run"]
+    assert "--empty" in lines[0] and "--scene chamber-reflector" in lines[2]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    sim, outs = None, []
+    try:
+        for line in lines:
+            if line.split()[1] != "sim":
+                outs.append(run_step(line, workdir))
+                continue
+            if sim is not None:
+                assert "simulator: " in stop_sim(sim)  # its summary on Ctrl-C
+            sim = subprocess.Popen(["bash", "-c", f"exec {line}"], cwd=workdir, env=env, stdin=subprocess.DEVNULL,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            deadline = time.monotonic() + 20
+            while not (workdir / "kmd2").exists() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert (workdir / "kmd2").exists(), line
+    finally:
+        if sim is not None and sim.poll() is None:
+            stop_sim(sim)
+    empty_run, _, calibrate, chamber = outs
+    assert "calibration none" in empty_run.stdout and "uncalibrated" in empty_run.stdout
+    assert "fit residual" in calibrate.stderr and "one reflector explains" in calibrate.stderr
+    assert json.loads((workdir / "cal.json").read_text())["entries"]
+    median = float(re.search(r"error       median ([0-9.]+) m", chamber.stdout).group(1))
+    assert median < 0.5 and "calibration cal.json" in chamber.stdout and "warning" not in chamber.stdout, \
+        chamber.stdout

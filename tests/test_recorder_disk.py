@@ -17,6 +17,7 @@ import pytest
 from mcap.reader import make_reader
 
 from pipeline.wire import RawFrameMsg, encode_raw
+from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, recover
 from replay.recorder import RecorderNode, RecordingState
 from zenoh_helpers import Collector, wait_until
@@ -74,7 +75,7 @@ def raw_frame(sensor: str, seq: int) -> bytes:
     """A raw frame of 512 x 2 noise samples (8 240 bytes, nearly incompressible)."""
     rng = np.random.default_rng(seq)
     data = (rng.standard_normal((512, 2)) + 1j * rng.standard_normal((512, 2))).astype(np.complex64)
-    return encode_raw(RawFrameMsg(sensor, seq, 1_000 + seq, 7, data))
+    return encode_raw(RawFrameMsg(sensor, seq, 1_000 + seq, RadarConfig().config_id(), data))
 
 
 def raw_seqs(path) -> tuple[list[int], McapFile]:

@@ -20,7 +20,9 @@ from mcap.writer import Writer
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize, quantize_frames,
                                sensor_dither_seed)
-from pipeline.wire import RawFrameMsg, TargetsMsg, decode_quantized, decode_quantized_batch, decode_raw, encode_raw
+from pipeline.wire import (HealthMsg, RawFrameMsg, TargetsMsg, decode_quantized, decode_quantized_batch, decode_raw,
+                           encode_raw)
+from radar_driver.model import RadarConfig
 from replay.errors import NoQradarChannelsError, NotMcapError, ReplayError
 from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
@@ -30,6 +32,10 @@ from zenoh_helpers import Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
+#: the config ids of the default K-MD2 with 2 ramps a frame (M = 512) and with one (M = 256):
+#: the recorder records only frames of an announced configuration, as the nodes take
+CONFIG_512 = RadarConfig().config_id()
+CONFIG_256 = RadarConfig(ramps_per_frame=1).config_id()
 
 
 def traffic(n=30, sensors=("a0", "b1")):
@@ -39,8 +45,8 @@ def traffic(n=30, sensors=("a0", "b1")):
     for i in range(n):
         for s in sensors:
             data = (rng.standard_normal((512, 2)) + 1j * rng.standard_normal((512, 2))).astype(np.complex64)
-            out.append((f"radar/{s}/raw", encode_raw(RawFrameMsg(s, i, 1_000 + i, 7, data))))
-            t = TargetsMsg(s, i, 1_000 + i, 7, "pbp", 1, "quantized",
+            out.append((f"radar/{s}/raw", encode_raw(RawFrameMsg(s, i, 1_000 + i, CONFIG_512, data))))
+            t = TargetsMsg(s, i, 1_000 + i, CONFIG_512, "pbp", 1, "quantized",
                            [{"range_m": 4.8, "angle_deg": -20.0, "x_m": 4.5, "y_m": -1.6, "amplitude": 0.1}], 2_000 + i)
             out.append((f"radar/{s}/targets", t.to_json()))
     return out
@@ -92,8 +98,7 @@ def test_player_keeps_the_original_timing_scaled(tmp_path, bus, zenoh_session):
     session = zenoh_session
     rec = RecorderNode(bus, tmp_path / "t.mcap", session=session, health_period_s=60).start()
     for i in range(6):
-        session.put("radar/tm/health", json.dumps({"version": 1, "type": "health", "node": "x", "sensor_id": "tm",
-                                                    "timestamp_ns": i}).encode())
+        session.put("radar/tm/health", HealthMsg("x", "tm", i).to_json())
         time.sleep(0.1)
     wait_until(lambda: rec.written == 6, 10)
     rec.stop()
@@ -113,7 +118,7 @@ def test_split_by_duration(tmp_path, bus, zenoh_session):
     session = zenoh_session
     rec = RecorderNode(bus, tmp_path / "s.mcap", session=session, split_duration_s=0.3, health_period_s=60).start()
     for i in range(10):
-        session.put("radar/sp/raw", encode_raw(RawFrameMsg("sp", i, i, 7, np.zeros((4, 2), np.complex64))))
+        session.put("radar/sp/raw", encode_raw(RawFrameMsg("sp", i, i, CONFIG_256, np.zeros((256, 2), np.complex64))))
         time.sleep(0.1)
     wait_until(lambda: rec.written == 10, 10)
     rec.stop()
@@ -135,7 +140,7 @@ def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_pat
         sent_at = []
         pub = session.declare_publisher("radar/k1/raw")
         for i in range(40):
-            pub.put(encode_raw(RawFrameMsg("k1", i, i, 7, np.zeros((64, 2), np.complex64))))
+            pub.put(encode_raw(RawFrameMsg("k1", i, i, CONFIG_256, np.zeros((256, 2), np.complex64))))
             sent_at.append(time.monotonic())
             time.sleep(0.05)
         time.sleep(1.6)  # more than one flush period after the last message

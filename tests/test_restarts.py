@@ -1,7 +1,9 @@
 """Memory stays bounded over restarts: a publisher started again and again against one
-long-running router and subscriber (each a process of its own) does not grow them. With
-zenoh's shared-memory transport on (its default), each new publisher session left a
-16 MB pool mapped in the router and the subscriber for as long as they ran."""
+long-running router and its subscribers (each a process of its own) does not grow them.
+With zenoh's shared-memory transport on (its default), each new publisher session left a
+16 MB pool mapped in the router and the subscriber for as long as they ran. Held since:
+20 restarts grow the router, quantize and localize by 0.2-0.3 MB (MAX_GROWTH_MB allows
+for a busy host's noise)."""
 
 from __future__ import annotations
 
@@ -15,6 +17,19 @@ from zenoh_helpers import free_port, rss_mb, wait_port
 
 QRADAR = [sys.executable, "-m", "qradar"]
 RESTARTS = 20
+#: the most RSS a long-running process may grow by over RESTARTS publisher restarts (held: 0.2-0.3 MB)
+MAX_GROWTH_MB = 3.0
+
+
+def settled(pid: int, timeout_s: float = 20.0) -> None:
+    """Until the RSS of ``pid`` moves by less than 0.2 MB over half a second (bounded)."""
+    deadline, last = time.monotonic() + timeout_s, rss_mb(pid)
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        now = rss_mb(pid)
+        if abs(now - last) < 0.2:
+            return
+        last = now
 
 
 @pytest.mark.slow
@@ -23,10 +38,12 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber():
     client = ["--mode", "client", "--connect", f"tcp/127.0.0.1:{port}"]
     router = subprocess.Popen([*QRADAR, "router", "--listen", f"tcp/127.0.0.1:{port}"],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    quantize = None
+    quantize = localize = None
     try:
         wait_port(port)
         quantize = subprocess.Popen([*QRADAR, "quantize", *client], stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        localize = subprocess.Popen([*QRADAR, "localize", "--K", "1", *client], stdin=subprocess.DEVNULL,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
         def source() -> None:
@@ -34,19 +51,21 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber():
                                  capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
             assert out.returncode == 0 and '"frames_out": 5' in out.stdout, out.stderr[-2000:]
 
-        source()  # the first session warms every cache up
-        time.sleep(0.5)
-        before = rss_mb(router.pid), rss_mb(quantize.pid)
+        for _ in range(3):  # the first sessions warm every cache up (the localizer loads its compiled kernels)
+            source()
+        settled(localize.pid)
+        before = rss_mb(router.pid), rss_mb(quantize.pid), rss_mb(localize.pid)
         for _ in range(RESTARTS):
             source()
-        time.sleep(0.5)
-        after = rss_mb(router.pid), rss_mb(quantize.pid)
-        assert quantize.poll() is None and router.poll() is None
+        settled(localize.pid)
+        after = rss_mb(router.pid), rss_mb(quantize.pid), rss_mb(localize.pid)
+        assert quantize.poll() is None and localize.poll() is None and router.poll() is None
     finally:
-        for p in (quantize, router):
+        for p in (localize, quantize, router):
             if p is not None:
                 p.terminate()
                 p.wait(20)
     growth = [round(a - b, 1) for a, b in zip(after, before)]
-    print(f"RSS growth over {RESTARTS} restarts (router, quantize): {growth} MB")
-    assert max(growth) <= 10.0, f"RSS growth over {RESTARTS} publisher restarts (router, quantize): {growth} MB"
+    print(f"RSS growth over {RESTARTS} restarts (router, quantize, localize): {growth} MB")
+    assert max(growth) <= MAX_GROWTH_MB, \
+        f"RSS growth over {RESTARTS} publisher restarts (router, quantize, localize): {growth} MB"

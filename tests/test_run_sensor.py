@@ -150,7 +150,7 @@ def test_without_truth_a_real_sensor_has_targets_rates_and_drops_but_no_error(tm
     live = [ln for ln in out.splitlines() if " targets (" in ln]
     assert {ln.split()[0] for ln in live} == {"left", "right"}
     assert not any("truth" in ln or "error m" in ln for ln in live)
-    assert all(ln.endswith(" 0 lost") for ln in live), live
+    assert all(" 0 lost   " in ln and "calibrated" in ln.rsplit(" 0 lost   ", 1)[1] for ln in live), live
     assert any("frames/s, 0 lost" in ln for ln in live), live  # the rate from a sensor's second line on
     assert "qradar run: 2 sensor(s) left on" in out and "frames      raw 60, quantized 60, targets 60" in out
     assert "error       none: no true positions (--truth SCENE.toml" in out
@@ -328,8 +328,8 @@ def test_the_monitor_without_truth_shows_targets_rate_and_losses():
         mon._sensor["lab1"][0] -= 1.0  # a second has gone by: a live line each
     lines = live.getvalue().splitlines()
     assert len(lines) == 4 and all("truth" not in ln and "error" not in ln for ln in lines)
-    assert lines[0] == "lab1 #0     targets (  4.9 m,  -20.0°)   3 lost"  # no rate from one frame
-    assert lines[-1].endswith(", 5 lost")  # 3 frames the link lost, 2 sequence gaps
+    assert lines[0] == "lab1 #0     targets (  4.9 m,  -20.0°)   3 lost   uncalibrated"  # no rate from one frame
+    assert lines[-1].endswith(", 5 lost   uncalibrated")  # 3 frames the link lost, 2 sequence gaps
     assert mon.errors_m.count == 0 and mon.targets_missing == 2
     assert mon.rates_hz() == {"lab1": round(3 / 0.25, 2)}
     text = format_summary({"sensor_urls": {"lab1": "/dev/ttyUSB0"}, "sensors": 1, "seconds": 1.0, "frames_raw": 4,

@@ -1,11 +1,12 @@
 """Ctrl-C (SIGINT) and SIGTERM are the normal end of a live ``qradar run``: the same
 summary as ``--duration`` (``"interrupted": true`` in ``--json``), status 0; a second
-signal while it stops exits at once with 130, one line and no traceback."""
+signal while it stops (more than 0.5 s after the first: sooner, it is the same one delivered
+twice) exits at once with 130, one line and no traceback."""
 
 from __future__ import annotations
 
 import json
-import re
+import os
 import signal
 import subprocess
 import sys
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from test_orphans import alive, drivers_of, kill_all, wait_for
+from test_orphans import alive, cmdline, drivers_of, kill_all, wait_for
 
 
 def start_run(tmp_path, *extra) -> subprocess.Popen:
@@ -69,50 +70,60 @@ def test_the_text_summary_says_it_was_interrupted(tmp_path):
         proc.wait(10)
 
 
-def test_a_second_signal_forces_the_exit(tmp_path):
-    proc = start_run(tmp_path, "--json")
-    drivers = []
+@pytest.fixture
+def frozen_sensor_run(tmp_path):
+    """A run on a ``qradar sim`` of its own process, which the test freezes (SIGSTOP) before
+    it stops the run: a sensor that hangs, so that the run's stop (the driver's GBYE, its
+    counters) takes seconds and a second signal comes while it stops. Yields (run, sim,
+    its drivers' pids, the run's temporary directory); everything ends with the test."""
+    link = tmp_path / "kmd2"
+    sim = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--link", str(link)], stdin=subprocess.DEVNULL,
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc, drivers = None, []
     try:
+        assert "simulated K-MD2" in sim.stdout.readline()
+        proc = start_run(tmp_path, "--json", "--sensor", f"{link},id=kmd2-0")
         wait_for_targets(proc, proc.stderr)
         drivers = drivers_of(proc.pid)
-        assert drivers
-        proc.send_signal(signal.SIGINT)
-        time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 130
-        assert "again while stopping: exiting at once" in err and "Traceback" not in err
-        assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)  # its driver stopped by itself
+        sock = next(a for d in drivers for a in cmdline(d) if a.startswith("unixsock-stream/"))
+        run_dir = Path(sock.removeprefix("unixsock-stream/")).parent
+        assert drivers and run_dir.is_dir()
+        os.kill(sim.pid, signal.SIGSTOP)  # the sensor hangs
+        yield proc, sim, drivers, run_dir
     finally:
-        kill_all([proc.pid, *drivers])
-        proc.wait(10)
+        os.kill(sim.pid, signal.SIGCONT)
+        kill_all([*([proc.pid] if proc else []), *drivers, sim.pid])
+        for p in (proc, sim):
+            if p is not None:
+                p.wait(10)
 
 
-def test_a_forced_exit_leaves_no_temporary_directory_and_says_so_in_json(tmp_path):
+def test_a_second_signal_forces_the_exit(frozen_sensor_run):
+    proc, _, drivers, _ = frozen_sensor_run
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.6)  # later than SAME_SIGNAL_S: not the same interrupt delivered twice
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130
+    assert "again while stopping: exiting at once" in err and "Traceback" not in err
+    assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)  # its driver stopped by itself
+
+
+def test_a_forced_exit_leaves_no_temporary_directory_and_says_so_in_json(frozen_sensor_run):
     """The second SIGINT comes while the run stops: with --json the run still ends its
     output with one JSON object (the error, status 130), and its temporary directory (the
-    simulator's pty link, the zenoh socket) is gone with it."""
-    proc = start_run(tmp_path, "--json")
-    drivers = []
-    try:
-        seen = wait_for_targets(proc, proc.stderr)
-        drivers = drivers_of(proc.pid)
-        run_dir = re.search(r"simulated K-MD2 on (\S+)/kmd2-0", "".join(seen))
-        assert drivers and run_dir, seen
-        assert Path(run_dir.group(1)).is_dir()
-        proc.send_signal(signal.SIGINT)
-        time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 130, err[-2000:]
-        assert [json.loads(line) for line in out.splitlines()] == [
-            {"error": "interrupted", "exit_code": 130, "command": "run"}]
-        assert err.count("again while stopping: exiting at once") == 1 and "Traceback" not in err
-        assert not Path(run_dir.group(1)).exists()
-        assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)
-    finally:
-        kill_all([proc.pid, *drivers])
-        proc.wait(10)
+    zenoh socket) is gone with it."""
+    proc, _, drivers, run_dir = frozen_sensor_run
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.6)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130, err[-2000:]
+    assert [json.loads(line) for line in out.splitlines()] == [
+        {"error": "interrupted", "exit_code": 130, "command": "run"}]
+    assert err.count("again while stopping: exiting at once") == 1 and "Traceback" not in err
+    assert not run_dir.exists()
+    assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)
 
 
 def test_the_simulators_own_lateness_is_reported_apart_from_the_drivers_losses(monkeypatch):

@@ -177,11 +177,12 @@ def test_security_init_and_add_make_a_ca_and_certificates(pki, tmp_path, capsys,
     copy = tmp_path / "lab"
     shutil.copytree(lab, copy)
     monkeypatch.chdir(tmp_path)  # a relative directory
-    assert main(["security", "add", "lab", "--role", "sensor", "--id", "s3", "--host", "10.0.0.5",
-                 "--host", "sensor3.lab"]) == 0
+    assert main(["security", "add", "lab", "--role", "sensor", "--id", "s3", "--host", "10.0.0.5"]) == 2
+    assert "router identity only" in capsys.readouterr().err  # a sensor is a client: no host names
+    assert main(["security", "add", "lab", "--role", "sensor", "--id", "s3"]) == 0
     assert "sensor-s3" in capsys.readouterr().out
     text = openssl("x509", "-in", copy / "sensor-s3.pem", "-noout", "-ext", "subjectAltName").stdout
-    assert "IP Address:10.0.0.5" in text and "DNS:sensor3.lab" in text
+    assert "DNS:" not in text and "IP Address" not in text
     assert Policy.load(copy).get("sensor-s3").publishes("radar") == ["radar/s3/raw", "radar/s3/quantized",
                                                                       "radar/s3/health"]
     # refused, each with one line: a name that exists, a CA that exists, a wildcard sensor id, no CA key

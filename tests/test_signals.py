@@ -9,6 +9,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from radar_driver.scene import resolve_scene
@@ -53,8 +54,10 @@ def test_a_second_signal_while_a_driver_stops_exits_at_once(tmp_path):
             wait_until(lambda: sim.devices[0].event_counts["GNFD"] >= 10 or drive.poll() is not None, 60,
                        "the driver polling")
             drive.send_signal(signal.SIGTERM)
+            t_first = time.monotonic()
             counters = json.loads(drive.stdout.readline())  # after its stop: it lingers now
             assert counters["frames"] >= 1 and drive.poll() is None
+            time.sleep(max(0.0, 0.6 - (time.monotonic() - t_first)))  # sooner, it would be the same signal
             drive.send_signal(signal.SIGTERM)
             out, err = drive.communicate(timeout=10)
         finally:

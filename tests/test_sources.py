@@ -183,7 +183,8 @@ def test_a_recording_counts_sequence_gaps_as_dropped_and_skips_bad_frames(tmp_pa
     sink.close()
     with RecordingSource(path) as rec:
         got = list(rec.frames())
-    assert [f.seq for f in got] == [0, 1, 4, 5] and rec.stats()["s0"] == {"frames": 4, "dropped": 2, "bad_frames": 0}
+    assert [f.seq for f in got] == [0, 1, 4, 5] and rec.stats()["s0"] == {"frames": 4, "dropped": 2, "bad_frames": 0,
+                                                                  "seq_resets": 0, "implausible_seq": 0}
     with RecordingSource(sink_path) as bad:
         assert list(bad.frames()) == [] and bad.stats()["s0"]["bad_frames"] == 1
 

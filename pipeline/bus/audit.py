@@ -506,6 +506,23 @@ def summary() -> dict:
     return {} if log is None else {"audit": log.counts()}
 
 
+def admin_links(session, remote: str = "*") -> list[dict]:
+    """The links of ``session`` to the remote zenoh id ``remote`` (``*``: every one), as its
+    admin space describes them (JSON: ``src``, ``dst``, ``auth_identifier`` (the peer's
+    certificate common name), ...)."""
+    out = []
+    for reply in session.get(f"@/{session.zid()}/session/transport/unicast/{remote}/link/*", timeout=1.0):
+        if reply.ok is None:
+            continue
+        try:
+            link = json.loads(reply.ok.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(link, dict):
+            out.append(link)
+    return out
+
+
 def attach(session) -> None:
     """Look up, in ``session``'s admin space, the common names of the sessions that
     matched no subject of the policy (zenoh logs only their zenoh id)."""
@@ -516,14 +533,7 @@ def attach(session) -> None:
     def resolve(zid: str) -> str | None:
         if session.is_closed():
             return None
-        own = str(session.zid())
-        for reply in session.get(f"@/{own}/session/transport/unicast/{zid}/link/*", timeout=1.0):
-            if reply.ok is None:
-                continue
-            try:
-                link = json.loads(reply.ok.payload.to_bytes())
-            except ValueError:
-                continue
+        for link in admin_links(session, zid):
             cn = link.get("auth_identifier")
             addr = str(link.get("dst", "")).split("/", 1)[-1]
             if cn:

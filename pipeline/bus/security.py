@@ -114,6 +114,14 @@ class Identity:
         sensors = self.sensors or ALL_SENSORS
         return [f"{prefix}/{s}/{t}" for s in sensors for t in (*ROLE_TOPICS[self.role], "health")]
 
+    def may_publish(self, prefix: str, sensor_id: str, topic: str) -> bool:
+        """Whether the policy lets this identity put on ``prefix/sensor_id/topic`` (what
+        :meth:`publishes` lists, for one key of a sensor id)."""
+        if self.role == "router":
+            return True
+        sensors = self.sensors or ALL_SENSORS
+        return topic in (*ROLE_TOPICS[self.role], "health") and (sensors == ALL_SENSORS or sensor_id in sensors)
+
     def liveliness(self, prefix: str) -> list[str]:
         if self.role == "router":
             return [f"{prefix}/alive/**"]

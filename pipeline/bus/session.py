@@ -33,7 +33,7 @@ import zenoh
 
 from radar_driver.limits import SENSOR_ID_CHARS
 
-from pipeline.bus import audit
+from pipeline.bus import audit, router_check
 from pipeline.errors import BusError, ParameterError
 from pipeline.bus.security import SecureConfig, check_secure_endpoint
 from pipeline.keys import TOPICS
@@ -147,6 +147,7 @@ class BusConfig:
                            f"listen={self.listen_endpoints()}{who}): {zenoh_reason(exc)}{hint}") from None
         if self.secure is not None:
             audit.attach(session)  # (nothing unless the command turned the audit on)
+            router_check.install(session, self)  # the peers dialled are router identities (BusError, closed, if not)
         if self.alone_warning is not None:
             warn_if_alone(session, self)
         return session

@@ -43,12 +43,26 @@ import numpy as np
 
 from radar_driver.model import RadarConfig, antenna_phase_rad, simulate_frames
 
+from pipeline.dsp.gate import LEAKAGE_BINS
+from pipeline.dsp.localize import back_project_ramps, joint_energy
 from pipeline.errors import CalibrationError
 
 CAL_TYPE = "qradar.calibration"
 CAL_VERSION = 1
 #: the reflector's range is searched this many range bins either side of the given one
 RANGE_SEARCH_BINS = 1.5
+#: the checks of a calibration (FrontEndCorrection.problems): a fit residual above this (the
+#: energy one reflector's model leaves, over the reflector frame's, dB: -20 to -40 dB for one
+#: clean reflector in the simulated chamber, +2 dB with --range-m 7 for a reflector at 3.1 m)
+#: says the inputs are wrong
+MAX_RESIDUAL_DB = -15.0
+#: the fitted range may move at most this many range bins from the given one (a tape's error)
+MAX_RANGE_SHIFT_BINS = 1.0
+#: an empty recording whose strongest return beyond its first and last EMPTY_SKIP_BINS range bins
+#: (the leakage and its sidelobes) is within this of the reflector's (or, without one, of the
+#: leakage) holds something: a reflector left in the beam, or the recordings swapped, dB
+MAX_EMPTY_RETURN_DB = -10.0
+EMPTY_SKIP_BINS = LEAKAGE_BINS + 1
 
 
 @dataclass(frozen=True)
@@ -99,6 +113,28 @@ class FrontEndCorrection:
     @property
     def rx2_phase_deg(self) -> float:
         return math.degrees(math.atan2(complex(self.rx2).imag, complex(self.rx2).real))
+
+    def problems(self, radar: RadarConfig | None = None) -> list[str]:
+        """What says the inputs were wrong (MAX_RESIDUAL_DB, MAX_RANGE_SHIFT_BINS,
+        MAX_EMPTY_RETURN_DB), one sentence each; [] for a plausible calibration."""
+        i, out = self.info, []
+        dr = (radar or RadarConfig()).range_resolution_m
+        if i.get("fit_residual_db", -np.inf) > MAX_RESIDUAL_DB:
+            out.append(f"the fit residual {i['fit_residual_db']:+.1f} dB is above {MAX_RESIDUAL_DB:g} dB: one reflector "
+                       f"at {i['reflector_range_m']:g} m, {i['reflector_angle_deg']:+g} deg does not explain the "
+                       "reflector recording (a wrong --range-m or --angle-deg, a second object in the beam, the "
+                       "recordings swapped, clipping)")
+        if "reflector_range_fit_m" in i:
+            shift = abs(i["reflector_range_fit_m"] - i["reflector_range_m"])
+            if shift > MAX_RANGE_SHIFT_BINS * dr:
+                out.append(f"the reflector fits best at {i['reflector_range_fit_m']:.2f} m, {shift:.2f} m "
+                           f"({shift / dr:.1f} range bins) from the given {i['reflector_range_m']:g} m: more than "
+                           f"{MAX_RANGE_SHIFT_BINS:g} bin; measure its range again (apex to the antennas' plane)")
+        if i.get("empty_return_db", -np.inf) > MAX_EMPTY_RETURN_DB:
+            out.append(f"the empty recording holds a return at {i['empty_return_m']:.1f} m only "
+                       f"{-i['empty_return_db']:.1f} dB below the {i['empty_return_ref']}: it is not empty (a "
+                       "reflector left in the beam, or the two recordings swapped)")
+        return out
 
     def summary(self) -> dict[str, Any]:
         """The estimates in units people read (dB, deg), for logs and metadata."""
@@ -159,7 +195,11 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
     background = estimate_background(empty)
     info: dict[str, Any] = {"frames_empty": int(np.asarray(empty).shape[0])}
     cid = config.config_id() if config_id is None else int(config_id)
+    profile, skip = _range_profile(background, config), EMPTY_SKIP_BINS
+    beyond = profile.copy()
+    beyond[:skip], beyond[len(beyond) - skip:] = 0.0, 0.0
     if reflector is None:
+        info.update(_empty_return(beyond, profile[:skip].max() if skip else 0.0, "leakage", config))
         return FrontEndCorrection(sensor_id, cid, background, info=info)
     reflector = np.asarray(reflector)
     if reflector.ndim != 3 or reflector.shape[1:] != background.shape:
@@ -189,7 +229,22 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
     info.update({"frames_reflector": int(reflector.shape[0]), "reflector_range_m": float(range_m),
                  "reflector_range_fit_m": r_fit, "reflector_angle_deg": float(angle_deg),
                  "fit_residual_db": round(10 * math.log10(max(resid, 1e-300) / max(signal, 1e-300)), 2)})
+    info.update(_empty_return(beyond, _range_profile(z, config).max(), "reflector's return", config))
     return FrontEndCorrection(sensor_id, cid, background, float(alpha), float(beta), rx2, info)
+
+
+def _range_profile(frame: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """The joint energy (N,) of the back projection of one frame (M, 2) of whole ramps."""
+    return joint_energy(back_project_ramps(np.asarray(frame)[None], config))[0]
+
+
+def _empty_return(beyond: np.ndarray, reference: float, what: str, config: RadarConfig) -> dict[str, Any]:
+    """The empty scene's strongest return beyond the leakage bins (``beyond``: its range
+    profile, zero there): its range and its energy over ``reference``'s, dB."""
+    k = int(np.argmax(beyond))
+    db = 10 * math.log10(max(float(beyond[k]), 1e-300) / max(float(reference), 1e-300))
+    return {"empty_return_m": round(float(config.range_grid_m()[k]), 3), "empty_return_db": round(db, 2),
+            "empty_return_ref": what}
 
 
 # -- removal ----------------------------------------------------------------------------------------------
@@ -231,6 +286,17 @@ class Calibration:
 
     def lookup(self, sensor_id: str, config_id: int) -> FrontEndCorrection | None:
         return self.entries.get((sensor_id, int(config_id)))
+
+    def mismatch(self, sensor_id: str, config_id: int, m: int) -> str | None:
+        """None when the file has an entry for frames of ``sensor_id``, ``config_id`` and M
+        = ``m``, else one line saying what the frames are and what the file holds."""
+        e = self.lookup(sensor_id, config_id)
+        if e is not None and e.m == m:
+            return None
+        held = ", ".join(f"{x.sensor_id} config {x.config_id:#010x} M = {x.m}" for x in self.entries.values())
+        return (f"calibration {self.source} does not fit the frames of sensor {sensor_id!r} (radar config "
+                f"{int(config_id):#010x}, M = {m}): it holds {held}; calibrate this sensor in this configuration "
+                f"(`qradar calibrate`, docs/chamber.md section 7)")
 
     def apply(self, frames: np.ndarray, sensor_ids: list[str], config_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frames (B, M, 2) of the given sensors and config ids, corrected; and a (B,) bool
@@ -276,10 +342,11 @@ def to_json(entries: list[FrontEndCorrection], meta: dict | None = None) -> str:
     return json.dumps(out, indent=1)
 
 
-def save(path: str | Path, entries: list[FrontEndCorrection], meta: dict | None = None) -> Path:
-    """Write a new calibration file (an existing file is refused)."""
+def save(path: str | Path, entries: list[FrontEndCorrection], meta: dict | None = None,
+         overwrite: bool = False) -> Path:
+    """Write a new calibration file (an existing file is refused unless ``overwrite``)."""
     path = Path(path)
-    with open(path, "x") as f:
+    with open(path, "w" if overwrite else "x") as f:
         f.write(to_json(entries, meta) + "\n")
     return path
 

@@ -26,7 +26,7 @@ from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, p
                                 sensing_matrix)
 
 from pipeline.errors import ParameterError
-from pipeline.dsp.gate import RangeGate, check_gate
+from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, check_gate
 
 
 def _check_z(z: np.ndarray) -> np.ndarray:
@@ -108,6 +108,17 @@ def joint_energy(u: np.ndarray) -> np.ndarray:
     u = np.ascontiguousarray(u, dtype=np.complex128)
     p = np.square(u.view(np.float64)).reshape(u.shape[:-1] + (4,))  # Re, Im of antenna 1, then 2
     return (p[..., 0] + p[..., 1]) + (p[..., 2] + p[..., 3])
+
+
+def leakage_return(z: np.ndarray, config: RadarConfig, bins: int = LEAKAGE_BINS) -> np.ndarray:
+    """Whether the strongest return of each frame Z (B, M, 2) of whole ramps (quantized or
+    not) lies in the first or last ``bins`` range bins of the circular range axis, where a
+    real front end's DC offset and TX-to-RX leakage sit (docs/design.md): (B,) bool. In
+    most frames of a sensor, its front end is not removed (no calibration, or one of
+    another front end); 0-5 % of the frames of a calibrated one (the simulated chamber)."""
+    n = config.samples_per_ramp
+    strongest = joint_energy(back_project_ramps(z, config)).argmax(axis=1)
+    return (strongest < bins) | (strongest >= n - bins)
 
 
 def joint_support(u: np.ndarray, k: int, energy: np.ndarray | None = None) -> np.ndarray:

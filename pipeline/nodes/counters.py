@@ -1,5 +1,7 @@
 """A node's counters: per sensor (:class:`SensorStats`), summed (``totals``), failures
-counted by kind and logged at most once a second, with a summary of who sent them.
+counted by kind and logged at most once a second, with a summary of who sent them; and
+:func:`judge_seq`, the one judge of a sequence number (missing frames, a reset, or a
+number out of line), which every reader of sequence numbers calls.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.nodes.budget import MAX_TOPIC_BUCKETS, IntakeBudget, KeyBudget
+from pipeline.nodes.budget import DEFAULT_RATE_HZ, MAX_TOPIC_BUCKETS, IntakeBudget, KeyBudget
 from pipeline.errors import ParameterError
 from pipeline.nodes.histogram import LogHistogram
 
@@ -22,8 +24,8 @@ log = logging.getLogger("qradar.node")
 #: failures of the math or of publishing one message
 ERROR_KINDS = ("decode_errors", "invalid_frames", "processing_errors")
 #: the counters summed by :meth:`Node.totals`
-COUNTERS = ("frames_in", "frames_out", "drops", *ERROR_KINDS, "frames_missing", "seq_resets",
-            "over_budget", "refused", "bytes_in", "bytes_out")
+COUNTERS = ("frames_in", "frames_out", "drops", *ERROR_KINDS, "frames_missing", "seq_resets", "implausible_seq",
+            "over_budget", "refused", "denied_puts", "bytes_in", "bytes_out")
 #: the stats bucket of messages with no valid sensor id, or of an id not admitted (its
 #: health goes out as the sensor UNKNOWN_SENSOR)
 NO_SENSOR = ""
@@ -39,9 +41,100 @@ TALLY_MAX = 64
 #: a node publishes health in this many slices of its sensors spread over the health
 #: period, so that a thousand sensors never cost one long stall (each still once a period)
 HEALTH_SLICES = 10
-#: the largest sequence gap counted as frames missing (50 s at 20 frames/s); a larger jump
-#: ahead counts as a reset of the sequence (seq_resets)
-MAX_SEQ_GAP = 1000
+#: the sequence numbers of a key may advance at most this much faster than its sender's
+#: rate (a clock a little fast, a queue emptying after a stall) ...
+SEQ_RATE_SLACK = 1.25
+#: ... plus this many seconds of frames at that rate, at any moment (frames of a gap that
+#: arrive bunched: a node's queue dropped some of a burst)
+SEQ_AHEAD_S = 2.0
+#: the rate (frames/s) a reader bounds a sequence by when it knows none: the intake
+#: budget's default per key (5 x a K-MD2's 20 frames/s)
+DEFAULT_SEQ_RATE_HZ = DEFAULT_RATE_HZ
+
+
+@dataclass(slots=True)
+class SeqTrack:
+    """The sequence of one key at one reader: ``last``, the last number in line and
+    ``last_s``, when it came (monotonic s); ``first_s``, when the key was first seen;
+    ``advanced``, the frames the line has moved on by since (received, missing or
+    skipped); ``pending``, a number out of line waiting for the next one to say whether
+    the sender restarted its count (it follows on from it) or not (a forgery)."""
+
+    last: int
+    last_s: float
+    first_s: float
+    advanced: int = 1
+    pending: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SeqVerdict:
+    """What one sequence number adds to the counters: ``missing`` frames (a gap the
+    elapsed time allows), ``resets`` (the sender restarted its count: a number out of line
+    followed on by the next), ``implausible`` (a number out of line that nothing followed
+    on: a jump ahead beyond what the elapsed time allows, one back, or a repeat)."""
+
+    missing: int = 0
+    resets: int = 0
+    implausible: int = 0
+
+
+_NOTHING = SeqVerdict()
+
+
+def seq_allowance(track: SeqTrack, now_s: float, rate_hz: float) -> int:
+    """The most frames the line of ``track`` may move on by at ``now_s`` (a gap counted as
+    missing is at most this): what the time since its last number allows at ``rate_hz``
+    (times SEQ_RATE_SLACK, plus SEQ_AHEAD_S of frames), and no more than the time since the
+    key was first seen allows in all, less what the line moved on by already."""
+    rate = rate_hz if rate_hz and rate_hz > 0 else DEFAULT_SEQ_RATE_HZ
+    ahead = rate * SEQ_AHEAD_S
+    since_last = rate * SEQ_RATE_SLACK * max(now_s - track.last_s, 0.0) + ahead
+    in_all = rate * SEQ_RATE_SLACK * max(now_s - track.first_s, 0.0) + ahead - track.advanced
+    return max(int(min(since_last, in_all)), 0)
+
+
+def judge_seq(track: SeqTrack | None, seq: int, now_s: float, rate_hz: float = DEFAULT_SEQ_RATE_HZ,
+              skipped: int = 0) -> tuple[SeqTrack, SeqVerdict]:
+    """The one judge of a sequence number ``seq`` arriving at ``now_s`` (monotonic s) on a
+    key whose state is ``track`` (None: its first number): the track to keep and what it
+    counts. ``rate_hz``: the most frames a second the sender makes (the bound of what is
+    missing); ``skipped``: frames of this key the reader dropped on purpose since its last
+    number (in the sequence, not missing).
+
+    A number that follows the last one within :func:`seq_allowance` moves the line on and
+    counts the gap as missing (less ``skipped``). Any other (back, a repeat, too far ahead)
+    waits as ``pending`` and moves nothing: if the next number follows on from it, the
+    sender restarted its count (a reset, the line moves there); if the next follows the
+    line, it was out of line (implausible: a forged number, or one replayed), and so is a
+    pending one that the next number neither follows on from nor follows the line after.
+    So no number, forged or not, counts a frame missing that the elapsed time does not
+    allow, and one out of line never moves the line: the honest numbers after it count
+    nothing."""
+    if track is None:
+        return SeqTrack(seq, now_s, now_s), _NOTHING
+    gap = seq - track.last - 1
+    if gap == 0 and track.pending is None:  # the next one: always in line, whatever the rate
+        track.last, track.last_s, track.advanced = seq, now_s, track.advanced + 1
+        return track, _NOTHING
+    implausible = 0
+    if gap == 0 or 0 < gap <= seq_allowance(track, now_s, rate_hz) + skipped:  # in line
+        if track.pending is not None:  # the number out of line before was followed by nothing
+            track.pending, implausible = None, 1
+        track.last, track.last_s, track.advanced = seq, now_s, track.advanced + gap + 1
+        if gap == 0 and not implausible:
+            return track, _NOTHING
+        return track, SeqVerdict(max(gap - skipped, 0), 0, implausible)
+    if track.pending is not None:
+        restart_gap = seq - track.pending - 1
+        if 0 <= restart_gap <= seq_allowance(track, now_s, rate_hz) + skipped:  # it follows on from the pending
+            track.last, track.last_s = seq, now_s
+            track.advanced += restart_gap + 2
+            track.pending = None
+            return track, SeqVerdict(max(restart_gap - skipped, 0), 1, 0)
+        implausible = 1  # neither followed: the pending was out of line; this one waits now
+    track.pending = seq
+    return track, SeqVerdict(0, 0, implausible) if implausible else _NOTHING
 
 
 def sensor_label(sensor_id: str) -> str:
@@ -66,17 +159,21 @@ class SensorStats:
     processing_errors: int = 0
     frames_missing: int = 0
     seq_resets: int = 0
+    #: sequence numbers out of line that nothing followed on from (forged, replayed: judge_seq)
+    implausible_seq: int = 0
     #: frames dropped on arrival over their key's budget (pipeline.nodes.budget)
     over_budget: int = 0
     #: frames of sensor ids not admitted (new ids over the node's admission rate)
     refused: int = 0
+    #: messages not put because the access policy (--secure) denies this node's identity their key
+    denied_puts: int = 0
     bytes_in: int = 0
     bytes_out: int = 0
     latency: LogHistogram = field(default_factory=LogHistogram)
     last_seen: float = field(default_factory=time.monotonic)
     #: which of the HEALTH_SLICES publishes this sensor's health
     slot: int = 0
-    # the last sequence number seen per input topic
+    # topic -> SeqTrack: the sequence of each input topic (judge_seq)
     last_seq: dict = field(default_factory=dict)
     # topic -> KeyBudget (at most MAX_TOPIC_BUCKETS; then the topic "" holds the rest)
     budgets: dict = field(default_factory=dict)
@@ -89,20 +186,23 @@ class SensorStats:
         for k in COUNTERS:
             setattr(self, k, getattr(self, k) + getattr(other, k))
 
-    def note_seq(self, topic: str, seq: int) -> None:
-        """Count a gap (frames_missing) or a restart of the sequence (seq_resets). A jump
-        ahead by more than MAX_SEQ_GAP frames is no loss a transport makes (a sender
-        restarted with another count, or a forged sequence number): a reset, so that one
-        frame cannot make the count of missing frames implausible."""
-        last = self.last_seq.get(topic)
-        self.last_seq[topic] = seq
+    def note_seq(self, topic: str, seq: int, now_s: float | None = None,
+                 rate_hz: float = DEFAULT_SEQ_RATE_HZ) -> SeqVerdict:
+        """Count what :func:`judge_seq` makes of ``seq`` on ``topic``: a gap in
+        ``frames_missing``, a restart of the count in ``seq_resets``, a number out of line
+        in ``implausible_seq``. Frames dropped over budget since the last number
+        (``skipped``) are not missing. Call with the owner's lock held."""
         skipped = self.skipped.pop(topic, 0) if self.skipped else 0  # dropped here, counted in over_budget
-        if last is None or seq == last + 1:
-            return
-        if last + 1 < seq <= last + 1 + MAX_SEQ_GAP + skipped:
-            self.frames_missing += max(seq - last - 1 - skipped, 0)
-        else:  # the sender restarted its count (or repeated a frame), or an implausible jump
-            self.seq_resets += 1
+        now_s = time.monotonic() if now_s is None else now_s
+        track, verdict = judge_seq(self.last_seq.get(topic), seq, now_s, rate_hz, skipped)
+        self.last_seq[topic] = track
+        if skipped and track.pending is not None:  # out of line: the skipped frames still lie ahead of the line
+            self.skipped[topic] = skipped
+        if verdict is not _NOTHING:
+            self.frames_missing += verdict.missing
+            self.seq_resets += verdict.resets
+            self.implausible_seq += verdict.implausible
+        return verdict
 
     def within_budget(self, topic: str, n_bytes: int, now: float, budget: IntakeBudget, scale: int = 1) -> str | None:
         """None when a message of ``n_bytes`` on ``topic`` fits this sensor's budget for it,
@@ -134,6 +234,7 @@ class Counters:
         self._lock = threading.Lock()
         self._last_log: dict[str, float] = {}
         self._tally: dict[str, dict[str, int]] = {}  # kind -> sender -> count since the last summary
+        self.last_reason: dict[str, str] = {}  # kind -> the reason of the last failure counted
         self._last_summary = time.monotonic()
 
     def sensor_stats(self, sensor_id: str) -> SensorStats:
@@ -161,6 +262,7 @@ class Counters:
             st = self.sensor_stats(sensor_id)
             setattr(st, kind, getattr(st, kind) + n)
             self._note(kind, sensor_id, n)
+            self.last_reason[kind] = str(reason)
         self.log_limited(kind, "%s: %s (counted in %s; node keeps running)", self.name, reason, kind)
 
     def _note(self, kind: str, sensor_id: str, n: int = 1) -> None:

@@ -11,6 +11,8 @@ from typing import ClassVar, Protocol, Sequence
 
 import numpy as np
 
+from radar_driver.model import RadarConfig
+
 from pipeline.errors import ParameterError, WireError
 from pipeline.dsp.quantize import MAX_BITS, QuantizedFrames, packed_size
 from pipeline.wire import (
@@ -133,3 +135,47 @@ def codec_for(topic: str) -> FrameCodec:
     if codec is None:
         raise ParameterError(f"input topic {topic!r} has no frame codec (one of {', '.join(CODECS)})")
     return codec
+
+
+def radar_configs(radar: RadarConfig, max_ramps: int) -> dict[int, RadarConfig]:
+    """The announced configurations: ``radar`` with 1..max_ramps ramps per frame, by config id."""
+    if not (isinstance(max_ramps, int) and max_ramps >= 1):
+        raise ParameterError(f"max_ramps={max_ramps!r} must be an integer >= 1")
+    return {c.config_id(): c for c in (replace(radar, ramps_per_frame=r) for r in range(1, max_ramps + 1))}
+
+
+def check_frames(codec: FrameCodec, configs: dict[int, RadarConfig], payloads: Sequence[bytes],
+                 keys: Sequence[str], key_sensors: Sequence[str]) -> tuple[list, list[tuple[int, str, str]]]:
+    """Decode payloads with ``codec``, in one vectorized call per length, and keep the frames
+    whose sensor id is their key's (``key_sensors``), whose config id is one of ``configs``
+    (the announced configurations) and whose M is that configuration's. Returns the groups
+    of the good frames and, for each payload refused, (position, counter kind
+    (``decode_errors`` or ``invalid_frames``), one-line reason naming the key): the checks
+    every node and the recorder apply to a frame."""
+    groups, errors = codec.decode(payloads, keys)
+    refused: list[tuple[int, str, str]] = [(i, "decode_errors", str(exc)) for i, exc in errors]
+    out = []
+    for g in groups:
+        h = g.headers
+        m = codec.n_measurements(g)
+        ok = np.ones(len(h), dtype=bool)
+        for j, (i, sid) in enumerate(zip(g.index.tolist(), h.sensor_id)):
+            if sid != key_sensors[i]:
+                ok[j] = False
+                refused.append((i, "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does not match the key"))
+        cids = h.config_id
+        for cid in ([int(cids[0])] if (cids == cids[0]).all() else np.unique(cids).tolist()):
+            radar = configs.get(cid)
+            if radar is not None and radar.n_measurements == m:
+                continue
+            why = (f"unknown radar config id {cid:#010x}" if radar is None else
+                   f"M={m} but its radar config has M={radar.n_measurements}")
+            for j in np.flatnonzero(ok & (h.config_id == cid)).tolist():
+                ok[j] = False
+                i = int(g.index[j])
+                refused.append((i, "invalid_frames", f"frame {int(h.seq[j])} from {keys[i]}: {why}"))
+        if ok.all():
+            out.append(g)
+        elif ok.any():
+            out.append(codec.take(g, np.flatnonzero(ok)))
+    return out, refused

@@ -11,7 +11,9 @@ through the transport to the senders, and to other subscribers of the same sessi
 a node with its process to itself. Each message's key and length are checked before
 anything is copied (a frame whose length no announced configuration has is refused
 there), its key's intake budget (:mod:`pipeline.nodes.budget`) is applied, the frame's sequence
-number is noted (a gap is counted in ``frames_missing``) and the payload goes into a
+number is judged (:func:`pipeline.nodes.counters.judge_seq`: a gap the elapsed time allows in
+``frames_missing``, a restarted count in ``seq_resets``, a number out of line in
+``implausible_seq``; the key's intake rate bounds what can be missing) and the payload goes into a
 :class:`~pipeline.nodes.fairqueue.FairQueue`: one FIFO per sensor, bounded per sensor, in
 frames and in bytes, served round-robin, so a flooding sensor loses its own frames
 (counted in its ``drops``), not the others'. A worker thread takes batches of
@@ -299,7 +301,7 @@ class ProcessingNode(Node):
             if not health:  # nor keeps one alive: else a sensor seen once by a recorder never expires
                 st.last_seen = now
             if sensor != NO_SENSOR and len(payload) >= HEADER_LEN and payload[:4] == MAGIC:
-                st.note_seq(topic, SEQ.unpack_from(payload, SEQ_OFFSET)[0])
+                st.note_seq(topic, SEQ.unpack_from(payload, SEQ_OFFSET)[0], now, self.intake.rate_hz)
         for victim in self._queue.put(sensor, QueuedFrame(sensor, key, payload, time.time_ns()), n):
             with self._lock:
                 self.sensor_stats(victim).drops += 1

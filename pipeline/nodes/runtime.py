@@ -26,7 +26,7 @@ import zenoh
 
 from radar_driver.errors import RadarError
 
-from pipeline.bus import audit
+from pipeline.bus import audit, router_check
 from pipeline.bus.session import BusConfig, zenoh_reason
 from pipeline.nodes.counters import HEALTH_SLICES, NO_SENSOR, UNKNOWN_SENSOR, Counters
 from pipeline.errors import ParameterError, PipelineError, WireError
@@ -78,6 +78,12 @@ class Node(Counters):
         self._released = 0  # sensors forgotten since the C heap was last trimmed
         self._token: Declared | None = None
         self.errors: list[BaseException] = []
+        if self.session is not None and bus.secure is not None:  # a link to an impostor ends the node
+            router_check.watch(self.session, self.errors.append)
+        # under --secure: this node's identity, whose rights say which keys the router lets it put on
+        self._identity = None if bus.secure is None else bus.secure.policy.get(bus.secure.identity)
+        self._may_put: dict[tuple[str, str], bool] = {}  # (sensor, topic) -> the policy lets the identity put there
+        self._told_denied = False
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> "Node":
@@ -176,13 +182,41 @@ class Node(Counters):
                 self._n_publishers += 1
         return pub
 
-    def _put(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
-        """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>``: through the key's declared
+    def _denied(self, sensor_id: str, topic: str) -> bool:
+        """Under --secure, whether the access policy denies this node's identity putting on
+        the key (the router would drop the message unseen): then the message is not sent,
+        it is counted in the sensor's ``denied_puts``, and the first one says so in one line."""
+        ident = self._identity
+        if ident is None:
+            return False
+        allowed = self._may_put.get((sensor_id, topic))
+        if allowed is None:
+            if len(self._may_put) >= 4 * MAX_PUBLISHERS:  # keys of many sensors: bounded
+                self._may_put.clear()
+            allowed = self._may_put[(sensor_id, topic)] = ident.may_publish(self.bus.prefix, sensor_id, topic)
+        if allowed:
+            return False
+        with self._lock:
+            self.sensor_stats(sensor_id).denied_puts += 1
+            told, self._told_denied = self._told_denied, True
+        if not told:
+            log.error("%s: the access policy of %s denies identity %r putting on %s (it may put on %s): the router "
+                      "drops such messages, so they are not sent and are counted in denied_puts; give the node "
+                      "--identity of a sensor it publishes, or issue one (`qradar security add`)", self.name,
+                      self.bus.secure.directory, ident.name, self.bus.key(sensor_id, topic),
+                      ", ".join(ident.publishes(self.bus.prefix)))
+        return True
+
+    def _put(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> bool:
+        """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>`` (False: not put, the access
+        policy denies this node's identity the key, :meth:`_denied`): through the key's declared
         publisher once its sensor has sent PUBLISHER_AFTER frames (while the node holds
         fewer than MAX_PUBLISHERS), else with ``session.put``. zenoh's declaration of a
         publisher costs more the more a session holds (0.16 ms each at 1 000, 3.5 ms at
         5 000, on 127.0.0.1 through a router): a crowd of new ids with one frame each would
         stall the node for seconds; their puts cost ~9 us instead."""
+        if self._identity is not None and self._denied(check_sensor_id(sensor_id), topic):
+            return False
         pubs = self._publishers.get(sensor_id)
         pub = None if pubs is None else pubs.get(topic)
         if pub is None:
@@ -192,12 +226,14 @@ class Node(Counters):
                 pub = self._publisher(sensor_id, topic, encoding)
         if pub is not None:
             pub.put(payload)
-            return
+            return True
         self.transport.put(self.bus.key(check_sensor_id(sensor_id), topic), payload, encoding, drop=topic == "health")
+        return True
 
     def publish(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
         """Put ``payload`` on ``<prefix>/<sensor_id>/<topic>``."""
-        self._put(sensor_id, topic, payload, encoding)
+        if not self._put(sensor_id, topic, payload, encoding):
+            return
         with self._lock:
             st = self.sensor_stats(sensor_id)
             st.frames_out += 1
@@ -213,8 +249,8 @@ class Node(Counters):
         sent = []
         for sensor, payload in zip(sensor_ids, payloads):
             try:
-                self._put(sensor, topic, payload, encoding)
-                sent.append((sensor, len(payload)))
+                if self._put(sensor, topic, payload, encoding):
+                    sent.append((sensor, len(payload)))
             except (PipelineError, TransportError) as exc:
                 why = zenoh_reason(exc) if isinstance(exc, TransportError) else exc
                 self.count(sensor, "processing_errors", f"{self.bus.key(sensor, topic)}: {why}")
@@ -299,7 +335,8 @@ class Node(Counters):
                     bytes_out_per_s=(st.bytes_out - b_out) / max(dt, 1e-9),
                     invalid_frames=st.invalid_frames, processing_errors=st.processing_errors,
                     frames_missing=st.frames_missing, seq_resets=st.seq_resets, worker_restarts=restarts,
-                    over_budget=st.over_budget, refused=st.refused,
+                    over_budget=st.over_budget, refused=st.refused, implausible_seq=st.implausible_seq,
+                    denied_puts=st.denied_puts,
                 )
                 st._last_bytes = (st.bytes_in, st.bytes_out, now_ns)
                 snapshot.append(msg)

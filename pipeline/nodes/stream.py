@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable
 
 import numpy as np
@@ -27,8 +27,10 @@ from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.cml import load_kernels
 from pipeline.dsp.dither import load_kernel as load_dither_kernel
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, Decoder, DecoderConfig, DitherUnavailable
-from pipeline.errors import ParameterError
-from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, FrameCodec, bad_samples, codec_for
+from pipeline.errors import CalibrationError, ParameterError
+from pipeline.nodes.front_end import FrontEndCheck
+from pipeline.nodes.frame_codec import (CODECS, MAX_SAMPLE, FrameCodec, bad_samples, check_frames, codec_for,
+                                        radar_configs)
 from pipeline.dsp.gate import RangeGate
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.dsp.localize import DEFAULT_PFA, Detections
@@ -120,6 +122,8 @@ class SourceNode(Node):
 
     def health_extra(self, sensor_id: str) -> dict:
         extra = {"source": self._source_stats.get(sensor_id, {})}
+        if self.quantizer is not None:  # edge quantization: whether its frames are calibrated, as the quantizer's
+            extra["calibrated"] = self.calibration.source if self.calibration is not None else False
         if self.noise is not None:
             extra.update(self.noise.health(sensor_id))
         return extra
@@ -210,13 +214,6 @@ def quantize_and_publish(node: Node, config: QuantizerConfig, headers: FrameHead
 #: (PBP edge 131 against 150; qiht 10, not 17): the wait itself is latency.
 BATCH_LINGER_S = 0.002
 
-def radar_configs(radar: RadarConfig, max_ramps: int) -> dict[int, RadarConfig]:
-    """The announced configurations: ``radar`` with 1..max_ramps ramps per frame, by config id."""
-    if not (isinstance(max_ramps, int) and max_ramps >= 1):
-        raise ParameterError(f"max_ramps={max_ramps!r} must be an integer >= 1")
-    return {c.config_id(): c for c in (replace(radar, ramps_per_frame=r) for r in range(1, max_ramps + 1))}
-
-
 class FrameNode(ProcessingNode):
     """A processing node of radar frames: it refuses, before copying, payloads whose
     length no announced configuration (``radar`` with 1..max_ramps ramps) has, and
@@ -243,37 +240,13 @@ class FrameNode(ProcessingNode):
     def decode(self, batch: list[QueuedFrame]) -> tuple[list, list[str]]:
         """Decode a batch of queued frames with the input's codec, in one vectorized call per
         length: the groups of frames whose sensor id matches the key, whose config id is
-        announced and whose M is that configuration's, each with the keys of its frames
-        (in order). The others are counted (decode_errors, invalid_frames)."""
+        announced and whose M is that configuration's (:func:`check_frames`), each with the
+        keys of its frames (in order). The others are counted (decode_errors, invalid_frames)."""
         keys = [item.key for item in batch]
-        groups, errors = self.codec.decode([item.payload for item in batch], keys)
-        for i, exc in errors:
-            self.count(batch[i].sensor, "decode_errors", exc)
-        out = []
-        for g in groups:
-            h = g.headers
-            m = self.codec.n_measurements(g)
-            ok = np.ones(len(h), dtype=bool)
-            for j, (i, sid) in enumerate(zip(g.index.tolist(), h.sensor_id)):
-                if sid != batch[i].sensor:
-                    ok[j] = False
-                    self.count(batch[i].sensor, "decode_errors", f"frame from {keys[i]}: sensor id {sid!r} does "
-                               "not match the key")
-            cids = h.config_id
-            for cid in ([int(cids[0])] if (cids == cids[0]).all() else np.unique(cids).tolist()):
-                radar = self._configs.get(cid)
-                if radar is not None and radar.n_measurements == m:
-                    continue
-                why = (f"unknown radar config id {cid:#010x}" if radar is None else
-                       f"M={m} but its radar config has M={radar.n_measurements}")
-                for j in np.flatnonzero(ok & (h.config_id == cid)).tolist():
-                    ok[j] = False
-                    self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from "
-                               f"{keys[g.index[j]]}: {why}")
-            if ok.all():
-                out.append(g)
-            elif ok.any():
-                out.append(self.codec.take(g, np.flatnonzero(ok)))
+        out, refused = check_frames(self.codec, self._configs, [item.payload for item in batch], keys,
+                                    [item.sensor for item in batch])
+        for i, kind, why in refused:
+            self.count(batch[i].sensor, kind, why)
         return out, keys
 
 
@@ -311,23 +284,44 @@ class QuantizeNode(FrameNode):
 
     def __init__(self, bus: BusConfig, config: QuantizerConfig, session: zenoh.Session | Transport | None = None,
                  radar: RadarConfig | None = None, max_ramps: int = 16, calibration: Calibration | None = None,
-                 **kw):
+                 calibration_required: bool = False, **kw):
+        """``calibration_required``: a sensor whose first frame the ``calibration`` has no
+        entry for (its id, config id, M) is a wrong set-up: a CalibrationError in
+        :attr:`errors`, which ends a run (``qradar run``); else such frames are counted
+        (``invalid_frames``) and dropped, and the node goes on."""
         super().__init__(bus, radar or RadarConfig(), max_ramps, session, **kw)
         self.config = config
         self.calibration = calibration
+        self.calibration_required = calibration_required and calibration is not None
+        self._checked: set[str] = set()  # sensors whose first frame was checked against the calibration
         self.noise = noise_tracker(config, radar)
 
     def process(self, batch: list[QueuedFrame]) -> None:
         groups, _ = self.decode(batch)
         for g in groups:  # frames of one M, of any sensors: one vectorized quantization
+            if self.calibration_required:
+                self._check_calibration(g.headers, g.data.shape[1])
             quantize_and_publish(self, self.config, g.headers, g.data, "raw", self.calibration, self.noise)
 
+    def _check_calibration(self, headers: FrameHeaders, m: int) -> None:
+        """At each sensor's first frame: the calibration has an entry for it, or the node fails."""
+        for i, sid in enumerate(headers.sensor_id):
+            if sid in self._checked:
+                continue
+            self._checked.add(sid)
+            why = self.calibration.mismatch(sid, int(headers.config_id[i]), m)
+            if why is not None and not self.errors:
+                self.errors.append(CalibrationError(why))
+
     def health_extra(self, sensor_id: str) -> dict:
-        """With alpha auto: the sensor's noise estimate and the alpha of its last frame."""
-        return {} if self.noise is None else self.noise.health(sensor_id)
+        """Whether the sensor's frames are calibrated (``calibrated``: the file, or false);
+        with alpha auto: the sensor's noise estimate and the alpha of its last frame."""
+        extra = {"calibrated": self.calibration.source if self.calibration is not None else False}
+        return extra if self.noise is None else {**extra, **self.noise.health(sensor_id)}
 
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)
+        self._checked.discard(sensor_id)
         if self.noise is not None:
             self.noise.forget(sensor_id)
 
@@ -420,6 +414,9 @@ class LocalizeNode(FrameNode):
         #: the decoder (checked once, not per batch) and the tables and buffers it keeps between batches
         self._decoder = Decoder(config.decoder())
         self._loading: threading.Thread | None = None  # cml's other kinds of kernels, loaded after start
+        self.front_end = FrontEndCheck()  # a front end's return in the first range bins, per sensor
+        #: the targets of the last frame published: (sensor id, seq, targets as dicts), for a status line
+        self.last_targets: tuple[str, int, list[dict]] | None = None
 
     def start(self) -> "LocalizeNode":
         if self.config.algo == Algo.CML and self._decoder.cml(self.config.radar).engine == "numba":
@@ -440,8 +437,14 @@ class LocalizeNode(FrameNode):
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)
         self._last.pop(sensor_id, None)
+        self.front_end.forget(sensor_id)
         if self.tracker is not None:
             self.tracker.forget(sensor_id)
+
+    def health_extra(self, sensor_id: str) -> dict:
+        """``front_end``: frames checked for a front end's return in the first range bins and
+        those that showed one (:mod:`pipeline.nodes.front_end`)."""
+        return self.front_end.health(sensor_id)
 
     def _init_ranges(self, sensors: list[str]) -> np.ndarray | None:
         """The warm start's ranges (B, k) of frames from ``sensors`` (NaN: a full search)."""
@@ -511,6 +514,10 @@ class LocalizeNode(FrameNode):
         def failed(i, exc):
             self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)
 
+        try:
+            self.front_end.check(radar, sensors, frames, lambda sid: sid in self.stats)
+        except Exception as exc:  # a check, never a frame's loss
+            self.log_limited("front_end", "%s: front-end check failed (%s: %s)", self.name, type(exc).__name__, exc)
         for idx, det in isolate(compute, np.arange(n), failed):
             idx = np.atleast_1d(np.asarray(idx))
             now = time.time_ns()
@@ -528,6 +535,8 @@ class LocalizeNode(FrameNode):
                 part = part_of(j)  # a non-finite target loses its own frame only
                 self.publish_many(part.sensor_id, "targets", payloads, "application/json")
                 self.record_latencies(part.sensor_id, (now - part.timestamp_ns) / 1e6)
+                last = int(idx[j[-1]])
+                self.last_targets = (sensors[last], int(headers.seq[last]), det.frame(int(j[-1])))
             if self.tracker is not None:
                 publish_tracks(self, self.tracker, part_of(np.arange(idx.size)), det, frames if len(idx) == n
                                else frames.take(idx) if isinstance(frames, QuantizedFrames) else None, radar)

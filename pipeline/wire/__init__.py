@@ -22,16 +22,18 @@ from pipeline.wire.frames import (COMMON, COMMON_DTYPE, COMMON_FIELDS, FLAG_DITH
                           QuantizedGroup, RawFrameMsg, RawGroup, check_sensor_id, decode_quantized,
                           decode_quantized_batch, decode_raw, decode_raw_batch, encode_quantized,
                           encode_quantized_batch, encode_raw, encode_raw_batch, frame_size, quantized_batch)
-from pipeline.wire.messages import (HEALTH_LOSS_FIELDS, JSON_VERSION, OPTIONAL_TARGET_FIELDS, TARGET_DIGITS, TARGET_FIELDS,
-                        TRACK_FIELDS, HealthMsg, TargetColumns, TargetsMsg, TracksMsg, decode_health, decode_targets,
-                        decode_tracks, encode_targets_batch)
+from pipeline.wire.messages import (HEALTH_LOSS_FIELDS, JSON_VERSION, MAX_JSON_BYTES, MAX_JSON_DEPTH,
+                        OPTIONAL_TARGET_FIELDS, TARGET_DIGITS, TARGET_FIELDS, TRACK_FIELDS, HealthMsg, TargetColumns,
+                        TargetsMsg, TracksMsg, decode_health, decode_targets, decode_tracks, encode_targets_batch,
+                        load_json)
 
 __all__ = ["COMMON", "COMMON_DTYPE", "COMMON_FIELDS", "FLAG_DITHERED", "GENERATOR_VERSIONS", "HEADER_LEN",
-           "HEALTH_LOSS_FIELDS", "JSON_VERSION", "KIND_QUANTIZED", "KIND_RAW", "MAGIC", "MAX_BITS", "MAX_M",
+           "HEALTH_LOSS_FIELDS", "JSON_VERSION", "KIND_QUANTIZED", "KIND_RAW", "MAGIC", "MAX_BITS", "MAX_JSON_BYTES",
+           "MAX_JSON_DEPTH", "MAX_M",
            "OPTIONAL_TARGET_FIELDS", "QUANT_DTYPE", "QUANT_EXT", "QUANT_EXT_FIELDS", "QUANT_HEADER_LEN",
            "RAW_VERSION", "SENSOR_ID_MAX", "TARGET_DIGITS", "TARGET_FIELDS", "TOPICS", "TRACK_FIELDS", "VERSIONS",
            "FrameHeaders", "HealthMsg", "QuantizedFrameMsg", "QuantizedGroup", "RawFrameMsg", "RawGroup",
            "TargetColumns", "TargetsMsg", "TracksMsg", "WireError", "check_sensor_id", "decode_health",
            "decode_quantized", "decode_quantized_batch", "decode_raw", "decode_raw_batch", "decode_targets",
            "decode_tracks", "encode_quantized", "encode_quantized_batch", "encode_raw", "encode_raw_batch",
-           "encode_targets_batch", "forget_sensor_id", "frame_size", "quantized_batch"]
+           "encode_targets_batch", "forget_sensor_id", "frame_size", "load_json", "quantized_batch"]

@@ -196,11 +196,48 @@ def _reject_constant(name: str):
     raise json.JSONDecodeError(f"{name} is not a number JSON allows", name, 0)
 
 
-def _load_json(payload: bytes, source: str, kind: str) -> dict[str, Any]:
+#: the largest JSON message a reader parses (bytes): a health message with every extra is
+#: a few kB, targets of 100 targets ~15 kB
+MAX_JSON_BYTES = 1 << 20
+#: the deepest nesting of arrays and objects a reader parses (targets: 3, health: 5)
+MAX_JSON_DEPTH = 32
+#: a JSON string, whose brackets do not nest
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
+_OPENS, _CLOSES = np.zeros(256, np.int8), np.zeros(256, np.int8)
+_OPENS[[ord("["), ord("{")]] = 1
+_CLOSES[[ord("]"), ord("}")]] = 1
+
+
+def json_depth(data: bytes) -> int:
+    """How deep arrays and objects nest in JSON text ``data``, without parsing it: the
+    number of opening brackets when that is at most MAX_JSON_DEPTH (a bound of the depth),
+    else the deepest nesting, a running sum over the text with its strings taken out."""
+    if data.count(b"[") + data.count(b"{") <= MAX_JSON_DEPTH:
+        return data.count(b"[") + data.count(b"{")
+    codes = np.frombuffer(_JSON_STRING.sub(b'""', data), np.uint8)
+    steps = _OPENS[codes].astype(np.int64) - _CLOSES[codes]
+    return int(np.cumsum(steps).max(initial=0))
+
+
+def load_json(payload: bytes, what: str, max_bytes: int = MAX_JSON_BYTES, max_depth: int = MAX_JSON_DEPTH):
+    """UTF-8 JSON of at most ``max_bytes`` bytes nested at most ``max_depth`` deep, parsed
+    (NaN and Infinity refused); anything else is a WireError naming ``what``, never an
+    exception of the parser (a RecursionError of a deep nesting, a MemoryError of a huge
+    one)."""
+    data = bytes(payload)
+    if len(data) > max_bytes:
+        raise WireError(f"{what}: {len(data)} bytes of JSON, more than the {max_bytes} a reader takes")
+    depth = json_depth(data)
+    if depth > max_depth:
+        raise WireError(f"{what}: JSON nested {depth} deep, more than the {max_depth} a reader takes")
     try:
-        obj = json.loads(bytes(payload).decode("utf-8"), parse_constant=_reject_constant)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise WireError(f"{kind} from {source}: not UTF-8 JSON ({exc})") from None
+        return json.loads(data.decode("utf-8"), parse_constant=_reject_constant)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise WireError(f"{what}: not UTF-8 JSON ({exc})") from None
+
+
+def _load_json(payload: bytes, source: str, kind: str) -> dict[str, Any]:
+    obj = load_json(payload, f"{kind} from {source}")
     if not isinstance(obj, dict):
         raise WireError(f"{kind} from {source}: expected a JSON object, got {type(obj).__name__}")
     if obj.get("version") != JSON_VERSION:
@@ -286,7 +323,7 @@ def decode_tracks(payload: bytes, source: str = "<bytes>") -> TracksMsg:
 
 #: health counters added in this version of the JSON (0 when a message lacks them)
 HEALTH_LOSS_FIELDS = ("invalid_frames", "processing_errors", "frames_missing", "seq_resets", "worker_restarts",
-                      "over_budget", "refused")
+                      "over_budget", "refused", "implausible_seq", "denied_puts")
 
 
 @dataclass
@@ -312,6 +349,8 @@ class HealthMsg:
     worker_restarts: int = 0
     over_budget: int = 0
     refused: int = 0
+    implausible_seq: int = 0
+    denied_puts: int = 0
 
     def to_json(self) -> bytes:
         obj = {"version": JSON_VERSION, "type": "health", "node": self.node, "sensor_id": self.sensor_id,

@@ -6,6 +6,7 @@
 - :mod:`.analysis`: ``montecarlo``, ``montecarlo-time``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)
+- :mod:`.ports`: ``ports`` (the serial adapters; ``--probe``: which answer as a K-MD2)
 - :mod:`.security`: ``security init|add|remove|list`` (certificates for ``--secure``)
 
 A command function parses its arguments into the libraries' configs and delegates.
@@ -29,18 +30,26 @@ import threading
 import traceback
 
 from pipeline.errors import PipelineError
-from radar_driver.errors import RadarError
+from radar_driver.errors import RadarError, SetupError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, calibrate, record, security, sensor, stream, view
+from . import analysis, bringup, calibrate, ports, record, security, sensor, stream, view
 from .. import __version__
 from .common import DefaultsFormatter
 
 log = logging.getLogger("qradar")
 
 
+class CommandParser(argparse.ArgumentParser):
+    """argparse's parser, whose argument errors are one line and the ``--help`` hint (not
+    the usage block first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="qradar", description="1-bit dithered FMCW radar localization: simulation, streaming, replay.",
         formatter_class=DefaultsFormatter,
     )
@@ -55,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     analysis.add_reprocess(sub)
     view.add_commands(sub)
     bringup.add_commands(sub)
+    ports.add_commands(sub)
     security.add_commands(sub)
     calibrate.add_commands(sub)
     for p in sub.choices.values():
@@ -141,7 +151,9 @@ def fail(args, exc: BaseException | str, code: int) -> int:
     print(f"qradar {args.command}: error: {message}" if code != 130 else f"qradar {args.command}: {message}",
           file=sys.stderr, flush=True)
     if getattr(args, "json", False):
-        print(json.dumps({"error": message, "exit_code": code, "command": args.command}), flush=True)
+        # "setup": a wrong set-up (radar_driver.errors.SetupError), which a restart does not mend
+        setup = {"setup": True} if isinstance(exc, SetupError) else {}
+        print(json.dumps({"error": message, "exit_code": code, "command": args.command, **setup}), flush=True)
     return code
 
 

@@ -22,7 +22,7 @@ from replay.reprocess import run as run_reprocess
 
 from .common import (BITS_HELP, count_from_args, count_options, gate_options, nonneg_float, nonneg_int, pfa_arg,
                      pos_int)
-from .common import calibration_option, track_options, tracker_config
+from .common import calibration_option, force_option, track_options, tracker_config
 
 
 def add_montecarlo(sub) -> None:
@@ -80,6 +80,7 @@ def add_montecarlo(sub) -> None:
                    help="the decoders search only ranges <= M (the live localizer's default: 152.4)")
     p.add_argument("--workers", type=pos_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--out", type=Path, default=Path("montecarlo_out"), help="output folder")
+    force_option(p, "the outputs of an earlier run in --out")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG maps")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_montecarlo)
@@ -101,11 +102,12 @@ def add_montecarlo_time(sub) -> None:
     p.add_argument("--alpha", type=nonneg_float, default=None, help="dither scale (default: the default decoder's)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (runs are reproducible for a seed)")
     p.add_argument("--out", type=Path, default=Path("out/montecarlo-time"), help="folder for time.json and time.png")
+    force_option(p, "time.json and time.png in --out")
     p.set_defaults(func=cmd_montecarlo_time)
 
 
 def cmd_montecarlo_time(args) -> int:
-    prepare_out_dir(args.out)  # before the work: a folder it cannot write is one line at once
+    prepare_out_dir(args.out, ("time.json", "time.png"), args.force)  # before the work: a bad --out is one line
     results = [time_monte_carlo(args.runs, tuple(args.frames), s, args.alpha, args.seed) for s in args.noise_sigma]
     (args.out / "time.json").write_text(json.dumps(results, indent=2) + "\n")
     error_vs_frames_figure(args.out / "time.png", results)
@@ -132,6 +134,7 @@ def add_reprocess(sub) -> None:
     calibration_option(p)
     p.add_argument("--out", type=Path, default=Path("out/reprocess"), help="folder for results.json and the plots")
     p.add_argument("--mcap", type=Path, default=None, help="also write the best alpha's targets to this MCAP")
+    force_option(p, "results.json, the plots and the --mcap file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     gate_options(p)
     track_options(p)
@@ -152,7 +155,7 @@ def cmd_montecarlo(args) -> int:
             0.0 if args.min_range_m is None else args.min_range_m,
             RadarConfig().max_range_m if args.max_range_m is None else args.max_range_m),
     )
-    prepare_out_dir(args.out)
+    prepare_out_dir(args.out, force=args.force)
     result = run_montecarlo(cfg, progress=not args.quiet)
     print("\n".join(write_outputs(result, args.out, cfg.radar.max_range_m, plots=not args.no_plots)))
     return 0
@@ -164,7 +167,7 @@ def cmd_reprocess(args) -> int:
                           algos=tuple(args.algos), seed=args.seed, sensor=args.sensor, truth=args.truth, out=args.out,
                           mcap=args.mcap, progress=not args.quiet, auto_k=auto, pfa=args.pfa,
                           calibration=args.calibration, min_range_m=args.min_range_m,
-                          max_range_m=args.max_range_m, tracking=tracker_config(args))
+                          max_range_m=args.max_range_m, tracking=tracker_config(args), force=args.force)
     result = run_reprocess(cfg)
     for note in result.notes:
         print(note, file=sys.stderr)

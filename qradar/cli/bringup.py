@@ -14,8 +14,9 @@ from pathlib import Path
 from radar_driver.capture import MODES, Capture, CaptureConfig, run_capture
 from radar_driver.inspection import Reflector, format_report, inspect_capture
 from radar_driver.profile import CHIRP_SELECT, packaged_profiles
+from replay.outputs import check_new_file
 
-from .common import pos_int
+from .common import force_option, pos_int
 
 #: how long a capture runs without --seconds: without --frames, and as a bound with them, s
 DEFAULT_SECONDS = 10.0
@@ -54,6 +55,7 @@ def add_commands(sub) -> None:
                    help="auto: the driver, then the raw poller if it decodes no frame; session: the driver "
                    "only; raw: the raw poller only (default auto)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    force_option(p, "the -o file")
     p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("inspect", help="list a capture's messages and find the sensor profile that reads it",
@@ -78,6 +80,7 @@ def cmd_capture(args) -> int:
     seconds = args.seconds or (DEFAULT_SECONDS if args.frames is None else DEFAULT_SECONDS_WITH_FRAMES)
     cfg = CaptureConfig(args.port, profile=args.profile, frames=args.frames, seconds=seconds, baud=args.baud,
                         ramps_per_frame=args.ramps, timeout_s=args.timeout, mode=args.mode)
+    check_new_file(args.out, args.force, "capture")  # before the port opens
     stop = threading.Event()
     previous = {}
     if threading.current_thread() is threading.main_thread():

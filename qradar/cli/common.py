@@ -32,6 +32,13 @@ from pipeline.dsp.quantize import QuantizerConfig, parse_alpha
 from pipeline.dsp.track import TrackerConfig
 
 
+def force_option(p, what: str) -> None:
+    """``--force``: the one overwrite policy (replay.outputs): an existing output is replaced
+    only when told."""
+    p.add_argument("--force", action="store_true", help=f"replace {what} if it exists (without it: refused, "
+                   "nothing written)")
+
+
 def nonneg_int(text: str) -> int:
     v = int(text)
     if v < 0:
@@ -189,11 +196,17 @@ def install_sigterm(name: str) -> "StopOnSignals":
     return StopOnSignals(None, name)
 
 
+#: a second SIGINT / SIGTERM within this many seconds of the first is the same interrupt
+#: (``timeout`` and some supervisors signal the child and its process group, ms apart)
+SAME_SIGNAL_S = 0.5
+
+
 class StopOnSignals:
     """SIGINT and SIGTERM end a live command normally. The first sets ``stop`` (the
     command then stops its nodes in order and prints its summary) or, for a command
     without such an event, raises KeyboardInterrupt in its main thread; ``interrupted``
-    names it. A second, while it is stopping, ends the process at once with status 130:
+    names it. A second within SAME_SIGNAL_S of the first is the same one, delivered twice.
+    A second later, while it is stopping, ends the process at once with status 130:
     one line on stderr (with ``json_error`` also the error object on stdout), then
     ``on_force`` (a quick clean-up; its children stop by themselves: :func:`watch_parent`).
 
@@ -211,6 +224,7 @@ class StopOnSignals:
         self.stop, self.name, self.json_error, self.on_force = stop, name, json_error, on_force
         self.interrupted: str | None = None  # the signal's name, once one came
         self._received = 0
+        self._first_s = 0.0  # monotonic time of the first signal
         self._raised = False
         if StopOnSignals._wakeup is None:
             r, w = os.pipe()
@@ -237,7 +251,12 @@ class StopOnSignals:
                     current._on_signal(signal.Signals(signum).name)
 
     def _on_signal(self, name: str) -> None:
+        now = time.monotonic()
+        if self._received and now - self._first_s < SAME_SIGNAL_S:
+            return  # the same interrupt delivered twice (to the process and to its group): not "again"
         self._received += 1
+        if self._received == 1:
+            self._first_s = now
         if self._received > 1:
             self.force(name)
         self.interrupted = name

@@ -1,5 +1,6 @@
-"""Recording commands: ``record`` (zenoh -> MCAP), ``recover`` (a cut-short MCAP -> a
-complete one) and ``replay`` (MCAP -> zenoh)."""
+"""Recording commands: ``record`` (zenoh -> MCAP; ``record --verify`` checks files),
+``recover`` (a cut-short or damaged MCAP -> a complete one of what reads) and ``replay``
+(MCAP -> zenoh)."""
 
 from __future__ import annotations
 
@@ -9,32 +10,41 @@ import threading
 from pathlib import Path
 
 from pipeline.bus import audit
+from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
-from replay.mcapio import recover
+from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
 
-from .common import StopOnSignals, bus_from_args, bus_options, install_sigterm, intake_budget, intake_options, pos_float
+from .common import (StopOnSignals, bus_from_args, bus_options, force_option, install_sigterm, intake_budget,
+                     intake_options, pos_float)
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP")
-    p.add_argument("-o", "--output", type=Path, required=True, help="FILE.mcap")
+    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP (or --verify recordings)")
+    p.add_argument("-o", "--output", type=Path, default=None, help="FILE.mcap (required unless --verify)")
+    p.add_argument("--verify", type=Path, nargs="+", default=None, metavar="FILE",
+                   help="record nothing: read each MCAP file whole, every chunk's CRC checked, and print what it "
+                   "holds and lost (one JSON line each); exit 1 if any is damaged, cut short or lost messages")
     p.add_argument("--topics", default=None, help="key expression (default <prefix>/**)")
     p.add_argument("--split-size", type=float, default=None, metavar="MB", help="new file every MB megabytes")
     p.add_argument("--split-duration", type=float, default=None, metavar="S", help="new file every S seconds")
     p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
     write_error_options(p, "exit with status 2 (a recorder with nothing left to record ends)")
+    force_option(p, "the -o file")
+    p.add_argument("--quiet", action="store_true", help="no status line every few seconds on stderr")
     intake_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("recover", help="rewrite a cut-short MCAP (e.g. after SIGKILL) as a complete, indexed file")
-    p.add_argument("file", type=Path, help="the cut-short MCAP file (read, never changed)")
+    p = sub.add_parser("recover", help="rewrite a cut-short or damaged MCAP (e.g. after SIGKILL) as a complete, "
+                       "indexed file of every message that reads back (damaged chunks are left out, and named)")
+    p.add_argument("file", type=Path, help="the cut-short or damaged MCAP file (read, never changed)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
+    force_option(p, "the -o file")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
@@ -63,19 +73,45 @@ def write_error_options(p, on_stop: str) -> None:
                    help="while paused after a write error, look for space every S seconds")
 
 
+def cmd_verify(paths: list[Path]) -> int:
+    """``record --verify``: one JSON line per file on stdout, one line per damage on stderr;
+    1 when a file is not intact."""
+    bad = 0
+    for path in paths:
+        f = McapFile(path)
+        f.scan()
+        for line in f.damage_lines():
+            print(f"qradar record --verify: {path}: {line}", file=sys.stderr)
+        if f.truncated:
+            print(f"qradar record --verify: {path}: {f.truncation_reason} (qradar recover completes it)",
+                  file=sys.stderr)
+        bad += not f.intact
+        print(json.dumps(f.report()), flush=True)
+    return 1 if bad else 0
+
+
 def cmd_record(args) -> int:
+    if args.verify is not None:
+        if args.output is not None:
+            raise ReplayError("--verify checks files and records nothing: give -o or --verify, not both")
+        return cmd_verify(args.verify)
+    if args.output is None:
+        raise ReplayError("give -o FILE.mcap to record to (or --verify FILE to check a recording)")
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
     node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
                         split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
-                        retry_s=args.write_retry, intake=intake_budget(args))
+                        retry_s=args.write_retry, intake=intake_budget(args), overwrite=args.force)
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
     install_sigterm("record")
+    status = StatusLines(node, quiet=args.quiet, announce=False).start()
     try:
         run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
         pass
+    finally:
+        status.stop()
     print(json.dumps({"node": node.name, **node.totals(), **node.summary(), **audit.finish()}), flush=True)
     if node.state is RecordingState.STOPPED:
         raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
@@ -83,8 +119,12 @@ def cmd_record(args) -> int:
 
 
 def cmd_recover(args) -> int:
-    r = recover(args.file, args.output)
-    print(json.dumps({"file": str(args.output), **r}))
+    r = recover(args.file, args.output, overwrite=args.force)
+    if r["lost"] or r["damaged_chunks"] or r["problems"]:
+        print(f"qradar recover: {args.file}: {len(r['damaged_chunks'])} damaged chunk(s) left out of {args.output}, "
+              f"{r['lost']} messages lost {r['lost_by_topic']}; each named in the JSON line and in its "
+              "qradar.recovery metadata", file=sys.stderr)
+    print(json.dumps({**r, "source": str(args.file), "file": str(args.output)}))
     return 0
 
 
@@ -95,6 +135,7 @@ def cmd_replay(args) -> int:
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
     result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
+                      "lost": result.lost, "damaged_chunks": result.damaged,
                       "seconds": round(result.seconds, 3), "interrupted": signals.interrupted is not None,
                       **audit.finish()}))
     return 0

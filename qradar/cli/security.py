@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from pipeline.errors import ParameterError
@@ -26,15 +27,19 @@ def add_commands(sub) -> None:
                        description="A certificate authority of your own and one certificate per node identity, "
                        "for --secure DIR on every node and the router. The CA key (ca.key) stays on the machine "
                        "that runs init; another host gets ca.pem, identities.json and its own NAME.pem, NAME.key.")
-    ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list}")
+    ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list,check}")
 
     q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
                       "viewer")
-    q.add_argument("dir", type=Path, help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each")
+    q.add_argument("dir", type=Path, nargs="?", default=security.DEFAULT_DIR,
+                   help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each (default "
+                   f"{security.DEFAULT_DIR}, outside any checkout; a folder in a git checkout should be one its "
+                   ".gitignore covers, as lab-pki/ is qradar's)")
     q.add_argument("--sensors", type=names, action="extend", default=None, metavar="ID[,ID...]",
                    help="sensor ids, one sensor identity each (default: sim0, the first of `qradar source`)")
     _cert_options(q)
     q.add_argument("--ca-days", type=pos_int, default=security.CA_DAYS, help="validity of the CA in days")
+    q.add_argument("--force", action="store_true", help="replace a CA (and every identity) already in DIR")
     q.set_defaults(func=cmd_init)
 
     q = ss.add_parser("add", help="issue one more identity with the CA of DIR (restart the router to apply)")
@@ -60,6 +65,15 @@ def add_commands(sub) -> None:
     q.add_argument("--prefix", default="radar", help="key prefix")
     q.add_argument("--json", action="store_true", help="print the identities as JSON")
     q.set_defaults(func=cmd_list)
+
+    q = ss.add_parser("check", help="every certificate's names and role; flags any but a router's naming hosts",
+                      description="Lists, per identity of DIR, the common name, role and host names of its "
+                      "certificate, and flags what could pose as the router (an identity other than a router's "
+                      "whose certificate names hosts: made before `security add` refused that) or contradicts "
+                      "the policy. Exit status 1 when anything is flagged.")
+    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
+    q.add_argument("--json", action="store_true", help="print the findings as JSON")
+    q.set_defaults(func=cmd_check)
     for q in ss.choices.values():  # as build_parser does for the first level
         q.formatter_class = DefaultsFormatter
         q.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
@@ -68,15 +82,24 @@ def add_commands(sub) -> None:
 
 def _cert_options(q) -> None:
     q.add_argument("--host", action="append", default=[], metavar="NAME|IP",
-                   help="a DNS name or IP address the certificate is valid for (repeat; localhost and 127.0.0.1 "
-                   "always); needed on a host where the identity listens (the router)")
+                   help="a DNS name or IP address the router's certificate is valid for (repeat; localhost and "
+                   "127.0.0.1 always); router identities only: any other is a client and names no host")
     q.add_argument("--days", type=pos_int, default=security.DEFAULT_DAYS, help="validity of a certificate in days")
     q.add_argument("--json", action="store_true", help="print the identities as JSON")
 
 
 def cmd_init(args) -> int:
-    policy = security.init(args.dir, args.sensors or ["sim0"], args.host, days=args.days, ca_days=args.ca_days)
-    _show(args, policy.identities, f"made a CA and {len(policy.identities)} identities in {args.dir}")
+    directory = Path(args.dir).expanduser()
+    policy = security.init(directory, args.sensors or ["sim0"], args.host, days=args.days, ca_days=args.ca_days,
+                           force=args.force)
+    _show(args, policy.identities, f"made a CA and {len(policy.identities)} identities in {directory}")
+    key = (directory / CA_KEY).resolve()
+    print(f"the CA's private key is {key}: it signs every identity, so keep it on this machine only (another host "
+          f"gets ca.pem, {POLICY_FILE} and its own NAME.pem, NAME.key)", file=sys.stderr)
+    checkout = security.git_exposure(directory)
+    if checkout is not None:
+        print(f"warning: {directory} is inside the git checkout {checkout} and no .gitignore covers it: the CA's "
+              f"private key could be committed; add {directory.name}/ to .gitignore or move it out", file=sys.stderr)
     return 0
 
 
@@ -110,6 +133,21 @@ def cmd_list(args) -> int:
     _show(args, policy.identities, f"{len(policy.identities)} identities in {args.dir}"
           + ("" if (Path(args.dir) / CA_KEY).exists() else " (no CA key here: add issues nothing)"))
     return 0
+
+
+def cmd_check(args) -> int:
+    found = security.check(args.dir)
+    flagged = [c for c in found if c.problems]
+    if args.json:
+        print(json.dumps([c.to_dict() for c in found]))
+        return 1 if flagged else 0
+    print(f"{len(found)} certificates in {args.dir}: "
+          + (f"{len(flagged)} flagged" if flagged else "none but a router's names hosts"))
+    for c in found:
+        hosts = "not on this host" if c.hosts is None else ("hosts " + ", ".join(c.hosts) if c.hosts else "no hosts")
+        print(f"  {c.name:<20} {c.role:<10} CN={c.common_name or '?'}; {hosts}"
+              + "".join(f"\n    FLAGGED: {p}" for p in c.problems))
+    return 1 if flagged else 0
 
 
 def _show(args, idents, head: str) -> None:

@@ -16,11 +16,13 @@ from pipeline.errors import ParameterError
 from pipeline.nodes.stream import SourceNode
 from pipeline.wire import check_sensor_id
 from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, packaged_profiles, resolve_profile
-from radar_driver.scene import resolve_scene
+from radar_driver.scene import packaged_scenes, resolve_scene
 from radar_driver.session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig, save_frames_npz
 from radar_driver.simulator import SimFaults, SimulatorServer
+from replay.outputs import check_new_file
 
 from .common import (
+    force_option,
     bus_from_args,
     bus_options,
     edge_quantizer,
@@ -57,7 +59,7 @@ def add_commands(sub) -> None:
                        "the paper's model of a TOML scene through its front end, with noise, 12-bit ADC and optional "
                        "faults.")
     p.add_argument("--scene", default="chamber",
-                   help="TOML scene file, or the name of a packaged scene (chamber, chamber-ideal, single, walker)")
+                   help=f"TOML scene file, or the name of a packaged scene ({', '.join(packaged_scenes())})")
     p.add_argument("--empty", action="store_true",
                    help="the scene without its targets: the empty chamber, front end (DC, leakage) and noise only")
     p.add_argument("--link", type=Path, default=None, help="stable symlink path to the pty (e.g. /tmp/kmd2)")
@@ -94,6 +96,7 @@ def add_commands(sub) -> None:
     p.add_argument("--chirp-select", choices=CHIRP_SELECT, default="first",
                    help="with several chirps per RADC: a frame takes the first --ramps chirps, or every k-th")
     p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
+    force_option(p, "the --out file")
     p.add_argument("--json", action="store_true",
                    help="end with one JSON object on stdout: the counters, or the error and exit code")
     p.add_argument("--quiet", action="store_true", help="no line per frame")
@@ -124,11 +127,14 @@ def cmd_sim(args) -> int:
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
                              faults=faults, seed=args.seed, profile=profile, line_rate=args.line_rate,
                              hold_clock_when_late=args.hold_clock_when_late)
+    t0 = time.monotonic()
     with server:
         where = [str(args.link)] if args.link else []
         if args.tcp is not None:
             where.append(f"socket://127.0.0.1:{server.tcp_port}")
-        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {args.rate:g} frames/s, "
+        front = ("ideal front end" if scene.front_end.ideal else
+                 "front end: DC offset, TX leakage, receiver mismatch (calibrate: docs/chamber.md, section 7)")
+        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {front}, {args.rate:g} frames/s, "
               f"profile {profile.name}) on "
               f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
         try:
@@ -137,11 +143,23 @@ def cmd_sim(args) -> int:
                     raise server.errors[0]
         except KeyboardInterrupt:
             pass
-    late = [(d.late_writes, d.late_s) for d in server.devices]
-    if any(n for n, _ in late):
-        print("simulator: " + "; ".join(f"{n} late writes, {s * 1e3:.1f} ms in all (device clock held)"
-                                        for n, s in late), flush=True)
+    print(sim_summary(server, time.monotonic() - t0), flush=True)
     return 0
+
+
+def sim_summary(server: SimulatorServer, seconds: float) -> str:
+    """What a simulated K-MD2 did: its RADCs (and frames) sent, the hosts' INITs, its faults
+    and its own lateness."""
+    parts = []
+    for d in server.devices:
+        faults = {k: v for k, v in d.event_counts.items() if k not in ("INIT", "GNFD", "GBYE", "SWITCH", "LATE")}
+        parts.append(f"{d.radcs_sent} RADCs sent ({d.radcs_sent // d.radcs_per_frame} frames of "
+                     f"{d.radcs_per_frame}), {d.event_counts.get('INIT', 0)} INIT(s), {d.event_counts.get('GBYE', 0)} "
+                     f"GBYE(s)" + (f", faults: {', '.join(f'{k} {v}' for k, v in sorted(faults.items()))}" if faults
+                                   else "")
+                     + (f", {d.late_writes} late writes, {d.late_s * 1e3:.1f} ms in all (device clock held)"
+                        if d.late_writes else ""))
+    return f"simulator: {seconds:.1f} s; " + "; ".join(parts)
 
 
 def profile_option(p) -> None:
@@ -155,6 +173,10 @@ def cmd_drive(args) -> int:
                         chirp_select=args.chirp_select, outstanding=args.outstanding)
     quantizer, raw_every = edge_quantizer(args)
     load_calibration(args.calibration, [cfg.sensor_id])  # a file for another sensor: refused before the port opens
+    if args.out is not None:
+        if args.out.suffix != ".npz":  # numpy would add it, and write another file than the one checked
+            raise ParameterError(f"--out {args.out}: the frames file must end in .npz")
+        check_new_file(args.out, args.force, "--out")
     if quantizer is not None and args.no_publish:
         raise ParameterError("--quantize publishes quantized frames; it cannot go with --no-publish")
     lines = sys.stderr if args.json else sys.stdout

@@ -15,6 +15,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import DEFAULT_ALGO, DEFAULT_ALPHA, default_alpha
 from pipeline.errors import ParameterError
 from pipeline.nodes.intake import INPUT_MODES
+from pipeline.nodes.status import STATUS_PERIOD_S, StatusLines
 from pipeline.nodes.stream import DEFAULT_FULL_SEARCH_EVERY, LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.scene import resolve_scene
@@ -23,8 +24,9 @@ from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
 from ..view import load_poses
-from ..run import RunConfig, format_summary, print_json, remove_run_dirs, run
+from ..run import RunConfig, print_json, remove_run_dirs, run
 from .common import (
+    force_option,
     ALPHA_HELP,
     algo_option,
     bus_from_args,
@@ -52,7 +54,7 @@ from .common import (
     load_calibration,
 )
 from .record import write_error_options
-from .view import foxglove_arg, poses_option
+from .view import foxglove_arg, poses_option, web_config, web_options
 
 
 def add_commands(sub) -> None:
@@ -62,6 +64,7 @@ def add_commands(sub) -> None:
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    quiet_option(p)
     bus_options(p)
     p.set_defaults(func=cmd_quantize)
 
@@ -81,6 +84,7 @@ def add_commands(sub) -> None:
     queue_options(p)
     serve_options(p)
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    quiet_option(p)
     bus_options(p)
     p.set_defaults(func=cmd_localize)
 
@@ -104,6 +108,7 @@ def add_commands(sub) -> None:
     p.add_argument("--recording", type=Path, default=None,
                    help="publish the raw frames of this MCAP file (at --rate times the recorded pace) instead")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
+    quiet_option(p)
     bus_options(p)
     p.set_defaults(func=cmd_source)
 
@@ -123,7 +128,9 @@ def add_commands(sub) -> None:
                        "or --truth's), then a summary.")
     p.add_argument("--sensor", dest="sensor_specs", action="append", default=[], metavar="URL,id=NAME[,KEY=VALUE]",
                    help="a real sensor instead of the simulated ones (repeatable, one each): a pyserial URL (a device "
-                   "path, socket://HOST:PORT, rfc2217://HOST:PORT), then its id (required) and the driver's "
+                   "path, socket://HOST:PORT, rfc2217://HOST:PORT) or auto (the one K-MD2 that answers on this "
+                   "host's serial adapters, probed with INIT and GBYE as `qradar ports --probe` does), then its id "
+                   "(required) and the driver's "
                    "options: profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays "
                    "at 115200), ramps=R (default 2), chirp-select=first|stride; e.g. "
                    "/dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, --sensors, --rate")
@@ -156,6 +163,7 @@ def add_commands(sub) -> None:
     p.add_argument("--record", type=Path, default=None,
                    help="MCAP file to record to, made new (an existing file is refused); default recordings/run-<date>-<time>-<ms>.mcap, -1, -2, ... when taken")
     p.add_argument("--no-record", action="store_true", help="do not record")
+    force_option(p, "--record's file")
     p.add_argument("--split-size", type=pos_float, default=None, metavar="MB",
                    help="record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps "
                    "each chunk's index in memory until its file ends: at most 0.7 KB a chunk (one a second, or each MB) "
@@ -168,6 +176,7 @@ def add_commands(sub) -> None:
                    help="also serve the live stream to Foxglove (as `qradar view`) on HOST:PORT (host default "
                    "127.0.0.1)")
     poses_option(p)
+    web_options(p)
     bus_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -212,15 +221,26 @@ def queue_kwargs(args) -> dict:
 
 
 
-def serve(node, duration: float | None, stop: threading.Event | None = None) -> int:
-    """Run one node until ``duration``, ``stop`` or Ctrl-C; print its totals as JSON."""
+def serve(node, duration: float | None, stop: threading.Event | None = None, quiet: bool = False) -> int:
+    """Run one node until ``duration``, ``stop`` or Ctrl-C, saying where it listens and what
+    it reads and writes, then a status line every few seconds (unless ``quiet``, on stderr);
+    print its totals as JSON."""
     install_sigterm(node.name)
+    status = StatusLines(node, quiet=quiet).start()
     try:
         run_nodes([node], duration, stop)
     except KeyboardInterrupt:
         pass
+    finally:
+        status.stop()
     print(json.dumps({"node": node.name, **node.totals(), **noise_summary(node), **audit.finish()}), flush=True)
     return 0
+
+
+def quiet_option(p) -> None:
+    p.add_argument("--quiet", action="store_true",
+                   help=f"no start line and no status line every {STATUS_PERIOD_S:g} s on stderr (rates, sensors, "
+                   "losses, the last targets)")
 
 
 def noise_summary(node) -> dict:
@@ -232,7 +252,7 @@ def noise_summary(node) -> dict:
 
 def cmd_quantize(args) -> int:
     return serve(QuantizeNode(bus_from_args(args), quantizer_config(args), calibration=load_calibration(args.calibration),
-                              **queue_kwargs(args)), args.duration)
+                              **queue_kwargs(args)), args.duration, quiet=args.quiet)
 
 
 def cmd_localize(args) -> int:
@@ -241,7 +261,7 @@ def cmd_localize(args) -> int:
                           pfa=args.pfa, min_range_m=args.min_range_m, max_range_m=args.max_range_m,
                           full_search_every=args.full_search_every)
     return serve(LocalizeNode(bus_from_args(args), cfg, tracking=tracker_config(args), **queue_kwargs(args)),
-                 args.duration)
+                 args.duration, quiet=args.quiet)
 
 
 def cmd_source(args) -> int:
@@ -264,10 +284,13 @@ def cmd_source(args) -> int:
     stop = threading.Event()
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
     install_sigterm("source")
+    status = StatusLines(node, quiet=args.quiet).start()
     try:
         run_nodes([node], args.duration, stop)
     except KeyboardInterrupt:
         pass
+    finally:
+        status.stop()
     extra = {"late_ticks": source.late_ticks, "elapsed_s": round(source.elapsed_s, 3)} \
         if isinstance(source, SimulatedSource) else {"source": source.stats()}
     print(json.dumps({"node": node.name, **extra, **node.totals(), **noise_summary(node), **audit.finish()}),
@@ -333,17 +356,18 @@ def cmd_run(args) -> int:
                         args.foxglove, poses=load_poses(args.sensor_poses)), driver_process=not args.driver_in_process,
                     record_on_error=args.on_write_error, record_retry_s=args.write_retry,
                     record_split_mb=args.split_size, record_new_name_if_taken=args.record is None,
+                    record_overwrite=args.force,
                     outstanding=args.outstanding, sensor_specs=tuple(args.sensor_specs), truth=args.truth,
                     calibration=args.calibration, empty=args.empty, min_range_m=args.min_range_m,
-                    max_range_m=args.max_range_m, tracking=tracker_config(args))
+                    max_range_m=args.max_range_m, tracking=tracker_config(args), web=web_config(args))
     stop = threading.Event()
     signals = StopOnSignals(stop, "run", json_error=args.json, on_force=remove_run_dirs)
     summary = run(cfg, live=sys.stderr if args.json else sys.stdout, stop=stop)
     if signals.interrupted is not None:  # Ctrl-C or SIGTERM: the normal end of a live run
-        summary["interrupted"] = True
-    summary.update(audit.finish())  # under --secure: {"audit": counts}
+        summary.interrupted = True
+    summary.audit = audit.finish().get("audit")  # under --secure: the counts
     if args.json:
         print_json(summary)
     else:
-        print(format_summary(summary))
+        print(summary.format())
     return 0

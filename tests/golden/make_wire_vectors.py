@@ -81,7 +81,8 @@ def health_inputs() -> list[dict]:
              "frames_in": 100, "frames_out": 98, "drops": 2, "decode_errors": 1,
              "latency_ms": {"p50": 1.5, "p99": 12.25}, "bytes_in_per_s": 1234.56, "bytes_out_per_s": 0.04,
              "extra": {"queue": 3, "note": "é"}, "invalid_frames": 1, "processing_errors": 2, "frames_missing": 3,
-             "seq_resets": 4, "worker_restarts": 5, "over_budget": 6, "refused": 7}]
+             "seq_resets": 4, "worker_restarts": 5, "over_budget": 6, "refused": 7, "implausible_seq": 8,
+             "denied_puts": 9}]
 
 
 def raw_msg(d: dict) -> RawFrameMsg:

@@ -1,0 +1,66 @@
+"""What a node knows of its sensors' front ends: the localizer looks, in a sample of each
+sensor's frames, for the strongest return in the first range bins (DC, TX-to-RX leakage:
+:func:`pipeline.dsp.localize.leakage_return`), and publishes the counts in the sensor's
+health (``front_end``: ``checked``, ``leakage``). In most frames: the sensor's frames are
+not calibrated, or by a calibration of another front end (docs/chamber.md, section 7)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from radar_driver.model import RadarConfig
+
+from pipeline.dsp.localize import leakage_return
+from pipeline.dsp.quantize import QuantizedFrames
+
+#: each sensor's first FRONT_END_FIRST frames are checked, then one of every FRONT_END_EVERY
+#: (a back projection each: negligible beside a decoder)
+FRONT_END_FIRST = 20
+FRONT_END_EVERY = 20
+
+
+class FrontEndCheck:
+    """Per sensor: frames seen, frames checked, frames whose strongest return was in the
+    first (or last) range bins. Thread-safe; bounded by the caller's :meth:`forget`."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._state: dict[str, list[int]] = {}  # sensor -> [seen, checked, leakage]
+
+    def check(self, radar: RadarConfig, sensors: list[str], frames, known=lambda sid: True) -> None:
+        """Check the frames (B, M, 2) values or :class:`QuantizedFrames` of ``sensors``
+        that are due; ``known(sensor)``: False for a sensor whose state is not to be kept."""
+        due = []
+        with self._lock:
+            for i, sid in enumerate(sensors):
+                st = self._state.get(sid)
+                if st is None:
+                    if not known(sid):
+                        continue
+                    st = self._state[sid] = [0, 0, 0]
+                if st[0] < FRONT_END_FIRST or st[0] % FRONT_END_EVERY == 0:
+                    due.append(i)
+                st[0] += 1
+        if not due or radar.n_measurements % radar.samples_per_ramp:
+            return
+        idx = np.array(due)
+        values = frames.take(idx).values() if isinstance(frames, QuantizedFrames) else np.asarray(frames)[idx]
+        seen = leakage_return(values, radar).tolist()
+        with self._lock:
+            for i, hit in zip(due, seen):
+                st = self._state.get(sensors[i])
+                if st is not None:
+                    st[1] += 1
+                    st[2] += hit
+
+    def health(self, sensor_id: str) -> dict:
+        """``{"front_end": {"checked": n, "leakage": m}}`` once the sensor was seen, else {}."""
+        with self._lock:
+            st = self._state.get(sensor_id)
+            return {} if st is None else {"front_end": {"checked": st[1], "leakage": st[2]}}
+
+    def forget(self, sensor_id: str) -> None:
+        with self._lock:
+            self._state.pop(sensor_id, None)

@@ -1,0 +1,153 @@
+"""The web page's events: what the view sends the page for each message of the stream, as
+JSON-ready dicts, and the maths behind them (pure numpy, a batch of targets first).
+
+Positions are in the world frame (each sensor at its pose, :func:`qradar.liveview.to_world`),
+m, rounded to 1 mm; a 1-σ uncertainty ellipse is ``[a_m, b_m, phi_rad]``: semi-axes a >= b
+and the angle of a from the world's x axis, counter-clockwise. The formats are written down
+in docs/stream.md (section "Live view in the browser")."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.wire import HealthMsg, TargetsMsg, TracksMsg
+from radar_driver.model import RadarConfig, polar_to_xy
+
+from ..liveview import to_db, to_world
+
+#: a target's uncertainty, when its message carries it: σ of the range (m), of the angle
+#: (deg) and the range–angle covariance (m·deg); absent fields count as 0
+TARGET_SIGMA_FIELDS = ("sigma_range_m", "sigma_angle_deg", "cov_range_angle")
+#: digits kept: positions (m) and profile values (dB)
+XY_DIGITS = 3
+DB_DIGITS = 1
+
+
+def polar_covariance_to_xy(range_m: np.ndarray, angle_deg: np.ndarray, sigma_range_m: np.ndarray,
+                           sigma_angle_deg: np.ndarray, cov_range_angle: np.ndarray) -> np.ndarray:
+    """The covariance of (x, y) of K targets from that of (R, θ), to first order:
+    Σ_xy = J Σ_Rθ Jᵀ, J the Jacobian of :func:`~radar_driver.model.polar_to_xy` at (R, θ)
+    (columns u(θ) and R u(θ + π/2), u(θ) = polar_to_xy(1, θ); θ in rad). Inputs (K,), m
+    and deg (the covariance in m·deg); -> (K, 2, 2), m²."""
+    r = np.asarray(range_m, dtype=float)
+    a = np.radians(np.asarray(angle_deg, dtype=float))
+    ux, uy = polar_to_xy(np.ones_like(r), a)
+    vx, vy = polar_to_xy(r, a + np.pi / 2)
+    jac = np.stack([np.stack([ux, vx], axis=-1), np.stack([uy, vy], axis=-1)], axis=-2)  # (K, 2, 2)
+    s_r = np.asarray(sigma_range_m, dtype=float)
+    s_a = np.radians(np.asarray(sigma_angle_deg, dtype=float))
+    c = np.radians(np.asarray(cov_range_angle, dtype=float))
+    polar = np.stack([np.stack([s_r ** 2, c], axis=-1), np.stack([c, s_a ** 2], axis=-1)], axis=-2)
+    return jac @ polar @ np.swapaxes(jac, -1, -2)
+
+
+def rotate_covariance(cov: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """(K, 2, 2) covariances of a sensor's frame in the world (the sensor turned by yaw_deg)."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    rot = np.array([[c, -s], [s, c]])
+    return rot @ cov @ rot.T
+
+
+def ellipses(cov: np.ndarray) -> np.ndarray:
+    """1-σ ellipses of (K, 2, 2) covariances: (K, 3) of semi-axes a >= b (m) and the angle
+    of a from x (rad, in (-π/2, π/2])."""
+    w, v = np.linalg.eigh(cov)  # ascending eigenvalues, eigenvectors in columns
+    a, b = np.sqrt(np.maximum(w[:, 1], 0.0)), np.sqrt(np.maximum(w[:, 0], 0.0))
+    phi = np.arctan2(v[:, 1, 1], v[:, 0, 1])
+    phi = np.where(phi > np.pi / 2, phi - np.pi, np.where(phi <= -np.pi / 2, phi + np.pi, phi))
+    return np.stack([a, b, phi], axis=-1)
+
+
+def _round(values: np.ndarray, digits: int) -> list:
+    return np.round(values, digits).tolist()
+
+
+def target_sigmas(msg: TargetsMsg, raw: list | None = None) -> np.ndarray | None:
+    """(K, 3) of the targets' TARGET_SIGMA_FIELDS (absent: 0), or None when no target has
+    any. ``raw``: the message's targets as its JSON holds them, for fields the wire decoder
+    does not keep."""
+    rows = raw if raw is not None and len(raw) == len(msg.targets) else msg.targets
+    if not any(isinstance(t, dict) and any(f in t for f in TARGET_SIGMA_FIELDS) for t in rows):
+        return None
+    out = np.zeros((len(rows), len(TARGET_SIGMA_FIELDS)))
+    for i, t in enumerate(rows):
+        for j, f in enumerate(TARGET_SIGMA_FIELDS):
+            v = t.get(f, 0.0) if isinstance(t, dict) else 0.0
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                return None  # not a number: no ellipse rather than a wrong one
+            out[i, j] = v
+    if np.any(out[:, :2] < 0):
+        return None
+    return out
+
+
+def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, truth: list[dict] | None = None,
+                  raw: list | None = None) -> dict:
+    """One targets message for the page: per target its world x, y (m), range (m), angle
+    (deg), amplitude, statistic (dB, when given) and 1-σ ellipse (when the message carries
+    the targets' σ); ``truth``: the true targets (range_m, angle_deg) as world [x, y] pairs."""
+    k = len(msg.targets)
+    rng = np.array([t["range_m"] for t in msg.targets], dtype=float)
+    ang = np.array([t["angle_deg"] for t in msg.targets], dtype=float)
+    x, y = to_world(*polar_to_xy(rng, np.radians(ang)), pose)
+    sig = target_sigmas(msg, raw) if k else None
+    ell = None
+    if sig is not None:
+        cov = rotate_covariance(polar_covariance_to_xy(rng, ang, *sig.T), pose[2] if pose else 0.0)
+        ell = _round(ellipses(cov), 4)
+    xs, ys = _round(x, XY_DIGITS), _round(y, XY_DIGITS)
+    targets = []
+    for i, t in enumerate(msg.targets):
+        item = {"x": xs[i], "y": ys[i], "r": round(t["range_m"], 3), "a": round(t["angle_deg"], 2),
+                "amp": float(f"{t['amplitude']:.4g}")}
+        if "statistic_db" in t:
+            item["stat"] = round(t["statistic_db"], 1)
+        if ell is not None:
+            item["ell"] = ell[i]
+        targets.append(item)
+    event = {"s": msg.sensor_id, "seq": msg.seq, "t": msg.timestamp_ns, "targets": targets}
+    if truth is not None:
+        tr = np.array([t["range_m"] for t in truth], dtype=float)
+        ta = np.radians([t["angle_deg"] for t in truth])
+        tx, ty = to_world(*polar_to_xy(tr, ta), pose)
+        event["truth"] = [[a, b] for a, b in zip(_round(tx, XY_DIGITS), _round(ty, XY_DIGITS))]
+    return event
+
+
+def tracks_event(msg: TracksMsg, pose: tuple[float, float, float] | None) -> dict:
+    """One tracks message for the page: per track its id, world x, y (m), velocity (m/s,
+    world), σ (m: a circle), hits, age (s) and whether it is static."""
+    n = len(msg.tracks)
+    x, y = to_world(np.array([t["x_m"] for t in msg.tracks], dtype=float),
+                    np.array([t["y_m"] for t in msg.tracks], dtype=float), pose)
+    vx, vy = to_world(np.array([t["vx_mps"] for t in msg.tracks], dtype=float),
+                      np.array([t["vy_mps"] for t in msg.tracks], dtype=float),
+                      None if pose is None else (0.0, 0.0, pose[2]))  # a velocity turns, it does not move
+    cols = [_round(c, XY_DIGITS) for c in (x, y, vx, vy)]
+    tracks = [{"id": t["track_id"], "x": cols[0][i], "y": cols[1][i], "vx": cols[2][i], "vy": cols[3][i],
+               "sigma": round(t["sigma_m"], 4), "hits": t["hits"], "age": round(t["age_s"], 2),
+               "static": t["static"]} for i, t in enumerate(msg.tracks)] if n else []
+    return {"s": msg.sensor_id, "seq": msg.seq, "t": msg.timestamp_ns, "tracks": tracks}
+
+
+def profile_event(sensor: str, seq: int, timestamp_ns: int, magnitude: np.ndarray, radar: RadarConfig) -> dict:
+    """One range profile for the page: |U| (N, 2) of :func:`qradar.liveview.profile_magnitude`
+    as dB of full scale per receiver (``rx1``, ``rx2``, 0.1 dB steps) over the range bins
+    ``r0 + n·dr`` (m)."""
+    db = np.round(to_db(magnitude), DB_DIGITS)
+    grid = radar.range_grid_m()
+    return {"s": sensor, "seq": seq, "t": timestamp_ns, "r0": float(grid[0]),
+            "dr": round(float(grid[1] - grid[0]), 6), "rx1": db[:, 0].tolist(), "rx2": db[:, 1].tolist()}
+
+
+def health_event(sensor: str, msg: HealthMsg) -> dict:
+    """One node's health for the page: its counters as on the wire (docs/wire-formats.md),
+    ``extra`` included (e.g. a calibration state)."""
+    from dataclasses import asdict
+
+    out = asdict(msg)
+    out["s"], out["t"] = sensor, out.pop("timestamp_ns")
+    out.pop("sensor_id")
+    return out

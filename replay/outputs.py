@@ -1,0 +1,61 @@
+"""The one policy of every command that writes an output (a recording, a results folder, a
+calibration, a capture, certificates): no existing output is replaced unless the command is
+given ``--force``, and no folder is made but the output's own, the folder its files go
+into, when that folder's parent exists (``--record out/lab.mcap`` makes ``out/``;
+``--record /no/such/dir/x.mcap`` is refused in one line, never a chain of folders)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+from .errors import OutputExists, ReplayError
+
+#: what a refusal tells the user to do
+FORCE_HINT = "--force replaces it"
+
+
+def own_folder(folder: str | Path, output: str | Path | None = None) -> Path:
+    """The folder an output (``output``, named in the errors; else the folder) goes into, made
+    if missing when its parent exists; a ReplayError naming the missing parent otherwise
+    (qradar makes the output's own folder only)."""
+    folder = Path(folder)
+    if folder.is_dir():
+        return folder
+    what = f"cannot write {output}" if output is not None else f"cannot write into {folder}"
+    if os.path.lexists(folder):
+        raise ReplayError(f"{what}: {folder} is not a folder")
+    parent = folder.parent
+    if not parent.is_dir():
+        raise ReplayError(f"{what}: {parent} does not exist (qradar makes only its output's own folder, never the "
+                          f"folders above it: create {parent} first)")
+    try:
+        folder.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise ReplayError(f"{what}: cannot create the folder {folder}: {exc.strerror or exc}") from None
+    return folder
+
+
+def check_new_file(path: str | Path, force: bool = False, what: str = "output") -> Path:
+    """A file about to be written: an existing one is refused unless ``force`` (an
+    OutputExists naming it), a folder always; its own folder made (:func:`own_folder`)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ReplayError(f"{what} {path} is a folder, not a file")
+    if os.path.lexists(path) and not force:
+        raise OutputExists(f"{what} {path} exists: qradar replaces no output unless told ({FORCE_HINT})")
+    own_folder(path.parent, path)
+    return path
+
+
+def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = False) -> Path:
+    """A folder of outputs: if it holds any of the files ``names`` the command writes, refused
+    unless ``force``; then made if missing (:func:`own_folder`)."""
+    folder = Path(folder)
+    if folder.is_dir():
+        taken = [n for n in names if os.path.lexists(folder / n)]
+        if taken and not force:
+            raise OutputExists(f"{folder} holds {', '.join(taken)} already: qradar replaces no output unless told "
+                               f"({FORCE_HINT}, or choose another --out)")
+    return own_folder(folder)
