@@ -16,6 +16,8 @@ from radar_driver.inspection import Reflector, format_report, inspect_capture
 from radar_driver.options import like, option
 from radar_driver.profile import packaged_profiles
 from radar_driver.session import SessionConfig
+from replay.errors import ReplayError
+from replay.mcapcheck import MAGIC as MCAP_MAGIC
 from replay.outputs import check_new_file
 
 from .parts import force_help, switches
@@ -89,6 +91,14 @@ def cmd_capture(args) -> int:
 
 
 def cmd_inspect(args) -> int:
+    try:
+        with open(args.file, "rb") as fh:
+            head = fh.read(len(MCAP_MAGIC))
+    except OSError:
+        head = b""  # Capture.read says why it cannot be read
+    if head == MCAP_MAGIC:
+        raise ReplayError(f"{args.file} is an MCAP recording, not a capture of `qradar capture`: "
+                          f"`qradar info {args.file}` says what it holds")
     capture = Capture.read(args.file)
     profiles = packaged_profiles() + [p for p in args.profile if p not in packaged_profiles()] if args.profile else None
     report = inspect_capture(capture, profiles, ramps_per_frame=args.ramps, chirp_select=args.chirp_select,

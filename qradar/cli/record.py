@@ -1,6 +1,6 @@
 """Recording commands: ``record`` (zenoh -> MCAP; ``record --verify`` checks files),
-``recover`` (a cut-short or damaged MCAP -> a complete one of what reads) and ``replay``
-(MCAP -> zenoh)."""
+``recover`` (a cut-short or damaged MCAP -> a complete one of what reads), ``replay``
+(MCAP -> zenoh) and ``info`` (what a recording holds)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
+from replay.mcapinfo import describe, format_info
 from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode, RecordingState
@@ -59,6 +60,21 @@ class Recording:
     file: Path = option(help="a qradar MCAP recording", positional=True, required=True)
 
 
+@dataclass(frozen=True)
+class Recordings:
+    """Recordings to read."""
+
+    file: tuple[Path, ...] = option(help="MCAP recordings", positional=True, required=True, many="+")
+
+
+@dataclass(frozen=True)
+class Info:
+    """``qradar info``'s check."""
+
+    check: bool = option(False, "also read every chunk, its CRC checked, and report the damage found (as `qradar "
+                         "record --verify`; takes as long as reading the file)")
+
+
 def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
     """--on-write-error and --write-retry (``record``, ``run``); ``on_stop``: what the command does then."""
     help = RunConfig.__dataclass_fields__["record_on_error"].metadata[META].help
@@ -82,6 +98,14 @@ def add_commands(sub) -> None:
     add_command(sub, "replay", [Part(Recording), Part(PlayConfig, exclusive=(("rate", "fast"),),
                                                       dests={"prefix": "replay_prefix"}), *zenoh_parts()],
                 cmd_replay, help="publish an MCAP recording back onto zenoh")
+    add_command(sub, "info", [Part(Recordings), switches(json="one JSON object per file (what "
+                                                                "qradar.open_recording(FILE).info() returns)"),
+                              Part(Info)], cmd_info,
+                help="what a recording holds: sensors, topics with counts and rates, time span, the radar, "
+                "quantizer, decoder, calibration and truth, the losses recorded, recovery, split files",
+                description="Describe MCAP recordings from their summary and metadata alone (no message is read: an "
+                "hour in well under a second). A file without a summary (cut short by a kill, its summary damaged) "
+                "is read whole, every chunk's CRC checked, and says so.")
 
 
 def cmd_verify(paths: list[Path]) -> int:
@@ -138,6 +162,16 @@ def cmd_recover(args) -> int:
               f"{r['lost']} messages lost {r['lost_by_topic']}; each named in the JSON line and in its "
               "qradar.recovery metadata", file=sys.stderr)
     print(json.dumps({**r, "source": str(args.file), "file": str(args.output)}))
+    return 0
+
+
+def cmd_info(args) -> int:
+    for i, path in enumerate(args.file):
+        info = describe(path, check=args.check)
+        if args.json:
+            print(json.dumps(info), flush=True)
+        else:
+            print(("\n" if i else "") + format_info(info), flush=True)
     return 0
 
 
