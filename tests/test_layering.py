@@ -190,7 +190,8 @@ def test_no_file_over_600_lines_and_no_class_over_300():
 MAX_FUNCTION_LINES = 80
 MAX_FUNCTION_PARAMS = 12
 #: where the rule holds today; library-wide later (issue 39)
-SIZED_PACKAGES = ("pipeline.dsp.cml",)
+SIZED_PACKAGES = ("pipeline.dsp.cml", "experiments", "radar_driver.options", "qradar.cli", "qradar.run",
+                  "qradar.monitor", "qradar.drivers", "qradar.sensors")
 
 
 def oversized_functions(prefixes: tuple[str, ...] = ()) -> list[str]:
