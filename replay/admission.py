@@ -28,7 +28,8 @@ import numpy as np
 from pipeline.nodes.counters import NO_SENSOR
 from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, bad_samples, check_frames, radar_configs
 from pipeline.nodes.intake import QueuedFrame
-from pipeline.wire import TOPICS, TargetsMsg, WireError, decode_health, decode_targets, decode_tracks
+from pipeline.wire import (TOPICS, HealthMsg, QuantizedGroup, TargetsMsg, TracksMsg, WireError, decode_health,
+                           decode_targets, decode_tracks)
 from radar_driver.model import RadarConfig
 
 from .mcapio import MAX_TIME_NS
@@ -44,13 +45,20 @@ JSON_DECODERS = {"targets": decode_targets, "tracks": decode_tracks, "health": d
 @dataclass(frozen=True)
 class Admitted:
     """A message to write: its position in the batch, its publish time (its own
-    timestamp, ns), its MCAP sequence (its seq) and, for targets, the decoded message (its
-    pointcloud is written beside it)."""
+    timestamp, ns), its MCAP sequence (its seq) and what the recorder derives channels from
+    (replay.derived): a JSON message decoded (``message``: targets, tracks, health), a
+    quantized frame as its decoded group and its row in it (``frames``, ``row``)."""
 
     index: int
     publish_ns: int
     sequence: int
-    targets: TargetsMsg | None = None
+    message: TargetsMsg | TracksMsg | HealthMsg | None = None
+    frames: QuantizedGroup | None = None
+    row: int = 0
+
+    @property
+    def targets(self) -> TargetsMsg | None:
+        return self.message if isinstance(self.message, TargetsMsg) else None
 
 
 @dataclass(frozen=True)
@@ -137,7 +145,7 @@ class Admission:
                     refused.append(Refused(i, "refused_time", "invalid_frames",
                                            f"frame {seq} from {keys[pos]}: timestamp_ns={ts} outside [0, 2**63)"))
                 else:
-                    admitted.append(Admitted(i, ts, seq))
+                    admitted.append(Admitted(i, ts, seq, frames=g if topic == "quantized" else None, row=j))
 
     def _json(self, topic: str, item: QueuedFrame, sensor: str, i: int, admitted: list[Admitted],
               refused: list[Refused]) -> None:
@@ -157,7 +165,7 @@ class Admission:
                                        f"{topic} from {item.key}: {name}={value!r} outside [0, 2**63)"))
                 return
         seq = getattr(msg, "seq", 0)
-        admitted.append(Admitted(i, msg.timestamp_ns, seq, msg if topic == "targets" else None))
+        admitted.append(Admitted(i, msg.timestamp_ns, seq, msg))
 
 
 class RefusalCounts:
