@@ -183,3 +183,66 @@ def test_no_file_over_600_lines_and_no_class_over_300():
             if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES:
                 long.append(f"{path.relative_to(ROOT)}: class {node.name} {node.end_lineno - node.lineno + 1} lines")
     assert not long, "\n".join(long)
+
+
+# -- no hidden global state (issue 39): caches and registries belong to the object that uses them
+#: methods that change a container or an event in place
+MUTATORS = {"add", "append", "appendleft", "clear", "discard", "extend", "insert", "pop", "popitem", "remove",
+            "setdefault", "update", "sort", "reverse", "set"}
+#: module-level state a library module still changes after import, each with why it is the process's own
+#: (an entry of a module that no longer exists is ignored: the cml package of issue 39 item 1 replaces them)
+PROCESS_STATE = {
+    "pipeline.bus.audit": "zenoh's log is the process's (zenoh.init_log_* takes effect once) and the audit holds "
+                          "fd 2 to read it: one audit a process, started by the command",
+    "pipeline.bus.router_check": "the checks of the process's zenoh sessions, looked up by zenoh id from a session's "
+                                 "callbacks, dropped when their session closes",
+    "qradar.rundir": "the process's run directories, for the exit at once of a second Ctrl-C (a signal handler)",
+    # the numba engine's module-level choices and buffers, replaced by pipeline/dsp/cml/ (issue 39 item 1)
+    "pipeline.dsp.cml_detect": "pending: pipeline/dsp/cml/", "pipeline.dsp.cml_fit": "pending: pipeline/dsp/cml/",
+    "pipeline.dsp.cml_warmup": "pending: pipeline/dsp/cml/", "pipeline.dsp.dither": "pending: pipeline/dsp/cml/",
+}
+
+
+def state_mutations(path: Path) -> list[str]:
+    """Where a module's functions change its module-level state: a ``global`` statement, a
+    mutating method called on a module-level name, an item or attribute of one assigned or
+    deleted. (A bounded ``functools.lru_cache`` of a pure function is a memo, not state.)"""
+    tree = ast.parse(path.read_text())
+    names = set()
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        names |= {t.id for t in targets if isinstance(t, ast.Name)}
+    found = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        local = {a.arg for a in fn.args.args + fn.args.kwonlyargs + fn.args.posonlyargs}
+        local |= {t.id for n in ast.walk(fn) if isinstance(n, (ast.Assign, ast.AnnAssign, ast.For, ast.With))
+                  for t in ast.walk(n) if isinstance(t, ast.Name) and isinstance(t.ctx, ast.Store)}
+        shared = names - local
+        for n in ast.walk(fn):
+            if isinstance(n, ast.Global):
+                found.append(f"{n.lineno}: global {', '.join(n.names)}")
+            elif (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and isinstance(n.func.value, ast.Name)
+                  and n.func.value.id in shared and n.func.attr in MUTATORS):
+                found.append(f"{n.lineno}: {n.func.value.id}.{n.func.attr}()")
+            elif isinstance(n, (ast.Assign, ast.AugAssign, ast.Delete)):
+                for t in n.targets if isinstance(n, (ast.Assign, ast.Delete)) else [n.target]:
+                    if isinstance(t, (ast.Subscript, ast.Attribute)) and isinstance(t.value, ast.Name) \
+                            and t.value.id in shared:
+                        found.append(f"{n.lineno}: {ast.unparse(t)} changed")
+    return found
+
+
+def test_no_library_module_mutates_module_level_state_after_import():
+    bad = [f"{path.relative_to(ROOT)}:{line}" for name, path in modules().items() if name not in PROCESS_STATE
+           for line in state_mutations(path)]
+    assert not bad, "module-level state changed after import (own it in the object that uses it):\n" + "\n".join(bad)
+
+
+def test_the_state_checker_sees_globals_methods_and_items(tmp_path):
+    p = tmp_path / "x.py"
+    p.write_text("_seen = set()\n_cache = {}\n_on = None\n\ndef a(x):\n    _seen.add(x)\n\ndef b(k):\n    _cache[k] = 1\n\n"
+                 "def c():\n    global _on\n    _on = 1\n\ndef fine(_seen):\n    _seen.add(1)\n    local = {}\n"
+                 "    local[1] = 2\n    return len(_cache)\n")
+    assert [f.split(": ", 1)[1] for f in state_mutations(p)] == ["_seen.add()", "_cache[k] changed", "global _on"]

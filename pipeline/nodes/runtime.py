@@ -32,7 +32,7 @@ from pipeline.nodes.counters import HEALTH_SLICES, NO_SENSOR, UNKNOWN_SENSOR, Co
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.memory import release_memory
 from pipeline.nodes.transport import Declared, Publisher, Transport, TransportError, ZenohTransport, as_transport
-from pipeline.wire import HealthMsg, check_sensor_id, forget_sensor_id
+from pipeline.wire import HealthMsg, check_sensor_id
 
 log = logging.getLogger("qradar.node")
 
@@ -300,7 +300,6 @@ class Node(Counters):
                 self._n_publishers -= len(gone)
                 self._retiring.extend(gone.values())
                 self.sensors_expired += 1
-                forget_sensor_id(sensor)
                 self.forget(sensor)
             self._released += len(expired)
             if expired and len(expired) >= len(self.stats):  # a dict never shrinks as it empties

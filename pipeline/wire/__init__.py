@@ -12,7 +12,7 @@ and where (the ``source``, e.g. the zenoh key).
 
 from __future__ import annotations
 
-from radar_driver.limits import SENSOR_ID_MAX, forget_sensor_id
+from radar_driver.limits import SENSOR_ID_MAX
 
 from pipeline.errors import WireError
 from pipeline.keys import TOPICS
@@ -36,4 +36,4 @@ __all__ = ["COMMON", "COMMON_DTYPE", "COMMON_FIELDS", "FLAG_DITHERED", "GENERATO
            "TargetColumns", "TargetsMsg", "TracksMsg", "WireError", "check_sensor_id", "decode_health",
            "decode_quantized", "decode_quantized_batch", "decode_raw", "decode_raw_batch", "decode_targets",
            "decode_tracks", "encode_quantized", "encode_quantized_batch", "encode_raw", "encode_raw_batch",
-           "encode_targets_batch", "forget_sensor_id", "frame_size", "load_json", "quantized_batch"]
+           "encode_targets_batch", "frame_size", "load_json", "quantized_batch"]

@@ -241,3 +241,28 @@ def docs_tables() -> dict[str, str]:
     return {"targets": field_table(TARGETS), "target": field_table(TARGETS, items=True),
             "tracks": field_table(TRACKS), "track": field_table(TRACKS, items=True),
             "health": field_table(HEALTH), "profile": field_table(PROFILE)}
+
+
+def with_tables(text: str) -> str:
+    """``text`` (docs/wire-formats.md) with each block between ``<!-- fields:NAME -->`` and
+    ``<!-- /fields:NAME -->`` replaced by :func:`docs_tables`' table NAME (a block it does not
+    know is left as it is). tests/test_formats.py checks that the docs are their own result;
+    ``python -m pipeline.wire.fields FILE`` rewrites FILE so."""
+    import re
+
+    tables = docs_tables()
+
+    def table(m: re.Match) -> str:
+        name = m.group(1)
+        return m.group(0) if name not in tables else f"<!-- fields:{name} -->\n{tables[name]}\n<!-- /fields:{name} -->"
+
+    return re.sub(r"<!-- fields:([a-z]+) -->\n.*?<!-- /fields:\1 -->", table, text, flags=re.S)
+
+
+if __name__ == "__main__":  # python -m pipeline.wire.fields docs/wire-formats.md
+    import sys
+    from pathlib import Path
+
+    for name in sys.argv[1:]:
+        path = Path(name)
+        path.write_text(with_tables(path.read_text()))
