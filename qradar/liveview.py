@@ -30,21 +30,19 @@ from pipeline.dsp.profile import PROFILE_FLOOR, to_db  # noqa: F401 (the views' 
 from pipeline.dsp.quantize import dequantize
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.budget import IntakeBudget
-from pipeline.nodes.intake import SEQ, SEQ_OFFSET, ProcessingNode, QueuedFrame
+from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.nodes.transport import Transport
 from pipeline.wire import (
     HEADER_LEN,
-    MAGIC,
     HealthMsg,
     QuantizedFrameMsg,
     TargetsMsg,
     TracksMsg,
     check_sensor_id,
-    decode_health,
     decode_quantized,
-    decode_targets,
-    decode_tracks,
+    peek_seq,
 )
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.errors import RadarError
 from radar_driver.model import RadarConfig
 
@@ -191,9 +189,10 @@ class LiveView(ProcessingNode):
     role = "viewer"
 
     def __init__(self, bus: BusConfig, config: ViewConfig, session: zenoh.Session | Transport | None = None,
-                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
         super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s,
                          intake=intake)
+        self._decode = decoder(decoded)  # the process's JSON messages decoded once (pipeline.wire.shared)
         self.config = config
         self._configs = config.known_configs()
         self._subscribers: list = []
@@ -242,9 +241,9 @@ class LiveView(ProcessingNode):
                     self._profiles_skipped[sensor] = self._profiles_skipped.get(sensor, 0) + 1
                     st = self.stats.get(sensor)
                     if st is not None:  # skipped on purpose is not missing: its seq moves the count on
-                        head = sample.payload.to_bytes()[:HEADER_LEN]
-                        if len(head) == HEADER_LEN and head[:4] == MAGIC:
-                            st.note_seq("quantized", SEQ.unpack_from(head, SEQ_OFFSET)[0], now, self.intake.rate_hz)
+                        seq = peek_seq(sample.payload.to_bytes()[:HEADER_LEN])
+                        if seq is not None:
+                            st.note_seq("quantized", seq, now, self.intake.rate_hz)
                     return
                 if len(self._last_profile) >= 4 * self.config.max_sensors:  # keys of garbage: bounded
                     self._last_profile.clear()
@@ -258,11 +257,11 @@ class LiveView(ProcessingNode):
             topic = key.rsplit("/", 1)[-1]
             try:
                 if topic == "targets":
-                    msg = decode_targets(payload, key)
+                    msg = self._decode("targets", payload, key)
                     self._admit(msg.sensor_id, sensor, key, "targets")
                     self.show_targets(sensor, msg, payload)
                 elif topic == "tracks":
-                    msg = decode_tracks(payload, key)
+                    msg = self._decode("tracks", payload, key)
                     self._admit(msg.sensor_id, sensor, key, "tracks")
                     self.show_tracks(sensor, msg, payload)
                 elif topic == "quantized":
@@ -273,7 +272,7 @@ class LiveView(ProcessingNode):
                         raise WireError(f"quantized frame from {key}: unknown radar config id {msg.config_id:#010x}")
                     self.show_profile(sensor, msg, radar)
                 elif topic == "health":  # queued under no sensor when the view has none of its state yet
-                    msg = decode_health(payload, key)
+                    msg = self._decode("health", payload, key)
                     of_key = self.bus.sensor_of(key)
                     self._admit(msg.sensor_id, of_key, key, "health", node=msg.node)
                     self.show_health(of_key, msg, payload)

@@ -18,7 +18,8 @@ from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
 from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
-from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
+from pipeline.wire import TOPICS, WireError
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene
 
@@ -67,14 +68,17 @@ class Monitor:
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
                  live: TextIO | None = sys.stdout, clock_per_sensor: bool = False,
-                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None):
+                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None,
+                 decoded: DecodedOnce | None = None):
         """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
         with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
         scene starts moving with its first measured frame, after its driver connected).
         ``seq_rate_hz``: the sensors' frame rate, which bounds what a gap in the targets'
         sequence numbers can count as missing (:func:`~pipeline.nodes.counters.judge_seq`).
         ``calibration``: the calibration file the run's quantizer applies (None: none), until
-        a sensor's health says otherwise."""
+        a sensor's health says otherwise. ``decoded``: the process's JSON messages decoded once
+        (pipeline.wire.shared: the run's recorder and views share them; None: decoded here)."""
+        self._decode = decoder(decoded)
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
         self.clock_per_sensor = clock_per_sensor
         self._t0_by_sensor: dict[str, int] = {}
@@ -163,7 +167,7 @@ class Monitor:
         if topic != "targets":
             return
         try:
-            msg = decode_targets(payload, key)
+            msg = self._decode("targets", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
@@ -222,7 +226,7 @@ class Monitor:
     def _on_tracks(self, key: str, payload: bytes) -> None:
         """A tracks message: its largest id, and with a truth the static tracks' errors."""
         try:
-            msg = decode_tracks(payload, key)
+            msg = self._decode("tracks", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
@@ -281,7 +285,7 @@ class Monitor:
         if not (b'"node":"source"' in payload or b'"front_end"' in payload or b'"calibrated"' in payload):
             return
         try:
-            msg = decode_health(payload, key)
+            msg = self._decode("health", payload, key)
         except WireError:
             with self._lock:
                 self.bad_health += 1

@@ -24,6 +24,7 @@ from typing import TextIO
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.session import BusConfig
+from pipeline.wire.shared import DecodedOnce
 from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError, RunSetupError
@@ -205,8 +206,9 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
         listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
         session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
         try:
+            decoded = DecodedOnce()  # each JSON message parsed once for the monitor, the recorder and the views
             monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real,
-                              calibration=None if calibration is None else calibration.source).start()
+                              calibration=None if calibration is None else calibration.source, decoded=decoded).start()
             localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
             quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration,
                                      calibration_required=True)  # a file that does not fit: refused at the first frame
@@ -224,16 +226,16 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                          on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
                                          split_size_mb=cfg.record_split_mb,
                                          new_name_if_taken=cfg.record_new_name_if_taken,
-                                         overwrite=cfg.record_overwrite)]
+                                         overwrite=cfg.record_overwrite, decoded=decoded)]
             view = web = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
-                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
+                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session, decoded=decoded).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
             if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
                 try:
                     web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
-                                  truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                                  truth_t0_ns=time.time_ns() if cfg.real else None, decoded=decoded).start()
                 except BaseException:  # a busy port: the Foxglove view ends too
                     if view is not None:
                         view.stop()

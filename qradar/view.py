@@ -67,6 +67,7 @@ from pipeline.nodes.budget import IntakeBudget
 from pipeline.wire import HealthMsg, QuantizedFrameMsg, TargetsMsg, TracksMsg
 from radar_driver.model import RadarConfig, polar_to_xy
 from pipeline.wire.fields import HEALTH, PROFILE, json_schema
+from pipeline.wire.shared import DecodedOnce
 from pipeline.wire.foxglove import (ENTITY_LIFETIME_NS, MOVING_COLOR, POINT_FIELDS, STATIC_COLOR, point_dtype,  # noqa: F401
                                     target_points, track_label)
 from replay.mcapio import TARGETS_SCHEMA
@@ -187,8 +188,8 @@ class FoxgloveView(LiveView):
     stops with :meth:`stop`."""
 
     def __init__(self, bus: BusConfig, config: ViewConfig = ViewConfig(), session: zenoh.Session | None = None,
-                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
-        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake)
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
+        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake, decoded=decoded)
         self._context = foxglove.Context()  # channels and server of this view only
         self._server = None
         self._sensors: dict[str, _SensorChannels] = {}

@@ -28,8 +28,8 @@ import numpy as np
 from pipeline.nodes.counters import NO_SENSOR
 from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, bad_samples, check_frames, radar_configs
 from pipeline.nodes.intake import QueuedFrame
-from pipeline.wire import (TOPICS, HealthMsg, QuantizedGroup, TargetsMsg, TracksMsg, WireError, decode_health,
-                           decode_targets, decode_tracks)
+from pipeline.wire import TOPICS, HealthMsg, QuantizedGroup, TargetsMsg, TracksMsg, WireError
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.model import RadarConfig
 
 from .mcapio import MAX_TIME_NS
@@ -38,8 +38,6 @@ from .mcapio import MAX_TIME_NS
 REFUSED_KINDS = ("refused_time", "refused_size", "refused_shape", "refused_topic")
 #: the largest JSON message (targets, tracks, health) a recording takes, bytes
 MAX_JSON_BYTES = 256 * 1024
-#: the decoder of each JSON topic
-JSON_DECODERS = {"targets": decode_targets, "tracks": decode_tracks, "health": decode_health}
 
 
 @dataclass(frozen=True)
@@ -79,9 +77,11 @@ def _time_ok(value) -> bool:
 
 class Admission:
     """The recorder's checks for the announced configurations ``radar`` with 1..``max_ramps``
-    ramps per frame (the nodes' defaults: the K-MD2 and 16)."""
+    ramps per frame (the nodes' defaults: the K-MD2 and 16); ``decoded``: the process's
+    JSON messages decoded once (pipeline.wire.shared; None: decoded here)."""
 
-    def __init__(self, radar: RadarConfig | None = None, max_ramps: int = 16):
+    def __init__(self, radar: RadarConfig | None = None, max_ramps: int = 16, decoded: DecodedOnce | None = None):
+        self._decode = decoder(decoded)
         self.configs = radar_configs(radar or RadarConfig(), max_ramps)
         ms = {c.n_measurements for c in self.configs.values()}
         self.lengths = {topic: CODECS[topic].lengths(ms) for topic in CODECS}
@@ -150,7 +150,7 @@ class Admission:
     def _json(self, topic: str, item: QueuedFrame, sensor: str, i: int, admitted: list[Admitted],
               refused: list[Refused]) -> None:
         try:
-            msg = JSON_DECODERS[topic](item.payload, item.key)
+            msg = self._decode(topic, item.payload, item.key)
         except (WireError, ValueError, RecursionError) as exc:
             refused.append(Refused(i, "refused_shape", "decode_errors", str(exc)))
             return

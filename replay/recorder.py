@@ -52,6 +52,8 @@ from radar_driver.model import RadarConfig
 
 from .admission import Admission, RefusalCounts
 from .errors import RecordingExists, ReplayError, UnwritableMessage
+from pipeline.wire.shared import DecodedOnce
+
 from .derived import DerivedConfig, Derivations
 from .mcapio import DERIVED, MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, topic_of
 
@@ -400,7 +402,7 @@ class RecorderNode(RecordingFiles):
     and ``max_ramps``: the announced configurations frames must have (the nodes'
     defaults); ``max_dead_channels``: see the module docstring; ``derived``: the channels
     written beside a sensor's messages (:mod:`replay.derived`: point clouds, scenes, range
-    profiles)."""
+    profiles); ``decoded``: the process's JSON messages decoded once (pipeline.wire.shared)."""
 
     name = "record"
     role = "recorder"
@@ -410,12 +412,12 @@ class RecorderNode(RecordingFiles):
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
                  session: zenoh.Session | Transport | None = None, queue_size: int = 20000,
                  radar: RadarConfig | None = None, max_ramps: int = 16, max_dead_channels: int = DEAD_CHANNELS_MAX,
-                 derived: DerivedConfig = DerivedConfig(), **kw):
+                 derived: DerivedConfig = DerivedConfig(), decoded: DecodedOnce | None = None, **kw):
         kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
         super().__init__(bus, path, session, queue_size=queue_size, batch_max=512, **kw)
         if not (isinstance(max_dead_channels, int) and max_dead_channels >= 1):
             raise ReplayError(f"max_dead_channels={max_dead_channels!r} must be an integer >= 1")
-        self.admission = Admission(radar, max_ramps)
+        self.admission = Admission(radar, max_ramps, decoded)
         self.derivations = Derivations(self.admission.configs, derived)  # the channels written beside (replay.derived)
         self.max_dead_channels = max_dead_channels
         self._dead_check_at = max_dead_channels  # the file's channel count at which dead ones are counted next
