@@ -172,3 +172,17 @@ def test_the_schemas_come_from_the_package_not_from_docs(tmp_path):
     assert [h["name"] for h in layout["header"]][-3:] == ["dither_seed", "alpha", "delta"]
     assert layout["header_bytes"] == 64 and layout["magic"] == "QRDR"
     assert got["scene"][0] == "foxglove.SceneUpdate" and got["profile"][0] == "qradar.RangeProfile"
+
+
+def test_a_target_field_added_to_the_definition_reaches_the_web_page():
+    """qradar/web/events.py sends the page every field the wire decoder kept: the new one under its own name."""
+    from qradar.web.events import targets_event
+
+    fmt = TARGETS.with_item(VELOCITY)
+    msg = decode_targets(_targets(fmt, True).to_json(fmt), "radar/s0/targets", fmt)
+    first = targets_event(msg, None)["targets"][0]
+    assert first["radial_velocity_mps"] == -1.25
+    assert {k: first[k] for k in ("r", "a", "amp", "stat")} == {"r": 10.0, "a": 30.0, "amp": 0.5, "stat": 21.5}
+    assert "x_m" not in first and first["x"] == pytest.approx(8.66, abs=1e-3)
+    today = decode_targets(_targets(fmt, True).to_json(fmt), "radar/s0/targets")  # read with today's definition
+    assert "radial_velocity_mps" not in targets_event(today, None)["targets"][0]

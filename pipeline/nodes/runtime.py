@@ -56,6 +56,7 @@ class KeyMemory:
     def __init__(self, bus: BusConfig, limit: int):
         self.bus, self.limit = bus, limit
         self._keys: dict[tuple[str, str], str] = {}
+        self._held = 0  # the most keys held since the dict was last made anew
 
     def key(self, sensor_id: str, topic: str) -> str:
         key = self._keys.get((sensor_id, topic))
@@ -63,11 +64,14 @@ class KeyMemory:
             if len(self._keys) >= self.limit:  # keys of many sensors: bounded
                 self._keys.clear()
             key = self._keys[(sensor_id, topic)] = self.bus.key(check_sensor_id(sensor_id), topic)
+            self._held = max(self._held, len(self._keys))
         return key
 
     def forget(self, sensor_id: str) -> None:
         for topic in TOPICS:
             self._keys.pop((sensor_id, topic), None)
+        if len(self._keys) * 4 < self._held:  # a dict never shrinks as it empties: made anew
+            self._keys, self._held = dict(self._keys), len(self._keys)
 
 class Node(Counters):
     """Base of every node: transport, liveliness, health, publishers, statistics.

@@ -19,6 +19,11 @@ from radar_driver.model import RadarConfig, polar_to_xy
 
 from ..liveview import to_db, to_world
 
+#: a target's fields as the page names them, with the digits kept (negative: significant digits); a field
+#: of the definition (pipeline.wire.fields.TARGET_ITEM) not named here goes to the page under its own name,
+#: 4 significant digits; None: not sent (the position goes as the world's x, y)
+PAGE_FIELDS = {"range_m": ("r", 3), "angle_deg": ("a", 2), "amplitude": ("amp", -4), "statistic_db": ("stat", 1),
+               "x_m": (None, 0), "y_m": (None, 0)}
 #: digits kept: positions (m) and profile values (dB)
 XY_DIGITS = 3
 DB_DIGITS = 1
@@ -50,8 +55,9 @@ def target_sigmas(msg: TargetsMsg, raw: list | None = None) -> np.ndarray | None
 def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, truth: list[dict] | None = None,
                   raw: list | None = None) -> dict:
     """One targets message for the page: per target its world x, y (m), range (m), angle
-    (deg), amplitude, statistic (dB, when given) and 1-σ ellipse (when the message carries
-    the targets' σ); ``truth``: the true targets (range_m, angle_deg) as world [x, y] pairs."""
+    (deg), amplitude, statistic (dB, when given), any other field of the definition it
+    carries (PAGE_FIELDS) and 1-σ ellipse (when the message carries the targets' σ);
+    ``truth``: the true targets (range_m, angle_deg) as world [x, y] pairs."""
     k = len(msg.targets)
     rng = np.array([t["range_m"] for t in msg.targets], dtype=float)
     ang = np.array([t["angle_deg"] for t in msg.targets], dtype=float)
@@ -64,10 +70,11 @@ def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, trut
     xs, ys = _round(x, XY_DIGITS), _round(y, XY_DIGITS)
     targets = []
     for i, t in enumerate(msg.targets):
-        item = {"x": xs[i], "y": ys[i], "r": round(t["range_m"], 3), "a": round(t["angle_deg"], 2),
-                "amp": float(f"{t['amplitude']:.4g}")}
-        if "statistic_db" in t:
-            item["stat"] = round(t["statistic_db"], 1)
+        item = {"x": xs[i], "y": ys[i]}
+        for name, value in t.items():  # the fields the wire decoder kept (pipeline.wire.fields), each once
+            key, digits = PAGE_FIELDS.get(name, (name, -4))
+            if key is not None:
+                item[key] = round(value, digits) if digits >= 0 else float(f"{value:.{-digits}g}")
         if ell is not None:
             item["ell"] = ell[i]
         targets.append(item)
