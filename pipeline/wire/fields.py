@@ -8,12 +8,14 @@ optional or not), from which the rest is produced:
   the live view's JSON topics (:mod:`qradar.view`);
 - the Foxglove point of a target (:func:`point_fields`: every number of a target as a
   float32 field, :mod:`pipeline.wire.foxglove`);
-- the field tables of docs/wire-formats.md (:func:`field_table`; tests/test_docs.py
+- the web page's targets event (:mod:`qradar.web.events`: every field a target carries);
+- the field tables of docs/wire-formats.md (:func:`field_table`; tests/test_formats.py
   checks the tables there against it).
 
 A new per-target quantity is one line in :data:`TARGET_ITEM` (``optional=True`` when older
 messages lack it: a reader then leaves it out of the target's dict, a writer writes it
-where its value is finite). No I/O here.
+where its value is finite); tests/test_formats.py adds one to a copy and follows it
+through. No I/O here (:func:`with_tables` takes and returns text).
 """
 
 from __future__ import annotations
