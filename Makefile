@@ -8,15 +8,15 @@ OUT    ?= out
 
 .PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures clean
 
-# Set-up, once: a line per step with the time it takes on a busy 2-core host (3-4 min in all, measured).
+# Set-up, once: a line per step with the time it takes on a busy 2-core host (3-5 min in all, measured).
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
 	@echo "qradar set-up, once: a virtual environment in $(VENV), its packages, then cml's compiled kernels"
 	$(PYTHON) -m venv $(VENV)
 	@echo "installing qradar and its dependencies with pip (numpy, scipy, numba, zenoh, mcap, ...): 1-2 min"
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
-	@$(PY) -c 'from pipeline.dsp import cml, cml_warmup; cml_warmup.compile_verbose(cml.cml)'
-	@$(PY) -c 'from pipeline.dsp.dither import warm_up; warm_up()'
+	@$(PY) -c 'from pipeline.dsp.cml.loading import compile_verbose; compile_verbose()'
+	@$(PY) -c 'from pipeline.dsp.dither import load_kernel; load_kernel()'
 	@echo "set-up done: the next commands start at once"
 	@touch $(STAMP)
 

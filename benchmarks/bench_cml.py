@@ -22,7 +22,7 @@ from functools import partial
 import numpy as np
 
 from harness import machine, take_turns
-from pipeline.dsp.decode import DecoderConfig, decode
+from pipeline.dsp.decode import Decoder, DecoderConfig
 from replay.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
@@ -47,7 +47,8 @@ def main() -> None:
     # each decoder told K, and pbp and cml deciding the count (K auto, at most --max-targets)
     runs = {algo: (DecoderConfig(algo=algo), args.K) for algo in ALGOS}
     runs |= {f"{algo}_auto": (DecoderConfig(algo=algo, auto_k=True), args.max_targets) for algo in ("pbp", "cml")}
-    calls = {label: partial(decode, z, xi, q.delta, 1, cfg, k, decoder) for label, (decoder, k) in runs.items()}
+    # each decoder held across calls, as the localizer node holds it (its tables built once)
+    calls = {label: partial(Decoder(decoder).decode, z, xi, q.delta, 1, cfg, k) for label, (decoder, k) in runs.items()}
     times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
     ms = {algo: float(np.median(v)) / args.batch * 1e3 for algo, v in times.items()}
     print(json.dumps({

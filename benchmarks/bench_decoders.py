@@ -2,7 +2,8 @@
 """Decode cost per frame of pbp, qiht and cml at several batch sizes: 1-bit dithered frames
 (alpha = 1, M = 512 = 2 ramps x 256 samples, 2 antennas) of off-grid scenes (ranges
 uniform over 3-150 m, |theta| <= 60 deg, K = 2), each decoder told K. Only
-``pipeline.dsp.decode.decode`` is timed: the codes and the dither are made beforehand (the
+``pipeline.dsp.decode.Decoder.decode`` (a decoder held across calls, as a node holds it) is
+timed: the codes and the dither are made beforehand (the
 dither's regeneration from its seed is not counted).
 
 Each (decoder, batch) figure is the best, over ``--repeats`` calls, of the CPU time of
@@ -24,6 +25,7 @@ import argparse
 import json
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 from harness import machine, time_calls
@@ -54,7 +56,8 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
     sys.path.insert(0, str(code))
     import numpy as np
 
-    from pipeline.dsp.decode import DecoderConfig, decode
+    from pipeline.dsp import decode as decoders
+    from pipeline.dsp.decode import DecoderConfig
     from replay.montecarlo import SceneSpec, draw_scenes
     from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
     from radar_driver.model import RadarConfig, simulate_frames
@@ -71,13 +74,16 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
     for b in batches:
         data = [frames(b, 1000 + i) for i in range(repeats)]
         for algo in algos:
-            decoder = DecoderConfig(algo=algo)
-            decode(*data[0][:2], data[0][2], 1, cfg, k, decoder)  # warm-up (caches, first-call costs)
+            # a decoder held across calls, as a node holds it (a checkout before pipeline.dsp.decode.Decoder: decode)
+            held = getattr(decoders, "Decoder", None)
+            decode = held(DecoderConfig(algo=algo)).decode if held else partial(decoders.decode,
+                                                                               decoder=DecoderConfig(algo=algo))
+            decode(*data[0][:2], data[0][2], 1, cfg, k)  # warm-up (tables, first-call costs)
             rounds = iter(data)
 
             def one() -> None:
                 z, xi, delta = next(rounds)
-                decode(z, xi, delta, 1, cfg, k, decoder)
+                decode(z, xi, delta, 1, cfg, k)
 
             best = time_calls(one, len(data)).cpu_s.min()  # CPU s, each round on frames of its own
             out[algo][str(b)] = round(best / b * 1e3, 4)

@@ -3,7 +3,7 @@
 one by one in one process (PBP, 1-bit chamber frames of 500 sensors, K = 2), per batch
 size (``--algo``: pbp by default, whose decode is cheap, so the node's own costs stand
 out). Steps: parse (payloads -> headers and codes, with the node's checks), take (the
-frames of one configuration), decode (``decode_batch``), encode (targets JSON), publish
+frames of one configuration), decode (the node's ``Decoder.decode_batch``), encode (targets JSON), publish
 (``publish_many`` on an isolated zenoh session, no subscriber) and latency (the health
 histograms). Every batch of the ``--frames`` is processed once per pass, best of
 ``--passes`` passes (the figure least disturbed by a shared machine); µs per batch and
@@ -22,7 +22,6 @@ import numpy as np
 
 from bench_nodes import payloads
 from pipeline.bus.session import BusConfig
-from pipeline.dsp.decode import decode_batch
 from pipeline.nodes.intake import QueuedFrame
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, take_detections
 from pipeline.wire import encode_targets_batch
@@ -42,7 +41,7 @@ def one_pass(node: LocalizeNode, batches: list) -> dict[str, float]:
         frames, headers = groups[0].frames.take(everything), h.take(everything)
         radar = node._configs[int(h.config_id[0])]
         t2 = time.perf_counter()
-        det = decode_batch(frames, radar, cfg.k, cfg.decoder())
+        det = node._decoder.decode_batch(frames, radar, cfg.k)
         t3 = time.perf_counter()
         now = time.time_ns()
         out = encode_targets_batch(headers, take_detections(det, everything), str(cfg.algo), cfg.k, cfg.source, now)

@@ -14,9 +14,15 @@
   file's size minus its chunk records, per chunk. In memory: what the ``mcap`` writer
   keeps until the file ends (a chunk index per chunk), measured with tracemalloc while
   McapSink writes the same chunks again (the growth from one pass over them to three).
+- ``--long FILE``: write a long recording (``--minutes``, default 60) of what ``qradar run
+  --record`` records of one simulated sensor at 20 frames/s (raw, quantized, PBP targets,
+  pointcloud, the nodes' health at 1 Hz; the chamber scene), with the metadata of a real run
+  (recordings/chamber.mcap's) and a chunk a recorded second, as the recorder flushes; made
+  in process (McapSink), faster than real time: the subject of bench_reading.py.
 
     .venv/bin/python benchmarks/bench_record.py [--sensors 100] [--seconds 4]
     .venv/bin/python benchmarks/bench_record.py --index [--sensors 3] [--seconds 20] [--index-of FILE]
+    .venv/bin/python benchmarks/bench_record.py --long /tmp/hour.mcap [--minutes 60]
 """
 
 from __future__ import annotations
@@ -223,6 +229,81 @@ def record_run(path: Path, sensors: int, seconds: float) -> None:
         raise RuntimeError(f"qradar run failed ({proc.returncode}): {proc.stderr[-2000:]}")
 
 
+#: a recording of a real run, whose metadata a long recording takes
+CHAMBER = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+
+
+def write_long_recording(path: Path, seconds: float, rate_hz: float = 20.0, sensor: str = "kmd2-0",
+                         start_ns: int = 1_795_290_714_000_000_000, progress: bool = True) -> dict:
+    """A recording of ``seconds`` of one simulated sensor as ``qradar run --record`` writes it
+    (see the module's docstring), made in process; returns {"path", "bytes", "messages",
+    "seconds_to_make"}. Frames: the chamber scene's, with its noise; targets: PBP on the
+    quantized frames; times: the frame clock from ``start_ns``, each message logged 5-30 ms
+    after its frame, health at each second's end."""
+    from pipeline.dsp.decode import DecoderConfig, decode_batch
+    from pipeline.wire import FrameHeaders, HealthMsg, decode_targets, encode_quantized_batch, encode_raw_batch, \
+        encode_targets_batch
+    from radar_driver.scene import resolve_scene
+    from replay.mcapio import pointcloud_json
+
+    t0 = time.perf_counter()
+    scene = resolve_scene("chamber")
+    radar = scene.radar
+    qcfg = QuantizerConfig(alpha=0.55)
+    rng = np.random.default_rng(0)
+    per_s = int(round(rate_hz))
+    meta = McapFile(CHAMBER)
+    meta.scan()
+    sink = McapSink(Path(path))
+    try:
+        for name, data in meta.metadata_dict().items():
+            if name != "qradar.recorder_counters":
+                sink.metadata(name, data)
+        seq = 0
+        n_seconds = int(seconds)
+        for s in range(n_seconds):
+            seqs = np.arange(seq, seq + per_s)
+            t_s = seqs / rate_hz
+            ramp_t = np.repeat(t_s, radar.ramps_per_frame) + np.tile(np.arange(radar.ramps_per_frame), per_s) * 0.025
+            frames = scene.ramps(ramp_t, rng).reshape(per_s, -1, 2)
+            stamp = start_ns + (t_s * 1e9).astype(np.int64)
+            headers = FrameHeaders([sensor] * per_s, seqs, stamp, [radar.config_id()] * per_s)
+            q = quantize_frames(frames, qcfg, seqs)
+            det = decode_batch(q, radar, 2, DecoderConfig(algo=Algo.PBP))
+            published = stamp + 25_000_000
+            raw = encode_raw_batch(headers, frames.astype(np.complex64))
+            quantized = encode_quantized_batch(headers, q)
+            targets = encode_targets_batch(headers, det, "pbp", 2, "quantized", published)
+            for i in range(per_s):
+                ts = int(stamp[i])
+                sink.write(f"radar/{sensor}/raw", raw[i], ts + 5_000_000, ts, seq + i)
+                sink.write(f"radar/{sensor}/quantized", quantized[i], ts + 12_000_000, ts, seq + i)
+                sink.write(f"radar/{sensor}/targets", targets[i], ts + 28_000_000, ts, seq + i)
+                sink.write(f"radar/{sensor}/pointcloud", pointcloud_json(decode_targets(targets[i])),
+                           ts + 28_000_000, ts, seq + i)
+            end_ns = start_ns + (s + 1) * 1_000_000_000 - 1_000_000
+            for node in ("driver", "quantize", "localize", "record"):
+                h = HealthMsg(node, sensor, end_ns, frames_in=seq + per_s, frames_out=seq + per_s,
+                              latency_ms={"p50": 28.0, "p99": 60.0})
+                sink.write(f"radar/{sensor}/health", h.to_json(), end_ns, end_ns, s)
+            sink.flush()  # the recorder's chunk a second
+            seq += per_s
+            if progress and (s + 1) % 300 == 0:
+                print(f"long recording: {s + 1} of {n_seconds} s written ({sink.size / 1e6:.0f} MB, "
+                      f"{time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        sink.metadata("qradar.recorder_counters", {
+            "received": str(sink.messages), "written": str(sink.readable), "dropped": "0", "lost": "0",
+            "verify_errors": "0", "refused_time": "0", "refused_size": "0", "refused_shape": "0",
+            "refused_topic": "0"})
+        sink.close()
+    except BaseException:
+        sink.abort()
+        Path(path).unlink(missing_ok=True)
+        raise
+    return {"path": str(path), "bytes": Path(path).stat().st_size, "messages": sink.messages,
+            "recorded_s": n_seconds, "seconds_to_make": round(time.perf_counter() - t0, 1)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sensors", type=int, default=None, help="default 100 (3 with --index)")
@@ -231,7 +312,13 @@ def main() -> None:
     ap.add_argument("--index", action="store_true", help="measure the index cost per chunk of a real recording "
                     "(qradar run --sensors N for --seconds; defaults 3 and 20 with --index)")
     ap.add_argument("--index-of", type=Path, default=None, metavar="FILE", help="--index of this recording")
+    ap.add_argument("--long", type=Path, default=None, metavar="FILE",
+                    help="write a long recording of one simulated sensor (a new FILE; keep it out of the repository)")
+    ap.add_argument("--minutes", type=float, default=60.0, help="with --long: the recorded minutes")
     args = ap.parse_args()
+    if args.long is not None:
+        print(json.dumps(write_long_recording(args.long, args.minutes * 60)), flush=True)
+        return
     if args.index or args.index_of:
         if args.index_of is not None:
             print(json.dumps(index_cost(args.index_of), indent=1))

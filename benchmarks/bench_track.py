@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from harness import take_turns
-from pipeline.dsp.decode import DecoderConfig, decode_batch
+from pipeline.dsp.decode import Decoder, DecoderConfig, decode_batch
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from pipeline.dsp.track import TrackerConfig
@@ -57,9 +57,11 @@ def main() -> None:
     det = decode_batch(q, radar, 2, decoder)  # the tracker's input (the same each round)
     batches = [np.arange(s, min(s + args.batch, n)) for s in range(0, n, args.batch)]
 
+    held = Decoder(decoder)  # as the localizer node holds it
+
     def localize() -> None:
         for idx in batches:
-            decode_batch(q.take(idx), radar, 2, decoder)
+            held.decode_batch(q.take(idx), radar, 2)
 
     times = take_turns({"loc": localize, "trk": lambda: track_batch(Tracker(TrackerConfig(integrate_s=0)), headers, det)},
                        args.seconds, "bench_track", clock=time.perf_counter)

@@ -22,7 +22,7 @@ import sys
 
 import numpy as np
 
-from pipeline.dsp.cml import cml
+from pipeline.dsp.cml import CmlOptions, cml
 from pipeline.dsp.localize import nearest_estimates
 from replay.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
@@ -56,7 +56,7 @@ def main() -> None:
         for lik in ("logistic", "gaussian"):
             for given in (False, True):
                 name = f"1bit_{lik}" + ("_sigma_given" if given else "")
-                errs[name] = error(cml(z, xi, delta, 1, cfg, args.K, likelihood=lik,
+                errs[name] = error(cml(z, xi, delta, 1, cfg, args.K, options=CmlOptions(likelihood=lik),
                                        noise_sigma=sigma if given else None))
         key = f"{sigma:g}"
         out["median_m"][key] = {k: round(float(np.median(v)), 4) for k, v in errs.items()}

@@ -48,6 +48,7 @@ SUITE: tuple[Step, ...] = (
     Step("bench_expiry.py", ("--ids", "500", "--rounds", "1")),
     Step("bench_receive.py", ("--messages", "1500", "--rate", "3000", "--rounds", "1")),
     Step("bench_record.py", ("--sensors", "10", "--seconds", "1", "--rates", "10")),
+    Step("bench_reading.py", ("--minutes", "2", "--repeat", "1")),
     Step("bench_secure.py", ("--messages", "2000", "--rounds", "1")),
     Step("bench_stream.py", ("--quick",)),
     Step("bench_isolation.py", ("--case", "quantized", "--seconds", "3", "--warmup", "3", "--rate", "1000")),

@@ -22,10 +22,10 @@ except _metadata.PackageNotFoundError:  # run from a source tree that was never 
 
 
 #: the names of qradar.api reachable as qradar.<name>
-_API = ("Frames", "Quantized", "Targets", "Recording", "open_recording", "quantize", "decode", "montecarlo",
+_API = ("Frames", "Quantized", "Targets", "Tracks", "Recording", "open_recording", "quantize", "decode", "montecarlo",
         "alpha_sweep", "MonteCarloConfig", "MonteCarloResult", "ReprocessConfig", "ReprocessResult",
         "QuantizerConfig", "DecoderConfig", "RadarConfig", "Detections", "SimScene", "load_scene",
-        "position_error_m", "score", "score_frames", "Score", "FrameScores", "DETECTION_DISTANCE_M")
+        "position_error_m", "score", "score_frames", "Score", "FrameScores", "DETECTION_DISTANCE_M", "ReplayError")
 
 
 #: the public names of ``import qradar`` (``from qradar import *``, tab completion)

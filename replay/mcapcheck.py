@@ -215,10 +215,14 @@ def open_chunk(body: bytes) -> ChunkRecords:
     return out
 
 
-def message_index_count(body: bytes) -> tuple[int, int]:
-    """(channel id, messages) of a message index record's body."""
+def message_index_count(body: bytes, start_ns: int | None = None, end_ns: int | None = None) -> tuple[int, int]:
+    """(channel id, messages) of a message index record's body: those logged in
+    [``start_ns``, ``end_ns``) when either is given."""
     idx = parse_record(MessageIndex, body, "a message index record")
-    return idx.channel_id, len(idx.records)
+    if start_ns is None and end_ns is None:
+        return idx.channel_id, len(idx.records)
+    return idx.channel_id, sum(1 for t, _ in idx.records
+                               if (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns))
 
 
 def metadata_crc(entries: dict[str, str]) -> str:

@@ -2,10 +2,12 @@
 a damaged chunk is named and its messages counted lost, never returned as data.
 
 A file with a summary whose CRC matches is read through its chunk index (a damaged chunk
-cannot hide the next ones); any other (cut short by a kill, its summary damaged or
+cannot hide the next ones), and a selection (a log time window, some channels) reads only
+the chunks that hold it; any other file (cut short by a kill, its summary damaged or
 absent) record by record, going on after records that do not frame at the next record
 that provably starts one (:func:`replay.mcapcheck.resync`). A file cut short yields
-every message of its complete chunks and says it was truncated.
+every message of its complete chunks and says it was truncated. :meth:`McapFile.read_index`
+reads the summary and the metadata alone (no chunk), for what a file holds at a glance.
 """
 
 from __future__ import annotations
@@ -15,16 +17,19 @@ import mmap
 import os
 import time
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from mcap.opcode import Opcode
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, ChunkIndex, Message, Metadata, Schema
+from mcap.summary import Summary
 
 from .errors import Damage, NotMcapError, ReplayError
 from .mcapcheck import (MAGIC, MESSAGE_HEAD, METADATA_CRC_KEY, RECORD_HEAD, check_metadata, chunk_head, frame,
-                        message_index_count, open_chunk, parse_record, plausible_opcode, read_summary, resync)
+                        message_index_count, open_chunk, parse_record, plausible_opcode, read_summary, resync,
+                         SummaryRead)
 
 
 def _log_time(ns: int | None) -> str:
@@ -96,17 +101,23 @@ class ReadFindings:
 
     def _account(self) -> None:
         """After the whole file: the summary's statistics against what was read and what
-        damaged chunks held; the difference, by channel, is lost too."""
-        stats = self._statistics
+        damaged chunks held; the difference, by channel, is lost too (after a selection of
+        channels, theirs; not after a time window)."""
+        whole = self.start_ns is None and self.end_ns is None
+        stats = self._statistics if whole else None
         if stats is not None:
-            short = 0
+            short = counted = 0
             for cid, n in stats.channel_message_counts.items():
+                if self._channel is not None and not self._selected(cid):
+                    continue
+                counted += n
                 missing = n - self._read_by_channel[cid] - self.lost_by_channel[cid]
                 if missing > 0:
                     self.lost_by_channel[cid] += missing
                     short += missing
             if short:
-                self.problems.append(f"the summary's statistics count {stats.message_count} messages; {self.read} "
+                of = "" if self._channel is None else " on the channels read"
+                self.problems.append(f"the summary's statistics count {counted} messages{of}; {self.read} "
                                      f"read and {self.lost - short} in damaged chunks: {short} more are in no "
                                      "readable record (lost)")
             for d in self.damaged:
@@ -159,7 +170,103 @@ class ReadFindings:
             log.warning("%s: %s (%s)", self.path, line, what)
 
 
-class McapFile(ReadFindings):
+#: a selection of channels: True for the channels to read
+ChannelFilter = Callable[[Channel], bool]
+
+
+def _release(buf: mmap.mmap, start: int, end: int) -> None:
+    """Drop the pages of the file's bytes [start, end) from the process's resident memory
+    once a chunk was copied out of them (they stay in the page cache): a whole read of a
+    large file then keeps a chunk's pages mapped at a time, not the file's."""
+    lo = start - start % mmap.PAGESIZE
+    try:
+        buf.madvise(mmap.MADV_DONTNEED, lo, end - lo)
+    except (AttributeError, ValueError, OSError):  # no madvise here: the pages stay mapped, as before
+        pass
+
+
+@contextmanager
+def _mapped(path: Path):
+    """The bytes of the file ``path``: (buf, size, its (size, mtime) stamp); ReplayError,
+    NotMcapError."""
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise ReplayError(f"cannot open {path}: {exc.strerror or exc}") from None
+    with fh:
+        magic = fh.read(len(MAGIC))
+        if magic != MAGIC:
+            raise NotMcapError(f"{path} is not an MCAP file (it starts with {magic!r})")
+        st = os.fstat(fh.fileno())
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            yield buf, st.st_size, (st.st_size, st.st_mtime_ns)
+
+
+def indexed_metadata(buf, size: int, summary: Summary) -> tuple[list[Metadata], list[str]]:
+    """The metadata records the summary indexes, and one line per record that does not read."""
+    out, problems = [], []
+    for mi in summary.metadata_indexes:
+        rec = frame(buf, mi.offset, min(size, mi.offset + mi.length))
+        try:
+            if rec is None or rec[0] != Opcode.METADATA:
+                raise Damage("not a metadata record")
+            md = parse_record(Metadata, buf[mi.offset + RECORD_HEAD.size:rec[1]], "it")
+        except Damage as exc:
+            problems.append(f"the metadata record {mi.name!r} at byte {mi.offset} does not read ({exc})")
+            continue
+        why = check_metadata(md)
+        if why:
+            problems.append(f"{why}: its entries are damaged; not used")
+        else:
+            out.append(md)
+    return out, problems
+
+
+class Selection:
+    """What a read selects: the messages logged in [``start_ns``, ``end_ns``) (None: no
+    bound) on the channels ``channel`` accepts (None: all); the channels are named through
+    ``channels``, which the reader fills."""
+
+    channels: dict[int, Channel]
+
+    def _select(self, start_ns: int | None, end_ns: int | None, channel: ChannelFilter | None) -> None:
+        self.start_ns, self.end_ns, self._channel = start_ns, end_ns, channel
+
+    @property
+    def selective(self) -> bool:
+        """The last read was of a selection (a window or some channels), not the whole file."""
+        return self.start_ns is not None or self.end_ns is not None or self._channel is not None
+
+    def _in_window(self, log_ns: int) -> bool:
+        return (self.start_ns is None or log_ns >= self.start_ns) and (self.end_ns is None or log_ns < self.end_ns)
+
+    def _selected(self, cid: int) -> bool | None:
+        """Whether channel ``cid`` is selected (None: its definition is unknown)."""
+        ch = self.channels.get(cid)
+        if ch is None:
+            return None
+        return self._channel is None or bool(self._channel(ch))
+
+    def _verdict(self, cid: int, log_ns: int) -> str:
+        """What to do with a message: "take" it, count it "lost" (its channel's definition
+        was lost; only when every channel is selected) or "skip" it (not selected)."""
+        if not self._in_window(log_ns):
+            return "skip"
+        selected = self._selected(cid)
+        if selected is None:
+            return "lost" if self._channel is None else "skip"
+        return "take" if selected else "skip"
+
+    def _chunk_selected(self, ci: ChunkIndex) -> bool:
+        """Whether the chunk of ``ci`` may hold selected messages (its log times, its channels)."""
+        if self.end_ns is not None and ci.message_start_time >= self.end_ns:
+            return False
+        if self.start_ns is not None and ci.message_end_time < self.start_ns:
+            return False
+        return self._channel is None or any(self._selected(cid) for cid in ci.message_index_offsets)
+
+
+class McapFile(ReadFindings, Selection):
     """Checked sequential reader. :meth:`messages` yields (channel, message) for every
     message of the file's chunks that read whole, in file order; schemas, channels and
     metadata fill in as they are met.
@@ -174,43 +281,76 @@ class McapFile(ReadFindings):
     count more messages than were read, the difference is lost as well (``problems``
     says so): a writer that counted a message it did not write whole. When the file was
     cut short (no footer, its last record half written), iteration ends quietly and
-    ``truncated`` / ``truncation_reason`` say so. Not MCAP: NotMcapError."""
+    ``truncated`` / ``truncation_reason`` say so. Not MCAP: NotMcapError.
+
+    A selection (``messages(start_ns, end_ns, channel)``) yields the messages logged in
+    [start_ns, end_ns) on the channels ``channel`` accepts; through the chunk index only the
+    chunks that hold some are read (their CRC checked), and a damaged one counts lost the
+    messages it held in the window, of every channel (its message index records' log times:
+    the chunk is lost whole, whatever was selected). ``indexed``: the last read went through
+    the chunk index. The summary (its CRC checked) is read once and kept while the file's
+    size and modification time stay the same."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        self._kept: tuple[tuple[int, int], SummaryRead, list[Metadata], list[str]] | None = None
         self._reset()
 
-    def _reset(self) -> None:
+    def _reset(self, start_ns: int | None = None, end_ns: int | None = None,
+               channel: ChannelFilter | None = None) -> None:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.metadata: list[Metadata] = []
+        self.indexed = False
+        self._select(start_ns, end_ns, channel)
         self._reset_findings()
 
     # -- reading ----------------------------------------------------------------------------
-    def messages(self) -> Iterator[tuple[Channel, Message]]:
+    def _summary(self, buf, size: int, stamp: tuple[int, int]) -> Summary | None:
+        """The file's summary when it can be trusted and indexes chunks (then its metadata
+        records, read through their index, are in ``metadata``); None: read record by record."""
+        if self._kept is None or self._kept[0] != stamp:
+            found = read_summary(buf, size)
+            metadata, problems = [], []
+            if found.summary is not None and found.summary.chunk_indexes:
+                metadata, problems = indexed_metadata(buf, size, found.summary)
+            self._kept = (stamp, found, metadata, problems)
+        _, found, metadata, problems = self._kept
+        if found.problem:
+            self.problems.append(found.problem)
+        summary = found.summary
+        if summary is not None:
+            self._statistics = summary.statistics
+            self.schemas.update(summary.schemas)
+            self.channels.update(summary.channels)
+        if summary is None or not summary.chunk_indexes:
+            return None
+        self.metadata += metadata
+        self.problems += problems
+        self.indexed = True
+        return summary
+
+    def read_index(self) -> Summary | None:
+        """Read the summary section and the metadata records alone (no chunk): the file's
+        summary (channels, statistics, chunk indexes; filling ``channels``, ``schemas``,
+        ``metadata``) when it has one whose CRC matches and that indexes its chunks, else
+        None (cut short, its summary damaged (``problems`` says so) or absent: then only a
+        whole read, :meth:`messages`, tells what it holds)."""
         self._reset()
-        try:
-            fh = open(self.path, "rb")
-        except OSError as exc:
-            raise ReplayError(f"cannot open {self.path}: {exc.strerror or exc}") from None
-        with fh:
-            magic = fh.read(len(MAGIC))
-            if magic != MAGIC:
-                raise NotMcapError(f"{self.path} is not an MCAP file (it starts with {magic!r})")
-            size = os.fstat(fh.fileno()).st_size
-            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-                found = read_summary(buf, size)
-                if found.problem:
-                    self.problems.append(found.problem)
-                summary = found.summary
-                if summary is not None:
-                    self._statistics = summary.statistics
-                    self.schemas.update(summary.schemas)
-                    self.channels.update(summary.channels)
-                if summary is not None and summary.chunk_indexes:
-                    yield from self._indexed(buf, size, summary)
-                else:
-                    yield from self._sequential(buf, size)
+        with _mapped(self.path) as (buf, size, stamp):
+            return self._summary(buf, size, stamp)
+
+    def messages(self, start_ns: int | None = None, end_ns: int | None = None,
+                 channel: ChannelFilter | None = None) -> Iterator[tuple[Channel, Message]]:
+        """Every message that reads, in file order; with ``start_ns`` / ``end_ns`` only those
+        logged in [start_ns, end_ns), with ``channel`` only those on the channels it accepts."""
+        self._reset(start_ns, end_ns, channel)
+        with _mapped(self.path) as (buf, size, stamp):
+            summary = self._summary(buf, size, stamp)
+            if summary is not None:
+                yield from self._indexed(buf, size, summary)
+            else:
+                yield from self._sequential(buf, size)
         self._account()
         self.complete = True
 
@@ -233,14 +373,15 @@ class McapFile(ReadFindings):
             if said != {(lo, hi)}:
                 self.problems.append(f"the chunk at byte {offset} says its messages' log times span "
                                      f"{' and '.join(f'{a}-{b}' for a, b in sorted(said))} ns, they span {lo}-{hi} ns")
-        out, read = [], Counter()
+        out, read = [], Counter()  # read: the messages in the window that read (selected or not)
         for m in chunk.messages:
-            ch = self.channels.get(m.channel_id)
-            read[m.channel_id] += 1
-            if ch is None:
+            verdict = self._verdict(m.channel_id, m.log_time)
+            if verdict != "skip" or (self._in_window(m.log_time) and m.channel_id in self.channels):
+                read[m.channel_id] += 1
+            if verdict == "lost":
                 self.lost_by_channel[m.channel_id] += 1
-                continue
-            out.append((ch, m))
+            elif verdict == "take":
+                out.append((self.channels[m.channel_id], m))
         damage = None
         if chunk.error:
             damage = DamagedChunk(offset, length, chunk.start_ns, chunk.end_ns, Counter(), False, chunk.error)
@@ -253,15 +394,9 @@ class McapFile(ReadFindings):
             yield ch, m
 
     def _indexed(self, buf, size: int, summary) -> Iterator[tuple[Channel, Message]]:
-        for mi in summary.metadata_indexes:
-            rec = frame(buf, mi.offset, min(size, mi.offset + mi.length))
-            try:
-                if rec is None or rec[0] != Opcode.METADATA:
-                    raise Damage("not a metadata record")
-                self._metadata(parse_record(Metadata, buf[mi.offset + RECORD_HEAD.size:rec[1]], "it"))
-            except Damage as exc:
-                self.problems.append(f"the metadata record {mi.name!r} at byte {mi.offset} does not read ({exc})")
         for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+            if not self._chunk_selected(ci):
+                continue
             off, length = ci.chunk_start_offset, ci.chunk_length
             rec = frame(buf, off, off + length)
             if rec is None or rec[0] != Opcode.CHUNK or rec[1] != off + length:
@@ -270,6 +405,7 @@ class McapFile(ReadFindings):
             else:
                 pairs, damage, read = self._chunk(buf[off + RECORD_HEAD.size:off + length], off, length,
                                                   ci.message_start_time, ci.message_end_time)
+                _release(buf, off, off + length)
             yield from self._yield(pairs)
             if damage is not None:
                 damage.start_ns, damage.end_ns = ci.message_start_time, ci.message_end_time  # CRC-checked times
@@ -279,7 +415,7 @@ class McapFile(ReadFindings):
                     try:
                         if rec is None or rec[0] != Opcode.MESSAGE_INDEX:
                             raise Damage("no message index record there")
-                        cid, n = message_index_count(buf[moff + RECORD_HEAD.size:rec[1]])
+                        cid, n = message_index_count(buf[moff + RECORD_HEAD.size:rec[1]], self.start_ns, self.end_ns)
                         damage.lost_by_channel[cid] += n
                     except Damage:
                         damage.counted = False
@@ -320,7 +456,7 @@ class McapFile(ReadFindings):
             body = buf[pos + RECORD_HEAD.size:stop]
             if opcode == Opcode.MESSAGE_INDEX:
                 try:
-                    cid, n = message_index_count(body)
+                    cid, n = message_index_count(body, self.start_ns, self.end_ns)
                 except Damage as exc:
                     if pending is None:
                         pending = (DamagedChunk(pos, stop - pos, None, None, Counter(), False, str(exc)), Counter())
@@ -344,6 +480,7 @@ class McapFile(ReadFindings):
             prev, after_chunk = (pos, stop, opcode), opcode == Opcode.CHUNK
             if opcode == Opcode.CHUNK:
                 pairs, damage, read = self._chunk(body, pos, stop - pos, None, None)
+                _release(buf, pos, stop)
                 yield from self._yield(pairs)
                 if damage is not None:
                     try:
@@ -357,11 +494,11 @@ class McapFile(ReadFindings):
                     cid, seq, log_ns, pub_ns = MESSAGE_HEAD.unpack_from(body)
                     msg = Message(channel_id=cid, sequence=seq, log_time=log_ns, publish_time=pub_ns,
                                   data=body[MESSAGE_HEAD.size:])
-                    ch = self.channels.get(cid)
-                    if ch is None:
+                    verdict = self._verdict(cid, log_ns)
+                    if verdict == "lost":
                         self.lost_by_channel[cid] += 1
-                    else:
-                        yield from self._yield([(ch, msg)])
+                    elif verdict == "take":
+                        yield from self._yield([(self.channels[cid], msg)])
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA):
                 cls = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}[opcode]
                 try:

@@ -1,8 +1,11 @@
-"""Shared fixtures: a radar configuration, a seeded rng, and the zenoh ones (an embedded
-peer session, a free loopback port, a bounded connect to a listener in another process).
+"""Shared fixtures: a radar configuration, a seeded rng, the zenoh ones (an embedded
+peer session, a free loopback port, a bounded connect to a listener in another process),
+a real recording of ``qradar run --track`` split into files, and a count of the chunks the
+MCAP reader opens.
 Helpers that are not fixtures (Collector, wait_until, free_port, wait_port, rss_mb) live in
 zenoh_helpers. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name."""
 
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -49,6 +52,40 @@ def zenoh_session(bus):
         yield session
     finally:
         session.close()
+
+
+@pytest.fixture(scope="session")
+def track_recording(tmp_path_factory) -> list[Path]:
+    """The files of a real ``qradar run --track --record`` of 3 s (one simulated sensor, PBP,
+    calibrated with recordings/chamber-cal.json), split every 0.1 MB: ``run.mcap``,
+    ``run_0001.mcap``, ... (at least two), in order."""
+    folder = tmp_path_factory.mktemp("track-recording")
+    calibration = Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json"
+    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--track", "--algo", "pbp",
+                           "--calibration", str(calibration), "--split-size", "0.1",
+                           "--record", str(folder / "run.mcap"), "--json"],
+                          capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    files = sorted(folder.glob("run*.mcap"))
+    assert files[0].name == "run.mcap" and len(files) >= 2, files
+    return files
+
+
+@pytest.fixture
+def chunks_opened(monkeypatch) -> list[int]:
+    """The body length of each chunk the MCAP reader decompresses and checks, in order
+    (calls of replay.mcapread.open_chunk while the test runs)."""
+    import replay.mcapread
+
+    calls = []
+    real = replay.mcapread.open_chunk
+
+    def counting(body):
+        calls.append(len(body))
+        return real(body)
+
+    monkeypatch.setattr(replay.mcapread, "open_chunk", counting)
+    return calls
 
 
 @pytest.fixture(name="free_port")

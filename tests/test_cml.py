@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.dsp.cml import BLOCK_FRAMES, CmlResult, cml, cml_detections, model_frames
+from pipeline.dsp.cml import BLOCK_FRAMES, CmlOptions, CmlResult, cml, cml_detections, model_frames
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import Detections, localize, nearest_estimates, position_error_m
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
@@ -235,6 +235,8 @@ def test_other_radar_configurations():
     (dict(noise_sigma=-0.1), "noise_sigma"),
     (dict(oversample=0), "oversample=0"),
     (dict(iters=-1), "iters=-1"),
+    (dict(oversample=1.5), "oversample=1.5"),
+    (dict(iters=True), "iters=True"),
 ])
 def test_bad_inputs_are_parameter_errors(cfg, change, match):
     args = dict(z=np.full((2, 512, 2), 0.5 - 0.5j), xi=np.zeros((2, 512, 2)), delta=1.0, bits=1, k=2,
@@ -242,7 +244,7 @@ def test_bad_inputs_are_parameter_errors(cfg, change, match):
     args.update(change)
     with pytest.raises(ParameterError, match=match):
         cml(args["z"], args["xi"], args["delta"], args["bits"], cfg, args["k"], noise_sigma=args["noise_sigma"],
-            oversample=args["oversample"], iters=args["iters"])
+            options=CmlOptions(oversample=args["oversample"], iters=args["iters"]))
 
 
 def test_non_finite_frames_are_parameter_errors(cfg):

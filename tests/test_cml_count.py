@@ -1,6 +1,6 @@
-"""The count test of cml on the coarse grid (pipeline.dsp.cml_count_kernels, the detect
-kernel's ``_coarse_ratio``) against the numpy reference (pipeline.dsp.cml_detect._peak_ratio,
-_count_statistic) on the full fine grid: the mean of the joint energy by sums over runs of
+"""The count test of cml on the coarse grid (pipeline.dsp.cml.kernels.search, the detect
+kernels' ``coarse_ratio``) against the numpy reference (pipeline.dsp.cml.reference.peak_ratio,
+count_statistic) on the full fine grid: the mean of the joint energy by sums over runs of
 fine points from the coarse energies, the peak by the coarse search.
 
 Tolerances: a run's sum to 1e-12 of the energy's total (measured: 6e-16); the statistic
@@ -14,12 +14,13 @@ import pytest
 from test_cml import measure, random_scenes
 from test_cml_kernels import RANGE_TOL_M, agree
 
-from pipeline.dsp import cml_count_kernels as count_kernels
-from pipeline.dsp import cml_detect_kernels as kernels
-from pipeline.dsp.cml import cml
-from pipeline.dsp.cml_detect import COARSE_PER_BIN, COUNT_GUARD_BINS, _coarse_grid, _peak_ratio, _run_tables
-from pipeline.dsp.cml_fit import _Gate
+from pipeline.dsp.cml import CmlOptions, cml, reference
+from pipeline.dsp.cml.compiled import CompiledBlocks
+from pipeline.dsp.cml.grid import COARSE_PER_BIN, SearchGrid, run_tables
+from pipeline.dsp.cml.kernels import detect as kernels, search as count_kernels
+from pipeline.dsp.cml.kernels.layout import Gate, Grid
 from pipeline.dsp.gate import RangeGate
+from radar_driver.model import RadarConfig
 
 N, OVERSAMPLE = 256, 8
 SIZE, SMALL = N * OVERSAMPLE, N * COARSE_PER_BIN
@@ -29,37 +30,36 @@ STAT_RTOL = 1e-9
 def energies(x):
     """The fine grid's joint energy (L,) of ``x`` (2, N) and the coarse one's, as the kernel keeps it."""
     fine = (np.abs(np.fft.ifft(x, n=SIZE, axis=1)) ** 2).sum(axis=0)
-    coarse, energy, known = np.empty(SMALL), np.empty(SIZE), np.empty(SIZE, dtype=bool)
-    total = count_kernels.coarse_energies(np.fft.ifft(x, n=SMALL, axis=1), SIZE, coarse, energy, known)
-    return fine, coarse, total
+    s = kernels.scratch(N, SIZE, SMALL, np.exp(2j * np.pi * np.arange(SIZE) / SIZE))
+    total = count_kernels.coarse_energies(np.fft.ifft(x, n=SMALL, axis=1), SIZE, s)
+    return fine, s.coarse.copy(), total
+
+
+def search(gate=None, n=N, oversample=OVERSAMPLE):
+    """The kernels' Grid and Gate of a grid of ``n`` samples a ramp, ``oversample`` points a bin and
+    ``gate`` (a SearchGrid or None), as the compiled engine builds them."""
+    grid = gate if gate is not None else SearchGrid(None, RadarConfig(samples_per_ramp=n), oversample)
+    found = CompiledBlocks(RadarConfig(samples_per_ramp=n), CmlOptions(oversample=oversample)).search(grid)
+    return Grid(*found.kernel), Gate(*found.gate)
 
 
 def coarse_ratio(x, nu, live, gate=None, threshold=-1.0, n=N, oversample=OVERSAMPLE):
     """The coarse grid's count statistic of ``x`` (2, n) (targets ``nu`` bins, ``live``;
-    ``gate`` a _Gate or None), decided at ``threshold`` (< 0: exact)."""
+    ``gate`` a SearchGrid or None), decided at ``threshold`` (< 0: exact)."""
     size, small = n * oversample, n * COARSE_PER_BIN
-    table, rho, tables, weights, inside = _coarse_grid(n, oversample, gate)
-    half = oversample // COARSE_PER_BIN // 2
-    d = np.r_[-half:0, 1:half + 1]
-    steps = table[np.outer(d, np.arange(n)) % size]
-    outside = np.zeros(1, dtype=bool) if gate is None else gate.outside
-    gate_edges = np.zeros(small, dtype=bool)
-    if gate is not None:
-        count_kernels.gate_edge(outside, small, gate_edges)
-    ratio, _ = kernels._coarse_ratio(
-        np.fft.ifft(x, n=small, axis=1), np.ascontiguousarray(x), n, np.asarray(nu, dtype=float),
-        np.asarray(live, dtype=bool), oversample, COUNT_GUARD_BINS, outside, gate is not None, gate_edges, weights,
-        inside, rho, table, tables, np.empty(small), np.empty(size), np.empty(size, dtype=bool),
-        np.empty(size, dtype=bool), np.empty(small, dtype=bool), np.zeros(size, dtype=bool),
-        np.ascontiguousarray([steps.real, steps.imag]), np.empty((4, n)), np.empty(2 * half), np.empty(small),
-        threshold)
+    grid, kgate = search(gate, n, oversample)
+    s = kernels.scratch(n, size, small, grid.table)
+    ratio, _ = kernels.coarse_ratio(np.fft.ifft(x, n=small, axis=1), np.ascontiguousarray(x), n,
+                                    np.asarray(nu, dtype=float), np.asarray(live, dtype=bool), grid, kgate, s,
+                                    threshold)
     return ratio
 
 
 def reference_ratio(x, nu, live, gate=None, oversample=OVERSAMPLE):
-    """numpy's (pipeline.dsp.cml_detect._peak_ratio) on the full fine grid."""
-    fit = SimpleNamespace(nu=np.asarray(nu, dtype=float)[None], live=np.asarray(live, dtype=bool)[None], gate=gate)
-    return _peak_ratio(x.T[None], fit, oversample)[0]
+    """numpy's (pipeline.dsp.cml.reference.peak_ratio) on the full fine grid."""
+    grid = gate if gate is not None else SearchGrid(None, RadarConfig(samples_per_ramp=x.shape[1]), oversample)
+    fit = SimpleNamespace(nu=np.asarray(nu, dtype=float)[None], live=np.asarray(live, dtype=bool)[None], grid=grid)
+    return reference.peak_ratio(x.T[None], fit, oversample)[0]
 
 
 def tones(nu, amp, noise, rng):
@@ -72,20 +72,20 @@ def tones(nu, amp, noise, rng):
 
 
 def gate_of(lo_m, hi_m, cfg):
-    return _Gate(RangeGate(min_range_m=lo_m, max_range_m=hi_m), cfg, OVERSAMPLE)
+    return SearchGrid(RangeGate(min_range_m=lo_m, max_range_m=hi_m), cfg, OVERSAMPLE)
 
 
 def test_run_sums_are_the_fine_grids():
     """The fine energy summed over runs of points (any start, wrapping, 1 to 300 points)
     from the coarse energies, against the zero-padded FFT's."""
     rng = np.random.default_rng(0)
-    tables = _run_tables(N, SIZE, SMALL)
+    tables = run_tables(N, SIZE, SMALL)
     for trial in range(40):
         x = tones(rng.uniform(0, N, 2), [[30.0, 3j], [0.3, 0.1]], 1.0 if trial % 2 else 0.0, rng)
         fine, coarse, total = energies(x)
         for a in rng.integers(-SIZE, SIZE, 25):
             m = int(rng.integers(1, 300))
-            got = count_kernels._run_sum(coarse, total, tables, a, a + m - 1, SIZE)
+            got = count_kernels.run_sum(coarse, total, tables, a, a + m - 1, SIZE)
             assert abs(got - fine[np.arange(a, a + m) % SIZE].sum()) <= 1e-12 * fine.sum()
 
 
@@ -95,7 +95,7 @@ def test_run_tables_match_the_prefix_sums_of_the_interpolating_kernel():
     with np.errstate(invalid="ignore", divide="ignore"):
         f = np.where(j == 0, 2 * n - 1, np.sin((2 * n - 1) * np.pi * j / size) / np.sin(np.pi * j / size)) / small
     g = np.concatenate([[0.0], np.cumsum(f)[:-1]]) - j / small  # F(x) - x / Lc
-    tables = _run_tables(n, size, small)
+    tables = run_tables(n, size, small)
     ratio = size // small
     for phi in range(ratio):
         for k in range(2 * small):
@@ -170,7 +170,7 @@ def test_decided_statistic_reaches_the_threshold_exactly_when_the_exact_one_does
 
 
 def test_gate_weights_count_the_points_inside(cfg):
-    tables = _run_tables(N, SIZE, SMALL)
+    tables = run_tables(N, SIZE, SMALL)
     for lo, hi in ((0.0, 1.0), (5.0, 150.0), (100.0, 100.2), (0.0, 200.0)):
         gate = gate_of(lo, hi, cfg)
         weights = np.empty(SMALL + 1)
@@ -194,8 +194,8 @@ def test_k_auto_counts_agree_with_numpy(cfg, bits, alpha, noise):
             x[:] = 0.0
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, alpha=alpha, noise=noise if k else max(noise, 0.1))
         for kw in ({}, {"gate": gate}):
-            ref = cml(z, xi, delta, bits, cfg, 4, engine="numpy", pfa=1e-3, **kw)
-            got = cml(z, xi, delta, bits, cfg, 4, engine="numba", pfa=1e-3, **kw)
+            ref = cml(z, xi, delta, bits, cfg, 4, options=CmlOptions(engine="numpy"), pfa=1e-3, **kw)
+            got = cml(z, xi, delta, bits, cfg, 4, options=CmlOptions(engine="numba"), pfa=1e-3, **kw)
             np.testing.assert_array_equal(got.present, ref.present)
             if not (bits is None and noise == 0.0):
                 np.testing.assert_allclose(got.range_m[ref.present], ref.range_m[ref.present], atol=RANGE_TOL_M)

@@ -1,7 +1,7 @@
-"""Detection on a coarse inverse FFT (pipeline.dsp.cml_count_kernels.coarse_peak: the
+"""Detection on a coarse inverse FFT (pipeline.dsp.cml.kernels.search.coarse_peak: the
 FFT on COARSE_PER_BIN N points, the fine energy summed directly around the coarse points
-that could hold the peak) against the full fine grid (``_peak``, the kernel the count test
-keeps) and the numpy reference (pipeline.dsp.cml_detect._detect).
+that could hold the peak) against the full fine grid (``peak``, the kernel the count test
+keeps) and the numpy reference (pipeline.dsp.cml.reference.detect).
 
 Tolerance: the same fine-grid point and parabola, from energies summed in another order
 (an FFT of another size, direct sums): ranges agree to 1e-9 bins (measured: 3e-14)."""
@@ -11,10 +11,11 @@ import pytest
 from test_cml import measure, random_scenes
 from test_cml_kernels import detection_agrees
 
-from pipeline.dsp import cml_count_kernels as count_kernels
-from pipeline.dsp import cml_detect_kernels as kernels
-from pipeline.dsp.cml import cml
-from pipeline.dsp.cml_detect import COARSE_PER_BIN, COARSE_RHO, _twiddles
+from pipeline.dsp.cml import CmlDecoder, cml
+from pipeline.dsp.cml.count import COUNT_GUARD_BINS
+from pipeline.dsp.cml.grid import COARSE_PER_BIN, COARSE_RHO, twiddles
+from pipeline.dsp.cml.kernels import detect as kernels, search as count_kernels
+from pipeline.dsp.cml.kernels.layout import Gate, Grid
 from pipeline.dsp.gate import RangeGate
 
 TOL_BINS = 1e-9
@@ -26,23 +27,16 @@ def peaks(x, oversample, nu=(), live=(), outside=None, guard_bins=1.0, gate=(0.0
     n = x.shape[1]
     size, small = oversample * n, COARSE_PER_BIN * n
     nu, live = np.asarray(nu, dtype=float), np.asarray(live, dtype=bool)
-    use_gate = outside is not None
-    outside = np.zeros(1, dtype=bool) if outside is None else outside
-    fine = np.fft.ifft(x, n=size, axis=1)
-    coarse = np.fft.ifft(x, n=small, axis=1)
-    args = (nu, live, oversample, guard_bins, outside, use_gate, *gate)
-    full = kernels._peak(fine, *args, np.empty(size), np.empty(size, dtype=bool))
-    table, half = _twiddles(size), oversample // COARSE_PER_BIN // 2
-    d = np.r_[-half:0, 1:half + 1]
-    steps = table[np.outer(d, np.arange(n)) % size]
-    gate_edges = np.zeros(small, dtype=bool)
-    if use_gate:
-        count_kernels.gate_edge(outside, small, gate_edges)
-    fast = kernels._coarse_range(coarse, np.ascontiguousarray(x), n, *args, gate_edges, COARSE_RHO, table,
-                                 np.empty(small), np.empty(size), np.empty(size, dtype=bool),
-                                 np.empty(size, dtype=bool), np.empty(small, dtype=bool),
-                                 np.ascontiguousarray([steps.real, steps.imag]), np.empty((4, n)), np.empty(2 * half),
-                                 np.empty(small), False)
+    edges = np.zeros(small, dtype=bool)
+    if outside is not None:
+        count_kernels.gate_edge(outside, small, edges)
+    kgate = Gate(outside is not None, gate[0], gate[1], np.zeros(1, dtype=bool) if outside is None else outside, edges)
+    table = twiddles(size)
+    grid = Grid(oversample, COUNT_GUARD_BINS, guard_bins, COARSE_RHO, table, np.zeros((0, 0)), np.zeros(1), 0)
+    full = kernels.peak(np.fft.ifft(x, n=size, axis=1), nu, live, oversample, guard_bins, kgate,
+                        kernels.scratch(n, size, 0, table))
+    fast = kernels.coarse_range(np.fft.ifft(x, n=small, axis=1), np.ascontiguousarray(x), n, nu, live, grid, kgate,
+                                kernels.scratch(n, size, small, table), False)
     return full, fast
 
 
@@ -111,7 +105,7 @@ def test_fine_energy_is_the_zero_padded_ffts():
     x = rng.standard_normal((2, n)) + 1j * rng.standard_normal((2, n))
     u = np.fft.ifft(x, n=size, axis=1)
     ref = np.abs(u[0]) ** 2 + np.abs(u[1]) ** 2
-    got = np.array([count_kernels._fine_energy(x, n, p, _twiddles(size)) for p in range(size)])
+    got = np.array([count_kernels.fine_energy(x, n, p, twiddles(size)) for p in range(size)])
     np.testing.assert_allclose(got, ref, rtol=1e-12)
 
 
@@ -136,15 +130,17 @@ def test_compiled_detection_agrees_with_numpy_on_close_targets_and_a_gate(cfg):
 def test_decoder_with_k_fixed_matches_the_full_grids(cfg, monkeypatch):
     """cml with k fixed (the coarse grid) gives the same targets as with the coarse grid
     switched off (the full fine grid) to the last bits' run-to-run variation."""
-    from pipeline.dsp import cml_detect
+    from pipeline.dsp.cml import grid
     rng = np.random.default_rng(70)
     r, a, x = random_scenes(16, 2, rng)
     z, xi, delta = measure(r, a, x, cfg, rng, alpha=0.45, noise=0.1)
     gate = RangeGate(min_range_m=2.0, max_range_m=140.0)
     for kw in ({}, {"gate": gate}):
         got = cml(z, xi, delta, 1, cfg, 2, **kw)
-        monkeypatch.setattr(cml_detect, "COARSE_PER_BIN", 8)  # = oversample: no coarse grid
-        ref = cml(z, xi, delta, 1, cfg, 2, **kw)
+        monkeypatch.setattr(grid, "COARSE_PER_BIN", 8)  # = oversample: no coarse grid
+        full = CmlDecoder(cfg)
+        assert not full.grid(kw.get("gate")).coarse
+        ref = full.decode(z, xi, delta, 1, 2, **kw)
         monkeypatch.undo()
         np.testing.assert_allclose(got.range_m, ref.range_m, rtol=0, atol=1e-9)
         np.testing.assert_allclose(got.amplitudes, ref.amplitudes, rtol=0, atol=1e-9)

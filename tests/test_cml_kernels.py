@@ -1,7 +1,7 @@
-"""The compiled cml (pipeline.dsp.cml_kernels, engine="numba") against the numpy reference
-(engine="numpy") on the scenes of tests/test_cml.py, and the exact Gaussian likelihood;
-the compiled detection and count test (pipeline.dsp.cml_detect_kernels) against their numpy
-reference (pipeline.dsp.cml_detect) on every kind of scene, and codes against values.
+"""The compiled cml (pipeline.dsp.cml.kernels, engine="numba") against the numpy reference
+(pipeline.dsp.cml.reference, engine="numpy") on the scenes of tests/test_cml.py, and the exact
+Gaussian likelihood; the compiled detection and count test (pipeline.dsp.cml.kernels.detect)
+against the reference's on every kind of scene, and codes against values.
 
 Tolerance: the two engines take the same steps in a different floating-point order (the
 reference evaluates the likelihood in float32, the kernels in float64; both sum the
@@ -19,11 +19,15 @@ from scipy.special import log_ndtr as scipy_log_ndtr
 from scipy.special import ndtr
 from test_cml import measure, random_scenes
 
-from pipeline.dsp import cml_kernels
-from pipeline.dsp import cml_likelihood_kernels as lik
-from pipeline.dsp.cml import _Codes, _Gate, _start, cml
-from pipeline.dsp.cml_fit import _coefficients
-from pipeline.dsp.cml_detect import _amplitude_at, _count_statistic, _detect, detect_compiled
+from pipeline.dsp.cml import CmlDecoder, CmlOptions, cml, reference
+from pipeline.dsp.cml.checks import check_frames
+from pipeline.dsp.cml.compiled import CompiledBlocks
+from pipeline.dsp.cml.detect import back_projections
+from pipeline.dsp.cml.grid import SearchGrid
+from pipeline.dsp.cml.kernels import KERNELS, entry, likelihood as lik, linalg, model
+from pipeline.dsp.cml.kernels.layout import Codes, Decision, Fit
+from pipeline.dsp.cml.likelihood import block_codes
+from pipeline.dsp.cml.schedule import start
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
@@ -33,9 +37,9 @@ RANGE_TOL_M = 1e-4
 AMP_TOL = 1e-3
 
 
-def agree(z, xi, delta, bits, cfg, k, **kw):
-    ref = cml(z, xi, delta, bits, cfg, k, engine="numpy", **kw)
-    got = cml(z, xi, delta, bits, cfg, k, engine="numba", **kw)
+def agree(z, xi, delta, bits, cfg, k, likelihood="logistic", **kw):
+    ref = cml(z, xi, delta, bits, cfg, k, options=CmlOptions(engine="numpy", likelihood=likelihood), **kw)
+    got = cml(z, xi, delta, bits, cfg, k, options=CmlOptions(engine="numba", likelihood=likelihood), **kw)
     np.testing.assert_array_equal(got.present, ref.present)
     p = ref.present
     np.testing.assert_allclose(got.range_m[p], ref.range_m[p], atol=RANGE_TOL_M)
@@ -47,6 +51,23 @@ def agree(z, xi, delta, bits, cfg, k, **kw):
 def off_grid(b, k, seed):
     rng = np.random.default_rng(seed)
     return random_scenes(b, k, rng), rng
+
+
+def reference_codes(z, xi, delta, bits, cfg, likelihood="logistic"):
+    """The numpy reference's codes of checked frames, and the same arrays as the kernels'
+    :data:`~pipeline.dsp.cml.kernels.layout.Codes`."""
+    frames = check_frames(z, xi, delta, bits, cfg, 1, None)
+    codes = reference.Codes(frames, cfg.samples_per_ramp, likelihood)
+    b, r, n = z.shape[0], codes.ramps, cfg.samples_per_ramp
+    if bits is None:
+        a = bb = codes.y.reshape(b, r, n, 4)
+        kind = lik.LSQ
+    else:
+        a, bb = codes.ka.reshape(b, r, n, 4), codes.kb.reshape(b, r, n, 4)
+        kind = lik.ONE_BIT if bits == 1 else lik.MULTI_BIT
+    kernel = Codes(kind, {"logistic": lik.LOGISTIC, "gaussian": lik.GAUSSIAN}[likelihood], a, bb,
+                   np.ascontiguousarray(codes.folded).view(float).reshape(b, n, 4))
+    return codes, kernel
 
 
 @pytest.mark.parametrize("likelihood", ["logistic", "gaussian"])
@@ -108,28 +129,27 @@ def test_the_compiled_logistic_likelihood_matches_the_reference(cfg):
     the numpy reference's exact one, from the greedy stage's scale to the annealing's floor:
     the NLL to 1e-6 relative, its derivatives to 1e-5 of their largest (measured: 2.5e-7, 3.2e-7
     and 6.4e-7); a multi-bit cell's open (infinite) end adds nothing. The NLL alone
-    (``_nll_frame``, the LM candidates' test) is the same NLL."""
+    (``nll_frame``, the LM candidates' test) is the same NLL."""
     (r, a, x), rng = off_grid(4, 2, 21)
     n = cfg.samples_per_ramp
     for bits in (1, 3):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, noise=0.05)
-        codes = _Codes(z, xi, delta, bits, n)
+        codes, kernel = reference_codes(z, xi, delta, bits, cfg)
         for scale in (0.25, 0.03, 1.0 / 512):
             mu = 0.4 * delta[:, None, None, None] * rng.standard_normal((4, n, 2, 2))
             sigma = scale * delta
-            nll, g, h = codes.evaluate(mu, sigma, "logistic")
+            nll, g, h = codes.evaluate(mu, sigma)
             kg, kh = np.empty((4, n, 4)), np.empty((4, n, 4))
-            knll = cml_kernels.evaluate(codes.kind, cml_kernels.LOGISTIC, codes.ka, codes.kb,
-                                        np.ascontiguousarray(mu).reshape(4, n, 4), sigma, kg, kh)
+            knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(4, n, 4), sigma, kg, kh)
             np.testing.assert_allclose(knll, nll, rtol=1e-6)
             np.testing.assert_allclose(kg, g.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(g).max())
             np.testing.assert_allclose(kh, h.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(h).max())
             if bits == 1:
                 work = np.empty((3, 4 * n), np.float32)
-                alone = [cml_kernels._nll_frame(codes.ka[f], codes.kb[f], np.ascontiguousarray(mu[f]).reshape(n, 4),
-                                                sigma[f], work) for f in range(4)]
+                alone = [lik.nll_frame(kernel.a[f], kernel.b[f], np.ascontiguousarray(mu[f]).reshape(n, 4),
+                                       sigma[f], work) for f in range(4)]
                 np.testing.assert_allclose(alone, knll, rtol=1e-6)
-    assert cml_kernels._softplus(np.float32(np.inf))[0] < 1e-17  # -log F(+inf) = 0
+    assert lik.softplus(np.float32(np.inf))[0] < 1e-17  # -log F(+inf) = 0
 
 
 def test_the_likelihoods_polynomial_exp_and_log1p():
@@ -137,10 +157,10 @@ def test_the_likelihoods_polynomial_exp_and_log1p():
     polynomial in e, also for e down to exp(-40)) against numpy's in float64, relative
     (measured: 1.0e-5 and 1.1e-7)."""
     a = np.linspace(0.0, lik.SOFTPLUS_REACH, 4001).astype(np.float32)
-    got = np.array([lik._exp_neg(v) for v in a])
+    got = np.array([lik.exp_neg(v) for v in a])
     np.testing.assert_allclose(got, np.exp(-a.astype(float)), rtol=1.5e-5, atol=0)
     e = np.concatenate([np.linspace(0.0, 1.0, 2001), np.exp(-np.linspace(0.0, 40.0, 401))]).astype(np.float32)
-    got = np.array([lik._log1p_small(v) for v in e])
+    got = np.array([lik.log1p_small(v) for v in e])
     np.testing.assert_allclose(got, np.log1p(e.astype(float)), rtol=2e-7, atol=0)
 
 
@@ -151,34 +171,33 @@ def test_the_gaussian_likelihood_is_the_probability_of_the_code(cfg):
     for bits in (1, 3):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, noise=0.05)
         n = cfg.samples_per_ramp
-        codes = _Codes(z, xi, delta, bits, n)
+        codes, kernel = reference_codes(z, xi, delta, bits, cfg, "gaussian")
         mu = 0.3 * delta[:, None, None, None] * rng.standard_normal((2, n, 2, 2))
         sigma = np.array([0.1, 0.3]) * delta  # codes within ~20 sigma: the direct P is finite
-        nll, g, h = codes.evaluate(mu, sigma, "gaussian")
+        nll, g, h = codes.evaluate(mu, sigma)
         # direct: the cell of lambda = Re/Im(Gamma + xi) - xi, Phi by scipy's log_ndtr (float64, no tricks)
-        so = codes.kb.astype(float)  # 1 bit: s xi; lambda >= -xi for s = 1, < -xi for s = -1
-        lo = codes.ka.astype(float) if bits > 1 else np.where(codes.ka > 0, -so, -np.inf)
-        hi = codes.kb.astype(float) if bits > 1 else np.where(codes.ka > 0, np.inf, so)
+        so = kernel.b.astype(float)  # 1 bit: s xi; lambda >= -xi for s = 1, < -xi for s = -1
+        lo = kernel.a.astype(float) if bits > 1 else np.where(kernel.a > 0, -so, -np.inf)
+        hi = kernel.b.astype(float) if bits > 1 else np.where(kernel.a > 0, np.inf, so)
         m = mu.reshape(2, 1, n, 4)
         s = sigma[:, None, None, None]
         up_, lo_ = (hi - m) / s, (lo - m) / s
         p = np.where(lo_ + up_ > 0, ndtr(-lo_) - ndtr(-up_), ndtr(up_) - ndtr(lo_))  # the tail without cancellation
         np.testing.assert_allclose(nll, -np.log(p).reshape(2, -1).sum(axis=1), rtol=1e-6)
         kg, kh = np.empty((2, n, 4)), np.empty((2, n, 4))
-        knll = cml_kernels.evaluate(codes.kind, cml_kernels.GAUSSIAN, codes.ka, codes.kb,
-                                    np.ascontiguousarray(mu).reshape(2, n, 4), sigma, kg, kh)
+        knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(2, n, 4), sigma, kg, kh)
         np.testing.assert_allclose(knll, nll, rtol=1e-9)
         np.testing.assert_allclose(kg, g.reshape(2, n, 4), rtol=1e-6, atol=1e-9 * np.abs(g).max())
         np.testing.assert_allclose(kh, h.reshape(2, n, 4), rtol=1e-5, atol=1e-9 * np.abs(h).max())
         eps = 1e-6 * delta[:, None, None, None]
-        up = codes.evaluate(mu + eps, sigma, "gaussian")[1]
-        down = codes.evaluate(mu - eps, sigma, "gaussian")[1]
+        up = codes.evaluate(mu + eps, sigma)[1]
+        down = codes.evaluate(mu - eps, sigma)[1]
         np.testing.assert_allclose((up - down) / (2 * eps), h, rtol=1e-4, atol=1e-6 * np.abs(h).max())
 
 
 def test_log_ndtr_in_the_tails():
     v = np.array([-1e3, -200.0, -37.0, -20.5, -19.5, -5.0, 0.0, 3.0, 8.0, 40.0])
-    got = np.array([cml_kernels.log_ndtr(t) for t in v])
+    got = np.array([lik.log_ndtr(t) for t in v])
     np.testing.assert_allclose(got, scipy_log_ndtr(v), rtol=1e-9, atol=1e-300)
 
 
@@ -186,45 +205,67 @@ def test_unknown_engine_or_likelihood_is_a_parameter_error(cfg):
     (r, a, x), rng = off_grid(1, 1, 0)
     z, xi, delta = measure(r, a, x, cfg, rng)
     with pytest.raises(ParameterError, match="engine"):
-        cml(z, xi, delta, 1, cfg, 1, engine="fortran")
+        cml(z, xi, delta, 1, cfg, 1, options=CmlOptions(engine="fortran"))
     with pytest.raises(ParameterError, match="likelihood"):
-        cml(z, xi, delta, 1, cfg, 1, likelihood="cauchy")
+        cml(z, xi, delta, 1, cfg, 1, options=CmlOptions(likelihood="cauchy"))
 
 
 def test_the_kinds_of_frames_are_the_kernels_codes(cfg):
     (r, a, x), rng = off_grid(1, 1, 0)
-    for bits, kind in ((None, cml_kernels.LSQ), (1, cml_kernels.ONE_BIT), (3, cml_kernels.MULTI_BIT)):
+    for bits, kind in ((None, lik.LSQ), (1, lik.ONE_BIT), (3, lik.MULTI_BIT)):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits)
-        assert _Codes(z, xi, delta, bits, cfg.samples_per_ramp).kind == kind
+        frames = check_frames(z, xi, delta, bits, cfg, 1, None)
+        assert block_codes(frames, cfg.samples_per_ramp, "logistic").kernel.kind == kind
+
+
+def compiled_detect(blocks, codes, ref, grid, count, nu0=None):
+    """The compiled count statistic (``count``; else None), detection (unless ``nu0`` (B,) bins is
+    given) and amplitudes there, on the state of the reference's fit ``ref``."""
+    b, n = ref.nu.shape[0], codes.n
+    mu = np.ascontiguousarray(ref.mu).reshape(b, n, 4)
+    g = np.ascontiguousarray(ref.g).reshape(b, n, 4) if hasattr(ref, "g") else mu
+    fit = Fit(np.ascontiguousarray(ref.nu), np.ascontiguousarray(ref.amp), np.ascontiguousarray(ref.live),
+              np.ones(b), np.zeros(b), np.ones(b), mu, g, g)
+    search = blocks.search(grid)
+    src = back_projections(codes, fit, search, count, nu0 is not None, False)
+    found = Decision(-1.0, np.ones(b, dtype=bool), np.zeros(b), np.empty(b) if nu0 is None else np.array(nu0, float),
+                     np.empty((b, 2), dtype=complex))
+    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(found))
+    return (found.stat if count else None), found.nu0, found.amp0
 
 
 def detection_agrees(z, xi, delta, bits, cfg, gate=None, oversample=8):
-    """The compiled detection, count statistic and amplitudes against numpy's, on the empty
-    model and after one and two targets found (the second detection on the score)."""
+    """The compiled detection, count statistic and amplitudes against the reference's, on the
+    empty model and after one and two targets found (the second detection on the score)."""
     b = z.shape[0]
-    cgate = None if gate is None else _Gate(gate, cfg, oversample)
-    codes, fit, sigma, _, _ = _start(z, xi, delta, bits, cfg, None, cgate, "numpy", "logistic")
+    options = CmlOptions(oversample=oversample)
+    grid = SearchGrid(gate, cfg, oversample)
+    frames = check_frames(z, xi, delta, bits, cfg, 1, None)
+    blocks = CompiledBlocks(cfg, options)
+    codes = block_codes(frames, cfg.samples_per_ramp, "logistic")
+    ref_codes = reference.Codes(frames, cfg.samples_per_ramp, "logistic")
+    fit = reference.Fit(ref_codes, grid)
+    sigma, _, amp_cap = start(frames)
     fit.evaluate(sigma)
     for t in range(2):
-        stat, nu0, amp0 = detect_compiled(codes, fit, oversample, True)
-        np.testing.assert_allclose(stat, _count_statistic(fit, codes, oversample), rtol=1e-9)
-        ref_nu = _detect(fit, codes, oversample)
+        stat, nu0, amp0 = compiled_detect(blocks, codes, fit, grid, True)
+        np.testing.assert_allclose(stat, reference.count_statistic(fit, ref_codes, oversample), rtol=1e-9)
+        ref_nu = reference.detect(fit, ref_codes, oversample)
         np.testing.assert_allclose(nu0, ref_nu, rtol=0, atol=1e-9)
-        ref_amp = _amplitude_at(codes, fit, ref_nu)
+        ref_amp = reference.amplitude_at(ref_codes, fit, ref_nu)
         np.testing.assert_allclose(amp0, ref_amp, rtol=0, atol=1e-9 * np.abs(ref_amp).max())
-        assert detect_compiled(codes, fit, oversample, False)[0] is None
-        np.testing.assert_allclose(detect_compiled(codes, fit, oversample, False)[1], ref_nu, rtol=0, atol=1e-9)
+        assert compiled_detect(blocks, codes, fit, grid, False)[0] is None
+        np.testing.assert_allclose(compiled_detect(blocks, codes, fit, grid, False)[1], ref_nu, rtol=0, atol=1e-9)
         live = np.ones((b, 1), dtype=bool)
         live[::4] = t == 0  # some frames' second target is not live: its guard band is cleared
         fit.set(np.concatenate([fit.nu, ref_nu[:, None]], axis=1), np.concatenate([fit.amp, ref_amp[:, None]], axis=1),
                 np.concatenate([fit.live, live], axis=1))
         fit.evaluate(sigma)
-        fit.run(np.repeat(sigma[:, None], 2, axis=1), np.full(b, np.inf) if bits is None else
-                delta * (1 << (bits - 1)))
+        fit.run(np.repeat(sigma[:, None], 2, axis=1), amp_cap)
     given = fit.nu[:, 0] + 0.25
-    _, nu_given, amp_given = detect_compiled(codes, fit, oversample, False, given)
+    _, nu_given, amp_given = compiled_detect(blocks, codes, fit, grid, False, given)
     np.testing.assert_array_equal(nu_given, given)
-    ref = _amplitude_at(codes, fit, given)
+    ref = reference.amplitude_at(ref_codes, fit, given)
     np.testing.assert_allclose(amp_given, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
@@ -249,8 +290,8 @@ def test_codes_decode_as_their_values(cfg, bits):
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(6))
     for kw in ({}, {"pfa": 1e-3}, {"init_range_m": r[:, :1]}):
         for engine in ("numba", "numpy"):
-            by_values = cml(q.values(), q.dither(), q.delta, bits, cfg, 2, engine=engine, **kw)
-            by_codes = cml(q.codes, q.dither(), q.delta, bits, cfg, 2, engine=engine, **kw)
+            by_values = cml(q.values(), q.dither(), q.delta, bits, cfg, 2, options=CmlOptions(engine=engine), **kw)
+            by_codes = cml(q.codes, q.dither(), q.delta, bits, cfg, 2, options=CmlOptions(engine=engine), **kw)
             for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
                 np.testing.assert_allclose(getattr(by_codes, name), getattr(by_values, name), rtol=1e-12,
                                            atol=1e-12, err_msg=f"{name} {kw} {engine}")
@@ -264,26 +305,24 @@ def test_compiled_codes_arrays_are_numpys(cfg, bits):
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(3))
     n = cfg.samples_per_ramp
     delta = np.broadcast_to(q.delta, (3,)).astype(float)
-    ref = _Codes(q.values(), q.dither(), delta, bits, n)
+    _, ref = reference_codes(q.values(), q.dither(), delta, bits, cfg)
     ref_folded = q.values().reshape(3, -1, n, 2).sum(axis=1) - q.dither().reshape(3, -1, n, 2).sum(axis=1)
     for z in (q.values(), q.codes):
-        got = _Codes(z, q.dither(), delta, bits, n, compiled=True)
+        got = block_codes(check_frames(z, q.dither(), delta, bits, cfg, 1, None), n, "logistic").kernel
         assert got.kind == ref.kind
-        np.testing.assert_array_equal(got.ka, ref.ka)
-        np.testing.assert_array_equal(got.kb, ref.kb)
-        np.testing.assert_allclose(got.folded, ref_folded, rtol=0, atol=1e-12)
-        mu = np.random.default_rng(0).normal(size=(3, n, 2, 2)) * delta[:, None, None, None]
-        np.testing.assert_array_equal(got.wrong_rms(mu), ref.wrong_rms(mu))
+        np.testing.assert_array_equal(got.a, ref.a)
+        np.testing.assert_array_equal(got.b, ref.b)
+        np.testing.assert_allclose(got.folded.view(complex).reshape(3, n, 2), ref_folded, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
 def test_values_off_the_levels_are_a_parameter_error(cfg, engine):
     (r, a, x), rng = off_grid(2, 1, 43)
     z, xi, delta = measure(r, a, x, cfg, rng, bits=3)
-    cml(z, xi, delta, 3, cfg, 1, engine=engine)
+    cml(z, xi, delta, 3, cfg, 1, options=CmlOptions(engine=engine))
     for bad in (z * (1 + 1e-3), z * 8):  # between the levels; beyond the top one
         with pytest.raises(ParameterError, match="not a 3-bit quantized frame"):
-            cml(bad, xi, delta, 3, cfg, 1, engine=engine)
+            cml(bad, xi, delta, 3, cfg, 1, options=CmlOptions(engine=engine))
 
 
 def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
@@ -306,7 +345,7 @@ def test_model_is_the_atoms_times_the_amplitudes():
         nu = rng.uniform(0, n, 3)
         amp = rng.standard_normal((3, 2)) + 1j * rng.standard_normal((3, 2))
         w, mu = np.empty((3, 2, n)), np.empty((n, 4))
-        cml_kernels._model(nu, amp, kc, w, mu)
+        model.model(nu, amp, kc, w, mu)
         atoms = np.exp((-2j * np.pi / n) * nu[:, None] * kc)
         np.testing.assert_allclose(w[:, 0] + 1j * w[:, 1], atoms, rtol=0, atol=1e-13)
         np.testing.assert_allclose(mu.view(complex), atoms.T @ amp, rtol=0, atol=1e-12)
@@ -323,17 +362,17 @@ def test_normal_equations_are_the_jacobians():
     amp = rng.standard_normal((k, 2)) + 1j * rng.standard_normal((k, 2))
     g, h = rng.standard_normal((n, 4)), rng.uniform(0.0, 2.0, (n, 4))
     w, mu = np.empty((k, 2, n)), np.empty((n, 4))
-    cml_kernels._model(nu, amp, kc, w, mu)
+    model.model(nu, amp, kc, w, mu)
     cw = 2.0 * np.pi * kc / n
     gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
-    cml_kernels._sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((2 * k, n), np.float32),
-                      gram, proj)
-    hess, grad = np.empty((5 * k, 5 * k)), np.empty(5 * k)
-    cml_kernels._normal_equations(amp, gram, proj, hess, grad)
+    model.sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((2 * k, n), np.float32),
+               gram, proj)
+    hess, grad = np.empty((model.PARAMS * k, model.PARAMS * k)), np.empty(model.PARAMS * k)
+    model.normal_equations(amp, gram, proj, hess, grad)
     atoms = w[:, 0] + 1j * w[:, 1]
     dw = atoms * (-1j * cw)
     r = np.concatenate([atoms.real, dw.real, atoms.imag, dw.imag])  # the reference's rows (4K, N)
-    zc = _coefficients(amp[None])[0]  # (4, 4K, 5K)
+    zc = reference.coefficients(amp[None])[0]  # (4, 4K, 5K)
     jac = np.einsum("rn,jrq->jnq", r, zc)
     np.testing.assert_allclose(hess, np.einsum("jnq,nj,jnp->qp", jac, h, jac), rtol=0, atol=1e-6 * np.abs(hess).max())
     np.testing.assert_allclose(grad, np.einsum("jnq,nj->q", jac, g), rtol=1e-9, atol=1e-12 * np.abs(grad).max())
@@ -345,57 +384,77 @@ def test_solve_by_cholesky_and_by_elimination():
     rhs = rng.standard_normal(10)
     lw, x = np.empty((10, 10)), np.empty(10)
     for m in (a @ a.T + 1e-3 * np.eye(10), a + a.T):  # positive definite; indefinite: the fall-back
-        cml_kernels._solve(m.copy(), rhs.copy(), lw, x)
+        linalg.solve(m.copy(), rhs.copy(), lw, x)
         np.testing.assert_allclose(x, np.linalg.solve(m, rhs), rtol=1e-9, atol=1e-12)
 
 
-def test_detection_buffers_are_reused_clean(cfg):
-    """The zero-padded buffers kept per thread (pipeline.dsp.cml_detect._padded) hold no
-    trace of an earlier decode: of more frames, or of a grid of as many points with more
-    samples a ramp."""
+def test_a_decoder_keeps_its_tables_and_buffers_clean(cfg):
+    """A decoder held across calls (its grid tables, thresholds and zero-padded buffers kept)
+    decodes as a fresh one, bit for bit: after blocks of more frames, another gate, a count
+    test; so does one of another N and grid (oversample 16)."""
     (r, a, x), rng = off_grid(8, 2, 44)
     z, xi, delta = measure(r, a, x, cfg, rng)
-    first = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
-    small = RadarConfig(samples_per_ramp=cfg.samples_per_ramp // 2)
-    for zz, xx, dd, c, kw in ((z, xi, delta, cfg, {}), (z[:, :cfg.samples_per_ramp], xi[:, :cfg.samples_per_ramp],
-                                                         delta, small, {"oversample": 16})):
-        ref = cml(zz, xx, dd, 1, c, 2, engine="numpy", **kw)
-        got = cml(zz, xx, dd, 1, c, 2, **kw)
-        np.testing.assert_allclose(got.range_m, ref.range_m, atol=RANGE_TOL_M)
-    again = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
+    held = CmlDecoder(cfg)
+    first = held.decode(z[:3], xi[:3], delta[:3], 1, 2)
+    held.decode(z, xi, delta, 1, 2)
+    held.decode(z, xi, delta, 1, 4, pfa=1e-3, gate=RangeGate(10.0, 120.0))
+    again = held.decode(z[:3], xi[:3], delta[:3], 1, 2)
+    fresh = cml(z[:3], xi[:3], delta[:3], 1, cfg, 2)
     for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
         np.testing.assert_array_equal(getattr(again, name), getattr(first, name))
+        np.testing.assert_array_equal(getattr(fresh, name), getattr(first, name))
+    small = RadarConfig(samples_per_ramp=cfg.samples_per_ramp // 2)
+    zz, xx = z[:, :small.samples_per_ramp], xi[:, :small.samples_per_ramp]
+    ref = cml(zz, xx, delta, 1, small, 2, options=CmlOptions(engine="numpy", oversample=16))
+    got = CmlDecoder(small, CmlOptions(oversample=16)).decode(zz, xx, delta, 1, 2)
+    np.testing.assert_allclose(got.range_m, ref.range_m, atol=RANGE_TOL_M)
 
 
-def test_warm_up_loads_the_kernels_of_1_bit_codes_first():
-    """A localizer waits for the kernels of 1-bit codes (``wait="common"``); the other kinds
-    follow in the same thread. In a fresh process, from numba's cache."""
+def test_load_kernels_loads_1_bit_codes_first():
+    """A localizer loads the kernels of 1-bit codes (``common``) before it listens; the other
+    kinds after. In a fresh process, from numba's cache: each call adds kernels' signatures."""
     import subprocess
     import sys
 
-    code = ("from pipeline.dsp.cml import warm_up_kernels, kernels_ready\n"
-            "warm_up_kernels(wait='common'); first = kernels_ready(common=True)\n"
-            "warm_up_kernels(wait=True); print(first, kernels_ready(common=True), kernels_ready())")
+    code = ("from pipeline.dsp.cml import load_kernels\n"
+            "from pipeline.dsp.cml.kernels import KERNELS\n"
+            "count = lambda: sum(len(k.signatures) for k in KERNELS)\n"
+            "before = count(); load_kernels(common=True); common = count(); load_kernels()\n"
+            "print(before, common, count())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["True", "True", "True"]
+    before, common, everything = map(int, out.stdout.split())
+    assert before == 0 < common < everything
 
 
-def test_a_read_only_or_strided_delta_gives_the_same_result_and_no_new_kernel(cfg):
-    """delta (B,) float64 is taken as it is when numba's signature holds (C-contiguous,
-    writeable), else copied: a read-only or strided one decodes the same, compiling nothing."""
-    from pipeline.dsp import cml_detect_kernels
-
+def test_no_array_layout_makes_a_new_compiled_signature(cfg):
+    """Read-only, strided, unaligned or other-dtype inputs (values, codes, dither, delta) decode
+    as C-contiguous ones, bit for bit, and reach the kernels' compiled signatures: not one
+    kernel compiles a new one (a live node's first frame of a new layout does not wait a minute)."""
     (r, a, x), rng = off_grid(3, 2, 44)
-    z, xi, delta = measure(r, a, x, cfg, rng)
-    want = cml(z, xi, delta, 1, cfg, 2)
-    kernels = (cml_detect_kernels.codes_arrays, cml_detect_kernels.frame_faults)
-    signatures = [len(k.signatures) for k in kernels]
-    read_only = delta.copy()
-    read_only.flags.writeable = False
-    for d in (read_only, np.repeat(delta, 2)[::2]):
-        got = cml(z, xi, d, 1, cfg, 2)
+    q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(alpha=0.7), np.arange(3))
+    decoder = CmlDecoder(cfg)
+    kw = dict(pfa=1e-3, gate=RangeGate(2.0, 140.0))
+    want = decoder.decode(q.codes, q.dither(), q.delta, 1, 4, **kw)
+    signatures = [len(k.signatures) for k in KERNELS]
+
+    def read_only(v):
+        v = np.array(v)
+        v.flags.writeable = False
+        return v
+
+    def unaligned(v):
+        buf = np.empty(v.nbytes + 1, dtype=np.uint8)[1:].view(v.dtype).reshape(v.shape)
+        buf[...] = v
+        return buf
+
+    xi, delta = q.dither(), np.asarray(q.delta, dtype=float)
+    for args in ((read_only(q.codes), read_only(xi), read_only(delta)),
+                 (q.codes, np.repeat(xi, 2, axis=1)[:, ::2], np.repeat(delta, 2)[::2]),
+                 (q.codes.astype(np.int64), unaligned(xi), delta.astype(np.float32).astype(float)),
+                 (np.asfortranarray(q.codes), np.asfortranarray(xi), list(delta))):
+        got = decoder.decode(*args, 1, 4, **kw)
         for name in ("range_m", "amplitudes", "statistic_db", "sigma_eff", "present"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
-    assert [len(k.signatures) for k in kernels] == signatures
-    assert read_only.flags.writeable is False  # the caller's array untouched
+    new = [k.py_func.__qualname__ for k, before in zip(KERNELS, signatures) if len(k.signatures) != before]
+    assert set(new) <= {"codes_arrays"}, new  # int64 codes: codes_arrays' second dtype, loaded by the warm-up

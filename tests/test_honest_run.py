@@ -332,14 +332,14 @@ def test_7_security_init_defaults_outside_the_checkout_and_says_where_the_ca_key
 def test_8_the_set_up_says_each_step_with_its_expected_time():
     import io
 
-    from pipeline.dsp import cml, cml_warmup
+    from pipeline.dsp.cml import loading
 
     out = io.StringIO()
-    cml_warmup.compile_verbose(cml.cml, out)  # from numba's cache here: each step in about a second
+    loading.compile_verbose(out)  # from numba's cache here: each step in about a second
     lines = out.getvalue().splitlines()
     assert lines[0].startswith("compiling cml's kernels into numba's cache") and "first time" in lines[0]
     steps = lines[1:]
-    assert len(steps) == len(cml_warmup.KINDS) and all(re.search(r"expect (\d+-\d+ (s|min)|under a second)", ln) and
+    assert len(steps) == len(loading.KINDS) and all(re.search(r"expect (\d+-\d+ (s|min)|under a second)", ln) and
                                                       re.search(r"\.\.\. [0-9.]+ s$", ln) for ln in steps), steps
     make = (ROOT / "Makefile").read_text()
     stamp = make[make.index("$(STAMP): pyproject.toml"):make.index("@touch $(STAMP)")]

@@ -185,21 +185,78 @@ def test_no_file_over_600_lines_and_no_class_over_300():
     assert not long, "\n".join(long)
 
 
+#: the size of a function (issue 39): its lines, and its parameters (self and *args included)
+MAX_FUNCTION_LINES = 80
+MAX_FUNCTION_PARAMS = 12
+#: where the rule holds today; library-wide later (issue 39)
+SIZED_PACKAGES = ("pipeline.dsp.cml",)
+
+
+def oversized_functions(prefixes: tuple[str, ...] = ()) -> list[str]:
+    """The functions (kernels included) over MAX_FUNCTION_LINES lines or MAX_FUNCTION_PARAMS
+    parameters in the library modules whose names start with one of ``prefixes`` (all: ())."""
+    found = []
+    for name, path in modules().items():
+        if prefixes and not name.startswith(prefixes):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                params = (len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + (a.vararg is not None)
+                          + (a.kwarg is not None))
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES or params > MAX_FUNCTION_PARAMS:
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {lines} lines, "
+                                 f"{params} parameters")
+    return found
+
+
+def test_no_function_of_the_sized_packages_is_over_80_lines_or_12_parameters():
+    long = oversized_functions(SIZED_PACKAGES)
+    assert not long, "\n".join(long)
+
+
+def test_the_size_checker_counts_lines_and_every_kind_of_parameter(tmp_path, monkeypatch):
+    p = tmp_path / "x.py"
+    body = "\n".join(f"    v{i} = {i}" for i in range(MAX_FUNCTION_LINES))
+    p.write_text(f"def long():\n{body}\n\ndef wide(a, b, /, c, *d, e, f, g, h, i, j, k, l, **m):\n    return 0\n\n"
+                 "def fine(a, b, c, d, e, f, g, h, i, j, k, l):\n    return 0\n")
+    monkeypatch.setattr(sys.modules[__name__], "modules", lambda: {"pipeline.dsp.cml.x": p})
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    found = oversized_functions(SIZED_PACKAGES)
+    assert [f.split(" ")[1] for f in found] == ["long:", "wide:"], found
+
+
+def test_the_cml_package_imports_no_private_name_of_another_module():
+    """Its stages share only public names; what a module keeps to itself starts with ``_``."""
+    mods = {n: p for n, p in modules().items() if n.startswith("pipeline.dsp.cml")}
+    bad = []
+    for name, path in mods.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("pipeline.dsp.cml"):
+                bad += [f"{name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+    assert not bad, "\n".join(bad)
+
+
+def test_one_module_of_cml_chooses_the_engine():
+    """pipeline.dsp.cml.engine alone imports the compiled engine or the numpy reference (the
+    tests compare the two), so the choice is made in one place."""
+    g = graph()
+    importers = sorted(m for m, deps in g.items() if deps & {"pipeline.dsp.cml.compiled", "pipeline.dsp.cml.reference"})
+    assert importers == ["pipeline.dsp.cml.engine"], importers
+
+
 # -- no hidden global state (issue 39): caches and registries belong to the object that uses them
 #: methods that change a container or an event in place
 MUTATORS = {"add", "append", "appendleft", "clear", "discard", "extend", "insert", "pop", "popitem", "remove",
             "setdefault", "update", "sort", "reverse", "set"}
 #: module-level state a library module still changes after import, each with why it is the process's own
-#: (an entry of a module that no longer exists is ignored: the cml package of issue 39 item 1 replaces them)
 PROCESS_STATE = {
     "pipeline.bus.audit": "zenoh's log is the process's (zenoh.init_log_* takes effect once) and the audit holds "
                           "fd 2 to read it: one audit a process, started by the command",
     "pipeline.bus.router_check": "the checks of the process's zenoh sessions, looked up by zenoh id from a session's "
                                  "callbacks, dropped when their session closes",
     "qradar.rundir": "the process's run directories, for the exit at once of a second Ctrl-C (a signal handler)",
-    # the numba engine's module-level choices and buffers, replaced by pipeline/dsp/cml/ (issue 39 item 1)
-    "pipeline.dsp.cml_detect": "pending: pipeline/dsp/cml/", "pipeline.dsp.cml_fit": "pending: pipeline/dsp/cml/",
-    "pipeline.dsp.cml_warmup": "pending: pipeline/dsp/cml/", "pipeline.dsp.dither": "pending: pipeline/dsp/cml/",
 }
 
 

@@ -42,7 +42,8 @@ from pipeline.errors import DitherUnavailable, ParameterError
 from pipeline.dsp.gate import RangeGate, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
-from pipeline.dsp.cml import ENGINES, LIKELIHOODS, cml
+from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlDecoder, CmlOptions
+from pipeline.dsp.cml.engine import resolve as resolve_engine
 from pipeline.dsp.quantize import QuantizedFrames, check_bits
 
 
@@ -395,6 +396,91 @@ def _symmetric_index(size: int) -> np.ndarray:
     return index
 
 
+class Decoder:
+    """The decoder a :class:`DecoderConfig` describes, with what it keeps between batches:
+    cml's decoder (:class:`~pipeline.dsp.cml.CmlDecoder`: its tables and work buffers) of each
+    radar configuration. Hold one where batches follow one another (a localizer node, a
+    re-processing run, a benchmark); :func:`decode` and :func:`decode_batch` make one a call.
+    Its calls may come from several threads."""
+
+    #: radar configurations whose cml decoder it keeps (a node sees one per number of ramps)
+    KEPT = 32
+
+    def __init__(self, config: DecoderConfig = DecoderConfig()):
+        self.config = config
+        #: how it regenerates a frame's dither (:data:`pipeline.dsp.dither.DITHER_ENGINES`): as
+        #: cml's engine (numba when it imports: the same bits, one compiled pass)
+        self.dither_engine = resolve_engine(config.engine)
+        self._options = CmlOptions(engine=config.engine, likelihood=config.likelihood or DEFAULT_LIKELIHOOD)
+        self._cml: dict[RadarConfig, CmlDecoder] = {}
+
+    def cml(self, radar: RadarConfig) -> CmlDecoder:
+        """cml's decoder for frames of ``radar``, kept."""
+        decoder = self._cml.get(radar)
+        if decoder is None:
+            if len(self._cml) >= self.KEPT:
+                self._cml.clear()
+            decoder = self._cml[radar] = CmlDecoder(radar, self._options)
+        return decoder
+
+    def decode(self, z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, radar: RadarConfig, k: int,
+               indices: np.ndarray | None = None, noise_sigma=None,
+               init_range_m: np.ndarray | None = None) -> Detections:
+        """:func:`decode` with this decoder."""
+        z = np.asarray(z)
+        cfg = self.config
+        pfa = cfg.pfa if cfg.auto_k else None
+        if cfg.algo == Algo.CML and indices is None:  # cml checks the gate (once per gate and radar)
+            return self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
+                                          bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
+                                          pfa=pfa, gate=cfg.gate, init_range_m=init_range_m).detections(radar)
+        gate = None if cfg.gate is None else cfg.gate.check(radar)
+        if cfg.algo == Algo.PBP:
+            return localize(z, radar, k, indices, pfa, gate)
+        if xi is None or bits is None or indices is not None:
+            if cfg.fallback_pbp:
+                return localize(z, radar, k, indices, pfa, gate)
+            what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
+                    if bits is None else "frame is not dithered")
+            needs = ("frames of whole ramps" if cfg.algo == Algo.CML else
+                     "the dither of every frame (a dithered frame of whole ramps with a known seed)")
+            raise DitherUnavailable(f"{cfg.algo} needs {needs}; this {what}. Use PBP, or ask for the PBP fallback")
+        return _qiht_ml(z, xi, delta, bits, radar, k, cfg, gate)
+
+    def decode_batch(self, frames: QuantizedFrames | np.ndarray, radar: RadarConfig, k: int,
+                     init_range_m: np.ndarray | None = None) -> Detections:
+        """:func:`decode_batch` with this decoder."""
+        algo = self.config.algo
+        if isinstance(frames, QuantizedFrames):
+            n = radar.samples_per_ramp
+            if algo == Algo.PBP and frames.codes.shape[1] % n == 0:
+                # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
+                return self.decode(frames.ramp_mean(n), None, frames.delta, frames.bits, radar, k)
+            xi = None if algo == Algo.PBP else frames.dither(self.dither_engine)  # PBP does not use it
+            z = frames.codes if algo == Algo.CML else frames.values()  # cml takes the codes as they are
+            return self.decode(z, xi, frames.delta, frames.bits, radar, k, init_range_m=init_range_m)
+        return self.decode(np.asarray(frames, dtype=np.complex128), None, None, None, radar, k,
+                           init_range_m=init_range_m)
+
+
+def _qiht_ml(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, decoder: DecoderConfig,
+             gate: RangeGate | None) -> Detections:
+    """QIHT then (1 bit, ``decoder.ml``) the likelihood on the support, inside ``gate``."""
+    z, xi, delta = _check(z, xi, delta, bits, config)
+    n = config.samples_per_ramp
+    zr, xr, u0 = _antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config)
+    mask = None if gate is None else gate.bin_mask(config)
+    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu, mask)
+    if decoder.ml and bits == 1:
+        amp = _ml_refine(zr, xr, delta, support, amp, config)
+    if mask is None:
+        stat = grid_statistic_db(u0, support)
+    else:
+        _, energy, cells = gated_energy(joint_energy(u0), mask, k)
+        stat = grid_statistic_db(u0, support, energy, cells)
+    return detections_from_support(_scatter(amp, support, n), support, config, stat)
+
+
 def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int,
            decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None,
            noise_sigma=None, init_range_m: np.ndarray | None = None) -> Detections:
@@ -412,52 +498,15 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     (checked against ``config``; None: the whole range axis). ``noise_sigma``: cml's
     sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that).
     ``init_range_m`` (B, J), NaN for none: cml's warm start (see :func:`pipeline.dsp.cml.cml`);
-    the others ignore it."""
-    z = np.asarray(z)
-    pfa = decoder.pfa if decoder.auto_k else None
-    if decoder.algo == Algo.CML and indices is None:  # cml checks the gate (once per gate and radar)
-        return cml(z, xi if bits is not None else None, delta if bits is not None else None, bits, config, k,
-                   noise_sigma=decoder.noise_sigma if noise_sigma is None else noise_sigma, pfa=pfa,
-                   gate=decoder.gate, engine=decoder.engine, likelihood=decoder.likelihood,
-                   init_range_m=init_range_m).detections(config)
-    gate = None if decoder.gate is None else decoder.gate.check(config)
-    if decoder.algo == Algo.PBP:
-        return localize(z, config, k, indices, pfa, gate)
-    if xi is None or bits is None or indices is not None:
-        if decoder.fallback_pbp:
-            return localize(z, config, k, indices, pfa, gate)
-        what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
-                if bits is None else "frame is not dithered")
-        needs = ("frames of whole ramps" if decoder.algo == Algo.CML else
-                 "the dither of every frame (a dithered frame of whole ramps with a known seed)")
-        raise DitherUnavailable(f"{decoder.algo} needs {needs}; this {what}. Use PBP, or ask for the PBP fallback")
-    z, xi, delta = _check(z, xi, delta, bits, config)
-    n = config.samples_per_ramp
-    zr, xr, u0 = _antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config)
-    mask = None if gate is None else gate.bin_mask(config)
-    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu, mask)
-    if decoder.ml and bits == 1:
-        amp = _ml_refine(zr, xr, delta, support, amp, config)
-    if mask is None:
-        stat = grid_statistic_db(u0, support)
-    else:
-        _, energy, cells = gated_energy(joint_energy(u0), mask, k)
-        stat = grid_statistic_db(u0, support, energy, cells)
-    return detections_from_support(_scatter(amp, support, n), support, config, stat)
+    the others ignore it. One call, one :class:`Decoder` (where calls follow one another,
+    hold one: it keeps cml's tables)."""
+    return Decoder(decoder).decode(z, xi, delta, bits, config, k, indices, noise_sigma, init_range_m)
 
 
 def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,
                  decoder: DecoderConfig = DecoderConfig(), init_range_m: np.ndarray | None = None) -> Detections:
     """Targets of a batch: quantized frames (their dither regenerated from their seeds)
     or full-resolution frames (B, M, 2) complex. What the localizer node and offline
-    re-processing call; see :func:`decode` for the rules (and ``init_range_m``)."""
-    if isinstance(frames, QuantizedFrames):
-        n = config.samples_per_ramp
-        if decoder.algo == Algo.PBP and frames.codes.shape[1] % n == 0:
-            # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
-            return decode(frames.ramp_mean(n), None, frames.delta, frames.bits, config, k, decoder)
-        xi = None if decoder.algo == Algo.PBP else frames.dither()  # PBP does not use it: skip regenerating it
-        z = frames.codes if decoder.algo == Algo.CML else frames.values()  # cml takes the codes as they are
-        return decode(z, xi, frames.delta, frames.bits, config, k, decoder, init_range_m=init_range_m)
-    return decode(np.asarray(frames, dtype=np.complex128), None, None, None, config, k, decoder,
-                  init_range_m=init_range_m)
+    re-processing call (through a :class:`Decoder` they hold); see :func:`decode` for the
+    rules (and ``init_range_m``)."""
+    return Decoder(decoder).decode_batch(frames, config, k, init_range_m)

@@ -1,11 +1,9 @@
 """The counter generator of the dither (:mod:`pipeline.dsp.quantize`'s module docstring
 gives its definition): the frames' keys, the numpy reference :func:`counter_dither_numpy`
-and :func:`counter_dither`, which runs the compiled kernel of
-:mod:`pipeline.dsp.dither_kernels` when numba is installed, bit for bit the same."""
+and :func:`counter_dither`, which runs it or the compiled kernel of
+:mod:`pipeline.dsp.dither_kernels`, as its caller chooses, bit for bit the same."""
 
 from __future__ import annotations
-
-from functools import lru_cache
 
 import numpy as np
 
@@ -37,12 +35,9 @@ def _mix64(z: np.ndarray, tmp: np.ndarray) -> np.ndarray:
     return z
 
 
-@lru_cache(maxsize=16)
 def _counter_offsets(n_words: int) -> np.ndarray:
-    """``(w + 1) G`` mod 2**64 for the words w = 0 .. n_words - 1 of a frame (read-only)."""
-    out = (np.arange(n_words, dtype=np.uint64) + _U64(1)) * _GAMMA
-    out.flags.writeable = False
-    return out
+    """``(w + 1) G`` mod 2**64 for the words w = 0 .. n_words - 1 of a frame."""
+    return (np.arange(n_words, dtype=np.uint64) + _U64(1)) * _GAMMA
 
 
 def counter_keys(seeds: np.ndarray, seqs: np.ndarray) -> np.ndarray:
@@ -54,49 +49,41 @@ def counter_keys(seeds: np.ndarray, seqs: np.ndarray) -> np.ndarray:
     return _mix64(key, tmp)
 
 
-def counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int,
-                    scale: np.ndarray | None = None) -> np.ndarray:
+#: how :func:`counter_dither` draws: "numpy" (:func:`counter_dither_numpy`) or "numba" (one compiled
+#: pass, :mod:`pipeline.dsp.dither_kernels`: importing numba costs a process ~1 s and ~100 MB, so
+#: the quantizer and edge sensors draw in numpy and a decoder that runs numba anyway in numba)
+DITHER_ENGINES = ("numpy", "numba")
+
+
+def counter_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int, scale: np.ndarray | None = None,
+                   engine: str = "numpy") -> np.ndarray:
     """The counter generator's dither of frames (seeds[b], seqs[b]) times ``scale`` (B,)
-    float (None: the unit dither): (B, M, 2) complex. One compiled pass
-    (:mod:`pipeline.dsp.dither_kernels`) once :func:`warm_up` loaded it (the localizer does;
-    a process that only quantizes never imports numba), else the numpy reference
-    :func:`counter_dither_numpy`; bit for bit the same (``scale * u`` rounded once)."""
-    kernel = _dither_kernel() if _loaded else None
-    if kernel is None:
+    float (None: the unit dither): (B, M, 2) complex, drawn by ``engine`` (one of
+    :data:`DITHER_ENGINES`), bit for bit the same either way (``scale * u`` rounded once)."""
+    if engine not in DITHER_ENGINES:
+        raise ParameterError(f"counter_dither: engine={engine!r} is not one of {', '.join(DITHER_ENGINES)}")
+    if engine == "numpy":
         u = counter_dither_numpy(seeds, seqs, n_measurements)
         return u if scale is None else scale[:, None, None] * u
     b = seqs.size
     if np.size(seeds) != b or (scale is not None and np.size(scale) != b):
         raise ParameterError(f"counter_dither: {np.size(seeds)} seeds and "
                              f"{'no' if scale is None else np.size(scale)} scales for {b} frames")
-    out = np.empty((b, 4 * n_measurements))
-    # contiguous and writeable (a read-only view, e.g. np.broadcast_to, is another compiled signature)
-    kernel(np.require(seeds, np.uint64, "CW").reshape(b), np.require(seqs, np.uint64, "CW").reshape(b),
-           np.ones(b) if scale is None else np.require(scale, float, "CW").reshape(b), out)
-    return out.view(complex).reshape(b, n_measurements, 2)
-
-
-@lru_cache(maxsize=None)
-def _dither_kernel():
-    """The compiled dither, imported on first use (importing this module stays cheap); None without numba."""
     try:
         from pipeline.dsp.dither_kernels import counter_dither_into
     except ImportError:
-        return None
-    return counter_dither_into
+        raise ParameterError("counter_dither: engine 'numba' needs numba, which does not import") from None
+    out = np.empty((b, 4 * n_measurements))
+    # contiguous and writeable (a read-only view, e.g. np.broadcast_to, is another compiled signature)
+    counter_dither_into(np.require(seeds, np.uint64, "CW").reshape(b), np.require(seqs, np.uint64, "CW").reshape(b),
+                        np.ones(b) if scale is None else np.require(scale, float, "CW").reshape(b), out)
+    return out.view(complex).reshape(b, n_measurements, 2)
 
 
-#: whether :func:`warm_up` loaded the compiled dither: :func:`counter_dither` uses it from then on
-_loaded = False
-
-
-def warm_up() -> None:
-    """Load the compiled dither from numba's on-disk cache (or compile it: about 1 s) and use
-    it from then on in this process; nothing without numba. Importing numba costs a process
-    ~1 s and ~100 MB, so only the localizer, which imports it for cml anyway, calls this."""
-    global _loaded
-    _loaded = True
-    counter_dither(np.zeros(1, np.uint64), np.zeros(1, np.uint64), 1, np.ones(1))
+def load_kernel() -> None:
+    """Load the compiled dither from numba's on-disk cache (or compile it: about 1 s), so that
+    the first frame a decoder draws in numba does not wait for it."""
+    counter_dither(np.zeros(1, np.uint64), np.zeros(1, np.uint64), 1, np.ones(1), engine="numba")
 
 
 def counter_dither_numpy(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) -> np.ndarray:

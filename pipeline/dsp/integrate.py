@@ -19,7 +19,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig
 
-from pipeline.dsp.cml import cml
+from pipeline.dsp.cml import CmlOptions, cml
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.localize import Detections
@@ -69,8 +69,8 @@ def integrate(frames: QuantizedFrames, radar: RadarConfig, k: int, gate: RangeGa
         raise ParameterError(f"integrate: M={frames.codes.shape[1]} is not a whole number of ramps of {n}")
     z, xi, delta = stack_windows(frames, frames.codes.shape[0] if window is None else window)
     g = None if gate is None else gate.check(radar)
-    return cml(z, xi, delta, frames.bits, radar, k, pfa=pfa, gate=g, iters=INTEGRATE_ITERS,
-               anneal=anneal_levels(z.shape[1])).detections(radar)
+    options = CmlOptions(iters=INTEGRATE_ITERS, anneal=anneal_levels(z.shape[1]))
+    return cml(z, xi, delta, frames.bits, radar, k, pfa=pfa, gate=g, options=options).detections(radar)
 
 
 #: cml's refinement steps after each detection on stacked frames: the annealing that follows

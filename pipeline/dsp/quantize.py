@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import Literal, Sequence
 
 import numpy as np
@@ -252,13 +252,14 @@ def _seedseq_dither(seeds: np.ndarray, seqs: np.ndarray, n_measurements: int) ->
     return out
 
 
-def unit_dither(dither_seed, seq, n_measurements: int, generator=DITHER_COUNTER) -> np.ndarray:
+def unit_dither(dither_seed, seq, n_measurements: int, generator=DITHER_COUNTER, engine: str = "numpy") -> np.ndarray:
     """Unit dither ``u`` of frames ``seq`` (int or (B,) ints in [0, 2**64)): (B, M, 2)
     complex, Re and Im i.i.d. U[-1/2, 1/2), real parts of all M x 2 entries drawn first,
     then imaginary parts. ``dither_seed``: one seed, or one per frame ((B,) uint64, for a
     batch of several sensors). ``generator``: :data:`DITHER_COUNTER` (vectorized),
     :data:`DITHER_SEEDSEQ` (``SeedSequence(dither_seed, spawn_key=(seq,))`` per frame), or
-    one per frame ((B,) array of names). See the module docstring for both."""
+    one per frame ((B,) array of names). See the module docstring for both. ``engine``: how
+    the counter generator draws (:data:`pipeline.dsp.dither.DITHER_ENGINES`; the same bits)."""
     seqs = check_seq(seq)
     seeds = check_uint64(dither_seed, "dither_seed")
     if seeds.size != seqs.size:
@@ -268,11 +269,12 @@ def unit_dither(dither_seed, seq, n_measurements: int, generator=DITHER_COUNTER)
     if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)) or n_measurements < 0:
         raise ParameterError(f"n_measurements={n_measurements!r} must be an integer >= 0")
     generator = check_generator(generator, seqs.size)
+    counter = partial(counter_dither, engine=engine)
     if isinstance(generator, str):
-        gen = counter_dither if generator == DITHER_COUNTER else _seedseq_dither
+        gen = counter if generator == DITHER_COUNTER else _seedseq_dither
         return gen(seeds, seqs, int(n_measurements))
     out = np.empty((seqs.size, int(n_measurements), 2), dtype=complex)
-    for name, gen in ((DITHER_COUNTER, counter_dither), (DITHER_SEEDSEQ, _seedseq_dither)):
+    for name, gen in ((DITHER_COUNTER, counter), (DITHER_SEEDSEQ, _seedseq_dither)):
         mask = generator == name
         if mask.any():
             out[mask] = gen(seeds[mask], seqs[mask], int(n_measurements))
@@ -447,9 +449,11 @@ class QuantizedFrames:
         alpha = self.alpha
         return alpha > 0 if isinstance(alpha, float) else bool(np.all(np.asarray(alpha) > 0))
 
-    def dither(self) -> np.ndarray | None:
+    def dither(self, engine: str = "numpy") -> np.ndarray | None:
         """The dither xi added before quantization, regenerated from the seeds: (B, M, 2);
-        None when the frames are not all dithered (there is no dither to use)."""
+        None when the frames are not all dithered (there is no dither to use). ``engine``:
+        how the counter generator draws (:data:`pipeline.dsp.dither.DITHER_ENGINES`; the same
+        bits; "numba" where the process runs numba anyway, a decoder)."""
         if not self.dithered:
             return None
         seed, seq, gen = self.dither_seed, self.seq, self.generator
@@ -464,8 +468,8 @@ class QuantizedFrames:
             elif isinstance(seed, np.ndarray) and seed.dtype == np.uint64 and seed.shape == seq.shape:
                 seeds = seed
         if seeds is not None and scale.shape == seq.shape:
-            return counter_dither(seeds, seq, self.codes.shape[1], scale)  # scaled in the same pass
-        return scale[:, None, None] * unit_dither(seed, seq, self.codes.shape[1], gen)
+            return counter_dither(seeds, seq, self.codes.shape[1], scale, engine)  # scaled in the same pass
+        return scale[:, None, None] * unit_dither(seed, seq, self.codes.shape[1], gen, engine)
 
 
 def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_seed=None,

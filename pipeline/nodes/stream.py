@@ -24,9 +24,9 @@ from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.calibration import Calibration
-from pipeline.dsp.cml import kernels_ready, warm_up_kernels
-from pipeline.dsp.dither import warm_up as warm_up_dither
-from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, DitherUnavailable, decode_batch
+from pipeline.dsp.cml import load_kernels
+from pipeline.dsp.dither import load_kernel as load_dither_kernel
+from pipeline.dsp.decode import DEFAULT_ALGO, Algo, Decoder, DecoderConfig, DitherUnavailable
 from pipeline.errors import CalibrationError, ParameterError
 from pipeline.nodes.front_end import FrontEndCheck
 from pipeline.nodes.frame_codec import (CODECS, MAX_SAMPLE, FrameCodec, bad_samples, check_frames, codec_for,
@@ -411,18 +411,22 @@ class LocalizeNode(FrameNode):
         #: for none); a sensor has an entry only while it has stats (forgotten when it expires)
         self._last: dict[str, tuple[int, np.ndarray]] = {}
         self._warm = config.algo == Algo.CML and config.full_search_every > 1
-        self._decoder = config.decoder()  # checked once, not per batch
+        #: the decoder (checked once, not per batch) and the tables and buffers it keeps between batches
+        self._decoder = Decoder(config.decoder())
+        self._loading: threading.Thread | None = None  # cml's other kinds of kernels, loaded after start
         self.front_end = FrontEndCheck()  # a front end's return in the first range bins, per sensor
         #: the targets of the last frame published: (sensor id, seq, targets as dicts), for a status line
         self.last_targets: tuple[str, int, list[dict]] | None = None
 
     def start(self) -> "LocalizeNode":
-        if self.config.algo == Algo.CML:
+        if self.config.algo == Algo.CML and self._decoder.cml(self.config.radar).engine == "numba":
             # cml's kernels of 1-bit codes from numba's cache (~1 s; `make` compiles them at install)
-            # before subscribing (the session already listens), the other kinds' after in the thread
-            warm_up_kernels(wait="common")
-        if self.config.algo != Algo.PBP:
-            warm_up_dither()  # the compiled dither (pipeline.dsp.dither_kernels), from the same cache
+            # before subscribing (the session already listens), the other kinds' after in a thread
+            load_kernels(common=True)
+            self._loading = threading.Thread(target=load_kernels, name="cml-kernels", daemon=True)
+            self._loading.start()
+        if self.config.algo != Algo.PBP and self._decoder.dither_engine == "numba":
+            load_dither_kernel()  # the compiled dither (pipeline.dsp.dither_kernels), from the same cache
         return super().start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
@@ -497,17 +501,15 @@ class LocalizeNode(FrameNode):
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
         decoder = self._decoder
-        if decoder.algo == Algo.CML and not kernels_ready(common=True):  # a node never started (tests)
-            warm_up_kernels(wait="common")
         n = len(headers)
         sensors = [str(s) for s in headers.sensor_id]
         init = self._init_ranges(sensors)
 
         def compute(idx):
             if len(idx) == n:
-                return decode_batch(frames, radar, cfg.k, decoder, init_range_m=init)
-            return decode_batch(frames.take(idx) if isinstance(frames, QuantizedFrames) else frames[idx],
-                                radar, cfg.k, decoder, init_range_m=None if init is None else init[idx])
+                return decoder.decode_batch(frames, radar, cfg.k, init_range_m=init)
+            return decoder.decode_batch(frames.take(idx) if isinstance(frames, QuantizedFrames) else frames[idx],
+                                        radar, cfg.k, init_range_m=None if init is None else init[idx])
 
         def failed(i, exc):
             self._failed(headers.sensor_id[i], int(headers.seq[i]), keys[i], exc)

@@ -2,7 +2,7 @@
 
 - :mod:`.sensor`: ``sim``, ``drive``
 - :mod:`.stream`: ``quantize``, ``localize``, ``source``, ``router``, ``run``
-- :mod:`.record`: ``record``, ``recover``, ``replay``
+- :mod:`.record`: ``record``, ``recover``, ``replay``, ``info``
 - :mod:`.analysis`: ``montecarlo``, ``montecarlo-time``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
 - :mod:`.bringup`: ``capture``, ``inspect`` (an unknown sensor's layout)

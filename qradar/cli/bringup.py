@@ -14,6 +14,8 @@ from pathlib import Path
 from radar_driver.capture import MODES, Capture, CaptureConfig, run_capture
 from radar_driver.inspection import Reflector, format_report, inspect_capture
 from radar_driver.profile import CHIRP_SELECT, packaged_profiles
+from replay.errors import ReplayError
+from replay.mcapcheck import MAGIC as MCAP_MAGIC
 from replay.outputs import check_new_file
 
 from .common import force_option, pos_int
@@ -96,6 +98,14 @@ def cmd_capture(args) -> int:
 
 
 def cmd_inspect(args) -> int:
+    try:
+        with open(args.file, "rb") as fh:
+            head = fh.read(len(MCAP_MAGIC))
+    except OSError:
+        head = b""  # Capture.read says why it cannot be read
+    if head == MCAP_MAGIC:
+        raise ReplayError(f"{args.file} is an MCAP recording, not a capture of `qradar capture`: "
+                          f"`qradar info {args.file}` says what it holds")
     capture = Capture.read(args.file)
     profiles = packaged_profiles() + [p for p in args.profile if p not in packaged_profiles()] if args.profile else None
     report = inspect_capture(capture, profiles, ramps_per_frame=args.ramps, chirp_select=args.chirp_select,

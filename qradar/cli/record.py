@@ -1,6 +1,6 @@
 """Recording commands: ``record`` (zenoh -> MCAP; ``record --verify`` checks files),
-``recover`` (a cut-short or damaged MCAP -> a complete one of what reads) and ``replay``
-(MCAP -> zenoh)."""
+``recover`` (a cut-short or damaged MCAP -> a complete one of what reads), ``replay``
+(MCAP -> zenoh) and ``info`` (what a recording holds)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
+from replay.mcapinfo import describe, format_info
 from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import OnWriteError, RecorderNode, RecordingState
@@ -60,6 +61,18 @@ def add_commands(sub) -> None:
                    help="publish under this key prefix instead of the recorded one (e.g. replay)")
     bus_options(p)
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("info", help="what a recording holds: sensors, topics with counts and rates, time span, the "
+                       "radar, quantizer, decoder, calibration and truth, the losses recorded, recovery, split files",
+                       description="Describe MCAP recordings from their summary and metadata alone (no message is "
+                       "read: an hour in well under a second). A file without a summary (cut short by a kill, its "
+                       "summary damaged) is read whole, every chunk's CRC checked, and says so.")
+    p.add_argument("file", type=Path, nargs="+", help="MCAP recordings")
+    p.add_argument("--json", action="store_true", help="one JSON object per file (what qradar.open_recording("
+                   "FILE).info() returns)")
+    p.add_argument("--check", action="store_true", help="also read every chunk, its CRC checked, and report the "
+                   "damage found (as `qradar record --verify`; takes as long as reading the file)")
+    p.set_defaults(func=cmd_info)
 
 
 def write_error_options(p, on_stop: str) -> None:
@@ -125,6 +138,16 @@ def cmd_recover(args) -> int:
               f"{r['lost']} messages lost {r['lost_by_topic']}; each named in the JSON line and in its "
               "qradar.recovery metadata", file=sys.stderr)
     print(json.dumps({**r, "source": str(args.file), "file": str(args.output)}))
+    return 0
+
+
+def cmd_info(args) -> int:
+    for i, path in enumerate(args.file):
+        info = describe(path, check=args.check)
+        if args.json:
+            print(json.dumps(info), flush=True)
+        else:
+            print(("\n" if i else "") + format_info(info), flush=True)
     return 0
 
 

@@ -1,15 +1,19 @@
 """Compiled (numba) search of the oversampled range grid from a coarser inverse FFT, for
-:mod:`pipeline.dsp.cml_detect_kernels`: the peak of the joint energy (detection, and the
-count test's numerator) and the mean of that energy over the points not masked (the count
-test's denominator), without the fine grid's FFT: the mean exactly the fine grid's (to
-rounding), the peak the fine grid's by a bound (Riesz) at a maximum and every cell by a
-masked point summed, measured against the full grid (tests/test_cml_count.py).
+detection and the count test (:mod:`pipeline.dsp.cml.kernels.detect`): the peak of the joint
+energy (detection, and the count test's numerator) and the mean of that energy over the
+points not masked (the count test's denominator), without the fine grid's FFT: the mean
+exactly the fine grid's (to rounding), the peak the fine grid's by a bound (Riesz) at a
+maximum and every cell by a masked point summed, measured against the full grid
+(tests/test_cml_count.py).
 
-Grids: the fine one of L = ``oversample`` N points (``table`` (L,) its twiddles
+Grids: the fine one of L = ``oversample`` N points (``grid.table`` (L,) its twiddles
 ``exp(2 pi i k / L)``), the coarse one of Lc = L / ``ratio`` points, ``uc`` (2, Lc) the
-zero-padded inverse FFT per antenna of ``x`` (2, >= N) (its first N points). Energies in the
-fine FFT's scale (``|ifft(x, L)|^2`` summed over the antennas). ``near`` (L,) bool: within the
-guard of the targets found; ``outside`` (L,) bool: beyond the range gate."""
+zero-padded inverse FFT per antenna of ``x`` (2, >= N) (its first N points). Energies in
+the fine FFT's scale (``|ifft(x, L)|^2`` summed over the antennas). The work arrays of a
+search are a :data:`~pipeline.dsp.cml.kernels.layout.Scratch` ``s``: ``s.near`` (L,) bool
+within the guard of the targets found, ``s.energy`` (L,) the fine energies found
+(``s.known``), ``s.coarse`` (Lc,) the coarse energies; ``gate.outside`` (L,) bool: beyond
+the range gate."""
 
 from __future__ import annotations
 
@@ -18,23 +22,23 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.dsp.cml_kernels import _FAST
-from pipeline.dsp.kernel_cache import drop_stale
+from pipeline.dsp.cml.kernels.layout import FAST, JIT
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi) -> float:
-    """Range (bins) of grid point ``best`` refined by a parabola through its energy and its neighbours'."""
+@njit(**JIT, inline="always")
+def parabola(best, left, centre, right, oversample, gate) -> float:
+    """Range (bins) of grid point ``best`` refined by a parabola through its energy and its
+    neighbours', in the gate (``gate.use``)."""
     curv = left - 2.0 * centre + right
     off = 0.5 * (left - right) / curv if curv < 0.0 else 0.0
     nu0 = (best + min(max(off, -0.5), 0.5)) / oversample
-    if use_gate:
-        nu0 = min(max(nu0, gate_lo), gate_hi)
+    if gate.use:
+        nu0 = min(max(nu0, gate.lo), gate.hi)
     return nu0
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _fine_energy(x, n, p, table):
+@njit(**JIT, inline="always")
+def fine_energy(x, n, p, table):
     """Joint energy at point ``p`` of the inverse FFT of ``x`` (2, >= N) zero-padded to L =
     ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
     ``|U1|^2 + |U2|^2``, ``U = (1 / L) sum_i x[i] exp(2 pi i i p / L)`` summed directly."""
@@ -57,21 +61,23 @@ def _fine_energy(x, n, p, table):
     return (ar * ar + br * br) + (ai * ai + bi * bi)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(**JIT, inline="always")
 def _fine_value(x, n, p, table, near, energy, known) -> float:
     """The masked fine energy at ``p`` (0 within the guard ``near``), computed once
-    (:func:`_fine_energy`) and kept in ``energy`` (``known``)."""
+    (:func:`fine_energy`) and kept in ``energy`` (``known``). (The kernels' hot loops take
+    arrays, not the namedtuples holding them: a field read from a namedtuple is a reference
+    counted each time, measured 10-15 % of the search.)"""
     if near[p]:
         return 0.0
     if not known[p]:
-        energy[p] = _fine_energy(x, n, p, table)
+        energy[p] = fine_energy(x, n, p, table)
         known[p] = True
     return energy[p]
 
 
-@njit(**_FAST)
+@njit(**FAST)
 def _cell_energies(x, n, s, table, offsets, v, out):
-    """:func:`_fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
+    """:func:`fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
     (2, D, N) (real and imaginary parts of ``exp(2 pi i i d / L)``) into ``out`` (D,), in one
     pass: ``x`` turned by the twiddles of point ``s`` into ``v`` (4, N) (work), then one
     vectorized sum a point."""
@@ -99,16 +105,17 @@ def _cell_energies(x, n, s, table, offsets, v, out):
         out[j] = (ar * ar + br * br) + (ai * ai + bi * bi)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _open_cell(c, ratio, half, size, outside, use_gate) -> bool:
-    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate."""
+@njit(**JIT, inline="always")
+def _open_cell(c, ratio, half, size, use, outside) -> bool:
+    """Whether the fine points within ``half`` of coarse point ``c`` hold one inside the gate
+    (``use``: a gate, ``outside`` (L,) the points beyond it)."""
     for d in range(-half, half + 1):
-        if not use_gate or not outside[(c * ratio + d) % size]:
+        if not use or not outside[(c * ratio + d) % size]:
             return True
     return False
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(**JIT, inline="always")
 def _mark_edge(lo, hi, ratio, lc, edge):
     """``edge[c]`` = True for the coarse points ``c`` within ``ratio`` fine points of the
     fine points ``lo..hi`` (masked ones), modulo ``lc``."""
@@ -116,7 +123,7 @@ def _mark_edge(lo, hi, ratio, lc, edge):
         edge[c % lc] = True
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT)
 def gate_edge(outside, lc, edge):
     """``edge`` (Lc,) bool: the coarse points within a coarse step of a point beyond the gate
     (``outside`` (L,)), as :func:`guard` marks them."""
@@ -131,11 +138,13 @@ def gate_edge(outside, lc, edge):
             _mark_edge(i, e, ratio, lc, edge)
 
 
-@njit(cache=True, nogil=True)
-def coarse_energies(uc, size, coarse, energy, known) -> float:
+@njit(**JIT, inline="always")
+def coarse_energies(uc, size, s) -> float:
     """The joint energy of the coarse inverse FFT ``uc`` (2, Lc) in the fine FFT's scale
-    (L = ``size`` points) into ``coarse`` (Lc,), and into ``energy`` (L,) at the fine points
-    it samples (``known`` (L,) then True there only). Returns its sum over the Lc points."""
+    (L = ``size`` points) into ``s.coarse`` (Lc,), and into ``s.energy`` (L,) at the fine
+    points it samples (``s.known`` (L,) then True there only). Returns its sum over the Lc
+    points."""
+    coarse, energy, known = s.coarse, s.energy, s.known
     lc = uc.shape[1]
     ratio = size // lc
     known[:] = False
@@ -150,7 +159,7 @@ def coarse_energies(uc, size, coarse, energy, known) -> float:
     return _sum(coarse)
 
 
-@njit(**_FAST)
+@njit(**FAST)
 def _sum(v) -> float:
     """``sum(v)`` (v (J,) float), vectorized."""
     total = 0.0
@@ -159,18 +168,19 @@ def _sum(v) -> float:
     return total
 
 
-@njit(cache=True, nogil=True)
-def guard(nu, live, oversample, guard_bins, use_gate, gate_edges, near, edge):
-    """``near`` (L,) = the fine points within ``guard_bins`` of the live targets ``nu`` (T,)
-    bins (later targets overwrite earlier ones, as :func:`pipeline.dsp.cml_detect._energy`),
-    and ``edge`` (Lc,) the coarse points within a coarse step of a live target's guard or
-    (``use_gate``) of ``gate_edges`` (Lc,) (:func:`gate_edge`). Returns the guard's reach
+@njit(**JIT, inline="always")
+def guard(nu, live, oversample, guard_bins, gate, s):
+    """``s.near`` (L,) = the fine points within ``guard_bins`` of the live targets ``nu``
+    (T,) bins (later targets overwrite earlier ones, as numpy's ``put_along_axis``), and
+    ``s.edge`` (Lc,) the coarse points within a coarse step of a live target's guard or
+    (``gate.use``) of ``gate.edges`` (Lc,) (:func:`gate_edge`). Returns the guard's reach
     (fine points either side of a target's nearest one)."""
+    near, edge = s.near, s.edge
     size, lc = near.shape[0], edge.shape[0]
     ratio = size // lc
     near[:] = False
-    if use_gate:
-        edge[:] = gate_edges
+    if gate.use:
+        edge[:] = gate.edges
     else:
         edge[:] = False
     reach = int(math.ceil(guard_bins * oversample)) - 1
@@ -183,101 +193,126 @@ def guard(nu, live, oversample, guard_bins, use_gate, gate_edges, near, edge):
     return reach
 
 
-@njit(cache=True, nogil=True)
-def coarse_peak(x, n, coarse, energy, known, near, edge, outside, use_gate, rho, table, offsets, turned, cell, span,
-                bar, stop):
+@njit(**JIT, inline="always")
+def coarse_peak(x, n, grid, gate, s, bar, stop):
     """The fine grid's peak (the first of equal ones, as argmax) of the joint energy, 0
-    within the guard ``near``, among the points inside the gate (``use_gate``): its point
-    and its energy (-inf when no point is inside). From the coarse energies ``coarse`` (Lc,)
-    (:func:`coarse_energies`, which also fills ``energy``, ``known`` (L,)): the fine energy
-    is summed directly (:func:`_cell_energies`) at the fine points within ``ratio // 2`` of
-    every coarse point whose energy reaches ``rho`` times the best one found. A maximum of
-    ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps more than
+    within the guard ``s.near``, among the points inside the gate (``gate.use``): its point
+    and its energy (-inf when no point is inside). From the coarse energies ``s.coarse``
+    (Lc,) (:func:`coarse_energies`, which also fills ``s.energy``, ``s.known`` (L,)): the
+    fine energy is summed directly (:func:`_cell_energies`) at the fine points within
+    ``ratio // 2`` of every coarse point whose energy reaches ``grid.rho`` times the best one
+    found. A maximum of ``|U|^2`` (a trigonometric polynomial of degree N - 1) keeps more than
     ``cos^2(pi (N - 1) / (4 N)) > 1/2`` of itself 1/4 bin away (Riesz; a tone: 0.81); a peak
     against the guard or the gate need not be a maximum, so a coarse point within a coarse
-    step of a masked fine point (``edge`` (Lc,), :func:`guard`) counts its neighbours'
-    energy too, and its points against the mask are summed whatever its energy (a peak there
-    need not be a maximum: :func:`_against_mask`). ``offsets`` (2,
-    2 (ratio // 2), N): :func:`_cell_energies`' of the offsets
-    ``-ratio // 2 .. -1, 1 .. ratio // 2``; ``turned`` (4, N), ``cell`` (2 (ratio // 2),),
-    ``span`` (Lc,): work.
+    step of a masked fine point (``s.edge`` (Lc,), :func:`guard`) counts its neighbours'
+    energy too, and its points against the mask are summed whatever its energy
+    (:func:`_against_mask`). ``s.offsets`` (2, 2 (ratio // 2), N): :func:`_cell_energies`' of
+    the offsets ``-ratio // 2 .. -1, 1 .. ratio // 2``.
 
     ``bar``: only a peak reaching it is sought (the count test's threshold times the mean:
     the cells that cannot reach it are skipped): the peak found is the same when it does,
     else an energy below ``bar`` (-inf: always the peak); ``stop``: the first point found
     reaching ``bar`` instead (whether one does, all the count test asks)."""
-    size = table.shape[0]
+    at, floor, first = _first_cell(grid, gate, s)
+    if stop and floor >= bar:  # a coarse point reaches it
+        return at, floor
+    floor = max(floor, bar)
+    if first >= 0 and s.coarse[first] < grid.rho * floor:
+        first = -1
+    return _search_cells(x, n, grid, gate, s, first, floor, bar, stop)
+
+
+@njit(**JIT, inline="always")
+def _first_cell(grid, gate, s):
+    """The best coarse point as a fine one (its point and value, -1 beyond the gate), the
+    cell of the largest coarse energy (the first of equal ones; -1: none inside the gate),
+    and into ``s.span`` (Lc,) what each cell may hold: its coarse energy, by a masked point
+    its neighbours' too."""
+    coarse, span, edge, near = s.coarse, s.span, s.edge, s.near
+    use, outside = gate.use, gate.outside
+    size = grid.table.shape[0]
     lc = coarse.shape[0]
     ratio = size // lc
     half = ratio // 2
     floor = -math.inf  # the best value of the coarse points as fine ones (-1 beyond the gate)
     at = 0
-    # the cell of the largest coarse energy first (the first of equal ones): the others then mostly fall short
     first = -1
     for c in range(lc):
         p = c * ratio
-        v = -1.0 if use_gate and outside[p] else (0.0 if near[p] else coarse[c])
+        v = -1.0 if use and outside[p] else (0.0 if near[p] else coarse[c])
         if v > floor:
             floor = v
             at = p
-        if (first < 0 or coarse[c] > coarse[first]) and (not use_gate or _open_cell(c, ratio, half, size, outside,
-                                                                                      use_gate)):
+        if (first < 0 or coarse[c] > coarse[first]) and (not use or _open_cell(c, ratio, half, size, use, outside)):
             first = c
-        # what a cell may hold: its coarse energy, by a masked point its neighbours' too
         span[c] = max(coarse[c], max(coarse[c - 1], coarse[(c + 1) % lc])) if edge[c] else coarse[c]
-    if stop and floor >= bar:  # a coarse point reaches it
-        return at, floor
-    floor = max(floor, bar)
-    if first >= 0 and coarse[first] < rho * floor:
-        first = -1
+    return at, floor, first
+
+
+@njit(**JIT, inline="always")
+def _search_cells(x, n, grid, gate, s, first, floor, bar, stop):
+    """:func:`coarse_peak`'s search of the cells, ``first`` first: ``(best, top)``."""
+    table, rho = grid.table, grid.rho
+    use, outside = gate.use, gate.outside
+    near, energy, known, span, edge = s.near, s.energy, s.known, s.span, s.edge
+    size = table.shape[0]
+    lc = span.shape[0]
+    ratio = size // lc
+    half = ratio // 2
     top = -math.inf
     best = 0
     lim = rho * floor
     for step in range(lc + 1):
         c = first if step == 0 else step - 1
         if c < 0 or (step > 0 and c == first) or (span[c] < lim and not edge[c]) or not _open_cell(
-                c, ratio, half, size, outside, use_gate):
+                c, ratio, half, size, use, outside):
             continue
         if span[c] < lim:  # by a masked point: only its points against the mask (a peak there need not be a maximum)
-            top, best = _against_mask(x, n, c * ratio, half, table, near, energy, known, outside, use_gate, top, best)
-            lim = rho * max(floor, top)
-            if stop and top >= bar:
-                break
-            continue
-        fresh = False  # a point of the cell not summed yet (by another search of the same energies)
-        for j in range(2 * half):
-            fresh = fresh or not known[(c * ratio + j - half + (j >= half)) % size]
-        if fresh:
-            _cell_energies(x, n, c * ratio, table, offsets, turned, cell)
-            for j in range(2 * half):
-                p = (c * ratio + j - half + (j >= half)) % size
-                if not known[p]:
-                    energy[p] = cell[j]
-                    known[p] = True
-        for d in range(-half, half + 1):
-            p = (c * ratio + d) % size
-            v = -1.0 if use_gate and outside[p] else _fine_value(x, n, p, table, near, energy, known)
-            if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
-                top = v
-                best = p
+            top, best = _against_mask(x, n, c * ratio, half, table, use, outside, near, energy, known, top, best)
+        else:
+            _sum_cell(x, n, c * ratio, half, table, energy, known, s.offsets, s.turned, s.cell)
+            for d in range(-half, half + 1):
+                p = (c * ratio + d) % size
+                v = -1.0 if use and outside[p] else _fine_value(x, n, p, table, near, energy, known)
+                if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
+                    top = v
+                    best = p
         lim = rho * max(floor, top)
         if stop and top >= bar:
             break
     return best, top
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _against_mask(x, n, p0, half, table, near, energy, known, outside, use_gate, top, best):
+@njit(**JIT, inline="always")
+def _sum_cell(x, n, p0, half, table, energy, known, offsets, turned, cell):
+    """The fine energies of the points within ``half`` of ``p0`` not summed yet (by another
+    search of the same energies) into ``energy`` (``known``), in one pass
+    (:func:`_cell_energies`, its work arrays ``offsets``, ``turned``, ``cell``)."""
+    size = table.shape[0]
+    fresh = False
+    for j in range(2 * half):
+        fresh = fresh or not known[(p0 + j - half + (j >= half)) % size]
+    if fresh:
+        _cell_energies(x, n, p0, table, offsets, turned, cell)
+        for j in range(2 * half):
+            p = (p0 + j - half + (j >= half)) % size
+            if not known[p]:
+                energy[p] = cell[j]
+                known[p] = True
+
+
+@njit(**JIT, inline="always")
+def _against_mask(x, n, p0, half, table, use, outside, near, energy, known, top, best):
     """``(top, best)`` updated with the fine points within ``half`` of ``p0`` that are not
-    masked but have a masked neighbour (within the guard ``near`` or beyond the gate): the
-    grid's peak is a maximum of the energy or such a point."""
+    masked but have a masked neighbour (within the guard ``near`` or beyond the gate, ``use``
+    and ``outside``): the grid's peak is a maximum of the energy or such a point."""
     size = table.shape[0]
     for d in range(-half, half + 1):
         p = (p0 + d) % size
         lo, hi = (p - 1) % size, (p + 1) % size
-        if near[p] or (use_gate and outside[p]):
+        if near[p] or (use and outside[p]):
             continue
-        if near[lo] or near[hi] or (use_gate and (outside[lo] or outside[hi])):
+        if near[lo] or near[hi] or (use and (outside[lo] or outside[hi])):
             v = _fine_value(x, n, p, table, near, energy, known)
             if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
                 top = v
@@ -285,22 +320,24 @@ def _against_mask(x, n, p0, half, table, near, energy, known, outside, use_gate,
     return top, best
 
 
-@njit(cache=True, nogil=True)
-def peak_range(x, n, best, oversample, table, near, energy, known, use_gate, gate_lo, gate_hi) -> float:
+@njit(**JIT, inline="always")
+def peak_range(x, n, best, grid, gate, s) -> float:
     """Range (bins) of fine point ``best`` refined by the parabola through its masked energy
-    and its neighbours' (:func:`_parabola`), in the gate (``use_gate``)."""
+    and its neighbours' (:func:`parabola`), in the gate (``gate.use``)."""
+    table, near, energy, known = grid.table, s.near, s.energy, s.known
     size = table.shape[0]
     left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
     centre = _fine_value(x, n, best, table, near, energy, known)
     right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
-    return _parabola(best, left, centre, right, oversample, use_gate, gate_lo, gate_hi)
+    return parabola(best, left, centre, right, grid.oversample, gate)
 
 
 # -- the mean: sums of the fine energy over runs of fine points, from the coarse energies ------
-@njit(**_FAST)
+@njit(**FAST)
 def _cumulative(coarse, tables, e, size) -> float:
-    """``Psi(e) = sum_k coarse[k] G(e - k ratio)`` (:func:`run_tables`) for fine point ``e``
-    (any integer): a dot product of length Lc with a contiguous slice of ``tables``."""
+    """``Psi(e) = sum_k coarse[k] G(e - k ratio)`` (the run tables,
+    :func:`pipeline.dsp.cml.grid.run_tables`) for fine point ``e`` (any integer): a dot
+    product of length Lc with a contiguous slice of ``tables``."""
     lc = coarse.shape[0]
     ratio = size // lc
     e %= size
@@ -312,8 +349,8 @@ def _cumulative(coarse, tables, e, size) -> float:
     return acc
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _run_sum(coarse, total, tables, a, b, size) -> float:
+@njit(**JIT, inline="always")
+def run_sum(coarse, total, tables, a, b, size) -> float:
     """The fine energy summed over the fine points ``a..b`` (an unwrapped run, b >= a) from
     the coarse energies ``coarse`` (Lc,) (sum ``total``):
     ``(b - a + 1) total / Lc + Psi(b + 1) - Psi(a)`` (:func:`_cumulative`)."""
@@ -321,7 +358,7 @@ def _run_sum(coarse, total, tables, a, b, size) -> float:
     return (b - a + 1) * total / lc + _cumulative(coarse, tables, b + 1, size) - _cumulative(coarse, tables, a, size)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(**JIT, inline="always")
 def _add_cumulative(tables, p, sign, ratio, weights):
     """``weights[k] += sign G(p - k ratio)`` for k < Lc (fine point ``p`` in [0, L))."""
     lc = weights.shape[0] - 1
@@ -331,7 +368,7 @@ def _add_cumulative(tables, p, sign, ratio, weights):
         weights[k] += sign * row[s + k]
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT)
 def gate_weights(outside, tables, lc, weights) -> int:
     """``weights`` (Lc + 1,): the sum of the fine energy over the points inside the gate
     (``outside`` (L,) False) is ``sum_k weights[k] coarse[k] + weights[Lc] total``
@@ -355,21 +392,23 @@ def gate_weights(outside, tables, lc, weights) -> int:
     return inside
 
 
-@njit(cache=True, nogil=True)
-def open_sum(coarse, total, tables, nu, oversample, reach, near, outside, use_gate, weights, inside, seen):
-    """The sum of the fine energy over the points inside the gate (``use_gate``: ``weights``
-    (Lc + 1,) and ``inside`` of :func:`gate_weights`) and not within the guard (``near``
-    (L,), :func:`guard` of ``reach`` fine points about the targets ``nu`` (T,) bins), and
-    how many those points are: the sum inside less the guard's points inside, summed by
-    runs (:func:`_run_sum`) from the coarse energies ``coarse`` (Lc,) (sum ``total``).
-    ``seen`` (L,) bool: work, all False (left so)."""
+@njit(**JIT, inline="always")
+def open_sum(total, nu, reach, grid, gate, s):
+    """The sum of the fine energy over the points inside the gate (``gate.use``:
+    ``grid.weights`` (Lc + 1,) and ``grid.inside`` of :func:`gate_weights`) and not within
+    the guard (``s.near`` (L,), :func:`guard` of ``reach`` fine points about the targets
+    ``nu`` (T,) bins), and how many those points are: the sum inside less the guard's points
+    inside, summed by runs (:func:`run_sum`) from the coarse energies ``s.coarse`` (Lc,) (sum
+    ``total``). ``s.seen`` (L,) bool: work, all False (left so)."""
+    coarse, near, seen, tables, weights = s.coarse, s.near, s.seen, grid.tables, grid.weights
+    use, outside, oversample = gate.use, gate.outside, grid.oversample
     size = near.shape[0]
     lc = coarse.shape[0]
-    if use_gate:
+    if use:
         kept = weights[lc] * total
         for k in range(lc):
             kept += weights[k] * coarse[k]
-        cells = inside
+        cells = grid.inside
     else:
         kept = (size // lc) * total
         cells = size
@@ -379,25 +418,19 @@ def open_sum(coarse, total, tables, nu, oversample, reach, near, outside, use_ga
         run = False
         for d in range(-reach, reach + 1):
             p = (c + d) % size
-            if near[p] and not (use_gate and outside[p]) and not seen[p]:
+            if near[p] and not (use and outside[p]) and not seen[p]:
                 seen[p] = True
                 cells -= 1
                 if not run:
                     start = c + d
                     run = True
             elif run:
-                kept -= _run_sum(coarse, total, tables, start, c + d - 1, size)
+                kept -= run_sum(coarse, total, tables, start, c + d - 1, size)
                 run = False
         if run:
-            kept -= _run_sum(coarse, total, tables, start, c + reach, size)
+            kept -= run_sum(coarse, total, tables, start, c + reach, size)
     for j in range(nu.shape[0]):
         c = int(np.rint(nu[j] * oversample))
         for d in range(-reach, reach + 1):
             seen[(c + d) % size] = False
     return (kept if cells > 0 else 0.0), cells
-
-
-# numba keys a cached kernel on this file alone: the kernels compiled with cml_kernels' flags
-# (_FAST), and those that call them, are dropped from the cache when that file changes
-drop_stale(__file__, (_cell_energies, _sum, _cumulative, coarse_energies, coarse_peak, open_sum, gate_weights),
-           ("cml_kernels.py",))

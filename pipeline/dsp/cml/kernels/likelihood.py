@@ -1,13 +1,13 @@
-"""Compiled (numba) likelihood of the codes for :mod:`pipeline.dsp.cml_kernels`: the negative
-log-likelihood (NLL) of one frame's codes at a model and its first and second derivatives in
-each real measurement, summed over the ramps (layouts and kinds: :mod:`pipeline.dsp.cml_kernels`).
+"""Compiled (numba) likelihood of the codes: the negative log-likelihood (NLL) of one frame's
+codes at a model and its first and second derivatives in each real measurement, summed over
+the ramps (layouts and kinds: :mod:`pipeline.dsp.cml.kernels.layout`).
 
 The logistic likelihood, the common case, runs as flat float32 loops without branches or
 calls that LLVM vectorizes (AVX2: 8 codes an instruction; ``error_model="numpy"`` keeps
 divisions free of Python's zero checks, which would stop it), with ``exp`` and ``log1p``
-as polynomials without divisions (:func:`_softplus`; 3e-7 of the NLL, 1e-6 of its
-derivatives against the numpy reference's exact functions, :class:`pipeline.dsp.cml_fit._Codes`). The Gaussian
-likelihood is scalar float64. Compiled on first use and cached on disk (``cache=True``).
+as polynomials without divisions (:func:`softplus`; 3e-7 of the NLL, 1e-6 of its
+derivatives against the numpy reference's exact functions, :mod:`pipeline.dsp.cml.reference`).
+The Gaussian likelihood is scalar float64.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import math
 import numpy as np
 from numba import njit
 
+from pipeline.dsp.cml.kernels.layout import JIT
 
 LSQ, ONE_BIT, MULTI_BIT = 0, 1, 2
 LOGISTIC, GAUSSIAN = 0, 1
@@ -43,7 +44,7 @@ _LOG1P_C = tuple(_F32(c) for c in (1.0, -0.499999225, 0.333302051, -0.249553785,
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy", inline="always")
-def _exp_neg(a):
+def exp_neg(a):
     """``exp(-a)`` for float32 ``a`` in [0, SOFTPLUS_REACH], branch-free (vectorizes without
     SVML): ``exp(-a / 32)`` by :data:`_EXP_C` (Horner's rule: fewest operations), squared 5
     times (relative error < 1.1e-5 over the range, float32 rounding doubled by each squaring;
@@ -59,7 +60,7 @@ def _exp_neg(a):
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy", inline="always")
-def _log1p_small(e):
+def log1p_small(e):
     """``log(1 + e)`` for float32 e in [0, 1]: ``e`` times :data:`_LOG1P_C` by Horner's rule,
     no division (relative error < 1.2e-7). Horner's, not Estrin's: no power of e below
     float32's normal range (exp(-40)^4 would be, and subnormals are slow)."""
@@ -69,19 +70,19 @@ def _log1p_small(e):
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy", inline="always")
-def _softplus(u):
+def softplus(u):
     """The logistic F's ``-log F(u)``, ``F(-u)`` and ``F(u) F(-u)`` of a float32 margin u
     (any value, infinite too), branch-free: ``-log F(u) = max(-u, 0) + log(1 + exp(-|u|))``."""
-    e = _exp_neg(min(abs(u), _F32(SOFTPLUS_REACH)))
+    e = exp_neg(min(abs(u), _F32(SOFTPLUS_REACH)))
     q = e / (_F32(1.0) + e)  # F(-|u|)
     fneg = q if u > _F32(0.0) else _F32(1.0) - q
-    return max(-u, _F32(0.0)) + _log1p_small(e), fneg, q * (_F32(1.0) - q)
+    return max(-u, _F32(0.0)) + log1p_small(e), fneg, q * (_F32(1.0) - q)
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy", inline="always")
-def _softplus_nll(u):
-    """The first value of :func:`_softplus` alone (the same arithmetic)."""
-    return max(-u, _F32(0.0)) + _log1p_small(_exp_neg(min(abs(u), _F32(SOFTPLUS_REACH))))
+def softplus_nll(u):
+    """The first value of :func:`softplus` alone (the same arithmetic)."""
+    return max(-u, _F32(0.0)) + log1p_small(exp_neg(min(abs(u), _F32(SOFTPLUS_REACH))))
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
@@ -100,7 +101,7 @@ def _one_bit_logistic(s, so, mu32, inv, g, h, ga, ha) -> float:
         sor = so[r]
         part = _F32(0.0)  # float32 sums (a float64 one stops the vectorizer), one a ramp
         for i in range(m4):
-            v, fneg, ff = _softplus((sr[i] * mu32[i] + sor[i]) * inv32)  # the margin: > 0 for a right code
+            v, fneg, ff = softplus((sr[i] * mu32[i] + sor[i]) * inv32)  # the margin: > 0 for a right code
             part += v
             ga[i] -= sr[i] * fneg
             ha[i] += ff
@@ -120,7 +121,7 @@ def _one_bit_logistic_nll(s, so, mu32, inv) -> float:
         sor = so[r]
         part = _F32(0.0)
         for i in range(m4):
-            part += _softplus_nll((sr[i] * mu32[i] + sor[i]) * inv32)
+            part += softplus_nll((sr[i] * mu32[i] + sor[i]) * inv32)
         total += part
     return total
 
@@ -140,8 +141,8 @@ def _multi_bit_logistic(lo, hi, mu32, inv, g, h, ga, ha) -> float:
         hr = hi[r]
         part = _F32(0.0)
         for i in range(m4):
-            v1, f1, h1 = _softplus((mu32[i] - lr[i]) * inv32)
-            v2, f2, h2 = _softplus((hr[i] - mu32[i]) * inv32)
+            v1, f1, h1 = softplus((mu32[i] - lr[i]) * inv32)
+            v2, f2, h2 = softplus((hr[i] - mu32[i]) * inv32)
             part += v1 + v2
             ga[i] += f2 - f1
             ha[i] += h1 + h2
@@ -170,7 +171,7 @@ def log_ndtr(v: float) -> float:
     return -0.5 * v * v - math.log(-v) - _LOG_SQRT_2PI + math.log1p(x2 * (-1.0 + x2 * (3.0 - 15.0 * x2)))
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT)
 def _gauss_tail(v: float):
     """``-log Phi(v)``, its derivative in v and the second derivative: ``-r`` and
     ``r (v + r)`` with ``r = phi(v) / Phi(v)``."""
@@ -179,7 +180,7 @@ def _gauss_tail(v: float):
     return -lp, -r, r * (v + r)
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT)
 def _log_diff_ndtr(lo: float, hi: float) -> float:
     """``log(Phi(hi) - Phi(lo))`` for lo < hi (either may be infinite), stable in the tails."""
     if lo + hi > 0.0:  # the upper tail: Phi(hi) - Phi(lo) = Phi(-lo) - Phi(-hi)
@@ -190,7 +191,7 @@ def _log_diff_ndtr(lo: float, hi: float) -> float:
     return lh + math.log1p(-math.exp(log_ndtr(lo) - lh))
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT)
 def _gauss_cell(a: float, c: float):
     """``-log(Phi(c) - Phi(a))`` with ``a = (lo - lambda) / s``, ``c = (hi - lambda) / s``,
     and its first and second derivatives in ``lambda`` times s and s^2."""
@@ -203,15 +204,16 @@ def _gauss_cell(a: float, c: float):
     return -ld, g, g * g + cpc - apa
 
 
-@njit(cache=True, nogil=True)
-def evaluate(kind: int, lik: int, a, b, mu, sigma, g, h):
-    """NLL (B,) of the models ``mu`` (B, N, 4) at noise std ``sigma`` (B,) (the
-    logistic's scale is ``sigma / 1.702``; least squares ignores it); writes ``g``, ``h``."""
+@njit(**JIT)
+def evaluate(codes, mu, sigma, g, h):
+    """NLL (B,) of the models ``mu`` (B, N, 4) at noise std ``sigma`` (B,) of ``codes`` (a
+    :data:`~pipeline.dsp.cml.kernels.layout.Codes`; the logistic's scale is ``sigma / 1.702``,
+    least squares ignores it); writes ``g``, ``h`` (B, N, 4)."""
     nb = mu.shape[0]
     nll = np.zeros(nb)
     work = np.empty((3, 4 * mu.shape[1]), dtype=np.float32)
     for f in range(nb):
-        nll[f] = _evaluate_frame(kind, lik, a[f], b[f], mu[f], sigma[f], g[f], h[f], work)
+        nll[f] = evaluate_frame(codes.kind, codes.lik, codes.a[f], codes.b[f], mu[f], sigma[f], g[f], h[f], work)
     return nll
 
 
@@ -224,8 +226,8 @@ def _to_float32(mu, out):
     return out
 
 
-@njit(cache=True, nogil=True)
-def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
+@njit(**JIT)
+def evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
     """The NLL of one frame's codes ``a``, ``b`` (R, N, 4) at the model ``mu`` (N, 4) and
     noise std ``sigma``; writes its derivatives to ``g``, ``h`` (N, 4). ``work`` (3, 4N)
     float32: the logistic's work arrays (the model in float32, its float32 sums)."""
@@ -274,9 +276,9 @@ def _evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
     return total
 
 
-@njit(cache=True, nogil=True)
-def _nll_frame(a, b, mu, sigma, work) -> float:
-    """The NLL of :func:`_evaluate_frame` (the same arithmetic) without its derivatives,
+@njit(**JIT)
+def nll_frame(a, b, mu, sigma, work) -> float:
+    """The NLL of :func:`evaluate_frame` (the same arithmetic) without its derivatives,
     for 1-bit codes and the logistic likelihood (``work`` as there)."""
     ramps, m4 = a.shape[0], a.shape[1] * 4
     return _one_bit_logistic_nll(a.reshape(ramps, m4), b.reshape(ramps, m4), _to_float32(mu, work[0]),
@@ -284,7 +286,7 @@ def _nll_frame(a, b, mu, sigma, work) -> float:
 
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
-def _wrong_rms(kind, a, b, mu) -> float:
+def wrong_rms(kind, a, b, mu) -> float:
     """RMS distance of the codes ``mu`` gets wrong to their cells (0 when none is)."""
     ramps, m4 = a.shape[0], a.shape[1] * 4
     af = a.reshape(ramps, m4)

@@ -1,0 +1,78 @@
+"""The decoder: :class:`CmlDecoder`, cml for one radar configuration and its options, with what
+it keeps between calls (the detection grid of each range gate, the count test's thresholds,
+the engine's tables and work buffers)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from radar_driver.model import RadarConfig
+
+from pipeline.dsp.cml import engine
+from pipeline.dsp.cml.checks import check_frames, check_init
+from pipeline.dsp.cml.count import WARM_PFA, threshold
+from pipeline.dsp.cml.grid import SearchGrid
+from pipeline.dsp.cml.options import BLOCK_FRAMES, CmlOptions
+from pipeline.dsp.cml.result import CmlResult
+from pipeline.dsp.cml.warm import warm_or_cold
+from pipeline.dsp.gate import RangeGate, check_gate
+
+#: grids and thresholds a decoder keeps (a live node uses one gate and one pfa)
+KEPT = 16
+
+
+class CmlDecoder:
+    """cml (:func:`pipeline.dsp.cml.cml`) for frames of radar ``config`` with ``options``.
+    Hold one where calls follow one another (a node, a re-processing run, a benchmark): it
+    keeps each range gate's detection grid and the count test's thresholds, and its engine
+    the coarse grid's tables (about 0.8 ms to build) and each thread's work buffers. Its
+    calls may come from several threads."""
+
+    def __init__(self, config: RadarConfig, options: CmlOptions = CmlOptions()):
+        self.config, self.options = config, options
+        self.engine = engine.resolve(options.engine)
+        self._blocks = engine.blocks(self.engine, config, options)
+        self._grids: dict[RangeGate | None, SearchGrid] = {}
+        self._thresholds: dict[tuple, float] = {}
+
+    def grid(self, gate: RangeGate | None) -> SearchGrid:
+        """The detection grid with the range ``gate`` (None: the whole axis), checked against
+        the radar and built once per gate."""
+        grid = self._grids.get(check_gate(gate))
+        if grid is None:
+            grid = SearchGrid(None if gate is None else gate.check(self.config), self.config, self.options.oversample)
+            if len(self._grids) >= KEPT:
+                self._grids.clear()
+            self._grids[gate] = grid
+        return grid
+
+    def threshold(self, pfa: float, grid: SearchGrid) -> float:
+        """The count test's threshold (linear) at ``pfa`` on ``grid`` (:mod:`pipeline.dsp.cml.count`)."""
+        key = (pfa, grid.gate)
+        value = self._thresholds.get(key)
+        if value is None:
+            value = threshold(pfa, self.config, grid)
+            if len(self._thresholds) >= KEPT:
+                self._thresholds.clear()
+            self._thresholds[key] = value
+        return value
+
+    def decode(self, z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, k: int, *, noise_sigma=None,
+               pfa: float | None = None, gate: RangeGate | None = None,
+               init_range_m: np.ndarray | None = None) -> CmlResult:
+        """:func:`pipeline.dsp.cml.cml` of ``z``, ``xi``, ``delta``, ``bits`` with ``k`` targets
+        (see there for the arguments)."""
+        frames = check_frames(z, xi, delta, bits, self.config, k, noise_sigma, self._blocks.in_kernel)
+        grid = self.grid(gate)
+        limit = None if pfa is None else self.threshold(pfa, grid)
+        iters = self.options.iters_for(frames.bits, frames.dithered)
+        b = frames.z.shape[0]
+        if b == 0:
+            return CmlResult.empty(k)
+        if init_range_m is not None:
+            init = check_init(init_range_m, b, k, self.config, grid.gate)
+            return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid))
+        if b <= BLOCK_FRAMES:  # one block: the arrays as they are
+            return self._blocks.decode(frames, k, iters, grid, limit)
+        return CmlResult.concatenate([self._blocks.decode(frames.part(slice(lo, lo + BLOCK_FRAMES)), k, iters, grid,
+                                                          limit) for lo in range(0, b, BLOCK_FRAMES)])

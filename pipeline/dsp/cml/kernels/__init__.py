@@ -1,0 +1,62 @@
+"""cml's compiled (numba) kernels: the likelihood of the codes (:mod:`.likelihood`), the model
+and its Jacobian (:mod:`.model`), the linear solves (:mod:`.linalg`), the Levenberg--Marquardt
+refinement (:mod:`.refine`), the search of the oversampled range grid (:mod:`.search`),
+detection and the count test (:mod:`.detect`), the stages a decode calls, one call a block
+each (:mod:`.stages`), and the kernels Python calls (:mod:`.entry`); their arguments:
+:mod:`.layout`.
+
+Compiled on first use and cached on disk (``cache=True``: ``__pycache__`` beside these files,
+or ``NUMBA_CACHE_DIR``), so a later process loads them instead of compiling. numba checks a
+cached kernel against its own file; these kernels also call the kernels and read the
+constants of the modules they import, which numba does not follow
+(:mod:`pipeline.dsp.kernel_cache`): a module's cached kernels are dropped when a module it
+imports, directly or not, changes (:data:`DEPENDS`, read from the import statements)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from numba.core.dispatcher import Dispatcher
+
+from pipeline.dsp.cml.kernels import detect, entry, layout, likelihood, linalg, model, refine, search, stages
+from pipeline.dsp.kernel_cache import drop_stale
+
+MODULES = (layout, likelihood, model, linalg, refine, search, detect, stages, entry)
+#: every kernel of the package
+KERNELS = tuple(v for m in MODULES for v in vars(m).values() if isinstance(v, Dispatcher)
+                and v.py_func.__module__ == m.__name__)
+
+
+def _imported(module) -> set[str]:
+    """The modules of the package ``module`` imports (its import statements)."""
+    names = {m.__name__ for m in MODULES}
+    found = set()
+    for node in ast.walk(ast.parse(Path(module.__file__).read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            found |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+    return found & names
+
+
+def _depends() -> dict[str, tuple[str, ...]]:
+    """Each module's name -> the modules it imports, directly or through others (itself not)."""
+    direct = {m.__name__: _imported(m) for m in MODULES}
+    closure = {}
+    for name in direct:
+        seen, todo = set(), list(direct[name])
+        while todo:
+            dep = todo.pop()
+            if dep not in seen and dep != name:
+                seen.add(dep)
+                todo += direct[dep]
+        closure[name] = tuple(sorted(seen))
+    return closure
+
+
+#: each module -> the modules whose change drops its cached kernels (its own change numba sees)
+DEPENDS = _depends()
+_FILES = {m.__name__: m.__file__ for m in MODULES}
+_OWN = {m.__name__: [k for k in KERNELS if k.py_func.__module__ == m.__name__] for m in MODULES}
+#: the modules whose cached kernels importing the package dropped (a module they import changed)
+DROPPED = tuple(name for name, own in _OWN.items() if own and DEPENDS[name] and drop_stale(
+    own, [_FILES[d] for d in DEPENDS[name]], name.rsplit(".", 1)[1]))

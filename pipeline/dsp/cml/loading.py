@@ -1,0 +1,96 @@
+"""cml's compiled kernels loaded ahead of the first frame: from numba's on-disk cache (``make``
+compiles them at install) or compiled, by decoding a frame of each kind, the kernels of 1-bit
+codes with the default likelihood first (what live sensors send)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from radar_driver.model import RadarConfig
+
+from pipeline.dsp.cml.decoder import CmlDecoder
+from pipeline.dsp.cml.engine import HAVE_NUMBA
+from pipeline.dsp.cml.options import DEFAULT_LIKELIHOOD, LIKELIHOODS, CmlOptions
+from pipeline.dsp.gate import RangeGate
+
+#: the kinds of frames (bits, likelihood; None bits: unquantized) whose kernels are loaded, in
+#: order, 1-bit codes with the default likelihood first (what live sensors send)
+KINDS = ((1, DEFAULT_LIKELIHOOD),) + tuple((b, lik) for b in (1, 3, None) for lik in LIKELIHOODS
+                                           if (b, lik) != (1, DEFAULT_LIKELIHOOD))
+#: a first compile of each kind, (least, most) s, measured on 2 cores shared with other jobs
+#: (2026-11-28: 137 s for the first at load 3.1, 21 s for unquantized frames; 94-98 s of CPU in
+#: all; the other kinds reuse these kernels); from numba's cache about 0.2 s each
+EXPECTED_COMPILE_S = {0: (90.0, 180.0), 4: (15.0, 30.0)}
+
+
+def kind_label(bits: int | None, likelihood: str) -> str:
+    """A kind of frame in words."""
+    return f"{'unquantized' if bits is None else f'{bits}-bit'} frames, {likelihood} likelihood"
+
+
+def load_kernels(common: bool = False, on_step=None) -> None:
+    """Load (or compile) the compiled engine's kernels for every kind of frame (``common``:
+    1-bit codes with the default likelihood alone): about 1 s from numba's cache, a first
+    compile a minute or more; nothing without numba. A caller that cannot wait runs it in a
+    thread of its own (a frame of a kind not loaded yet meanwhile waits for numba's lock).
+    ``on_step(i, bits, likelihood, seconds)`` before each kind (seconds None) and after it."""
+    if not HAVE_NUMBA:
+        return
+    cfg = RadarConfig()
+    n = cfg.samples_per_ramp
+    rng = np.random.default_rng(0)
+    g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
+    xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
+    for i, (bits, lik) in enumerate(KINDS[:1] if common else KINDS):
+        if on_step is not None:
+            on_step(i, bits, lik, None)
+        t0 = time.monotonic()
+        _decode_kind(CmlDecoder(cfg, CmlOptions(engine="numba", likelihood=lik)), g, xi, bits, lik)
+        if on_step is not None:
+            on_step(i, bits, lik, time.monotonic() - t0)
+
+
+def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int | None, lik: str) -> None:
+    """Frames ``g`` (1, M, 2) of one kind (quantized with dither ``xi`` to ``bits``) decoded the
+    ways a node decodes them: values and (the default likelihood) the quantizer's codes, K given
+    and K auto in a gate with a warm start."""
+    delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
+    half = 0 if bits is None else 1 << (bits - 1)
+    z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
+        np.clip(np.floor((g + xi).imag / delta), -half, half - 1) + 0.5))
+    frames = [z]
+    if bits is not None and lik == DEFAULT_LIKELIHOOD:  # the quantizer's codes (uint8)
+        frames.append(np.rint(np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half).astype(np.uint8))
+    for zz in frames:
+        decoder.decode(zz, xi, delta, bits, 2)
+        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=RangeGate(5.0, 100.0),
+                       init_range_m=np.array([[30.0, np.nan]]))
+
+
+def _span(lo: float, hi: float) -> str:
+    return f"{lo / 60:.0f}-{hi / 60:.0f} min" if lo >= 60 else f"{lo:.0f}-{hi:.0f} s"
+
+
+def compile_verbose(stream=None) -> float:
+    """:func:`load_kernels` of every kind, saying each step with its expected time as it starts
+    and its time when done (``make`` runs this once, at install). Returns the seconds."""
+    out = stream or sys.stdout
+    lo, hi = (sum(v[i] for v in EXPECTED_COMPILE_S.values()) for i in (0, 1))
+    print(f"compiling cml's kernels into numba's cache, {len(KINDS)} kinds of frame: {lo / 60:.1f}-{hi / 60:.1f} min "
+          "the first time on a busy 2-core host (then ~1 s: a node loads them from the cache)", file=out, flush=True)
+    t_start = time.monotonic()
+
+    def step(i, bits, lik, seconds):
+        if seconds is None:
+            expect = EXPECTED_COMPILE_S.get(i)
+            print(f"  [{i + 1}/{len(KINDS)}] {kind_label(bits, lik)}: expect "
+                  f"{'under a second (the kernels above)' if expect is None else _span(*expect)} ... ",
+                  end="", file=out, flush=True)
+        else:
+            print(f"{seconds:.1f} s", file=out, flush=True)
+
+    load_kernels(on_step=step)
+    return time.monotonic() - t_start
