@@ -229,7 +229,8 @@ def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event 
                                          overwrite=cfg.record_overwrite, decoded=decoded)]
             view = web = None
             if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
-                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session, decoded=decoded).start()
+                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session,
+                                    decoded=decoded).start()
                 if live is not None:
                     print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
             if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's

@@ -68,8 +68,8 @@ from pipeline.wire import HealthMsg, QuantizedFrameMsg, TargetsMsg, TracksMsg
 from radar_driver.model import RadarConfig, polar_to_xy
 from pipeline.wire.fields import HEALTH, PROFILE, json_schema
 from pipeline.wire.shared import DecodedOnce
-from pipeline.wire.foxglove import (ENTITY_LIFETIME_NS, MOVING_COLOR, POINT_FIELDS, STATIC_COLOR, point_dtype,  # noqa: F401
-                                    target_points, track_label)
+from pipeline.wire.foxglove import (  # noqa: F401 (POINT_FIELDS, target_points: the view's names)
+    ENTITY_LIFETIME_NS, MOVING_COLOR, POINT_FIELDS, STATIC_COLOR, point_dtype, target_points, track_label)
 from replay.mcapio import TARGETS_SCHEMA
 
 # the views' shared parts, imported from here by older callers

@@ -6,7 +6,9 @@ message of ``<prefix>/<sensor>/<topic>``,
   ``<prefix>/<sensor>/scene`` when its targets carry their uncertainty;
 - a tracks message: ``<prefix>/<sensor>/scene`` (``foxglove.SceneUpdate``, JSON: each
   track's 1-σ circle and label);
-- a quantized frame, at most ``profile_rate_hz`` a second per sensor (sensor time):
+- a quantized frame, at most ``profile_rate_hz`` a second per sensor (sensor time) and
+  ``profile_budget_hz`` a second in all (wall time: a crowd of sensors, or of forged ids,
+  each sending one 320-byte frame, must not make the file grow by a 3-KB profile each):
   ``<prefix>/<sensor>/profile`` (``qradar.RangeProfile``: |Φ*Z/M| per receiver and joint,
   dB of full scale, 0.1 dB steps, reduced to ``profile_bins`` values by the largest of each
   group of adjacent range bins).
@@ -20,6 +22,7 @@ function). Nothing here does I/O."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from pipeline.dsp.profile import profile_db, profile_magnitude, profile_ranges
@@ -34,14 +37,19 @@ from .admission import Admitted
 @dataclass(frozen=True)
 class DerivedConfig:
     """``profile_rate_hz``: range profiles a second per sensor at most (sensor time; 0:
-    none); ``profile_bins``: values per profile (a divisor of the radar's N; None: N)."""
+    none); ``profile_budget_hz``: range profiles a second over all sensors at most (wall
+    time, a burst of one second's); ``profile_bins``: values per profile (a divisor of the
+    radar's N; None: N)."""
 
     profile_rate_hz: float = 2.0
+    profile_budget_hz: float = 64.0
     profile_bins: int | None = 128
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.profile_rate_hz, (int, float)) and self.profile_rate_hz >= 0):
-            raise ParameterError(f"profile_rate_hz={self.profile_rate_hz!r} must be a number >= 0")
+        for name in ("profile_rate_hz", "profile_budget_hz"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and v >= 0):
+                raise ParameterError(f"{name}={v!r} must be a number >= 0")
 
 
 def profile_values(group: QuantizedGroup, row: int, radar: RadarConfig, bins: int | None) -> dict:
@@ -61,11 +69,25 @@ class Derivations:
     """What to write beside each admitted message (:meth:`of`), with the per-sensor state
     of the profiles' rate (:meth:`forget` a sensor when it expires). Not locked: one worker."""
 
-    def __init__(self, configs: dict[int, RadarConfig], config: DerivedConfig = DerivedConfig()):
+    def __init__(self, configs: dict[int, RadarConfig], config: DerivedConfig = DerivedConfig(),
+                 clock=time.monotonic):
         self.configs = configs
         self.config = config
         self._period_ns = int(1e9 / config.profile_rate_hz) if config.profile_rate_hz > 0 else None
         self._last_profile: dict[str, int] = {}  # sensor -> the sensor time of its last profile, ns
+        self._clock = clock
+        self._tokens, self._filled = config.profile_budget_hz, clock()  # the budget's bucket
+        self.profiles_skipped = 0  # due by the sensor's rate, skipped by the budget
+
+    def _take_token(self) -> bool:
+        """One profile of the budget (a bucket of profile_budget_hz tokens, refilled at that rate)."""
+        now, budget = self._clock(), self.config.profile_budget_hz
+        self._tokens = min(budget, self._tokens + (now - self._filled) * budget)
+        self._filled = now
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
 
     def forget(self, sensor_id: str) -> None:
         self._last_profile.pop(sensor_id, None)
@@ -92,6 +114,9 @@ class Derivations:
             return []
         radar = self.configs.get(int(group.headers.config_id[row]))
         if radar is None:  # (admitted frames have an announced config)
+            return []
+        if not self._take_token():
+            self.profiles_skipped += 1
             return []
         self._last_profile[sensor] = ts
         return [(base + "/profile", profile_json(profile_values(group, row, radar, self.config.profile_bins)))]

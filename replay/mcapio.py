@@ -40,6 +40,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer
 from mcap.writer import CompressionType, Writer
 
+from pipeline.keys import DERIVED_TOPICS
 from pipeline.wire import COMMON_DTYPE, COMMON_FIELDS, QUANT_DTYPE, QUANT_EXT_FIELDS, TOPICS
 from pipeline.wire import MAGIC as FRAME_MAGIC
 from pipeline.wire.fields import HEALTH, PROFILE, TARGETS, TRACKS, json_schema
@@ -62,8 +63,9 @@ HEALTH_SCHEMA = json_schema(HEALTH)
 PROFILE_SCHEMA = json_schema(PROFILE)
 FOXGLOVE_POINTCLOUD_SCHEMA = POINTCLOUD_SCHEMA
 #: the channels the recorder derives from a sensor's messages, beside them: topic -> (schema name, JSON Schema)
-DERIVED = {"pointcloud": ("foxglove.PointCloud", POINTCLOUD_SCHEMA), "scene": ("foxglove.SceneUpdate", SCENE_UPDATE_SCHEMA),
-           "profile": (PROFILE.title, PROFILE_SCHEMA)}
+DERIVED = {"pointcloud": ("foxglove.PointCloud", POINTCLOUD_SCHEMA),
+           "scene": ("foxglove.SceneUpdate", SCENE_UPDATE_SCHEMA), "profile": (PROFILE.title, PROFILE_SCHEMA)}
+assert tuple(DERIVED) == DERIVED_TOPICS
 _JSON_SCHEMAS = {"targets": TARGETS_SCHEMA, "tracks": TRACKS_SCHEMA, "health": HEALTH_SCHEMA}
 
 
@@ -82,8 +84,8 @@ def frame_schema(topic: str) -> tuple[str, bytes]:
             if topic == "quantized" else "frame: (M, 2) complex64, little-endian, C order (measurement, antenna); "
             "ADC full scale")
     name = "qradar.QuantizedFrame" if topic == "quantized" else "qradar.RawFrame"
-    layout = {"encoding": WIRE_ENCODING, "byte_order": "little", "magic": FRAME_MAGIC.decode(), "header_bytes": dtype.itemsize,
-              "header": header, "body": body}
+    layout = {"encoding": WIRE_ENCODING, "byte_order": "little", "magic": FRAME_MAGIC.decode(),
+              "header_bytes": dtype.itemsize, "header": header, "body": body}
     return name, json.dumps(layout, separators=(",", ":")).encode()
 
 

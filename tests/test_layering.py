@@ -267,7 +267,8 @@ def state_mutations(path: Path) -> list[str]:
     tree = ast.parse(path.read_text())
     names = set()
     for node in tree.body:
-        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        targets = (node.targets if isinstance(node, ast.Assign)
+                   else [node.target] if isinstance(node, ast.AnnAssign) else [])
         names |= {t.id for t in targets if isinstance(t, ast.Name)}
     found = []
     for fn in ast.walk(tree):
@@ -299,7 +300,7 @@ def test_no_library_module_mutates_module_level_state_after_import():
 
 def test_the_state_checker_sees_globals_methods_and_items(tmp_path):
     p = tmp_path / "x.py"
-    p.write_text("_seen = set()\n_cache = {}\n_on = None\n\ndef a(x):\n    _seen.add(x)\n\ndef b(k):\n    _cache[k] = 1\n\n"
-                 "def c():\n    global _on\n    _on = 1\n\ndef fine(_seen):\n    _seen.add(1)\n    local = {}\n"
-                 "    local[1] = 2\n    return len(_cache)\n")
+    p.write_text("_seen = set()\n_cache = {}\n_on = None\n\ndef a(x):\n    _seen.add(x)\n\n"
+                 "def b(k):\n    _cache[k] = 1\n\ndef c():\n    global _on\n    _on = 1\n\n"
+                 "def fine(_seen):\n    _seen.add(1)\n    local = {}\n    local[1] = 2\n    return len(_cache)\n")
     assert [f.split(": ", 1)[1] for f in state_mutations(p)] == ["_seen.add()", "_cache[k] changed", "global _on"]
