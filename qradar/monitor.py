@@ -19,7 +19,8 @@ from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
 from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
-from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
+from pipeline.wire import TOPICS, WireError
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene
 
@@ -69,7 +70,7 @@ class Monitor:
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
                  live: TextIO | None = sys.stdout, clock_per_sensor: bool = False,
                  seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None,
-                 truths: dict[str, SimScene] | None = None):
+                 truths: dict[str, SimScene] | None = None, decoded: DecodedOnce | None = None):
         """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
         with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
         scene starts moving with its first measured frame, after its driver connected).
@@ -77,7 +78,10 @@ class Monitor:
         sequence numbers can count as missing (:func:`~pipeline.nodes.counters.judge_seq`).
         ``calibration``: the calibration file the run's quantizer applies (None: none), until
         a sensor's health says otherwise. ``truths``: per sensor id, the truth as that sensor
-        sees it (from its pose, :func:`qradar.liveview.seen_from`): the same targets, in order."""
+        sees it (from its pose, :func:`qradar.liveview.seen_from`): the same targets, in order.
+        ``decoded``: the process's JSON messages decoded once (pipeline.wire.shared: the run's
+        recorder and views share them; None: decoded here)."""
+        self._decode = decoder(decoded)
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
         self.truths = dict(truths or {})
         self.clock_per_sensor = clock_per_sensor
@@ -184,7 +188,7 @@ class Monitor:
         """A targets message: its sequence number judged, its latency, its score against
         the truth, the sensor's rate; a live line at most once a second per sensor."""
         try:
-            msg = decode_targets(payload, key)
+            msg = self._decode("targets", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
@@ -215,7 +219,7 @@ class Monitor:
     def _on_tracks(self, key: str, payload: bytes) -> None:
         """A tracks message: its largest id, and with a truth the static tracks' errors."""
         try:
-            msg = decode_tracks(payload, key)
+            msg = self._decode("tracks", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
@@ -275,7 +279,7 @@ class Monitor:
         if not (b'"node":"source"' in payload or b'"front_end"' in payload or b'"calibrated"' in payload):
             return
         try:
-            msg = decode_health(payload, key)
+            msg = self._decode("health", payload, key)
         except WireError:
             with self._lock:
                 self.bad_health += 1

@@ -24,6 +24,7 @@ from typing import TextIO
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.session import BusConfig
+from pipeline.wire.shared import DecodedOnce
 from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError, RunSetupError
@@ -295,6 +296,7 @@ class RunNodes:
         self.ended = threading.Event()  # the run's nodes have stopped: the watches end too
         self.recorder: list[RecorderNode] = []
         self.view = self.web = None
+        self.decoded = DecodedOnce()  # each JSON message parsed once for the monitor, the recorder and the views
         self.drivers_bus = driver_bus(cfg.bus, tmp)
         listen = cfg.driver_process and self.drivers_bus.connect != cfg.bus.connect  # the unix socket, for drivers
         self.session = (replace(cfg.bus, listen=cfg.bus.listen + self.drivers_bus.connect) if listen
@@ -313,7 +315,7 @@ class RunNodes:
         p, cfg, session = self.p, self.p.cfg, self.session
         self.monitor = Monitor(cfg.bus, session, p.truth, time.time_ns(), self.live, clock_per_sensor=not cfg.real,
                                calibration=None if p.calibration is None else p.calibration.source,
-                               truths=p.truths).start()
+                               truths=p.truths, decoded=self.decoded).start()
         self.localizer = LocalizeNode(cfg.bus, p.localizer, session=session, tracking=cfg.tracking)
         self.quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=p.radar,
                                       calibration=p.calibration,
@@ -330,19 +332,20 @@ class RunNodes:
                 metadata=run_metadata(cfg, p.scene, p.truth, p.radar, p.localizer.k, p.calibration,
                                       p.localizer.gate),
                 retry_s=cfg.record_retry_s, split_size_mb=cfg.record_split_mb,
-                new_name_if_taken=cfg.record_new_name_if_taken, overwrite=cfg.record_overwrite)]
+                new_name_if_taken=cfg.record_new_name_if_taken, overwrite=cfg.record_overwrite, decoded=self.decoded)]
 
     def _start_views(self) -> None:
         """The Foxglove view and the web page, started first and stopped last, so they show
         every target; a view that cannot start (a busy port) stops the other."""
         p, cfg = self.p, self.p.cfg
         if cfg.foxglove is not None:
-            self.view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=p.radar), session=self.session).start()
+            self.view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=p.radar), session=self.session,
+                                     decoded=self.decoded).start()
             self._say(f"foxglove: WebSocket server on {self.view.url}")
         if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
             try:
                 self.web = WebView(cfg.bus, replace(cfg.web, radar=p.radar), session=self.session, truth=p.truth,
-                                   truth_t0_ns=time.time_ns() if cfg.real else None).start()
+                                   truth_t0_ns=time.time_ns() if cfg.real else None, decoded=self.decoded).start()
             except BaseException:
                 if self.view is not None:
                     self.view.stop()

@@ -28,7 +28,6 @@ ids that are not valid key chunks (``*``, ``$*``, ...) never get state, health o
 from __future__ import annotations
 
 import logging
-import struct
 import time
 from dataclasses import dataclass
 
@@ -43,14 +42,12 @@ from pipeline.errors import ParameterError, WireError
 from pipeline.nodes.fairqueue import FairQueue
 from pipeline.nodes.runtime import DEFAULT_SENSOR_EXPIRY_S, Node
 from pipeline.nodes.transport import PullSubscriber, Sample, Transport, TransportError
-from pipeline.wire import HEADER_LEN, MAGIC, TOPICS, check_sensor_id
+from pipeline.wire import TOPICS, check_sensor_id, peek_seq
 
 log = logging.getLogger("qradar.node")
 
 #: the unknown senders' aggregate gets this many times a key's budget, per topic
 UNKNOWN_BUDGET_SCALE = 100
-SEQ = struct.Struct("<Q")
-SEQ_OFFSET = 8  # of the uint64 sequence number in the common frame header
 #: frames waiting in a processing node's queue, in all and of one sensor; payload bytes in all
 DEFAULT_QUEUE_SIZE = 8192
 DEFAULT_SENSOR_QUEUE = 128
@@ -351,8 +348,9 @@ class ProcessingNode(Node):
             st = self.sensor_stats(sensor)  # the same, unless it expired meanwhile
             if not health:  # nor keeps one alive: else a sensor seen once by a recorder never expires
                 st.last_seen = now
-            if sensor != NO_SENSOR and len(payload) >= HEADER_LEN and payload[:4] == MAGIC:
-                st.note_seq(topic, SEQ.unpack_from(payload, SEQ_OFFSET)[0], now, self.intake.rate_hz)
+            seq = peek_seq(payload) if sensor != NO_SENSOR else None
+            if seq is not None:
+                st.note_seq(topic, seq, now, self.intake.rate_hz)
         for victim in self._queue.put(sensor, QueuedFrame(sensor, key, payload, time.time_ns()), n):
             with self._lock:
                 self.sensor_stats(victim).drops += 1
