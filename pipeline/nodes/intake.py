@@ -212,6 +212,17 @@ class ProcessingNode(Node):
             self._subscriber.undeclare()
             self._subscriber = None
 
+    def _workers_ended(self) -> None:
+        """A frame a callback still in flight queued after the worker finished is counted
+        in its sensor's drops (received, never processed), not left unaccounted."""
+        late = self._queue.get_batch(len(self._queue) + 1, 0.0) if not self._queue.empty() else []
+        for item in late:
+            with self._lock:
+                self.sensor_stats(item.sensor).drops += 1
+        if late:
+            self.log_limited("drops", "%s: %d frames arrived as it stopped, not processed (counted in drops)",
+                             self.name, len(late))
+
     def _drain(self) -> int:
         """Pull input: move the messages zenoh holds into the fair queue (at most its FIFO's
         capacity); how many frames the fair queue gained. Once the subscriber is undeclared
@@ -358,8 +369,9 @@ class ProcessingNode(Node):
                              self.name, victim or key)
 
     def _work_loop(self) -> None:
-        # after stop, drain what was queued before the subscriber went away
-        while not (self._stop.is_set() and self._queue.empty()):
+        # after stop, drain what was queued before the subscriber went away (its undeclare
+        # comes just after stop is set: a sample may still be queued until then)
+        while not (self._stop.is_set() and self._subscriber is None and self._queue.empty()):
             batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor, self.batch_linger_s,
                                          self.batch_lull_s)
             if not batch:

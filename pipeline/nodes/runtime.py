@@ -166,6 +166,8 @@ class Node(Counters):
         for t in self._threads:
             t.join(timeout_s)
         busy = [t.name for t in self._threads if t.is_alive()]
+        if not busy:
+            self._workers_ended()
         self._publish_health()  # last counters
         self.log_summary()
         if busy:  # a worker still in a batch may be putting on a publisher: undeclaring it under the
@@ -184,6 +186,9 @@ class Node(Counters):
 
     def _stopping(self) -> None:
         """Subclass hook, called once stop is requested."""
+
+    def _workers_ended(self) -> None:
+        """Subclass hook, called once the node's threads have ended (after :meth:`_stopping`)."""
 
     def __enter__(self):
         return self.start()
