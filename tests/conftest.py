@@ -96,6 +96,24 @@ def chunks_opened(monkeypatch) -> list[int]:
     return calls
 
 
+@pytest.fixture
+def cli(capsys):
+    """``qradar ARGV`` in this process, for what ends before anything starts (usage errors,
+    ``--help``): ``cli(*argv)`` -> (exit status, stdout, stderr). Anything that opens a port,
+    a session or a file runs in a process of its own (``zenoh_helpers.qradar``)."""
+    from qradar.cli import main
+
+    def run(*argv) -> tuple[int, str, str]:
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:  # argparse's usage errors and --help
+            code = exc.code if isinstance(exc.code, int) else 1
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
+
+
 @pytest.fixture(name="free_port")
 def free_port_fixture() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago."""
