@@ -22,7 +22,7 @@ from test_cml import measure, random_scenes
 from pipeline.dsp.cml import CmlDecoder, CmlOptions, cml, reference
 from pipeline.dsp.cml.checks import check_frames
 from pipeline.dsp.cml.compiled import CompiledBlocks
-from pipeline.dsp.cml.detect import back_projections
+from pipeline.dsp.cml.detect import back_projections, count_floor
 from pipeline.dsp.cml.grid import SearchGrid
 from pipeline.dsp.cml.kernels import KERNELS, entry, likelihood as lik, linalg, model
 from pipeline.dsp.cml.kernels.layout import Codes, Decision, Fit
@@ -229,7 +229,7 @@ def compiled_detect(blocks, codes, ref, grid, count, nu0=None):
     search = blocks.search(grid)
     src = back_projections(codes, fit, search, count, nu0 is not None, False)
     found = Decision(-1.0, np.ones(b, dtype=bool), np.zeros(b), np.empty(b) if nu0 is None else np.array(nu0, float),
-                     np.empty((b, 2), dtype=complex))
+                     np.empty((b, 2), dtype=complex), count_floor(codes, search.grid.oversample))
     entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(found))
     return (found.stat if count else None), found.nu0, found.amp0
 

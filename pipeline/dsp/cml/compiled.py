@@ -10,7 +10,7 @@ from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.count import COUNT_GUARD_BINS
-from pipeline.dsp.cml.detect import Buffers, Search, add_target, decision, statistic
+from pipeline.dsp.cml.detect import Buffers, Search, add_target, decision, statistic, count_floor
 from pipeline.dsp.cml.fit import empty_fit, finish_fit, fit_result, new_fit, report, run, steps, targets
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, COARSE_RHO, MIN_SEPARATION_BINS, SearchGrid, run_tables, twiddles
 from pipeline.dsp.cml.kernels.layout import Gate, Grid
@@ -77,14 +77,23 @@ class CompiledBlocks:
         fit = empty_fit(b, n)
         sigma, floor, amp_cap = start(frames)
         # active: the frames whose residual may still hold a target; as plain tuples, read by the kernels only
-        found = tuple(decision(b, threshold, np.ones(b, dtype=bool)))
+        found = tuple(decision(b, threshold, np.ones(b, dtype=bool), count_floor(codes, grid.oversample)))
+        settle = None
         if threshold is not None:
             fit = evaluate_fit(codes, fit, sigma)  # the score of the empty model, for the first count test
+            settle = self._settle(frames, sigma, floor, amp_cap)
         greedy = tuple(steps(np.repeat(sigma[:, None], iters, axis=1), amp_cap))
+        settled = False  # the fit annealed since its last target (what the count test reads)
         for _ in range(k):
+            if settle is not None and fit.nu.shape[1]:
+                fit = run(codes, fit, settle, search.gate)
+                settled = True
             grew, fit = add_target(codes, fit, search, found, greedy, sigma)
             if not grew:
                 break
+            settled = False
+        if settled:
+            return fit_result(codes, fit, search.report, k, fit.sigma if frames.bits is not None else None)
         if frames.bits is not None and anneal:
             plan = steps(anneal_levels(sigma, floor, anneal), amp_cap, adapt=frames.noise_sigma is None)
             if fit.nu.shape[1]:  # the annealing and the result in one kernel call
@@ -95,6 +104,16 @@ class CompiledBlocks:
             fit = run(codes, fit, steps(np.ones((b, anneal)), amp_cap), search.gate)  # least squares: polish
             sigma = None
         return fit_result(codes, fit, search.report, k, sigma)
+
+    def _settle(self, frames: Frames, sigma: np.ndarray, floor, amp_cap: np.ndarray):
+        """The steps that settle a fit before a count test, as at the end of a decode: the
+        annealing (quantized; adapted to the noise the model leaves when it is not given), or
+        least-squares steps (unquantized) (:meth:`pipeline.dsp.cml.reference.ReferenceBlocks._settle`)."""
+        b, anneal = frames.z.shape[0], self.options.anneal
+        if frames.bits is None:
+            return steps(np.ones((b, anneal)), amp_cap)
+        return steps(anneal_levels(sigma, floor, anneal) if anneal else np.empty((b, 0)), amp_cap,
+                     adapt=frames.noise_sigma is None)
 
     def warm(self, frames: Frames, k: int, init: np.ndarray, grid: SearchGrid,
              at: float) -> tuple[CmlResult, np.ndarray, np.ndarray]:

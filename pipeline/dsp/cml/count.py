@@ -9,6 +9,8 @@ either residual is white. The statistic is computed by the engine
 
 from __future__ import annotations
 
+import numpy as np
+
 from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.grid import SearchGrid
@@ -30,3 +32,23 @@ def threshold(pfa: float, config: RadarConfig, grid: SearchGrid) -> float:
     bins the search spans (:func:`pipeline.dsp.localize.cfar_threshold`)."""
     search_bins = config.samples_per_ramp if grid.gate is None else grid.width_bins
     return cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
+
+
+#: the unit roundoff of the frames on the wire (complex64, docs/design.md): an unquantized
+#: residual at this level relative to its frame is the frames' own rounding (and the fit's
+#: arithmetic), not a noise a target could stand above
+FRAME_ROUNDOFF = 2.0 ** -24
+
+
+def precision_floor(y: np.ndarray, oversample: int) -> np.ndarray:
+    """The least mean joint energy (B,) the count test takes an unquantized residual's back
+    projection to have, in the detection grid's scale (``oversample`` points a bin, the
+    zero-padded inverse FFT's 1 / L): that of a white residual of std ``FRAME_ROUNDOFF`` times
+    the RMS of the frames' real parts, ``y`` (B, R, N, 2, 2) (summed over the R ramps:
+    ``4 N R v / L^2``, L = ``oversample`` N). Without it a noiseless frame's residual (the
+    rounding, structured by the targets) reads as targets: 0.99 false targets a frame (K = 1,
+    complex64 frames; 3 with complex128)."""
+    b, ramps, n = y.shape[:3]
+    flat = y.reshape(b, -1)
+    v = np.einsum("bj,bj->b", flat, flat) / flat.shape[1] * FRAME_ROUNDOFF ** 2
+    return 4.0 * ramps * v / (n * oversample ** 2)

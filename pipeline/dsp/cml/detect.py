@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pipeline.dsp.cml.count import precision_floor
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, SearchGrid
 from pipeline.dsp.cml.fit import new_fit
 from pipeline.dsp.cml.kernels import entry, stages
@@ -99,11 +100,20 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
     return u, buf, y, codes.ramps, count_sources if count else 0, -1 if given else count_sources - 1 if on_score else 0
 
 
-def decision(b: int, threshold: float | None, active: np.ndarray) -> Decision:
-    """The count test's ``threshold`` (linear; None: none) and ``active`` (B,) bool, and the
-    arrays detection writes, for ``b`` frames (reused by the greedy stages of a decode)."""
+def decision(b: int, threshold: float | None, active: np.ndarray, floor: np.ndarray) -> Decision:
+    """The count test's ``threshold`` (linear; None: none), ``active`` (B,) bool and ``floor``
+    (B,) (:func:`pipeline.dsp.cml.count.precision_floor`), and the arrays detection writes,
+    for ``b`` frames (reused by the greedy stages of a decode)."""
     return Decision(-1.0 if threshold is None else float(threshold), active, np.zeros(b), np.empty(b),
-                    np.empty((b, 2), dtype=complex))
+                    np.empty((b, 2), dtype=complex), floor)
+
+
+def count_floor(codes: BlockCodes, oversample: int) -> np.ndarray:
+    """The count test's floor (B,) of a block: the frames' precision unquantized
+    (:func:`pipeline.dsp.cml.count.precision_floor`), none (0) for codes."""
+    if codes.bits is None:
+        return precision_floor(codes.y, oversample)
+    return np.zeros(codes.kernel.folded.shape[0])
 
 
 def add_target(codes: BlockCodes, fit: Fit, search: Search, found: tuple, plan: tuple,
@@ -126,6 +136,7 @@ def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndar
     reaches ``at`` exactly when the exact statistic does (cheaper)."""
     src = back_projections(codes, fit, search, True, True, True)
     b = fit.nu.shape[0]
-    test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex))
+    test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex),
+                    count_floor(codes, search.grid.oversample))
     entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(test))
     return test.stat

@@ -14,7 +14,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.cml.checks import Frames
-from pipeline.dsp.cml.count import COUNT_GUARD_BINS
+from pipeline.dsp.cml.count import COUNT_GUARD_BINS, precision_floor
 from pipeline.dsp.cml.grid import MIN_SEPARATION_BINS, SearchGrid
 from pipeline.dsp.cml.options import LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, CmlOptions
 from pipeline.dsp.cml.result import CmlResult
@@ -268,7 +268,9 @@ class Fit:
     def _solve(self) -> np.ndarray:
         """The damped Gauss--Newton step (B, K, 5): the Jacobian of part c of mu_p is
         ``R^T Z[2p + c]``, R (4K, N) the real and imaginary parts of the atoms w_t and of
-        dw_t / dnu, Z how each parameter mixes them (:func:`coefficients`)."""
+        dw_t / dnu, Z how each parameter mixes them (:func:`coefficients`). The system is the
+        live targets' alone: a target that is not live (zero amplitude) takes no part in it
+        (its rows and columns zero), so it does not bend the live ones' step."""
         b, k = self.nu.shape
         n = self.kc.size
         dw = self.w * ((-2j * np.pi / n) * self.kc)
@@ -280,6 +282,10 @@ class Fit:
         hess = np.matmul(zc.transpose(0, 1, 3, 2), np.matmul(gram.astype(float), zc)).sum(axis=1)
         proj = np.matmul(r, self.g.reshape(b, n, 4)).transpose(0, 2, 1)[..., None]  # (B, 4, 4K, 1)
         grad = np.matmul(zc.transpose(0, 1, 3, 2), proj).sum(axis=1)[..., 0]
+        dead = np.repeat(~self.live, 5, axis=1)  # (B, 5K): the system of the live targets' parameters alone
+        if dead.any():
+            hess = np.where(dead[:, :, None] | dead[:, None, :], 0.0, hess)
+            grad = np.where(dead, 0.0, grad)
         diag = np.diagonal(hess, axis1=1, axis2=2)
         damp = self.lm[:, None] * diag + 1e-9 * diag.max(axis=1, keepdims=True) + 1e-300
         step = -np.linalg.solve(hess + damp[:, :, None] * np.eye(5 * k), grad[..., None])[..., 0]
@@ -316,15 +322,17 @@ def score(codes: Codes, fit: Fit) -> np.ndarray:
     return np.ascontiguousarray(-fit.g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
 
 
-def peak_ratio(y: np.ndarray, fit: Fit, oversample: int) -> np.ndarray:
+def peak_ratio(y: np.ndarray, fit: Fit, oversample: int, floor: np.ndarray | None = None) -> np.ndarray:
     """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
     beyond COUNT_GUARD_BINS of the targets found and inside the range gate (0 where ``y`` is
-    exactly 0)."""
+    exactly 0); the mean not below ``floor`` (B,) (:func:`pipeline.dsp.cml.count.precision_floor`)."""
     e, near = energy(y, fit, oversample, COUNT_GUARD_BINS)
     if fit.grid.use:
         e[:, fit.grid.outside] = 0.0
         near |= fit.grid.outside
     mean = e.sum(axis=1) / np.maximum(e.shape[1] - near.sum(axis=1), 1)
+    if floor is not None:
+        mean = np.maximum(mean, floor)
     peak = e.max(axis=1)
     return np.divide(peak, mean, out=np.zeros_like(peak), where=mean > 0)
 
@@ -332,10 +340,10 @@ def peak_ratio(y: np.ndarray, fit: Fit, oversample: int) -> np.ndarray:
 def count_statistic(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     """The count test's statistic (B,): peak over mean of the linear residual and of the
     likelihood's score (:mod:`pipeline.dsp.cml.count`), the smaller; unquantized frames: the
-    linear residual."""
-    ratio = peak_ratio(residual(codes, fit), fit, oversample)
+    linear residual, its mean not below the frames' precision."""
     if codes.bits is None:
-        return ratio
+        return peak_ratio(residual(codes, fit), fit, oversample, precision_floor(codes.y, oversample))
+    ratio = peak_ratio(residual(codes, fit), fit, oversample)
     return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample))
 
 
@@ -380,20 +388,37 @@ class ReferenceBlocks:
         fit = Fit(codes, grid)
         sigma, floor, amp_cap = start(frames)
         active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
+        settled = False  # the fit annealed since its last target (the count test's)
         if threshold is not None:
             fit.evaluate(sigma)  # the score of the empty model, for the first count test
         for _ in range(k):
             if threshold is not None:
+                if fit.nu.shape[1]:  # the test reads the residual of the settled fit
+                    self._settle(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None)
+                    settled = True
                 active &= count_statistic(fit, codes, oversample) >= threshold
             if not active.any():
                 break
+            settled = False
             nu0 = detect(fit, codes, oversample)
             amp0 = np.where(active[:, None], amplitude_at(codes, fit, nu0), 0.0)
             fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                     np.concatenate([fit.live, active[:, None]], axis=1))
             fit.evaluate(sigma)
             fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
+        if settled:
+            return self._result(fit, codes, codes.noise_rms(fit.mu) if codes.bits is None else fit.sigma, k)
         return self._anneal(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None, k)
+
+    def _settle(self, codes: Codes, fit: Fit, sigma, floor, amp_cap, adapt: bool) -> None:
+        """The fit annealed to its floor (unquantized: polished), as at the end of a decode:
+        what the count test reads (at the greedy stage's scale the likelihood's score carries
+        the quantizer's harmonics of the targets found, docs/science.md)."""
+        anneal = self.options.anneal
+        if codes.bits is not None and anneal:
+            fit.run(anneal_levels(sigma, floor, anneal), amp_cap, adapt=adapt)
+        elif codes.bits is None:
+            fit.run(np.ones((fit.nu.shape[0], anneal)), amp_cap)
 
     def _anneal(self, codes: Codes, fit: Fit, sigma, floor, amp_cap, adapt: bool, k: int,
                 levels: np.ndarray | None = None) -> CmlResult:

@@ -38,9 +38,9 @@ def _energy(u, nu, live, oversample, guard_bins, energy, near):
 
 
 @njit(**JIT, inline="always")
-def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
+def peak_ratio(u, nu, live, oversample, guard_bins, gate, s, floor) -> float:
     """Peak over mean of the joint energy of ``u`` (2, L) beyond ``guard_bins`` of the
-    targets and inside the gate (0 when the energy is 0 there); ``s``: a
+    targets and inside the gate (0 when the energy is 0 there), the mean not below ``floor``; ``s``: a
     :data:`~pipeline.dsp.cml.kernels.layout.Scratch` (its ``energy``, ``near``)."""
     energy, near, use, outside = s.energy, s.near, gate.use, gate.outside
     _energy(u, nu, live, oversample, guard_bins, energy, near)
@@ -56,7 +56,7 @@ def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
         peak = max(peak, energy[i])
         if not near[i]:
             cells += 1
-    mean = total / max(cells, 1)
+    mean = max(total / max(cells, 1), floor)
     return peak / mean if mean > 0.0 else 0.0
 
 
@@ -81,8 +81,8 @@ def peak(u, nu, live, oversample, guard_bins, gate, s) -> float:
 
 
 @njit(**JIT, inline="always")
-def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
-    """:func:`peak_ratio` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N): the
+def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold, floor):
+    """:func:`peak_ratio` (its mean not below ``floor``) from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N): the
     mean by :func:`~pipeline.dsp.cml.kernels.search.open_sum`, the peak by
     :func:`~pipeline.dsp.cml.kernels.search.coarse_peak`, sought only as far as it decides
     ``ratio >= threshold`` (< 0: the ratio itself; else a ratio that reaches ``threshold``
@@ -91,7 +91,7 @@ def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
     total = coarse_energies(uc, grid.table.shape[0], s)
     reach = guard(nu, live, grid.oversample, grid.count_guard, gate, s)
     kept, cells = open_sum(total, nu, reach, grid, gate, s)
-    mean = kept / max(cells, 1)
+    mean = max(kept / max(cells, 1), floor)
     bar = threshold * mean if threshold >= 0.0 and mean > 0.0 else -math.inf
     best, top = coarse_peak(x, n, grid, gate, s, bar, threshold >= 0.0)
     if threshold >= 0.0 and mean > 0.0 and top >= bar:  # decided: at the threshold even where top / mean rounds below
@@ -181,10 +181,10 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
         src = step if det < 0 or det >= count else (step + det + 1) % count
         if on_coarse:
             r, best = coarse_ratio(sources.u[f, src], sources.src[f, src], n, nu, live, grid, gate, s,
-                                   decision.threshold)
+                                   decision.threshold, decision.floor[f])
             prepared = src == det
         else:
-            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s)
+            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s, decision.floor[f])
         decision.stat[f] = r if step == 0 else min(decision.stat[f], r)
     return prepared, best
 

@@ -37,7 +37,9 @@ parts of a sample are ``2 p + c``, antenna p, c = 0 real, 1 imaginary):
   the count test reads
   (``count_sources``) and which one detection reads (``detect_source``; -1: none);
 * :data:`Decision`: the count test's ``threshold`` (linear; < 0: none) and ``active`` (B,)
-  bool, updated in place, and the outputs ``stat`` (B,), ``nu0`` (B,) bins, ``amp0`` (B, 2);
+  bool, updated in place, the outputs ``stat`` (B,), ``nu0`` (B,) bins, ``amp0`` (B, 2), and
+  ``floor`` (B,) the least mean energy the test takes a residual to have
+  (:func:`pipeline.dsp.cml.count.precision_floor`; 0: none);
 * :data:`Report`: what a result needs of the radar: ``range_res`` (m a bin), ``carrier``
   (4 pi f0 / c, rad/m), ``wrap`` (ranges modulo N: no gate), ``cap`` (the statistic's cap, dB);
 * :data:`Targets`: a result's arrays ``range_m`` (B, K), ``amp`` (B, K, 2), ``stat`` (B, K)
@@ -61,7 +63,7 @@ Steps = namedtuple("Steps", ["levels", "adapt", "amp_cap", "max_range_step", "wr
 Gate = namedtuple("Gate", ["use", "lo", "hi", "outside", "edges"])
 Grid = namedtuple("Grid", ["oversample", "count_guard", "sep_guard", "rho", "table", "tables", "weights", "inside"])
 Sources = namedtuple("Sources", ["u", "src", "y", "ramps", "count_sources", "detect_source"])
-Decision = namedtuple("Decision", ["threshold", "active", "stat", "nu0", "amp0"])
+Decision = namedtuple("Decision", ["threshold", "active", "stat", "nu0", "amp0", "floor"])
 Report = namedtuple("Report", ["range_res", "carrier", "wrap", "cap"])
 Targets = namedtuple("Targets", ["range_m", "amp", "stat", "present"])
 #: the coarse search's work arrays (:mod:`pipeline.dsp.cml.kernels.search`): ``energy``,

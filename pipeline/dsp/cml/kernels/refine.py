@@ -82,7 +82,7 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
             fresh = True
         sums(w[cur], cw, cw32, gs[cur], hs[cur], ht, bw, gram, proj)
         normal_equations(amp, gram, proj, hess, grad)
-        _damp(hess, grad, lm)
+        _damp(hess, grad, lm, live)
         solve(hess, grad, chol, step)
         _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2)
         o = 1 - cur
@@ -110,10 +110,19 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
 
 
 @njit(**JIT, inline="always")
-def _damp(hess, grad, lm):
+def _damp(hess, grad, lm, live):
     """The Gauss--Newton system ``hess`` (P, P), ``grad`` (P,) damped by ``lm`` (Levenberg's
-    term, plus 1e-9 of the largest diagonal entry), the gradient negated: the step solves it."""
+    term, plus 1e-9 of the largest diagonal entry), the gradient negated: the step solves it.
+    The targets not ``live`` (K,) take no part (their rows and columns zero): the system is
+    the live targets' alone."""
     npar = grad.shape[0]
+    for t in range(live.shape[0]):
+        if not live[t]:
+            for q in range(PARAMS * t, PARAMS * (t + 1)):
+                grad[q] = 0.0
+                for c in range(npar):
+                    hess[q, c] = 0.0
+                    hess[c, q] = 0.0
     dmax = 0.0
     for q in range(npar):
         dmax = max(dmax, hess[q, q])
