@@ -10,7 +10,7 @@ from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.count import COUNT_GUARD_BINS
-from pipeline.dsp.cml.detect import Buffers, Search, add_target, decision, statistic, count_floor
+from pipeline.dsp.cml.detect import Buffers, Search, add_target, count_floor, decision, settled_score, statistic
 from pipeline.dsp.cml.fit import empty_fit, finish_fit, fit_result, new_fit, report, run, steps, targets
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, COARSE_RHO, MIN_SEPARATION_BINS, SearchGrid, run_tables, twiddles
 from pipeline.dsp.cml.kernels.layout import Gate, Grid
@@ -77,7 +77,7 @@ class CompiledBlocks:
         fit = empty_fit(b, n)
         sigma, floor, amp_cap = start(frames)
         # active: the frames whose residual may still hold a target; as plain tuples, read by the kernels only
-        found = tuple(decision(b, threshold, np.ones(b, dtype=bool), count_floor(codes, grid.oversample)))
+        found = tuple(decision(b, threshold, np.ones(b, dtype=bool), count_floor(codes, fit, grid.oversample)))
         settle = None
         if threshold is not None:
             fit = evaluate_fit(codes, fit, sigma)  # the score of the empty model, for the first count test
@@ -85,10 +85,12 @@ class CompiledBlocks:
         greedy = tuple(steps(np.repeat(sigma[:, None], iters, axis=1), amp_cap))
         settled = False  # the fit annealed since its last target (what the count test reads)
         for _ in range(k):
-            if settle is not None and fit.nu.shape[1]:
+            score = None
+            if settle is not None and fit.nu.shape[1]:  # the test reads the residuals of the settled fit
                 fit = run(codes, fit, settle, search.gate)
                 settled = True
-            grew, fit = add_target(codes, fit, search, found, greedy, sigma)
+                score = settled_score(codes, fit)
+            grew, fit = add_target(codes, fit, search, found, greedy, sigma, score)
             if not grew:
                 break
             settled = False

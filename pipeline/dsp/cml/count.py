@@ -52,3 +52,16 @@ def precision_floor(y: np.ndarray, oversample: int) -> np.ndarray:
     flat = y.reshape(b, -1)
     v = np.einsum("bj,bj->b", flat, flat) / flat.shape[1] * FRAME_ROUNDOFF ** 2
     return 4.0 * ramps * v / (n * oversample ** 2)
+
+
+def information_floor(h: np.ndarray, oversample: int) -> np.ndarray:
+    """The least mean joint energy (B,) the count test takes the likelihood's score's back
+    projection to have: the Fisher information of a target's amplitudes at the fit (the
+    score test's denominator, :math:`\\sum h / L^2` over the 4N real parts of ``h`` (B, N, 2, 2 or
+    4), the NLL's second derivatives summed over the ramps; L = ``oversample`` N). Where the
+    model fits the codes with margins far beyond the likelihood's scale (1-bit codes without
+    a dither at low noise), the score is a numerical remainder shaped by the targets' own
+    crossings and its own mean says nothing; a target must then raise the likelihood by as
+    much as the information allows."""
+    b, n = h.shape[:2]
+    return h.reshape(b, -1).sum(axis=1) / float(oversample * n) ** 2

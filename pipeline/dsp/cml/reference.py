@@ -14,7 +14,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.cml.checks import Frames
-from pipeline.dsp.cml.count import COUNT_GUARD_BINS, precision_floor
+from pipeline.dsp.cml.count import COUNT_GUARD_BINS, information_floor, precision_floor
 from pipeline.dsp.cml.grid import MIN_SEPARATION_BINS, SearchGrid
 from pipeline.dsp.cml.options import LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, CmlOptions
 from pipeline.dsp.cml.result import CmlResult
@@ -209,6 +209,7 @@ class Fit:
         """Targets (B, K) in bins, amplitudes (B, K, 2); ``live`` (B, K): the targets
         that move (the others stay where they are: zero amplitude, past a frame's count)."""
         self.nu, self.amp, self.live = nu, amp, live
+        self.ge = None  # the efficient score's g (:meth:`settled_score`), while the fit does not move
         self.w = atoms(nu, self.kc)
         self.mu = self._mu(self.w, amp)
         self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
@@ -226,6 +227,7 @@ class Fit:
         """The likelihood at noise std ``sigma`` (B,) and its derivatives at the model."""
         self.sigma = np.asarray(sigma, dtype=float)
         self.nll, self.g, self.h = self.codes.evaluate(self.mu, self.sigma)
+        self.ge = None
 
     def run(self, levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> None:
         """One step a level: at noise std ``levels[:, j]`` (B, S) (``adapt``: not below
@@ -264,6 +266,30 @@ class Fit:
                          (nll, self.nll)):
             new[bad] = old[bad]
         self.nu, self.amp, self.w, self.mu, self.g, self.h, self.nll = nu, amp, w, mu, g, h, nll
+        self.ge = None
+
+    def settled_score(self) -> None:
+        """Into ``ge`` (B, N, 2, 2) the efficient score's ``g``: the NLL's derivatives at the
+        model less what the targets' own parameters explain, ``g + h (J d)`` with ``d`` the
+        undamped Gauss--Newton step of the live targets (:meth:`_solve`) and ``J`` the model's
+        Jacobian: ``J^T ge = 0``, the score no target found could take up by moving (Rao's
+        test with the found targets' parameters as nuisances). A fit not yet at its optimum
+        (steps left in a direction the codes barely fix, as the amplitudes of 1-bit codes
+        without a dither) otherwise leaves a score along ``h J d``, which the weights ``h``
+        (periodic with the targets where the codes are) carry to the targets' harmonics."""
+        b, k = self.nu.shape
+        if k == 0:
+            self.ge = self.g
+            return
+        lm, self.lm = self.lm, np.zeros(b)
+        step = self._solve()
+        self.lm = lm
+        step[~self.live] = 0.0
+        n = self.kc.size
+        db = step[..., 1::2] + 1j * step[..., 2::2]  # (B, K, 2)
+        dw = self.w * ((-2j * np.pi / n) * self.kc)  # d w / d nu
+        dmu = np.einsum("bkn,bkp->bnp", self.w, db) + np.einsum("bkn,bkp->bnp", dw, self.amp * step[..., :1])
+        self.ge = self.g + self.h * dmu.view(float).reshape(self.g.shape)
 
     def _solve(self) -> np.ndarray:
         """The damped Gauss--Newton step (B, K, 5): the Jacobian of part c of mu_p is
@@ -318,8 +344,10 @@ def residual(codes: Codes, fit: Fit) -> np.ndarray:
 
 
 def score(codes: Codes, fit: Fit) -> np.ndarray:
-    """The likelihood's score ``-g`` at the model, (B, N, 2) complex."""
-    return np.ascontiguousarray(-fit.g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
+    """The likelihood's score ``-g`` at the model (the efficient score once the fit settled,
+    :meth:`Fit.settled_score`), (B, N, 2) complex."""
+    g = fit.g if fit.ge is None else fit.ge
+    return np.ascontiguousarray(-g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
 
 
 def peak_ratio(y: np.ndarray, fit: Fit, oversample: int, floor: np.ndarray | None = None) -> np.ndarray:
@@ -344,7 +372,8 @@ def count_statistic(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     if codes.bits is None:
         return peak_ratio(residual(codes, fit), fit, oversample, precision_floor(codes.y, oversample))
     ratio = peak_ratio(residual(codes, fit), fit, oversample)
-    return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample))
+    floor = information_floor(fit.h, oversample) if fit.nu.shape[1] else None
+    return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample, floor))
 
 
 def detect(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
@@ -393,9 +422,11 @@ class ReferenceBlocks:
             fit.evaluate(sigma)  # the score of the empty model, for the first count test
         for _ in range(k):
             if threshold is not None:
-                if fit.nu.shape[1]:  # the test reads the residual of the settled fit
+                if fit.nu.shape[1]:  # the test reads the residuals of the settled fit
                     self._settle(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None)
                     settled = True
+                    if codes.bits is not None:
+                        fit.settled_score()
                 active &= count_statistic(fit, codes, oversample) >= threshold
             if not active.any():
                 break
@@ -452,6 +483,8 @@ class ReferenceBlocks:
         levels = warm_levels(sigma, floor, self.options.anneal) if codes.bits is not None and self.options.anneal \
             else None
         res = self._anneal(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None, k, levels)
+        if codes.bits is not None:
+            fit.settled_score()
         return res, fit.live.sum(axis=1), count_statistic(fit, codes, self.options.oversample)
 
     def _result(self, fit: Fit, codes: Codes, sigma: np.ndarray, k: int) -> CmlResult:

@@ -181,10 +181,10 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
         src = step if det < 0 or det >= count else (step + det + 1) % count
         if on_coarse:
             r, best = coarse_ratio(sources.u[f, src], sources.src[f, src], n, nu, live, grid, gate, s,
-                                   decision.threshold, decision.floor[f])
+                                   decision.threshold, decision.floor[f, src])
             prepared = src == det
         else:
-            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s, decision.floor[f])
+            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s, decision.floor[f, src])
         decision.stat[f] = r if step == 0 else min(decision.stat[f], r)
     return prepared, best
 

@@ -25,6 +25,12 @@ def refine(codes, fit, steps, gate):
 
 
 @njit(**JIT)
+def settled_score(fit, ge):
+    """:func:`pipeline.dsp.cml.kernels.refine.settled_score`."""
+    refinement.settled_score(Fit(*fit), ge)
+
+
+@njit(**JIT)
 def detect(sources, grid, gate, nu, live, decision) -> bool:
     """:func:`pipeline.dsp.cml.kernels.detect.detect`."""
     return detection.detect(Sources(*sources), Grid(*grid), Gate(*gate), nu, live, Decision(*decision))

@@ -38,8 +38,8 @@ parts of a sample are ``2 p + c``, antenna p, c = 0 real, 1 imaginary):
   (``count_sources``) and which one detection reads (``detect_source``; -1: none);
 * :data:`Decision`: the count test's ``threshold`` (linear; < 0: none) and ``active`` (B,)
   bool, updated in place, the outputs ``stat`` (B,), ``nu0`` (B,) bins, ``amp0`` (B, 2), and
-  ``floor`` (B,) the least mean energy the test takes a residual to have
-  (:func:`pipeline.dsp.cml.count.precision_floor`; 0: none);
+  ``floor`` (B, 2) the least mean energy the test takes each residual (linear, score) to have
+  (:func:`pipeline.dsp.cml.detect.count_floor`; 0: none);
 * :data:`Report`: what a result needs of the radar: ``range_res`` (m a bin), ``carrier``
   (4 pi f0 / c, rad/m), ``wrap`` (ranges modulo N: no gate), ``cap`` (the statistic's cap, dB);
 * :data:`Targets`: a result's arrays ``range_m`` (B, K), ``amp`` (B, K, 2), ``stat`` (B, K)

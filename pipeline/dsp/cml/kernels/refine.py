@@ -153,3 +153,52 @@ def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
         nu2[t] = v
         for p in range(2):
             amp2[t, p] = amp[t, p] + complex(step[base + 1 + 2 * p] * cut, step[base + 2 + 2 * p] * cut)
+
+
+@njit(**JIT)
+def settled_score(fit, ge):
+    """The efficient score's ``g`` of every frame of ``fit`` into ``ge`` (B, N, 4): ``g + h (J
+    d)``, ``d`` the undamped Gauss--Newton step of the live targets at ``fit``'s ``g``, ``h``
+    and ``J`` the model's Jacobian (``J^T ge = 0``: what no target found could take up by
+    moving; :meth:`pipeline.dsp.cml.reference.Fit.settled_score`, the same sums and system as
+    :func:`refine`'s step)."""
+    nb, k = fit.nu.shape
+    n = fit.mu.shape[1]
+    if k == 0:
+        ge[:] = fit.g
+        return
+    npar = PARAMS * k
+    kc = centred(n)
+    cw = 2.0 * math.pi * kc / n
+    cw32 = cw.astype(np.float32)
+    w = np.empty((k, 2, n))
+    mu = np.empty((n, 4))
+    ht, bw = np.empty((4, n), dtype=np.float32), np.empty((2 * k, n), dtype=np.float32)
+    gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
+    hess, grad, chol, step = np.empty((npar, npar)), np.empty(npar), np.empty((npar, npar)), np.empty(npar)
+    for f in range(nb):
+        nu, amp, live, g, h = fit.nu[f], fit.amp[f], fit.live[f], fit.g[f], fit.h[f]
+        model(nu, amp, kc, w, mu)
+        sums(w, cw, cw32, g, h, ht, bw, gram, proj)
+        normal_equations(amp, gram, proj, hess, grad)
+        _damp(hess, grad, 0.0, live)
+        solve(hess, grad, chol, step)
+        for i in range(n):
+            for j in range(4):
+                ge[f, i, j] = g[i, j]
+        for t in range(k):
+            if not live[t]:
+                continue
+            base = PARAMS * t
+            dnu = step[base]
+            for p in range(2):
+                dbr, dbi = step[base + 1 + 2 * p], step[base + 2 + 2 * p]
+                br, bi = amp[t, p].real, amp[t, p].imag
+                for i in range(n):
+                    wr, wi = w[t, 0, i], w[t, 1, i]
+                    # d mu_p = db w + b (d w / d nu) dnu, d w / d nu = -i cw w
+                    c = cw[i] * dnu
+                    dr = dbr * wr - dbi * wi + c * (br * wi + bi * wr)
+                    di = dbr * wi + dbi * wr + c * (bi * wi - br * wr)
+                    ge[f, i, 2 * p] += h[i, 2 * p] * dr
+                    ge[f, i, 2 * p + 1] += h[i, 2 * p + 1] * di
