@@ -231,7 +231,7 @@ def compiled_detect(blocks, codes, ref, grid, count, nu0=None):
     src = back_projections(codes, fit, search, count, nu0 is not None, False)
     found = Decision(-1.0, np.ones(b, dtype=bool), np.zeros(b), np.empty(b) if nu0 is None else np.array(nu0, float),
                      np.empty((b, 2), dtype=complex), count_floor(codes, fit, search.grid.oversample))
-    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(found))
+    entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(found))
     return (found.stat if count else None), found.nu0, found.amp0
 
 

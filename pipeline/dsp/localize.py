@@ -26,7 +26,7 @@ from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, p
                                 sensing_matrix)
 
 from pipeline.errors import ParameterError
-from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, check_gate
+from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, boundary_skirts, check_gate
 
 
 def _check_z(z: np.ndarray) -> np.ndarray:
@@ -279,10 +279,14 @@ def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarCon
     return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
 
 
-def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray, int]:
+def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int,
+                 ends_bins: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, int]:
     """The joint energy (B, N) of a back projection seen through a range gate's bin mask
-    (N,) bool (None: no gate): (energy to pick a support from, -1 outside the gate;
-    energy for the statistic, 0 outside; bins inside). ``k`` bins must fit inside."""
+    (N,) bool (None: no gate) whose ends are ``ends_bins`` (:meth:`~pipeline.dsp.gate.RangeGate.bins`):
+    (energy to pick a support from, -1 outside the gate and on the skirt of a return outside
+    it (:func:`pipeline.dsp.gate.boundary_skirts`: a peak whose maximum lies beyond the gate's
+    end is not a target inside); energy for the statistic, 0 outside; bins inside). ``k``
+    bins must fit inside.""" 
     n = energy.shape[1]
     if mask is None:
         return energy, energy, n
@@ -292,6 +296,7 @@ def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[n
     outside = ~mask
     pick, stat = energy.copy(), energy.copy()
     pick[:, outside] = -1.0  # below any energy: never in the support
+    pick[boundary_skirts(energy, mask, ends_bins)] = -1.0
     stat[:, outside] = 0.0
     return pick, stat, cells
 
@@ -307,7 +312,7 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)
     energy = joint_energy(u)
-    pick, stat, cells = gated_energy(energy, mask, k)
+    pick, stat, cells = gated_energy(energy, mask, k, None if gate is None else gate.bins(config))
     support = joint_support(u, k, pick)
     det = detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
     if pfa is None:

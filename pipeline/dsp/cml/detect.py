@@ -66,6 +66,7 @@ class Search(NamedTuple):
     kernel: tuple
     report: tuple
     buffers: Buffers
+    seed_gate: tuple
 
 
 def ifft(x: np.ndarray) -> np.ndarray:
@@ -150,7 +151,8 @@ def add_target(codes: BlockCodes, fit: Fit, search: Search, found: tuple, plan: 
         count_floor(codes, fit, search.grid.oversample, found[5])
     b, t = fit.nu.shape
     new = new_fit(b, t + 1, fit.mu.shape[1])
-    grew = entry.add_target(src, search.kernel, search.gate, tuple(fit), codes.args, plan, sigma, found, tuple(new))
+    grew = entry.add_target(src, search.kernel, search.gate, search.seed_gate, tuple(fit), codes.args, plan, sigma,
+                            found, tuple(new))
     return grew, (new if grew else fit)
 
 
@@ -161,5 +163,5 @@ def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndar
     b = fit.nu.shape[0]
     test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex),
                     count_floor(codes, fit, search.grid.oversample))
-    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(test))
+    entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(test))
     return test.stat

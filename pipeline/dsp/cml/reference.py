@@ -253,8 +253,6 @@ class Fit:
         norm = np.linalg.norm(step[..., 1:], axis=2)
         step[..., 1:] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
         nu = self.nu + step[..., 0]
-        if self.grid.use:  # a target may not leave the gate
-            nu = np.clip(nu, self.grid.lo, self.grid.hi)
         amp = self.amp + (step[..., 1::2] + 1j * step[..., 2::2])
         w = atoms(nu, self.kc)
         mu = self._mu(w, amp)
@@ -379,18 +377,15 @@ def count_statistic(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
 def detect(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     """Range (bins, (B,)) of the peak of the joint energy of the residual's back projection
     (the score after the first target) on a grid of ``oversample`` points a bin, refined by a
-    parabola, inside the gate."""
+    parabola, on the whole axis (a range gate bounds what is reported, not what is modelled)."""
     first = fit.nu.shape[1] == 0 or codes.bits is None
     e, _ = energy(residual(codes, fit) if first else score(codes, fit), fit, oversample, MIN_SEPARATION_BINS)
     size = e.shape[1]
-    grid = fit.grid
-    # the peak inside the gate (-1: below any energy, so also a residual of zeros peaks inside)
-    peak = np.argmax(np.where(grid.outside, -1.0, e) if grid.use else e, axis=1)
+    peak = np.argmax(e, axis=1)
     left, centre, right = (np.take_along_axis(e, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
     curv = left - 2 * centre + right
     off = np.where(curv < 0, 0.5 * (left - right) / np.where(curv < 0, curv, -1.0), 0.0)
-    nu = (peak + np.clip(off, -0.5, 0.5)) / oversample
-    return np.clip(nu, grid.lo, grid.hi) if grid.use else nu
+    return (peak + np.clip(off, -0.5, 0.5)) / oversample
 
 
 def amplitude_at(codes: Codes, fit: Fit, nu0: np.ndarray) -> np.ndarray:
@@ -409,8 +404,12 @@ class ReferenceBlocks:
     def __init__(self, config: RadarConfig, options: CmlOptions):
         self.config, self.options = config, options
 
-    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None) -> CmlResult:
-        """One block from scratch: greedy stages (count test at ``threshold``), then the annealing."""
+    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None,
+               nuisance: bool = False) -> CmlResult:
+        """One block from scratch: greedy stages (count test at ``threshold``), then the
+        annealing; with a count test or ``nuisance``, the fit settled before each stage and,
+        with a range gate, up to ``grid.stages`` more stages while a frame holds fewer than ``k``
+        targets inside it (as :meth:`pipeline.dsp.cml.compiled.CompiledBlocks.decode`)."""
         b = frames.z.shape[0]
         oversample, anneal = self.options.oversample, self.options.anneal
         codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood)
@@ -420,13 +419,16 @@ class ReferenceBlocks:
         settled = False  # the fit annealed since its last target (the count test's)
         if threshold is not None:
             fit.evaluate(sigma)  # the score of the empty model, for the first count test
-        for _ in range(k):
+        settling = threshold is not None or nuisance
+        for _ in range(k + (grid.stages if settling else 0)):
+            if settling and fit.nu.shape[1]:  # the residuals of the settled fit
+                self._settle(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None)
+                settled = True
+                if threshold is not None and codes.bits is not None:
+                    fit.settled_score()
+            if settling and grid.use:  # a frame with k targets inside the gate is done
+                active &= (fit.live & grid.inside(fit.nu)).sum(axis=1) < k
             if threshold is not None:
-                if fit.nu.shape[1]:  # the test reads the residuals of the settled fit
-                    self._settle(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None)
-                    settled = True
-                    if codes.bits is not None:
-                        fit.settled_score()
                 active &= count_statistic(fit, codes, oversample) >= threshold
             if not active.any():
                 break
@@ -485,15 +487,14 @@ class ReferenceBlocks:
         res = self._anneal(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None, k, levels)
         if codes.bits is not None:
             fit.settled_score()
-        return res, fit.live.sum(axis=1), count_statistic(fit, codes, self.options.oversample)
+        return res, (fit.live & grid.inside(fit.nu)).sum(axis=1), count_statistic(fit, codes, self.options.oversample)
 
     def _result(self, fit: Fit, codes: Codes, sigma: np.ndarray, k: int) -> CmlResult:
         """The fit in the model's terms, its statistic, padded to ``k`` targets (absent ones
-        last), present ones strongest first."""
+        last) or cut to them, present ones (live, inside the gate) strongest first."""
         n, ramps, config = codes.n, codes.ramps, self.config
         b, t = fit.nu.shape
-        # the axis is circular; inside a gate (within [0, N] bins) a range is not wrapped
-        range_m = (fit.nu if fit.grid.use else fit.nu % n) * config.range_resolution_m
+        range_m = (fit.nu % n) * config.range_resolution_m  # the axis is circular
         # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
         amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
             ..., None]
@@ -504,12 +505,12 @@ class ReferenceBlocks:
         power = (np.abs(fit.amp) ** 2).sum(axis=2)
         with np.errstate(divide="ignore", invalid="ignore"):
             stat = to_db(power / noise[:, None])
-        pad = k - t
+        pad = max(k - t, 0)
         range_m = np.concatenate([range_m, np.full((b, pad), np.nan)], axis=1)
         amp = np.concatenate([amp, np.zeros((b, pad, 2), dtype=complex)], axis=1)
         stat = np.concatenate([stat, np.full((b, pad), np.nan)], axis=1)
         power = np.concatenate([power, np.zeros((b, pad))], axis=1)
-        present = np.concatenate([fit.live, np.zeros((b, pad), dtype=bool)], axis=1)
-        order = np.lexsort((-power, ~present), axis=1)  # present first, then strongest first
+        present = np.concatenate([fit.live & fit.grid.inside(fit.nu), np.zeros((b, pad), dtype=bool)], axis=1)
+        order = np.lexsort((-power, ~present), axis=1)[:, :k]  # present first, then strongest first
         return CmlResult(np.take_along_axis(range_m, order, axis=1), np.take_along_axis(amp, order[..., None], axis=1),
                          np.take_along_axis(stat, order, axis=1), sigma, np.take_along_axis(present, order, axis=1))

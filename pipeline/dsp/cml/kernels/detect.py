@@ -129,7 +129,7 @@ def scratch(n, size, lc, table):
 
 
 @njit(**JIT)
-def detect(sources, grid, gate, nu, live, decision) -> bool:
+def detect(sources, grid, gate, seed_gate, nu, live, decision) -> bool:
     """Per frame: the count test's statistic into ``decision.stat`` (B,) (the smaller peak
     ratio of the first ``sources.count_sources`` residuals; 0 sources: left alone), with
     ``decision.threshold`` >= 0 the count's decision (``decision.active`` (B,) bool, updated
@@ -138,7 +138,9 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
     inactive already), the detected range into ``decision.nu0`` (B,) (residual
     ``sources.detect_source``; -1: ``nu0`` given), and the least-squares amplitudes (B, 2) of
     one target at ``nu0`` in ``sources.y`` into ``decision.amp0``; ``nu`` (B, T) bins and
-    ``live`` (B, T): the targets found. Returns whether a frame is active (no threshold:
+    ``live`` (B, T): the targets found; the count test looks inside ``gate``, detection inside
+    ``seed_gate`` (the whole axis: a range gate bounds what is reported, not what is modelled,
+    :class:`pipeline.dsp.cml.grid.SearchGrid`). Returns whether a frame is active (no threshold:
     True); with none, the ranges and amplitudes are left alone. ``sources.u`` coarser than
     ``grid.oversample`` N points: the fine grid's peak and mean from it
     (:mod:`pipeline.dsp.cml.kernels.search`)."""
@@ -156,12 +158,12 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
             if not decision.active[f] and sources.detect_source >= 0:  # detected only if another frame goes on
                 pending[f] = True
                 continue
-        _detect_frame(sources, grid, gate, nu[f], live[f], decision, s, on_coarse, f, prepared, best)
+        _detect_frame(sources, grid, gate, seed_gate, nu[f], live[f], decision, s, on_coarse, f, prepared, best)
     if not any_active:
         return False
     for f in range(nb):
         if pending[f]:
-            _detect_frame(sources, grid, gate, nu[f], live[f], decision, s, on_coarse, f, False, 0)
+            _detect_frame(sources, grid, gate, seed_gate, nu[f], live[f], decision, s, on_coarse, f, False, 0)
     return True
 
 
@@ -190,17 +192,19 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
 
 
 @njit(**JIT)
-def _detect_frame(sources, grid, gate, nu, live, decision, s, on_coarse, f, prepared, best):
-    """Frame ``f``'s detected range into ``decision.nu0[f]`` (unless given) and its
-    amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as :func:`_count` returns."""
+def _detect_frame(sources, grid, gate, seed_gate, nu, live, decision, s, on_coarse, f, prepared, best):
+    """Frame ``f``'s detected range (inside ``seed_gate``) into ``decision.nu0[f]`` (unless
+    given) and its amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as
+    :func:`_count` returns (``gate``: the count test's)."""
     det = sources.detect_source
     n = sources.y.shape[1]
-    if prepared and decision.threshold < 0.0 and not live.any():  # no guard: the count test's peak is the detection's
-        decision.nu0[f] = peak_range(sources.src[f, det], n, best, grid, gate, s)
+    if prepared and decision.threshold < 0.0 and not live.any() and not gate.use:  # no guard, one search
+        decision.nu0[f] = peak_range(sources.src[f, det], n, best, grid, seed_gate, s)
     elif on_coarse and det >= 0:
-        decision.nu0[f] = coarse_range(sources.u[f, det], sources.src[f, det], n, nu, live, grid, gate, s, prepared)
+        decision.nu0[f] = coarse_range(sources.u[f, det], sources.src[f, det], n, nu, live, grid, seed_gate, s,
+                                       prepared)
     elif det >= 0:
-        decision.nu0[f] = peak(sources.u[f, det], nu, live, grid.oversample, grid.sep_guard, gate, s)
+        decision.nu0[f] = peak(sources.u[f, det], nu, live, grid.oversample, grid.sep_guard, seed_gate, s)
     amplitude(sources.y[f], decision.nu0[f], sources.ramps, decision.amp0[f])
 
 

@@ -27,12 +27,13 @@ Work = namedtuple("Work", ["w", "mus", "gs", "hs", "cw", "cw32", "ht", "bw", "gr
 
 
 @njit(**JIT)
-def refine(codes, fit, steps, gate):
+def refine(codes, fit, steps):
     """Levenberg--Marquardt steps of every frame of ``fit`` on ``codes``: step j at noise std
     ``steps.levels[f, j]`` (``steps.adapt``: not below the wrong codes' RMS distance over
     ``steps.wrong_per_sigma``), re-evaluating the likelihood when the level changes (a
     candidate whose derivatives the next step does not use gets its NLL alone); a step is
-    kept only when the NLL does not grow; ranges stay in ``gate`` (``gate.use``). Updates
+    kept only when the NLL does not grow; ranges are not bounded (a range gate bounds detection and
+    what is reported, not the refinement). Updates
     ``fit``'s ``nu``, ``amp``, ``lm``, ``mu``, ``g``, ``h``, ``nll`` in place and writes each
     frame's last level to ``fit.sigma``. ``fit.nll`` on entry: the NLL at ``fit.sigma`` (the
     current level; NaN: none)."""
@@ -49,18 +50,17 @@ def refine(codes, fit, steps, gate):
                 np.empty((npar, npar)), np.empty(npar), np.empty(k), np.empty((k, 2), dtype=np.complex128),
                 np.empty((3, 4 * n), dtype=np.float32))
     for f in range(fit.nu.shape[0]):
-        _refine_frame(codes, fit, steps, gate, kc, work, f)
+        _refine_frame(codes, fit, steps, kc, work, f)
 
 
 @njit(**JIT, inline="always")
-def _refine_frame(codes, fit, steps, gate, kc, work, f):
+def _refine_frame(codes, fit, steps, kc, work, f):
     """:func:`refine` of frame ``f``. (The fields of the namedtuples are read once, before the
     steps: a field read from a namedtuple is a reference counted each time, measured 3-5 % of
     the steps when read in the loop.)"""
     kind, lik, a, b = codes.kind, codes.lik, codes.a[f], codes.b[f]
     nu, amp, live, levels, amp_cap = fit.nu[f], fit.amp[f], fit.live[f], steps.levels[f], steps.amp_cap[f]
     adapt, wrong_per_sigma, max_step = steps.adapt, steps.wrong_per_sigma, steps.max_range_step
-    use, lo, hi = gate.use, gate.lo, gate.hi
     w, mus, gs, hs, nu2, amp2, lw = work.w, work.mus, work.gs, work.hs, work.nu2, work.amp2, work.work
     cw, cw32, ht, bw, gram, proj = work.cw, work.cw32, work.ht, work.bw, work.gram, work.proj
     hess, grad, chol, step = work.hess, work.grad, work.lw, work.step
@@ -84,7 +84,7 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
         normal_equations(amp, gram, proj, hess, grad)
         _damp(hess, grad, lm, live)
         solve(hess, grad, chol, step)
-        _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2)
+        _candidate(nu, amp, live, step, amp_cap, max_step, nu2, amp2)
         o = 1 - cur
         model(nu2, amp2, kc, w[o], mus[o])
         # the candidate's derivatives only when the next step is at this level (known
@@ -132,10 +132,11 @@ def _damp(hess, grad, lm, live):
 
 
 @njit(**JIT, inline="always")
-def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
+def _candidate(nu, amp, live, step, amp_cap, max_step, nu2, amp2):
     """The candidate targets ``nu2`` (K,), ``amp2`` (K, 2): the targets ``nu`` bins, ``amp``
     moved by ``step`` (not those not ``live``), the range step clipped to ``max_step``, the
-    amplitudes' to ``amp_cap``, ranges kept in the gate [``lo``, ``hi``] (``use``)."""
+    amplitudes' to ``amp_cap`` (a range gate does not bound them: a target may leave it,
+    :class:`pipeline.dsp.cml.grid.SearchGrid`)."""
     for t in range(nu.shape[0]):
         base = PARAMS * t
         if not live[t]:
@@ -147,10 +148,7 @@ def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
             norm += step[base + q] ** 2
         norm = math.sqrt(norm)
         cut = min(1.0, amp_cap / max(norm, 1e-300))
-        v = nu[t] + dnu
-        if use:
-            v = min(max(v, lo), hi)
-        nu2[t] = v
+        nu2[t] = nu[t] + dnu
         for p in range(2):
             amp2[t, p] = amp[t, p] + complex(step[base + 1 + 2 * p] * cut, step[base + 2 + 2 * p] * cut)
 
