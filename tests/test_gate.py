@@ -172,6 +172,39 @@ def test_cml_a_target_just_outside_the_gate_is_modelled_outside_it_not_reported_
     assert (modelled & ~res.present).any(axis=1).all()
 
 
+def lone_frames(range_m: float, alpha: float, b: int = 64, seed: int = 3, noise: float = 0.03):
+    """1-bit dithered frames of one target (amplitude 1, 10 deg) at ``range_m`` and nothing else."""
+    rng = np.random.default_rng(seed)
+    x = np.exp(2j * np.pi * rng.random((b, 1)))
+    g = simulate_frames(np.full((b, 1), range_m), np.full((b, 1), 10.0), x, CFG)
+    g = g + noise * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    q = quantize_frames(g, QuantizerConfig(alpha=alpha), np.arange(b))
+    return q.values(), q.dither(), q.delta
+
+
+def at_the_edges(det, tol_m: float = 0.1) -> np.ndarray:
+    """Present targets within ``tol_m`` of the default gate's ends, (B, K) bool."""
+    r = det.range_m
+    return det.present & ((np.abs(r - GATE.min_range_m) < tol_m) | (np.abs(r - GATE.max_range_m) < tol_m))
+
+
+@pytest.mark.parametrize("range_m", [0.9, 153.0])  # inside the leakage zone; beyond the gate's top
+@pytest.mark.parametrize("alpha", [0.45, 1.0])
+def test_a_lone_target_just_outside_the_gate_is_not_reported_at_its_edge(range_m, alpha):
+    """Issue 41: a target at 0.9 m was reported at the gate's end, 1.20 m, with K = 1 and made
+    4 detections a frame with ``--K auto``; one at 153.0 m made 3.45. A peak whose maximum lies
+    beyond the gate's end is not a target inside: cml's count finds nothing inside (the return
+    is modelled where it is), and with K = 1 given no decoder pins its estimate to an end
+    (what they report is a noise peak anywhere: at an end no more often than chance)."""
+    z, xi, delta = lone_frames(range_m, alpha)
+    auto = decode(z, xi, delta, 1, CFG, 4, DecoderConfig(algo="cml", auto_k=True, gate=GATE))
+    assert auto.present.sum() == 0, auto.range_m[auto.present]
+    for algo in ("pbp", "qiht", "cml"):
+        det = decode(z, xi, delta, 1, CFG, 1, DecoderConfig(algo=algo, gate=GATE))
+        assert not outside(det).any()
+        assert at_the_edges(det).any(axis=1).mean() <= 0.05, (algo, det.range_m[:8, 0])
+
+
 # -- a target inside is unaffected -------------------------------------------------------------
 @pytest.mark.parametrize("algo", ["pbp", "qiht", "cml"])
 def test_targets_inside_the_gate_are_decoded_as_without_it(algo):
