@@ -42,6 +42,7 @@ from pipeline.errors import DitherUnavailable, ParameterError
 from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
+from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlDecoder, CmlOptions
 from pipeline.dsp.cml.engine import resolve as resolve_engine
 from pipeline.dsp.quantize import QuantizedFrames, check_bits
@@ -437,9 +438,12 @@ class Decoder:
         cfg = self.config
         pfa = cfg.pfa if cfg.auto_k else None
         if cfg.algo == Algo.CML and indices is None:  # cml checks the gate (once per gate and radar)
-            return self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
-                                          bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
-                                          pfa=pfa, gate=cfg.gate, init_range_m=init_range_m).detections(radar)
+            res = self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
+                                         bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
+                                         pfa=pfa, gate=cfg.gate, init_range_m=init_range_m)
+            unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
+                                     estimated=noise_sigma is None and cfg.noise_sigma is None)
+            return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         if cfg.algo == Algo.PBP:
             return localize(z, radar, k, indices, pfa, gate)
