@@ -111,8 +111,10 @@ def fitted_noise(sigma: np.ndarray, margin: np.ndarray, ds: np.ndarray, live: np
     # d/dsigma of h(m / sigma) / sigma^2 = -(z h'(z) + 2 h) / sigma^3
     moved = _masked(fisher(ds, _scatter(idx, -(z * dlog + 2.0) * h, shape) / sg**3), live, eye=0.0)
     with np.errstate(invalid="ignore", over="ignore"):
-        trace = np.trace(np.linalg.solve(info, moved), axis1=1, axis2=2)
-    fixed = sigma - 0.5 * trace / about_sigma
+        trace = np.trace(_inverse(info) @ moved, axis1=1, axis2=2)
+    # the bias of sigma^2 relative to the noise's, 2 bias / sigma, as a least-squares
+    # residual's (n - P) / n: divided out (first order alike; exact for Gaussian samples)
+    fixed = sigma / np.sqrt(np.maximum(1.0 + trace / (about_sigma * sigma), 0.25))
     return np.where(np.isfinite(fixed) & (fixed > sigma), fixed, sigma)
 
 
@@ -185,7 +187,8 @@ def _inverse(fim: np.ndarray) -> np.ndarray:
     """Inverse Fisher matrices (B, P, P), NaN where singular."""
     cov = np.full(fim.shape, np.nan)
     ok = np.isfinite(fim).all(axis=(1, 2))
-    cov[ok] = np.linalg.pinv(fim[ok], hermitian=True)
+    if ok.any():
+        cov[ok] = np.linalg.pinv(fim[ok], hermitian=True)
     return cov
 
 
