@@ -217,12 +217,3 @@ def _angles(cov: np.ndarray, a: np.ndarray, live: np.ndarray, config: RadarConfi
         out.sigma_range_m[ok, t] = np.sqrt(c[ok, 0, 0])
         out.sigma_angle_deg[ok, t] = np.sqrt(c[ok, 1, 1]) * deg
         out.cov_range_angle[ok, t] = c[ok, 0, 1] * deg
-
-
-def ellipse_coverage(err: np.ndarray, cov: np.ndarray, level: float) -> np.ndarray:
-    """Whether errors ``err`` (..., 2) lie inside the ``level``-sigma ellipse of ``cov``
-    (..., 2, 2): ``err^T cov^-1 err <= level^2`` (2-D: probability 1 - exp(-level^2 / 2),
-    39.3 % at 1, 86.5 % at 2)."""
-    sol = np.linalg.solve(cov, err[..., None])[..., 0]
-    return (err * sol).sum(axis=-1) <= level * level
-
