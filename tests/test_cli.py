@@ -3,15 +3,9 @@ exits 2, and shows a traceback only under -v."""
 
 import json
 import os
-import subprocess
-import sys
 
 import pytest
-
-
-def qradar(*args, timeout_s=60):
-    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
-                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+from zenoh_helpers import qradar
 
 
 @pytest.mark.parametrize("args, where", [

@@ -46,6 +46,7 @@ def state_bytes(mon: Monitor) -> int:
     return sum(deep(v) for k, v in vars(mon).items() if k not in skip)
 
 
+@pytest.mark.measure
 def test_monitor_memory_is_flat_and_its_percentiles_are_right():
     scene = resolve_scene("chamber")
     assert scene.truth(0.0) == scene.truth(1e4)  # a static scene: the truth of every message is known
