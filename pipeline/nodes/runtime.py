@@ -124,9 +124,9 @@ class Node(Counters):
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> "Node":
-        self._token = self.transport.declare_token(self.bus.liveliness_key(self.name))
         self._spawn(self._health_loop, "health")
-        self._start()
+        self._start()  # its subscribers first: whoever sees the token may put at once
+        self._token = self.transport.declare_token(self.bus.liveliness_key(self.name))
         return self
 
     def _start(self) -> None:
