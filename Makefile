@@ -57,6 +57,7 @@ montecarlo-quick: $(STAMP)
 docs-figures: $(STAMP)
 	$(PY) docs/figures/regenerate.py
 	$(PY) docs/figures/web_view.py
+	$(PY) -m experiments.curves docs/figures
 
 # The whole suite, slow tests included (CI runs this).
 # docs/lab.md's tables of the lab file's keys, from the options' definitions (tests/test_lab.py checks them).

@@ -51,7 +51,7 @@ def coarse_ratio(x, nu, live, gate=None, threshold=-1.0, n=N, oversample=OVERSAM
     s = kernels.scratch(n, size, small, grid.table)
     ratio, _ = kernels.coarse_ratio(np.fft.ifft(x, n=small, axis=1), np.ascontiguousarray(x), n,
                                     np.asarray(nu, dtype=float), np.asarray(live, dtype=bool), grid, kgate, s,
-                                    threshold)
+                                    threshold, 0.0)
     return ratio
 
 

@@ -22,7 +22,7 @@ from test_cml import measure, random_scenes
 from pipeline.dsp.cml import CmlDecoder, CmlOptions, cml, reference
 from pipeline.dsp.cml.checks import check_frames
 from pipeline.dsp.cml.compiled import CompiledBlocks
-from pipeline.dsp.cml.detect import back_projections
+from pipeline.dsp.cml.detect import back_projections, count_floor
 from pipeline.dsp.cml.grid import SearchGrid
 from pipeline.dsp.cml.kernels import KERNELS, entry, likelihood as lik, linalg, model
 from pipeline.dsp.cml.kernels.layout import Codes, Decision, Fit
@@ -224,13 +224,14 @@ def compiled_detect(blocks, codes, ref, grid, count, nu0=None):
     b, n = ref.nu.shape[0], codes.n
     mu = np.ascontiguousarray(ref.mu).reshape(b, n, 4)
     g = np.ascontiguousarray(ref.g).reshape(b, n, 4) if hasattr(ref, "g") else mu
+    h = np.ascontiguousarray(ref.h).reshape(b, n, 4) if hasattr(ref, "h") else mu
     fit = Fit(np.ascontiguousarray(ref.nu), np.ascontiguousarray(ref.amp), np.ascontiguousarray(ref.live),
-              np.ones(b), np.zeros(b), np.ones(b), mu, g, g)
+              np.ones(b), np.zeros(b), np.ones(b), mu, g, h)
     search = blocks.search(grid)
     src = back_projections(codes, fit, search, count, nu0 is not None, False)
     found = Decision(-1.0, np.ones(b, dtype=bool), np.zeros(b), np.empty(b) if nu0 is None else np.array(nu0, float),
-                     np.empty((b, 2), dtype=complex))
-    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(found))
+                     np.empty((b, 2), dtype=complex), count_floor(codes, fit, search.grid.oversample))
+    entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(found))
     return (found.stat if count else None), found.nu0, found.amp0
 
 

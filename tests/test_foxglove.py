@@ -95,7 +95,7 @@ def check_cloud(cloud: dict, targets: dict) -> None:
     """A decoded PointCloud against the targets message (wire JSON) it was made from."""
     assert cloud["frame_id"] == f"radar_{targets['sensor_id']}"
     assert int(cloud["timestamp_ns"]) == targets["timestamp_ns"]
-    assert [f["name"] for f in cloud["fields"]] == list(POINT_FIELDS) and cloud["point_stride"] == 28
+    assert [f["name"] for f in cloud["fields"]] == list(POINT_FIELDS) and cloud["point_stride"] == 4 * len(POINT_FIELDS)
     assert all(f["type"] == 7 for f in cloud["fields"])  # foxglove.NumericType.FLOAT32
     pts, tgs = cloud["points"], targets["targets"]
     assert len(pts) == len(tgs)
@@ -273,7 +273,7 @@ def test_target_points_follow_the_model_convention():
         {"range_m": 10.0, "angle_deg": 30.0, "x_m": 0.0, "y_m": 0.0, "amplitude": 0.5, "statistic_db": 20.0},
         {"range_m": 4.0, "angle_deg": -90.0, "x_m": 0.0, "y_m": 0.0, "amplitude": 0.25}])
     pts = target_points(msg)
-    assert pts.dtype.itemsize == 28 and pts.dtype.names == POINT_FIELDS
+    assert pts.dtype.itemsize == 4 * len(POINT_FIELDS) and pts.dtype.names == POINT_FIELDS
     assert_allclose(pts["x"], [10 * np.cos(np.pi / 6), 0.0], atol=1e-6)
     assert_allclose(pts["y"], [5.0, -4.0], atol=1e-6)  # positive angle: +y (antenna 2's side)
     assert pts["statistic_db"][0] == 20.0 and np.isnan(pts["statistic_db"][1])
@@ -363,7 +363,9 @@ def test_a_run_recording_shows_itself_in_foxglove(node, tmp_path):
     assert all(v["invalid"] == 0 and not v["errors"] for v in topics.values()), {
         t: v["errors"] for t, v in topics.items() if v["errors"]}
     frames = summary["frames_targets"]
-    assert topics["radar/kmd2-0/pointcloud"]["messages"] == topics["radar/kmd2-0/scene"]["messages"] == frames >= 40
+    # the scene: a message per tracks message and one per targets message (cml's targets carry their ellipses)
+    assert topics["radar/kmd2-0/pointcloud"]["messages"] == frames >= 40
+    assert topics["radar/kmd2-0/scene"]["messages"] == 2 * frames
     assert 4 <= topics["radar/kmd2-0/profile"]["messages"] <= 2 * 4.0 + 3  # at most 2 a second of sensor time
     for p, got in out["paths"].items():  # every panel's topic decodes, and its paths give what the panel plots
         assert got["messages"] > 0 and got["values"] > 0, (p, got)
@@ -382,7 +384,8 @@ def test_a_run_recording_shows_itself_in_foxglove(node, tmp_path):
     last = max(recorded)
     assert recorded[last]["tracks"], "no confirmed track in the run: nothing to draw"
     scenes = [json.loads(m.data) for ch, m in McapFile(path).messages() if ch.topic.endswith("/scene")]
-    ents = {e["id"]: e for e in scenes[-1]["entities"]}
+    assert sum(any(e["id"] == "target-0" for e in sc["entities"]) for sc in scenes) == frames
+    ents = {e["id"]: e for sc in scenes[-2:] for e in sc["entities"]}
     for t in recorded[last]["tracks"]:
         cyl = ents[f"track-{t['track_id']}"]["cylinders"][0]
         assert cyl["size"]["x"] == cyl["size"]["y"] == pytest.approx(max(2 * t["sigma_m"], 0.2))

@@ -134,7 +134,9 @@ def test_2_k_auto_ghosts_show_up_in_the_runs_score():
     s = json.loads(out.stdout)
     sc = s["score"]
     assert sc["distance_m"] == 1.0 and sc["frames"] == 60 and len(sc["targets"]) == 2
-    assert sc["false_targets_per_frame"] > 1.0 and sc["targets_per_frame"] > 2.0  # the leakage's ghosts
+    # the uncalibrated front end's ghosts (1.18 a frame measured; none pinned at the gate's ends any more,
+    # where a peak whose maximum lies outside is not a target inside), counted beside the targets found
+    assert sc["false_targets_per_frame"] > 1.0 and sc["targets_per_frame"] > sc["false_targets_per_frame"]
     assert all(t["detection_rate"] < 0.5 for t in sc["targets"]) and sc["median_nearest_m"] > 1.0
     assert s["position_error_m"]["median"] is not None  # the median of nearest, kept beside
 

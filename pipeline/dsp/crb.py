@@ -154,7 +154,7 @@ def _h_table() -> tuple[np.ndarray, np.ndarray]:
 
 
 def h_integral() -> float:
-    """``int phi(z)^2 / (Phi(z) (1 - Phi(z))) dz`` over the real line (~1.33): a dithered
+    """``int phi(z)^2 / (Phi(z) (1 - Phi(z))) dz`` over the real line (1.806): a dithered
     1-bit sample whose dither spreads ``s + d`` uniformly over a width ``a >> sigma`` around
     0 carries this times ``1 / (a sigma)``."""
     return float(_h_table()[1][-1])

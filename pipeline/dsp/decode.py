@@ -39,9 +39,10 @@ from radar_driver.model import RadarConfig, carrier
 
 from pipeline import defaults
 from pipeline.errors import DitherUnavailable, ParameterError
-from pipeline.dsp.gate import RangeGate, check_gate
+from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
+from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlDecoder, CmlOptions
 from pipeline.dsp.cml.engine import resolve as resolve_engine
 from pipeline.dsp.quantize import QuantizedFrames, check_bits
@@ -199,20 +200,24 @@ def _antenna_major(a: np.ndarray, n: int) -> np.ndarray:
     return t.view(float).reshape(b, m // n, 2, n, 2)
 
 
-def _strongest(u: np.ndarray, k: int, outside: np.ndarray | None = None) -> np.ndarray:
+def _strongest(u: np.ndarray, k: int, outside: np.ndarray | None = None,
+               ends_bins: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """:func:`pipeline.dsp.localize.joint_support` of U held antenna-major, (B, 2, N) -> (B, K):
     the K bins of largest ``|U1|^2 + |U2|^2``, strongest first; never a bin where
-    ``outside`` (N,) bool is True (a range gate)."""
+    ``outside`` (N,) bool is True (a range gate, its ends ``ends_bins``), nor on the skirt of
+    a return outside it (:func:`pipeline.dsp.gate.boundary_skirts`)."""
     if k > SMALL_K:
         ut = u.transpose(0, 2, 1)
         if outside is None:
             return joint_support(ut, k)
         energy = joint_energy(ut)
+        energy[boundary_skirts(energy, ~outside, ends_bins)] = -1.0
         energy[:, outside] = -1.0
         return joint_support(ut, k, energy)
     p = np.square(np.ascontiguousarray(u, dtype=complex).view(float)).reshape(u.shape + (2,))  # (B, 2, N, re/im)
     energy = (p[:, 0, :, 0] + p[:, 0, :, 1]) + (p[:, 1, :, 0] + p[:, 1, :, 1])  # joint_energy's sums, in its order
     if outside is not None:
+        energy[boundary_skirts(energy, ~outside, ends_bins)] = -np.inf
         energy[:, outside] = -np.inf
     b = energy.shape[0]
     rows = np.arange(b)
@@ -247,7 +252,7 @@ def qiht(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k
     n = config.samples_per_ramp
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     amp, support, done = _qiht(_antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config), delta,
-                               bits, config, k, iters, mu, mask)
+                               bits, config, k, iters, mu, mask, None if gate is None else gate.bins(config))
     return _scatter(amp, support, n), support, done
 
 
@@ -259,10 +264,12 @@ def _scatter(amp: np.ndarray, support: np.ndarray, n: int) -> np.ndarray:
 
 
 def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bits: int, config: RadarConfig, k: int,
-          iters: int, mu: float, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+          iters: int, mu: float, mask: np.ndarray | None = None,
+          ends_bins: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`qiht` on checked frames: zr, xr (B, R, 2, N, 2) from :func:`_antenna_major`;
     u0 the back projection (B, N, 2); mask: the range bins (N,) a support may hold (a
-    range gate; None: all). Returns (amplitudes (B, 2, K) on the support, support (B, K),
+    range gate whose ends are ``ends_bins``; None: all), never the skirt of a return outside
+    it (:func:`pipeline.dsp.gate.boundary_skirts`). Returns (amplitudes (B, 2, K) on the support, support (B, K),
     iterations run).
 
     X lives as its K amplitudes a frame: ``Phi X`` on a ramp is K atoms (an FFT for large
@@ -272,7 +279,7 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
     back = np.conj(car)
     scale = mu * (1.0 / ramps)  # mu N / M
     outside = None if mask is None else ~mask
-    support = joint_support(u0, k, None if mask is None else gated_energy(joint_energy(u0), mask, k)[0])
+    support = joint_support(u0, k, None if mask is None else gated_energy(joint_energy(u0), mask, k, ends_bins)[0])
     amp = np.ascontiguousarray(np.take_along_axis(u0, support[:, :, None], axis=1).transpose(0, 2, 1))
     offsets = (np.arange(b)[:, None, None] * 2 + np.arange(2)[None, :, None]) * n  # of U[b, p, 0] in U (B, 2, N)
     prev_sup, prev_bad, stable, done = np.sort(support, axis=1), None, 0, 0
@@ -305,7 +312,7 @@ def _qiht(zr: np.ndarray, xr: np.ndarray, u0: np.ndarray, delta: np.ndarray, bit
         u *= scale
         flat = u.reshape(-1)
         flat[offsets + support[:, None, :]] += amp  # X + step
-        support = _strongest(u, k, outside)
+        support = _strongest(u, k, outside, ends_bins)
         amp = flat[offsets + support[:, None, :]]
         sup_sorted = np.sort(support, axis=1)
         same = prev_bad is not None and np.array_equal(sup_sorted, prev_sup) and np.array_equal(bad, prev_bad)
@@ -431,9 +438,12 @@ class Decoder:
         cfg = self.config
         pfa = cfg.pfa if cfg.auto_k else None
         if cfg.algo == Algo.CML and indices is None:  # cml checks the gate (once per gate and radar)
-            return self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
-                                          bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
-                                          pfa=pfa, gate=cfg.gate, init_range_m=init_range_m).detections(radar)
+            res = self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
+                                         bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
+                                         pfa=pfa, gate=cfg.gate, init_range_m=init_range_m)
+            unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
+                                     estimated=noise_sigma is None and cfg.noise_sigma is None)
+            return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         if cfg.algo == Algo.PBP:
             return localize(z, radar, k, indices, pfa, gate)
@@ -470,13 +480,14 @@ def _qiht_ml(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfi
     n = config.samples_per_ramp
     zr, xr, u0 = _antenna_major(z, n), _antenna_major(xi, n), back_project_ramps(z, config)
     mask = None if gate is None else gate.bin_mask(config)
-    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu, mask)
+    ends = None if gate is None else gate.bins(config)
+    amp, support, _ = _qiht(zr, xr, u0, delta, bits, config, k, decoder.iters, decoder.mu, mask, ends)
     if decoder.ml and bits == 1:
         amp = _ml_refine(zr, xr, delta, support, amp, config)
     if mask is None:
         stat = grid_statistic_db(u0, support)
     else:
-        _, energy, cells = gated_energy(joint_energy(u0), mask, k)
+        _, energy, cells = gated_energy(joint_energy(u0), mask, k, ends)
         stat = grid_statistic_db(u0, support, energy, cells)
     return detections_from_support(_scatter(amp, support, n), support, config, stat)
 

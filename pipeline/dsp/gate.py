@@ -136,3 +136,40 @@ def check_gate(gate) -> RangeGate | None:
     if gate is not None and not isinstance(gate, RangeGate):
         raise ParameterError(f"gate={gate!r} must be a RangeGate or None (the whole range axis)")
     return gate
+
+
+def boundary_skirts(energy: np.ndarray, mask: np.ndarray, ends_bins: tuple[float, float]) -> np.ndarray:
+    """The range bins inside a gate that are the skirt of a return outside it: (B, N) bool.
+
+    ``energy`` (B, N) the joint energy of the range bins (a back projection), ``mask`` (N,)
+    bool the bins inside the gate (one run on the circular axis), ``ends_bins`` the gate's
+    ends in bins (:meth:`RangeGate.bins`). From each end of the gate inward: the end bin is on
+    the skirt of a peak whose maximum lies outside when its neighbour outside is higher, or
+    when it is the top of a peak whose maximum, interpolated by the parabola through the
+    magnitudes of the bin and its two neighbours, lies beyond the gate's end (an off-grid
+    tone at 1.5 bins fills bins 1 and 2 alike); then the bins after it while the energy keeps
+    falling inward are that peak's slope (an off-grid tone's energy on the bins falls
+    monotonically away from it, ``|sin(pi nu)| / |N sin(pi (n - nu) / N)|``), not a target
+    inside. A target inside is a maximum inside; the slope stops at the first bin that rises."""
+    e = np.asarray(energy, dtype=float)
+    b, n = e.shape
+    out = np.zeros((b, n), dtype=bool)
+    inside = np.flatnonzero(mask)
+    if inside.size < 2 or inside.size == n:
+        return out
+    first = inside[np.flatnonzero(~mask[inside - 1])[0]]  # the run of inside bins starts after an outside one
+    run = (first + np.arange(inside.size)) % n
+    lo, hi = ends_bins
+    for order, step, end in ((run, -1, lo), (run[::-1], 1, hi)):
+        ends = e[:, order]  # (B, W), inward from this end
+        m_out, m_in, m_next = (np.sqrt(np.maximum(x, 0.0)) for x in (e[:, (order[0] + step) % n], ends[:, 0],
+                                                                        ends[:, 1]))
+        curv = m_out - 2.0 * m_in + m_next
+        with np.errstate(divide="ignore", invalid="ignore"):
+            offset = np.where(curv < 0, 0.5 * (m_out - m_next) / curv, 0.0)  # towards the outside neighbour
+        top = order[0] - step * offset  # the interpolated maximum, bins (order[0] unwrapped near the end)
+        beyond = (top < end) if step < 0 else (top > end)
+        outer = (m_out > m_in) | ((m_in >= m_out) & (m_in >= m_next) & beyond)
+        falling = np.concatenate([outer[:, None], ends[:, 1:] <= ends[:, :-1]], axis=1)
+        out[:, order] |= np.cumprod(falling, axis=1).astype(bool)
+    return out

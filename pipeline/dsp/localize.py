@@ -17,7 +17,7 @@ ordered strongest first.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -26,7 +26,7 @@ from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, p
                                 sensing_matrix)
 
 from pipeline.errors import ParameterError
-from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, check_gate
+from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, boundary_skirts, check_gate
 
 
 def _check_z(z: np.ndarray) -> np.ndarray:
@@ -212,6 +212,10 @@ def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | N
         return to_db(e_t / np.maximum(rest, 0.0))
 
 
+#: the per-target uncertainty columns of :class:`Detections` (the targets JSON's optional fields)
+UNCERTAINTY_FIELDS = ("sigma_range_m", "sigma_angle_deg", "cov_range_angle")
+
+
 @dataclass(frozen=True)
 class Detections:
     """Targets found in a batch of frames; every array is (B, K), strongest first.
@@ -220,7 +224,9 @@ class Detections:
     boresight), amplitude (joint magnitude / sqrt(2), frame units), bin (range bin),
     statistic_db (detection statistic, dB: the target's joint power over the mean
     noise power per range bin of the back projection; see each decoder), present
-    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN).
+    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN);
+    sigma_range_m (m), sigma_angle_deg (deg), cov_range_angle (m deg): how sure each target
+    is (:mod:`pipeline.dsp.uncertainty`; NaN where the decoder gives none).
     """
 
     range_m: np.ndarray
@@ -231,11 +237,15 @@ class Detections:
     bin: np.ndarray
     statistic_db: np.ndarray | None = None
     present: np.ndarray | None = None
+    sigma_range_m: np.ndarray | None = None
+    sigma_angle_deg: np.ndarray | None = None
+    cov_range_angle: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = np.shape(self.range_m)
-        if self.statistic_db is None:
-            object.__setattr__(self, "statistic_db", np.full(shape, np.nan))
+        for name in ("statistic_db",) + UNCERTAINTY_FIELDS:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(shape, np.nan))
         if self.present is None:
             object.__setattr__(self, "present", np.ones(shape, dtype=bool))
 
@@ -250,7 +260,15 @@ class Detections:
         present = np.asarray(present, dtype=bool) & self.present
         nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
         return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
-                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present)
+                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present,
+                          *(nan(getattr(self, name)) for name in UNCERTAINTY_FIELDS))
+
+    def with_uncertainty(self, sigma_range_m: np.ndarray, sigma_angle_deg: np.ndarray,
+                         cov_range_angle: np.ndarray) -> "Detections":
+        """These detections with each target's uncertainty (B, K) (NaN where absent)."""
+        return replace(self, sigma_range_m=np.where(self.present, sigma_range_m, np.nan),
+                       sigma_angle_deg=np.where(self.present, sigma_angle_deg, np.nan),
+                       cov_range_angle=np.where(self.present, cov_range_angle, np.nan))
 
     def frame(self, i: int) -> list[dict[str, float]]:
         """The targets of frame ``i`` that are present, as plain dicts (for JSON)."""
@@ -262,7 +280,8 @@ class Detections:
                 "y_m": float(self.y_m[i, j]),
                 "amplitude": float(self.amplitude[i, j]),
                 "bin": int(self.bin[i, j]),
-                **({"statistic_db": float(self.statistic_db[i, j])} if np.isfinite(self.statistic_db[i, j]) else {}),
+                **{name: float(getattr(self, name)[i, j]) for name in ("statistic_db",) + UNCERTAINTY_FIELDS
+                   if np.isfinite(getattr(self, name)[i, j])},
             }
             for j in range(self.range_m.shape[1]) if self.present[i, j]
         ]
@@ -279,10 +298,14 @@ def detections_from_support(u: np.ndarray, support: np.ndarray, config: RadarCon
     return Detections(rng_m, np.rad2deg(angle), x, y, amp, support, statistic_db)
 
 
-def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray, int]:
+def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int,
+                 ends_bins: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, int]:
     """The joint energy (B, N) of a back projection seen through a range gate's bin mask
-    (N,) bool (None: no gate): (energy to pick a support from, -1 outside the gate;
-    energy for the statistic, 0 outside; bins inside). ``k`` bins must fit inside."""
+    (N,) bool (None: no gate) whose ends are ``ends_bins`` (:meth:`~pipeline.dsp.gate.RangeGate.bins`):
+    (energy to pick a support from, -1 outside the gate and on the skirt of a return outside
+    it (:func:`pipeline.dsp.gate.boundary_skirts`: a peak whose maximum lies beyond the gate's
+    end is not a target inside); energy for the statistic, 0 outside; bins inside). ``k``
+    bins must fit inside.""" 
     n = energy.shape[1]
     if mask is None:
         return energy, energy, n
@@ -292,6 +315,7 @@ def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[n
     outside = ~mask
     pick, stat = energy.copy(), energy.copy()
     pick[:, outside] = -1.0  # below any energy: never in the support
+    pick[boundary_skirts(energy, mask, ends_bins)] = -1.0
     stat[:, outside] = 0.0
     return pick, stat, cells
 
@@ -307,7 +331,7 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)
     energy = joint_energy(u)
-    pick, stat, cells = gated_energy(energy, mask, k)
+    pick, stat, cells = gated_energy(energy, mask, k, None if gate is None else gate.bins(config))
     support = joint_support(u, k, pick)
     det = detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
     if pfa is None:

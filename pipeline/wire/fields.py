@@ -110,6 +110,10 @@ TARGET_ITEM = (
     Field("y_m", "number", "m", "R sin θ, across boresight"),
     Field("amplitude", "number", "frame units", "joint magnitude over both antennas divided by √2"),
     Field("statistic_db", "number", "dB", "detection statistic, capped at ±300 dB", optional=True),
+    Field("sigma_range_m", "number", "m", "standard deviation of range_m, from the Fisher information of the "
+          "frame's codes at the estimate (cml)", optional=True),
+    Field("sigma_angle_deg", "number", "deg", "standard deviation of angle_deg, likewise", optional=True),
+    Field("cov_range_angle", "number", "m·deg", "covariance of range_m and angle_deg, likewise", optional=True),
 )
 
 TARGETS = Format("targets", "qradar.Targets", _envelope("targets") + (

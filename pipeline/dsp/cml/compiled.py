@@ -10,7 +10,7 @@ from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.count import COUNT_GUARD_BINS
-from pipeline.dsp.cml.detect import Buffers, Search, add_target, decision, statistic
+from pipeline.dsp.cml.detect import Buffers, Search, add_target, count_floor, decision, settled_score, statistic
 from pipeline.dsp.cml.fit import empty_fit, finish_fit, fit_result, new_fit, report, run, steps, targets
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, COARSE_RHO, MIN_SEPARATION_BINS, SearchGrid, run_tables, twiddles
 from pipeline.dsp.cml.kernels.layout import Gate, Grid
@@ -52,9 +52,10 @@ class CompiledBlocks:
                 inside = int(gate_weights(outside, tables, lc, weights))
                 gate_edge(outside, lc, edges)
         gate = Gate(grid.use, float(grid.lo), float(grid.hi), outside, edges)
+        whole = Gate(False, 0.0, 0.0, np.zeros(1, dtype=bool), np.zeros(0, dtype=bool))  # detection's: the whole axis
         kernel = Grid(grid.oversample, COUNT_GUARD_BINS, MIN_SEPARATION_BINS, COARSE_RHO, table, tables, weights,
                       inside)
-        search = Search(grid, tuple(gate), tuple(kernel), tuple(report(self.config, not grid.use)), self._buffers)
+        search = Search(grid, tuple(gate), tuple(kernel), tuple(report(self.config, grid)), self._buffers, tuple(whole))
         if len(self._searches) >= 16:
             self._searches.clear()
         self._searches[id(grid)] = (grid, search)
@@ -66,10 +67,15 @@ class CompiledBlocks:
             self._tables["table"], self._tables["runs"] = twiddles(size), run_tables(n, size, lc)
         return self._tables["table"], self._tables["runs"]
 
-    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None) -> CmlResult:
+    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None,
+               nuisance: bool = False) -> CmlResult:
         """One block of checked ``frames`` from scratch: up to ``k`` greedy stages (count test at
         ``threshold``, linear; None: exactly ``k`` targets), each followed by ``iters``
-        refinement steps, then the annealing (:mod:`pipeline.dsp.cml.schedule`)."""
+        refinement steps, then the annealing (:mod:`pipeline.dsp.cml.schedule`). With a count
+        test or ``nuisance`` the fit settles (the annealing) before each stage and, with a range
+        gate, a frame takes up to :data:`~pipeline.dsp.cml.grid.NUISANCE_STAGES` more stages
+        while it holds fewer than ``k`` targets inside the gate (the others modelled, not
+        reported)."""
         b = frames.z.shape[0]
         n, anneal = self.config.samples_per_ramp, self.options.anneal
         search = self.search(grid)
@@ -77,24 +83,48 @@ class CompiledBlocks:
         fit = empty_fit(b, n)
         sigma, floor, amp_cap = start(frames)
         # active: the frames whose residual may still hold a target; as plain tuples, read by the kernels only
-        found = tuple(decision(b, threshold, np.ones(b, dtype=bool)))
+        found = tuple(decision(b, threshold, np.ones(b, dtype=bool), count_floor(codes, fit, grid.oversample)))
         if threshold is not None:
             fit = evaluate_fit(codes, fit, sigma)  # the score of the empty model, for the first count test
+        settle = self._settle(frames, sigma, floor, amp_cap) if threshold is not None or nuisance else None
         greedy = tuple(steps(np.repeat(sigma[:, None], iters, axis=1), amp_cap))
-        for _ in range(k):
-            grew, fit = add_target(codes, fit, search, found, greedy, sigma)
+        settled = False  # the fit annealed since its last target (what the count test reads)
+        for _ in range(k + (grid.stages if settle is not None else 0)):
+            score = None
+            if settle is not None and fit.nu.shape[1]:  # the residuals of the settled fit
+                fit = run(codes, fit, settle)
+                settled = True
+                score = settled_score(codes, fit) if threshold is not None else None
+            if settle is not None and grid.use:  # a frame with k targets inside the gate is done
+                found[1][:] &= (fit.live & grid.inside(fit.nu)).sum(axis=1) < k
+                if not found[1].any():
+                    break
+            grew, fit = add_target(codes, fit, search, found, greedy, sigma, score)
             if not grew:
                 break
+            settled = False
+        if settled:
+            return fit_result(codes, fit, search.report, k, fit.sigma if frames.bits is not None else None)
         if frames.bits is not None and anneal:
             plan = steps(anneal_levels(sigma, floor, anneal), amp_cap, adapt=frames.noise_sigma is None)
             if fit.nu.shape[1]:  # the annealing and the result in one kernel call
-                return finish_fit(codes, fit, plan, search.gate, search.report, k)
-            fit = run(codes, fit, plan, search.gate)
+                return finish_fit(codes, fit, plan, search.report, k)
+            fit = run(codes, fit, plan)
             sigma = fit.sigma
         if frames.bits is None:
-            fit = run(codes, fit, steps(np.ones((b, anneal)), amp_cap), search.gate)  # least squares: polish
+            fit = run(codes, fit, steps(np.ones((b, anneal)), amp_cap))  # least squares: polish
             sigma = None
         return fit_result(codes, fit, search.report, k, sigma)
+
+    def _settle(self, frames: Frames, sigma: np.ndarray, floor, amp_cap: np.ndarray):
+        """The steps that settle a fit before a count test, as at the end of a decode: the
+        annealing (quantized; adapted to the noise the model leaves when it is not given), or
+        least-squares steps (unquantized) (:meth:`pipeline.dsp.cml.reference.ReferenceBlocks._settle`)."""
+        b, anneal = frames.z.shape[0], self.options.anneal
+        if frames.bits is None:
+            return steps(np.ones((b, anneal)), amp_cap)
+        return steps(anneal_levels(sigma, floor, anneal) if anneal else np.empty((b, 0)), amp_cap,
+                     adapt=frames.noise_sigma is None)
 
     def warm(self, frames: Frames, k: int, init: np.ndarray, grid: SearchGrid,
              at: float) -> tuple[CmlResult, np.ndarray, np.ndarray]:
@@ -121,8 +151,8 @@ class CompiledBlocks:
         out = targets(b, k)
         fit = new_fit(b, int(live_all.sum(axis=1).max()), n)
         first = steps(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
-        warm(codes.args, (nu_all, live_all), tuple(first), tuple(plan), sigma, search.gate, search.report, tuple(out),
+        warm(codes.args, (nu_all, live_all), tuple(first), tuple(plan), sigma, search.report, tuple(out),
              tuple(fit))
         sigma = fit.sigma if frames.bits is not None else residual_rms(codes.y, fit.mu.reshape(b, n, 2, 2))
         res = CmlResult(out.range_m, out.amp, out.stat, sigma, out.present)
-        return res, fit.live.sum(axis=1), statistic(codes, fit, search, at)
+        return res, (fit.live & grid.inside(fit.nu)).sum(axis=1), statistic(codes, fit, search, at)

@@ -9,6 +9,8 @@ either residual is white. The statistic is computed by the engine
 
 from __future__ import annotations
 
+import numpy as np
+
 from radar_driver.model import RadarConfig
 
 from pipeline.dsp.cml.grid import SearchGrid
@@ -30,3 +32,36 @@ def threshold(pfa: float, config: RadarConfig, grid: SearchGrid) -> float:
     bins the search spans (:func:`pipeline.dsp.localize.cfar_threshold`)."""
     search_bins = config.samples_per_ramp if grid.gate is None else grid.width_bins
     return cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
+
+
+#: the unit roundoff of the frames on the wire (complex64, docs/design.md): an unquantized
+#: residual at this level relative to its frame is the frames' own rounding (and the fit's
+#: arithmetic), not a noise a target could stand above
+FRAME_ROUNDOFF = 2.0 ** -24
+
+
+def precision_floor(y: np.ndarray, oversample: int) -> np.ndarray:
+    """The least mean joint energy (B,) the count test takes an unquantized residual's back
+    projection to have, in the detection grid's scale (``oversample`` points a bin, the
+    zero-padded inverse FFT's 1 / L): that of a white residual of std ``FRAME_ROUNDOFF`` times
+    the RMS of the frames' real parts, ``y`` (B, R, N, 2, 2) (summed over the R ramps:
+    ``4 N R v / L^2``, L = ``oversample`` N). Without it a noiseless frame's residual (the
+    rounding, structured by the targets) reads as targets: 0.99 false targets a frame (K = 1,
+    complex64 frames; 3 with complex128)."""
+    b, ramps, n = y.shape[:3]
+    flat = y.reshape(b, -1)
+    v = np.einsum("bj,bj->b", flat, flat) / flat.shape[1] * FRAME_ROUNDOFF ** 2
+    return 4.0 * ramps * v / (n * oversample ** 2)
+
+
+def information_floor(h: np.ndarray, oversample: int) -> np.ndarray:
+    """The least mean joint energy (B,) the count test takes the likelihood's score's back
+    projection to have: the Fisher information of a target's amplitudes at the fit (the
+    score test's denominator, :math:`\\sum h / L^2` over the 4N real parts of ``h`` (B, N, 2, 2 or
+    4), the NLL's second derivatives summed over the ramps; L = ``oversample`` N). Where the
+    model fits the codes with margins far beyond the likelihood's scale (1-bit codes without
+    a dither at low noise), the score is a numerical remainder shaped by the targets' own
+    crossings and its own mean says nothing; a target must then raise the likelihood by as
+    much as the information allows."""
+    b, n = h.shape[:2]
+    return h.reshape(b, -1).sum(axis=1) / float(oversample * n) ** 2

@@ -73,6 +73,26 @@ class CmlDecoder:
             init = check_init(init_range_m, b, k, self.config, grid.gate)
             return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid))
         if b <= BLOCK_FRAMES:  # one block: the arrays as they are
-            return self._blocks.decode(frames, k, iters, grid, limit)
-        return CmlResult.concatenate([self._blocks.decode(frames.part(slice(lo, lo + BLOCK_FRAMES)), k, iters, grid,
-                                                          limit) for lo in range(0, b, BLOCK_FRAMES)])
+            res = self._blocks.decode(frames, k, iters, grid, limit)
+        else:
+            res = CmlResult.concatenate([self._blocks.decode(frames.part(slice(lo, lo + BLOCK_FRAMES)), k, iters, grid,
+                                                             limit) for lo in range(0, b, BLOCK_FRAMES)])
+        if limit is None and grid.use:
+            return self._short_frames(res, frames, k, iters, grid)
+        return res
+
+    def _short_frames(self, res: CmlResult, frames, k: int, iters: int, grid: SearchGrid) -> CmlResult:
+        """``res`` of K given targets in a range gate, its frames that hold fewer than ``k``
+        inside the gate (a stage went to a return outside it) decoded again with room for
+        those returns (:data:`~pipeline.dsp.cml.grid.NUISANCE_STAGES` more stages, the fit
+        settled before each: modelled, not reported); the others as they are."""
+        short = np.flatnonzero(res.present.sum(axis=1) < k)
+        if short.size == 0:
+            return res
+        rows = [res.row(j) for j in range(res.range_m.shape[0])]
+        for lo in range(0, short.size, BLOCK_FRAMES):
+            idx = short[lo:lo + BLOCK_FRAMES]
+            again = self._blocks.decode(frames.part(idx), k, iters, grid, None, nuisance=True)
+            for j, i in enumerate(idx.tolist()):
+                rows[i] = again.row(j)
+        return CmlResult.stack(rows)

@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pipeline.dsp.cml.count import information_floor, precision_floor
 from pipeline.dsp.cml.grid import COARSE_PER_BIN, SearchGrid
 from pipeline.dsp.cml.fit import new_fit
 from pipeline.dsp.cml.kernels import entry, stages
@@ -65,6 +66,7 @@ class Search(NamedTuple):
     kernel: tuple
     report: tuple
     buffers: Buffers
+    seed_gate: tuple
 
 
 def ifft(x: np.ndarray) -> np.ndarray:
@@ -73,7 +75,8 @@ def ifft(x: np.ndarray) -> np.ndarray:
     return _INVERSE(x, axis=-1)
 
 
-def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, given: bool, decide: bool) -> tuple:
+def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, given: bool, decide: bool,
+                     score: np.ndarray | None = None) -> tuple:
     """What the detect kernel reads (a :data:`~pipeline.dsp.cml.kernels.layout.Sources` as a
     plain tuple): the linear residual, the inverse FFTs of the sources it
     needs (the linear residual for the count test or the first detection; the likelihood's
@@ -82,7 +85,8 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
     given), on the coarse grid (COARSE_PER_BIN points a bin) when the grid allows it, unless
     the count test only decides (``decide``) with the range given (the exact statistic of a
     residual without a target is cheaper on the full grid: the coarse search then sums many
-    cells)."""
+    cells). ``score``: the NLL's derivatives to take the score from (B, N, 4) (the settled
+    fit's efficient score, :func:`settled_score`), None: ``fit.g``."""
     on_score = codes.bits is not None and not given and fit.nu.shape[1] > 0  # detection on the likelihood's score
     with_residual = count or (not given and not on_score)
     with_score = codes.bits is not None and (count or on_score)
@@ -91,7 +95,8 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
     y = np.empty((b, n, 2), dtype=complex)
     buf = search.buffers.padded((b, int(with_residual) + int(with_score), 2, (COARSE_PER_BIN if coarse else
                                                                             search.grid.oversample) * n), n)
-    stages.sources(codes.kernel.folded, fit.mu, fit.g if with_score else fit.mu, float(codes.ramps), with_residual,
+    g = fit.g if score is None else score
+    stages.sources(codes.kernel.folded, fit.mu, g if with_score else fit.mu, float(codes.ramps), with_residual,
                    with_score, y.view(float).reshape(b, n, 4), buf)
     count_sources = buf.shape[1]
     u = ifft(buf) if count_sources else buf
@@ -99,33 +104,64 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
     return u, buf, y, codes.ramps, count_sources if count else 0, -1 if given else count_sources - 1 if on_score else 0
 
 
-def decision(b: int, threshold: float | None, active: np.ndarray) -> Decision:
-    """The count test's ``threshold`` (linear; None: none) and ``active`` (B,) bool, and the
-    arrays detection writes, for ``b`` frames (reused by the greedy stages of a decode)."""
+def decision(b: int, threshold: float | None, active: np.ndarray, floor: np.ndarray) -> Decision:
+    """The count test's ``threshold`` (linear; None: none), ``active`` (B,) bool and ``floor``
+    (B, 2) (:func:`count_floor`), and the arrays detection writes, for ``b`` frames (reused by
+    the greedy stages of a decode)."""
     return Decision(-1.0 if threshold is None else float(threshold), active, np.zeros(b), np.empty(b),
-                    np.empty((b, 2), dtype=complex))
+                    np.empty((b, 2), dtype=complex), floor)
+
+
+def count_floor(codes: BlockCodes, fit: Fit, oversample: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The count test's floors (B, 2) of a block's two residuals (into ``out``): the linear
+    residual's, the frames' precision unquantized (:func:`pipeline.dsp.cml.count.precision_floor`;
+    none, 0, for codes); the likelihood's score's, the information of a target's amplitude at
+    ``fit`` (:func:`pipeline.dsp.cml.count.information_floor`; 0 unquantized)."""
+    b = fit.mu.shape[0]
+    if out is None:
+        out = np.zeros((b, 2))
+        if codes.bits is None:
+            out[:, 0] = precision_floor(codes.y, oversample)
+    if codes.bits is not None:
+        out[:, 1] = information_floor(fit.h, oversample) if fit.nu.shape[1] else 0.0
+    return out
+
+
+def settled_score(codes: BlockCodes, fit: Fit) -> np.ndarray | None:
+    """The efficient score's ``g`` (B, N, 4) of a settled fit of quantized frames
+    (:func:`pipeline.dsp.cml.kernels.refine.settled_score`), what its count test reads; None
+    unquantized (the linear residual is the test's)."""
+    if codes.bits is None:
+        return None
+    ge = np.empty(fit.g.shape)
+    entry.settled_score(tuple(fit), ge)
+    return ge
 
 
 def add_target(codes: BlockCodes, fit: Fit, search: Search, found: tuple, plan: tuple,
-               sigma: np.ndarray) -> tuple[bool, Fit]:
+               sigma: np.ndarray, score: np.ndarray | None = None) -> tuple[bool, Fit]:
     """One greedy stage: the count test (the :func:`decision` ``found``, as a plain tuple:
     its threshold) updating its ``active`` (B,) bool in place, the detection of a new target,
     its amplitudes (into ``found``) and the refinement steps ``plan`` (a plain tuple) at
-    ``sigma`` (B,) of all the targets. Returns whether a frame holds a new target, and the
-    fit (unchanged when none does)."""
-    src = back_projections(codes, fit, search, found[0] >= 0.0, False, True)
+    ``sigma`` (B,) of all the targets (``score``: as :func:`back_projections` takes it). Returns
+    whether a frame holds a new target, and the fit (unchanged when none does)."""
+    src = back_projections(codes, fit, search, found[0] >= 0.0, False, True, score)
     found[2].fill(0.0)  # the statistic
+    if found[0] >= 0.0:
+        count_floor(codes, fit, search.grid.oversample, found[5])
     b, t = fit.nu.shape
     new = new_fit(b, t + 1, fit.mu.shape[1])
-    grew = entry.add_target(src, search.kernel, search.gate, tuple(fit), codes.args, plan, sigma, found, tuple(new))
+    grew = entry.add_target(src, search.kernel, search.gate, search.seed_gate, tuple(fit), codes.args, plan, sigma,
+                            found, tuple(new))
     return grew, (new if grew else fit)
 
 
 def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndarray:
     """The count test's statistic (B,) of ``fit``'s residuals, decided at ``at`` (linear): it
     reaches ``at`` exactly when the exact statistic does (cheaper)."""
-    src = back_projections(codes, fit, search, True, True, True)
+    src = back_projections(codes, fit, search, True, True, True, settled_score(codes, fit))
     b = fit.nu.shape[0]
-    test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex))
-    entry.detect(src, search.kernel, search.gate, fit.nu, fit.live, tuple(test))
+    test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex),
+                    count_floor(codes, fit, search.grid.oversample))
+    entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(test))
     return test.stat

@@ -19,6 +19,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig
 
+from pipeline.dsp.cml.grid import INSIDE_TOLERANCE_BINS, SearchGrid
 from pipeline.dsp.cml.kernels.layout import Fit, Report, Steps, Targets
 from pipeline.dsp.cml.kernels.entry import finish, refine, result
 from pipeline.dsp.cml.kernels.stages import sources
@@ -53,11 +54,11 @@ def steps(levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> Steps
     return Steps(array(levels, float), adapt, array(amp_cap, float), MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA)
 
 
-def run(codes: BlockCodes, fit: Fit, plan: Steps, gate: tuple) -> Fit:
+def run(codes: BlockCodes, fit: Fit, plan: Steps) -> Fit:
     """``fit`` after the refinement steps ``plan``, its ``sigma`` the last level. Without a
     target only the level moves (not below the noise of the empty model when adapted)."""
     if fit.nu.shape[1]:
-        refine(codes.args, tuple(fit), tuple(plan), gate)
+        refine(codes.args, tuple(fit), tuple(plan))
         return fit
     if plan.levels.shape[1] == 0:
         return fit
@@ -71,9 +72,10 @@ def run(codes: BlockCodes, fit: Fit, plan: Steps, gate: tuple) -> Fit:
     return evaluate_fit(codes, fit, sigma)
 
 
-def report(config: RadarConfig, wrap: bool) -> Report:
-    """What a result needs of the radar ``config``; ``wrap``: ranges modulo N bins (no gate)."""
-    return Report(config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, wrap, STATISTIC_CAP_DB)
+def report(config: RadarConfig, grid: SearchGrid) -> Report:
+    """What a result needs of the radar ``config`` and the detection ``grid``'s range gate."""
+    return Report(config.range_resolution_m, 4.0 * np.pi / config.c_m_s * config.f0_hz, grid.use,
+                  float(grid.lo) - INSIDE_TOLERANCE_BINS, float(grid.hi) + INSIDE_TOLERANCE_BINS, STATISTIC_CAP_DB)
 
 
 def targets(b: int, k: int) -> Targets:
@@ -81,11 +83,11 @@ def targets(b: int, k: int) -> Targets:
     return Targets(np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
 
 
-def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, gate: tuple, about: tuple, k: int) -> CmlResult:
-    """The annealing's steps ``plan`` inside ``gate`` and the result (``k`` targets a frame; ``about``:
+def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, about: tuple, k: int) -> CmlResult:
+    """The annealing's steps ``plan`` and the result (``k`` targets a frame; ``about``:
     the radar's :func:`report`), in one kernel call (the kernels' namedtuples as plain tuples)."""
     out = targets(fit.nu.shape[0], k)
-    finish(codes.args, tuple(fit), tuple(plan), gate, about, tuple(out))
+    finish(codes.args, tuple(fit), tuple(plan), about, tuple(out))
     return CmlResult(out.range_m, out.amp, out.stat, fit.sigma, out.present)
 
 

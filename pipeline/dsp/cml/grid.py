@@ -12,6 +12,12 @@ from pipeline.dsp.gate import RangeGate, check_gate
 
 #: a detection keeps at least this far from the targets already found, range bins
 MIN_SEPARATION_BINS = 1.0
+#: with a range gate, greedy stages a frame may spend beyond its count on targets that leave the
+#: gate (a strong return outside it, whose skirt or sidelobe inside seeded them: modelled, not
+#: reported; the leakage, its I/Q mirror)
+NUISANCE_STAGES = 2
+#: ranges this close to a gate's end (bins) count as inside it
+INSIDE_TOLERANCE_BINS = 1e-9
 #: detection and the count test take their inverse FFT on a grid of this many points a bin,
 #: coarser than ``oversample``, and find the same fine-grid peak by summing the fine energy
 #: directly around the coarse points that could hold it
@@ -34,11 +40,17 @@ class SearchGrid:
     on it (None: the whole, circular, axis; checked against ``config`` by its user,
     :meth:`RangeGate.check <pipeline.dsp.gate.RangeGate.check>`): ``lo``, ``hi`` its ends in
     bins, ``outside`` (L,) bool the grid points beyond it (None without a gate), ``width_bins``
-    the bins the search spans (the count test's cells)."""
+    the bins the search spans (the count test's cells).
+
+    A gate bounds where targets are sought (detection's seeds and the count test's peak are
+    points inside it) and which are reported (those whose refined range lies inside it); it
+    does not bound the refinement: a seed on the skirt or a sidelobe of a strong return just
+    outside walks out to it, and stays in the model (its energy explained, not reported)."""
 
     def __init__(self, gate: RangeGate | None, config: RadarConfig, oversample: int):
         n = config.samples_per_ramp
         self.gate = check_gate(gate)
+        self.n = n
         self.oversample = oversample
         self.size = oversample * n
         #: the grid allows the coarse FFT (a multiple of COARSE_PER_BIN points a bin, beyond it)
@@ -60,6 +72,19 @@ class SearchGrid:
     def use(self) -> bool:
         """Whether a gate restricts the search."""
         return self.gate is not None
+
+    @property
+    def stages(self) -> int:
+        """Greedy stages a frame may spend beyond its count (:data:`NUISANCE_STAGES` with a gate)."""
+        return NUISANCE_STAGES if self.use else 0
+
+    def inside(self, nu: np.ndarray) -> np.ndarray:
+        """Whether ranges ``nu`` (bins, any shape) lie inside the gate, on the circular axis
+        (all True without a gate)."""
+        if not self.use:
+            return np.ones(np.shape(nu), dtype=bool)
+        v = np.mod(nu, self.n)
+        return (v >= self.lo - INSIDE_TOLERANCE_BINS) & (v <= self.hi + INSIDE_TOLERANCE_BINS)
 
 
 def run_tables(n: int, size: int, lc: int) -> np.ndarray:

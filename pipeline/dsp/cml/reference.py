@@ -14,7 +14,7 @@ import numpy as np
 from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.cml.checks import Frames
-from pipeline.dsp.cml.count import COUNT_GUARD_BINS
+from pipeline.dsp.cml.count import COUNT_GUARD_BINS, information_floor, precision_floor
 from pipeline.dsp.cml.grid import MIN_SEPARATION_BINS, SearchGrid
 from pipeline.dsp.cml.options import LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, CmlOptions
 from pipeline.dsp.cml.result import CmlResult
@@ -209,6 +209,7 @@ class Fit:
         """Targets (B, K) in bins, amplitudes (B, K, 2); ``live`` (B, K): the targets
         that move (the others stay where they are: zero amplitude, past a frame's count)."""
         self.nu, self.amp, self.live = nu, amp, live
+        self.ge = None  # the efficient score's g (:meth:`settled_score`), while the fit does not move
         self.w = atoms(nu, self.kc)
         self.mu = self._mu(self.w, amp)
         self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
@@ -226,6 +227,7 @@ class Fit:
         """The likelihood at noise std ``sigma`` (B,) and its derivatives at the model."""
         self.sigma = np.asarray(sigma, dtype=float)
         self.nll, self.g, self.h = self.codes.evaluate(self.mu, self.sigma)
+        self.ge = None
 
     def run(self, levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> None:
         """One step a level: at noise std ``levels[:, j]`` (B, S) (``adapt``: not below
@@ -251,8 +253,6 @@ class Fit:
         norm = np.linalg.norm(step[..., 1:], axis=2)
         step[..., 1:] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
         nu = self.nu + step[..., 0]
-        if self.grid.use:  # a target may not leave the gate
-            nu = np.clip(nu, self.grid.lo, self.grid.hi)
         amp = self.amp + (step[..., 1::2] + 1j * step[..., 2::2])
         w = atoms(nu, self.kc)
         mu = self._mu(w, amp)
@@ -264,11 +264,37 @@ class Fit:
                          (nll, self.nll)):
             new[bad] = old[bad]
         self.nu, self.amp, self.w, self.mu, self.g, self.h, self.nll = nu, amp, w, mu, g, h, nll
+        self.ge = None
+
+    def settled_score(self) -> None:
+        """Into ``ge`` (B, N, 2, 2) the efficient score's ``g``: the NLL's derivatives at the
+        model less what the targets' own parameters explain, ``g + h (J d)`` with ``d`` the
+        undamped Gauss--Newton step of the live targets (:meth:`_solve`) and ``J`` the model's
+        Jacobian: ``J^T ge = 0``, the score no target found could take up by moving (Rao's
+        test with the found targets' parameters as nuisances). A fit not yet at its optimum
+        (steps left in a direction the codes barely fix, as the amplitudes of 1-bit codes
+        without a dither) otherwise leaves a score along ``h J d``, which the weights ``h``
+        (periodic with the targets where the codes are) carry to the targets' harmonics."""
+        b, k = self.nu.shape
+        if k == 0:
+            self.ge = self.g
+            return
+        lm, self.lm = self.lm, np.zeros(b)
+        step = self._solve()
+        self.lm = lm
+        step[~self.live] = 0.0
+        n = self.kc.size
+        db = step[..., 1::2] + 1j * step[..., 2::2]  # (B, K, 2)
+        dw = self.w * ((-2j * np.pi / n) * self.kc)  # d w / d nu
+        dmu = np.einsum("bkn,bkp->bnp", self.w, db) + np.einsum("bkn,bkp->bnp", dw, self.amp * step[..., :1])
+        self.ge = self.g + self.h * dmu.view(float).reshape(self.g.shape)
 
     def _solve(self) -> np.ndarray:
         """The damped Gauss--Newton step (B, K, 5): the Jacobian of part c of mu_p is
         ``R^T Z[2p + c]``, R (4K, N) the real and imaginary parts of the atoms w_t and of
-        dw_t / dnu, Z how each parameter mixes them (:func:`coefficients`)."""
+        dw_t / dnu, Z how each parameter mixes them (:func:`coefficients`). The system is the
+        live targets' alone: a target that is not live (zero amplitude) takes no part in it
+        (its rows and columns zero), so it does not bend the live ones' step."""
         b, k = self.nu.shape
         n = self.kc.size
         dw = self.w * ((-2j * np.pi / n) * self.kc)
@@ -280,6 +306,10 @@ class Fit:
         hess = np.matmul(zc.transpose(0, 1, 3, 2), np.matmul(gram.astype(float), zc)).sum(axis=1)
         proj = np.matmul(r, self.g.reshape(b, n, 4)).transpose(0, 2, 1)[..., None]  # (B, 4, 4K, 1)
         grad = np.matmul(zc.transpose(0, 1, 3, 2), proj).sum(axis=1)[..., 0]
+        dead = np.repeat(~self.live, 5, axis=1)  # (B, 5K): the system of the live targets' parameters alone
+        if dead.any():
+            hess = np.where(dead[:, :, None] | dead[:, None, :], 0.0, hess)
+            grad = np.where(dead, 0.0, grad)
         diag = np.diagonal(hess, axis1=1, axis2=2)
         damp = self.lm[:, None] * diag + 1e-9 * diag.max(axis=1, keepdims=True) + 1e-300
         step = -np.linalg.solve(hess + damp[:, :, None] * np.eye(5 * k), grad[..., None])[..., 0]
@@ -312,19 +342,23 @@ def residual(codes: Codes, fit: Fit) -> np.ndarray:
 
 
 def score(codes: Codes, fit: Fit) -> np.ndarray:
-    """The likelihood's score ``-g`` at the model, (B, N, 2) complex."""
-    return np.ascontiguousarray(-fit.g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
+    """The likelihood's score ``-g`` at the model (the efficient score once the fit settled,
+    :meth:`Fit.settled_score`), (B, N, 2) complex."""
+    g = fit.g if fit.ge is None else fit.ge
+    return np.ascontiguousarray(-g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
 
 
-def peak_ratio(y: np.ndarray, fit: Fit, oversample: int) -> np.ndarray:
+def peak_ratio(y: np.ndarray, fit: Fit, oversample: int, floor: np.ndarray | None = None) -> np.ndarray:
     """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
     beyond COUNT_GUARD_BINS of the targets found and inside the range gate (0 where ``y`` is
-    exactly 0)."""
+    exactly 0); the mean not below ``floor`` (B,) (:func:`pipeline.dsp.cml.count.precision_floor`)."""
     e, near = energy(y, fit, oversample, COUNT_GUARD_BINS)
     if fit.grid.use:
         e[:, fit.grid.outside] = 0.0
         near |= fit.grid.outside
     mean = e.sum(axis=1) / np.maximum(e.shape[1] - near.sum(axis=1), 1)
+    if floor is not None:
+        mean = np.maximum(mean, floor)
     peak = e.max(axis=1)
     return np.divide(peak, mean, out=np.zeros_like(peak), where=mean > 0)
 
@@ -332,28 +366,26 @@ def peak_ratio(y: np.ndarray, fit: Fit, oversample: int) -> np.ndarray:
 def count_statistic(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     """The count test's statistic (B,): peak over mean of the linear residual and of the
     likelihood's score (:mod:`pipeline.dsp.cml.count`), the smaller; unquantized frames: the
-    linear residual."""
-    ratio = peak_ratio(residual(codes, fit), fit, oversample)
+    linear residual, its mean not below the frames' precision."""
     if codes.bits is None:
-        return ratio
-    return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample))
+        return peak_ratio(residual(codes, fit), fit, oversample, precision_floor(codes.y, oversample))
+    ratio = peak_ratio(residual(codes, fit), fit, oversample)
+    floor = information_floor(fit.h, oversample) if fit.nu.shape[1] else None
+    return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample, floor))
 
 
 def detect(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     """Range (bins, (B,)) of the peak of the joint energy of the residual's back projection
     (the score after the first target) on a grid of ``oversample`` points a bin, refined by a
-    parabola, inside the gate."""
+    parabola, on the whole axis (a range gate bounds what is reported, not what is modelled)."""
     first = fit.nu.shape[1] == 0 or codes.bits is None
     e, _ = energy(residual(codes, fit) if first else score(codes, fit), fit, oversample, MIN_SEPARATION_BINS)
     size = e.shape[1]
-    grid = fit.grid
-    # the peak inside the gate (-1: below any energy, so also a residual of zeros peaks inside)
-    peak = np.argmax(np.where(grid.outside, -1.0, e) if grid.use else e, axis=1)
+    peak = np.argmax(e, axis=1)
     left, centre, right = (np.take_along_axis(e, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
     curv = left - 2 * centre + right
     off = np.where(curv < 0, 0.5 * (left - right) / np.where(curv < 0, curv, -1.0), 0.0)
-    nu = (peak + np.clip(off, -0.5, 0.5)) / oversample
-    return np.clip(nu, grid.lo, grid.hi) if grid.use else nu
+    return (peak + np.clip(off, -0.5, 0.5)) / oversample
 
 
 def amplitude_at(codes: Codes, fit: Fit, nu0: np.ndarray) -> np.ndarray:
@@ -372,28 +404,54 @@ class ReferenceBlocks:
     def __init__(self, config: RadarConfig, options: CmlOptions):
         self.config, self.options = config, options
 
-    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None) -> CmlResult:
-        """One block from scratch: greedy stages (count test at ``threshold``), then the annealing."""
+    def decode(self, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None,
+               nuisance: bool = False) -> CmlResult:
+        """One block from scratch: greedy stages (count test at ``threshold``), then the
+        annealing; with a count test or ``nuisance``, the fit settled before each stage and,
+        with a range gate, up to ``grid.stages`` more stages while a frame holds fewer than ``k``
+        targets inside it (as :meth:`pipeline.dsp.cml.compiled.CompiledBlocks.decode`)."""
         b = frames.z.shape[0]
         oversample, anneal = self.options.oversample, self.options.anneal
         codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood)
         fit = Fit(codes, grid)
         sigma, floor, amp_cap = start(frames)
         active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
+        settled = False  # the fit annealed since its last target (the count test's)
         if threshold is not None:
             fit.evaluate(sigma)  # the score of the empty model, for the first count test
-        for _ in range(k):
+        settling = threshold is not None or nuisance
+        for _ in range(k + (grid.stages if settling else 0)):
+            if settling and fit.nu.shape[1]:  # the residuals of the settled fit
+                self._settle(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None)
+                settled = True
+                if threshold is not None and codes.bits is not None:
+                    fit.settled_score()
+            if settling and grid.use:  # a frame with k targets inside the gate is done
+                active &= (fit.live & grid.inside(fit.nu)).sum(axis=1) < k
             if threshold is not None:
                 active &= count_statistic(fit, codes, oversample) >= threshold
             if not active.any():
                 break
+            settled = False
             nu0 = detect(fit, codes, oversample)
             amp0 = np.where(active[:, None], amplitude_at(codes, fit, nu0), 0.0)
             fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
                     np.concatenate([fit.live, active[:, None]], axis=1))
             fit.evaluate(sigma)
             fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
+        if settled:
+            return self._result(fit, codes, codes.noise_rms(fit.mu) if codes.bits is None else fit.sigma, k)
         return self._anneal(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None, k)
+
+    def _settle(self, codes: Codes, fit: Fit, sigma, floor, amp_cap, adapt: bool) -> None:
+        """The fit annealed to its floor (unquantized: polished), as at the end of a decode:
+        what the count test reads (at the greedy stage's scale the likelihood's score carries
+        the quantizer's harmonics of the targets found, docs/science.md)."""
+        anneal = self.options.anneal
+        if codes.bits is not None and anneal:
+            fit.run(anneal_levels(sigma, floor, anneal), amp_cap, adapt=adapt)
+        elif codes.bits is None:
+            fit.run(np.ones((fit.nu.shape[0], anneal)), amp_cap)
 
     def _anneal(self, codes: Codes, fit: Fit, sigma, floor, amp_cap, adapt: bool, k: int,
                 levels: np.ndarray | None = None) -> CmlResult:
@@ -427,15 +485,16 @@ class ReferenceBlocks:
         levels = warm_levels(sigma, floor, self.options.anneal) if codes.bits is not None and self.options.anneal \
             else None
         res = self._anneal(codes, fit, sigma, floor, amp_cap, frames.noise_sigma is None, k, levels)
-        return res, fit.live.sum(axis=1), count_statistic(fit, codes, self.options.oversample)
+        if codes.bits is not None:
+            fit.settled_score()
+        return res, (fit.live & grid.inside(fit.nu)).sum(axis=1), count_statistic(fit, codes, self.options.oversample)
 
     def _result(self, fit: Fit, codes: Codes, sigma: np.ndarray, k: int) -> CmlResult:
         """The fit in the model's terms, its statistic, padded to ``k`` targets (absent ones
-        last), present ones strongest first."""
+        last) or cut to them, present ones (live, inside the gate) strongest first."""
         n, ramps, config = codes.n, codes.ramps, self.config
         b, t = fit.nu.shape
-        # the axis is circular; inside a gate (within [0, N] bins) a range is not wrapped
-        range_m = (fit.nu if fit.grid.use else fit.nu % n) * config.range_resolution_m
+        range_m = (fit.nu % n) * config.range_resolution_m  # the axis is circular
         # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
         amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
             ..., None]
@@ -446,12 +505,12 @@ class ReferenceBlocks:
         power = (np.abs(fit.amp) ** 2).sum(axis=2)
         with np.errstate(divide="ignore", invalid="ignore"):
             stat = to_db(power / noise[:, None])
-        pad = k - t
+        pad = max(k - t, 0)
         range_m = np.concatenate([range_m, np.full((b, pad), np.nan)], axis=1)
         amp = np.concatenate([amp, np.zeros((b, pad, 2), dtype=complex)], axis=1)
         stat = np.concatenate([stat, np.full((b, pad), np.nan)], axis=1)
         power = np.concatenate([power, np.zeros((b, pad))], axis=1)
-        present = np.concatenate([fit.live, np.zeros((b, pad), dtype=bool)], axis=1)
-        order = np.lexsort((-power, ~present), axis=1)  # present first, then strongest first
+        present = np.concatenate([fit.live & fit.grid.inside(fit.nu), np.zeros((b, pad), dtype=bool)], axis=1)
+        order = np.lexsort((-power, ~present), axis=1)[:, :k]  # present first, then strongest first
         return CmlResult(np.take_along_axis(range_m, order, axis=1), np.take_along_axis(amp, order[..., None], axis=1),
                          np.take_along_axis(stat, order, axis=1), sigma, np.take_along_axis(present, order, axis=1))

@@ -38,9 +38,9 @@ def _energy(u, nu, live, oversample, guard_bins, energy, near):
 
 
 @njit(**JIT, inline="always")
-def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
+def peak_ratio(u, nu, live, oversample, guard_bins, gate, s, floor) -> float:
     """Peak over mean of the joint energy of ``u`` (2, L) beyond ``guard_bins`` of the
-    targets and inside the gate (0 when the energy is 0 there); ``s``: a
+    targets and inside the gate (0 when the energy is 0 there), the mean not below ``floor``; ``s``: a
     :data:`~pipeline.dsp.cml.kernels.layout.Scratch` (its ``energy``, ``near``)."""
     energy, near, use, outside = s.energy, s.near, gate.use, gate.outside
     _energy(u, nu, live, oversample, guard_bins, energy, near)
@@ -56,7 +56,7 @@ def peak_ratio(u, nu, live, oversample, guard_bins, gate, s) -> float:
         peak = max(peak, energy[i])
         if not near[i]:
             cells += 1
-    mean = total / max(cells, 1)
+    mean = max(total / max(cells, 1), floor)
     return peak / mean if mean > 0.0 else 0.0
 
 
@@ -81,8 +81,8 @@ def peak(u, nu, live, oversample, guard_bins, gate, s) -> float:
 
 
 @njit(**JIT, inline="always")
-def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
-    """:func:`peak_ratio` from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N): the
+def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold, floor):
+    """:func:`peak_ratio` (its mean not below ``floor``) from the coarse inverse FFT ``uc`` (2, Lc) of ``x`` (2, >= N): the
     mean by :func:`~pipeline.dsp.cml.kernels.search.open_sum`, the peak by
     :func:`~pipeline.dsp.cml.kernels.search.coarse_peak`, sought only as far as it decides
     ``ratio >= threshold`` (< 0: the ratio itself; else a ratio that reaches ``threshold``
@@ -91,7 +91,7 @@ def coarse_ratio(uc, x, n, nu, live, grid, gate, s, threshold):
     total = coarse_energies(uc, grid.table.shape[0], s)
     reach = guard(nu, live, grid.oversample, grid.count_guard, gate, s)
     kept, cells = open_sum(total, nu, reach, grid, gate, s)
-    mean = kept / max(cells, 1)
+    mean = max(kept / max(cells, 1), floor)
     bar = threshold * mean if threshold >= 0.0 and mean > 0.0 else -math.inf
     best, top = coarse_peak(x, n, grid, gate, s, bar, threshold >= 0.0)
     if threshold >= 0.0 and mean > 0.0 and top >= bar:  # decided: at the threshold even where top / mean rounds below
@@ -129,7 +129,7 @@ def scratch(n, size, lc, table):
 
 
 @njit(**JIT)
-def detect(sources, grid, gate, nu, live, decision) -> bool:
+def detect(sources, grid, gate, seed_gate, nu, live, decision) -> bool:
     """Per frame: the count test's statistic into ``decision.stat`` (B,) (the smaller peak
     ratio of the first ``sources.count_sources`` residuals; 0 sources: left alone), with
     ``decision.threshold`` >= 0 the count's decision (``decision.active`` (B,) bool, updated
@@ -138,7 +138,9 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
     inactive already), the detected range into ``decision.nu0`` (B,) (residual
     ``sources.detect_source``; -1: ``nu0`` given), and the least-squares amplitudes (B, 2) of
     one target at ``nu0`` in ``sources.y`` into ``decision.amp0``; ``nu`` (B, T) bins and
-    ``live`` (B, T): the targets found. Returns whether a frame is active (no threshold:
+    ``live`` (B, T): the targets found; the count test looks inside ``gate``, detection inside
+    ``seed_gate`` (the whole axis: a range gate bounds what is reported, not what is modelled,
+    :class:`pipeline.dsp.cml.grid.SearchGrid`). Returns whether a frame is active (no threshold:
     True); with none, the ranges and amplitudes are left alone. ``sources.u`` coarser than
     ``grid.oversample`` N points: the fine grid's peak and mean from it
     (:mod:`pipeline.dsp.cml.kernels.search`)."""
@@ -156,12 +158,12 @@ def detect(sources, grid, gate, nu, live, decision) -> bool:
             if not decision.active[f] and sources.detect_source >= 0:  # detected only if another frame goes on
                 pending[f] = True
                 continue
-        _detect_frame(sources, grid, gate, nu[f], live[f], decision, s, on_coarse, f, prepared, best)
+        _detect_frame(sources, grid, gate, seed_gate, nu[f], live[f], decision, s, on_coarse, f, prepared, best)
     if not any_active:
         return False
     for f in range(nb):
         if pending[f]:
-            _detect_frame(sources, grid, gate, nu[f], live[f], decision, s, on_coarse, f, False, 0)
+            _detect_frame(sources, grid, gate, seed_gate, nu[f], live[f], decision, s, on_coarse, f, False, 0)
     return True
 
 
@@ -181,26 +183,28 @@ def _count(sources, grid, gate, nu, live, decision, s, on_coarse, f):
         src = step if det < 0 or det >= count else (step + det + 1) % count
         if on_coarse:
             r, best = coarse_ratio(sources.u[f, src], sources.src[f, src], n, nu, live, grid, gate, s,
-                                   decision.threshold)
+                                   decision.threshold, decision.floor[f, src])
             prepared = src == det
         else:
-            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s)
+            r = peak_ratio(sources.u[f, src], nu, live, grid.oversample, grid.count_guard, gate, s, decision.floor[f, src])
         decision.stat[f] = r if step == 0 else min(decision.stat[f], r)
     return prepared, best
 
 
 @njit(**JIT)
-def _detect_frame(sources, grid, gate, nu, live, decision, s, on_coarse, f, prepared, best):
-    """Frame ``f``'s detected range into ``decision.nu0[f]`` (unless given) and its
-    amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as :func:`_count` returns."""
+def _detect_frame(sources, grid, gate, seed_gate, nu, live, decision, s, on_coarse, f, prepared, best):
+    """Frame ``f``'s detected range (inside ``seed_gate``) into ``decision.nu0[f]`` (unless
+    given) and its amplitudes into ``decision.amp0[f]``; ``prepared``, ``best``: as
+    :func:`_count` returns (``gate``: the count test's)."""
     det = sources.detect_source
     n = sources.y.shape[1]
-    if prepared and decision.threshold < 0.0 and not live.any():  # no guard: the count test's peak is the detection's
-        decision.nu0[f] = peak_range(sources.src[f, det], n, best, grid, gate, s)
+    if prepared and decision.threshold < 0.0 and not live.any() and not gate.use:  # no guard, one search
+        decision.nu0[f] = peak_range(sources.src[f, det], n, best, grid, seed_gate, s)
     elif on_coarse and det >= 0:
-        decision.nu0[f] = coarse_range(sources.u[f, det], sources.src[f, det], n, nu, live, grid, gate, s, prepared)
+        decision.nu0[f] = coarse_range(sources.u[f, det], sources.src[f, det], n, nu, live, grid, seed_gate, s,
+                                       prepared)
     elif det >= 0:
-        decision.nu0[f] = peak(sources.u[f, det], nu, live, grid.oversample, grid.sep_guard, gate, s)
+        decision.nu0[f] = peak(sources.u[f, det], nu, live, grid.oversample, grid.sep_guard, seed_gate, s)
     amplitude(sources.y[f], decision.nu0[f], sources.ramps, decision.amp0[f])
 
 

@@ -19,34 +19,41 @@ def evaluate(codes, mu, sigma, g, h):
 
 
 @njit(**JIT)
-def refine(codes, fit, steps, gate):
+def refine(codes, fit, steps):
     """:func:`pipeline.dsp.cml.kernels.refine.refine`."""
-    refinement.refine(Codes(*codes), Fit(*fit), Steps(*steps), Gate(*gate))
+    refinement.refine(Codes(*codes), Fit(*fit), Steps(*steps))
 
 
 @njit(**JIT)
-def detect(sources, grid, gate, nu, live, decision) -> bool:
+def settled_score(fit, ge):
+    """:func:`pipeline.dsp.cml.kernels.refine.settled_score`."""
+    refinement.settled_score(Fit(*fit), ge)
+
+
+@njit(**JIT)
+def detect(sources, grid, gate, seed_gate, nu, live, decision) -> bool:
     """:func:`pipeline.dsp.cml.kernels.detect.detect`."""
-    return detection.detect(Sources(*sources), Grid(*grid), Gate(*gate), nu, live, Decision(*decision))
+    return detection.detect(Sources(*sources), Grid(*grid), Gate(*gate), Gate(*seed_gate), nu, live,
+                            Decision(*decision))
 
 
 @njit(**JIT)
-def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> bool:
+def add_target(sources, grid, gate, seed_gate, fit, codes, steps, sigma, decision, new) -> bool:
     """:func:`pipeline.dsp.cml.kernels.stages.add_target`."""
-    return stages.add_target(Sources(*sources), Grid(*grid), Gate(*gate), Fit(*fit), Codes(*codes), Steps(*steps),
-                             sigma, Decision(*decision), Fit(*new))
+    return stages.add_target(Sources(*sources), Grid(*grid), Gate(*gate), Gate(*seed_gate), Fit(*fit), Codes(*codes),
+                             Steps(*steps), sigma, Decision(*decision), Fit(*new))
 
 
 @njit(**JIT)
-def finish(codes, fit, steps, gate, report, out):
+def finish(codes, fit, steps, report, out):
     """:func:`pipeline.dsp.cml.kernels.stages.finish`."""
-    stages.finish(Codes(*codes), Fit(*fit), Steps(*steps), Gate(*gate), Report(*report), Targets(*out))
+    stages.finish(Codes(*codes), Fit(*fit), Steps(*steps), Report(*report), Targets(*out))
 
 
 @njit(**JIT)
-def warm(codes, start, first, anneal, sigma, gate, report, out, fit):
+def warm(codes, start, first, anneal, sigma, report, out, fit):
     """:func:`pipeline.dsp.cml.kernels.stages.warm`."""
-    stages.warm(Codes(*codes), start, Steps(*first), Steps(*anneal), sigma, Gate(*gate), Report(*report),
+    stages.warm(Codes(*codes), start, Steps(*first), Steps(*anneal), sigma, Report(*report),
                 Targets(*out), Fit(*fit))
 
 

@@ -27,12 +27,13 @@ Work = namedtuple("Work", ["w", "mus", "gs", "hs", "cw", "cw32", "ht", "bw", "gr
 
 
 @njit(**JIT)
-def refine(codes, fit, steps, gate):
+def refine(codes, fit, steps):
     """Levenberg--Marquardt steps of every frame of ``fit`` on ``codes``: step j at noise std
     ``steps.levels[f, j]`` (``steps.adapt``: not below the wrong codes' RMS distance over
     ``steps.wrong_per_sigma``), re-evaluating the likelihood when the level changes (a
     candidate whose derivatives the next step does not use gets its NLL alone); a step is
-    kept only when the NLL does not grow; ranges stay in ``gate`` (``gate.use``). Updates
+    kept only when the NLL does not grow; ranges are not bounded (a range gate bounds detection and
+    what is reported, not the refinement). Updates
     ``fit``'s ``nu``, ``amp``, ``lm``, ``mu``, ``g``, ``h``, ``nll`` in place and writes each
     frame's last level to ``fit.sigma``. ``fit.nll`` on entry: the NLL at ``fit.sigma`` (the
     current level; NaN: none)."""
@@ -49,18 +50,17 @@ def refine(codes, fit, steps, gate):
                 np.empty((npar, npar)), np.empty(npar), np.empty(k), np.empty((k, 2), dtype=np.complex128),
                 np.empty((3, 4 * n), dtype=np.float32))
     for f in range(fit.nu.shape[0]):
-        _refine_frame(codes, fit, steps, gate, kc, work, f)
+        _refine_frame(codes, fit, steps, kc, work, f)
 
 
 @njit(**JIT, inline="always")
-def _refine_frame(codes, fit, steps, gate, kc, work, f):
+def _refine_frame(codes, fit, steps, kc, work, f):
     """:func:`refine` of frame ``f``. (The fields of the namedtuples are read once, before the
     steps: a field read from a namedtuple is a reference counted each time, measured 3-5 % of
     the steps when read in the loop.)"""
     kind, lik, a, b = codes.kind, codes.lik, codes.a[f], codes.b[f]
     nu, amp, live, levels, amp_cap = fit.nu[f], fit.amp[f], fit.live[f], steps.levels[f], steps.amp_cap[f]
     adapt, wrong_per_sigma, max_step = steps.adapt, steps.wrong_per_sigma, steps.max_range_step
-    use, lo, hi = gate.use, gate.lo, gate.hi
     w, mus, gs, hs, nu2, amp2, lw = work.w, work.mus, work.gs, work.hs, work.nu2, work.amp2, work.work
     cw, cw32, ht, bw, gram, proj = work.cw, work.cw32, work.ht, work.bw, work.gram, work.proj
     hess, grad, chol, step = work.hess, work.grad, work.lw, work.step
@@ -82,9 +82,9 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
             fresh = True
         sums(w[cur], cw, cw32, gs[cur], hs[cur], ht, bw, gram, proj)
         normal_equations(amp, gram, proj, hess, grad)
-        _damp(hess, grad, lm)
+        _damp(hess, grad, lm, live)
         solve(hess, grad, chol, step)
-        _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2)
+        _candidate(nu, amp, live, step, amp_cap, max_step, nu2, amp2)
         o = 1 - cur
         model(nu2, amp2, kc, w[o], mus[o])
         # the candidate's derivatives only when the next step is at this level (known
@@ -110,10 +110,19 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
 
 
 @njit(**JIT, inline="always")
-def _damp(hess, grad, lm):
+def _damp(hess, grad, lm, live):
     """The Gauss--Newton system ``hess`` (P, P), ``grad`` (P,) damped by ``lm`` (Levenberg's
-    term, plus 1e-9 of the largest diagonal entry), the gradient negated: the step solves it."""
+    term, plus 1e-9 of the largest diagonal entry), the gradient negated: the step solves it.
+    The targets not ``live`` (K,) take no part (their rows and columns zero): the system is
+    the live targets' alone."""
     npar = grad.shape[0]
+    for t in range(live.shape[0]):
+        if not live[t]:
+            for q in range(PARAMS * t, PARAMS * (t + 1)):
+                grad[q] = 0.0
+                for c in range(npar):
+                    hess[q, c] = 0.0
+                    hess[c, q] = 0.0
     dmax = 0.0
     for q in range(npar):
         dmax = max(dmax, hess[q, q])
@@ -123,10 +132,11 @@ def _damp(hess, grad, lm):
 
 
 @njit(**JIT, inline="always")
-def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
+def _candidate(nu, amp, live, step, amp_cap, max_step, nu2, amp2):
     """The candidate targets ``nu2`` (K,), ``amp2`` (K, 2): the targets ``nu`` bins, ``amp``
     moved by ``step`` (not those not ``live``), the range step clipped to ``max_step``, the
-    amplitudes' to ``amp_cap``, ranges kept in the gate [``lo``, ``hi``] (``use``)."""
+    amplitudes' to ``amp_cap`` (a range gate does not bound them: a target may leave it,
+    :class:`pipeline.dsp.cml.grid.SearchGrid`)."""
     for t in range(nu.shape[0]):
         base = PARAMS * t
         if not live[t]:
@@ -138,9 +148,55 @@ def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
             norm += step[base + q] ** 2
         norm = math.sqrt(norm)
         cut = min(1.0, amp_cap / max(norm, 1e-300))
-        v = nu[t] + dnu
-        if use:
-            v = min(max(v, lo), hi)
-        nu2[t] = v
+        nu2[t] = nu[t] + dnu
         for p in range(2):
             amp2[t, p] = amp[t, p] + complex(step[base + 1 + 2 * p] * cut, step[base + 2 + 2 * p] * cut)
+
+
+@njit(**JIT)
+def settled_score(fit, ge):
+    """The efficient score's ``g`` of every frame of ``fit`` into ``ge`` (B, N, 4): ``g + h (J
+    d)``, ``d`` the undamped Gauss--Newton step of the live targets at ``fit``'s ``g``, ``h``
+    and ``J`` the model's Jacobian (``J^T ge = 0``: what no target found could take up by
+    moving; :meth:`pipeline.dsp.cml.reference.Fit.settled_score`, the same sums and system as
+    :func:`refine`'s step)."""
+    nb, k = fit.nu.shape
+    n = fit.mu.shape[1]
+    if k == 0:
+        ge[:] = fit.g
+        return
+    npar = PARAMS * k
+    kc = centred(n)
+    cw = 2.0 * math.pi * kc / n
+    cw32 = cw.astype(np.float32)
+    w = np.empty((k, 2, n))
+    mu = np.empty((n, 4))
+    ht, bw = np.empty((4, n), dtype=np.float32), np.empty((2 * k, n), dtype=np.float32)
+    gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
+    hess, grad, chol, step = np.empty((npar, npar)), np.empty(npar), np.empty((npar, npar)), np.empty(npar)
+    for f in range(nb):
+        nu, amp, live, g, h = fit.nu[f], fit.amp[f], fit.live[f], fit.g[f], fit.h[f]
+        model(nu, amp, kc, w, mu)
+        sums(w, cw, cw32, g, h, ht, bw, gram, proj)
+        normal_equations(amp, gram, proj, hess, grad)
+        _damp(hess, grad, 0.0, live)
+        solve(hess, grad, chol, step)
+        for i in range(n):
+            for j in range(4):
+                ge[f, i, j] = g[i, j]
+        for t in range(k):
+            if not live[t]:
+                continue
+            base = PARAMS * t
+            dnu = step[base]
+            for p in range(2):
+                dbr, dbi = step[base + 1 + 2 * p], step[base + 2 + 2 * p]
+                br, bi = amp[t, p].real, amp[t, p].imag
+                for i in range(n):
+                    wr, wi = w[t, 0, i], w[t, 1, i]
+                    # d mu_p = db w + b (d w / d nu) dnu, d w / d nu = -i cw w
+                    c = cw[i] * dnu
+                    dr = dbr * wr - dbi * wi + c * (br * wi + bi * wr)
+                    di = dbr * wi + dbi * wr + c * (bi * wi - br * wr)
+                    ge[f, i, 2 * p] += h[i, 2 * p] * dr
+                    ge[f, i, 2 * p + 1] += h[i, 2 * p + 1] * di

@@ -104,7 +104,7 @@ def sources(folded, mu, g, ramps, residual, score, y, buf):
 
 # -- the greedy stage, the annealing, the warm start -------------------------------------------
 @njit(**JIT, inline="always")
-def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> bool:
+def add_target(sources, grid, gate, seed_gate, fit, codes, steps, sigma, decision, new) -> bool:
     """One greedy stage in one call: :func:`~pipeline.dsp.cml.kernels.detect.detect` (the count
     test when ``decision.threshold`` >= 0: ``decision.active`` (B,) bool updated in place),
     then into ``new`` (a :data:`~pipeline.dsp.cml.kernels.layout.Fit` of T + 1 targets, its
@@ -114,7 +114,7 @@ def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> 
     none: the likelihood evaluated at ``sigma``). Returns whether a frame is active; with none,
     ``new`` is not to be used."""
     nb, t = fit.nu.shape
-    any_active = detect(sources, grid, gate, fit.nu, fit.live, decision)
+    any_active = detect(sources, grid, gate, seed_gate, fit.nu, fit.live, decision)
     active = decision.active
     if decision.threshold < 0.0:
         any_active = False
@@ -128,7 +128,7 @@ def add_target(sources, grid, gate, fit, codes, steps, sigma, decision, new) -> 
         new.nll[:] = evaluate(codes, new.mu, sigma, new.g, new.h)
         new.sigma[:] = sigma
     else:
-        refine(codes, new, steps, gate)
+        refine(codes, new, steps)
     return True
 
 
@@ -150,19 +150,19 @@ def _append(nu, amp, live, active, nu0, amp0, nu2, amp2, live2):
 
 
 @njit(**JIT, inline="always")
-def finish(codes, fit, steps, gate, report, out):
+def finish(codes, fit, steps, report, out):
     """The end of a decode in one call: the annealing's refinement steps ``steps``
     (:func:`~pipeline.dsp.cml.kernels.refine.refine`), the residual ``folded - ramps mu`` and
     :func:`result` into ``out``."""
     if steps.levels.shape[1]:
-        refine(codes, fit, steps, gate)
+        refine(codes, fit, steps)
     y = np.empty((fit.mu.shape[0], fit.mu.shape[1], 2), dtype=np.complex128)
     _residual_into(codes.folded, fit.mu, codes.a.shape[1], y)
     result(fit, y, codes.a.shape[1], report, out)
 
 
 @njit(**JIT, inline="always")
-def warm(codes, start, first, anneal, sigma, gate, report, out, fit):
+def warm(codes, start, first, anneal, sigma, report, out, fit):
     """The warm start in one call: into ``fit`` (a :data:`~pipeline.dsp.cml.kernels.layout.Fit`
     of the T given targets, its ``lm`` 1e-3, ``nll`` 0, ``sigma`` NaN), the amplitudes of the
     targets ``start`` = (``nu_all`` (B, K) bins, ``live_all`` (B, K) the ones given, first) one
@@ -191,9 +191,9 @@ def warm(codes, start, first, anneal, sigma, gate, report, out, fit):
         fit.nll[:] = evaluate(codes, mu, sigma, fit.g, fit.h)
         fit.sigma[:] = sigma
     else:
-        refine(codes, fit, first, gate)
+        refine(codes, fit, first)
     if anneal.levels.shape[1]:
-        refine(codes, fit, anneal, gate)
+        refine(codes, fit, anneal)
     _residual_into(folded, mu, ramps, y)
     result(fit, y, ramps, report, out)
 
@@ -213,14 +213,17 @@ def _residual_into(folded, mu, ramps, y):
 def result(fit, y, ramps, report, out):
     """The result per frame: the targets of ``fit`` (``nu`` (B, T) bins, ``amp`` (B, T, 2)
     mid-sweep, ``live``), ``y`` (B, N, 2) the residual summed over the ``ramps`` ramps. Writes
-    ``out`` (:data:`~pipeline.dsp.cml.kernels.layout.Targets`): ranges (B, K) m (modulo N bins
-    when ``report.wrap``), amplitudes (B, K, 2) of the model, the statistic (B, K) dB (capped
-    at ``report.cap``) and ``present``, present targets first, strongest first."""
+    ``out`` (:data:`~pipeline.dsp.cml.kernels.layout.Targets`): ranges (B, K) m (modulo N
+    bins), amplitudes (B, K, 2) of the model, the statistic (B, K) dB (capped at
+    ``report.cap``) and ``present`` (live and inside the gate, ``report``), present targets
+    first, strongest first (T > K: the first K of them)."""
     nu, amp, live = fit.nu, fit.amp, fit.live
     range_m, amp_out, stat, present = out
     (nb, t), k, n = nu.shape, range_m.shape[1], y.shape[1]
-    power = np.empty(k)
-    order = np.empty(k, dtype=np.int64)
+    slots = max(k, t)
+    power = np.empty(slots)
+    order = np.empty(slots, dtype=np.int64)
+    shown = np.empty(t, dtype=np.bool_)
     for f in range(nb):
         noise = 0.0
         for i in range(n):
@@ -228,7 +231,10 @@ def result(fit, y, ramps, report, out):
                 v = y[f, i, p]
                 noise += v.real * v.real + v.imag * v.imag
         noise /= float(n * ramps) ** 2
-        _order(amp[f], live[f], power, order)
+        for j in range(t):
+            v = nu[f, j] % n
+            shown[j] = live[f, j] and (not report.use or (v >= report.lo and v <= report.hi))
+        _order(amp[f], shown, power, order)
         for pos in range(k):
             j = order[pos]
             if j >= t:
@@ -243,13 +249,14 @@ def result(fit, y, ramps, report, out):
             amp_out[f, pos, 0] = amp[f, j, 0] * e
             amp_out[f, pos, 1] = amp[f, j, 1] * e
             stat[f, pos] = db
-            present[f, pos] = live[f, j]
+            present[f, pos] = shown[j]
 
 
 @njit(**JIT, inline="always")
 def _order(amp, live, power, order):
-    """``order`` (K,): the targets present first, then strongest first (a stable insertion,
-    as numpy's lexsort) by their joint power into ``power`` (K,) (0 past the T targets)."""
+    """``order`` (S,), S >= T: the targets present (``live`` (T,)) first, then strongest first
+    (a stable insertion, as numpy's lexsort) by their joint power into ``power`` (S,) (0 past
+    the T targets)."""
     t = amp.shape[0]
     for j in range(order.shape[0]):
         power[j] = 0.0
@@ -274,8 +281,7 @@ def _target(nu, n, ratio, report):
     per bin: its range (m), the factor from its mid-sweep amplitudes to the model's and its
     statistic (dB)."""
     kc0 = 0.0 - (n - 1) / 2.0  # the first sample from the middle of the ramp
-    v = nu % n if report.wrap else nu
-    r = v * report.range_res
+    r = (nu % n) * report.range_res
     # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
     e = np.exp(complex(0.0, ((-2.0 * math.pi / n) * nu) * kc0)) / np.exp(complex(0.0, -(report.carrier * r)))
     if ratio != ratio or ratio <= 0.0:
