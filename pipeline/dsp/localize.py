@@ -220,7 +220,10 @@ class Detections:
     boresight), amplitude (joint magnitude / sqrt(2), frame units), bin (range bin),
     statistic_db (detection statistic, dB: the target's joint power over the mean
     noise power per range bin of the back projection; see each decoder), present
-    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN).
+    (bool: with ``K auto`` the slots past a frame's count are False and hold NaN),
+    radial_velocity_mps (m/s, + = moving away, from the phase step between ramps: known
+    modulo the radar's ``velocity_ambiguity_mps`` V and given in [-V/2, V/2); NaN where the
+    decoder keeps the static model, as PBP and QIHT do).
     """
 
     range_m: np.ndarray
@@ -231,6 +234,7 @@ class Detections:
     bin: np.ndarray
     statistic_db: np.ndarray | None = None
     present: np.ndarray | None = None
+    radial_velocity_mps: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = np.shape(self.range_m)
@@ -238,6 +242,8 @@ class Detections:
             object.__setattr__(self, "statistic_db", np.full(shape, np.nan))
         if self.present is None:
             object.__setattr__(self, "present", np.ones(shape, dtype=bool))
+        if self.radial_velocity_mps is None:
+            object.__setattr__(self, "radial_velocity_mps", np.full(shape, np.nan))
 
     @property
     def count(self) -> np.ndarray:
@@ -250,7 +256,8 @@ class Detections:
         present = np.asarray(present, dtype=bool) & self.present
         nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
         return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
-                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present)
+                          nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present,
+                          nan(self.radial_velocity_mps))
 
     def frame(self, i: int) -> list[dict[str, float]]:
         """The targets of frame ``i`` that are present, as plain dicts (for JSON)."""
@@ -263,6 +270,8 @@ class Detections:
                 "amplitude": float(self.amplitude[i, j]),
                 "bin": int(self.bin[i, j]),
                 **({"statistic_db": float(self.statistic_db[i, j])} if np.isfinite(self.statistic_db[i, j]) else {}),
+                **({"radial_velocity_mps": float(self.radial_velocity_mps[i, j])}
+                   if np.isfinite(self.radial_velocity_mps[i, j]) else {}),
             }
             for j in range(self.range_m.shape[1]) if self.present[i, j]
         ]

@@ -25,8 +25,20 @@ COUNT_GUARD_BINS = 2.0
 WARM_PFA = 1e-3
 
 
-def threshold(pfa: float, config: RadarConfig, grid: SearchGrid) -> float:
+#: independent cells the search over the phase step between ramps is worth, by the model's
+#: ramps (the peak over range and phase step over its mean): measured on target-free
+#: residuals (README); more ramps: one cell a ramp
+DOPPLER_CELLS = {1: 1.0, 2: 2.0}
+
+
+def doppler_cells(rm: int) -> float:
+    """The cells (:data:`DOPPLER_CELLS`) of a search over the phase step of ``rm`` model ramps."""
+    return DOPPLER_CELLS.get(rm, float(rm))
+
+
+def threshold(pfa: float, config: RadarConfig, grid: SearchGrid, rm: int = 1) -> float:
     """The count test's threshold (linear) at false-alarm probability ``pfa`` over the
-    bins the search spans (:func:`pipeline.dsp.localize.cfar_threshold`)."""
+    bins the search spans and, with ``rm`` > 1 model ramps, the phase steps
+    (:func:`pipeline.dsp.localize.cfar_threshold`)."""
     search_bins = config.samples_per_ramp if grid.gate is None else grid.width_bins
-    return cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins)
+    return cfar_threshold(pfa, SEARCH_CELLS_PER_BIN * search_bins * doppler_cells(rm))

@@ -15,15 +15,17 @@ from numba import njit
 from pipeline.dsp.cml.kernels.layout import JIT
 from pipeline.dsp.cml.kernels.likelihood import LOGISTIC, ONE_BIT, evaluate_frame, nll_frame, wrong_rms
 from pipeline.dsp.cml.kernels.linalg import solve
-from pipeline.dsp.cml.kernels.model import PARAMS, centred, model, normal_equations, sums
+from pipeline.dsp.cml.kernels.model import PARAMS, centred, model, normal_equations, ramp_offsets, sums
 
 #: the work arrays of a call (the current state and the candidate swap places, index ``cur``):
-#: atoms ``w`` (2, K, 2, N), models ``mus`` and derivatives ``gs``, ``hs`` (2, N, 4), the
+#: atoms ``w`` (2, K, 2, N), models ``mus`` and derivatives ``gs``, ``hs`` (2, Rm, N, 4), the
 #: derivative's factors ``cw`` (N,) and ``cw32``, :func:`~pipeline.dsp.cml.kernels.model.sums`'
 #: ``ht``, ``bw``, ``gram``, ``proj``, the system ``hess``, ``grad``, ``lw``, ``step``, the
-#: candidate ``nu2``, ``amp2``, and the likelihood's ``work`` (3, 4N) float32
+#: candidate ``nu2``, ``phi2``, ``amp2``, the likelihood's ``work`` (3, Rm, 4N) float32, the
+#: model ramps' offsets ``cr`` (Rm,) and the system's ``turn`` (K, 2), ``coef`` (Rm, 4, 4K, 2),
+#: ``rows`` (4, 4K, 4) int
 Work = namedtuple("Work", ["w", "mus", "gs", "hs", "cw", "cw32", "ht", "bw", "gram", "proj", "hess", "grad", "lw",
-                           "step", "nu2", "amp2", "work"])
+                           "step", "nu2", "phi2", "amp2", "work", "cr", "turn", "coef", "rows"])
 
 
 @njit(**JIT)
@@ -39,15 +41,16 @@ def refine(codes, fit, steps, gate):
     k = fit.nu.shape[1]
     if k == 0:
         return
-    n = fit.mu.shape[1]
+    rm, n = fit.mu.shape[1], fit.mu.shape[2]
     npar = PARAMS * k
     kc = centred(n)
     cw = 2.0 * math.pi * kc / n
-    work = Work(np.empty((2, k, 2, n)), np.empty((2, n, 4)), np.empty((2, n, 4)), np.empty((2, n, 4)), cw,
-                cw.astype(np.float32), np.empty((4, n), dtype=np.float32), np.empty((2 * k, n), dtype=np.float32),
-                np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k)), np.empty((npar, npar)), np.empty(npar),
-                np.empty((npar, npar)), np.empty(npar), np.empty(k), np.empty((k, 2), dtype=np.complex128),
-                np.empty((3, 4 * n), dtype=np.float32))
+    work = Work(np.empty((2, k, 2, n)), np.empty((2, rm, n, 4)), np.empty((2, rm, n, 4)), np.empty((2, rm, n, 4)),
+                cw, cw.astype(np.float32), np.empty((4, n), dtype=np.float32), np.empty((2 * k, n), dtype=np.float32),
+                np.empty((3, 4, 2 * k, 2 * k)), np.empty((rm, 2, 4, 2 * k)), np.empty((npar, npar)),
+                np.empty(npar), np.empty((npar, npar)), np.empty(npar), np.empty(k), np.empty(k),
+                np.empty((k, 2), dtype=np.complex128), np.empty((3, rm, 4 * n), dtype=np.float32), ramp_offsets(rm),
+                np.empty((k, 2)), np.empty((rm, 4, 4 * k, 2)), np.empty((4, 4 * k, 4), dtype=np.int64))
     for f in range(fit.nu.shape[0]):
         _refine_frame(codes, fit, steps, gate, kc, work, f)
 
@@ -58,16 +61,19 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
     steps: a field read from a namedtuple is a reference counted each time, measured 3-5 % of
     the steps when read in the loop.)"""
     kind, lik, a, b = codes.kind, codes.lik, codes.a[f], codes.b[f]
-    nu, amp, live, levels, amp_cap = fit.nu[f], fit.amp[f], fit.live[f], steps.levels[f], steps.amp_cap[f]
+    nu, phi, amp, live = fit.nu[f], fit.phi[f], fit.amp[f], fit.live[f]
+    levels, amp_cap = steps.levels[f], steps.amp_cap[f]
     adapt, wrong_per_sigma, max_step = steps.adapt, steps.wrong_per_sigma, steps.max_range_step
+    max_phase = steps.max_phase_step
     use, lo, hi = gate.use, gate.lo, gate.hi
-    w, mus, gs, hs, nu2, amp2, lw = work.w, work.mus, work.gs, work.hs, work.nu2, work.amp2, work.work
+    w, mus, gs, hs, nu2, phi2, amp2, lw = work.w, work.mus, work.gs, work.hs, work.nu2, work.phi2, work.amp2, work.work
     cw, cw32, ht, bw, gram, proj = work.cw, work.cw32, work.ht, work.bw, work.gram, work.proj
-    hess, grad, chol, step = work.hess, work.grad, work.lw, work.step
+    hess, grad, chol, step, cr, turn = work.hess, work.grad, work.lw, work.step, work.cr, work.turn
+    coef, rows = work.coef, work.rows
     nll_only = kind == ONE_BIT and lik == LOGISTIC  # a cheaper NLL alone (nll_frame)
     count = levels.shape[0]
     cur = 0
-    model(nu, amp, kc, w[0], mus[0])
+    model(nu, phi, amp, kc, cr, w[0], mus[0])
     gs[0] = fit.g[f]
     hs[0] = fit.h[f]
     current, nll, lm = fit.sigma[f], fit.nll[f], fit.lm[f]
@@ -81,12 +87,12 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
             current = level
             fresh = True
         sums(w[cur], cw, cw32, gs[cur], hs[cur], ht, bw, gram, proj)
-        normal_equations(amp, gram, proj, hess, grad)
+        normal_equations(amp, phi, cr, gram, proj, hess, grad, turn, coef, rows)
         _damp(hess, grad, lm)
         solve(hess, grad, chol, step)
-        _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2)
+        _candidate(nu, phi, amp, live, step, (amp_cap, max_step, max_phase), (use, lo, hi), nu2, phi2, amp2)
         o = 1 - cur
-        model(nu2, amp2, kc, w[o], mus[o])
+        model(nu2, phi2, amp2, kc, cr, w[o], mus[o])
         # the candidate's derivatives only when the next step is at this level (known
         # unless adapted) or this is the last step; else the NLL alone
         derivs = not nll_only or s == count - 1 or (not adapt and levels[s + 1] == current)
@@ -99,14 +105,15 @@ def _refine_frame(codes, fit, steps, gate, kc, work, f):
             lm = max(lm / 3.0, 1e-9)
             nll = cand
             nu[:] = nu2
+            phi[:] = phi2
             amp[:, :] = amp2
             cur = o
         else:
             lm = min(lm * 8.0, 1e9)
     fit.nll[f], fit.lm[f], fit.sigma[f] = nll, lm, current
-    fit.mu[f, :, :] = mus[cur]
-    fit.g[f, :, :] = gs[cur]
-    fit.h[f, :, :] = hs[cur]
+    fit.mu[f] = mus[cur]
+    fit.g[f] = gs[cur]
+    fit.h[f] = hs[cur]
 
 
 @njit(**JIT, inline="always")
@@ -123,10 +130,14 @@ def _damp(hess, grad, lm):
 
 
 @njit(**JIT, inline="always")
-def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
-    """The candidate targets ``nu2`` (K,), ``amp2`` (K, 2): the targets ``nu`` bins, ``amp``
-    moved by ``step`` (not those not ``live``), the range step clipped to ``max_step``, the
-    amplitudes' to ``amp_cap``, ranges kept in the gate [``lo``, ``hi``] (``use``)."""
+def _candidate(nu, phi, amp, live, step, caps, bounds, nu2, phi2, amp2):
+    """The candidate targets ``nu2`` (K,), ``phi2``, ``amp2`` (K, 2): the targets ``nu`` bins,
+    ``phi`` rad, ``amp`` moved by ``step`` (not those not ``live``), with ``caps`` = (amp_cap,
+    max_step, max_phase): the range step clipped to ``max_step``, the phase step's to
+    ``max_phase``, the amplitudes' to ``amp_cap``; ranges kept in the gate ``bounds`` =
+    (use, lo, hi) [``lo``, ``hi``] (``use``)."""
+    amp_cap, max_step, max_phase = caps
+    use, lo, hi = bounds
     for t in range(nu.shape[0]):
         base = PARAMS * t
         if not live[t]:
@@ -134,7 +145,7 @@ def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
                 step[base + q] = 0.0
         dnu = min(max(step[base], -max_step), max_step)
         norm = 0.0
-        for q in range(1, PARAMS):
+        for q in range(1, 5):
             norm += step[base + q] ** 2
         norm = math.sqrt(norm)
         cut = min(1.0, amp_cap / max(norm, 1e-300))
@@ -142,5 +153,6 @@ def _candidate(nu, amp, live, step, amp_cap, max_step, use, lo, hi, nu2, amp2):
         if use:
             v = min(max(v, lo), hi)
         nu2[t] = v
+        phi2[t] = phi[t] + min(max(step[base + 5], -max_phase), max_phase)
         for p in range(2):
             amp2[t, p] = amp[t, p] + complex(step[base + 1 + 2 * p] * cut, step[base + 2 + 2 * p] * cut)
