@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
-.PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures clean
+.PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures docs-lab clean
 
 # Set-up, once: a line per step with the time it takes on a busy 2-core host (3-5 min in all, measured).
 $(STAMP): pyproject.toml
@@ -59,6 +59,11 @@ docs-figures: $(STAMP)
 	$(PY) docs/figures/web_view.py
 
 # The whole suite, slow tests included (CI runs this).
+# docs/lab.md's tables of the lab file's keys, from the options' definitions (tests/test_lab.py checks them).
+docs-lab: $(STAMP)
+	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
+	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
+
 test: $(STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from harness import machine, take_turns
 from pipeline.dsp.decode import Decoder, DecoderConfig
-from replay.montecarlo import SceneSpec, draw_scenes
+from experiments.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 

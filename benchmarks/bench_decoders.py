@@ -58,7 +58,10 @@ def measure(code: Path, batches: list[int], algos: list[str], repeats: int, k: i
 
     from pipeline.dsp import decode as decoders
     from pipeline.dsp.decode import DecoderConfig
-    from replay.montecarlo import SceneSpec, draw_scenes
+    try:
+        from experiments.montecarlo import SceneSpec, draw_scenes
+    except ImportError:  # a checkout from before the Monte Carlo moved out of replay/
+        from replay.montecarlo import SceneSpec, draw_scenes
     from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
     from radar_driver.model import RadarConfig, simulate_frames
 

@@ -21,7 +21,7 @@ from pipeline.dsp.decode import DecoderConfig, decode
 
 QIHT = DecoderConfig(algo="qiht")
 from pipeline.dsp.localize import localize, localize_frame
-from replay.montecarlo import draw_scenes
+from experiments.montecarlo import draw_scenes
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from pipeline.dsp.cml import CmlOptions, cml
 from pipeline.dsp.localize import nearest_estimates
-from replay.montecarlo import SceneSpec, draw_scenes
+from experiments.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 from radar_driver.model import RadarConfig, simulate_frames
 

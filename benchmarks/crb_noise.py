@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.dsp.crb import (crb, fisher, position_bound, position_covariance, position_rms,  # noqa: E402
                           signal_jacobian, weights_1bit_expected, weights_unquantized)
-from replay.montecarlo import (CHUNK_RUNS, MonteCarloConfig, SceneSpec, draw_scenes,  # noqa: E402
+from experiments.montecarlo import (CHUNK_RUNS, MonteCarloConfig, SceneSpec, draw_scenes,  # noqa: E402
                                  run_montecarlo)
 from replay.progress import Progress  # noqa: E402
 from pipeline.dsp.quantize import auto_delta  # noqa: E402

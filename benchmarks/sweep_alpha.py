@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from replay.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
+from experiments.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
 from pipeline.dsp.quantize import auto_delta
 from radar_driver.model import RadarConfig, simulate_frames
 

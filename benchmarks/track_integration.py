@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from pipeline.dsp.calibration import load as load_calibration
-from replay.plots import draw_error_vs_frames
+from experiments.plots import draw_error_vs_frames
 from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.integrate import time_monte_carlo

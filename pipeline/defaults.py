@@ -33,3 +33,7 @@ BEST_ALPHA = {"pbp": 0.55, "qiht": 1.0, "cml": 0.45}
 
 #: the dither scale of every command that quantizes: the default decoder's best
 DEFAULT_ALPHA = BEST_ALPHA[DEFAULT_ALGO]
+
+#: with ``--K auto`` (``localize``, ``run``, ``reprocess``) and ``--count auto`` (the Monte
+#: Carlo): the most targets a frame has
+DEFAULT_MAX_TARGETS = 4

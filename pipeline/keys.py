@@ -4,3 +4,5 @@ expressions), so that neither imports the other."""
 
 #: the topics of a sensor's keys ``<prefix>/<sensor>/<topic>``
 TOPICS = ("raw", "quantized", "targets", "tracks", "health")
+#: the topics a recording adds beside a sensor's (replay.derived: never on the bus)
+DERIVED_TOPICS = ("pointcloud", "scene", "profile")

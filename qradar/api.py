@@ -26,10 +26,10 @@ from pipeline.dsp.decode import DecoderConfig, decode_batch
 from pipeline.dsp.localize import Detections, position_error_m
 from pipeline.dsp.quantize import DITHER_COUNTER, QuantizedFrames, QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, Score, score, score_frames
+from experiments.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene, load_scene
 from replay.errors import ReplayError
-from replay.montecarlo import MonteCarloConfig, MonteCarloResult, run_montecarlo
 from replay.reprocess import ReprocessConfig, ReprocessResult
 from replay.reprocess import run as run_reprocess
 
@@ -92,7 +92,7 @@ def montecarlo(config: MonteCarloConfig | None = None, progress: bool = False, *
     """The Monte Carlo of the paper (``qradar montecarlo``): a :class:`MonteCarloConfig` or
     its fields as keywords (``ks=(1,), runs=2000, algos=("cml",), off_grid=True``). The
     result's ``summary`` is the dict the command writes as ``summary.json``; write it all with
-    :func:`replay.montecarlo_report.write_outputs`."""
+    :func:`experiments.report.write_outputs`."""
     if config is None:
         config = MonteCarloConfig(**kwargs)
     elif kwargs:

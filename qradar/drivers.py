@@ -1,5 +1,7 @@
-"""The driver processes of ``qradar run``: one ``qradar drive`` per sensor, joined to the
-run's zenoh session through a unix socket in the run's directory."""
+"""The child processes of ``qradar run`` and ``qradar up``: a node in a process of its own
+(``qradar COMMAND --config-json``: the command's own options, serialized), a driver per
+sensor (``qradar drive``, joined to the run's zenoh session through a unix socket in the
+run's directory), each supervised: started again with backoff when it dies."""
 
 from __future__ import annotations
 
@@ -40,44 +42,27 @@ def last_json_object(lines) -> dict:
     return {}
 
 
-class DriverProcess:
-    """One sensor's serial driver in its own process (``qradar drive``), publishing raw
-    frames on ``bus`` (a zenoh client). :class:`~pipeline.nodes.runtime.Runnable` by :func:`run_nodes`: ``start``,
-    ``stop``, ``errors``, ``done`` (the driver has finished: its counters came, or it
-    exited). Stopped with SIGTERM, it says GBYE and prints its counters (JSON), which
-    :meth:`stats` returns; its log lines go to ``log``.
+class NodeProcess:
+    """One node in a process of its own: ``qradar COMMAND --config-json CONFIG`` (``config``:
+    the command's options as a lab file's mapping, :mod:`qradar.cli.lab`), started in a
+    session of its own (a terminal's Ctrl-C reaches only its parent, which stops it) and
+    told its parent's pid, so that it stops once its parent is gone, however that died.
+    :class:`~pipeline.nodes.runtime.Runnable` by :func:`run_nodes`: ``start``, ``stop``
+    (SIGTERM, then SIGKILL after a timeout), ``errors``, ``done`` (it has finished: its
+    JSON summary came, or it exited). Its stderr lines go to ``log``, prefixed with its
+    name; the last JSON object on its stdout is :attr:`final`.
 
-    ``received()``: the raw frames of this sensor the run has received. With it the
-    driver keeps its zenoh session open after its counters (``--linger-stdin``) until
-    the run has received every frame they count (at most ``ack_timeout_s``), and only
-    then is its stdin closed: zenoh can lose a put made just before its session
-    closes, and the last frames of a stop are just that."""
+    ``received()``: what the parent has received of it; with it the child keeps its zenoh
+    session open after its summary until the parent has received everything the summary
+    counts (``frames``, at most ``ack_timeout_s``), and only then is its stdin closed:
+    zenoh can lose a put made just before its session closes. ``on_start(node)``: told
+    once it has started (its pid)."""
 
-    name = "driver"
-
-    def __init__(self, url: str, sensor_id: str, baud: int | None, ramps: int, bus: BusConfig,
-                 frames: int | None = None, log: TextIO | None = sys.stderr, profile: str | None = None,
-                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1,
-                 chirp_select: str = "first"):
-        self.sensor_id = sensor_id
-        self.cmd = [sys.executable, "-m", "qradar", "drive", "--port", url, "--sensor-id", sensor_id,
-                    "--ramps", str(ramps), "--json", "--quiet", "--mode", bus.mode, "--prefix", bus.prefix,
-                    "--parent-pid", str(os.getpid())]  # it stops when this process dies, however
-        self.cmd += [a for ep in bus.connect for a in ("--connect", ep)]
-        if bus.config_file is not None:
-            self.cmd += ["--zenoh-config", str(bus.config_file)]
-        if baud is not None:
-            self.cmd += ["--baud", str(baud)]
-        if frames is not None:
-            self.cmd += ["--frames", str(frames)]
-        if outstanding != 1:
-            self.cmd += ["--outstanding", str(outstanding)]
-        if profile is not None:
-            self.cmd += ["--profile", str(profile)]
-        if chirp_select != "first":
-            self.cmd += ["--chirp-select", chirp_select]
-        if received is not None:
-            self.cmd.append("--linger-stdin")
+    def __init__(self, command: str, config: dict, name: str, log: TextIO | None = sys.stderr,
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0,
+                 on_start: Callable[["NodeProcess"], None] | None = None):
+        self.command, self.config, self.name, self.on_start = command, config, name, on_start
+        self.cmd = [sys.executable, "-m", "qradar", command, "--config-json", json.dumps(config)]
         self.received, self.ack_timeout_s = received, ack_timeout_s
         self.log = log
         self.errors: list[BaseException] = []
@@ -86,18 +71,33 @@ class DriverProcess:
         self._proc: subprocess.Popen | None = None
         self._stopping = False
         self._out: list[str] = []
-        self._final: dict = {}  # the JSON object the driver ends with (counters or error)
+        self._final: dict = {}  # the JSON object the child ends with (its summary, or its error)
+        self._error_line = ""  # the one line of its error, on its stderr
         self._exited = threading.Event()
         self._threads: list[threading.Thread] = []
 
-    def start(self) -> "DriverProcess":
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def final(self) -> dict:
+        return dict(self._final)
+
+    @property
+    def returncode(self) -> int | None:
+        return None if self._proc is None else self._proc.poll()
+
+    def start(self) -> "NodeProcess":
         stdin = subprocess.DEVNULL if self.received is None else subprocess.PIPE
         self._proc = subprocess.Popen(self.cmd, stdin=stdin, stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True, start_new_session=True)
         for target in (self._read_stdout, self._read_stderr, self._watch):
-            t = threading.Thread(target=target, name=f"driver-{self.sensor_id}-{target.__name__}", daemon=True)
+            t = threading.Thread(target=target, name=f"{self.name}-{target.__name__}", daemon=True)
             t.start()
             self._threads.append(t)
+        if self.on_start is not None:
+            self.on_start(self)
         return self
 
     def _read_stdout(self) -> None:
@@ -111,10 +111,17 @@ class DriverProcess:
                     self.done.set()
 
     def _read_stderr(self) -> None:
+        prefix = f"qradar {self.command}: error: "
         for line in self._proc.stderr:
-            if self.log is not None and not line.startswith("qradar drive: error:"):  # the run says it itself
-                self.log.write(f"[driver {self.sensor_id}] {line}")
-                self.log.flush()
+            if line.startswith(prefix):  # said by its parent, in the error of its exit
+                self._error_line = line[len(prefix):].strip()
+                continue
+            if self.log is not None:
+                try:
+                    self.log.write(f"[{self.name}] {line}")
+                    self.log.flush()
+                except (OSError, ValueError):
+                    pass
 
     def _watch(self) -> None:
         rc = self._proc.wait()
@@ -123,9 +130,10 @@ class DriverProcess:
         last = last_json_object(self._out)
         if "error" in last:  # a wrong set-up (SetupError: not to be restarted) or another failure
             kind = SetupError if last.get("setup") else RadarError
-            self.errors.append(kind(f"the driver of {self.sensor_id} failed: {last['error']}"))
+            self.errors.append(kind(f"{self.what} failed: {last['error']}"))
         elif rc != 0 and not self._stopping:
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} exited with status {rc}"))
+            why = f": {self._error_line}" if self._error_line else ""
+            self.errors.append(RadarError(f"{self.what} exited with status {rc}{why}"))
         else:
             self.counters = {k: v for k, v in last.items() if isinstance(v, int)}
         self._exited.set()
@@ -140,7 +148,7 @@ class DriverProcess:
             while self.received() < sent and time.monotonic() < deadline:
                 time.sleep(0.01)
             if self.received() < sent and self.log is not None:
-                self.log.write(f"[driver {self.sensor_id}] the run received {self.received()} of its {sent} frames "
+                self.log.write(f"[{self.name}] the run received {self.received()} of its {sent} frames "
                                f"within {self.ack_timeout_s:g} s\n")
         if self._proc.stdin is not None:
             try:
@@ -148,8 +156,13 @@ class DriverProcess:
             except OSError:
                 pass
 
+    @property
+    def what(self) -> str:
+        """The node, in messages."""
+        return f"node {self.name}"
+
     def stop(self, timeout_s: float = 10.0) -> None:
-        """SIGTERM (the driver says GBYE and prints its counters) unless it has finished;
+        """SIGTERM (a driver says GBYE; every node prints its summary) unless it has finished;
         the acknowledgement of its last frames; SIGKILL after ``timeout_s``."""
         if self._proc is None:
             return
@@ -163,8 +176,33 @@ class DriverProcess:
             self._proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
             self._proc.kill()
-            self.errors.append(RadarError(f"the driver of {self.sensor_id} did not stop in {timeout_s} s"))
+            self.errors.append(RadarError(f"{self.what} did not stop in {timeout_s} s"))
         self._exited.wait(timeout_s)
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        return {self.name: dict(self.counters)}
+
+
+class DriverProcess(NodeProcess):
+    """One sensor's serial driver in its own process (``qradar drive``), publishing raw
+    frames on ``bus`` (a zenoh client), handed its configuration (the sensor's ``spec``,
+    the bus, a frame limit, the requests in flight) as ``drive``'s own options
+    (:func:`qradar.cli.sensor.drive_config`). Stopped with SIGTERM, it says GBYE and prints
+    its counters (JSON), which :meth:`stats` returns."""
+
+    def __init__(self, spec, bus: BusConfig, frames: int | None = None, log: TextIO | None = sys.stderr,
+                 received: Callable[[], int] | None = None, ack_timeout_s: float = 5.0, outstanding: int = 1):
+        from .cli.sensor import drive_config  # the drive command's schema: the one definition of its keys
+
+        self.sensor_id = spec.sensor_id
+        config = drive_config(spec, bus, frames=frames, outstanding=outstanding, parent_pid=os.getpid(),
+                              linger=received is not None)
+        super().__init__("drive", config, f"driver {spec.sensor_id}", log=log, received=received,
+                         ack_timeout_s=ack_timeout_s)
+
+    @property
+    def what(self) -> str:
+        return f"the driver of {self.sensor_id}"
 
     def stats(self) -> dict[str, dict[str, int]]:
         return {self.sensor_id: dict(self.counters)}
@@ -191,14 +229,14 @@ class SupervisedDriver:
     (``state`` "restarting" or "gone") and restart ("running"): the run reports them
     (health, live line). What the run may read: ``restarts``, ``exits`` (why each died),
     ``state``, ``gone`` (given up after ``max_restarts`` quick deaths in a row: ``done``
-    is then set too)."""
+    is then set too). ``what``: the supervised node in the messages ("its driver")."""
 
     name = "driver"
 
     def __init__(self, sensor_id: str, make: Callable[[int], object], frames_done: Callable[[], int] = lambda: 0,
                  on_event: Callable[[str, str, str], None] | None = None, backoff_s: float = RESTART_BACKOFF_S,
-                 max_restarts: int = MAX_RESTARTS, healthy_s: float = HEALTHY_S):
-        self.sensor_id = sensor_id
+                 max_restarts: int = MAX_RESTARTS, healthy_s: float = HEALTHY_S, what: str = "its driver"):
+        self.sensor_id, self.what = sensor_id, what
         self.make, self.frames_done, self.on_event = make, frames_done, on_event
         self.backoff_s, self.max_restarts, self.healthy_s = backoff_s, max_restarts, healthy_s
         self.errors: list[BaseException] = []  # stays empty: a dead driver is restarted, not raised
@@ -270,7 +308,7 @@ class SupervisedDriver:
                 continue
             started = time.monotonic()
             self.state = "running"
-            self._tell("running", f"its driver started again (restart {self.restarts})")
+            self._tell("running", f"{self.what} started again (restart {self.restarts})")
 
     def _tell(self, state: str, detail: str) -> None:
         if self.on_event is not None:

@@ -25,30 +25,29 @@ import numpy as np
 import zenoh
 
 from pipeline.bus.session import BusConfig
-from pipeline.dsp.localize import back_project
+from pipeline.dsp import profile as dsp_profile
+from pipeline.dsp.profile import PROFILE_FLOOR, to_db  # noqa: F401 (the views' names)
 from pipeline.dsp.quantize import dequantize
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.budget import IntakeBudget
-from pipeline.nodes.intake import SEQ, SEQ_OFFSET, ProcessingNode, QueuedFrame
+from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.nodes.transport import Transport
 from pipeline.wire import (
     HEADER_LEN,
-    MAGIC,
     HealthMsg,
     QuantizedFrameMsg,
     TargetsMsg,
     TracksMsg,
     check_sensor_id,
-    decode_health,
     decode_quantized,
-    decode_targets,
-    decode_tracks,
+    peek_seq,
 )
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.errors import RadarError
-from radar_driver.model import RadarConfig
+from radar_driver.model import RadarConfig, polar_to_xy
+from radar_driver.options import OptionValueError, option, pos_int
+from radar_driver.scene import SimScene
 
-#: profile values below this magnitude (full-scale units) are shown as it: -240 dB
-PROFILE_FLOOR = 1e-12
 #: names of nodes in health messages: they become topic names and keys of the views' state
 NODE_NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 #: nodes per sensor at most (one health channel or table row each)
@@ -59,6 +58,17 @@ class ViewError(PipelineError):
     """A view's server could not start (a busy port, an unknown host)."""
 
 
+def tcp_port(text: str) -> int:
+    """A TCP port to listen on: 0 (any free one) to 65535."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise OptionValueError("is not an integer") from None
+    if not 0 <= v <= 65535:
+        raise OptionValueError("must be a TCP port in [0, 65535] (0: any free port)")
+    return v
+
+
 @dataclass(frozen=True)
 class ViewConfig:
     """host: the address the view's server binds (127.0.0.1: this host only). port: its
@@ -67,12 +77,13 @@ class ViewConfig:
     configuration of the range profiles; frames of 1..max_ramps whole ramps are shown.
     queue_size: bounded input queue (messages). max_sensors: sensors shown at most."""
 
-    host: str = "127.0.0.1"
-    port: int = 8765
+    host: str = option("127.0.0.1", "address the server binds (default 127.0.0.1: this host only; 0.0.0.0: every "
+                       "interface)")
+    port: int = option(8765, "Foxglove's TCP port (default 8765; 0: any free port)", parse=tcp_port)
     profile_rate_hz: float = 2.0
     radar: RadarConfig = field(default_factory=RadarConfig)
     max_ramps: int = 16
-    queue_size: int = 256
+    queue_size: int = option(256, "bounded input queue (messages)", flag="--queue", parse=pos_int)
     max_sensors: int = 64
     name: str = "qradar"
     #: sensor id -> (x_m, y_m, yaw_deg) of the sensor in the world (:func:`load_poses`)
@@ -113,29 +124,24 @@ def parse_endpoint(text: str, default_host: str = "127.0.0.1") -> tuple[str, int
 # -- range profiles and poses ---------------------------------------------------------------
 def profile_magnitude(msg: QuantizedFrameMsg, radar: RadarConfig) -> np.ndarray:
     """|U| of one quantized frame, U = Φ*Z/M (what PBP thresholds; Z the dequantized
-    codes, the dither not removed): (N, 2), full-scale units, one column per receiver."""
+    codes, the dither not removed): (N, 2), full-scale units, one column per receiver
+    (:func:`pipeline.dsp.profile.profile_magnitude`)."""
     if msg.codes.shape[0] != radar.n_measurements:
         raise WireError(f"quantized frame {msg.seq} of {msg.sensor_id}: M={msg.codes.shape[0]} but its radar "
                         f"config has M={radar.n_measurements}")
-    return np.abs(back_project(dequantize(msg.codes[None], msg.delta, msg.bits), radar)[0])
+    return dsp_profile.profile_magnitude(dequantize(msg.codes[None], msg.delta, msg.bits), radar)[0]
 
 
-def to_db(magnitude: np.ndarray) -> np.ndarray:
-    """20 log10 of a magnitude, floored at PROFILE_FLOOR (-240 dB)."""
-    return 20.0 * np.log10(np.maximum(magnitude, PROFILE_FLOOR))
-
-
-def range_profile(msg: QuantizedFrameMsg, radar: RadarConfig) -> dict:
-    """The range profile of one quantized frame (:func:`profile_magnitude`) as JSON-ready
-    arrays of N values: ``range_m`` (the bins, m), ``antenna1_db`` and ``antenna2_db``
-    (20 log10 |U|, dB of full scale, floored at -240 dB) and ``profile_db`` (the joint
-    magnitude sqrt((|U1|² + |U2|²) / 2), the scale of a target's ``amplitude``)."""
-    mag = profile_magnitude(msg, radar)
-    joint = np.sqrt((mag ** 2).sum(axis=1) / 2.0)
-    db = np.round(to_db(np.column_stack([joint, mag])), 2)
-    return {"sensor_id": msg.sensor_id, "seq": msg.seq, "timestamp_ns": msg.timestamp_ns,
-            "config_id": msg.config_id, "bits": msg.bits, "alpha": msg.alpha, "delta": msg.delta,
-            "range_m": np.round(radar.range_grid_m(), 4).tolist(),
+def range_profile(msg: QuantizedFrameMsg, radar: RadarConfig, bins: int | None = None, digits: int = 2) -> dict:
+    """The range profile of one quantized frame (:func:`profile_magnitude`) as the fields of
+    a profile message (pipeline.wire.fields.PROFILE, JSON-ready): ``range_m`` (the bins, m),
+    ``antenna1_db`` and ``antenna2_db`` (20 log10 |U|, dB of full scale, floored at -240 dB)
+    and ``profile_db`` (the joint magnitude sqrt((|U1|² + |U2|²) / 2), the scale of a
+    target's ``amplitude``); ``bins``: values kept (:func:`pipeline.dsp.profile.profile_db`)."""
+    db = np.round(dsp_profile.profile_db(profile_magnitude(msg, radar)[None], bins)[0], digits)
+    return {"version": 1, "type": "profile", "sensor_id": msg.sensor_id, "seq": msg.seq,
+            "timestamp_ns": msg.timestamp_ns, "config_id": msg.config_id, "bits": msg.bits, "alpha": msg.alpha,
+            "delta": msg.delta, "range_m": np.round(dsp_profile.profile_ranges(radar, bins), 4).tolist(),
             "profile_db": db[:, 0].tolist(), "antenna1_db": db[:, 1].tolist(), "antenna2_db": db[:, 2].tolist()}
 
 
@@ -186,6 +192,29 @@ def to_world(x_m: np.ndarray, y_m: np.ndarray, pose: tuple[float, float, float] 
     return px + c * np.asarray(x_m) - s * np.asarray(y_m), py + s * np.asarray(x_m) + c * np.asarray(y_m)
 
 
+def seen_from(truth: SimScene, pose: tuple[float, float, float] | None, sensor_id: str = "") -> SimScene:
+    """The true positions of ``truth`` (ranges and angles in the world's frame: as seen
+    from its origin along its x) as a sensor standing at ``pose`` sees them: the inverse of
+    :func:`to_world`. A moving target, or one behind the sensor, is a ParameterError."""
+    if pose is None or tuple(pose) == (0.0, 0.0, 0.0):
+        return truth
+    px, py, yaw = pose
+    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    targets = []
+    for i, t in enumerate(truth.targets):
+        if t.velocity_m_s:
+            raise ParameterError(f"sensor {sensor_id}: the truth's target {i + 1} moves; a truth seen from a sensor's "
+                                 "pose holds static targets only")
+        x, y = polar_to_xy(t.range_m, math.radians(t.angle_deg))
+        dx, dy = x - px, y - py
+        xs, ys = c * dx + s * dy, -s * dx + c * dy
+        if xs <= 0:
+            raise ParameterError(f"sensor {sensor_id}: the truth's target {i + 1} ({t.range_m:g} m, "
+                                 f"{t.angle_deg:+g} deg) is behind it, seen from its pose {list(pose)}")
+        targets.append(replace(t, range_m=float(math.hypot(xs, ys)), angle_deg=math.degrees(math.atan2(ys, xs))))
+    return replace(truth, targets=tuple(targets))
+
+
 # -- the node ------------------------------------------------------------------------------
 class LiveView(ProcessingNode):
     """zenoh ``<prefix>/*/{targets,tracks,quantized,health}`` -> the view's ``show_*``
@@ -197,9 +226,10 @@ class LiveView(ProcessingNode):
     role = "viewer"
 
     def __init__(self, bus: BusConfig, config: ViewConfig, session: zenoh.Session | Transport | None = None,
-                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
         super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s,
                          intake=intake)
+        self._decode = decoder(decoded)  # the process's JSON messages decoded once (pipeline.wire.shared)
         self.config = config
         self._configs = config.known_configs()
         self._subscribers: list = []
@@ -248,9 +278,9 @@ class LiveView(ProcessingNode):
                     self._profiles_skipped[sensor] = self._profiles_skipped.get(sensor, 0) + 1
                     st = self.stats.get(sensor)
                     if st is not None:  # skipped on purpose is not missing: its seq moves the count on
-                        head = sample.payload.to_bytes()[:HEADER_LEN]
-                        if len(head) == HEADER_LEN and head[:4] == MAGIC:
-                            st.note_seq("quantized", SEQ.unpack_from(head, SEQ_OFFSET)[0], now, self.intake.rate_hz)
+                        seq = peek_seq(sample.payload.to_bytes()[:HEADER_LEN])
+                        if seq is not None:
+                            st.note_seq("quantized", seq, now, self.intake.rate_hz)
                     return
                 if len(self._last_profile) >= 4 * self.config.max_sensors:  # keys of garbage: bounded
                     self._last_profile.clear()
@@ -264,11 +294,11 @@ class LiveView(ProcessingNode):
             topic = key.rsplit("/", 1)[-1]
             try:
                 if topic == "targets":
-                    msg = decode_targets(payload, key)
+                    msg = self._decode("targets", payload, key)
                     self._admit(msg.sensor_id, sensor, key, "targets")
                     self.show_targets(sensor, msg, payload)
                 elif topic == "tracks":
-                    msg = decode_tracks(payload, key)
+                    msg = self._decode("tracks", payload, key)
                     self._admit(msg.sensor_id, sensor, key, "tracks")
                     self.show_tracks(sensor, msg, payload)
                 elif topic == "quantized":
@@ -279,7 +309,7 @@ class LiveView(ProcessingNode):
                         raise WireError(f"quantized frame from {key}: unknown radar config id {msg.config_id:#010x}")
                     self.show_profile(sensor, msg, radar)
                 elif topic == "health":  # queued under no sensor when the view has none of its state yet
-                    msg = decode_health(payload, key)
+                    msg = self._decode("health", payload, key)
                     of_key = self.bus.sensor_of(key)
                     self._admit(msg.sensor_id, of_key, key, "health", node=msg.node)
                     self.show_health(of_key, msg, payload)

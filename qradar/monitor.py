@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
+from dataclasses import dataclass
 from typing import TextIO
 
 import numpy as np
@@ -18,7 +19,8 @@ from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
 from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
-from pipeline.wire import TOPICS, WireError, decode_health, decode_targets, decode_tracks
+from pipeline.wire import TOPICS, WireError
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import SimScene
 
@@ -67,15 +69,21 @@ class Monitor:
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | None, truth: SimScene | None, t0_ns: int,
                  live: TextIO | None = sys.stdout, clock_per_sensor: bool = False,
-                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None):
+                 seq_rate_hz: float = DEFAULT_SEQ_RATE_HZ, calibration: str | None = None,
+                 truths: dict[str, SimScene] | None = None, decoded: DecodedOnce | None = None):
         """``t0_ns``: the wall clock at which the truth's time is 0 (a moving target's start);
         with ``clock_per_sensor`` it is each sensor's first frame instead (a simulated K-MD2's
         scene starts moving with its first measured frame, after its driver connected).
         ``seq_rate_hz``: the sensors' frame rate, which bounds what a gap in the targets'
         sequence numbers can count as missing (:func:`~pipeline.nodes.counters.judge_seq`).
         ``calibration``: the calibration file the run's quantizer applies (None: none), until
-        a sensor's health says otherwise."""
+        a sensor's health says otherwise. ``truths``: per sensor id, the truth as that sensor
+        sees it (from its pose, :func:`qradar.liveview.seen_from`): the same targets, in order.
+        ``decoded``: the process's JSON messages decoded once (pipeline.wire.shared: the run's
+        recorder and views share them; None: decoded here)."""
+        self._decode = decoder(decoded)
         self.bus, self.session, self.truth, self.t0_ns = bus, session, truth, t0_ns
+        self.truths = dict(truths or {})
         self.clock_per_sensor = clock_per_sensor
         self._t0_by_sensor: dict[str, int] = {}
         self.live = live
@@ -111,9 +119,7 @@ class Monitor:
         self.seq_rate_hz = seq_rate_hz
         self.raw_by_sensor: dict[str, int] = {}  # raw frames received, per sensor (a driver's shutdown waits on it)
         self._last_seq: dict[str, SeqTrack] = {}
-        # per sensor: [monotonic s of the last live line, targets since, sequence gaps, frames the
-        # sensor's link lost (its driver's health), targets in all, first and last timestamp_ns]
-        self._sensor: dict[str, list] = {}
+        self._sensor: dict[str, SensorState] = {}
         self._lock = threading.Lock()
         self._sub = None
 
@@ -133,12 +139,12 @@ class Monitor:
             with self._lock:
                 self.failed_messages += 1
 
-    def _state(self, sensor: str) -> list:
+    def _state(self, sensor: str) -> "SensorState":
         st = self._sensor.get(sensor)
         if st is None:
             if len(self._sensor) >= self.MAX_SENSORS:  # keys of garbage: bounded
                 self._sensor.clear()
-            st = self._sensor[sensor] = [0.0, 0, 0, 0, 0, 0, 0]
+            st = self._sensor[sensor] = SensorState()
         return st
 
     def on_message(self, key: str, payload: bytes) -> None:
@@ -146,41 +152,49 @@ class Monitor:
         topic = key.rsplit("/", 1)[-1]
         if topic not in MONITORED_TOPICS:
             topic = "other"
+        self._count(topic, key, len(payload))
+        if topic == "health":
+            self._on_health(key, payload)
+        elif topic == "tracks":
+            self._on_tracks(key, payload)
+        elif topic == "targets":
+            self._on_targets(key, payload)
+
+    def _count(self, topic: str, key: str, size: int) -> None:
         with self._lock:
             self.count[topic] += 1
-            self.bytes[topic] += len(payload)
+            self.bytes[topic] += size
             if topic == "raw":
                 sensor = key.rsplit("/", 2)[-2]
                 if sensor not in self.raw_by_sensor and len(self.raw_by_sensor) >= self.MAX_SENSORS:
                     self.raw_by_sensor.clear()  # keys of garbage: bounded
                 self.raw_by_sensor[sensor] = self.raw_by_sensor.get(sensor, 0) + 1
-        if topic == "health":
-            self._on_health(key, payload)
-            return
-        if topic == "tracks":
-            self._on_tracks(key, payload)
-            return
-        if topic != "targets":
-            return
+
+    def truth_at(self, sensor_id: str, timestamp_ns: int) -> list[dict] | None:
+        """The true positions a sensor's frame at ``timestamp_ns`` sees (None: no truth):
+        the truth's clock starts at ``t0_ns``, or at the sensor's first frame."""
+        truth = self.truths.get(sensor_id, self.truth)
+        if truth is None:
+            return None
+        t0_ns = self.t0_ns
+        if self.clock_per_sensor:
+            with self._lock:
+                if len(self._t0_by_sensor) >= self.MAX_SENSORS and sensor_id not in self._t0_by_sensor:
+                    self._t0_by_sensor.clear()
+                t0_ns = self._t0_by_sensor.setdefault(sensor_id, timestamp_ns)
+        return truth.truth(max(0.0, (timestamp_ns - t0_ns) / 1e9))
+
+    def _on_targets(self, key: str, payload: bytes) -> None:
+        """A targets message: its sequence number judged, its latency, its score against
+        the truth, the sensor's rate; a live line at most once a second per sensor."""
         try:
-            msg = decode_targets(payload, key)
+            msg = self._decode("targets", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
             return
-        t0_ns = self.t0_ns
-        if self.clock_per_sensor:
-            with self._lock:
-                if len(self._t0_by_sensor) >= self.MAX_SENSORS and msg.sensor_id not in self._t0_by_sensor:
-                    self._t0_by_sensor.clear()
-                t0_ns = self._t0_by_sensor.setdefault(msg.sensor_id, msg.timestamp_ns)
-        t_s = max(0.0, (msg.timestamp_ns - t0_ns) / 1e9)
-        truth = self.truth.truth(t_s) if self.truth is not None else None
-        scored = None
-        if truth:
-            scored = score_frames(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
-                                  np.array([[t["range_m"] for t in msg.targets]]).reshape(1, -1),
-                                  np.array([[t["angle_deg"] for t in msg.targets]]).reshape(1, -1), self.distance_m)
+        truth = self.truth_at(msg.sensor_id, msg.timestamp_ns)
+        scored = score_one(truth, msg.targets, self.distance_m) if truth else None
         err = scored.nearest_m[0][np.isfinite(scored.nearest_m[0])] if scored is not None else np.array([])
         now = time.monotonic()
         with self._lock:
@@ -192,45 +206,29 @@ class Monitor:
             self.targets_missing += verdict.missing
             self.targets_seq_resets += verdict.resets
             self.targets_implausible_seq += verdict.implausible
-            st[2] += verdict.missing
+            st.missing += verdict.missing
             self.latency_ms.add((msg.published_ns - msg.timestamp_ns) / 1e6)
             self.errors_m.add_many(err)
             if scored is not None:
                 self._tally(scored)
-            st[1] += 1
-            st[4] += 1
-            if st[4] == 1:
-                st[5] = msg.timestamp_ns
-            st[6] = msg.timestamp_ns
-            due = now - st[0] >= 1.0
-            if due:
-                rate_hz = (st[1] - 1) / (now - st[0]) if st[0] and st[1] > 1 else None
-                lost = st[2] + st[3]
-                st[0], st[1] = now, 1
-        if self.live is not None and due:
-            line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + ("  ".join(
-                f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets) or "none")
-            if truth is not None:
-                line += "   truth " + "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
-                line += "   error m " + " ".join("miss" if not np.isfinite(e) else f"{e:.2f}"
-                                                 for e in scored.error_m[0])
-                if scored.false_targets[0]:
-                    line += f" +{scored.false_targets[0]} false"
-            line += "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"
-            print(line + "   " + self.calibration_tag(msg.sensor_id), file=self.live, flush=True)
+            rate_hz, lost = st.frame(msg.timestamp_ns, now)
+        if self.live is not None and rate_hz is not False:
+            print(live_line(msg, truth, scored, rate_hz, lost) + "   " + self.calibration_tag(msg.sensor_id),
+                  file=self.live, flush=True)
 
     def _on_tracks(self, key: str, payload: bytes) -> None:
         """A tracks message: its largest id, and with a truth the static tracks' errors."""
         try:
-            msg = decode_tracks(payload, key)
+            msg = self._decode("tracks", payload, key)
         except WireError:
             with self._lock:
                 self.bad_targets += 1
             return
         errors = []
-        if self.truth is not None:
+        truth = self.truths.get(msg.sensor_id, self.truth)
+        if truth is not None:
             static = [(t["x_m"], t["y_m"]) for t in msg.tracks if t["static"]]
-            for tg in self.truth.targets:
+            for tg in truth.targets:
                 if tg.velocity_m_s or not static:
                     continue
                 x, y = polar_to_xy(tg.range_m, np.radians(tg.angle_deg))
@@ -281,7 +279,7 @@ class Monitor:
         if not (b'"node":"source"' in payload or b'"front_end"' in payload or b'"calibrated"' in payload):
             return
         try:
-            msg = decode_health(payload, key)
+            msg = self._decode("health", payload, key)
         except WireError:
             with self._lock:
                 self.bad_health += 1
@@ -289,7 +287,7 @@ class Monitor:
         warn = None
         with self._lock:
             if msg.node == "source":
-                self._state(msg.sensor_id)[3] = msg.drops
+                self._state(msg.sensor_id).link_lost = msg.drops
             front = self.front_end.get(msg.sensor_id)
             if front is None:
                 if len(self.front_end) >= self.MAX_SENSORS:  # keys of garbage: bounded
@@ -310,5 +308,53 @@ class Monitor:
     def rates_hz(self) -> dict[str, float]:
         """Each sensor's targets per second, over its first and last targets' timestamps."""
         with self._lock:
-            return {sid: round((st[4] - 1) / ((st[6] - st[5]) / 1e9), 2)
-                    for sid, st in sorted(self._sensor.items()) if st[4] > 1 and st[6] > st[5]}
+            return {sid: round((st.targets - 1) / ((st.last_ns - st.first_ns) / 1e9), 2)
+                    for sid, st in sorted(self._sensor.items()) if st.targets > 1 and st.last_ns > st.first_ns}
+
+
+@dataclass
+class SensorState:
+    """What the monitor keeps of one sensor: its live line's time (monotonic s) and the
+    targets messages since, the gaps in their sequence numbers, the frames its link lost
+    (its driver's health), its targets messages in all, their first and last timestamps (ns)."""
+
+    line_s: float = 0.0
+    since_line: int = 0
+    missing: int = 0
+    link_lost: int = 0
+    targets: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+
+    def frame(self, timestamp_ns: int, now: float) -> tuple[float | None | bool, int]:
+        """One targets message at ``timestamp_ns``: (its rate since the last live line, or
+        None, or False when no live line is due; the frames lost)."""
+        self.since_line += 1
+        self.targets += 1
+        if self.targets == 1:
+            self.first_ns = timestamp_ns
+        self.last_ns = timestamp_ns
+        if now - self.line_s < 1.0:
+            return False, 0
+        rate_hz = (self.since_line - 1) / (now - self.line_s) if self.line_s and self.since_line > 1 else None
+        self.line_s, self.since_line = now, 1
+        return rate_hz, self.missing + self.link_lost
+
+
+def score_one(truth: list[dict], targets: list[dict], distance_m: float):
+    """:func:`~pipeline.dsp.score.score_frames` of one frame's targets against the truth."""
+    return score_frames(np.array([[t["range_m"] for t in truth]]), np.array([[t["angle_deg"] for t in truth]]),
+                        np.array([[t["range_m"] for t in targets]]).reshape(1, -1),
+                        np.array([[t["angle_deg"] for t in targets]]).reshape(1, -1), distance_m)
+
+
+def live_line(msg, truth: list[dict] | None, scored, rate_hz: float | None, lost: int) -> str:
+    """A sensor's live line: its targets, the truth and the errors, its rate and losses."""
+    line = f"{msg.sensor_id} #{msg.seq:<5d} targets " + ("  ".join(
+        f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in msg.targets) or "none")
+    if truth:
+        line += "   truth " + "  ".join(f"({t['range_m']:5.1f} m, {t['angle_deg']:+6.1f}°)" for t in truth)
+        line += "   error m " + " ".join("miss" if not np.isfinite(e) else f"{e:.2f}" for e in scored.error_m[0])
+        if scored.false_targets[0]:
+            line += f" +{scored.false_targets[0]} false"
+    return line + "   " + (f"{rate_hz:4.1f} frames/s, " if rate_hz is not None else "") + f"{lost} lost"

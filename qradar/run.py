@@ -24,6 +24,7 @@ from typing import TextIO
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.bus.session import BusConfig
+from pipeline.wire.shared import DecodedOnce
 from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
 from pipeline.errors import ParameterError, RunSetupError
@@ -33,11 +34,12 @@ from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
-from radar_driver.scene import SimScene, resolve_scene, scene_from_dict
+from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, resolve_scene, scene_from_dict
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
 from replay.outputs import check_new_file
+from radar_driver.options import option, pos_float, pos_int
 from replay.recorder import OnWriteError, RecorderNode
 
 from .drivers import MAX_RESTARTS, RESTART_BACKOFF_S, DriverProcess, SupervisedDriver, driver_bus
@@ -45,6 +47,7 @@ from .monitor import Monitor
 from .summary import RunSummary, format_summary, print_json, simulator_lateness, summarize  # noqa: F401 (run's API)
 from .rundir import remove_run_dirs, run_directory
 from .sensors import SensorSpec, as_spec, check_sensor_specs, probe_sensors, resolve_auto
+from .liveview import seen_from
 from .view import FoxgloveView, ViewConfig
 from .web import WebConfig, WebView
 
@@ -61,34 +64,64 @@ class RunConfig:
     name) whose targets are the reflectors' true positions, for the position errors;
     None: the simulated scene, or no error with real sensors."""
 
-    scene: str | None = None
-    empty: bool = False  # the simulated scene without its targets (front end and noise only)
-    sensors: int | None = None
-    duration_s: float | None = 15.0
-    rate_hz: float | None = None
+    scene: str | None = option(None, "the simulated sensors' scene: file or packaged name (default chamber)")
+    empty: bool = option(False, "the scene without its targets: the empty chamber, front end (DC, leakage) and "
+                         "noise only (simulated sensors; for `qradar calibrate --empty`)")
+    sensors: int | None = option(None, "simulated sensors at once (default 1)", parse=pos_int)
+    duration_s: float | None = option(
+        15.0, "seconds (default 15); Ctrl-C or SIGTERM ends the run earlier, normally: the same summary (with "
+        "\"interrupted\": true) and status 0; a second one while it stops exits at once with 130", flag="--duration",
+        parse=pos_float)
+    rate_hz: float | None = option(None, "frames per second per simulated sensor (default 20)", flag="--rate",
+                                   parse=pos_float)
     quantizer: QuantizerConfig = field(default_factory=QuantizerConfig)
     k: int | None = None  # None = the scene's (or --truth's) count, else REAL_SENSOR_K; with auto_k the most a frame has
     algo: Algo = DEFAULT_ALGO
     bus: BusConfig = field(default_factory=BusConfig)
     baud: int = 2_000_000  # the simulated sensors' line speed after INIT (a real one's: its spec's baud)
     record: Path | None = None  # MCAP path, or None for no recording
-    frames: int | None = None  # stop after this many frames per sensor
+    frames: int | None = option(None, "stop after N frames per sensor", parse=pos_int)
     auto_k: bool = False  # the localizer decides each frame's count (CFAR, false-alarm probability pfa)
     pfa: float = DEFAULT_PFA
     foxglove: ViewConfig | None = None  # serve the live stream to Foxglove (qradar.view) on its host and port
     web: WebConfig | None = None  # serve the live stream as a web page (qradar.web) on its host and port
-    driver_process: bool = True  # each sensor's driver in its own process (False: a thread of this one)
-    record_on_error: OnWriteError = OnWriteError.RESUME  # the recorder after a write error: resume or stop
-    record_retry_s: float = 5.0  # while the recording is paused, look for space this often, s
-    record_split_mb: float | None = None  # a new file every that many MB (bounds the MCAP index in memory)
+    # each sensor's driver in its own process (False: a thread of this one)
+    driver_process: bool = option(True, "run the serial drivers as threads of this process (default: a process "
+                                  "each)", flag="--driver-in-process", negate=True)
+    record_on_error: OnWriteError = option(
+        OnWriteError.RESUME, "after a write error (a full disk, EFBIG, EIO, a removed folder) the file is closed up to "
+        "its last flushed chunk; resume: keep running, count the messages that cannot be written (by topic) and go on "
+        "in a new file (NAME_0001.mcap, ...) when space returns; stop: end the recording and go on without it (the "
+        "pipeline keeps running; the summary says so). A file that cannot be created at the start is an error either "
+        "way", flag="--on-write-error", choices=tuple(m.value for m in OnWriteError))
+    record_retry_s: float = option(5.0, "while paused after a write error, look for space every S seconds",
+                                   flag="--write-retry", metavar="S", parse=pos_float)
+    record_split_mb: float | None = option(
+        None, "record into a new file every MB megabytes (NAME_0001.mcap, ...): the MCAP writer keeps each chunk's "
+        "index in memory until its file ends: at most 0.7 KB a chunk (one a second, or each MB) plus 70 B for each "
+        "channel in it", flag="--split-size", metavar="MB", parse=pos_float)
     record_new_name_if_taken: bool = False  # record is a default name: -1, -2, ... if taken (else refused)
     record_overwrite: bool = False  # --force: an existing file at record (a name given) is replaced
     # GNFDs each driver keeps in flight: 2 lets the sensor hold a request while its driver is late (a busy
     # host; the simulator queues it, a K-MD2 is assumed to), 1 asks only after each answer. None: 2 with
     # simulated sensors, 1 (drive's default: no assumption) with real ones
-    outstanding: int | None = None
-    sensor_specs: tuple[SensorSpec | str, ...] = ()  # real sensors: no simulator
-    truth: str | Path | None = None  # scene file of the true positions
+    outstanding: int | None = option(
+        None, "GNFD requests each driver keeps in flight: 2 lets the sensor hold one while its driver is late on a "
+        "busy host (the simulator queues a second GNFD; a real K-MD2 is assumed to). Default 2 with simulated "
+        "sensors, 1 with --sensor", choices=(1, 2), parse=int)
+    sensor_specs: tuple[SensorSpec | str, ...] = option(
+        (), "a real sensor instead of the simulated ones (repeatable, one each): a pyserial URL (a device path, "
+        "socket://HOST:PORT, rfc2217://HOST:PORT) or auto (the one K-MD2 that answers on this host's serial adapters, "
+        "probed with INIT and GBYE as `qradar ports --probe` does), then its id (required) and the driver's options: "
+        "profile=NAME|FILE (default kmd2-blocks), baud=B (default 2000000; a socket:// link stays at 115200), ramps=R "
+        "(default 2), chirp-select=first|stride; e.g. /dev/ttyUSB0,id=kmd2-0,profile=kmd2-blocks. Not with --scene, "
+        "--sensors, --rate", flag="--sensor", metavar="URL,id=NAME[,KEY=VALUE]", many="append",
+        parse=SensorSpec.parse, table=SensorSpec)
+    truth: str | Path | None = option(
+        None, "a scene file whose targets are the reflectors' true (measured) positions (a sensor with a pose in a lab "
+        "file's [[sensor]] table sees them from where it stands): the live lines and the summary give the position "
+        "errors against them (only the targets' ranges and angles count). Default: the simulated scene; with --sensor, no "
+        "error", metavar="SCENE.toml", kinds=frozenset({"str"}))
     calibration: str | Path | None = None  # a `qradar calibrate` file, applied by the quantize node
     # the localizer's range gate, m (None: the radar's default, pipeline.dsp.gate.RangeGate.default)
     min_range_m: float | None = None
@@ -118,7 +151,7 @@ class RunConfig:
                                      "chamber itself and record it")
             check_sensor_specs(specs)
         else:
-            for name, default in (("scene", "chamber"), ("sensors", 1), ("rate_hz", 20.0)):
+            for name, default in (("scene", DEFAULT_SCENE), ("sensors", 1), ("rate_hz", SIM_RATE_HZ)):
                 if getattr(self, name) is None:
                     object.__setattr__(self, name, default)
         if self.outstanding is None:
@@ -154,115 +187,205 @@ class RunConfig:
 REFUSED_AFTER = 10
 
 
-def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> "RunSummary":
-    """Run the pipeline; returns its summary. A wrong set-up ends it with an error of the
-    libraries' roots (one line): a calibration that does not fit a sensor's first frame
-    (CalibrationError), frames that never assemble (the driver's SetupError), frames that
-    arrive but are every one refused (RunSetupError)."""
+@dataclass(frozen=True)
+class Plan:
+    """What a run knows before anything starts: its config (an ``auto`` sensor found), the
+    simulated scene (None: real sensors), the truth (the simulated scene, a ``truth``
+    file's positions, or None) and, per sensor with a pose, that truth seen from it, the
+    radar configuration, the calibration and the localizer's config."""
+
+    cfg: RunConfig
+    scene: SimScene | None
+    truth: SimScene | None
+    truths: dict
+    radar: RadarConfig
+    calibration: Calibration | None
+    localizer: LocalizerConfig
+
+
+def plan(cfg: RunConfig) -> Plan:
+    """Everything a run checks before it starts anything: the scene or the sensors' specs
+    (each port opened once), the truth, the calibration against the sensors, the
+    recording's file, the localizer's config; a wrong one is one line."""
     scene = None if cfg.real else resolve_scene(cfg.scene)
     if cfg.empty and scene is not None:
         scene = scene.without_targets()
     truth = load_truth(cfg.truth) if cfg.truth is not None else scene
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
-    calibration = None
-    if cfg.calibration is not None:  # a file for other sensors: refused before anything starts
-        calibration = load_calibration(cfg.calibration)
-        for sid in ([s.sensor_id for s in cfg.sensor_specs] if cfg.real else
-                    [f"kmd2-{i}" for i in range(cfg.sensors)]):
-            calibration.check_sensor(sid)
-    if cfg.record is not None and not cfg.record_new_name_if_taken:  # before anything starts
-        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
-            raise RecordingExists.at(cfg.record)
-        check_new_file(cfg.record, cfg.record_overwrite, "recording")  # its folder, one level at most
+    calibration = check_calibration(cfg)
+    check_record(cfg)
     if scene is not None:
         k = cfg.k or max(1, len(scene.targets))
     else:
         k = cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
-    localizer_cfg = LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
-                                    auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
-                                    max_range_m=cfg.max_range_m)  # checked before anything starts
+    localizer = LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
+                                auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
+                                max_range_m=cfg.max_range_m)  # checked before anything starts
+    # a truth file holds the world's positions: each sensor with a pose sees them from there
+    truths = {s.sensor_id: seen_from(truth, s.pose, s.sensor_id) for s in cfg.sensor_specs
+              if s.pose is not None and cfg.truth is not None}
     if cfg.real:
         cfg = replace(cfg, sensor_specs=resolve_auto(cfg.sensor_specs))  # --sensor auto: the one K-MD2 found
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
+    return Plan(cfg, scene, truth, truths, radar, calibration, localizer)
+
+
+def check_calibration(cfg: RunConfig) -> Calibration | None:
+    """The run's calibration file (None: none), refused when it has no entry for one of its sensors."""
+    if cfg.calibration is None:
+        return None
+    calibration = load_calibration(cfg.calibration)
+    for sid in [s.sensor_id for s in cfg.sensor_specs] if cfg.real else [f"kmd2-{i}" for i in range(cfg.sensors)]:
+        calibration.check_sensor(sid)
+    return calibration
+
+
+def check_record(cfg: RunConfig) -> None:
+    """A recording's file given by name: refused if it exists (unless ``record_overwrite``)
+    or its folder cannot be made (one level at most)."""
+    if cfg.record is not None and not cfg.record_new_name_if_taken:
+        if os.path.lexists(cfg.record) and not cfg.record_overwrite:
+            raise RecordingExists.at(cfg.record)
+        check_new_file(cfg.record, cfg.record_overwrite, "recording")
+
+
+def run(cfg: RunConfig, live: TextIO | None = sys.stdout, stop: threading.Event | None = None) -> RunSummary:
+    """Run the pipeline; returns its summary. A wrong set-up ends it with an error of the
+    libraries' roots (one line): a calibration that does not fit a sensor's first frame
+    (CalibrationError), frames that never assemble (the driver's SetupError), frames that
+    arrive but are every one refused (RunSetupError)."""
+    p = plan(cfg)
     if live is not None:
-        print(run_header(cfg, scene, truth, localizer_cfg, calibration), file=live, flush=True)
+        print(run_header(p.cfg, p.scene, p.truth, p.localizer, p.calibration), file=live, flush=True)
     t_start = time.monotonic()
     stop = stop or threading.Event()
-    refused: list[RunSetupError] = []
     with run_directory() as tmp:  # removed at the end; a SIGKILLed run's, by the next run's start
-        # a simulator late by its own fault (a busy host) holds its device clock, as a K-MD2 on its own
-        # clock would, and counts it: the drops left are the driver's
-        sims = [] if cfg.real else [
-            SimulatorServer(scene, link_path=Path(tmp) / f"kmd2-{i}", rate_hz=cfg.rate_hz, seed=i,
-                            hold_clock_when_late=True) for i in range(cfg.sensors)]
-        for sim in sims:
-            sim.start()
-        # a simulated sensor is a simulator on a pty and a driver on that pty; a real one only the driver
-        specs = cfg.sensor_specs or tuple(
-            SensorSpec(str(sim.links[0].link_path), f"kmd2-{i}", baud=cfg.baud, ramps=scene.radar.ramps_per_frame)
-            for i, sim in enumerate(sims))
-        bus = driver_bus(cfg.bus, Path(tmp))
-        listen = cfg.driver_process and bus.connect != cfg.bus.connect  # the unix socket, for driver processes only
-        session = (replace(cfg.bus, listen=cfg.bus.listen + bus.connect) if listen else cfg.bus).open()
+        sims = start_simulators(p, Path(tmp))
         try:
-            monitor = Monitor(cfg.bus, session, truth, time.time_ns(), live, clock_per_sensor=not cfg.real,
-                              calibration=None if calibration is None else calibration.source).start()
-            localizer = LocalizeNode(cfg.bus, localizer_cfg, session=session, tracking=cfg.tracking)
-            quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=radar, calibration=calibration,
-                                     calibration_required=True)  # a file that does not fit: refused at the first frame
-            drivers = supervised_drivers(cfg, specs, bus, session, monitor, live, stop)
-            if cfg.frames is not None:
-                threading.Thread(target=lambda: ([d.done.wait() for d in drivers], stop.set()), daemon=True).start()
-            ended = threading.Event()  # the run's nodes have stopped: the watch ends too
-            threading.Thread(target=watch_refusals, args=(monitor, quantizer, localizer, stop, refused, ended),
-                             name="refusals", daemon=True).start()
-            recorder = []
-            if cfg.record is not None:
-                recorder = [RecorderNode(cfg.bus, cfg.record, session=session, radar=radar,
-                                         metadata=run_metadata(cfg, scene, truth, radar, k, calibration,
-                                                               localizer_cfg.gate),
-                                         on_write_error=cfg.record_on_error, retry_s=cfg.record_retry_s,
-                                         split_size_mb=cfg.record_split_mb,
-                                         new_name_if_taken=cfg.record_new_name_if_taken,
-                                         overwrite=cfg.record_overwrite)]
-            view = web = None
-            if cfg.foxglove is not None:  # started first and stopped last, so it shows every target
-                view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=radar), session=session).start()
-                if live is not None:
-                    print(f"foxglove: WebSocket server on {view.url}", file=live, flush=True)
-            if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
-                try:
-                    web = WebView(cfg.bus, replace(cfg.web, radar=radar), session=session, truth=truth,
-                                  truth_t0_ns=time.time_ns() if cfg.real else None).start()
-                except BaseException:  # a busy port: the Foxglove view ends too
-                    if view is not None:
-                        view.stop()
-                    raise
-                if live is not None:
-                    print(f"web: page on {web.url}", file=live, flush=True)
+            nodes = RunNodes(p, Path(tmp), sims, live, stop)
+            nodes.run()
+        finally:
+            for sim in sims:
+                sim.stop()
+    return nodes.summary(time.monotonic() - t_start, sims)
+
+
+def start_simulators(p: Plan, tmp: Path) -> list[SimulatorServer]:
+    """A simulated K-MD2 per simulated sensor, on a pty in the run's directory (none with
+    real sensors). A simulator late by its own fault (a busy host) holds its device clock,
+    as a K-MD2 on its own clock would, and counts it: the drops left are the driver's."""
+    if p.cfg.real:
+        return []
+    sims = [SimulatorServer(p.scene, link_path=tmp / f"kmd2-{i}", rate_hz=p.cfg.rate_hz, seed=i,
+                            hold_clock_when_late=True) for i in range(p.cfg.sensors)]
+    for sim in sims:
+        sim.start()
+    return sims
+
+
+class RunNodes:
+    """The nodes of a run in one zenoh session (opened here, closed by :meth:`run`): the
+    monitor, the localizer, the quantizer, a supervised driver per sensor (a simulated one
+    is a simulator on a pty and a driver on that pty), the recorder and the views."""
+
+    def __init__(self, p: Plan, tmp: Path, sims: list[SimulatorServer], live: TextIO | None,
+                 stop: threading.Event):
+        self.p, self.live, self.stop = p, live, stop
+        cfg = p.cfg
+        self.refused: list[RunSetupError] = []
+        self.ended = threading.Event()  # the run's nodes have stopped: the watches end too
+        self.recorder: list[RecorderNode] = []
+        self.view = self.web = None
+        self.decoded = DecodedOnce()  # each JSON message parsed once for the monitor, the recorder and the views
+        self.drivers_bus = driver_bus(cfg.bus, tmp)
+        listen = cfg.driver_process and self.drivers_bus.connect != cfg.bus.connect  # the unix socket, for drivers
+        self.session = (replace(cfg.bus, listen=cfg.bus.listen + self.drivers_bus.connect) if listen
+                        else cfg.bus).open()
+        try:
+            specs = cfg.sensor_specs or tuple(
+                SensorSpec(str(sim.links[0].link_path), f"kmd2-{i}", baud=cfg.baud,
+                           ramps=p.scene.radar.ramps_per_frame) for i, sim in enumerate(sims))
+            self._build(specs)
+            self._start_views()
+        except BaseException:
+            self.session.close()
+            raise
+
+    def _build(self, specs) -> None:
+        p, cfg, session = self.p, self.p.cfg, self.session
+        self.monitor = Monitor(cfg.bus, session, p.truth, time.time_ns(), self.live, clock_per_sensor=not cfg.real,
+                               calibration=None if p.calibration is None else p.calibration.source,
+                               truths=p.truths, decoded=self.decoded).start()
+        self.localizer = LocalizeNode(cfg.bus, p.localizer, session=session, tracking=cfg.tracking)
+        self.quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=p.radar,
+                                      calibration=p.calibration,
+                                      calibration_required=True)  # a file that does not fit: refused at the first frame
+        self.drivers = supervised_drivers(cfg, specs, self.drivers_bus, session, self.monitor, self.live, self.stop)
+        if cfg.frames is not None:
+            threading.Thread(target=lambda: ([d.done.wait() for d in self.drivers], self.stop.set()),
+                             daemon=True).start()
+        threading.Thread(target=watch_refusals, args=(self.monitor, self.quantizer, self.localizer, self.stop,
+                                                      self.refused, self.ended), name="refusals", daemon=True).start()
+        if cfg.record is not None:
+            self.recorder = [RecorderNode(
+                cfg.bus, cfg.record, session=session, radar=p.radar, on_write_error=cfg.record_on_error,
+                metadata=run_metadata(cfg, p.scene, p.truth, p.radar, p.localizer.k, p.calibration,
+                                      p.localizer.gate),
+                retry_s=cfg.record_retry_s, split_size_mb=cfg.record_split_mb,
+                new_name_if_taken=cfg.record_new_name_if_taken, overwrite=cfg.record_overwrite, decoded=self.decoded)]
+
+    def _start_views(self) -> None:
+        """The Foxglove view and the web page, started first and stopped last, so they show
+        every target; a view that cannot start (a busy port) stops the other."""
+        p, cfg = self.p, self.p.cfg
+        if cfg.foxglove is not None:
+            self.view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=p.radar), session=self.session,
+                                     decoded=self.decoded).start()
+            self._say(f"foxglove: WebSocket server on {self.view.url}")
+        if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
             try:
-                run_nodes([*recorder, localizer, quantizer, *drivers], cfg.duration_s, stop)
+                self.web = WebView(cfg.bus, replace(cfg.web, radar=p.radar), session=self.session, truth=p.truth,
+                                   truth_t0_ns=time.time_ns() if cfg.real else None, decoded=self.decoded).start()
+            except BaseException:
+                if self.view is not None:
+                    self.view.stop()
+                raise
+            self._say(f"web: page on {self.web.url}")
+
+    def _say(self, line: str) -> None:
+        if self.live is not None:
+            print(line, file=self.live, flush=True)
+
+    def run(self) -> None:
+        """Until the duration, ``stop`` or the frames; then every node stopped and the
+        session closed. A wrong set-up seen meanwhile is raised (RunSetupError)."""
+        try:
+            try:
+                run_nodes([*self.recorder, self.localizer, self.quantizer, *self.drivers], self.p.cfg.duration_s,
+                          self.stop)
             finally:
-                ended.set()
-                monitor.stop()
-                for v in (view, web):
+                self.ended.set()
+                self.monitor.stop()
+                for v in (self.view, self.web):
                     if v is not None:
                         v.stop()
         finally:
-            session.close()
-            for sim in sims:
-                sim.stop()
-    if refused:
-        raise refused[0]
-    summary = summarize(cfg, scene, monitor, localizer, quantizer, drivers, time.monotonic() - t_start,
-                        simulator=simulator_lateness(sims) if sims else None, truth=truth, calibration=calibration)
-    if recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
-        summary.recording = recorder[0].summary()
-    if view is not None:
-        summary.foxglove = view.summary()
-    if web is not None:
-        summary.web = web.summary()
-    return summary
+            self.session.close()
+        if self.refused:
+            raise self.refused[0]
+
+    def summary(self, seconds: float, sims: list[SimulatorServer]) -> RunSummary:
+        p = self.p
+        summary = summarize(p.cfg, p.scene, self.monitor, self.localizer, self.quantizer, self.drivers, seconds,
+                            simulator=simulator_lateness(sims) if sims else None, truth=p.truth,
+                            calibration=p.calibration)
+        if self.recorder:  # state, files, written, dropped (queue), lost (write errors, by topic), error
+            summary.recording = self.recorder[0].summary()
+        if self.view is not None:
+            summary.foxglove = self.view.summary()
+        if self.web is not None:
+            summary.web = self.web.summary()
+        return summary
 
 
 def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event, out: list,
@@ -341,9 +464,8 @@ def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: 
                 return SourceNode(cfg.bus, SensorSession(s.session_config(cfg.outstanding)), session=session,
                                   frames=frames)
             base = monitor.raw_by_sensor.get(s.sensor_id, 0)  # this driver's frames are those after
-            return DriverProcess(s.url, s.sensor_id, s.baud, s.ramps, bus, frames=frames,
-                                 outstanding=cfg.outstanding, log=sys.stderr if live is not None else None,
-                                 profile=s.profile, chirp_select=s.chirp_select,
+            return DriverProcess(s, bus, frames=frames, outstanding=cfg.outstanding,
+                                 log=sys.stderr if live is not None else None,
                                  received=lambda: monitor.raw_by_sensor.get(s.sensor_id, 0) - base)
         return make
 

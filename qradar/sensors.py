@@ -24,37 +24,49 @@ by another process, is one line naming the sensor (and the holder)."""
 from __future__ import annotations
 
 import logging
+import math
 import os
-from dataclasses import dataclass, replace
+import typing
+from dataclasses import dataclass, field, replace
 
 from pipeline.errors import ParameterError, WireError
 from pipeline.wire import check_sensor_id
 from radar_driver import ports as serial_ports
 from radar_driver.errors import ConfigError, DiscoveryError, LinkError, RadarError
 from radar_driver.model import RadarConfig
+from radar_driver.options import Option, OptionValueError, finite_float, like, option, options_of, read_text
 from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, resolve_profile
 from radar_driver.session import LinkKind, SensorSession, SessionConfig, link_kind
 
 log = logging.getLogger("qradar.sensors")
 
-#: the keys a spec may give after its URL
-SPEC_KEYS = ("id", "profile", "baud", "ramps", "chirp-select")
-SPEC_FORM = "URL,id=NAME[,profile=P][,baud=B][,ramps=R][,chirp-select=first|stride]"
 #: the URL of a spec that stands for the one K-MD2 found on this host's serial ports
 AUTO = "auto"
 
 
 @dataclass(frozen=True)
 class SensorSpec:
-    """One real sensor of a run: its URL, id and driver options (see the module)."""
+    """One real sensor of a run: its URL, id and driver options (see the module), the
+    options of ``qradar drive`` (:class:`~radar_driver.session.SessionConfig`: the same
+    defaults and checks), and where it stands (``pose``, a lab file's key: the views
+    place it there, and a ``--truth`` file's world positions are seen from it). The
+    ``--sensor`` grammar and a lab file's ``[[sensor]]`` table read the same fields
+    (:meth:`parse`, :func:`qradar.cli.schema.read_table`)."""
 
-    url: str
-    sensor_id: str
-    profile: str | None = None  # None: the default, kmd2-blocks
-    baud: int | None = None
-    ramps: int = 2
-    chirp_select: str = "first"
-    text: str = ""  # the spec as given, for messages
+    url: str = option(help="a pyserial URL (a device path, socket://HOST:PORT, rfc2217://HOST:PORT) or auto (the one "
+                      "K-MD2 that answers on this host's serial adapters)", required=True)
+    sensor_id: str = like(SessionConfig, "sensor_id", flag="--id", required=True,
+                          help="the sensor's id in the zenoh keys (1-16 of [A-Za-z0-9_-])")
+    profile: str | None = like(SessionConfig, "profile")
+    baud: int | None = like(SessionConfig, "baud")
+    ramps: int = like(SessionConfig, "ramps_per_frame", flag="--ramps")
+    chirp_select: str = like(SessionConfig, "chirp_select")
+    pose: tuple[float, ...] | None = option(
+        None, "where the sensor stands in the world: [x_m, y_m, yaw_deg] (yaw counter-clockwise; boresight along "
+        "the world's x at 0); default: at the origin", cli=False, many=3, parse=finite_float, metavar="X_M Y_M YAW")
+    host: str | None = option(None, "qradar up: the host whose `up --host` starts this sensor's driver (default: "
+                              "[hosts] default)", cli=False)
+    text: str = field(default="", compare=False)  # the spec as given, for messages
 
     def __post_init__(self) -> None:
         where = self.where
@@ -64,6 +76,10 @@ class SensorSpec:
             raise ParameterError(f"{where}: id: {exc}") from None
         if self.chirp_select not in CHIRP_SELECT:
             raise ParameterError(f"{where}: chirp-select={self.chirp_select!r} must be one of {list(CHIRP_SELECT)}")
+        if self.pose is not None:
+            if len(self.pose) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.pose):
+                raise ParameterError(f"{where}: pose={list(self.pose)!r} must be [x_m, y_m, yaw_deg], three numbers")
+            object.__setattr__(self, "pose", tuple(float(v) for v in self.pose))
         try:
             self.session_config()  # the profile, the baud among its speeds, the ramps in its chirps
         except ConfigError as exc:
@@ -99,48 +115,59 @@ class SensorSpec:
         return self.url.split("?", 1)[0].lower()
 
     @classmethod
+    def spec_keys(cls) -> dict[str, tuple[str, Option]]:
+        """The keys a spec may give after its URL: key -> (field, option)."""
+        return {o.key(name): (name, o) for name, (_, o) in options_of(cls).items() if o.cli and name != "url"}
+
+    @classmethod
     def parse(cls, text: str) -> "SensorSpec":
         """``URL,id=NAME[,KEY=VALUE...]``; ParameterError (one line, quoting ``text``) on
-        an unknown, repeated or empty key, a missing id, a bad value or profile."""
+        an unknown, repeated or empty key, a missing id, a bad value or profile. Each value
+        reads as the option of its field does (``qradar drive``'s)."""
         where = f"--sensor {text!r}"
+        keys = cls.spec_keys()
         if not isinstance(text, str) or not text.strip():
             raise ParameterError(f"{where}: empty; expected {SPEC_FORM}")
         url, *fields = [f.strip() for f in text.split(",")]
         if not url:
             raise ParameterError(f"{where}: no URL before the first comma; expected {SPEC_FORM}")
-        if url.partition("=")[0].strip() in SPEC_KEYS:
+        if url.partition("=")[0].strip() in keys:
             raise ParameterError(f"{where}: starts with the key {url!r}; the URL comes first: {SPEC_FORM}")
-        opts: dict[str, str] = {}
+        kw: dict[str, object] = {}
         for f in fields:
             key, sep, value = (s.strip() for s in f.partition("="))
             if not sep:
                 raise ParameterError(f"{where}: {f!r} is not KEY=VALUE; expected {SPEC_FORM}")
-            if key not in SPEC_KEYS:
-                raise ParameterError(f"{where}: unknown key {key!r}; known: {', '.join(SPEC_KEYS)}")
-            if key in opts:
+            if key not in keys:
+                raise ParameterError(f"{where}: unknown key {key!r}; known: {', '.join(keys)}")
+            name, opt = keys[key]
+            if name in kw:
                 raise ParameterError(f"{where}: {key} given twice")
             if not value:
                 raise ParameterError(f"{where}: {key}= has no value")
-            opts[key] = value
-        if "id" not in opts:
+            kw[name] = _read(opt, name, key, value, where)
+        if "sensor_id" not in kw:
             raise ParameterError(f"{where}: missing id=NAME (the sensor's id in the zenoh keys, e.g. "
                                  f"{url},id=kmd2-0)")
-        ints = {}
-        for key in ("baud", "ramps"):
-            if key in opts:
-                try:
-                    ints[key] = int(opts[key])
-                except ValueError:
-                    raise ParameterError(f"{where}: {key}={opts[key]!r} is not an integer") from None
-        if ints.get("ramps", 1) < 1:
-            raise ParameterError(f"{where}: ramps={ints['ramps']} must be >= 1")
-        profile = opts.get("profile")
         try:
-            resolve_profile(profile)
+            resolve_profile(kw.get("profile"))
         except RadarError as exc:
             raise ParameterError(f"{where}: profile: {exc}") from None
-        return cls(url, opts["id"], profile=profile, baud=ints.get("baud"), ramps=ints.get("ramps", 2),
-                   chirp_select=opts.get("chirp-select", "first"), text=text)
+        return cls(url, text=text, **kw)
+
+
+def _read(opt: Option, name: str, key: str, value: str, where: str):
+    """A spec's value as its field's option reads it; ``key=value`` and why, if it does not."""
+    try:
+        return read_text(opt, typing.get_type_hints(SensorSpec)[name], value)
+    except (OptionValueError, ConfigError, ValueError) as exc:
+        shown = value if value.lstrip("-").replace(".", "", 1).isdigit() else repr(value)
+        detail = str(exc) if isinstance(exc, OptionValueError) else f"is not valid: {exc}"
+        raise ParameterError(f"{where}: {key}={shown} {detail}") from None
+
+
+#: the form of a spec, for messages
+SPEC_FORM = "URL,id=NAME[,profile=P][,baud=B][,ramps=R][,chirp-select=first|stride]"
 
 
 def as_spec(spec: SensorSpec | str) -> SensorSpec:

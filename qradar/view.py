@@ -9,8 +9,9 @@ that listens only where asked (default 127.0.0.1:8765). Per sensor ``s``:
 
 * ``/<prefix>/s/targets``: ``foxglove.PointCloud`` (protobuf) in the frame ``radar_s``,
   one point per target, float32 fields x, y, z (m; x = R cos θ along boresight, y = R sin θ
-  across it, from :func:`radar_driver.model.polar_to_xy`; z = 0), amplitude, range_m,
-  angle_deg and statistic_db (NaN when the localizer gave none);
+  across it, from :func:`radar_driver.model.polar_to_xy`; z = 0), then every number of a
+  target (range_m, angle_deg, amplitude, statistic_db: NaN when the localizer gave none),
+  the points of :func:`pipeline.wire.foxglove.target_points`, as recordings hold them;
 * ``/<prefix>/s/tracks``: ``foxglove.SceneUpdate`` (protobuf) in the frame ``radar_s``, one
   entity per track of the sensor's tracks messages (``--track``): a sphere at the track's
   position (diameter 2 sigma, at least 0.2 m; green while static, orange while moving) and
@@ -65,6 +66,10 @@ from pipeline.errors import WireError
 from pipeline.nodes.budget import IntakeBudget
 from pipeline.wire import HealthMsg, QuantizedFrameMsg, TargetsMsg, TracksMsg
 from radar_driver.model import RadarConfig, polar_to_xy
+from pipeline.wire.fields import HEALTH, PROFILE, json_schema
+from pipeline.wire.shared import DecodedOnce
+from pipeline.wire.foxglove import (  # noqa: F401 (POINT_FIELDS, target_points: the view's names)
+    ENTITY_LIFETIME_NS, MOVING_COLOR, POINT_FIELDS, STATIC_COLOR, point_dtype, target_points, track_label)
 from replay.mcapio import TARGETS_SCHEMA
 
 # the views' shared parts, imported from here by older callers
@@ -86,31 +91,13 @@ log = logging.getLogger("qradar.view")
 WORLD_FRAME = "world"
 #: the topic of the frame transforms
 TF_TOPIC = "/tf"
-#: the float32 fields of a target point, in order (4 bytes each)
-POINT_FIELDS = ("x", "y", "z", "amplitude", "range_m", "angle_deg", "statistic_db")
-POINT_DTYPE = np.dtype([(f, "<f4") for f in POINT_FIELDS])
+#: the float32 fields of a target point, in order (4 bytes each): pipeline.wire.foxglove's
+POINT_DTYPE = point_dtype()
 #: the largest sensor timestamp a foxglove Timestamp holds (uint32 seconds), ns
 MAX_TIMESTAMP_NS = (1 << 32) * 1_000_000_000 - 1
-
-HEALTH_SCHEMA = {
-    "type": "object", "title": "qradar.Health",
-    "properties": {"node": {"type": "string"}, "sensor_id": {"type": "string"}, "timestamp_ns": {"type": "integer"},
-                   "frames_in": {"type": "integer"}, "frames_out": {"type": "integer"}, "drops": {"type": "integer"},
-                   "decode_errors": {"type": "integer"}, "latency_ms": {"type": "object"},
-                   "bytes_in_per_s": {"type": "number"}, "bytes_out_per_s": {"type": "number"},
-                   "extra": {"type": "object"}},
-}
-_DB_ARRAY = {"type": "array", "items": {"type": "number"}}
-RANGE_PROFILE_SCHEMA = {
-    "type": "object", "title": "qradar.RangeProfile",
-    "properties": {"sensor_id": {"type": "string"}, "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
-                   "config_id": {"type": "integer"}, "bits": {"type": "integer"}, "alpha": {"type": "number"},
-                   "delta": {"type": "number"},
-                   "range_m": {"type": "array", "items": {"type": "number"}, "description": "range bins, m"},
-                   "profile_db": _DB_ARRAY | {"description": "20 log10 sqrt((|U1|^2 + |U2|^2) / 2), dB full scale"},
-                   "antenna1_db": _DB_ARRAY | {"description": "20 log10 |U1|, dB full scale"},
-                   "antenna2_db": _DB_ARRAY | {"description": "20 log10 |U2|, dB full scale"}},
-}
+#: the JSON topics' schemas, from the one definition of the formats' fields (pipeline.wire.fields)
+HEALTH_SCHEMA = json_schema(HEALTH)
+RANGE_PROFILE_SCHEMA = json_schema(PROFILE)
 
 
 # -- messages ----------------------------------------------------------------------------
@@ -138,22 +125,6 @@ def _timestamp(ns: int, what: str) -> Timestamp:
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
-def target_points(msg: TargetsMsg) -> np.ndarray:
-    """The targets as packed points: (K,) of :data:`POINT_DTYPE` (float32 fields; x, y in m
-    by :func:`~radar_driver.model.polar_to_xy` of range_m and angle_deg, z = 0;
-    statistic_db NaN when absent)."""
-    pts = np.zeros(len(msg.targets), dtype=POINT_DTYPE)
-    if not msg.targets:
-        return pts
-    range_m = np.array([t["range_m"] for t in msg.targets])
-    angle_deg = np.array([t["angle_deg"] for t in msg.targets])
-    pts["x"], pts["y"] = polar_to_xy(range_m, np.radians(angle_deg))
-    pts["amplitude"] = [t["amplitude"] for t in msg.targets]
-    pts["range_m"], pts["angle_deg"] = range_m, angle_deg
-    pts["statistic_db"] = [t.get("statistic_db", np.nan) for t in msg.targets]
-    return pts
-
-
 def targets_pointcloud(msg: TargetsMsg, source: str = "<targets>") -> PointCloud:
     """``foxglove.PointCloud`` of one targets message, in the frame ``radar_<sensor>``, stamped
     with the frame's sensor timestamp; fields :data:`POINT_FIELDS` (float32)."""
@@ -167,16 +138,7 @@ def targets_pointcloud(msg: TargetsMsg, source: str = "<targets>") -> PointCloud
 
 
 #: how long a track's entity stays without a newer message, ns
-TRACK_LIFETIME_NS = 500_000_000
-#: colours of a static and of a moving track (RGBA, 0..1)
-STATIC_COLOR = (0.2, 0.8, 0.3, 0.9)
-MOVING_COLOR = (1.0, 0.55, 0.1, 0.9)
-
-
-def track_label(track: dict) -> str:
-    """``#3 1.52 m/s σ 0.041 m`` (``static`` instead of the speed while static)."""
-    speed = "static" if track["static"] else f"{math.hypot(track['vx_mps'], track['vy_mps']):.2f} m/s"
-    return f"#{track['track_id']} {speed} σ {track['sigma_m']:.3f} m"
+TRACK_LIFETIME_NS = ENTITY_LIFETIME_NS
 
 
 def tracks_scene(msg: TracksMsg, source: str = "<tracks>") -> SceneUpdate:
@@ -226,8 +188,8 @@ class FoxgloveView(LiveView):
     stops with :meth:`stop`."""
 
     def __init__(self, bus: BusConfig, config: ViewConfig = ViewConfig(), session: zenoh.Session | None = None,
-                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
-        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake)
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
+        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake, decoded=decoded)
         self._context = foxglove.Context()  # channels and server of this view only
         self._server = None
         self._sensors: dict[str, _SensorChannels] = {}

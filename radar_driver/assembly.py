@@ -160,17 +160,18 @@ class FrameAssembler:
         """The frame of the RADCs in hand (after :attr:`Taken.FRAME`)."""
         radcs, self._radcs = self._radcs, []
         lay = self.profile.radc
-        az = list(lay.azimuth)
-        if self._chirps is None:  # one chirp per RADC: R RADCs
-            words = np.stack([w[az, 0] for _, _, w in radcs])  # (R, 2, N, 2)
-            data = lay.to_complex(words[:, :, None])[:, 0]  # (R, N, 2)
+        data = np.empty((self.ramps_per_frame, lay.samples, 2), dtype=np.complex64)  # the frame, written in place
+        if self._chirps is None:  # one chirp per RADC: ramp i is RADC i's
+            for i, (_, _, w) in enumerate(radcs):
+                lay.to_complex(w[:, :1], np.complex64, lay.azimuth, out=data[i:i + 1])
         else:  # R of one RADC's chirps
-            data = lay.to_complex(radcs[0][2][az][:, self._chirps])  # (R, N, 2)
+            for i, c in enumerate(self._chirps.tolist()):
+                lay.to_complex(radcs[0][2][:, c:c + 1], np.complex64, lay.azimuth, out=data[i:i + 1])
         frame = RawFrame(
             sensor_id=self.sensor_id,
             seq=self.seq,
             timestamp_ns=radcs[0][1],
-            data=data.reshape(self.ramps_per_frame * lay.samples, 2).astype(np.complex64),
+            data=data.reshape(self.ramps_per_frame * lay.samples, 2),  # a view: made once, in place
             counters=tuple(c for c, _, _ in radcs),
             config_id=self._config_id,
         )

@@ -39,9 +39,10 @@ from typing import BinaryIO, Callable, Iterator
 import serial
 
 from .errors import CaptureError, ConfigError, LinkError, SensorError, SensorTimeout
-from .profile import SensorProfile, resolve_profile
+from .options import like, option, pos_float, pos_int
+from .profile import DEFAULT_PROFILE_NAME, SensorProfile, packaged_profiles, resolve_profile
 from .protocol import BAUD_SWITCH_SETTLE_S, Gbye, Gnfd, Init, encode
-from .session import SensorSession, SessionConfig, open_error, port_url
+from .session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig, open_error, port_url
 
 log = logging.getLogger("qradar.capture")
 
@@ -447,14 +448,18 @@ class CaptureConfig:
     the profile's RADC layout is wrong, the raw poller for the rest of the time). In the
     raw poller a frame counts ``ramps_per_frame`` GNFD answers, enough for any layout."""
 
-    url: str
-    profile: SensorProfile | str | None = None
-    frames: int | None = None
-    seconds: float = 10.0
-    baud: int | None = None
-    ramps_per_frame: int = 2
-    timeout_s: float = 0.5
-    mode: str = "auto"
+    url: str = like(SessionConfig, "url")
+    profile: SensorProfile | str | None = option(
+        None, f"sensor profile for the driver: a packaged name ({', '.join(packaged_profiles())}) or a TOML file "
+        f"(default {DEFAULT_PROFILE_NAME}); its baud codes and GNFD bits also serve the raw poller",
+        kinds=frozenset({"str"}))
+    frames: int | None = option(None, "stop after N frames (the raw poller: N x --ramps GNFD answers)", parse=pos_int)
+    seconds: float = option(10.0, "stop after S seconds", parse=pos_float)
+    baud: int | None = option(None, f"rate after INIT (default {DEFAULT_FAST_BAUD} on a link that can change speed)")
+    ramps_per_frame: int = like(SessionConfig, "ramps_per_frame")
+    timeout_s: float = like(SessionConfig, "timeout_s")
+    mode: str = option("auto", "auto: the driver, then the raw poller if it decodes no frame; session: the driver "
+                       "only; raw: the raw poller only", choices=MODES)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "profile", resolve_profile(self.profile))

@@ -12,6 +12,11 @@ class ConfigError(RadarError, ValueError):
     """A configuration value is out of range or of the wrong type."""
 
 
+class OptionValueError(ConfigError):
+    """An option's value that does not read (radar_driver.options): the message says what
+    was expected, and the caller where the value came from."""
+
+
 class InputError(RadarError, ValueError):
     """An array argument has the wrong shape, dtype or values."""
 

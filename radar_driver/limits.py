@@ -35,20 +35,12 @@ SENSOR_ID_BYTES[list(SENSOR_ID_CHARS.encode())] = True
 _ID_FIELD_CLASS = np.where(SENSOR_ID_BYTES, 1, 2).astype(np.uint8)
 _ID_FIELD_CLASS[0] = 0
 
-#: valid sensor ids seen lately (checked once each; cleared when it holds _KNOWN_IDS_MAX)
-_known_ids: set[str] = set()
-_KNOWN_IDS_MAX = 1 << 16
-
-
 def sensor_id_problem(sensor_id: object) -> str | None:
-    """What is wrong with a sensor id (None when it is valid): one line naming the value."""
-    if type(sensor_id) is str and sensor_id in _known_ids:
-        return None
+    """What is wrong with a sensor id (None when it is valid): one line naming the value.
+    A pure function (~0.5 us): no cache of ids seen, so nothing here grows with the sensors
+    or needs forgetting when a node forgets one."""
     if not (isinstance(sensor_id, str) and SENSOR_ID_PATTERN.fullmatch(sensor_id)):
         return f"sensor_id={sensor_id!r} must be {SENSOR_ID_RULE}"
-    if len(_known_ids) >= _KNOWN_IDS_MAX:
-        _known_ids.clear()
-    _known_ids.add(sensor_id)
     return None
 
 
@@ -59,12 +51,6 @@ def check_sensor_id(sensor_id: object, error: type[Exception] = ConfigError) -> 
     if problem is not None:
         raise error(problem)
     return sensor_id  # type: ignore[return-value]
-
-
-def forget_sensor_id(sensor_id: str) -> None:
-    """Drop a sensor id from the cache of checked ids (a node forgot the sensor): the
-    next check of it checks it again, and an expired id is not kept."""
-    _known_ids.discard(sensor_id)
 
 
 def sensor_id_fields_bad(fields: bytes | np.ndarray) -> bool | np.ndarray:

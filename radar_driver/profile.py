@@ -144,12 +144,32 @@ class RadcLayout:
         return np.ascontiguousarray(w).astype(self.dtype).tobytes()
 
     # -- words <-> complex -------------------------------------------------------------------
-    def to_complex(self, words: np.ndarray) -> np.ndarray:
+    def to_complex(self, words: np.ndarray, dtype=np.complex128, receivers=None, out=None) -> np.ndarray:
         """Words (..., receivers, chirps, samples, 2) -> complex (..., chirps, samples,
-        receivers), full-scale units."""
-        w = np.asarray(words, dtype=np.float64) - self.offset
-        z = (w[..., 0] + 1j * w[..., 1]) / self.full_scale  # (..., receivers, chirps, samples)
-        return np.moveaxis(z, -3, -1)
+        receivers) of ``dtype`` (complex128 or complex64), full-scale units: (word - offset)
+        / full_scale in float64, each of I and Q, rounded once to ``dtype``. ``receivers``:
+        the receivers taken, in order (None: all); ``out``: a C-ordered array of the result's
+        shape and dtype to write into (None: a new one).
+
+        Written in place into the one output array: each receiver's I or Q goes through a
+        float64 scratch of one part of one receiver (for complex64), so no full-size
+        temporary is made, and the words are read where they are (no copy of a selection)."""
+        w = np.asarray(words)
+        rx = range(w.shape[-4]) if receivers is None else list(receivers)
+        shape = w.shape[:-4] + w.shape[-3:-1] + (len(rx),)
+        out = np.empty(shape, dtype=dtype) if out is None else out
+        if out.shape != shape or not out.flags.c_contiguous or out.dtype not in (np.complex64, np.complex128):
+            raise ConfigError(f"to_complex: out must be a C-ordered complex array of shape {shape}")
+        parts = out.view(np.float64 if out.dtype == np.complex128 else np.float32).reshape(shape + (2,))
+        scratch = None if out.dtype == np.complex128 else np.empty(shape[:-1], dtype=np.float64)
+        for i, r in enumerate(rx):
+            for p in range(2):
+                dst = parts[..., i, p] if scratch is None else scratch
+                np.subtract(w[..., r, :, :, p], self.offset, out=dst, dtype=np.float64)
+                dst /= self.full_scale
+                if scratch is not None:
+                    parts[..., i, p] = scratch
+        return out
 
     def from_complex(self, samples: np.ndarray) -> np.ndarray:
         """Complex (..., chirps, samples, receivers), full-scale units -> words (...,

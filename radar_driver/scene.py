@@ -234,6 +234,10 @@ def load_scene(path: str | Path) -> SimScene:
 
 #: time base of the ramps (ramps/s) of a sensor that is polled as fast as it answers
 NOMINAL_RAMP_RATE_HZ = 40.0
+#: the scene of a simulated sensor unless told (a packaged scene's name)
+DEFAULT_SCENE = "chamber"
+#: a simulated K-MD2's frames per second unless told (a K-MD2 makes about 20 measurements a second)
+SIM_RATE_HZ = 20.0
 
 
 def ramp_time_s(ramp_index, ramp_rate_hz: float) -> np.ndarray:

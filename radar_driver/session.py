@@ -41,7 +41,8 @@ from .errors import ConfigError, LinkError, RadarError, SensorError, SensorRespo
 from .limits import check_sensor_id
 from .link import LinkKind, SerialLink, busy_text, describe_device, link_kind, open_error, port_url
 from .model import RadarConfig
-from .profile import CHIRP_SELECT, SensorProfile, packaged_profiles, resolve_profile
+from .options import option, pos_float, pos_int
+from .profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, SensorProfile, packaged_profiles, resolve_profile
 from .protocol import Done, Gnfd, Radc, encode
 from .source import RawFrame
 
@@ -74,19 +75,25 @@ class SessionConfig:
     while the host is late by up to a measurement period; that a real K-MD2 queues a
     second GNFD is an assumption)."""
 
-    url: str
-    baud: int | None = None
-    ramps_per_frame: int = 2
-    timeout_s: float = 0.5
+    url: str = option(help="pyserial URL or device path", flag="--port", required=True)
+    baud: int | None = option(None, "rate after INIT (115200, 460800, 921600, 2000000, 3000000); default "
+                              f"{DEFAULT_FAST_BAUD}, except on socket:// (Ethernet, raw ser2net), which stays at the "
+                              "start-up 115200")
+    ramps_per_frame: int = option(2, "ramps per frame (M = 256 x ramps)", flag="--ramps", parse=pos_int)
+    timeout_s: float = option(0.5, "seconds to wait for a GNFD answer", flag="--timeout", parse=pos_float)
     reconnect: bool = True
     backoff_s: float = 0.05
     max_backoff_s: float = 2.0
     reconnect_timeout_s: float | None = None
-    sensor_id: str = "kmd2"
-    profile: SensorProfile | str | None = None
-    chirp_select: str = "first"
+    sensor_id: str = option("kmd2", "sensor id in the zenoh keys", flag="--sensor-id")
+    profile: SensorProfile | str | None = option(
+        None, f"sensor profile (RADC layout, baud codes): {', '.join(packaged_profiles())} or a TOML file (default: "
+        f"{DEFAULT_PROFILE_NAME})", kinds=frozenset({"str"}))
+    chirp_select: str = option("first", "with several chirps per RADC: a frame takes the first --ramps chirps, or "
+                               "every k-th", choices=CHIRP_SELECT)
     queue_frames: int = 256
-    outstanding: int = 1
+    outstanding: int = option(1, "GNFD requests kept in flight: 2 lets the sensor hold one while the host is late "
+                              "(assumes the K-MD2 queues a second GNFD; the simulator does)", choices=(1, 2), parse=int)
     #: connections in a row in which the sensor answered but no frame assembled, before a
     #: session that never had one gives up with a SetupError naming the profile (None: never)
     barren_connections: int | None = 5

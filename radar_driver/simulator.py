@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError, LinkDown
+from .options import nonneg_float, option, pos_int, prob
 from .profile import DEFAULT_PROFILE, SensorProfile
 from .protocol import (
     Done,
@@ -49,7 +50,7 @@ from .protocol import (
     StreamDecoder,
     encode,
 )
-from .scene import SimScene, ramp_time_s
+from .scene import SIM_RATE_HZ, SimScene, ramp_time_s
 from .simlinks import PtyLink, TcpLink
 
 log = logging.getLogger("qradar.sim")
@@ -64,14 +65,16 @@ class SimFaults:
     that stalled that long finds). ``disconnect_after_frames``: drop the link once after
     that many frames and bring it back after ``reconnect_after_s``."""
 
-    garbage_prob: float = 0.0
+    garbage_prob: float = option(0.0, "garbage burst before a message", flag="--garbage", metavar="P", parse=prob)
     garbage_max_bytes: int = 64
-    truncate_prob: float = 0.0
-    skip_done_prob: float = 0.0
+    truncate_prob: float = option(0.0, "RADC cut short", flag="--truncate", metavar="P", parse=prob)
+    skip_done_prob: float = option(0.0, "DONE counter jumps", flag="--skip-done", metavar="P", parse=prob)
     skip_frames_after: int | None = None
     skip_frames: int = 1
-    disconnect_after_frames: int | None = None
-    reconnect_after_s: float = 1.0
+    disconnect_after_frames: int | None = option(None, "drop the link after N frames", flag="--disconnect-after",
+                                                 metavar="N", parse=pos_int)
+    reconnect_after_s: float = option(1.0, "link back after T s", flag="--reconnect-after", metavar="T",
+                                      parse=nonneg_float)
 
     def __post_init__(self) -> None:
         for name in ("garbage_prob", "truncate_prob", "skip_done_prob"):
@@ -142,7 +145,7 @@ class SimulatedKMD2:
     """The K-MD2's protocol logic. ``receive(bytes, host_baud)`` -> replies."""
 
     scene: SimScene
-    rate_hz: float = 20.0
+    rate_hz: float = SIM_RATE_HZ
     faults: SimFaults = field(default_factory=SimFaults)
     seed: int = 0
     profile: SensorProfile = DEFAULT_PROFILE
@@ -329,7 +332,7 @@ class SimulatorServer:
         scene: SimScene,
         link_path: str | Path | None = None,
         tcp_port: int | None = None,
-        rate_hz: float = 20.0,
+        rate_hz: float = SIM_RATE_HZ,
         faults: SimFaults | None = None,
         seed: int = 0,
         profile: SensorProfile = DEFAULT_PROFILE,

@@ -25,9 +25,10 @@ from typing import Iterator, Protocol, runtime_checkable
 import numpy as np
 
 from .errors import ConfigError
+from .options import nonneg_int, option, pos_int
 from .limits import check_sensor_id
 from .profile import DEFAULT_PROFILE
-from .scene import SimScene, ramp_time_s
+from .scene import SIM_RATE_HZ, SimScene, ramp_time_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,12 +134,14 @@ class SimSourceConfig:
     period, in groups SPREAD_SLOT_S apart, as independent sensors send)."""
 
     scene: SimScene
-    sensors: int = 1
-    id_prefix: str = "sim"
-    rate_hz: float = 20.0
-    seed: int = 0
-    frames: int | None = None
-    send: str = "burst"
+    sensors: int = option(1, "simulated sensors at once", parse=pos_int)
+    id_prefix: str = option("sim", "sensor ids are <prefix>0, <prefix>1, ...")
+    rate_hz: float = SIM_RATE_HZ
+    seed: int = option(0, "noise seed (sensor i draws as a K-MD2 of seed + i)", parse=nonneg_int)
+    frames: int | None = option(None, "frames per sensor, then stop (with --recording: frames in all)", parse=pos_int)
+    send: str = option("burst", "burst: every sensor's frame at the start of each period (sensors on one clock); "
+                       "spread: the sensors' send times spread evenly over the period, in groups 2 ms apart "
+                       "(independent sensors)", choices=SEND_MODES)
 
     def __post_init__(self) -> None:
         if self.send not in SEND_MODES:

@@ -28,7 +28,8 @@ import numpy as np
 from pipeline.nodes.counters import NO_SENSOR
 from pipeline.nodes.frame_codec import CODECS, MAX_SAMPLE, bad_samples, check_frames, radar_configs
 from pipeline.nodes.intake import QueuedFrame
-from pipeline.wire import TOPICS, TargetsMsg, WireError, decode_health, decode_targets, decode_tracks
+from pipeline.wire import TOPICS, HealthMsg, QuantizedGroup, TargetsMsg, TracksMsg, WireError
+from pipeline.wire.shared import DecodedOnce, decoder
 from radar_driver.model import RadarConfig
 
 from .mcapio import MAX_TIME_NS
@@ -37,20 +38,25 @@ from .mcapio import MAX_TIME_NS
 REFUSED_KINDS = ("refused_time", "refused_size", "refused_shape", "refused_topic")
 #: the largest JSON message (targets, tracks, health) a recording takes, bytes
 MAX_JSON_BYTES = 256 * 1024
-#: the decoder of each JSON topic
-JSON_DECODERS = {"targets": decode_targets, "tracks": decode_tracks, "health": decode_health}
 
 
 @dataclass(frozen=True)
 class Admitted:
     """A message to write: its position in the batch, its publish time (its own
-    timestamp, ns), its MCAP sequence (its seq) and, for targets, the decoded message (its
-    pointcloud is written beside it)."""
+    timestamp, ns), its MCAP sequence (its seq) and what the recorder derives channels from
+    (replay.derived): a JSON message decoded (``message``: targets, tracks, health), a
+    quantized frame as its decoded group and its row in it (``frames``, ``row``)."""
 
     index: int
     publish_ns: int
     sequence: int
-    targets: TargetsMsg | None = None
+    message: TargetsMsg | TracksMsg | HealthMsg | None = None
+    frames: QuantizedGroup | None = None
+    row: int = 0
+
+    @property
+    def targets(self) -> TargetsMsg | None:
+        return self.message if isinstance(self.message, TargetsMsg) else None
 
 
 @dataclass(frozen=True)
@@ -71,9 +77,11 @@ def _time_ok(value) -> bool:
 
 class Admission:
     """The recorder's checks for the announced configurations ``radar`` with 1..``max_ramps``
-    ramps per frame (the nodes' defaults: the K-MD2 and 16)."""
+    ramps per frame (the nodes' defaults: the K-MD2 and 16); ``decoded``: the process's
+    JSON messages decoded once (pipeline.wire.shared; None: decoded here)."""
 
-    def __init__(self, radar: RadarConfig | None = None, max_ramps: int = 16):
+    def __init__(self, radar: RadarConfig | None = None, max_ramps: int = 16, decoded: DecodedOnce | None = None):
+        self._decode = decoder(decoded)
         self.configs = radar_configs(radar or RadarConfig(), max_ramps)
         ms = {c.n_measurements for c in self.configs.values()}
         self.lengths = {topic: CODECS[topic].lengths(ms) for topic in CODECS}
@@ -137,12 +145,12 @@ class Admission:
                     refused.append(Refused(i, "refused_time", "invalid_frames",
                                            f"frame {seq} from {keys[pos]}: timestamp_ns={ts} outside [0, 2**63)"))
                 else:
-                    admitted.append(Admitted(i, ts, seq))
+                    admitted.append(Admitted(i, ts, seq, frames=g if topic == "quantized" else None, row=j))
 
     def _json(self, topic: str, item: QueuedFrame, sensor: str, i: int, admitted: list[Admitted],
               refused: list[Refused]) -> None:
         try:
-            msg = JSON_DECODERS[topic](item.payload, item.key)
+            msg = self._decode(topic, item.payload, item.key)
         except (WireError, ValueError, RecursionError) as exc:
             refused.append(Refused(i, "refused_shape", "decode_errors", str(exc)))
             return
@@ -157,7 +165,7 @@ class Admission:
                                        f"{topic} from {item.key}: {name}={value!r} outside [0, 2**63)"))
                 return
         seq = getattr(msg, "seq", 0)
-        admitted.append(Admitted(i, msg.timestamp_ns, seq, msg if topic == "targets" else None))
+        admitted.append(Admitted(i, msg.timestamp_ns, seq, msg))
 
 
 class RefusalCounts:

@@ -6,8 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.dsp.calibration import FrontEndCorrection, estimate_front_end, save
+from pipeline.dsp.calibration import (MAX_EMPTY_RETURN_DB, MAX_RANGE_SHIFT_BINS, MAX_RESIDUAL_DB, FrontEndCorrection,
+                                      estimate_front_end, save)
 from radar_driver.model import RadarConfig
+from radar_driver.options import option
 
 from .errors import CalibrationRefused, ReplayError
 from .outputs import check_new_file
@@ -20,14 +22,22 @@ class CalibrateConfig:
     and ``angle_deg`` (deg, positive towards receiver 2), or None (background only);
     sensors: the sensor ids to calibrate (None: every sensor of the empty recording)."""
 
-    empty: Path
-    out: Path
-    reflector: Path | None = None
-    range_m: float | None = None
-    angle_deg: float = 0.0
-    sensors: tuple[str, ...] | None = None
+    empty: Path = option(help="a recording of the empty scene (a few seconds: `qradar run --empty` on the "
+                         "simulator)", metavar="EMPTY.mcap", required=True)
+    out: Path = option(help="the calibration file (made new)", metavar="CAL.json", required=True)
+    reflector: Path | None = option(None, "a recording of one reflector at --range-m and --angle-deg (else: "
+                                    "background only)", metavar="REF.mcap")
+    range_m: float | None = option(None, "the reflector's measured range, m (a tape is enough: it is refined within "
+                                   "1.5 range bins)")
+    angle_deg: float = option(0.0, "the reflector's angle, deg, positive towards receiver 2 (default 0: boresight)")
+    sensors: tuple[str, ...] | None = option(None, "calibrate this sensor (repeatable; default: every sensor of the "
+                                             "empty recording)", flag="--sensor", many="append", metavar="ID")
     radar: RadarConfig = RadarConfig()
-    force: bool = False  # write a calibration whose checks fail, and replace an existing out
+    # write a calibration whose checks fail, and replace an existing out
+    force: bool = option(False, f"write the calibration even when its checks say the inputs are wrong (a fit residual "
+                         f"above {MAX_RESIDUAL_DB:g} dB, the reflector fitted more than {MAX_RANGE_SHIFT_BINS:g} range "
+                         f"bin from --range-m, a return in the empty recording within {-MAX_EMPTY_RETURN_DB:g} dB of "
+                         "the reflector's), and replace an existing --out")
 
     def __post_init__(self) -> None:
         if self.reflector is not None and self.range_m is None:

@@ -19,6 +19,7 @@ from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
+from pipeline.keys import DERIVED_TOPICS
 from pipeline.wire import TOPICS
 
 from .mcapread import McapFile
@@ -74,7 +75,7 @@ def glob_escape(text: str) -> str:
 def _parts(topic: str) -> tuple[str | None, str | None]:
     """(sensor id, topic kind) of a qradar key ``<prefix>/<sensor>/<kind>``, else (None, None)."""
     bits = topic.rsplit("/", 2)
-    if len(bits) == 3 and bits[2] in TOPICS + ("pointcloud",):
+    if len(bits) == 3 and bits[2] in TOPICS + DERIVED_TOPICS:
         return bits[1], bits[2]
     return None, None
 

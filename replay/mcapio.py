@@ -1,10 +1,15 @@
 """MCAP files of qradar traffic: schemas, channels, writing, and recovery.
 
 One channel per zenoh key (``radar/<sensor>/<topic>``) with one schema per message type;
-binary frames use the message encoding ``qradar/wire-v1`` (schema data: the byte layout,
-docs/wire-formats.md), targets, tracks and health are ``json`` with a JSON schema. Targets also
-go to ``<prefix>/<sensor>/pointcloud`` as ``foxglove.PointCloud`` (JSON), so Foxglove
-shows them without plugins. Every chunk defines the channels of its messages again (MCAP
+binary frames use the message encoding ``qradar/wire-v1`` (schema data: their byte layout as
+JSON, :func:`frame_schema`), targets, tracks and health are ``json`` with a JSON schema made
+from the one definition of their fields (:mod:`pipeline.wire.fields`). Every schema comes
+from the package's code, so a recording's bytes do not depend on how qradar was installed.
+The recorder derives channels beside a sensor's messages (:data:`DERIVED`), so Foxglove
+shows them without plugins: ``<prefix>/<sensor>/pointcloud`` (``foxglove.PointCloud``, JSON:
+the targets), ``<prefix>/<sensor>/scene`` (``foxglove.SceneUpdate``, JSON: the tracks'
+and targets' uncertainty ellipses) and ``<prefix>/<sensor>/profile`` (``qradar.RangeProfile``:
+the range profile per receiver, for a Plot panel). Every chunk defines the channels of its messages again (MCAP
 allows identical channel records anywhere before their messages), so a damaged chunk in a
 file without a summary loses its own messages only.
 
@@ -23,7 +28,6 @@ MCAP without an index; ``qradar recover`` indexes it).
 
 from __future__ import annotations
 
-import base64
 import errno
 import json
 import os
@@ -36,91 +40,60 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer
 from mcap.writer import CompressionType, Writer
 
-from pipeline.wire import OPTIONAL_TARGET_FIELDS, TARGET_FIELDS, TOPICS, TRACK_FIELDS, TargetsMsg
+from pipeline.keys import DERIVED_TOPICS
+from pipeline.wire import COMMON_DTYPE, COMMON_FIELDS, QUANT_DTYPE, QUANT_EXT_FIELDS, TOPICS
+from pipeline.wire import MAGIC as FRAME_MAGIC
+from pipeline.wire.fields import HEALTH, PROFILE, TARGETS, TRACKS, json_schema
+from pipeline.wire.foxglove import POINTCLOUD_SCHEMA, SCENE_UPDATE_SCHEMA, pointcloud_json, profile_json, scene_json
 
 from .errors import RecordingExists, ReplayError, UnwritableMessage
 from .outputs import own_folder
 from .mcapcheck import MAGIC, METADATA_CRC_KEY, metadata_crc, read_summary, written_counts
 from .mcapread import DamagedChunk, McapFile
 
-__all__ = ["DamagedChunk", "McapFile", "McapSink", "pointcloud_json", "qradar_channels", "recover", "topic_of"]
+__all__ = ["DamagedChunk", "McapFile", "McapSink", "pointcloud_json", "profile_json", "qradar_channels", "recover",
+           "scene_json", "topic_of"]
 
 WIRE_ENCODING = "qradar/wire-v1"
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "wire-formats.md"
 
-#: JSON schema of the targets JSON (docs/wire-formats.md): MCAP channels and the Foxglove view
-TARGETS_SCHEMA = {
-    "type": "object", "title": "qradar.Targets",
-    "properties": {"version": {"type": "integer"}, "type": {"const": "targets"}, "sensor_id": {"type": "string"},
-                   "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
-                   "config_id": {"type": "integer"}, "algo": {"type": "string"}, "K": {"type": "integer"},
-                   "K_auto": {"type": "boolean"}, "source": {"type": "string"}, "published_ns": {"type": "integer"},
-                   "targets": {"type": "array", "items": {"type": "object", "properties": {
-                       f: {"type": "number"} for f in TARGET_FIELDS + OPTIONAL_TARGET_FIELDS},
-                       "required": list(TARGET_FIELDS)}}},
-    "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "targets"],
-}
-#: JSON schema of the tracks JSON (docs/wire-formats.md, pipeline.dsp.track)
-TRACKS_SCHEMA = {
-    "type": "object", "title": "qradar.Tracks",
-    "properties": {"version": {"type": "integer"}, "type": {"const": "tracks"}, "sensor_id": {"type": "string"},
-                   "seq": {"type": "integer"}, "timestamp_ns": {"type": "integer"},
-                   "published_ns": {"type": "integer"},
-                   "tracks": {"type": "array", "items": {"type": "object", "properties": {
-                       f: {"type": "integer" if f in ("track_id", "hits") else "boolean" if f == "static"
-                           else "number"} for f in TRACK_FIELDS},
-                       "required": list(TRACK_FIELDS)}}},
-    "required": ["version", "type", "sensor_id", "seq", "timestamp_ns", "published_ns", "tracks"],
-}
-_HEALTH_SCHEMA = {
-    "type": "object", "title": "qradar.Health",
-    "properties": {"version": {"type": "integer"}, "type": {"const": "health"}, "node": {"type": "string"},
-                   "sensor_id": {"type": "string"}, "timestamp_ns": {"type": "integer"},
-                   "frames_in": {"type": "integer"}, "frames_out": {"type": "integer"}, "drops": {"type": "integer"},
-                   "decode_errors": {"type": "integer"}, "latency_ms": {"type": "object"},
-                   "bytes_in_per_s": {"type": "number"}, "bytes_out_per_s": {"type": "number"},
-                   "extra": {"type": "object"}},
-    "required": ["version", "type", "node", "sensor_id", "timestamp_ns"],
-}
-# foxglove.PointCloud, JSON flavour (https://docs.foxglove.dev/docs/visualization/message-schemas/point-cloud)
-FOXGLOVE_POINTCLOUD_SCHEMA = {
-    "title": "foxglove.PointCloud", "type": "object",
-    "properties": {
-        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0},
-                                                        "nsec": {"type": "integer", "minimum": 0}}},
-        "frame_id": {"type": "string"},
-        "pose": {"type": "object", "properties": {
-            "position": {"type": "object", "properties": {a: {"type": "number"} for a in "xyz"}},
-            "orientation": {"type": "object", "properties": {a: {"type": "number"} for a in "xyzw"}}}},
-        "point_stride": {"type": "integer", "minimum": 0},
-        "fields": {"type": "array", "items": {"type": "object", "properties": {
-            "name": {"type": "string"}, "offset": {"type": "integer", "minimum": 0},
-            "type": {"type": "integer", "description": "foxglove.NumericType; 7 = FLOAT32"}}}},
-        "data": {"type": "string", "contentEncoding": "base64"},
-    },
-}
-FLOAT32 = 7  # foxglove.NumericType.FLOAT32
+#: JSON Schemas of the JSON channels, made from the one definition of their fields (pipeline.wire.fields)
+TARGETS_SCHEMA = json_schema(TARGETS)
+TRACKS_SCHEMA = json_schema(TRACKS)
+HEALTH_SCHEMA = json_schema(HEALTH)
+PROFILE_SCHEMA = json_schema(PROFILE)
+FOXGLOVE_POINTCLOUD_SCHEMA = POINTCLOUD_SCHEMA
+#: the channels the recorder derives from a sensor's messages, beside them: topic -> (schema name, JSON Schema)
+DERIVED = {"pointcloud": ("foxglove.PointCloud", POINTCLOUD_SCHEMA),
+           "scene": ("foxglove.SceneUpdate", SCENE_UPDATE_SCHEMA), "profile": (PROFILE.title, PROFILE_SCHEMA)}
+assert tuple(DERIVED) == DERIVED_TOPICS
+_JSON_SCHEMAS = {"targets": TARGETS_SCHEMA, "tracks": TRACKS_SCHEMA, "health": HEALTH_SCHEMA}
 
 
-def pointcloud_json(msg: TargetsMsg, frame_id: str = "radar") -> bytes:
-    """foxglove.PointCloud of the targets: fields x, y (m) and amplitude, float32 each."""
-    pts = np.array([[t["x_m"], t["y_m"], t["amplitude"]] for t in msg.targets], dtype="<f4").reshape(-1, 3)
-    obj = {
-        "timestamp": {"sec": msg.timestamp_ns // 1_000_000_000, "nsec": msg.timestamp_ns % 1_000_000_000},
-        "frame_id": frame_id,
-        "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
-        "point_stride": 12,
-        "fields": [{"name": "x", "offset": 0, "type": FLOAT32}, {"name": "y", "offset": 4, "type": FLOAT32},
-                   {"name": "amplitude", "offset": 8, "type": FLOAT32}],
-        "data": base64.b64encode(pts.tobytes()).decode("ascii"),
-    }
-    return json.dumps(obj, separators=(",", ":")).encode()
+def frame_schema(topic: str) -> tuple[str, bytes]:
+    """The schema (name, data) of the raw or quantized channels: their byte layout as JSON,
+    made from the frame layout table (pipeline.wire.frames.COMMON_FIELDS, QUANT_EXT_FIELDS;
+    docs/wire-formats.md says the same in prose): the header fields (name, offset, numpy
+    type) and what follows them."""
+    fields = COMMON_FIELDS + (QUANT_EXT_FIELDS if topic == "quantized" else ())
+    dtype = QUANT_DTYPE if topic == "quantized" else COMMON_DTYPE
+    header = [{"name": name, "offset": dtype.fields[name][1],
+               "type": np.dtype(dt).str if isinstance(dt, str) else f"{np.dtype(dt[0]).str}[{dt[1][0]}]"}
+              for name, _, dt in fields]
+    body = ("codes: bits bits each, most significant bit first, C order of (M, 2, 2) (measurement, antenna, "
+            "I/Q), the last byte zero-padded; a code c stands for delta * (c - 2**(bits - 1) + 1/2)"
+            if topic == "quantized" else "frame: (M, 2) complex64, little-endian, C order (measurement, antenna); "
+            "ADC full scale")
+    name = "qradar.QuantizedFrame" if topic == "quantized" else "qradar.RawFrame"
+    layout = {"encoding": WIRE_ENCODING, "byte_order": "little", "magic": FRAME_MAGIC.decode(),
+              "header_bytes": dtype.itemsize, "header": header, "body": body}
+    return name, json.dumps(layout, separators=(",", ":")).encode()
 
 
 def topic_of(key: str) -> str | None:
-    """``raw`` / ``quantized`` / ``targets`` / ``tracks`` / ``health`` / ``pointcloud`` of a qradar key, else None."""
+    """``raw`` / ``quantized`` / ``targets`` / ``tracks`` / ``health`` or a derived channel
+    (``pointcloud``, ``scene``, ``profile``) of a qradar key, else None."""
     last = key.rsplit("/", 1)[-1]
-    return last if last in TOPICS + ("pointcloud",) else None
+    return last if last in TOPICS or last in DERIVED else None
 
 
 def describe_os_error(exc: BaseException) -> str:
@@ -277,15 +250,11 @@ class McapSink:
     def _schema(self, topic: str) -> int:
         if topic not in self._schemas:
             if topic in ("raw", "quantized"):
-                name = "qradar.RawFrame" if topic == "raw" else "qradar.QuantizedFrame"
-                data = DOCS.read_bytes() if DOCS.exists() else b"qradar wire format v1"
+                name, data = frame_schema(topic)
                 sid = self.writer.register_schema(name, WIRE_ENCODING, data)
-            elif topic == "pointcloud":
-                sid = self.writer.register_schema("foxglove.PointCloud", "jsonschema",
-                                                  json.dumps(FOXGLOVE_POINTCLOUD_SCHEMA).encode())
             else:
-                schema = {"targets": TARGETS_SCHEMA, "tracks": TRACKS_SCHEMA}.get(topic, _HEALTH_SCHEMA)
-                sid = self.writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+                name, schema = DERIVED.get(topic) or (None, _JSON_SCHEMAS.get(topic, HEALTH_SCHEMA))
+                sid = self.writer.register_schema(name or schema["title"], "jsonschema", json.dumps(schema).encode())
             self._schemas[topic] = sid
         return self._schemas[topic]
 

@@ -1,5 +1,5 @@
 """The one policy of every command that writes an output (a recording, a results folder, a
-calibration, a capture, certificates): no existing output is replaced unless the command is
+calibration, a capture, certificates, figures): no existing output is replaced unless the command is
 given ``--force``, and no folder is made but the output's own, the folder its files go
 into, when that folder's parent exists (``--record out/lab.mcap`` makes ``out/``;
 ``--record /no/such/dir/x.mcap`` is refused in one line, never a chain of folders)."""
@@ -59,3 +59,14 @@ def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = 
             raise OutputExists(f"{folder} holds {', '.join(taken)} already: qradar replaces no output unless told "
                                f"({FORCE_HINT}, or choose another --out)")
     return own_folder(folder)
+
+
+def pyplot():
+    """matplotlib's pyplot on its file backend (Agg): the figures every command writes as
+    PNG, on a host without a display."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import zenoh
 
 from pipeline.bus.session import BusConfig
+from radar_driver.options import option, pos_float
 
 from .errors import NoQradarChannelsError, ReplayError
 from .mcapio import McapFile, qradar_channels
@@ -26,13 +27,18 @@ log = logging.getLogger("qradar.replay")
 
 @dataclass(frozen=True)
 class PlayConfig:
-    rate: float = 1.0
-    fast: bool = False
-    loop: bool = False
-    start_s: float | None = None
-    end_s: float | None = None
-    topics: str | None = None
-    prefix: str | None = None  # None: keep the recorded prefix
+    """How a recording plays: at ``rate`` times its pace, or ``fast``; once or in a
+    ``loop``; from ``start_s`` to ``end_s`` (s from its start); the channels of
+    ``topics``; under ``prefix`` (None: the recorded one)."""
+
+    rate: float = option(1.0, "speed factor of the original timing (default 1)", parse=pos_float)
+    fast: bool = option(False, "as fast as subscribers take it (publishers block, no drops)")
+    loop: bool = option(False, "play the file again from its start, until Ctrl-C")
+    start_s: float | None = option(None, "seconds from the start of the file", flag="--start")
+    end_s: float | None = option(None, "seconds from the start of the file", flag="--end")
+    topics: str | None = option(None, "key expression of the channels to play")
+    prefix: str | None = option(None, "publish under this key prefix instead of the recorded one (e.g. replay)",
+                                flag="--replay-prefix")
 
     def __post_init__(self) -> None:
         if not self.rate > 0:

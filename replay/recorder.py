@@ -52,7 +52,10 @@ from radar_driver.model import RadarConfig
 
 from .admission import Admission, RefusalCounts
 from .errors import RecordingExists, ReplayError, UnwritableMessage
-from .mcapio import MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, pointcloud_json, topic_of
+from pipeline.wire.shared import DecodedOnce
+
+from .derived import DerivedConfig, Derivations
+from .mcapio import DERIVED, MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, topic_of
 
 log = logging.getLogger("qradar.record")
 
@@ -80,8 +83,8 @@ DEAD_CHANNELS_MAX = 4096
 #: every sensor's counters), at most this old, s
 HEALTH_SUMMARY_S = 0.05
 #: a new file starts before this many channels (MCAP's channel ids are uint16); a batch
-#: adds at most two channels a message (a targets message and its pointcloud)
-FILE_CHANNELS_MAX = MAX_FILE_CHANNELS - 2 * 512
+#: adds at most three channels a message (a targets message, its pointcloud and its scene)
+FILE_CHANNELS_MAX = MAX_FILE_CHANNELS - 3 * 512
 
 
 class OnWriteError(str, Enum):
@@ -296,10 +299,10 @@ class RecordingFiles(ProcessingNode):
             self._sink = None
         lost = 0
         for topic, n in kept["lost_by_topic"].items():
-            if topic != "pointcloud":  # derived from a targets message, which is counted
+            if topic not in DERIVED:  # derived from a message, which is counted
                 self._lose(topic, n)
                 lost += n
-        self.written -= sum(n for topic, n in kept["flushed_lost_by_topic"].items() if topic != "pointcloud")
+        self.written -= sum(n for topic, n in kept["flushed_lost_by_topic"].items() if topic not in DERIVED)
         self.pending = 0
         if sink.removed:
             detail = f"; its {lost} messages are lost with it"
@@ -377,10 +380,10 @@ class RecordingFiles(ProcessingNode):
     def _flushed(self, sink: McapSink, check: FlushCheck) -> None:
         """What a flush read back: readable messages count as written; messages written and
         not read back are lost, and an error (logged, in health and the summary)."""
-        self.written += sum(n for topic, n in check.readable.items() if topic != "pointcloud")
+        self.written += sum(n for topic, n in check.readable.items() if topic not in DERIVED)
         self.pending = 0
         for topic, n in check.unreadable.items():
-            if topic != "pointcloud":
+            if topic not in DERIVED:
                 self._lose(topic, n)
         for problem in check.problems:
             self._verify_failed(f"{sink.path}: {problem}")
@@ -397,7 +400,9 @@ class RecorderNode(RecordingFiles):
     (:class:`RecordingFiles`: ``split_size_mb``, ``split_duration_s``, ``metadata``,
     ``on_write_error``, ``retry_s``, ``resume_free_mb``, ``new_name_if_taken``). ``radar``
     and ``max_ramps``: the announced configurations frames must have (the nodes'
-    defaults); ``max_dead_channels``: see the module docstring."""
+    defaults); ``max_dead_channels``: see the module docstring; ``derived``: the channels
+    written beside a sensor's messages (:mod:`replay.derived`: point clouds, scenes, range
+    profiles); ``decoded``: the process's JSON messages decoded once (pipeline.wire.shared)."""
 
     name = "record"
     role = "recorder"
@@ -407,12 +412,13 @@ class RecorderNode(RecordingFiles):
     def __init__(self, bus: BusConfig, path: str | Path, topics: str | None = None,
                  session: zenoh.Session | Transport | None = None, queue_size: int = 20000,
                  radar: RadarConfig | None = None, max_ramps: int = 16, max_dead_channels: int = DEAD_CHANNELS_MAX,
-                 **kw):
+                 derived: DerivedConfig = DerivedConfig(), decoded: DecodedOnce | None = None, **kw):
         kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
         super().__init__(bus, path, session, queue_size=queue_size, batch_max=512, **kw)
         if not (isinstance(max_dead_channels, int) and max_dead_channels >= 1):
             raise ReplayError(f"max_dead_channels={max_dead_channels!r} must be an integer >= 1")
-        self.admission = Admission(radar, max_ramps)
+        self.admission = Admission(radar, max_ramps, decoded)
+        self.derivations = Derivations(self.admission.configs, derived)  # the channels written beside (replay.derived)
         self.max_dead_channels = max_dead_channels
         self._dead_check_at = max_dead_channels  # the file's channel count at which dead ones are counted next
         self._recheck_channels = False  # sensors expired: count the file's dead channels again
@@ -446,6 +452,7 @@ class RecorderNode(RecordingFiles):
         dead at the worker's next look (called with _lock held)."""
         super().forget(sensor_id)
         self.refusals.retire(sensor_id)
+        self.derivations.forget(sensor_id)
         self._recheck_channels = True
 
     def refused(self) -> dict[str, int]:
@@ -484,9 +491,8 @@ class RecorderNode(RecordingFiles):
             try:
                 sink.write(item.key, item.payload, item.received_ns, a.publish_ns, a.sequence)
                 written = True
-                if a.targets is not None:
-                    sink.write(item.key.rsplit("/", 1)[0] + "/pointcloud", pointcloud_json(a.targets),
-                               item.received_ns, a.publish_ns, a.sequence)
+                for key, payload in self.derivations.of(item.key, a):
+                    sink.write(key, payload, item.received_ns, a.publish_ns, a.sequence)
             except OSError as exc:
                 if not written:  # else it is among the sink's unflushed messages, counted by _write_failed
                     self._lose(topic)
@@ -495,9 +501,9 @@ class RecorderNode(RecordingFiles):
                 self._write_failed(sink, exc)
                 continue
             except UnwritableMessage as exc:  # checked before: a check that missed is a bug, said so
-                if written:  # its pointcloud only: the targets message is in
+                if written:  # a derived message only: the message is in
                     self.pending += 1
-                    log.error("recorder: the pointcloud of %s: %s", item.key, exc)
+                    log.error("recorder: a channel derived from %s: %s", item.key, exc)
                 else:
                     self._refuse(sensors[a.index], f"refused_{exc.kind}" if exc.kind in ("time", "shape")
                                  else "refused_size")

@@ -29,14 +29,19 @@ from pipeline.dsp.track import TrackerConfig
 from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks, encode_targets_batch
 from radar_driver.model import RadarConfig, polar_to_xy
+from radar_driver.options import nonneg_int, option
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
-from .outputs import check_new_file, check_output_folder
+from .outputs import check_new_file, check_output_folder, pyplot
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
 log = logging.getLogger("qradar.reprocess")
+
+
+#: the alpha sweep of ``qradar reprocess`` unless told: start:stop:step
+DEFAULT_SWEEP = "0:1:0.05"
 
 
 def parse_alphas(text: str) -> np.ndarray:
@@ -253,9 +258,7 @@ def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
     """Fig. 5a: mean position error against alpha. One decoder: a curve per target and
     their mean; several: the mean of the targets, one curve per decoder (each target's
     curve dotted, in the decoder's colour), each decoder's best alpha marked."""
-    from replay.plots import _pyplot
-
-    plt = _pyplot()
+    plt = pyplot()
     first = next(iter(results.values()))
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
     if len(results) == 1:
@@ -308,9 +311,7 @@ def plot_reconstructions(result: SweepResult, path: Path) -> Path:
     """Mean estimated position of each target with its 2-sigma ellipse over the frames,
     alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. Lateral
     y (m) across, boresight x (m) up; the radar at (0, 0)."""
-    from replay.plots import _pyplot
-
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
     first = int(np.argmin(result.alphas))
     cases = [(result.best_index, "tab:blue", "-", "o"), (first, "tab:red", "--", "s")]
@@ -426,24 +427,28 @@ class ReprocessConfig:
     calibration: a ``qradar calibrate`` file whose front end is removed from the raw
     frames before they are quantized."""
 
-    file: Path
-    alphas: tuple[float, ...] = tuple(parse_alphas("0:1:0.05"))
+    file: Path = option(help="a qradar MCAP recording with raw frames", positional=True, required=True)
+    alphas: tuple[float, ...] = tuple(parse_alphas(DEFAULT_SWEEP))
     bits: int = 1
     k: int | None = None
-    algos: tuple[Algo, ...] = (DEFAULT_ALGO,)
-    seed: int = 0
-    sensor: str | None = None
-    truth: Path | None = None
-    out: Path = Path("out/reprocess")
-    mcap: Path | None = None
-    progress: bool = True
+    algos: tuple[Algo, ...] = option((DEFAULT_ALGO,), f"decoders, one alpha sweep and one curve each (default "
+                                     f"{DEFAULT_ALGO}); qiht decodes alpha = 0 with PBP (there is no dither to use)",
+                                     aliases=("--algo",), many="+", choices=tuple(a.value for a in Algo))
+    seed: int = option(0, "random seed (runs are reproducible for a seed)", parse=nonneg_int)
+    sensor: str | None = option(None, "sensor id (default: the first)")
+    truth: Path | None = option(None, "scene TOML with the true positions (real recordings)")
+    out: Path = option(Path("out/reprocess"), "folder for results.json and the plots")
+    mcap: Path | None = option(None, "also write the best alpha's targets to this MCAP")
+    progress: bool = option(True, "no progress bar", flag="--quiet", negate=True)
     auto_k: bool = False
     pfa: float = DEFAULT_PFA
     calibration: Path | None = None
     min_range_m: float | None = None
     max_range_m: float | None = None
     tracking: TrackerConfig | None = None  # tracks of the best (decoder, alpha)'s targets (pipeline.dsp.track)
-    force: bool = False  # replace the outputs (results.json, the plots, mcap) when they exist
+    # replace the outputs (results.json, the plots, mcap) when they exist
+    force: bool = option(False, "replace results.json, the plots and the --mcap file if it exists (without it: "
+                         "refused, nothing written)")
 
     def __post_init__(self) -> None:
         if not self.alphas or any(not 0.0 <= a <= 1.0 for a in self.alphas):

@@ -12,7 +12,7 @@ import pytest
 from pipeline.dsp.decode import DecoderConfig, decode
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import Detections, cfar_threshold, localize, match_detections, sequential_present
-from replay.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
+from experiments.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
 from pipeline.dsp.quantize import batch_unit_dither, dequantize, quantize
 from pipeline.wire import TargetsMsg, decode_targets
 from test_cml import measure, nearest_estimates, random_scenes

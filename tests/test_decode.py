@@ -6,7 +6,7 @@ import pytest
 from pipeline.dsp.decode import DecoderConfig, DitherUnavailable, consistency, decode, forward_ramps, qiht
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import back_project_ramps, localize, position_error_m
-from replay.montecarlo import MonteCarloConfig, draw_scenes, run_montecarlo
+from experiments.montecarlo import MonteCarloConfig, draw_scenes, run_montecarlo
 from pipeline.dsp.quantize import QuantizerConfig, auto_delta, batch_unit_dither, dequantize, quantize, quantize_frames
 from radar_driver.model import RadarConfig, sensing_matrix, simulate_frames
 
@@ -130,7 +130,7 @@ def test_cml_through_the_decode_entry_places_an_off_grid_target():
 
 
 def test_montecarlo_decodes_the_32bit_reference_with_the_same_decoder():
-    from replay.montecarlo import SceneSpec
+    from experiments.montecarlo import SceneSpec
 
     res = run_montecarlo(MonteCarloConfig(ks=(1,), runs=400, schemes=("dither_m512", "32bit_m512"),
                                           algos=("pbp", "cml"), scene=SceneSpec(ranges="continuous", max_angle_deg=60)),

@@ -8,7 +8,7 @@ import pytest
 from pipeline.dsp.decode import DecoderConfig, decode, ml_refine, ml_temperatures, qiht
 from pipeline.dsp.localize import back_project, back_project_ramps, detections_from_support, grid_statistic_db, \
     project_theta_k
-from replay.montecarlo import SceneSpec, draw_scenes
+from experiments.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, carrier, simulate_frames
 

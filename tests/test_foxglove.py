@@ -297,30 +297,96 @@ def test_view_config_and_endpoints_are_checked():
     assert BusConfig().prefix == "radar"
 
 
-def test_the_committed_layout_shows_topics_the_view_serves():
-    """docs/foxglove-layout.json (docs/stream.md: "Live view in Foxglove") names only topics and
-    frames the view serves for ``qradar run``'s sensor kmd2-0."""
-    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
-    panels = layout["configById"]
-    served = set(sensor_topics("radar", "kmd2-0").values()) | {
-        health_topic("radar", "kmd2-0", n) for n in ("source", "quantize", "localize", "recorder", "view")}
-    named = set()
-    for cfg in panels.values():
-        named |= set(cfg.get("topics", {}))
-        named |= {p["value"].split(".", 1)[0] for p in cfg.get("paths", [])}
-        named |= {cfg[k].split(".", 1)[0] for k in ("topicPath",) if k in cfg}
-        if "xAxisPath" in cfg:
-            named.add(cfg["xAxisPath"]["value"].split(".", 1)[0])
-    assert named and named <= served, named - served
-    assert {p.split("!", 1)[0] for p in panels} == {"3D", "Plot", "Table", "RawMessages"}
-    assert panels["3D!qradar"]["followTf"] == "world"
-    profile = panels["Plot!range_profile"]
-    assert profile["xAxisVal"] == "currentCustom" and profile["xAxisPath"]["value"].endswith("range_profile.range_m[:]")
-
+def _tab_panels(layout: dict) -> dict[str, list[str]]:
+    """The panels of each tab of the layout's Tab panel, by the tab's title."""
     def leaves(node):
         return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
 
-    assert sorted(leaves(layout["layout"])) == sorted(panels)
+    tab = layout["configById"][layout["layout"]]
+    return {t["title"]: leaves(t["layout"]) for t in tab["tabs"]}
+
+
+def _panel_paths(cfg: dict) -> list[str]:
+    return (list(cfg.get("topics", {})) + [p["value"] for p in cfg.get("paths", [])]
+            + [cfg[k] for k in ("topicPath",) if k in cfg]
+            + ([cfg["xAxisPath"]["value"]] if "xAxisPath" in cfg else []))
+
+
+def test_the_committed_layout_shows_topics_the_view_serves():
+    """docs/foxglove-layout.json (docs/stream.md: "Live view in Foxglove"): its tab "live" names
+    only topics and frames the view serves for ``qradar run``'s sensor kmd2-0 (its tab
+    "recording": test_a_run_recording_shows_itself_in_foxglove)."""
+    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    panels = layout["configById"]
+    tabs = _tab_panels(layout)
+    assert list(tabs) == ["live", "recording"]
+    served = set(sensor_topics("radar", "kmd2-0").values()) | {
+        health_topic("radar", "kmd2-0", n) for n in ("source", "quantize", "localize", "recorder", "view")}
+    named = {p.split(".", 1)[0] for pid in tabs["live"] for p in _panel_paths(panels[pid])}
+    assert named and named <= served, named - served
+    assert {p.split("!", 1)[0] for p in tabs["live"]} == {"3D", "Plot", "Table", "RawMessages"}
+    assert panels["3D!qradar"]["followTf"] == "world"
+    profile = panels["Plot!range_profile"]
+    assert profile["xAxisVal"] == "currentCustom" and profile["xAxisPath"]["value"].endswith("range_profile.range_m[:]")
+    assert sorted(tabs["live"] + tabs["recording"]) == sorted(p for p in panels if not p.startswith("Tab!"))
+
+
+def mcap_check(node: str, path: Path, tab: str | None = None) -> dict:
+    """tests/js/mcap_check.mjs on a recording (and the layout's panels of ``tab``): what
+    Foxglove's libraries read in it."""
+    args = [node, str(JS / "mcap_check.mjs"), str(path)]
+    if tab is not None:
+        args += ["--layout", str(ROOT / "docs" / "foxglove-layout.json"), "--tab", tab]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert proc.returncode == 0 and "error" not in out, (out.get("error"), proc.stderr[-2000:])
+    return out
+
+
+def test_a_run_recording_shows_itself_in_foxglove(node, tmp_path):
+    """A ``qradar run --track`` recording read by Foxglove's own libraries (@mcap/core, zstd,
+    @foxglove/schemas): every message of a Foxglove schema validates against Foxglove's
+    schema, every path of the layout's tab "recording" gives values (range profiles per
+    receiver against range, targets, tracks and their σ, health), the point cloud's points
+    are the targets and the scene's ellipses are the tracks' 1-σ circles."""
+    from pipeline.dsp.track import TrackerConfig
+
+    path = tmp_path / "run.mcap"
+    summary = run(RunConfig(duration_s=4.0, rate_hz=20.0, record=path, tracking=TrackerConfig()), live=None)
+    out = mcap_check(node, path, tab="recording")
+    topics = out["topics"]
+    schemas = {t: v["schemaName"] for t, v in topics.items()}
+    assert schemas == {f"radar/kmd2-0/{k}": v for k, v in {
+        "raw": "qradar.RawFrame", "quantized": "qradar.QuantizedFrame", "targets": "qradar.Targets",
+        "tracks": "qradar.Tracks", "health": "qradar.Health", "pointcloud": "foxglove.PointCloud",
+        "scene": "foxglove.SceneUpdate", "profile": "qradar.RangeProfile"}.items()}
+    assert all(v["invalid"] == 0 and not v["errors"] for v in topics.values()), {
+        t: v["errors"] for t, v in topics.items() if v["errors"]}
+    frames = summary["frames_targets"]
+    assert topics["radar/kmd2-0/pointcloud"]["messages"] == topics["radar/kmd2-0/scene"]["messages"] == frames >= 40
+    assert 4 <= topics["radar/kmd2-0/profile"]["messages"] <= 2 * 4.0 + 3  # at most 2 a second of sensor time
+    for p, got in out["paths"].items():  # every panel's topic decodes, and its paths give what the panel plots
+        assert got["messages"] > 0 and got["values"] > 0, (p, got)
+        if "." in p:  # a plotted path: numbers (a first track, confirmed after a few frames, not in every message)
+            wanted = 0.8 * got["messages"] if "targets[0]" in p or "profile" in p else 1
+            assert got["numbers"] >= wanted, (p, got)
+    # the first messages, as Foxglove decoded them
+    first = {t.rsplit("/", 1)[-1]: v["first"] for t, v in topics.items()}
+    prof = first["profile"]
+    assert len(prof["range_m"]) == len(prof["antenna1_db"]) == len(prof["antenna2_db"]) == 128
+    assert prof["range_m"][1] == pytest.approx(1.2)  # two 0.6 m bins a value
+    targets = first["targets"]["targets"]
+    assert [pt["range_m"] for pt in first["pointcloud"]["points"]] == pytest.approx([t["range_m"] for t in targets])
+    recorded = {json.loads(m.data)["seq"]: json.loads(m.data) for ch, m in McapFile(path).messages()
+                if ch.topic.endswith("/tracks")}
+    last = max(recorded)
+    assert recorded[last]["tracks"], "no confirmed track in the run: nothing to draw"
+    scenes = [json.loads(m.data) for ch, m in McapFile(path).messages() if ch.topic.endswith("/scene")]
+    ents = {e["id"]: e for e in scenes[-1]["entities"]}
+    for t in recorded[last]["tracks"]:
+        cyl = ents[f"track-{t['track_id']}"]["cylinders"][0]
+        assert cyl["size"]["x"] == cyl["size"]["y"] == pytest.approx(max(2 * t["sigma_m"], 0.2))
+        assert (cyl["pose"]["position"]["x"], cyl["pose"]["position"]["y"]) == (t["x_m"], t["y_m"])
 
 
 def test_tracks_as_a_scene_update_and_sensors_at_their_poses(node, bus, zenoh_session, tmp_path):

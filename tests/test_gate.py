@@ -16,7 +16,7 @@ from pipeline.dsp.cml import cml
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate
 from pipeline.dsp.localize import localize
-from replay.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
+from experiments.montecarlo import MonteCarloConfig, SceneSpec, draw_scenes, run_montecarlo
 from pipeline.nodes.stream import LocalizerConfig
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames

@@ -148,7 +148,7 @@ def test_2_k_auto_ghosts_show_up_in_the_runs_score():
 
 def test_2_reprocess_the_monte_carlo_and_the_api_score_the_same_way(tmp_path):
     import qradar as api
-    from replay.montecarlo import MonteCarloConfig, run_montecarlo
+    from experiments.montecarlo import MonteCarloConfig, run_montecarlo
 
     out = qradar("reprocess", ROOT / "recordings" / "chamber.mcap", "--alpha", "0.5", "--algos", "pbp",
                  "--out", tmp_path / "sweep", "--quiet")

@@ -84,7 +84,7 @@ def test_a_run_recording_and_its_split_set(track_recording):
         assert rec["lost"] == 0 and rec["verify_errors"] == 0 and rec["refused_shape"] == 0
         assert info["recovered"] is None and info["losses"]["damage"] == []
     kinds = {t["kind"] for i in infos for t in i["topics"]}
-    assert kinds == {"raw", "quantized", "targets", "tracks", "pointcloud", "health"}
+    assert kinds == {"raw", "quantized", "targets", "tracks", "pointcloud", "scene", "profile", "health"}
     # the last file ends the run: its counters count every message of the set
     assert sum(i["messages"] for i in infos) >= infos[-1]["losses"]["recorder"]["written"] > 0
     text = qradar("info", track_recording[0])

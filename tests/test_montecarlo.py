@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ParameterError
-from replay.montecarlo import (
+from experiments.montecarlo import (
     GRID_CELLS,
     CountSpec,
     MonteCarloConfig,

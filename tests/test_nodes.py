@@ -391,8 +391,9 @@ def test_a_node_and_a_driver_process_are_runnable_and_a_plain_object_is_not(bus)
     from pipeline.nodes.runtime import Runnable
     from pipeline.nodes.transport import MemoryTransport
     from qradar.run import DriverProcess
+    from qradar.sensors import SensorSpec
 
     node = QuantizeNode(bus, QuantizerConfig(), session=MemoryTransport())
-    driver = DriverProcess("/dev/null", "s1", None, 1, bus)  # not started: no process
+    driver = DriverProcess(SensorSpec("/dev/null", "s1", ramps=1), bus)  # not started: no process
     assert isinstance(node, Runnable) and isinstance(driver, Runnable)
     assert not isinstance(object(), Runnable)

@@ -29,15 +29,36 @@ def cmdline(pid: int) -> list[str]:
         return []
 
 
-def drivers_of(parent_pid: int) -> list[int]:
-    """Pids of the ``qradar drive`` processes started with ``--parent-pid parent_pid``."""
+def child_config(pid: int) -> dict:
+    """The ``--config-json`` a qradar child was started with ({} without one)."""
+    import json
+
+    cmd = cmdline(pid)
+    return json.loads(cmd[cmd.index("--config-json") + 1]) if "--config-json" in cmd else {}
+
+
+def parent_of(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def children_of(parent_pid: int, command: str | None = None) -> list[int]:
+    """Pids of the ``qradar`` processes (of ``command``, if given) whose parent is ``parent_pid``."""
     out = []
     for entry in os.listdir("/proc"):
-        if entry.isdigit():
+        if entry.isdigit() and parent_of(int(entry)) == parent_pid:
             cmd = cmdline(int(entry))
-            if "drive" in cmd and "--parent-pid" in cmd and cmd[cmd.index("--parent-pid") + 1] == str(parent_pid):
+            if "qradar" in cmd and (command is None or command in cmd[cmd.index("qradar") + 1:][:1]):
                 out.append(int(entry))
     return out
+
+
+def drivers_of(parent_pid: int) -> list[int]:
+    """Pids of the ``qradar drive`` processes ``parent_pid`` started (it hands each its
+    config, its own pid in it, as ``--config-json``)."""
+    return children_of(parent_pid, "drive")
 
 
 def alive(pid: int) -> bool:

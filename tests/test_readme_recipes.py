@@ -24,11 +24,18 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
 
-def recipe(name: str) -> list[str]:
-    """The command lines of README's block marked ``<!-- recipe: name -->`` (comments cut)."""
-    m = re.search(rf"<!-- recipe: {re.escape(name)} -->\n```sh\n(.*?)```", README.read_text(), re.S)
-    assert m, f"README.md has no recipe {name!r}"
+def recipe(name: str, page: Path = README) -> list[str]:
+    """The command lines of ``page``'s block marked ``<!-- recipe: name -->`` (comments cut)."""
+    m = re.search(rf"<!-- recipe: {re.escape(name)} -->\n```sh\n(.*?)```", page.read_text(), re.S)
+    assert m, f"{page.name} has no recipe {name!r}"
     return [re.sub(r"\s+#.*$", "", line).strip() for line in m.group(1).splitlines() if line.strip()]
+
+
+def lab_file(name: str) -> str:
+    """The TOML block of README marked ``<!-- lab: name -->``: a lab file (docs/lab.md)."""
+    m = re.search(rf"<!-- lab: {re.escape(name)} -->\n```toml\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no lab file {name!r}"
+    return m.group(1)
 
 
 def substitute(line: str, tmp: Path, ports: dict[str, int]) -> str:
@@ -88,10 +95,11 @@ def start_all(lines: list[str], t: Terminals, ports: dict[str, int]) -> None:
 
 @pytest.mark.slow
 def test_the_chain_by_hand_works_as_written(tmp_path):
+    """docs/stream.md's nodes by hand, a terminal each."""
     ports = {"7447": free_port()}
     t = Terminals(tmp_path)
     try:
-        start_all(recipe("chain"), t, ports)
+        start_all(recipe("chain", ROOT / "docs" / "stream.md"), t, ports)
         time.sleep(6.0)
         for command in ("record", "drive", "sim", "localize", "quantize", "router"):
             out, err = t.stop(command)
@@ -104,6 +112,44 @@ def test_the_chain_by_hand_works_as_written(tmp_path):
     topics = [ch.topic for ch, _ in McapFile(tmp_path / "out" / "lab.mcap").messages()]
     for topic in ("raw", "quantized", "targets"):
         assert topics.count(f"radar/lab1/{topic}") >= 40, (topic, len(topics))
+
+
+@pytest.mark.slow
+def test_the_fleet_up_works_as_written(tmp_path):
+    """``qradar sim`` and ``qradar up fleet.toml``: the README's fleet.toml's router, driver,
+    quantizer, localizer and recorder, each a process; Ctrl-C (SIGINT) ends them all."""
+    port = free_port()
+    (tmp_path / "out").mkdir()
+    (tmp_path / "fleet.toml").write_text(substitute(lab_file("fleet.toml"), tmp_path, {"7447": port})
+                                         .replace('"out/', f'"{tmp_path}/out/'))
+    lines = recipe("fleet")
+    assert [ln.split()[1] for ln in lines] == ["sim", "up"]
+    t = Terminals(tmp_path)
+    try:
+        start_all(lines[:1], t, {})
+        up = t.run(lines[1])
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and up.poll() is None and len(recorded(tmp_path / "out" / "lab.mcap")) < 150:
+            time.sleep(0.5)  # frames, not seconds: the recording holds 50 of each topic
+        up.send_signal(signal.SIGINT)
+        out, err = up.communicate(timeout=60)
+        t.stop("sim")
+    finally:
+        t.close()
+    assert up.returncode == 0 and "Traceback" not in err, err[-3000:]
+    nodes = json.loads(out.strip().splitlines()[-1])["up"]["nodes"]
+    assert set(nodes) == {"router", "record", "localize", "quantize", "driver lab1"}, nodes
+    topics = recorded(tmp_path / "out" / "lab.mcap")
+    for topic in ("raw", "quantized", "targets"):
+        assert topics.count(f"radar/lab1/{topic}") >= 40, (topic, len(topics))
+
+
+def recorded(path: Path) -> list[str]:
+    """The topics of a recording's messages so far ([] before its first chunk)."""
+    try:
+        return [ch.topic for ch, _ in McapFile(path).messages()]
+    except Exception:  # not there yet, or no chunk yet
+        return []
 
 
 @pytest.mark.slow
@@ -197,6 +243,7 @@ def test_the_chamber_recipe_works_as_written_on_a_simulated_sensor(workdir):
     asks for: the empty chamber, the reflector at 3.1 m, then the chamber."""
     (workdir / "measured.toml").write_text(truth_file("measured.toml"))
     lines = steps("chamber")
+    assert lines[-1] == "qradar run chamber.toml"
     scenes = ["--scene chamber --empty", "--scene chamber-reflector", None, "--scene chamber"]
     assert len(lines) == len(scenes)
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
@@ -206,6 +253,7 @@ def test_the_chamber_recipe_works_as_written_on_a_simulated_sensor(workdir):
             run_step(line, workdir)
             continue
         link = workdir / f"kmd2-{len(line)}"
+        (workdir / "chamber.toml").write_text(lab_file("chamber.toml").replace("/dev/ttyUSB0", str(link)))
         sim = subprocess.Popen(["bash", "-c", f"exec qradar sim {scene} --link {link} --hold-clock-when-late"],
                                cwd=workdir, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, text=True)
@@ -302,6 +350,7 @@ def test_the_chamber_recipe_on_the_simulated_sensor_works_as_written(workdir):
     uncalibrated runs say so; the calibration passes its checks; the calibrated run is the
     ideal sensor's."""
     (workdir / "measured.toml").write_text(truth_file("measured.toml"))
+    (workdir / "chamber.toml").write_text(lab_file("chamber.toml"))  # its sensor overridden on the command line
     lines = [ln.replace("/tmp/kmd2", str(workdir / "kmd2")) for ln in terminals_recipe("chamber-simulated")]
     assert [ln.split()[1] for ln in lines] == ["sim", "run", "sim", "run", "calibrate", "sim", "run"]
     assert "--empty" in lines[0] and "--scene chamber-reflector" in lines[2]

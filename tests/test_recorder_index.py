@@ -33,7 +33,7 @@ def test_the_documented_index_cost_holds_on_a_real_recording(tmp_path):
     bench.record_run(path, sensors=3, seconds=6)
     cost = bench.index_cost(path)
     print(cost)
-    assert cost["chunks"] >= 4 and cost["channels"] == 15  # raw, quantized, targets, pointcloud, health x 3
+    assert cost["chunks"] >= 4 and cost["channels"] == 18  # raw, quantized, targets, pointcloud, profile, health x 3
     channels, messages = cost["message_index_records_per_chunk"], cost["messages_per_chunk"]
     assert channels >= 10 and messages >= 100
     # in the file: exact record sizes (the averages per chunk are rounded to 0.1)

@@ -19,6 +19,7 @@ import subprocess
 import sys
 import time
 import tracemalloc
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,7 @@ from pipeline.wire import (HealthMsg, QuantizedFrameMsg, RawFrameMsg, TargetsMsg
 from radar_driver.model import RadarConfig
 from replay.admission import MAX_JSON_BYTES, REFUSED_KINDS
 from replay.errors import UnwritableMessage
-from replay.mcapio import McapFile, McapSink
+from replay.mcapio import DERIVED, McapFile, McapSink, topic_of
 from replay.player import PlayConfig, play
 from replay.recorder import DEAD_CHANNELS_MAX, RecorderNode
 from replay.reprocess import load_raw
@@ -149,9 +150,12 @@ def test_each_kind_of_bad_message_between_good_ones_is_refused_and_every_good_on
     want_by_key: dict[str, list[bytes]] = {}
     for key, payload in good:
         want_by_key.setdefault(key, []).append(payload)
-    pointclouds = got.pop("radar/s0/pointcloud")
+    derived = {key: got.pop(key) for key in list(got) if topic_of(key) in DERIVED}  # written beside (replay.derived)
     assert got == want_by_key
-    assert len(pointclouds) == len(want_by_key["radar/s0/targets"])
+    assert len(derived["radar/s0/pointcloud"]) == len(want_by_key["radar/s0/targets"])
+    # a profile of the quantized frames, a scene of the tracks
+    assert set(derived) == {"radar/s0/pointcloud", "radar/s0/profile", "radar/s0/scene"}
+    pointclouds = [m for msgs in derived.values() for m in msgs]
     # the summary's statistics, mcap's own reader with CRCs checked and the recorder agree
     with open(path, "rb") as fh:
         reader = make_reader(fh, validate_crcs=True)
@@ -387,8 +391,11 @@ def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_
     assert peak - heaps[0] > 20 * 2**20, "the ids' state was never there at once: the test measures nothing"
     assert len(rec.paths) >= rounds - 1  # the files rolled over as expired ids' channels piled up
     assert max(heaps) - min(heaps) < 5 * 2**20, mb
-    total = sum(McapFile(p).scan() for p in rec.paths)
-    assert total == sent and rec.summary()["lost"] == 0
+    by_topic = Counter(ch.topic.rsplit("/", 1)[-1] for p in rec.paths for ch, _ in McapFile(p).messages())
+    assert by_topic["quantized"] == sent and rec.summary()["lost"] == 0
+    # a range profile of an id's first frame while the recorder's budget of them allows (replay.derived), no more
+    assert set(by_topic) == {"quantized", "profile"} and 0 < by_topic["profile"] < sent / 2
+    assert by_topic["profile"] + rec.derivations.profiles_skipped == sent
 
 
 # -- the measured scenarios, end to end ----------------------------------------------------------
@@ -416,7 +423,7 @@ def check_run_recording(summary: dict, path: Path, frames: int, forged: int) -> 
     with open(path, "rb") as fh:
         reader = make_reader(fh, validate_crcs=True)
         assert sum(1 for _ in reader.iter_messages()) == reader.get_summary().statistics.message_count == f.read
-    assert rec["written"] == f.read - len(by_topic["pointcloud"])
+    assert rec["written"] == f.read - sum(len(by_topic.get(t, [])) for t in DERIVED)
 
 
 def run_with_forged_health(tmp_path: Path, run_args: list[str], connect, n: int, pause_s: float) -> dict:

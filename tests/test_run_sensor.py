@@ -325,7 +325,7 @@ def test_the_monitor_without_truth_shows_targets_rate_and_losses():
     for seq in (0, 1, 2, 5):  # 3 and 4 never came
         mon.on_message("radar/lab1/targets", TargetsMsg("lab1", seq, t0 + seq * 50_000_000, 7, "cml", 1, "quantized",
                                                         tg, t0 + seq * 50_000_000 + 1).to_json())
-        mon._sensor["lab1"][0] -= 1.0  # a second has gone by: a live line each
+        mon._sensor["lab1"].line_s -= 1.0  # a second has gone by: a live line each
     lines = live.getvalue().splitlines()
     assert len(lines) == 4 and all("truth" not in ln and "error" not in ln for ln in lines)
     assert lines[0] == "lab1 #0     targets (  4.9 m,  -20.0°)   3 lost   uncalibrated"  # no rate from one frame

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from test_orphans import alive, cmdline, drivers_of, kill_all, wait_for
+from test_orphans import alive, child_config, drivers_of, kill_all, wait_for
 
 
 def start_run(tmp_path, *extra) -> subprocess.Popen:
@@ -85,7 +85,7 @@ def frozen_sensor_run(tmp_path):
         proc = start_run(tmp_path, "--json", "--sensor", f"{link},id=kmd2-0")
         wait_for_targets(proc, proc.stderr)
         drivers = drivers_of(proc.pid)
-        sock = next(a for d in drivers for a in cmdline(d) if a.startswith("unixsock-stream/"))
+        sock = next(a for d in drivers for a in child_config(d)["zenoh"]["connect"] if a.startswith("unixsock-stream/"))
         run_dir = Path(sock.removeprefix("unixsock-stream/")).parent
         assert drivers and run_dir.is_dir()
         os.kill(sim.pid, signal.SIGSTOP)  # the sensor hangs

@@ -11,11 +11,40 @@ from pathlib import Path
 import pytest
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range of ports for outgoing connections (and for bind to port 0)."""
+    try:
+        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(lo), int(hi)
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
+_HANDED_OUT: set[int] = set()  # this process's ports: never handed out twice
+_PORT_LOCK = threading.Lock()
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port on ``host`` that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+    """A TCP port on ``host`` that was free a moment ago, outside the kernel's ephemeral
+    range (so no outgoing connection of this or another test takes it before its owner
+    listens), never one this process handed out before, and spread by pid so parallel test
+    workers draw from different places. At most 2000 candidates are tried."""
+    lo, hi = _ephemeral_range()
+    pool = [p for p in range(10000, 32768) if not lo <= p <= hi] or list(range(lo, hi + 1))
+    start = (os.getpid() * 7919 + int(time.monotonic_ns() // 1000)) % len(pool)
+    with _PORT_LOCK:
+        for i in range(min(2000, len(pool))):
+            port = pool[(start + i * 131) % len(pool)]
+            if port in _HANDED_OUT:
+                continue
+            with socket.socket() as s:
+                try:
+                    s.bind((host, port))
+                except OSError:
+                    continue
+            _HANDED_OUT.add(port)
+            return port
+    pytest.fail("no free port found among 2000 candidates", pytrace=False)
 
 
 def wait_until(pred, timeout_s=20.0, what="condition", poll_s=0.05):

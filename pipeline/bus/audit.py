@@ -420,10 +420,34 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 # -- the process's audit -----------------------------------------------------------------------------
-_active: AuditLog | None = None
-_capture: _Capture | None = None
-_ticker: threading.Thread | None = None
-_stop = threading.Event()
+class ProcessAudit:
+    """The audit of this process while it is on: its log (the counts), the capture of
+    descriptor 1 that feeds it, and the thread that writes its summaries every 0.25 s, each
+    owned here and ended by :meth:`stop`."""
+
+    def __init__(self, log: AuditLog, capture: _Capture):
+        self.log, self.capture = log, capture
+        self._stopped = threading.Event()
+        self._ticker = threading.Thread(target=self._tick, name="audit", daemon=True)
+        self._ticker.start()
+
+    def _tick(self) -> None:
+        while not self._stopped.wait(0.25):
+            self.log.resolve_pending()
+            self.log.report()
+
+    def stop(self, timeout_s: float) -> dict[str, int]:
+        self._stopped.set()
+        self.capture.close(timeout_s)
+        self._ticker.join(timeout_s)
+        self.log.resolve_pending()
+        self.log.report(final=True)
+        return self.log.counts()
+
+
+#: zenoh's log is the process's (zenoh.init_log_* takes effect once) and its capture holds
+#: descriptor 1: one audit a process, set by start() and cleared by stop() (tests/test_layering.py)
+_active: ProcessAudit | None = None
 _start_lock = threading.Lock()
 
 
@@ -438,10 +462,10 @@ def start(name: str, stream: TextIO | None = None, interval_s: float = INTERVAL_
     client checks the name), which the policy lets send everything, so nothing there can
     be denied and zenoh's TRACE line for every message would be paid for nothing; refused
     handshakes (none without a listener) and unlisted identities are still watched."""
-    global _active, _capture, _ticker
+    global _active
     with _start_lock:
         if _active is not None:
-            return _active
+            return _active.log
         import zenoh  # here: the counting half needs no zenoh
 
         log = AuditLog(name, stream if stream is not None else sys.stderr, interval_s=interval_s)
@@ -460,49 +484,38 @@ def start(name: str, stream: TextIO | None = None, interval_s: float = INTERVAL_
         finally:
             if saved is not None:
                 os.environ["RUST_LOG"] = saved
-        _active, _capture = log, capture
-        _stop.clear()
-        _ticker = threading.Thread(target=_tick, name="audit", daemon=True)
-        _ticker.start()
+        _active = ProcessAudit(log, capture)
         atexit.register(stop)
         return log
 
 
-def _tick() -> None:
-    while not _stop.wait(0.25):
-        log = _active
-        if log is None:
-            return
-        log.resolve_pending()
-        log.report()
-
-
 def active() -> AuditLog | None:
     """This process's audit, if :func:`start` turned it on."""
-    return _active
+    audit = _active
+    return None if audit is None else audit.log
 
 
 def stdout_fd() -> int:
     """The descriptor of the real stdout (1, unless the audit holds 1 for zenoh's log): for
     a write that must not wait for the reader (before ``os._exit``)."""
-    capture = _capture
-    return 1 if capture is None else capture.real
+    audit = _active
+    return 1 if audit is None else audit.capture.real
 
 
 def counts() -> dict[str, int] | None:
-    log = _active
+    log = active()
     return None if log is None else log.counts()
 
 
 def health(extra: dict) -> dict:
     """A node's health ``extra`` with ``"audit"``: the counts, while the audit is on."""
-    log = _active
+    log = active()
     return extra if log is None else {**extra, "audit": log.counts()}
 
 
 def summary() -> dict:
     """``{"audit": counts}`` for a command's summary while the audit is on, else {}."""
-    log = _active
+    log = active()
     return {} if log is None else {"audit": log.counts()}
 
 
@@ -526,7 +539,7 @@ def admin_links(session, remote: str = "*") -> list[dict]:
 def attach(session) -> None:
     """Look up, in ``session``'s admin space, the common names of the sessions that
     matched no subject of the policy (zenoh logs only their zenoh id)."""
-    log = _active
+    log = active()
     if log is None:
         return
 
@@ -557,15 +570,7 @@ def finish() -> dict:
 def stop(timeout_s: float = 5.0) -> dict[str, int] | None:
     """The audit's end (after the sessions closed): the pipe drained, the last
     summaries written, the counts returned. Safe to call twice (also called at exit)."""
-    global _active, _capture
+    global _active
     with _start_lock:
-        log, capture = _active, _capture
-        if log is None:
-            return None
-        _stop.set()
-        if capture is not None:
-            capture.close(timeout_s)
-        log.resolve_pending()
-        log.report(final=True)
-        _active, _capture = None, None
-        return log.counts()
+        audit, _active = _active, None
+        return None if audit is None else audit.stop(timeout_s)

@@ -32,6 +32,7 @@ from pathlib import Path
 import zenoh
 
 from radar_driver.limits import SENSOR_ID_CHARS
+from radar_driver.options import option
 
 from pipeline.bus import audit, router_check
 from pipeline.errors import BusError, ParameterError
@@ -54,11 +55,13 @@ _DEFAULT_ENDPOINTS = {key: zenoh.Config().get_json(key) for key in ("listen/endp
 class BusConfig:
     """mode: "peer", "client" or "router". prefix: the first key chunk (default radar)."""
 
-    mode: str = "peer"
-    connect: tuple[str, ...] = ()
-    listen: tuple[str, ...] = ()
-    config_file: Path | None = None
-    prefix: str = "radar"
+    mode: str = option("peer", "zenoh mode", choices=("peer", "client"))
+    connect: tuple[str, ...] = option((), "e.g. tcp/127.0.0.1:7447 (with --secure: tls/HOST:PORT)", many="append",
+                                      metavar="ENDPOINT")
+    listen: tuple[str, ...] = option((), "e.g. tcp/127.0.0.1:7447; none by default (nothing listens unless asked, "
+                                     "here or in --zenoh-config)", many="append", metavar="ENDPOINT")
+    config_file: Path | None = option(None, "zenoh JSON5 config file", flag="--zenoh-config")
+    prefix: str = option("radar", "key prefix (default radar)")
     multicast_scouting: bool = False
     secure: SecureConfig | None = None
     #: zenoh's shared-memory transport; off: with it (zenoh's default) each new publisher

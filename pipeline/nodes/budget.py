@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pipeline.errors import ParameterError
+from radar_driver.options import nonneg_float, option
 
 #: defaults (see the module's docstring): 5 x a K-MD2's 20 frames/s; 64 MB/s (a 1 MB range-Doppler
 #: cube at 64 frames/s); one second
@@ -41,10 +42,15 @@ class IntakeBudget:
     per key; burst_s: seconds of budget a bucket holds; new_sensors_per_s, new_sensors_burst:
     admission of sensor ids the node has no state for. 0 turns a budget off."""
 
-    rate_hz: float = DEFAULT_RATE_HZ
-    bytes_per_s: float = DEFAULT_BYTES_PER_S
+    rate_hz: float = option(DEFAULT_RATE_HZ, f"messages a second per key <prefix>/<sensor>/<topic> (default "
+                            f"{DEFAULT_RATE_HZ:g}: 5 x a K-MD2's 20 frames/s), with a burst of one second",
+                            flag="--budget-rate", metavar="HZ", parse=nonneg_float)
+    bytes_per_s: float = option(DEFAULT_BYTES_PER_S, "payload megabytes a second per key", flag="--budget-mb",
+                                metavar="MB", parse=nonneg_float, scale=1e6)
     burst_s: float = DEFAULT_BURST_S
-    new_sensors_per_s: float = DEFAULT_NEW_SENSORS_PER_S
+    new_sensors_per_s: float = option(DEFAULT_NEW_SENSORS_PER_S, f"new sensor ids admitted a second (after a burst "
+                                      f"of {DEFAULT_NEW_SENSORS_BURST}); the frames of ids not admitted count as "
+                                      "refused", flag="--admit-rate", metavar="N", parse=nonneg_float)
     new_sensors_burst: int = DEFAULT_NEW_SENSORS_BURST
 
     def __post_init__(self) -> None:

@@ -28,11 +28,12 @@ ids that are not valid key chunks (``*``, ``$*``, ...) never get state, health o
 from __future__ import annotations
 
 import logging
-import struct
 import time
 from dataclasses import dataclass
 
 import zenoh
+
+from radar_driver.options import nonneg_float, option, pos_float, pos_int
 
 from pipeline.nodes.budget import IntakeBudget, TokenBucket
 from pipeline.bus.session import BusConfig, Shard, check_sensor_pattern, pattern_chunk
@@ -41,16 +42,16 @@ from pipeline.errors import ParameterError, WireError
 from pipeline.nodes.fairqueue import FairQueue
 from pipeline.nodes.runtime import DEFAULT_SENSOR_EXPIRY_S, Node
 from pipeline.nodes.transport import PullSubscriber, Sample, Transport, TransportError
-from pipeline.wire import HEADER_LEN, MAGIC, TOPICS, check_sensor_id
+from pipeline.wire import TOPICS, check_sensor_id, peek_seq
 
 log = logging.getLogger("qradar.node")
 
 #: the unknown senders' aggregate gets this many times a key's budget, per topic
 UNKNOWN_BUDGET_SCALE = 100
-SEQ = struct.Struct("<Q")
-SEQ_OFFSET = 8  # of the uint64 sequence number in the common frame header
+#: frames waiting in a processing node's queue, in all and of one sensor; payload bytes in all
+DEFAULT_QUEUE_SIZE = 8192
 DEFAULT_SENSOR_QUEUE = 128
-DEFAULT_QUEUE_BYTES = 64 << 20
+DEFAULT_QUEUE_BYTES = 64_000_000
 #: the most keys whose classification (sensor id, served or not) a node remembers
 KEY_CACHE_SIZE = 8192
 #: how a processing node's worker gets its input: is handed each message by zenoh's callback
@@ -65,6 +66,53 @@ POLL_S = 0.0005
 IDLE_POLL_S = 0.002
 #: on_idle() is called when no message came for this long (s)
 IDLE_S = 0.1
+
+
+@dataclass(frozen=True)
+class QueueConfig:
+    """A processing node's input queue and per-sensor state (the keyword arguments of
+    :class:`ProcessingNode`, :meth:`node_kwargs`): frames and bytes waiting, of one
+    sensor and in all, how long a silent sensor is remembered, how long a worker waits
+    for a full batch, and how its input arrives."""
+
+    queue_size: int = option(DEFAULT_QUEUE_SIZE, "frames waiting, in all (the bytes bound --queue-mb holds too)",
+                             flag="--queue", parse=pos_int)
+    sensor_queue_size: int = option(DEFAULT_SENSOR_QUEUE, "frames waiting of one sensor (a flooding sensor loses its "
+                                    "own frames beyond this)", flag="--sensor-queue", parse=pos_int)
+    queue_bytes: int = option(DEFAULT_QUEUE_BYTES, "payload megabytes waiting, in all", flag="--queue-mb",
+                              parse=pos_float, scale=1e6, kinds=frozenset({"int", "float"}))
+    sensor_expiry_s: float = option(DEFAULT_SENSOR_EXPIRY_S, "forget a sensor silent this many seconds (its counters "
+                                    "stay in the totals)", flag="--sensor-expiry", parse=pos_float)
+    batch_linger_s: float | None = option(
+        None, "once a frame waits, wait up to MS ms for a full batch while frames keep coming (default 2): longer "
+        "saves CPU on a busy host (a call costs ~1 ms however few its frames) but adds latency",
+        flag="--batch-linger", metavar="MS", parse=nonneg_float, scale=1e-3)
+    input_mode: str = option("callback", "callback: zenoh's callback thread hands over each message (default); pull: "
+                             "the worker drains zenoh's FIFO of up to 1024 messages itself, saving the GIL changing "
+                             "hands per message (at 450 sensors 69 %% of a core against 81 %%), but a full FIFO makes "
+                             "zenoh wait: for a node with its process to itself", flag="--input", choices=INPUT_MODES)
+
+    def node_kwargs(self) -> dict:
+        """The keyword arguments of a ProcessingNode (a sensor's queue at most the whole)."""
+        return {"queue_size": self.queue_size, "sensor_queue_size": min(self.sensor_queue_size, self.queue_size),
+                "queue_bytes": int(self.queue_bytes), "sensor_expiry_s": self.sensor_expiry_s,
+                "batch_linger_s": self.batch_linger_s, "input_mode": self.input_mode}
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """Which sensors a processing node serves: a key chunk with ``*`` wildcards, and a
+    shard ``I/N`` (the sensors with crc32(id) mod N == I)."""
+
+    sensors: str = option("*", "only the sensors whose id matches this key chunk, e.g. 'b1*' (zenoh filters the "
+                          "others before they reach this process; default *)", metavar="PATTERN",
+                          parse=check_sensor_pattern)
+    shard: str | None = option(None, "only the sensors with crc32(id) mod N == I: N processes with 0/N .. N-1/N "
+                               "serve each sensor exactly once (the others' frames still arrive and are dropped "
+                               "unread)", metavar="I/N", parse=lambda text: str(Shard.parse(text)))
+
+    def node_kwargs(self) -> dict:
+        return {"sensors": self.sensors, "shard": None if self.shard is None else Shard.parse(self.shard)}
 
 
 @dataclass(slots=True)
@@ -105,7 +153,7 @@ class ProcessingNode(Node):
     #: a lull this long without a new frame ends the wait for a full batch (s)
     batch_lull_s: float = 0.001
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None, queue_size: int = 8192,
+    def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None, queue_size: int = DEFAULT_QUEUE_SIZE,
                  batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
                  queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
                  sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None,
@@ -163,6 +211,17 @@ class ProcessingNode(Node):
         if self._subscriber is not None:  # a pulling worker then drains what zenoh holds, and ends
             self._subscriber.undeclare()
             self._subscriber = None
+
+    def _workers_ended(self) -> None:
+        """A frame a callback still in flight queued after the worker finished is counted
+        in its sensor's drops (received, never processed), not left unaccounted."""
+        late = self._queue.get_batch(len(self._queue) + 1, 0.0) if not self._queue.empty() else []
+        for item in late:
+            with self._lock:
+                self.sensor_stats(item.sensor).drops += 1
+        if late:
+            self.log_limited("drops", "%s: %d frames arrived as it stopped, not processed (counted in drops)",
+                             self.name, len(late))
 
     def _drain(self) -> int:
         """Pull input: move the messages zenoh holds into the fair queue (at most its FIFO's
@@ -300,8 +359,9 @@ class ProcessingNode(Node):
             st = self.sensor_stats(sensor)  # the same, unless it expired meanwhile
             if not health:  # nor keeps one alive: else a sensor seen once by a recorder never expires
                 st.last_seen = now
-            if sensor != NO_SENSOR and len(payload) >= HEADER_LEN and payload[:4] == MAGIC:
-                st.note_seq(topic, SEQ.unpack_from(payload, SEQ_OFFSET)[0], now, self.intake.rate_hz)
+            seq = peek_seq(payload) if sensor != NO_SENSOR else None
+            if seq is not None:
+                st.note_seq(topic, seq, now, self.intake.rate_hz)
         for victim in self._queue.put(sensor, QueuedFrame(sensor, key, payload, time.time_ns()), n):
             with self._lock:
                 self.sensor_stats(victim).drops += 1
@@ -309,8 +369,9 @@ class ProcessingNode(Node):
                              self.name, victim or key)
 
     def _work_loop(self) -> None:
-        # after stop, drain what was queued before the subscriber went away
-        while not (self._stop.is_set() and self._queue.empty()):
+        # after stop, drain what was queued before the subscriber went away (its undeclare
+        # comes just after stop is set: a sample may still be queued until then)
+        while not (self._stop.is_set() and self._subscriber is None and self._queue.empty()):
             batch = self._queue.get_batch(self.batch_max, 0.1, self.batch_per_sensor, self.batch_linger_s,
                                          self.batch_lull_s)
             if not batch:

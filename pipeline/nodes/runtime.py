@@ -32,7 +32,8 @@ from pipeline.nodes.counters import HEALTH_SLICES, NO_SENSOR, UNKNOWN_SENSOR, Co
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.memory import release_memory
 from pipeline.nodes.transport import Declared, Publisher, Transport, TransportError, ZenohTransport, as_transport
-from pipeline.wire import HealthMsg, check_sensor_id, forget_sensor_id
+from pipeline.keys import TOPICS
+from pipeline.wire import HealthMsg, check_sensor_id
 
 log = logging.getLogger("qradar.node")
 
@@ -45,6 +46,32 @@ DEFAULT_SENSOR_EXPIRY_S = 60.0
 #: hands the heap's free memory back to the system (pipeline.nodes.memory.release_memory)
 TRIM_AFTER_SENSORS = 64
 
+
+
+class KeyMemory:
+    """A node's keys ``<prefix>/<sensor>/<topic>``: each sensor id checked the first time
+    it is put on (a WireError, never a key, for an id that is not a plain key chunk), not
+    at every put; at most ``limit`` keys, a sensor's forgotten with it."""
+
+    def __init__(self, bus: BusConfig, limit: int):
+        self.bus, self.limit = bus, limit
+        self._keys: dict[tuple[str, str], str] = {}
+        self._held = 0  # the most keys held since the dict was last made anew
+
+    def key(self, sensor_id: str, topic: str) -> str:
+        key = self._keys.get((sensor_id, topic))
+        if key is None:
+            if len(self._keys) >= self.limit:  # keys of many sensors: bounded
+                self._keys.clear()
+            key = self._keys[(sensor_id, topic)] = self.bus.key(check_sensor_id(sensor_id), topic)
+            self._held = max(self._held, len(self._keys))
+        return key
+
+    def forget(self, sensor_id: str) -> None:
+        for topic in TOPICS:
+            self._keys.pop((sensor_id, topic), None)
+        if len(self._keys) * 4 < self._held:  # a dict never shrinks as it empties: made anew
+            self._keys, self._held = dict(self._keys), len(self._keys)
 
 class Node(Counters):
     """Base of every node: transport, liveliness, health, publishers, statistics.
@@ -83,6 +110,7 @@ class Node(Counters):
         # under --secure: this node's identity, whose rights say which keys the router lets it put on
         self._identity = None if bus.secure is None else bus.secure.policy.get(bus.secure.identity)
         self._may_put: dict[tuple[str, str], bool] = {}  # (sensor, topic) -> the policy lets the identity put there
+        self._keys = KeyMemory(bus, 4 * MAX_PUBLISHERS)  # the keys it puts on, each sensor id checked once
         self._told_denied = False
 
     # -- life cycle -----------------------------------------------------------------------
@@ -138,6 +166,8 @@ class Node(Counters):
         for t in self._threads:
             t.join(timeout_s)
         busy = [t.name for t in self._threads if t.is_alive()]
+        if not busy:
+            self._workers_ended()
         self._publish_health()  # last counters
         self.log_summary()
         if busy:  # a worker still in a batch may be putting on a publisher: undeclaring it under the
@@ -157,6 +187,9 @@ class Node(Counters):
     def _stopping(self) -> None:
         """Subclass hook, called once stop is requested."""
 
+    def _workers_ended(self) -> None:
+        """Subclass hook, called once the node's threads have ended (after :meth:`_stopping`)."""
+
     def __enter__(self):
         return self.start()
 
@@ -175,22 +208,21 @@ class Node(Counters):
         pubs = self._publishers.get(sensor_id)
         pub = None if pubs is None else pubs.get(topic)
         if pub is None:
-            key = self.bus.key(check_sensor_id(sensor_id), topic)
-            pub = self.transport.declare_publisher(key, encoding, drop=topic == "health")
+            pub = self.transport.declare_publisher(self._keys.key(sensor_id, topic), encoding, drop=topic == "health")
             with self._lock:
                 self._publishers.setdefault(sensor_id, {})[topic] = pub
                 self._n_publishers += 1
         return pub
 
     def _denied(self, sensor_id: str, topic: str) -> bool:
-        """Under --secure, whether the access policy denies this node's identity putting on
-        the key (the router would drop the message unseen): then the message is not sent,
-        it is counted in the sensor's ``denied_puts``, and the first one says so in one line."""
+        """Under --secure, whether the access policy denies this node's identity putting on the key
+        (the router would drop it unseen): then it is not sent, counted in the sensor's ``denied_puts``."""
         ident = self._identity
         if ident is None:
             return False
         allowed = self._may_put.get((sensor_id, topic))
         if allowed is None:
+            self._keys.key(sensor_id, topic)  # the id checked (a WireError) before it has a count
             if len(self._may_put) >= 4 * MAX_PUBLISHERS:  # keys of many sensors: bounded
                 self._may_put.clear()
             allowed = self._may_put[(sensor_id, topic)] = ident.may_publish(self.bus.prefix, sensor_id, topic)
@@ -215,7 +247,7 @@ class Node(Counters):
         publisher costs more the more a session holds (0.16 ms each at 1 000, 3.5 ms at
         5 000, on 127.0.0.1 through a router): a crowd of new ids with one frame each would
         stall the node for seconds; their puts cost ~9 us instead."""
-        if self._identity is not None and self._denied(check_sensor_id(sensor_id), topic):
+        if self._identity is not None and self._denied(sensor_id, topic):
             return False
         pubs = self._publishers.get(sensor_id)
         pub = None if pubs is None else pubs.get(topic)
@@ -227,7 +259,7 @@ class Node(Counters):
         if pub is not None:
             pub.put(payload)
             return True
-        self.transport.put(self.bus.key(check_sensor_id(sensor_id), topic), payload, encoding, drop=topic == "health")
+        self.transport.put(self._keys.key(sensor_id, topic), payload, encoding, drop=topic == "health")
         return True
 
     def publish(self, sensor_id: str, topic: str, payload: bytes, encoding: str) -> None:
@@ -300,7 +332,7 @@ class Node(Counters):
                 self._n_publishers -= len(gone)
                 self._retiring.extend(gone.values())
                 self.sensors_expired += 1
-                forget_sensor_id(sensor)
+                self._keys.forget(sensor)
                 self.forget(sensor)
             self._released += len(expired)
             if expired and len(expired) >= len(self.stats):  # a dict never shrinks as it empties

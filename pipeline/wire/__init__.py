@@ -12,7 +12,7 @@ and where (the ``source``, e.g. the zenoh key).
 
 from __future__ import annotations
 
-from radar_driver.limits import SENSOR_ID_MAX, forget_sensor_id
+from radar_driver.limits import SENSOR_ID_MAX
 
 from pipeline.errors import WireError
 from pipeline.keys import TOPICS
@@ -21,7 +21,8 @@ from pipeline.wire.frames import (COMMON, COMMON_DTYPE, COMMON_FIELDS, FLAG_DITH
                           QUANT_HEADER_LEN, RAW_VERSION, VERSIONS, FrameHeaders, QuantizedFrameMsg,
                           QuantizedGroup, RawFrameMsg, RawGroup, check_sensor_id, decode_quantized,
                           decode_quantized_batch, decode_raw, decode_raw_batch, encode_quantized,
-                          encode_quantized_batch, encode_raw, encode_raw_batch, frame_size, quantized_batch)
+                          encode_quantized_batch, encode_raw, encode_raw_batch, frame_size, peek_seq,
+                          quantized_batch)
 from pipeline.wire.messages import (HEALTH_LOSS_FIELDS, JSON_VERSION, MAX_JSON_BYTES, MAX_JSON_DEPTH,
                         OPTIONAL_TARGET_FIELDS, TARGET_DIGITS, TARGET_FIELDS, TRACK_FIELDS, HealthMsg, TargetColumns,
                         TargetsMsg, TracksMsg, decode_health, decode_targets, decode_tracks, encode_targets_batch,
@@ -36,4 +37,4 @@ __all__ = ["COMMON", "COMMON_DTYPE", "COMMON_FIELDS", "FLAG_DITHERED", "GENERATO
            "TargetColumns", "TargetsMsg", "TracksMsg", "WireError", "check_sensor_id", "decode_health",
            "decode_quantized", "decode_quantized_batch", "decode_raw", "decode_raw_batch", "decode_targets",
            "decode_tracks", "encode_quantized", "encode_quantized_batch", "encode_raw", "encode_raw_batch",
-           "encode_targets_batch", "forget_sensor_id", "frame_size", "load_json", "quantized_batch"]
+           "encode_targets_batch", "frame_size", "load_json", "peek_seq", "quantized_batch"]

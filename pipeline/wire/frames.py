@@ -62,6 +62,19 @@ assert (COMMON_DTYPE.itemsize, QUANT_DTYPE.itemsize) == (COMMON.size, COMMON.siz
 HEADER_LEN = COMMON.size  # 48
 QUANT_HEADER_LEN = COMMON.size + QUANT_EXT.size  # 64
 MAX_M = 1 << 20
+#: where a frame's sequence number is, from the layout table (what :func:`peek_seq` reads)
+SEQ_OFFSET = COMMON_DTYPE.fields["seq"][1]
+_SEQ = struct.Struct("<" + dict((name, code) for name, code, _ in COMMON_FIELDS)["seq"])
+
+
+def peek_seq(payload) -> int | None:
+    """The sequence number of a frame's bytes, read before the frame is decoded (an
+    intake's count of gaps), at the header field the layout table places; None when
+    ``payload`` does not start with a frame header. The one other reading of a header
+    than the decoders' (:func:`decode_raw_batch`, ...), from the same table."""
+    if len(payload) < HEADER_LEN or payload[:4] != MAGIC:
+        return None
+    return _SEQ.unpack_from(payload, SEQ_OFFSET)[0]
 
 
 def check_sensor_id(sensor_id: str) -> str:

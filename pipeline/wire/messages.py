@@ -1,7 +1,9 @@
-"""The JSON wire formats: targets, tracks and health (UTF-8 JSON objects, byte layouts in
-docs/wire-formats.md). One writer per format: :func:`encode_targets_batch` writes the
-targets of B frames and :meth:`TargetsMsg.to_json` is it called with one frame. Every
-failure is a :class:`WireError` naming the field (and, when decoding, the source)."""
+"""The JSON wire formats: targets, tracks and health (UTF-8 JSON objects, docs/wire-formats.md).
+Their fields are defined once, in :mod:`pipeline.wire.fields`; the writers and readers here
+take them from there (each writer and reader takes the format as ``fmt``, the definition by
+default). One writer per format: :func:`encode_targets_batch` writes the targets of B frames
+and :meth:`TargetsMsg.to_json` is it called with one frame. Every failure is a
+:class:`WireError` naming the field (and, when decoding, the source)."""
 
 from __future__ import annotations
 
@@ -15,30 +17,103 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import WireError
+from pipeline.wire.fields import HEALTH, HEALTH_LOSS_FIELDS, TARGETS, TRACKS, Field, Format
 from pipeline.wire.frames import FrameHeaders, check_sensor_id, int_field
 
+__all__ = ["HEALTH_LOSS_FIELDS", "HealthMsg", "TargetColumns", "TargetsMsg", "TracksMsg", "decode_health",
+           "decode_targets", "decode_tracks", "encode_targets_batch", "load_json", "read_item", "read_value"]
+
 JSON_VERSION = 1
-TARGET_FIELDS = ("range_m", "angle_deg", "x_m", "y_m", "amplitude")
+#: a target's fields (pipeline.wire.fields.TARGET_ITEM, the one definition): the required ones, then the optional
+TARGET_FIELDS = tuple(f.name for f in TARGETS.item_fields if not f.optional)
 #: significant digits of a target value in the JSON (%.9g: 0.1 µm at 10 m, far below a
 #: range bin; float32 holds 7): a quarter of the time ``repr``'s 17 digits take to write
 TARGET_DIGITS = 9
 #: per-target fields a target may carry (older recordings do not)
-OPTIONAL_TARGET_FIELDS = ("statistic_db",)
-#: the columns of a frame's target values in :func:`encode_targets_batch`
-_TARGET_COLUMNS = TARGET_FIELDS + OPTIONAL_TARGET_FIELDS
+OPTIONAL_TARGET_FIELDS = tuple(f.name for f in TARGETS.item_fields if f.optional)
 
 
-def _target(t: dict) -> dict[str, float]:
-    """A target's fields as finite floats (the optional ones when present)."""
-    try:
-        out = {f: float(t[f]) for f in TARGET_FIELDS}
-        out.update({f: float(t[f]) for f in OPTIONAL_TARGET_FIELDS if t.get(f) is not None})
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise WireError(f"target {t!r}: missing or bad field ({exc!r})") from None
-    bad = [f for f, v in out.items() if not math.isfinite(v)]
-    if bad:
-        raise WireError(f"target field {bad[0]}={out[bad[0]]} is not finite")
+def _integer(v, f: Field, what: str) -> int:
+    """A JSON integer of field ``f``: in [minimum, 2**64) when it has a minimum (a count, an
+    id), else any (a time: the reader that keeps it checks its range, e.g. a recording's)."""
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise WireError(f"{what} field {f.name}={_short(v)} must be an integer")
+    if f.minimum is not None and not f.minimum <= v < 2**64:
+        raise WireError(f"{what} field {f.name}={v!r} must be an integer in [{f.minimum}, 2**64)")
+    return v
+
+
+def read_value(v, f: Field, what: str):
+    """One JSON value of field ``f``, checked by its type: a finite float, an integer in
+    range, a boolean, a string, an object (dict) or an array (list)."""
+    if f.type == "number":
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise WireError(f"{what} field {f.name}={_short(v)} is not a number") from None
+        if not math.isfinite(x):
+            raise WireError(f"{what} field {f.name}={x} is not finite")
+        return x
+    if f.type == "integer":
+        return _integer(v, f, what)
+    if f.type == "boolean":
+        if not isinstance(v, bool):
+            raise WireError(f"{what} field {f.name}={_short(v)} must be true or false")
+        return v
+    kinds = {"string": str, "object": dict, "array": list}
+    if not isinstance(v, kinds[f.type]):
+        raise WireError(f"{what} field {f.name}={_short(v)} must be a JSON {f.type}")
+    return v
+
+
+def _short(value, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (an error line names a value, not a message)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def read_item(t, fields: tuple[Field, ...], what: str) -> dict:
+    """An item's fields (a target's, a track's) in the definition's order, each checked by
+    :func:`read_value`; an absent optional field is left out (or takes its default)."""
+    if not isinstance(t, dict):
+        raise WireError(f"{what} {_short(t)}: not a JSON object")
+    out = {}
+    for f in fields:
+        v = t.get(f.name)
+        if v is None:
+            if not f.optional:
+                raise WireError(f"{what} {_short(t)}: missing field {f.name}")
+            if f.default is not None:
+                out[f.name] = f.default
+            continue
+        out[f.name] = read_value(v, f, what)
     return out
+
+
+def write_value(v, f: Field) -> str:
+    """One value of field ``f`` as JSON text: numbers with TARGET_DIGITS significant digits
+    (or ``decimals``), integers and booleans as they are, the rest as json.dumps writes them."""
+    if f.type == "number":
+        return repr(round(float(v), f.decimals)) if f.decimals is not None else "%.*g" % (TARGET_DIGITS, v)
+    if f.type == "integer":
+        return "%d" % v
+    if f.type == "boolean":
+        return "true" if v else "false"
+    return json.dumps(v, separators=(",", ":"))
+
+
+def written(v, f: Field) -> bool:
+    """Whether an optional field's value is written (fields.Field's rule)."""
+    if not f.optional:
+        return True
+    if f.type in ("boolean", "object") or f.default is None:
+        return bool(v) if f.type != "number" else v is not None and math.isfinite(v)
+    return True
+
+
+def _target(t: dict, fmt: Format = TARGETS) -> dict[str, float]:
+    """A target's fields as finite floats (the optional ones when present)."""
+    return read_item(t, fmt.item_fields, "target")
 
 
 def _uint(obj: dict, name: str, bits: int = 64) -> int:
@@ -49,33 +124,34 @@ def _uint(obj: dict, name: str, bits: int = 64) -> int:
     return v
 
 
-@dataclass(frozen=True)
 class TargetColumns:
-    """The targets of B frames as (B, K) float arrays, one per field of TARGET_FIELDS and
-    OPTIONAL_TARGET_FIELDS (NaN ``statistic_db`` = not given), and ``present`` (B, K) bool:
-    what :func:`encode_targets_batch` reads (pipeline.dsp.localize.Detections has the same fields)."""
+    """The targets of B frames as (B, K) float arrays, one per target field of the
+    definition (NaN in an optional field = not given), read as attributes (``range_m``,
+    ...), and ``present`` (B, K) bool: what :func:`encode_targets_batch` reads
+    (pipeline.dsp.localize.Detections has the same fields)."""
 
-    range_m: np.ndarray
-    angle_deg: np.ndarray
-    x_m: np.ndarray
-    y_m: np.ndarray
-    amplitude: np.ndarray
-    statistic_db: np.ndarray
-    present: np.ndarray
+    def __init__(self, columns: dict[str, np.ndarray], present: np.ndarray):
+        self.columns = columns
+        self.present = present
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        try:
+            return self.__dict__["columns"][name]
+        except KeyError:
+            raise AttributeError(name) from None
 
     @classmethod
-    def of(cls, targets: list[dict]) -> "TargetColumns":
+    def of(cls, targets: list[dict], fmt: Format = TARGETS) -> "TargetColumns":
         """One frame's targets (dicts, as :class:`TargetsMsg` holds them) as (1, K) columns."""
-        rows = [_target(t) for t in targets]
-        values = np.array([[r.get(f, np.nan) for f in _TARGET_COLUMNS] for r in rows], dtype=float)
-        values = values.reshape(len(rows), len(_TARGET_COLUMNS)).T[:, None, :]  # (fields, 1, K)
-        return cls(*values, present=np.ones((1, len(rows)), dtype=bool))
+        rows = [read_item(t, fmt.item_fields, "target") for t in targets]
+        return cls({f.name: np.array([[r.get(f.name, np.nan) for r in rows]], dtype=float).reshape(1, len(rows))
+                    for f in fmt.item_fields}, np.ones((1, len(rows)), dtype=bool))
 
 
 @dataclass(frozen=True)
 class TargetsMsg:
-    """Targets of one frame: each a dict with TARGET_FIELDS (and OPTIONAL_TARGET_FIELDS
-    when known); ``published_ns`` is the localizer's wall clock when it published them;
+    """Targets of one frame: each a dict of the target fields (the optional ones when
+    known); ``published_ns`` is the localizer's wall clock when it published them;
     ``auto_k``: the localizer decided the count (``k`` is then the most it allows)."""
 
     sensor_id: str
@@ -89,25 +165,32 @@ class TargetsMsg:
     published_ns: int = 0
     auto_k: bool = False
 
-    def to_json(self) -> bytes:
+    def to_json(self, fmt: Format = TARGETS) -> bytes:
         """Compact JSON; each target value with TARGET_DIGITS significant digits
         (:func:`encode_targets_batch` of this one frame)."""
         headers = FrameHeaders([self.sensor_id], [self.seq], [self.timestamp_ns], [self.config_id])
-        return encode_targets_batch(headers, TargetColumns.of(self.targets), self.algo, self.k, self.source,
-                                    self.published_ns, self.auto_k)[0]
+        return encode_targets_batch(headers, TargetColumns.of(self.targets, fmt), self.algo, self.k, self.source,
+                                    self.published_ns, self.auto_k, fmt)[0]
 
 
 @lru_cache(maxsize=256)
-def _targets_template(has_statistic: tuple[bool, ...]) -> tuple[str, tuple[int, ...]]:
-    """The JSON list of targets whose ``statistic_db`` is (True) or is not given, as a
-    %-template of floats (TARGET_DIGITS significant digits), and the columns of the values
-    (target j, field f -> j * 6 + f) it takes, in order."""
+def _targets_template(fmt: Format, given: tuple[int, ...]) -> tuple[str, tuple[int, ...]]:
+    """The JSON list of targets whose optional fields are given as the bit masks ``given``
+    say (target j: bit i set = its i-th optional field is written), as a %-template of
+    floats (TARGET_DIGITS significant digits), and the columns of the values (target j,
+    field f -> j * fields + f) it takes, in order."""
     parts, columns = [], []
-    width = len(_TARGET_COLUMNS)
-    for j, stat in enumerate(has_statistic):
-        fields = TARGET_FIELDS + (OPTIONAL_TARGET_FIELDS if stat else ())
+    width = len(fmt.item_fields)
+    for j, mask in enumerate(given):
+        fields, opt = [], 0
+        for c, f in enumerate(fmt.item_fields):
+            if f.optional:
+                opt += 1
+                if not mask >> (opt - 1) & 1:
+                    continue
+            fields.append(f.name)
+            columns.append(j * width + c)
         parts.append("{" + ",".join(f'"{f}":%.{TARGET_DIGITS}g' for f in fields) + "}")
-        columns += [j * width + _TARGET_COLUMNS.index(f) for f in fields]
     return "[" + ",".join(parts) + "]", tuple(columns)
 
 
@@ -128,6 +211,12 @@ def _quoted_id(sensor_id: str) -> str:
     return '"%s"' % sensor_id if _PLAIN_ID.fullmatch(sensor_id) else _quoted(sensor_id, "sensor_id")
 
 
+#: the top-level fields of the targets JSON, in the order :func:`_targets_head` writes them
+TARGETS_HEAD = ("version", "type", "sensor_id", "seq", "timestamp_ns", "config_id", "algo", "K", "K_auto", "source",
+                "published_ns", "targets")
+assert TARGETS_HEAD == TARGETS.names, "the targets writer's head and pipeline.wire.fields.TARGETS disagree"
+
+
 @lru_cache(maxsize=64)
 def _targets_head(algo: str, k: int, auto_k: bool, source: str) -> str:
     """The targets JSON up to its list of targets, as a %-template of (sensor id quoted, seq,
@@ -138,32 +227,64 @@ def _targets_head(algo: str, k: int, auto_k: bool, source: str) -> str:
             + ',"published_ns":%d,"targets":')
 
 
-def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: str, published_ns,
-                         auto_k: bool = False) -> list[bytes]:
-    """Targets JSON of B frames, one payload each. ``det``: (B, K) arrays of the fields of
-    :class:`TargetColumns` (e.g. pipeline.dsp.localize.Detections): a target is written where
-    ``present``, its ``statistic_db`` when finite. ``published_ns``: one int or (B,).
-    A present target with a non-finite field is a WireError naming the field."""
-    b = len(headers)
-    cols = [np.asarray(getattr(det, f), dtype=float) for f in _TARGET_COLUMNS]
+def _column(det, f: Field, shape: tuple) -> np.ndarray:
+    """The (B, K) float values of target field ``f`` in ``det`` (an optional one it lacks: NaN)."""
+    v = getattr(det, f.name, None)
+    if v is None:
+        if f.optional:
+            return np.full(shape, np.nan)
+        raise WireError(f"detections lack the target field {f.name}")
+    return np.asarray(v, dtype=float)
+
+
+def _target_values(det, b: int, fmt: Format) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, K, fields) float values of the detections ``det`` (an optional field it lacks:
+    NaN), ``present`` (B, K) and the (B, K) bit masks of the optional fields given (finite)."""
     present = np.asarray(det.present, dtype=bool)
+    cols = [_column(det, f, present.shape) for f in fmt.item_fields]
     if present.ndim != 2 or present.shape[0] != b or any(c.shape != present.shape for c in cols):
         raise WireError(f"detections must be ({b}, K) arrays for {b} frames, got {present.shape}")
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
-        raise WireError(f"K={k!r} must be an integer")
-    values = np.array(cols).transpose(1, 2, 0)  # (B, K, 6)
-    finite = np.isfinite(values[..., :len(TARGET_FIELDS)])
-    bad = present[..., None] & ~finite
+    values = np.array(cols).transpose(1, 2, 0) if cols else np.zeros(present.shape + (0,))  # (B, K, fields)
+    required = [i for i, f in enumerate(fmt.item_fields) if not f.optional]
+    bad = present[..., None] & ~np.isfinite(values[..., required])
     if bad.any():
         i, j, f = np.argwhere(bad)[0]
-        raise WireError(f"target field {TARGET_FIELDS[f]}={float(values[i, j, f])} is not finite")
-    has_stat = present & np.isfinite(cols[-1])
+        name = fmt.item_fields[required[f]].name
+        raise WireError(f"target field {name}={float(values[i, j, required[f]])} is not finite")
+    given = np.zeros(present.shape, dtype=np.int64)
+    for bit, i in enumerate(i for i, f in enumerate(fmt.item_fields) if f.optional):
+        given |= (present & np.isfinite(values[..., i])).astype(np.int64) << bit
+    return values, present, given
+
+
+def _patterns(count: np.ndarray, given: np.ndarray) -> dict[tuple, list[int]]:
+    """Frames by the pattern of their targets: (count, optional-field masks of the present targets)."""
+    b = len(count)
+    if b > 1 and (count == count[0]).all() and (given == given[0]).all():  # the usual batch: one pattern
+        c = int(count[0])
+        return {(c, *given[0, :c].tolist()): list(range(b))}
+    by_pattern: dict[tuple, list[int]] = {}
+    for i, (c, masks) in enumerate(zip(count.tolist(), given.tolist())):
+        by_pattern.setdefault((c, *masks[:c]), []).append(i)
+    return by_pattern
+
+
+def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: str, published_ns,
+                         auto_k: bool = False, fmt: Format = TARGETS) -> list[bytes]:
+    """Targets JSON of B frames, one payload each. ``det``: (B, K) arrays of the target
+    fields of ``fmt`` (e.g. pipeline.dsp.localize.Detections, :class:`TargetColumns`): a
+    target is written where ``present``, each optional field where finite (a field ``det``
+    lacks: never). ``published_ns``: one int or (B,). A present target with a non-finite
+    required field is a WireError naming the field."""
+    b = len(headers)
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise WireError(f"K={k!r} must be an integer")
+    values, present, given = _target_values(det, b, fmt)
     if not (present[:, :-1] >= present[:, 1:]).all():  # the present targets of each frame first, in order
         order = np.argsort(~present, axis=1, kind="stable")
         values = np.take_along_axis(values, order[..., None], axis=1)
-        has_stat = np.take_along_axis(has_stat, order, axis=1)
+        given = np.take_along_axis(given, order, axis=1)
     values = values.reshape(b, -1)
-    count = present.sum(axis=1)
     if type(published_ns) is int and -2**63 <= published_ns < 2**63:  # the node's one clock reading
         published = [published_ns] * b
     else:
@@ -172,17 +293,10 @@ def encode_targets_batch(headers: FrameHeaders, det, algo: str, k: int, source: 
     quoted = {sid: _quoted_id(sid) for sid in set(headers.sensor_id)}
     head = (_targets_head(algo, int(k), bool(auto_k), source) if type(algo) is str and type(source) is str
             else _targets_head.__wrapped__(algo, int(k), bool(auto_k), source))
-    by_pattern: dict[tuple, list[int]] = {}  # (count, has_stat of the present targets) -> frames
-    if b > 1 and (count == count[0]).all() and (has_stat == has_stat[0]).all():  # the usual batch: one pattern
-        c = int(count[0])
-        by_pattern[(c, *has_stat[0, :c].tolist())] = list(range(b))
-    else:
-        for i, (c, stats) in enumerate(zip(count.tolist(), has_stat.tolist())):
-            by_pattern.setdefault((c, *stats[:c]), []).append(i)
     out: list[bytes] = [b""] * b
     seqs, stamps, configs = headers.seq.tolist(), headers.timestamp_ns.tolist(), headers.config_id.tolist()
-    for pattern, frames in by_pattern.items():
-        targets, columns = _targets_template(tuple(bool(x) for x in pattern[1:]))
+    for pattern, frames in _patterns(present.sum(axis=1), given).items():
+        targets, columns = _targets_template(fmt, tuple(int(x) for x in pattern[1:]))
         template = head + targets + "}"
         rows = (values if len(frames) == b else values.take(frames, axis=0)).take(columns, axis=1).tolist() \
             if columns else [[]] * len(frames)
@@ -248,10 +362,12 @@ def _load_json(payload: bytes, source: str, kind: str) -> dict[str, Any]:
     return obj
 
 
-def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
+def decode_targets(payload: bytes, source: str = "<bytes>", fmt: Format = TARGETS) -> TargetsMsg:
     obj = _load_json(payload, source, "targets")
     try:
-        targets = [_target(t) for t in obj["targets"]]
+        if not isinstance(obj["targets"], list):
+            raise WireError(f"targets must be a list, got {type(obj['targets']).__name__}")
+        targets = [read_item(t, fmt.item_fields, "target") for t in obj["targets"]]
         return TargetsMsg(check_sensor_id(obj["sensor_id"]), _uint(obj, "seq"), int(obj["timestamp_ns"]),
                           _uint(obj, "config_id", 32), str(obj["algo"]), int(obj["K"]), str(obj["source"]), targets,
                           int(obj.get("published_ns", 0)), bool(obj.get("K_auto", False)))
@@ -259,27 +375,8 @@ def decode_targets(payload: bytes, source: str = "<bytes>") -> TargetsMsg:
         raise WireError(f"targets from {source}: missing or bad field ({exc})") from None
 
 
-#: the fields of a track in the tracks JSON (pipeline.dsp.track), in order; ``track_id`` and
-#: ``hits`` are integers, ``static`` a boolean, the others numbers
-TRACK_FIELDS = ("track_id", "range_m", "angle_deg", "x_m", "y_m", "vx_mps", "vy_mps", "sigma_m", "age_s", "hits",
-                "static")
-_TRACK_FLOATS = ("range_m", "angle_deg", "x_m", "y_m", "vx_mps", "vy_mps", "sigma_m", "age_s")
-
-
-def _track(t: dict) -> dict:
-    """A track's fields, checked: integers >= 0, finite floats, a boolean."""
-    try:
-        out = {"track_id": _uint(t, "track_id"), **{f: float(t[f]) for f in _TRACK_FLOATS}, "hits": _uint(t, "hits")}
-        static = t["static"]
-    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
-        raise WireError(f"track: missing or bad field ({exc!r})") from None
-    bad = [f for f in _TRACK_FLOATS if not np.isfinite(out[f])]
-    if bad:
-        raise WireError(f"track field {bad[0]}={out[bad[0]]} is not finite")
-    if not isinstance(static, bool):
-        raise WireError(f"static={static!r} must be true or false")
-    out["static"] = static
-    return {f: out[f] for f in TRACK_FIELDS}
+#: the fields of a track in the tracks JSON (pipeline.wire.fields.TRACK_ITEM), in order
+TRACK_FIELDS = TRACKS.item_names
 
 
 @dataclass(frozen=True)
@@ -293,26 +390,25 @@ class TracksMsg:
     tracks: list[dict]
     published_ns: int = 0
 
-    def to_json(self) -> bytes:
+    def to_json(self, fmt: Format = TRACKS) -> bytes:
         """Compact JSON; each float with TARGET_DIGITS significant digits."""
         head = json.dumps({"version": JSON_VERSION, "type": "tracks", "sensor_id": check_sensor_id(self.sensor_id),
                            "seq": self.seq, "timestamp_ns": self.timestamp_ns, "published_ns": self.published_ns},
                           separators=(",", ":"))
         items = []
         for t in self.tracks:
-            t = _track(t)
-            items.append('{"track_id":%d,' % t["track_id"]
-                         + ",".join(f'"{f}":{t[f]:.{TARGET_DIGITS}g}' for f in _TRACK_FLOATS)
-                         + ',"hits":%d,"static":%s}' % (t["hits"], "true" if t["static"] else "false"))
+            t = read_item(t, fmt.item_fields, "track")
+            items.append("{" + ",".join(f'"{f.name}":{write_value(t[f.name], f)}' for f in fmt.item_fields
+                                        if f.name in t and written(t[f.name], f)) + "}")
         return (head[:-1] + ',"tracks":[' + ",".join(items) + "]}").encode()
 
 
-def decode_tracks(payload: bytes, source: str = "<bytes>") -> TracksMsg:
+def decode_tracks(payload: bytes, source: str = "<bytes>", fmt: Format = TRACKS) -> TracksMsg:
     obj = _load_json(payload, source, "tracks")
     try:
         if not isinstance(obj["tracks"], list):
             raise WireError(f"tracks must be a list, got {type(obj['tracks']).__name__}")
-        tracks = [_track(t) for t in obj["tracks"]]
+        tracks = [read_item(t, fmt.item_fields, "track") for t in obj["tracks"]]
         ts, pub = obj["timestamp_ns"], obj["published_ns"]
         if isinstance(ts, bool) or not isinstance(ts, int) or isinstance(pub, bool) or not isinstance(pub, int):
             raise WireError("timestamp_ns and published_ns must be integers")
@@ -321,14 +417,10 @@ def decode_tracks(payload: bytes, source: str = "<bytes>") -> TracksMsg:
         raise WireError(f"tracks from {source}: missing or bad field ({exc})") from None
 
 
-#: health counters added in this version of the JSON (0 when a message lacks them)
-HEALTH_LOSS_FIELDS = ("invalid_frames", "processing_errors", "frames_missing", "seq_resets", "worker_restarts",
-                      "over_budget", "refused", "implausible_seq", "denied_puts")
-
-
 @dataclass
 class HealthMsg:
-    """1 Hz counters of one node for one sensor."""
+    """1 Hz counters of one node for one sensor: the fields of pipeline.wire.fields.HEALTH
+    (tests/test_wire.py checks that this class has each of them, and no other)."""
 
     node: str
     sensor_id: str
@@ -352,25 +444,22 @@ class HealthMsg:
     implausible_seq: int = 0
     denied_puts: int = 0
 
-    def to_json(self) -> bytes:
-        obj = {"version": JSON_VERSION, "type": "health", "node": self.node, "sensor_id": self.sensor_id,
-               "timestamp_ns": self.timestamp_ns, "frames_in": self.frames_in, "frames_out": self.frames_out,
-               "drops": self.drops, "decode_errors": self.decode_errors, "latency_ms": self.latency_ms,
-               "bytes_in_per_s": round(self.bytes_in_per_s, 1), "bytes_out_per_s": round(self.bytes_out_per_s, 1),
-               **{k: getattr(self, k) for k in HEALTH_LOSS_FIELDS},
-               **({"extra": self.extra} if self.extra else {})}
+    def to_json(self, fmt: Format = HEALTH) -> bytes:
+        """Compact JSON of the format's fields, in its order (``extra`` when not empty)."""
+        parts = ['"version":%d,"type":"health"' % JSON_VERSION]
         try:
-            return json.dumps(obj, separators=(",", ":")).encode()
+            for f in fmt.fields[2:]:
+                v = getattr(self, f.name)
+                if written(v, f):
+                    parts.append(f'"{f.name}":{write_value(v, f)}')
         except (TypeError, ValueError) as exc:
             raise WireError(f"health of node {self.node!r}: not writable as JSON ({exc})") from None
+        return ("{" + ",".join(parts) + "}").encode()
 
 
-def decode_health(payload: bytes, source: str = "<bytes>") -> HealthMsg:
+def decode_health(payload: bytes, source: str = "<bytes>", fmt: Format = HEALTH) -> HealthMsg:
     obj = _load_json(payload, source, "health")
     try:
-        return HealthMsg(str(obj["node"]), str(obj["sensor_id"]), int(obj["timestamp_ns"]), int(obj["frames_in"]),
-                         int(obj["frames_out"]), int(obj["drops"]), int(obj["decode_errors"]),
-                         dict(obj["latency_ms"]), float(obj["bytes_in_per_s"]), float(obj["bytes_out_per_s"]),
-                         dict(obj.get("extra", {})), **{k: int(obj.get(k, 0)) for k in HEALTH_LOSS_FIELDS})
-    except (KeyError, TypeError, ValueError, OverflowError) as exc:
-        raise WireError(f"health from {source}: missing or bad field ({exc!r})") from None
+        return HealthMsg(**read_item(obj, fmt.fields[2:], "health"))
+    except WireError as exc:
+        raise WireError(f"health from {source}: {exc}") from None

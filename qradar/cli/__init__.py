@@ -33,7 +33,7 @@ from pipeline.errors import PipelineError
 from radar_driver.errors import RadarError, SetupError
 from replay.errors import ReplayError
 
-from . import analysis, bringup, calibrate, ports, record, security, sensor, stream, view
+from . import analysis, bringup, calibrate, lab, ports, record, security, sensor, stream, up, view
 from .. import __version__
 from .common import DefaultsFormatter
 
@@ -60,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     analysis.add_montecarlo_time(sub)
     sensor.add_commands(sub)
     stream.add_commands(sub)
+    up.add_commands(sub)
     record.add_commands(sub)
     analysis.add_reprocess(sub)
     view.add_commands(sub)
@@ -126,11 +127,41 @@ def _main(argv: list[str] | None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     threading.excepthook = _thread_failed
     try:
+        args = with_config(parser, args, argv)
         return args.func(args)
     except (PipelineError, RadarError, ReplayError) as exc:
         return fail(args, exc, 2)
     except KeyboardInterrupt:
         return fail(args, "interrupted", 130)
+
+
+def command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the command ``args`` were parsed for (a subcommand's, e.g. ``security init``)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+    action = getattr(args, "action", None)
+    if action is not None:
+        sub = next(a for a in sub._actions if isinstance(a, argparse._SubParsersAction)).choices[action]
+    return sub
+
+
+def with_config(parser: argparse.ArgumentParser, args: argparse.Namespace, argv) -> argparse.Namespace:
+    """``args`` with a lab file's (``run LAB.toml``) or ``--config-json``'s values under
+    the command line's: the file's values become the command's defaults and the command
+    line is parsed again. A file that does not read: a LabError (one line, exit 2)."""
+    schema = getattr(args, "schema", None)
+    if schema is None:
+        return args
+    sub = command_parser(parser, args)
+    values = {}
+    if getattr(args, "lab", None) is not None and schema.reads_lab:
+        values.update(lab.read_file(args.lab, schema))
+    if getattr(args, "config_json", None) is not None:
+        values.update(lab.read_json(args.config_json, schema))
+    if values:
+        sub.set_defaults(**values)
+        args = parser.parse_args(argv)
+    schema.check_required(args, sub)
+    return args
 
 
 def _thread_failed(hook: threading.ExceptHookArgs) -> None:

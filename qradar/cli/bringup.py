@@ -4,84 +4,77 @@ profile that reads it)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
-from radar_driver.capture import MODES, Capture, CaptureConfig, run_capture
+from radar_driver.capture import Capture, CaptureConfig, run_capture
 from radar_driver.inspection import Reflector, format_report, inspect_capture
-from radar_driver.profile import CHIRP_SELECT, packaged_profiles
+from radar_driver.options import like, option
+from radar_driver.profile import packaged_profiles
+from radar_driver.session import SessionConfig
 from replay.errors import ReplayError
 from replay.mcapcheck import MAGIC as MCAP_MAGIC
 from replay.outputs import check_new_file
 
-from .common import force_option, pos_int
+from .parts import force_help, switches
+from .schema import Part, add_command
 
 #: how long a capture runs without --seconds: without --frames, and as a bound with them, s
-DEFAULT_SECONDS = 10.0
+DEFAULT_SECONDS = CaptureConfig.seconds
 DEFAULT_SECONDS_WITH_FRAMES = 60.0
 
 
-def pos_float(text: str) -> float:
-    v = float(text)
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
+@dataclass(frozen=True)
+class CaptureFile:
+    """Where ``qradar capture`` writes."""
+
+    out: Path = option(help="capture file to write", aliases=("-o",), required=True)
+
+
+@dataclass(frozen=True)
+class Inspect:
+    """What ``qradar inspect`` reads and tries."""
+
+    file: Path = option(help="a file of `qradar capture`", positional=True, required=True)
+    profile: tuple[str, ...] = option((), "also try this profile (repeatable)", many="append", metavar="NAME|PATH")
+    ramps: int = like(SessionConfig, "ramps_per_frame", flag="--ramps", help="ramps per frame (default 2)")
+    chirp_select: str = like(SessionConfig, "chirp_select", help="with several chirps per RADC: the first --ramps, "
+                             "or a stride (default first)")
+    range_m: float | None = option(None, "the reflector's range if known, m")
+    angle_deg: float | None = option(None, "the reflector's angle if known, deg (positive: antenna 2's side)")
+
+
+CAPTURE_SECONDS = {"help": f"stop after S seconds (default {DEFAULT_SECONDS:g}; with --frames, "
+                           f"{DEFAULT_SECONDS_WITH_FRAMES:g} at most)"}
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("capture", help="record the raw bytes of a session with a K-MD2, with timestamps",
-                       description="Talk to a sensor on any pyserial URL and record every byte each way, every\n"
-                       "line-speed change and every port opening, with the host's time, to FILE (format:\n"
-                       "docs/capture-format.md). The driver runs with --profile; if it decodes no frame (an\n"
-                       "unknown layout), a raw poller (INIT, a GNFD per DONE, GBYE) captures on without\n"
-                       "decoding. Then `qradar inspect FILE`.")
-    p.add_argument("--port", required=True, help="pyserial URL or device path")
-    p.add_argument("-o", "--out", type=Path, required=True, help="capture file to write")
-    p.add_argument("--profile", default=None,
-                   help=f"sensor profile for the driver: a packaged name ({', '.join(packaged_profiles())}) or a "
-                   "TOML file (default kmd2-blocks); its baud codes and GNFD bits also serve the raw poller")
-    p.add_argument("--frames", type=pos_int, default=None,
-                   help="stop after N frames (the raw poller: N x --ramps GNFD answers)")
-    p.add_argument("--seconds", type=pos_float, default=None,
-                   help=f"stop after S seconds (default {DEFAULT_SECONDS:g}; with --frames, "
-                   f"{DEFAULT_SECONDS_WITH_FRAMES:g} at most)")
-    p.add_argument("--baud", type=int, default=None,
-                   help="rate after INIT (default 2000000 on a link that can change speed)")
-    p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (default 2)")
-    p.add_argument("--timeout", type=pos_float, default=0.5, help="seconds to wait for a GNFD answer")
-    p.add_argument("--mode", choices=MODES, default="auto",
-                   help="auto: the driver, then the raw poller if it decodes no frame; session: the driver "
-                   "only; raw: the raw poller only (default auto)")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    force_option(p, "the -o file")
-    p.set_defaults(func=cmd_capture)
-
-    p = sub.add_parser("inspect", help="list a capture's messages and find the sensor profile that reads it",
-                       description="Split the sensor's bytes of a capture into messages without a profile\n"
-                       "(headers, lengths, counts, garbage), then decode them with every shipped profile (and\n"
-                       "--profile ones) and score the frames as a single static reflector: a sharp range peak\n"
-                       "without images and a steady angle. Exit status 0 when a profile fits, 1 when none does.")
-    p.add_argument("file", type=Path, help="a file of `qradar capture`")
-    p.add_argument("--profile", action="append", default=[], metavar="NAME|PATH",
-                   help="also try this profile (repeatable)")
-    p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (default 2)")
-    p.add_argument("--chirp-select", choices=CHIRP_SELECT, default="first",
-                   help="with several chirps per RADC: the first --ramps, or a stride (default first)")
-    p.add_argument("--range-m", type=float, default=None, help="the reflector's range if known, m")
-    p.add_argument("--angle-deg", type=float, default=None,
-                   help="the reflector's angle if known, deg (positive: antenna 2's side)")
-    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    p.set_defaults(func=cmd_inspect)
+    add_command(sub, "capture", [
+        Part(CaptureConfig, only=("url",)), Part(CaptureFile),
+        Part(CaptureConfig, only=("profile", "frames", "seconds", "baud", "ramps_per_frame", "timeout_s", "mode"),
+             defaults={"seconds": None}, change={"seconds": CAPTURE_SECONDS}),
+        switches(json="print the summary as one JSON object", force=force_help("the -o file"))], cmd_capture,
+        help="record the raw bytes of a session with a K-MD2, with timestamps",
+        description="Talk to a sensor on any pyserial URL and record every byte each way, every\n"
+        "line-speed change and every port opening, with the host's time, to FILE (format:\n"
+        "docs/capture-format.md). The driver runs with --profile; if it decodes no frame (an\n"
+        "unknown layout), a raw poller (INIT, a GNFD per DONE, GBYE) captures on without\n"
+        "decoding. Then `qradar inspect FILE`.")
+    add_command(sub, "inspect", [Part(Inspect), switches(json="print the report as one JSON object")], cmd_inspect,
+                help="list a capture's messages and find the sensor profile that reads it",
+                description="Split the sensor's bytes of a capture into messages without a profile\n"
+                "(headers, lengths, counts, garbage), then decode them with every shipped profile (and\n"
+                "--profile ones) and score the frames as a single static reflector: a sharp range peak\n"
+                "without images and a steady angle. Exit status 0 when a profile fits, 1 when none does.")
 
 
 def cmd_capture(args) -> int:
     seconds = args.seconds or (DEFAULT_SECONDS if args.frames is None else DEFAULT_SECONDS_WITH_FRAMES)
-    cfg = CaptureConfig(args.port, profile=args.profile, frames=args.frames, seconds=seconds, baud=args.baud,
-                        ramps_per_frame=args.ramps, timeout_s=args.timeout, mode=args.mode)
+    cfg = args.schema.build(CaptureConfig, args, seconds=seconds)
     check_new_file(args.out, args.force, "capture")  # before the port opens
     stop = threading.Event()
     previous = {}

@@ -4,38 +4,48 @@ answer as a K-MD2 (:mod:`radar_driver.ports`)."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 from radar_driver import ports
 from radar_driver.ports import PROBE_TIMEOUT_S, PROBE_WORKERS, PortInfo, ProbeResult
+from radar_driver.options import like, option, pos_float
+from radar_driver.session import SessionConfig
 
-from .common import pos_float
-from .sensor import profile_option
+from .parts import switches
+from .schema import Part, add_command
+
+
+@dataclass(frozen=True)
+class Ports:
+    """What ``qradar ports`` probes, and how long it waits."""
+
+    probe: tuple[str, ...] | None = option(None, "write INIT and GBYE to each listed adapter (or to the ports and URLs "
+                                           "given) and say which answer as a K-MD2; without --probe nothing is "
+                                           "written", many="*", metavar="PORT_OR_URL")
+    timeout: float = option(PROBE_TIMEOUT_S, "seconds a probe waits for the RESP to INIT (a silent serial port waits "
+                            "twice: once more after resetting a sensor left at another speed)", parse=pos_float)
+    profile: str | None = like(SessionConfig, "profile")
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("ports", help="the serial adapters of this host; with --probe, which answer as a K-MD2",
-                       description="Lists the serial adapters pyserial finds (device, USB VID:PID, serial number,\n"
-                       "manufacturer, description). Without --probe nothing is written to any port.\n\n"
-                       "--probe WRITES TO EACH PROBED PORT: INIT (asking for the start-up 115200 baud, so no\n"
-                       "speed switch) and GBYE, the same bytes a session starts and ends with (and, if no RESP\n"
-                       "comes, GBYE at the other line speeds and a second INIT, for a sensor a crashed host left\n"
-                       "at another speed). GNFD is never sent: no measurement starts, and a K-MD2 is left at\n"
-                       "115200. Probed: every listed adapter, or the ports and URLs given (a device path,\n"
-                       f"socket://HOST:PORT, rfc2217://HOST:PORT), {PROBE_WORKERS} at a time. Each is reported as\n"
-                       "K-MD2 (it answered INIT with a RESP), not a K-MD2 (bytes came, no RESP: an echo,\n"
-                       "text, another protocol), silent, busy (held by another program, e.g. a running\n"
-                       "`qradar run`: its lock is checked first, so the port is neither configured nor\n"
-                       "written), permission denied, or cannot open; with one line why. Exit status with\n"
-                       "--probe: 0 when a K-MD2 answered, 1 when none did.")
-    p.add_argument("--probe", nargs="*", default=None, metavar="PORT_OR_URL",
-                   help="write INIT and GBYE to each listed adapter (or to the ports and URLs given) and say which "
-                   "answer as a K-MD2; without --probe nothing is written")
-    p.add_argument("--timeout", type=pos_float, default=PROBE_TIMEOUT_S,
-                   help="seconds a probe waits for the RESP to INIT (a silent serial port waits twice: once more "
-                   "after resetting a sensor left at another speed)")
-    profile_option(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object: the ports (and probe answers)")
-    p.set_defaults(func=cmd_ports)
+    add_command(sub, "ports", [Part(Ports), switches(json="print one JSON object: the ports (and probe answers)")],
+                cmd_ports, help="the serial adapters of this host; with --probe, which answer as a K-MD2",
+                description=DESCRIPTION)
+
+
+DESCRIPTION = ("Lists the serial adapters pyserial finds (device, USB VID:PID, serial number,\n"
+               "manufacturer, description). Without --probe nothing is written to any port.\n\n"
+               "--probe WRITES TO EACH PROBED PORT: INIT (asking for the start-up 115200 baud, so no\n"
+               "speed switch) and GBYE, the same bytes a session starts and ends with (and, if no RESP\n"
+               "comes, GBYE at the other line speeds and a second INIT, for a sensor a crashed host left\n"
+               "at another speed). GNFD is never sent: no measurement starts, and a K-MD2 is left at\n"
+               "115200. Probed: every listed adapter, or the ports and URLs given (a device path,\n"
+               f"socket://HOST:PORT, rfc2217://HOST:PORT), {PROBE_WORKERS} at a time. Each is reported as\n"
+               "K-MD2 (it answered INIT with a RESP), not a K-MD2 (bytes came, no RESP: an echo,\n"
+               "text, another protocol), silent, busy (held by another program, e.g. a running\n"
+               "`qradar run`: its lock is checked first, so the port is neither configured nor\n"
+               "written), permission denied, or cannot open; with one line why. Exit status with\n"
+               "--probe: 0 when a K-MD2 answered, 1 when none did.")
 
 
 def table(rows: list[list[str]]) -> str:

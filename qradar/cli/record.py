@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.bus import audit
@@ -17,73 +18,94 @@ from replay.errors import ReplayError
 from replay.mcapinfo import describe, format_info
 from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
-from replay.recorder import OnWriteError, RecorderNode, RecordingState
+from replay.recorder import RecorderNode, RecordingState
+from radar_driver.options import META, option, pos_float
 
-from .common import (StopOnSignals, bus_from_args, bus_options, force_option, install_sigterm, intake_budget,
-                     intake_options, pos_float)
+from ..run import RunConfig
+from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, watch_parent
+from .parts import INTAKE, force_help, node_part, switches, zenoh_parts
+from .schema import Part, add_command
+
+
+@dataclass(frozen=True)
+class Record:
+    """Where ``qradar record`` writes and what it records."""
+
+    output: Path | None = option(None, "FILE.mcap (required unless --verify)", aliases=("-o",))
+    verify: tuple[Path, ...] | None = option(None, "record nothing: read each MCAP file whole, every chunk's CRC "
+                                             "checked, and print what it holds and lost (one JSON line each); exit 1 "
+                                             "if any is damaged, cut short or lost messages", many="+",
+                                             metavar="FILE")
+    topics: str | None = option(None, "key expression (default <prefix>/**)")
+    split_size_mb: float | None = option(None, "new file every MB megabytes", flag="--split-size", metavar="MB",
+                                         parse=pos_float)
+    split_duration_s: float | None = option(None, "new file every S seconds", flag="--split-duration", metavar="S",
+                                            parse=pos_float)
+    scene: str | None = option(None, "ground-truth scene to store in the metadata (simulated sensor)")
+
+
+@dataclass(frozen=True)
+class Recover:
+    """``qradar recover FILE -o NEW``."""
+
+    file: Path = option(help="the cut-short or damaged MCAP file (read, never changed)", positional=True,
+                        required=True)
+    output: Path = option(help="the recovered FILE.mcap (a new file)", aliases=("-o",), required=True)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording to read."""
+
+    file: Path = option(help="a qradar MCAP recording", positional=True, required=True)
+
+
+@dataclass(frozen=True)
+class Recordings:
+    """Recordings to read."""
+
+    file: tuple[Path, ...] = option(help="MCAP recordings", positional=True, required=True, many="+")
+
+
+@dataclass(frozen=True)
+class Info:
+    """``qradar info``'s check."""
+
+    check: bool = option(False, "also read every chunk, its CRC checked, and report the damage found (as `qradar "
+                         "record --verify`; takes as long as reading the file)")
+
+
+def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
+    """--on-write-error and --write-retry (``record``, ``run``); ``on_stop``: what the command does then."""
+    help = RunConfig.__dataclass_fields__["record_on_error"].metadata[META].help
+    return Part(RunConfig, table, only=("record_on_error", "record_retry_s"), change={"record_on_error": {
+        "help": help.replace("go on without it (the pipeline keeps running; the summary says so)", on_stop)}})
+
+
+RECORD_PARTS = [
+    Part(Record, only=("output", "verify", "topics", "split_size_mb", "split_duration_s", "scene")),
+    node_part("duration_s"), write_error_part("exit with status 2 (a recorder with nothing left to record ends)"),
+    switches(force=force_help("the -o file")),
+    node_part("quiet", "parent_pid", quiet="no status line every few seconds on stderr"), INTAKE, *zenoh_parts()]
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("record", help="record radar/** from zenoh into MCAP (or --verify recordings)")
-    p.add_argument("-o", "--output", type=Path, default=None, help="FILE.mcap (required unless --verify)")
-    p.add_argument("--verify", type=Path, nargs="+", default=None, metavar="FILE",
-                   help="record nothing: read each MCAP file whole, every chunk's CRC checked, and print what it "
-                   "holds and lost (one JSON line each); exit 1 if any is damaged, cut short or lost messages")
-    p.add_argument("--topics", default=None, help="key expression (default <prefix>/**)")
-    p.add_argument("--split-size", type=float, default=None, metavar="MB", help="new file every MB megabytes")
-    p.add_argument("--split-duration", type=float, default=None, metavar="S", help="new file every S seconds")
-    p.add_argument("--scene", default=None, help="ground-truth scene to store in the metadata (simulated sensor)")
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl-C)")
-    write_error_options(p, "exit with status 2 (a recorder with nothing left to record ends)")
-    force_option(p, "the -o file")
-    p.add_argument("--quiet", action="store_true", help="no status line every few seconds on stderr")
-    intake_options(p)
-    bus_options(p)
-    p.set_defaults(func=cmd_record)
-
-    p = sub.add_parser("recover", help="rewrite a cut-short or damaged MCAP (e.g. after SIGKILL) as a complete, "
-                       "indexed file of every message that reads back (damaged chunks are left out, and named)")
-    p.add_argument("file", type=Path, help="the cut-short or damaged MCAP file (read, never changed)")
-    p.add_argument("-o", "--output", type=Path, required=True, help="the recovered FILE.mcap (a new file)")
-    force_option(p, "the -o file")
-    p.set_defaults(func=cmd_recover)
-
-    p = sub.add_parser("replay", help="publish an MCAP recording back onto zenoh")
-    p.add_argument("file", type=Path, help="a qradar MCAP recording")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--rate", type=float, default=1.0, help="speed factor of the original timing (default 1)")
-    g.add_argument("--fast", action="store_true", help="as fast as subscribers take it (publishers block, no drops)")
-    p.add_argument("--loop", action="store_true", help="play the file again from its start, until Ctrl-C")
-    p.add_argument("--start", type=float, default=None, help="seconds from the start of the file")
-    p.add_argument("--end", type=float, default=None, help="seconds from the start of the file")
-    p.add_argument("--topics", default=None, help="key expression of the channels to play")
-    p.add_argument("--replay-prefix", dest="replay_prefix", default=None,
-                   help="publish under this key prefix instead of the recorded one (e.g. replay)")
-    bus_options(p)
-    p.set_defaults(func=cmd_replay)
-
-    p = sub.add_parser("info", help="what a recording holds: sensors, topics with counts and rates, time span, the "
-                       "radar, quantizer, decoder, calibration and truth, the losses recorded, recovery, split files",
-                       description="Describe MCAP recordings from their summary and metadata alone (no message is "
-                       "read: an hour in well under a second). A file without a summary (cut short by a kill, its "
-                       "summary damaged) is read whole, every chunk's CRC checked, and says so.")
-    p.add_argument("file", type=Path, nargs="+", help="MCAP recordings")
-    p.add_argument("--json", action="store_true", help="one JSON object per file (what qradar.open_recording("
-                   "FILE).info() returns)")
-    p.add_argument("--check", action="store_true", help="also read every chunk, its CRC checked, and report the "
-                   "damage found (as `qradar record --verify`; takes as long as reading the file)")
-    p.set_defaults(func=cmd_info)
-
-
-def write_error_options(p, on_stop: str) -> None:
-    """--on-write-error and --write-retry (``record``, ``run``); ``on_stop``: what the command does then."""
-    p.add_argument("--on-write-error", choices=[m.value for m in OnWriteError], default=OnWriteError.RESUME.value,
-                   help="after a write error (a full disk, EFBIG, EIO, a removed folder) the file is closed up to "
-                   "its last flushed chunk; resume: keep running, count the messages that cannot be written (by "
-                   "topic) and go on in a new file (NAME_0001.mcap, ...) when space returns; stop: end the "
-                   f"recording and {on_stop}. A file that cannot be created at the start is an error either way")
-    p.add_argument("--write-retry", type=pos_float, default=5.0, metavar="S",
-                   help="while paused after a write error, look for space every S seconds")
+    add_command(sub, "record", RECORD_PARTS, cmd_record, config_json=True,
+                help="record radar/** from zenoh into MCAP (or --verify recordings)")
+    add_command(sub, "recover", [Part(Recover), switches(force=force_help("the -o file"))], cmd_recover,
+                help="rewrite a cut-short or damaged MCAP (e.g. after SIGKILL) as a complete, indexed file of every "
+                "message that reads back (damaged chunks are left out, and named)")
+    add_command(sub, "replay", [Part(Recording), Part(PlayConfig, exclusive=(("rate", "fast"),),
+                                                      dests={"prefix": "replay_prefix"}), *zenoh_parts()],
+                cmd_replay, help="publish an MCAP recording back onto zenoh")
+    add_command(sub, "info", [Part(Recordings), switches(json="one JSON object per file (what "
+                                                                "qradar.open_recording(FILE).info() returns)"),
+                              Part(Info)], cmd_info,
+                help="what a recording holds: sensors, topics with counts and rates, time span, the radar, "
+                "quantizer, decoder, calibration and truth, the losses recorded, recovery, split files",
+                description="Describe MCAP recordings from their summary and metadata alone (no message is read: an "
+                "hour in well under a second). A file without a summary (cut short by a kill, its summary damaged) "
+                "is read whole, every chunk's CRC checked, and says so.")
 
 
 def cmd_verify(paths: list[Path]) -> int:
@@ -113,14 +135,16 @@ def cmd_record(args) -> int:
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
-    node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size,
-                        split_duration_s=args.split_duration, metadata=meta, on_write_error=args.on_write_error,
-                        retry_s=args.write_retry, intake=intake_budget(args), overwrite=args.force)
+    node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size_mb,
+                        split_duration_s=args.split_duration_s, metadata=meta, on_write_error=args.record_on_error,
+                        retry_s=args.record_retry_s, intake=intake_budget(args), overwrite=args.force)
     print(f"recording {node.topics} to {args.output}; Ctrl-C to stop", file=sys.stderr, flush=True)
     install_sigterm("record")
+    if args.parent_pid is not None:
+        watch_parent(args.parent_pid, "record")
     status = StatusLines(node, quiet=args.quiet, announce=False).start()
     try:
-        run_nodes([node], args.duration, node.recording_ended)  # ends early when recording stops for good
+        run_nodes([node], args.duration_s, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
         pass
     finally:
@@ -152,8 +176,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    cfg = PlayConfig(rate=args.rate, fast=args.fast, loop=args.loop, start_s=args.start, end_s=args.end,
-                     topics=args.topics, prefix=args.replay_prefix)
+    cfg = args.schema.build(PlayConfig, args)
     stop = threading.Event()
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
     result = play(args.file, bus_from_args(args), cfg, stop=stop)

@@ -5,21 +5,86 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.errors import ParameterError
 from pipeline.bus.security import CA_KEY, POLICY_FILE, ROLES, Identity, Policy
+from pipeline.errors import ParameterError
+from radar_driver.options import OptionValueError, option, pos_int
 
 from .. import security
-from .common import DefaultsFormatter, pos_int
+from .common import DefaultsFormatter
+from .parts import switches
+from .schema import Part, add_command
 
 
 def names(text: str) -> list[str]:
-    """``a,b`` -> [a, b] (with action=extend, also repeated options)."""
+    """``a,b`` -> [a, b] (repeated options add up)."""
     out = [t.strip() for t in text.split(",") if t.strip()]
     if not out:
-        raise argparse.ArgumentTypeError(f"{text!r} names nothing")
+        raise OptionValueError("names nothing")
     return out
+
+
+DIR_HELP = "a folder made by `qradar security init`"
+JSON_HELP = "print the identities as JSON"
+
+
+@dataclass(frozen=True)
+class Folder:
+    """The folder of the CA, the identities and the policy."""
+
+    dir: Path = option(help=DIR_HELP, positional=True, required=True)
+
+
+@dataclass(frozen=True)
+class Certs:
+    """What a new certificate says and how long it lasts."""
+
+    host: tuple[str, ...] = option((), "a DNS name or IP address the router's certificate is valid for (repeat; "
+                                   "localhost and 127.0.0.1 always); router identities only: any other is a client and "
+                                   "names no host", many="append", metavar="NAME|IP")
+    days: int = option(security.DEFAULT_DAYS, "validity of a certificate in days", parse=pos_int)
+
+
+@dataclass(frozen=True)
+class Init:
+    """``security init``."""
+
+    dir: Path = option(security.DEFAULT_DIR, f"the folder to create: CA, identities.json, one NAME.pem + NAME.key "
+                       f"each (default {security.DEFAULT_DIR}, outside any checkout; a folder in a git checkout "
+                       "should be one its .gitignore covers, as lab-pki/ is qradar's)", positional=True)
+    sensors: tuple[str, ...] | None = option(None, "sensor ids, one sensor identity each (default: sim0, the first "
+                                             "of `qradar source`)", many="extend", parse=names, metavar="ID[,ID...]")
+    ca_days: int = option(security.CA_DAYS, "validity of the CA in days", parse=pos_int)
+    force: bool = option(False, "replace a CA (and every identity) already in DIR")
+
+
+@dataclass(frozen=True)
+class Add:
+    """``security add``."""
+
+    role: str = option(help="what the identity may publish and subscribe", choices=ROLES, required=True)
+    id: tuple[str, ...] | None = option(None, "sensor role: the sensor id(s) it publishes; other roles: a label, the "
+                                        "name becomes <role>-<id>", many="extend", parse=names, metavar="ID[,ID...]")
+    sensors: tuple[str, ...] | None = option(None, "quantizer or localizer: only these sensors (default: every "
+                                             "sensor)", many="extend", parse=names, metavar="ID[,ID...]")
+    name: str | None = option(None, "the identity's name (certificate common name); default from role and id")
+
+
+@dataclass(frozen=True)
+class Remove:
+    """``security remove``."""
+
+    name: str = option(help="the identity's name, as `qradar security list` shows it", positional=True,
+                       required=True)
+
+
+@dataclass(frozen=True)
+class Listing:
+    """``security list``."""
+
+    prefix: str = option("radar", "key prefix")
 
 
 def add_commands(sub) -> None:
@@ -28,64 +93,26 @@ def add_commands(sub) -> None:
                        "for --secure DIR on every node and the router. The CA key (ca.key) stays on the machine "
                        "that runs init; another host gets ca.pem, identities.json and its own NAME.pem, NAME.key.")
     ss = p.add_subparsers(dest="action", required=True, metavar="{init,add,remove,list,check}")
-
-    q = ss.add_parser("init", help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, "
-                      "viewer")
-    q.add_argument("dir", type=Path, nargs="?", default=security.DEFAULT_DIR,
-                   help="the folder to create: CA, identities.json, one NAME.pem + NAME.key each (default "
-                   f"{security.DEFAULT_DIR}, outside any checkout; a folder in a git checkout should be one its "
-                   ".gitignore covers, as lab-pki/ is qradar's)")
-    q.add_argument("--sensors", type=names, action="extend", default=None, metavar="ID[,ID...]",
-                   help="sensor ids, one sensor identity each (default: sim0, the first of `qradar source`)")
-    _cert_options(q)
-    q.add_argument("--ca-days", type=pos_int, default=security.CA_DAYS, help="validity of the CA in days")
-    q.add_argument("--force", action="store_true", help="replace a CA (and every identity) already in DIR")
-    q.set_defaults(func=cmd_init)
-
-    q = ss.add_parser("add", help="issue one more identity with the CA of DIR (restart the router to apply)")
-    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
-    q.add_argument("--role", choices=ROLES, required=True, help="what the identity may publish and subscribe")
-    q.add_argument("--id", type=names, action="extend", default=None, metavar="ID[,ID...]",
-                   help="sensor role: the sensor id(s) it publishes; other roles: a label, the name becomes "
-                   "<role>-<id>")
-    q.add_argument("--sensors", type=names, action="extend", default=None, metavar="ID[,ID...]",
-                   help="quantizer or localizer: only these sensors (default: every sensor)")
-    q.add_argument("--name", default=None, help="the identity's name (certificate common name); default from "
-                   "role and id")
-    _cert_options(q)
-    q.set_defaults(func=cmd_add)
-
-    q = ss.add_parser("remove", help="withdraw an identity from the policy of DIR (restart the router to apply)")
-    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
-    q.add_argument("name", help="the identity's name, as `qradar security list` shows it")
-    q.set_defaults(func=cmd_remove)
-
-    q = ss.add_parser("list", help="the identities of DIR and what each may publish")
-    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
-    q.add_argument("--prefix", default="radar", help="key prefix")
-    q.add_argument("--json", action="store_true", help="print the identities as JSON")
-    q.set_defaults(func=cmd_list)
-
-    q = ss.add_parser("check", help="every certificate's names and role; flags any but a router's naming hosts",
-                      description="Lists, per identity of DIR, the common name, role and host names of its "
-                      "certificate, and flags what could pose as the router (an identity other than a router's "
-                      "whose certificate names hosts: made before `security add` refused that) or contradicts "
-                      "the policy. Exit status 1 when anything is flagged.")
-    q.add_argument("dir", type=Path, help="a folder made by `qradar security init`")
-    q.add_argument("--json", action="store_true", help="print the findings as JSON")
-    q.set_defaults(func=cmd_check)
+    json_part = switches(json=JSON_HELP)
+    add_command(ss, "init", [Part(Init, only=("dir", "sensors")), Part(Certs), json_part,
+                             Part(Init, only=("ca_days", "force"))], cmd_init,
+                help="a new CA and the identities router, sensor-<id>, quantizer, localizer, recorder, viewer")
+    add_command(ss, "add", [Part(Folder), Part(Add), Part(Certs), json_part], cmd_add,
+                help="issue one more identity with the CA of DIR (restart the router to apply)")
+    add_command(ss, "remove", [Part(Folder), Part(Remove)], cmd_remove,
+                help="withdraw an identity from the policy of DIR (restart the router to apply)")
+    add_command(ss, "list", [Part(Folder), Part(Listing), json_part], cmd_list,
+                help="the identities of DIR and what each may publish")
+    add_command(ss, "check", [Part(Folder), switches(json="print the findings as JSON")], cmd_check,
+                help="every certificate's names and role; flags any but a router's naming hosts",
+                description="Lists, per identity of DIR, the common name, role and host names of its certificate, "
+                "and flags what could pose as the router (an identity other than a router's whose certificate names "
+                "hosts: made before `security add` refused that) or contradicts the policy. Exit status 1 when "
+                "anything is flagged.")
     for q in ss.choices.values():  # as build_parser does for the first level
         q.formatter_class = DefaultsFormatter
         q.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                        help="debug logging, tracebacks on errors")
-
-
-def _cert_options(q) -> None:
-    q.add_argument("--host", action="append", default=[], metavar="NAME|IP",
-                   help="a DNS name or IP address the router's certificate is valid for (repeat; localhost and "
-                   "127.0.0.1 always); router identities only: any other is a client and names no host")
-    q.add_argument("--days", type=pos_int, default=security.DEFAULT_DAYS, help="validity of a certificate in days")
-    q.add_argument("--json", action="store_true", help="print the identities as JSON")
 
 
 def cmd_init(args) -> int:

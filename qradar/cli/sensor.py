@@ -8,6 +8,7 @@ import os
 import select
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,27 +16,16 @@ import numpy as np
 from pipeline.errors import ParameterError
 from pipeline.nodes.stream import SourceNode
 from pipeline.wire import check_sensor_id
-from radar_driver.profile import CHIRP_SELECT, DEFAULT_PROFILE_NAME, packaged_profiles, resolve_profile
-from radar_driver.scene import packaged_scenes, resolve_scene
-from radar_driver.session import DEFAULT_FAST_BAUD, SensorSession, SessionConfig, save_frames_npz
+from radar_driver.options import like, nonneg_float, nonneg_int, option, pos_int
+from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, packaged_scenes, resolve_scene
+from radar_driver.session import SensorSession, SessionConfig, save_frames_npz
 from radar_driver.simulator import SimFaults, SimulatorServer
+from radar_driver.profile import resolve_profile
 from replay.outputs import check_new_file
 
-from .common import (
-    force_option,
-    bus_from_args,
-    bus_options,
-    edge_quantizer,
-    edge_quantizer_options,
-    install_sigterm,
-    nonneg_float,
-    nonneg_int,
-    pos_float,
-    pos_int,
-    prob,
-    watch_parent,
-    load_calibration,
-)
+from .common import bus_from_args, install_sigterm, load_calibration, watch_parent
+from .parts import edge_parts, edge_quantizer, force_help, node_part, switches, zenoh_parts
+from .schema import Part, Schema, add_command
 
 
 #: at most this long, ``drive --linger-stdin`` keeps its zenoh session open after the counters, s
@@ -53,65 +43,77 @@ def linger_until_stdin_closes(timeout_s: float) -> bool:
     return False
 
 
-def add_commands(sub) -> None:
-    p = sub.add_parser("sim", help="serve a simulated K-MD2 on a pty and/or TCP until interrupted",
-                       description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
-                       "the paper's model of a TOML scene through its front end, with noise, 12-bit ADC and optional "
-                       "faults.")
-    p.add_argument("--scene", default="chamber",
-                   help=f"TOML scene file, or the name of a packaged scene ({', '.join(packaged_scenes())})")
-    p.add_argument("--empty", action="store_true",
-                   help="the scene without its targets: the empty chamber, front end (DC, leakage) and noise only")
-    p.add_argument("--link", type=Path, default=None, help="stable symlink path to the pty (e.g. /tmp/kmd2)")
-    p.add_argument("--tcp", type=int, default=None, metavar="PORT", help="also serve socket://127.0.0.1:PORT")
-    p.add_argument("--rate", type=nonneg_float, default=20.0, help="frames per second (0 = as fast as polled)")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="noise and fault seed")
-    p.add_argument("--garbage", type=prob, default=0.0, metavar="P", help="garbage burst before a message")
-    p.add_argument("--truncate", type=prob, default=0.0, metavar="P", help="RADC cut short")
-    p.add_argument("--skip-done", type=prob, default=0.0, metavar="P", help="DONE counter jumps")
-    p.add_argument("--disconnect-after", type=pos_int, default=None, metavar="N", help="drop the link after N frames")
-    p.add_argument("--reconnect-after", type=nonneg_float, default=1.0, metavar="T", help="link back after T s")
-    p.add_argument("--line-rate", action="store_true",
-                   help="on the pty, take as long as a real serial line at the host's speed (8E1)")
-    p.add_argument("--hold-clock-when-late", action="store_true",
-                   help="when this process itself writes a reply late (a loaded host), stop the device clock for "
-                   "as long, as a K-MD2 on its own clock would: the drops left are the driver's")
-    profile_option(p)
-    p.set_defaults(func=cmd_sim, parser=p)
+@dataclass(frozen=True)
+class Sim:
+    """A simulated K-MD2 (``qradar sim``): its scene, links, rate and seed."""
 
-    p = sub.add_parser("drive", help="read frames from a K-MD2 (real or simulated)",
-                       description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, "
-                       "socket://host:port, rfc2217://host:port), 8E1, reconnecting on errors.")
-    p.add_argument("--port", required=True, help="pyserial URL or device path")
-    p.add_argument("--frames", type=pos_int, default=None, help="stop after N frames (default: until Ctrl-C)")
-    p.add_argument("--baud", type=int, default=None,
-                   help=f"rate after INIT (115200, 460800, 921600, 2000000, 3000000); default {DEFAULT_FAST_BAUD}, "
-                   "except on socket:// (Ethernet, raw ser2net), which stays at the start-up 115200")
-    p.add_argument("--ramps", type=pos_int, default=2, help="ramps per frame (M = 256 x ramps)")
-    p.add_argument("--timeout", type=pos_float, default=0.5, help="seconds to wait for a GNFD answer")
-    profile_option(p)
-    p.add_argument("--outstanding", type=int, choices=(1, 2), default=1,
-                   help="GNFD requests kept in flight: 2 lets the sensor hold one while the host is late "
-                   "(assumes the K-MD2 queues a second GNFD; the simulator does)")
-    p.add_argument("--chirp-select", choices=CHIRP_SELECT, default="first",
-                   help="with several chirps per RADC: a frame takes the first --ramps chirps, or every k-th")
-    p.add_argument("--out", type=Path, default=None, help="save frames to FILE.npz (frames, M, 2)")
-    force_option(p, "the --out file")
-    p.add_argument("--json", action="store_true",
-                   help="end with one JSON object on stdout: the counters, or the error and exit code")
-    p.add_argument("--quiet", action="store_true", help="no line per frame")
-    p.add_argument("--sensor-id", default="kmd2", help="sensor id in the zenoh keys")
-    p.add_argument("--no-publish", action="store_true", help="read frames without opening a zenoh session")
-    edge_quantizer_options(p, "--quantize")
-    p.add_argument("--linger-stdin", action="store_true",
-                   help="after a stop, print the counters and keep the zenoh session open until stdin closes "
-                   f"(at most {LINGER_S:g} s): a parent that reads the counters closes stdin once it has received "
-                   "every frame they count (a put just before a session closes can be lost)")
-    p.add_argument("--parent-pid", type=pos_int, default=None, metavar="PID",
-                   help="stop (GBYE, counters) within a second once process PID is no longer this one's parent, "
-                   "however it died (qradar run sets it for its drivers)")
-    bus_options(p)
-    p.set_defaults(func=cmd_drive)
+    scene: str = option(DEFAULT_SCENE, f"TOML scene file, or the name of a packaged scene "
+                        f"({', '.join(packaged_scenes())})")
+    empty: bool = option(False, "the scene without its targets: the empty chamber, front end (DC, leakage) and noise "
+                         "only")
+    link: Path | None = option(None, "stable symlink path to the pty (e.g. /tmp/kmd2)")
+    tcp: int | None = option(None, "also serve socket://127.0.0.1:PORT", metavar="PORT", parse=int)
+    rate: float = option(SIM_RATE_HZ, "frames per second (0 = as fast as polled)", parse=nonneg_float)
+    seed: int = option(0, "noise and fault seed", parse=nonneg_int)
+    line_rate: bool = option(False, "on the pty, take as long as a real serial line at the host's speed (8E1)")
+    hold_clock_when_late: bool = option(False, "when this process itself writes a reply late (a loaded host), stop "
+                                        "the device clock for as long, as a K-MD2 on its own clock would: the drops "
+                                        "left are the driver's")
+    profile: str | None = like(SessionConfig, "profile")
+
+
+@dataclass(frozen=True)
+class Drive:
+    """What ``qradar drive`` does with the frames besides publishing them."""
+
+    frames: int | None = option(None, "stop after N frames (default: until Ctrl-C)", parse=pos_int)
+    out: Path | None = option(None, "save frames to FILE.npz (frames, M, 2)")
+    no_publish: bool = option(False, "read frames without opening a zenoh session")
+    linger_stdin: bool = option(False, "after a stop, print the counters and keep the zenoh session open until stdin "
+                                f"closes (at most {LINGER_S:g} s): a parent that reads the counters closes stdin once "
+                                "it has received every frame they count (a put just before a session closes can be "
+                                "lost)")
+
+
+SIM_PARTS = [Part(Sim, only=("scene", "empty", "link", "tcp", "rate", "seed")), Part(SimFaults, "faults"),
+             Part(Sim, only=("line_rate", "hold_clock_when_late", "profile"))]
+DRIVE_PARTS = [
+    Part(SessionConfig, only=("url",)), Part(Drive, only=("frames",)),
+    Part(SessionConfig, only=("baud", "ramps_per_frame", "timeout_s", "profile", "outstanding", "chirp_select")),
+    Part(Drive, only=("out",)), switches(force=force_help("the --out file"), json="end with one JSON object on "
+                                        "stdout: the counters, or the error and exit code"),
+    node_part("quiet", quiet="no line per frame"), Part(SessionConfig, only=("sensor_id",)),
+    Part(Drive, only=("no_publish",)), *edge_parts("--quantize"), Part(Drive, only=("linger_stdin",)),
+    node_part("parent_pid", parent_pid="stop (GBYE, counters) within a second once process PID is no longer this "
+              "one's parent, however it died (qradar run sets it for its drivers)"), *zenoh_parts()]
+
+
+def add_commands(sub) -> None:
+    p = add_command(sub, "sim", SIM_PARTS, cmd_sim, help="serve a simulated K-MD2 on a pty and/or TCP until "
+                    "interrupted", description="A simulated RFbeam K-MD2 speaking the serial protocol; ramps from "
+                    "the paper's model of a TOML scene through its front end, with noise, 12-bit ADC and optional "
+                    "faults.")
+    p.set_defaults(parser=p)
+    add_command(sub, "drive", DRIVE_PARTS, cmd_drive, config_json=True,
+                help="read frames from a K-MD2 (real or simulated)",
+                description="Drive a K-MD2 on any pyserial URL (/dev/ttyUSB0, a pty path, socket://host:port, "
+                "rfc2217://host:port), 8E1, reconnecting on errors.")
+
+
+def drive_values(spec, bus, frames: int | None = None, outstanding: int = 1, parent_pid: int | None = None,
+                 linger: bool = False) -> dict:
+    """``qradar drive``'s options (by dest) for a sensor's driver (``spec``: a
+    :class:`~qradar.sensors.SensorSpec`) publishing on ``bus``, with ``--json --quiet``."""
+    return {"url": spec.url, "sensor_id": spec.sensor_id, "baud": spec.baud, "ramps_per_frame": spec.ramps,
+            "profile": spec.profile, "chirp_select": spec.chirp_select, "outstanding": outstanding,
+            "frames": frames, "json": True, "quiet": True, "parent_pid": parent_pid, "linger_stdin": linger,
+            "mode": bus.mode, "connect": list(bus.connect), "prefix": bus.prefix, "config_file": bus.config_file}
+
+
+def drive_config(spec, bus, **kw) -> dict:
+    """:func:`drive_values` as a lab file's mapping: what a run hands its driver process
+    (``--config-json``)."""
+    return Schema("drive", DRIVE_PARTS).mapping(drive_values(spec, bus, **kw))
 
 
 def cmd_sim(args) -> int:
@@ -120,8 +122,7 @@ def cmd_sim(args) -> int:
     scene = resolve_scene(args.scene)
     if args.empty:
         scene = scene.without_targets()
-    faults = SimFaults(garbage_prob=args.garbage, truncate_prob=args.truncate, skip_done_prob=args.skip_done,
-                       disconnect_after_frames=args.disconnect_after, reconnect_after_s=args.reconnect_after)
+    faults = args.schema.build(SimFaults, args)
     install_sigterm("sim")
     profile = resolve_profile(args.profile)
     server = SimulatorServer(scene, link_path=args.link, tcp_port=args.tcp, rate_hz=args.rate,
@@ -162,15 +163,9 @@ def sim_summary(server: SimulatorServer, seconds: float) -> str:
     return f"simulator: {seconds:.1f} s; " + "; ".join(parts)
 
 
-def profile_option(p) -> None:
-    p.add_argument("--profile", default=DEFAULT_PROFILE_NAME,
-                   help=f"sensor profile (RADC layout, baud codes): {', '.join(packaged_profiles())} or a TOML file")
-
-
 def cmd_drive(args) -> int:
-    cfg = SessionConfig(url=args.port, baud=args.baud, ramps_per_frame=args.ramps, timeout_s=args.timeout,
-                        sensor_id=check_sensor_id(args.sensor_id), profile=args.profile,
-                        chirp_select=args.chirp_select, outstanding=args.outstanding)
+    check_sensor_id(args.sensor_id)
+    cfg = args.schema.build(SessionConfig, args)
     quantizer, raw_every = edge_quantizer(args)
     load_calibration(args.calibration, [cfg.sensor_id])  # a file for another sensor: refused before the port opens
     if args.out is not None:

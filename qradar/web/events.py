@@ -12,52 +12,21 @@ import math
 
 import numpy as np
 
+from pipeline.dsp.ellipse import ellipses, polar_covariance_to_xy, rotate_covariance  # noqa: F401 (the page's maths)
 from pipeline.wire import HealthMsg, TargetsMsg, TracksMsg
+from pipeline.wire.foxglove import TARGET_SIGMA_FIELDS
 from radar_driver.model import RadarConfig, polar_to_xy
 
 from ..liveview import to_db, to_world
 
-#: a target's uncertainty, when its message carries it: σ of the range (m), of the angle
-#: (deg) and the range–angle covariance (m·deg); absent fields count as 0
-TARGET_SIGMA_FIELDS = ("sigma_range_m", "sigma_angle_deg", "cov_range_angle")
+#: a target's fields as the page names them, with the digits kept (negative: significant digits); a field
+#: of the definition (pipeline.wire.fields.TARGET_ITEM) not named here goes to the page under its own name,
+#: 4 significant digits; None: not sent (the position goes as the world's x, y)
+PAGE_FIELDS = {"range_m": ("r", 3), "angle_deg": ("a", 2), "amplitude": ("amp", -4), "statistic_db": ("stat", 1),
+               "x_m": (None, 0), "y_m": (None, 0)}
 #: digits kept: positions (m) and profile values (dB)
 XY_DIGITS = 3
 DB_DIGITS = 1
-
-
-def polar_covariance_to_xy(range_m: np.ndarray, angle_deg: np.ndarray, sigma_range_m: np.ndarray,
-                           sigma_angle_deg: np.ndarray, cov_range_angle: np.ndarray) -> np.ndarray:
-    """The covariance of (x, y) of K targets from that of (R, θ), to first order:
-    Σ_xy = J Σ_Rθ Jᵀ, J the Jacobian of :func:`~radar_driver.model.polar_to_xy` at (R, θ)
-    (columns u(θ) and R u(θ + π/2), u(θ) = polar_to_xy(1, θ); θ in rad). Inputs (K,), m
-    and deg (the covariance in m·deg); -> (K, 2, 2), m²."""
-    r = np.asarray(range_m, dtype=float)
-    a = np.radians(np.asarray(angle_deg, dtype=float))
-    ux, uy = polar_to_xy(np.ones_like(r), a)
-    vx, vy = polar_to_xy(r, a + np.pi / 2)
-    jac = np.stack([np.stack([ux, vx], axis=-1), np.stack([uy, vy], axis=-1)], axis=-2)  # (K, 2, 2)
-    s_r = np.asarray(sigma_range_m, dtype=float)
-    s_a = np.radians(np.asarray(sigma_angle_deg, dtype=float))
-    c = np.radians(np.asarray(cov_range_angle, dtype=float))
-    polar = np.stack([np.stack([s_r ** 2, c], axis=-1), np.stack([c, s_a ** 2], axis=-1)], axis=-2)
-    return jac @ polar @ np.swapaxes(jac, -1, -2)
-
-
-def rotate_covariance(cov: np.ndarray, yaw_deg: float) -> np.ndarray:
-    """(K, 2, 2) covariances of a sensor's frame in the world (the sensor turned by yaw_deg)."""
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    rot = np.array([[c, -s], [s, c]])
-    return rot @ cov @ rot.T
-
-
-def ellipses(cov: np.ndarray) -> np.ndarray:
-    """1-σ ellipses of (K, 2, 2) covariances: (K, 3) of semi-axes a >= b (m) and the angle
-    of a from x (rad, in (-π/2, π/2])."""
-    w, v = np.linalg.eigh(cov)  # ascending eigenvalues, eigenvectors in columns
-    a, b = np.sqrt(np.maximum(w[:, 1], 0.0)), np.sqrt(np.maximum(w[:, 0], 0.0))
-    phi = np.arctan2(v[:, 1, 1], v[:, 0, 1])
-    phi = np.where(phi > np.pi / 2, phi - np.pi, np.where(phi <= -np.pi / 2, phi + np.pi, phi))
-    return np.stack([a, b, phi], axis=-1)
 
 
 def _round(values: np.ndarray, digits: int) -> list:
@@ -86,8 +55,9 @@ def target_sigmas(msg: TargetsMsg, raw: list | None = None) -> np.ndarray | None
 def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, truth: list[dict] | None = None,
                   raw: list | None = None) -> dict:
     """One targets message for the page: per target its world x, y (m), range (m), angle
-    (deg), amplitude, statistic (dB, when given) and 1-σ ellipse (when the message carries
-    the targets' σ); ``truth``: the true targets (range_m, angle_deg) as world [x, y] pairs."""
+    (deg), amplitude, statistic (dB, when given), any other field of the definition it
+    carries (PAGE_FIELDS) and 1-σ ellipse (when the message carries the targets' σ);
+    ``truth``: the true targets (range_m, angle_deg) as world [x, y] pairs."""
     k = len(msg.targets)
     rng = np.array([t["range_m"] for t in msg.targets], dtype=float)
     ang = np.array([t["angle_deg"] for t in msg.targets], dtype=float)
@@ -100,10 +70,11 @@ def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, trut
     xs, ys = _round(x, XY_DIGITS), _round(y, XY_DIGITS)
     targets = []
     for i, t in enumerate(msg.targets):
-        item = {"x": xs[i], "y": ys[i], "r": round(t["range_m"], 3), "a": round(t["angle_deg"], 2),
-                "amp": float(f"{t['amplitude']:.4g}")}
-        if "statistic_db" in t:
-            item["stat"] = round(t["statistic_db"], 1)
+        item = {"x": xs[i], "y": ys[i]}
+        for name, value in t.items():  # the fields the wire decoder kept (pipeline.wire.fields), each once
+            key, digits = PAGE_FIELDS.get(name, (name, -4))
+            if key is not None:
+                item[key] = round(value, digits) if digits >= 0 else float(f"{value:.{-digits}g}")
         if ell is not None:
             item["ell"] = ell[i]
         targets.append(item)

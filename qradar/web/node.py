@@ -18,6 +18,7 @@ from pipeline.errors import ParameterError
 from pipeline.nodes.budget import IntakeBudget
 from pipeline.nodes.transport import MemoryTransport, Transport
 from pipeline.wire import HealthMsg, QuantizedFrameMsg, TargetsMsg, TracksMsg
+from pipeline.wire.shared import DecodedOnce
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene
 
@@ -68,8 +69,8 @@ class WebView(LiveView):
     def __init__(self, bus: BusConfig, config: WebConfig = WebConfig(),
                  session: zenoh.Session | Transport | None = None, truth: SimScene | None = None,
                  truth_t0_ns: int | None = None, recording: RecordingPlayer | None = None,
-                 health_period_s: float = 1.0, intake: IntakeBudget | None = None):
-        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake)
+                 health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
+        super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake, decoded=decoded)
         self.hub = EventHub(config.max_clients, config.client_events, config.client_bytes)
         self.truth, self.truth_t0_ns = truth, truth_t0_ns
         self._t0_by_sensor: dict[str, int] = {}

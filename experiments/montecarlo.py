@@ -30,7 +30,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
+from radar_driver.options import finite_float, nonneg_float, nonneg_int, option, pos_int
 
+from pipeline.defaults import DEFAULT_MAX_TARGETS
 from pipeline.errors import ParameterError
 from pipeline.dsp.decode import ALGOS, Algo, DecoderConfig, decode
 from pipeline.dsp.gate import RangeGate, check_gate
@@ -113,13 +115,17 @@ class SceneSpec:
     std of each of I and Q relative to the strongest amplitude, added to Gamma before
     quantization (every scheme, the 32-bit ones too). The defaults are the paper's."""
 
-    ranges: str = "grid"
+    ranges: str = option("grid", "grid: cell centres on the range grid; cells: cell centres; continuous: uniform "
+                         "over --range-interval (default grid)", choices=RANGE_PLACEMENTS)
     range_min_m: float = 3.0
     range_max_m: float = 150.0
-    min_separation_m: float = 1.5
-    max_angle_deg: float = 90.0
-    min_amplitude: float = 0.0
-    noise_sigma: float = 0.0
+    min_separation_m: float = option(1.5, "with --ranges continuous: targets at least this far apart (default 1.5)",
+                                     parse=nonneg_float)
+    max_angle_deg: float = option(90.0, "angles within +-this (default 90)", parse=nonneg_float)
+    min_amplitude: float = option(0.0, "weaker targets' amplitudes uniform in [this, 1] (default 0)",
+                                  parse=nonneg_float)
+    noise_sigma: float = option(0.0, "sensor noise before quantization: std of I and of Q relative to the strongest "
+                                "target (default 0)", parse=nonneg_float)
 
     def __post_init__(self) -> None:
         if self.ranges not in RANGE_PLACEMENTS:
@@ -162,9 +168,11 @@ class CountSpec:
     errors cover the found targets."""
 
     auto: bool = False
-    max_targets: int = 4
-    pfa: float = DEFAULT_PFA
-    gate_m: float = 0.6
+    max_targets: int = option(DEFAULT_MAX_TARGETS, "with --count auto: the most a frame has (default 4)", parse=pos_int)
+    pfa: float = option(DEFAULT_PFA, "with --count auto: false-alarm probability per frame and test",
+                        parse=lambda text: check_pfa(finite_float(text)))
+    gate_m: float = option(0.6, "with --count auto: a true target is found by a detection within this range of it "
+                           "(default 0.6, one range bin)", parse=nonneg_float)
 
     def __post_init__(self) -> None:
         if isinstance(self.max_targets, bool) or not isinstance(self.max_targets, int) or not \
@@ -191,19 +199,24 @@ class MonteCarloConfig:
     decoders learn the target count (:class:`CountSpec`) and the range gate they search
     inside (None: the whole range axis, the paper's protocol)."""
 
-    ks: tuple[int, ...] = (1, 2)
-    runs: int | None = None
-    schemes: tuple[str, ...] = DEFAULT_SCHEMES
-    seed: int = 0
-    off_grid: bool = False
-    workers: int | None = None
+    ks: tuple[int, ...] = option((1, 2), "sparsities (default 1 2)", flag="--K", many="+", parse=pos_int)
+    runs: int | None = option(None, "runs per scheme and K (default: the paper's 320000 x K)", parse=pos_int)
+    schemes: tuple[str, ...] = option(DEFAULT_SCHEMES, "dither_m<M>, dither_a<alpha>_m<M>, dither_aauto_m<M> (alpha "
+                                      "from the noise the quantizer estimates in each frame), nodither_m<M>, "
+                                      "32bit_m<M> (default: the paper's four)", many="+")
+    seed: int = option(0, "random seed (runs are reproducible for a seed)", parse=nonneg_int)
+    off_grid: bool = option(False, "keep range cell centres off the range grid (the same as --ranges cells)")
+    workers: int | None = option(None, "worker processes (default: all cores)", parse=pos_int)
     radar: RadarConfig = field(default_factory=RadarConfig)
-    algos: tuple[Algo, ...] = (Algo.PBP,)
-    fallback_pbp: bool = False
+    algos: tuple[Algo, ...] = option((Algo.PBP,), f"decoders: {', '.join(ALGOS)} (default {Algo.PBP}); non-PBP "
+                                     "results appear as <scheme>@<algo>", many="+")
+    fallback_pbp: bool = option(False, "decode schemes without dither with PBP when a dither-aware algo is asked for")
     scene: SceneSpec = field(default_factory=SceneSpec)
     count: CountSpec = field(default_factory=CountSpec)
     gate: RangeGate | None = None
-    decoder_noise: str = "codes"
+    decoder_noise: str = option("codes", "what cml is told of the noise: codes (it estimates it from the codes, as "
+                                "live), true (the scene's --noise-sigma), frames (the quantizer's estimate from the "
+                                "full frames) (default codes)", choices=DECODER_NOISE)
 
     def __post_init__(self) -> None:
         if self.decoder_noise not in DECODER_NOISE:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import PipelineError
-from replay.montecarlo import PD_AMPLITUDE, MonteCarloResult
+from experiments.montecarlo import PD_AMPLITUDE, MonteCarloResult
 from replay.outputs import check_output_folder
 
 #: the files a Monte Carlo run writes whatever its options (a folder holding one is refused unless --force)
@@ -26,7 +26,7 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
     """Write summary.json, config.json, maps.npz, the polar error maps (PNG, unless
     ``plots`` is False) and, when the schemes span several M, error_vs_m.json/.png to
     ``out_dir``. Returns the report lines (the table, the slopes, what was written)."""
-    from replay.plots import detection_figure, error_vs_m, error_vs_m_figure, montecarlo_figures
+    from experiments.plots import detection_figure, error_vs_m, error_vs_m_figure, montecarlo_figures
 
     out_dir = Path(out_dir)
     try:

@@ -7,15 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.dsp.decode import Algo
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from replay.outputs import pyplot
 
 
 ERROR_SCALE_MIN_M = 0.01
@@ -47,7 +39,7 @@ def polar_error_map(
     positive angles to the right (antenna 2's side). ``scale_m`` = (vmin, vmax) of the
     logarithmic colour scale; smaller errors get the lowest colour. Empty cells stay white.
     """
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.colors import LogNorm
 
     n_r, n_a = error_map_m.shape
@@ -127,7 +119,7 @@ def error_vs_m(summary: dict, stat: str = "median_m") -> dict[str, dict]:
 
 def error_vs_m_figure(path: Path, series: dict[str, dict], stat: str = "median") -> Path:
     """Log-log plot of the error against M with the fitted slopes in the legend."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=110)
     for label, s in series.items():
         ls = "-" if label.endswith(Algo.PBP) else "--"
@@ -158,7 +150,7 @@ def detection_figure(path: Path, summary: dict) -> Path | None:
               for name, st in block.items() if "pd_weak_by_amplitude" in st]
     if not curves:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=110)
     for label, st in curves:
         pts = np.array(st["pd_weak_by_amplitude"], dtype=float)
@@ -199,7 +191,7 @@ def draw_error_vs_frames(ax, results: list[dict], title: str) -> None:
 def error_vs_frames_figure(path: Path, results: list[dict]) -> Path:
     """The Monte Carlo in time (:func:`pipeline.dsp.integrate.time_monte_carlo`) as a PNG
     (:func:`draw_error_vs_frames`)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
     draw_error_vs_frames(ax, results, f"1 bit, one static target off the grid, {results[0]['runs']} runs")
     fig.tight_layout()

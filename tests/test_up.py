@@ -1,0 +1,176 @@
+"""``qradar up LAB.toml``: the lab file's nodes as real processes (a router, the simulated
+sensors or a driver per sensor, the quantizer, the localizer, the recorder), each handed
+its own options, supervised, stopped in order by SIGTERM with nothing left behind, and
+gone by themselves when ``up`` is SIGKILLed; the nodes placed by host."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from qradar.cli.up import plan_nodes, read_lab
+from replay.mcapio import McapFile
+from test_orphans import alive, child_config, children_of, kill_all, wait_for
+
+QRADAR = [sys.executable, "-m", "qradar"]
+STARTED = re.compile(r"qradar up: (.+?): started \(pid (\d+)\) on (\S+)")
+
+
+def start_up(tmp_path: Path, text: str, *extra: str) -> subprocess.Popen:
+    (tmp_path / "lab.toml").write_text(text)
+    return subprocess.Popen([*QRADAR, "up", "lab.toml", *extra], cwd=tmp_path, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_started(proc: subprocess.Popen, names: set[str], timeout_s: float = 60.0) -> tuple[dict[str, int], list[str]]:
+    """The pids of ``up``'s nodes ``names`` from its stderr lines, once all have started."""
+    pids, lines = {}, []
+    deadline = time.monotonic() + timeout_s
+    while set(pids) != names and time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if m := STARTED.search(line):
+            pids[m.group(1)] = int(m.group(2))
+    assert set(pids) == names, "".join(lines)[-3000:]
+    return pids, lines
+
+
+def recorded(path: Path) -> list[str]:
+    """The topics of the messages of a recording so far ([] before its first chunk)."""
+    try:
+        return [ch.topic for ch, _ in McapFile(path).messages()]
+    except Exception:  # not there yet, or no chunk yet
+        return []
+
+
+SIMULATED = """\
+scene = "chamber-ideal"
+rate = 20.0
+
+[recording]
+record = "up.mcap"
+"""
+
+
+def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
+    proc = start_up(tmp_path, SIMULATED)
+    pids = {}
+    try:
+        pids, _ = wait_started(proc, {"router", "record", "localize", "quantize", "sources"})
+        assert all(children_of(proc.pid)) and set(children_of(proc.pid)) == set(pids.values())
+        socket_dir = Path(child_config(pids["quantize"])["zenoh"]["connect"][0].removeprefix("unixsock-stream/")).parent
+        assert socket_dir.is_dir()  # the nodes meet on a unix socket: nothing listens on the network
+        # frames go all the way: source -> quantize -> localize -> record (a file being written reads up to its
+        # last flushed chunk)
+        assert wait_for(lambda: recorded(tmp_path / "up.mcap").count("radar/kmd2-0/targets") >= 30, 90.0)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        kill_all([proc.pid, *pids.values()])
+    assert proc.returncode == 0, err[-3000:]
+    report = json.loads(out.strip().splitlines()[-1])["up"]
+    nodes = report["nodes"]
+    assert set(nodes) == {"router", "record", "localize", "quantize", "sources"} and report["host"] == "localhost"
+    assert all(n["restarts"] == 0 and n["exit_code"] == 0 for n in nodes.values()), nodes
+    assert nodes["localize"]["summary"]["frames_out"] >= 30 and nodes["record"]["summary"]["written"] >= 90
+    # each node starts once the one before it is alive: the sensors' first frames reach the localizer
+    sent = nodes["sources"]["summary"]["frames_out"]
+    assert nodes["localize"]["summary"]["frames_in"] >= 0.9 * sent and nodes["quantize"]["summary"]["frames_in"] \
+        >= 0.9 * sent, (sent, nodes["quantize"]["summary"], nodes["localize"]["summary"])
+    assert not any(alive(p) for p in pids.values()) and not socket_dir.exists()
+    topics = recorded(tmp_path / "up.mcap")
+    assert all(topics.count(f"radar/kmd2-0/{t}") >= 30 for t in ("raw", "quantized", "targets")), len(topics)
+
+
+def test_a_killed_up_leaves_no_node_behind(tmp_path):
+    """SIGKILL of up: each of its nodes sees its parent gone and stops by itself."""
+    proc = start_up(tmp_path, SIMULATED.replace("[recording]\n", "[recording]\nno-record = true\n"))
+    pids = {}
+    try:
+        pids, _ = wait_started(proc, {"router", "localize", "quantize", "sources"})
+        assert all(alive(p) for p in pids.values())
+        proc.kill()
+        proc.communicate(timeout=20)
+        assert wait_for(lambda: not any(alive(p) for p in pids.values()), 15.0), \
+            [p for p in pids.values() if alive(p)]
+    finally:
+        kill_all([proc.pid, *pids.values()])
+
+
+def test_a_node_that_dies_is_started_again(tmp_path):
+    proc = start_up(tmp_path, SIMULATED.replace("[recording]\n", "[recording]\nno-record = true\n"))
+    pids = {}
+    try:
+        pids, _ = wait_started(proc, {"router", "localize", "quantize", "sources"})
+        import os
+
+        os.kill(pids["quantize"], signal.SIGKILL)
+        again, _ = wait_started(proc, {"quantize"})
+        assert again["quantize"] != pids["quantize"] and alive(again["quantize"])
+        pids["quantize again"] = again["quantize"]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        kill_all([proc.pid, *pids.values()])
+    quantize = json.loads(out.strip().splitlines()[-1])["up"]["nodes"]["quantize"]
+    assert quantize["restarts"] == 1 and "exited with status -9" in quantize["exits"][0]
+    assert not any(alive(p) for p in pids.values())
+
+
+HOSTS = """\
+[[sensor]]
+url = "/dev/ttyUSB0"
+id = "kmd2-0"
+host = "bench1"
+
+[[sensor]]
+url = "/dev/ttyUSB0"
+id = "kmd2-1"
+host = "bench2"
+
+[hosts]
+default = "hub"
+
+[zenoh]
+listen = ["tcp/0.0.0.0:7447"]
+connect = ["tcp/10.0.0.2:7447"]
+"""
+
+
+def test_the_nodes_are_placed_by_host(tmp_path):
+    (tmp_path / "lab.toml").write_text(HOSTS)
+    args, _ = read_lab(tmp_path / "lab.toml")
+    nodes = {n.name: n for n in plan_nodes(args, tmp_path)}
+    assert {n: x.host for n, x in nodes.items()} == {"router": "hub", "record": "hub", "localize": "hub",
+                                                     "quantize": "hub", "driver kmd2-0": "bench1",
+                                                     "driver kmd2-1": "bench2"}
+    drive = nodes["driver kmd2-0"].config()
+    assert drive["port"] == "/dev/ttyUSB0" and drive["zenoh"]["connect"] == ["tcp/10.0.0.2:7447"]
+    assert drive["zenoh"]["mode"] == "client" and drive["parent-pid"] > 0
+    assert nodes["router"].config()["zenoh"]["listen"] == ["tcp/0.0.0.0:7447"]
+    assert nodes["localize"].config()["decoder"]["K"] == 2  # a real sensor without a truth: 2
+
+
+@pytest.mark.parametrize("text, host, words", [
+    (HOSTS, "nowhere", "no node of lab.toml runs on host 'nowhere'; its hosts: bench1, bench2, hub"),
+    (HOSTS.replace('connect = ["tcp/10.0.0.2:7447"]\n', ""), "bench1", "the router runs on host 'hub': give "
+     "[zenoh] connect"),
+    (HOSTS.replace('host = "bench2"', 'host = "bench1"'), "bench1", "is the port of sensor kmd2-0 too"),
+    ("empty = true\n", "localhost", "empty = true (the empty chamber) is for `qradar run`"),
+    ("[quantizer]\nbits = 0\n", "localhost", "lab.toml:2: [quantizer] bits = 0: must be >= 1"),
+])
+def test_a_set_up_up_cannot_start_is_one_line_and_starts_nothing(tmp_path, text, host, words):
+    proc = start_up(tmp_path, text, "--host", host)
+    out, err = proc.communicate(timeout=60)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and words in lines[0], err
+    assert "started" not in err
