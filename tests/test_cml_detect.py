@@ -141,17 +141,18 @@ def test_compiled_detection_agrees_with_numpy_on_close_targets_and_a_gate(cfg):
 def test_decoder_with_k_fixed_matches_the_full_grids(cfg, monkeypatch):
     """cml with k fixed (the coarse grid) gives the same targets as with the coarse grid
     switched off (the full fine grid) to the last bits' run-to-run variation; with the phase
-    step between ramps (the default) the coarse grid searches the residual steered to its
-    best coarse point's phase step, the full grid each point's peak over it: the detections
-    differ by a small part of a bin and the refinement's last steps do not close it: ranges
-    agree to 1e-7 m, amplitudes to 1e-4 (measured 5e-8 m and 2e-5, the noise 0.1)."""
+    step between ramps (the default) the coarse grid searches the static channel or the
+    residual steered to its best coarse point's phase step, the full grid each point's peak
+    over it: the detections differ by a small part of a bin and the refinement's last steps
+    do not close it: ranges agree to 1e-5 m, amplitudes to 5e-3 (measured 2.1e-6 m and 2.2e-3,
+    the noise 0.1)."""
     from pipeline.dsp.cml import grid
     rng = np.random.default_rng(70)
     r, a, x = random_scenes(16, 2, rng)
     z, xi, delta = measure(r, a, x, cfg, rng, alpha=0.45, noise=0.1)
     gate = RangeGate(min_range_m=2.0, max_range_m=140.0)
     for kw, motion in itertools.product(({}, {"gate": gate}), (False, True)):
-        tol_m, tol = (1e-7, 1e-4) if motion else (1e-9, 1e-9)
+        tol_m, tol = (1e-5, 5e-3) if motion else (1e-9, 1e-9)
         options = CmlOptions(motion=motion)
         got = cml(z, xi, delta, 1, cfg, 2, options=options, **kw)
         monkeypatch.setattr(grid, "COARSE_PER_BIN", 8)  # = oversample: no coarse grid

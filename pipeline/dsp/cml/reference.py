@@ -328,6 +328,9 @@ class Fit:
 #: the phase steps of a search of R >= 3 model ramps, a ramp (as the kernels':
 #: :data:`pipeline.dsp.cml.kernels.doppler.DOPPLER_PER_RAMP`)
 DOPPLER_PER_RAMP = 4
+#: the static channel unless the phase step gains this many mean totals (as the kernels':
+#: :data:`pipeline.dsp.cml.kernels.doppler.STEER_GAIN`)
+STEER_GAIN = 8.0
 
 
 def _steered(u: np.ndarray, cr: np.ndarray, phi: np.ndarray) -> np.ndarray:
@@ -383,7 +386,8 @@ def energy(y: np.ndarray, fit: Fit, oversample: int, guard_bins: float) -> tuple
     mask (B, L) bool. The energy searched: one ramp, ``|U1|^2 + |U2|^2``; more, on a grid
     with a coarse one (:attr:`SearchGrid.coarse`) the energy at the phase step of the best
     coarse point not masked (largest peak over the phase step; beyond the gate -1, within
-    the guard 0), as :func:`pipeline.dsp.cml.kernels.search.steer`; without one, each point's
+    the guard 0; 0 unless it gains :data:`STEER_GAIN` mean totals), as
+    :func:`pipeline.dsp.cml.kernels.search.steer`; without one, each point's
     peak over the phase step."""
     b, rm, n = y.shape[:3]
     size = oversample * n
@@ -400,7 +404,9 @@ def energy(y: np.ndarray, fit: Fit, oversample: int, guard_bins: float) -> tuple
         if fit.grid.use:
             v = np.where(fit.grid.outside[points], -1.0, v)
         best = points[np.argmax(v, axis=1)]
-        phi = doppler_phase(u[np.arange(b), :, :, best])
+        at = u[np.arange(b), :, :, best]  # (B, Rm, 2)
+        gain = e[np.arange(b), best] - (np.abs(at.sum(axis=1)) ** 2).sum(axis=1)
+        phi = np.where(gain > STEER_GAIN * total[:, points].mean(axis=1), doppler_phase(at), 0.0)
         steer = np.exp(-1j * fit.cr[None, :] * phi[:, None])  # (B, Rm)
         e = (np.abs(np.einsum("br,brpl->bpl", steer, u)) ** 2).sum(axis=1)
     e[near] = 0.0

@@ -20,6 +20,14 @@ from pipeline.dsp.cml.kernels.layout import FAST
 #: tone's energy is under 1 dB for R = 3 (|1 + 2 cos(pi / 12)|^2 / 9 = 0.90)
 DOPPLER_PER_RAMP = 4
 
+#: the search over range runs on the residual steered to a phase step only where the peak over
+#: the phase step beats the static energy (phi = 0) by more than this many times the mean
+#: total energy of a cell (noise's, about): a static target is searched as the static model
+#: searches it (measured on the chamber recording: at 4 the mean error is 9 % above the
+#: static model's, at 8 and beyond the same), a target at a blind speed (static energy ~0)
+#: steered to as soon as it stands 8 cells' noise above it
+STEER_GAIN = 8.0
+
 
 @njit(cache=True, nogil=True, inline="always")
 def doppler(vals, rm):
@@ -100,3 +108,16 @@ def two_ramps(uc, sc, coarse, peaks):
         xi = a0.real * b0.imag - a0.imag * b0.real + a1.real * b1.imag - a1.imag * b1.real
         coarse[c] = total * s2
         peaks[c] = (total + 2.0 * math.sqrt(xr * xr + xi * xi)) * s2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def static_energy(vals, rm) -> float:
+    """The energy at phase step 0, ``sum_p |sum_r vals[r, p]|^2``, of ``vals`` (Rm, 2)."""
+    e = 0.0
+    for p in range(2):
+        acc = 0.0j
+        for r in range(rm):
+            acc += vals[r, p]
+        e += acc.real * acc.real + acc.imag * acc.imag
+    return e
+

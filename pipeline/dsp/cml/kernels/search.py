@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.dsp.cml.kernels.doppler import doppler, doppler_phase, two_ramps
+from pipeline.dsp.cml.kernels.doppler import STEER_GAIN, doppler, doppler_phase, static_energy, two_ramps
 from pipeline.dsp.cml.kernels.layout import FAST, JIT
 
 
@@ -200,7 +200,10 @@ def steer(uc, x, n, gate, s):
     coarse point not masked (``s.peaks``, the guard ``s.near``, beyond the gate -1; the
     first of equal ones) into ``s.steered`` (1, 2, N), its coarse energies from ``uc`` (Rm,
     2, Lc) into ``s.chan`` and ``s.energy`` at the coarse points (``s.known``), phi* into
-    ``s.phis[0]``; kept as they are when phi* is the one already steered to."""
+    ``s.phis[0]``; kept as they are when phi* is the one already steered to. phi* is 0 (the
+    static channel) unless the peak over the phase step there beats the static energy by
+    more than :data:`~pipeline.dsp.cml.kernels.doppler.STEER_GAIN` times the mean total of
+    the coarse points (``s.coarse``)."""
     rm = x.shape[0]
     if rm == 1:
         return x
@@ -219,6 +222,8 @@ def steer(uc, x, n, gate, s):
         vals[r, 0] = uc[r, 0, best] * sc
         vals[r, 1] = uc[r, 1, best] * sc
     phi = doppler_phase(vals, rm)
+    if peaks[best] - static_energy(vals, rm) <= STEER_GAIN * _sum(s.coarse) / lc:
+        phi = 0.0
     if phi == s.phis[0]:
         return s.steered
     s.phis[0] = phi
