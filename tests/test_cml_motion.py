@@ -126,3 +126,22 @@ def test_one_static_and_one_moving_target_are_both_found():
         assert (found <= 0.6).mean(axis=0).min() >= 0.95, kw
         err, _ = nearest_estimates(r, a, det.range_m, det.angle_deg)
         assert np.nanmedian(err) < 1.0
+
+
+def test_the_targets_json_carries_the_radial_velocity():
+    """cml's detections written as the localizer writes them carry ``radial_velocity_mps``
+    (modulo V, in [-V/2, V/2)); a static decoder's (PBP, or ``motion=False``) none."""
+    from pipeline.wire.messages import FrameHeaders, decode_targets, encode_targets_batch
+
+    v = np.array([0.125, -0.03, 1.0])
+    g = np.stack([hand_frames(20.0 + 30 * i, 10.0, 1.0, vv) for i, vv in enumerate(v)])
+    heads = FrameHeaders(["s0"] * 3, [0, 1, 2], [0, 0, 0], [CFG.config_id()] * 3)
+    for motion in (True, False):
+        det = cml(g, None, None, None, CFG, 1, options=CmlOptions(motion=motion)).detections(CFG)
+        for i, payload in enumerate(encode_targets_batch(heads, det, "cml", 1, "raw", 0)):
+            target = decode_targets(payload).targets[0]
+            if motion:
+                assert -CFG.velocity_ambiguity_mps / 2 <= target["radial_velocity_mps"] < CFG.velocity_ambiguity_mps / 2
+                assert abs(wrap_velocity(target["radial_velocity_mps"] - v[i], CFG)) < 1e-3
+            else:
+                assert "radial_velocity_mps" not in target

@@ -95,7 +95,7 @@ def check_cloud(cloud: dict, targets: dict) -> None:
     """A decoded PointCloud against the targets message (wire JSON) it was made from."""
     assert cloud["frame_id"] == f"radar_{targets['sensor_id']}"
     assert int(cloud["timestamp_ns"]) == targets["timestamp_ns"]
-    assert [f["name"] for f in cloud["fields"]] == list(POINT_FIELDS) and cloud["point_stride"] == 28
+    assert [f["name"] for f in cloud["fields"]] == list(POINT_FIELDS) and cloud["point_stride"] == 32
     assert all(f["type"] == 7 for f in cloud["fields"])  # foxglove.NumericType.FLOAT32
     pts, tgs = cloud["points"], targets["targets"]
     assert len(pts) == len(tgs)
@@ -273,7 +273,7 @@ def test_target_points_follow_the_model_convention():
         {"range_m": 10.0, "angle_deg": 30.0, "x_m": 0.0, "y_m": 0.0, "amplitude": 0.5, "statistic_db": 20.0},
         {"range_m": 4.0, "angle_deg": -90.0, "x_m": 0.0, "y_m": 0.0, "amplitude": 0.25}])
     pts = target_points(msg)
-    assert pts.dtype.itemsize == 28 and pts.dtype.names == POINT_FIELDS
+    assert pts.dtype.itemsize == 32 and pts.dtype.names == POINT_FIELDS
     assert_allclose(pts["x"], [10 * np.cos(np.pi / 6), 0.0], atol=1e-6)
     assert_allclose(pts["y"], [5.0, -4.0], atol=1e-6)  # positive angle: +y (antenna 2's side)
     assert pts["statistic_db"][0] == 20.0 and np.isnan(pts["statistic_db"][1])

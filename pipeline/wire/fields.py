@@ -110,6 +110,10 @@ TARGET_ITEM = (
     Field("y_m", "number", "m", "R sin θ, across boresight"),
     Field("amplitude", "number", "frame units", "joint magnitude over both antennas divided by √2"),
     Field("statistic_db", "number", "dB", "detection statistic, capped at ±300 dB", optional=True),
+    Field("radial_velocity_mps", "number", "m/s",
+          "radial velocity, + = away, from the phase step between the frame's ramps: known modulo the "
+          "ambiguity interval V = c / (2 f_c Δt) (f_c mid-sweep, Δt the ramp spacing: 0.249 m/s for 25 ms) "
+          "and given in [−V/2, V/2); cml only", optional=True),
 )
 
 TARGETS = Format("targets", "qradar.Targets", _envelope("targets") + (
