@@ -1,6 +1,7 @@
 """Found rate, median position error and median radial-velocity error (modulo the ambiguity
 interval) of ``cml`` against the radial speed of one target, with the phase step between
-ramps (the default) and with the static model (``CmlOptions(motion=False)``):
+ramps (the default) and with the static model (``CmlOptions(motion=False)``), and of PBP
+and ``qiht``, which keep the paper's static model:
 
     python -m experiments.speeds [--frames 600] [--seed 1]
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from pipeline.defaults import DEFAULT_ALPHA
 from pipeline.dsp.cml import CmlOptions, cml
+from pipeline.dsp.decode import DecoderConfig, decode
 from pipeline.dsp.localize import nearest_estimates
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 from radar_driver.model import RadarConfig, simulate_frames, wrap_velocity
@@ -41,15 +43,36 @@ def frames(speed: str, b: int, seed: int, config: RadarConfig):
     return dequantize(quantize(g, delta, 1, xi), delta, 1), xi, delta, r, a, v
 
 
-def figures(speed: str, b: int, seed: int, motion: bool, config: RadarConfig) -> tuple[float, float, float]:
+#: the rows: cml with the phase step, cml's static model, the paper's decoders
+DECODERS = ("cml", "cml_static", "pbp", "qiht")
+
+
+def figures(speed: str, b: int, seed: int, decoder: str, config: RadarConfig) -> tuple[float, float, float]:
     """(found rate, median position error m, median |velocity error| m/s modulo V; NaN for
-    the static model) at ``speed``."""
+    a static model) of ``decoder`` (:data:`DECODERS`) at ``speed``."""
     z, xi, delta, r, a, v = frames(speed, b, seed, config)
-    det = cml(z, xi, delta, 1, config, 1, options=CmlOptions(motion=motion)).detections(config)
+    motion = decoder == "cml"
+    if decoder.startswith("cml"):
+        det = cml(z, xi, delta, 1, config, 1, options=CmlOptions(motion=motion)).detections(config)
+    else:
+        det = decode(z, xi, delta, 1, config, 1, DecoderConfig(algo=decoder))
     err, _ = nearest_estimates(r, a, det.range_m, det.angle_deg)
     found = float(np.mean(np.abs(det.range_m[:, 0] - r[:, 0]) <= 0.6))
     dv = np.abs(wrap_velocity(det.radial_velocity_mps[:, 0] - v[:, 0], config))
     return found, float(np.median(err)), float(np.median(dv)) if motion else float("nan")
+
+
+def table(frames_a_speed: int = 600, seed: int = 1, config: RadarConfig = RadarConfig()) -> str:
+    """The speed table (Markdown) of ``frames_a_speed`` frames a speed."""
+    rows = {d: [figures(s, frames_a_speed, seed, d, config) for s in SPEEDS] for d in DECODERS}
+    names = {"cml": "`cml`", "cml_static": "`cml`, static model", "pbp": "PBP", "qiht": "`qiht`"}
+    lines = ["| radial speed (m/s) | " + " | ".join("uniform 0–3" if s == "0:3" else s for s in SPEEDS) + " |",
+             "|---|" + "---|" * len(SPEEDS)]
+    for d in DECODERS:
+        lines.append(f"| {names[d]}: found | " + " | ".join(f"{100 * f:.1f} %" for f, _, _ in rows[d]) + " |")
+        lines.append(f"| {names[d]}: median error | " + " | ".join(f"{e:.3g} m" for _, e, _ in rows[d]) + " |")
+    lines.append("| `cml`: median velocity error | " + " | ".join(f"{d:.4f} m/s" for _, _, d in rows["cml"]) + " |")
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -57,14 +80,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=600, help="frames a speed")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    config = RadarConfig()
-    rows = {m: [figures(s, args.frames, args.seed, m, config) for s in SPEEDS] for m in (True, False)}
-    print("| radial speed (m/s) | " + " | ".join("uniform 0–3" if s == "0:3" else s for s in SPEEDS) + " |")
-    print("|---|" + "---|" * len(SPEEDS))
-    for motion, name in ((True, "`cml`"), (False, "static model")):
-        print(f"| {name}: found | " + " | ".join(f"{100 * f:.1f} %" for f, _, _ in rows[motion]) + " |")
-        print(f"| {name}: median error | " + " | ".join(f"{e:.3g} m" for _, e, _ in rows[motion]) + " |")
-    print("| `cml`: median velocity error | " + " | ".join(f"{d:.4f} m/s" for _, _, d in rows[True]) + " |")
+    print(table(args.frames, args.seed))
 
 
 if __name__ == "__main__":
