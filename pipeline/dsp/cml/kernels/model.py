@@ -188,11 +188,8 @@ def sums(w, cw, cw32, g, h, ht, bw, gram, proj):
             for q in range(12):
                 gram[q // 4, q % 4, m1, m2] = acc[q]
                 gram[q // 4, q % 4, m2, m1] = acc[q]
-    if rm == 2:
-        _two_projections(w, cw, g[0], g[1], proj[0], proj[1])
-    else:
-        for q in range(rm):
-            _projections(w, cw, g[q], proj[q])
+    for q in range(rm):
+        _projections(w, cw, g[q], proj[q])
 
 
 @njit(**FAST)
@@ -222,41 +219,6 @@ def _projections(w, cw, g, proj):
         pr = (p0, p1, p2, p3, p4, p5, p6, p7)
         for q in range(8):
             proj[q // 4, q % 4, m1] = pr[q]
-
-
-@njit(**FAST)
-def _two_projections(w, cw, g0, g1, p0, p1):
-    """:func:`_projections` of two model ramps in one pass over the atoms."""
-    k, n = w.shape[0], w.shape[2]
-    ga, gb = g0.reshape(4 * n), g1.reshape(4 * n)
-    for m1 in range(2 * k):
-        t, s = m1 // 2, m1 % 2
-        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
-        b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = 0.0
-        for i in range(n):
-            v = w[t, s, i]
-            vc = v * cw[i]
-            a0 += ga[4 * i] * v
-            a1 += ga[4 * i + 1] * v
-            a2 += ga[4 * i + 2] * v
-            a3 += ga[4 * i + 3] * v
-            a4 += ga[4 * i] * vc
-            a5 += ga[4 * i + 1] * vc
-            a6 += ga[4 * i + 2] * vc
-            a7 += ga[4 * i + 3] * vc
-            b0 += gb[4 * i] * v
-            b1 += gb[4 * i + 1] * v
-            b2 += gb[4 * i + 2] * v
-            b3 += gb[4 * i + 3] * v
-            b4 += gb[4 * i] * vc
-            b5 += gb[4 * i + 1] * vc
-            b6 += gb[4 * i + 2] * vc
-            b7 += gb[4 * i + 3] * vc
-        pa = (a0, a1, a2, a3, a4, a5, a6, a7)
-        pb = (b0, b1, b2, b3, b4, b5, b6, b7)
-        for q in range(8):
-            p0[q // 4, q % 4, m1] = pa[q]
-            p1[q // 4, q % 4, m1] = pb[q]
 
 
 @njit(cache=True, nogil=True, inline="always")
