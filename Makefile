@@ -64,11 +64,16 @@ docs-lab: $(STAMP)
 	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
+# two pytest-xdist workers (this is a 2-core machine); the tests that measure time or memory
+# (marked `measure`) share one of them (--dist loadgroup); `make test TEST_WORKERS=0`: one process
+TEST_WORKERS ?= 2
+TEST_DIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
+
 test: $(STAMP) $(JS_STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(TEST_DIST)
 
 test-fast: $(STAMP) $(JS_STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q $(TEST_DIST) -m "not slow"
 
 # Every benchmark that runs alone on one host (the list: SUITE in benchmarks/suite.py), each in a
 # fresh process; `make bench SHORT=1`: each with its shortest options (a smoke run, a few minutes).

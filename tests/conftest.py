@@ -2,8 +2,10 @@
 peer session, a free loopback port, a bounded connect to a listener in another process),
 a real recording of ``qradar run --track`` split into files, and a count of the chunks the
 MCAP reader opens.
-Helpers that are not fixtures (Collector, wait_until, free_port, wait_port, rss_mb) live in
-zenoh_helpers. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name."""
+Helpers that are not fixtures (qradar, QRADAR, Collector, wait_until, free_port, wait_port,
+rss_mb) live in zenoh_helpers. A test marked ``measure`` (it measures time or memory) runs on
+one pytest-xdist worker with the others so marked (``make test`` runs two workers,
+``--dist loadgroup``), never beside another measurement. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name."""
 
 import subprocess
 import sys
@@ -19,6 +21,12 @@ from pipeline.errors import PipelineError
 from radar_driver.model import RadarConfig
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("measure") is not None:
+            item.add_marker(pytest.mark.xdist_group("measure"))
+
 
 #: pause between two connection attempts, s
 CONNECT_RETRY_S = 0.2
@@ -86,6 +94,24 @@ def chunks_opened(monkeypatch) -> list[int]:
 
     monkeypatch.setattr(replay.mcapread, "open_chunk", counting)
     return calls
+
+
+@pytest.fixture
+def cli(capsys):
+    """``qradar ARGV`` in this process, for what ends before anything starts (usage errors,
+    ``--help``): ``cli(*argv)`` -> (exit status, stdout, stderr). Anything that opens a port,
+    a session or a file runs in a process of its own (``zenoh_helpers.qradar``)."""
+    from qradar.cli import main
+
+    def run(*argv) -> tuple[int, str, str]:
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:  # argparse's usage errors and --help
+            code = exc.code if isinstance(exc.code, int) else 1
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
 
 
 @pytest.fixture(name="free_port")

@@ -4,17 +4,11 @@ and keeps running; ``qradar run`` (one in-process session on purpose) does not."
 
 from __future__ import annotations
 
-import subprocess
-import sys
 
 from pipeline.bus.session import ALONE_AFTER_S
+from zenoh_helpers import qradar
 
 WARNING = "no zenoh peer or router reached"
-
-
-def qradar(*args, timeout_s: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
-                          timeout=timeout_s, stdin=subprocess.DEVNULL)
 
 
 def test_a_command_alone_says_so_once_with_the_fix():

@@ -9,6 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.measure
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_isolation.py"
 
 

@@ -18,6 +18,7 @@ from pipeline.dsp.calibration import (
     save,
 )
 from radar_driver.model import RadarConfig, simulate_frames
+from zenoh_helpers import qradar
 
 CFG = RadarConfig()
 B = 40
@@ -163,13 +164,6 @@ def test_the_estimates_recover_the_simulated_front_end(values):
 
 
 # -- the commands, end to end -------------------------------------------------------------------------
-def _qradar(*args, timeout=180):
-    import subprocess
-    import sys
-    return subprocess.run([sys.executable, "-m", "qradar", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
-
-
 def test_calibrate_from_two_short_recordings_then_run_with_it(tmp_path):
     """The chamber's workflow on the simulated sensor: record the empty chamber and the
     calibration reflector, calibrate, and run the chamber with the file: the position
@@ -178,32 +172,32 @@ def test_calibrate_from_two_short_recordings_then_run_with_it(tmp_path):
     from replay.mcapio import McapFile
     empty, ref, cal = tmp_path / "empty.mcap", tmp_path / "ref.mcap", tmp_path / "cal.json"
     for args in (["--empty", "--record", empty], ["--scene", "chamber-reflector", "--record", ref]):
-        p = _qradar("run", "--frames", 40, "--json", *args)
+        p = qradar("run", "--frames", 40, "--json", *args)
         assert p.returncode == 0, p.stderr
     # nonsense refused, nothing written, unless --force: a wrong range (3.1 m given as 7), the
     # recordings swapped (the "empty" one holds the reflector)
-    wrong = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal)
+    wrong = qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal)
     assert wrong.returncode == 2 and not cal.exists(), wrong.stderr
     line = wrong.stderr.strip()
     assert "\n" not in line and "calibration refused" in line and "fit residual" in line and "above -15 dB" in line
     assert "range bins) from the given 7 m" in line and "--force" in line
-    swapped = _qradar("calibrate", "--empty", ref, "--reflector", empty, "--range-m", 3.05, "--out", cal)
+    swapped = qradar("calibrate", "--empty", ref, "--reflector", empty, "--range-m", 3.05, "--out", cal)
     assert swapped.returncode == 2 and not cal.exists() and "not empty" in swapped.stderr
-    alone = _qradar("calibrate", "--empty", ref, "--out", cal)  # background only, of a scene with a reflector
+    alone = qradar("calibrate", "--empty", ref, "--out", cal)  # background only, of a scene with a reflector
     assert alone.returncode == 2 and "below the leakage: it is not empty" in alone.stderr
-    forced = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal, "--force")
+    forced = qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 7, "--out", cal, "--force")
     assert forced.returncode == 0 and "warning: kmd2-0: the fit residual" in forced.stderr
     assert json.loads(cal.read_text())["forced_past"]
-    p = _qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 3.05, "--angle-deg", 0, "--out", cal,
+    p = qradar("calibrate", "--empty", empty, "--reflector", ref, "--range-m", 3.05, "--angle-deg", 0, "--out", cal,
                 "--force")  # replaces the forced file
     assert p.returncode == 0, p.stderr
     (entry,) = json.loads(p.stdout)["entries"]
     assert abs(entry["rx2_phase_deg"] - 30.0) < 1.0 and abs(entry["iq_phase_deg"] - 3.0) < 0.5
     assert "receiver 2 gain" in p.stderr and "one reflector explains the recording" in p.stderr
     assert entry["fit_residual_db"] < -15 and entry["empty_return_db"] < -10
-    again = _qradar("calibrate", "--empty", empty, "--out", cal)
+    again = qradar("calibrate", "--empty", empty, "--out", cal)
     assert again.returncode == 2 and "exists" in again.stderr and "\n" not in again.stderr.strip()
-    run = _qradar("run", "--frames", 60, "--json", "--calibration", cal, "--record", tmp_path / "cal-run.mcap")
+    run = qradar("run", "--frames", 60, "--json", "--calibration", cal, "--record", tmp_path / "cal-run.mcap")
     assert run.returncode == 0, run.stderr
     s = json.loads(run.stdout)
     assert s["position_error_m"]["median"] < 0.3 and s["frames_targets"] == 60, s["position_error_m"]
@@ -211,7 +205,7 @@ def test_calibrate_from_two_short_recordings_then_run_with_it(tmp_path):
     f.scan()
     meta = f.metadata_dict()["qradar.calibration"]
     assert meta["file"] == str(cal) and json.loads(meta["summary"])["entries"][0]["sensor_id"] == "kmd2-0"
-    other = _qradar("run", "--frames", 5, "--sensors", 2, "--calibration", cal, "--no-record")
+    other = qradar("run", "--frames", 5, "--sensors", 2, "--calibration", cal, "--no-record")
     assert other.returncode == 2 and "not 'kmd2-1'" in other.stderr and "\n" not in other.stderr.strip()
 
 

@@ -3,15 +3,9 @@ exits 2, and shows a traceback only under -v."""
 
 import json
 import os
-import subprocess
-import sys
 
 import pytest
-
-
-def qradar(*args, timeout_s=60):
-    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
-                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+from zenoh_helpers import qradar
 
 
 @pytest.mark.parametrize("args, where", [
@@ -85,11 +79,12 @@ def test_permission_denied_names_the_dialout_group():
                "(default: 0.5)", "(default: kmd2-blocks)", "(default: kmd2)"]),
     ("sim", ["(default: chamber)", "(default: 20.0)", "(default: kmd2-blocks)"]),
 ])
-def test_help_shows_the_defaults(command, defaults):
-    proc = qradar(command, "--help")
-    text = " ".join(proc.stdout.split())
+def test_help_shows_the_defaults(command, defaults, cli):
+    code, out, _ = cli(command, "--help")
+    text = " ".join(out.split())
+    assert code == 0
     for d in defaults:
-        assert " ".join(d.split()) in text, (d, proc.stdout)
+        assert " ".join(d.split()) in text, (d, out)
 
 
 def test_verbose_adds_the_traceback():
@@ -97,11 +92,11 @@ def test_verbose_adds_the_traceback():
     assert proc.returncode == 2 and "Traceback" in proc.stderr and "qradar reprocess: error:" in proc.stderr
 
 
-def test_bad_option_values_are_usage_errors():
-    proc = qradar("quantize", "--delta", "abc")
-    assert proc.returncode == 2 and "--delta" in proc.stderr and "Traceback" not in proc.stderr
-    proc = qradar("sim")
-    assert proc.returncode == 2 and "--link" in proc.stderr
+def test_bad_option_values_are_usage_errors(cli):
+    code, _, err = cli("quantize", "--delta", "abc")
+    assert code == 2 and "--delta" in err and "Traceback" not in err
+    code, _, err = cli("sim")
+    assert code == 2 and "--link" in err
 
 
 def test_a_busy_tcp_port_is_a_one_line_error(free_port):

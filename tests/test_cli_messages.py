@@ -5,8 +5,6 @@ zenoh's errors read as one line without Rust source paths."""
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 
 import pytest
 
@@ -14,11 +12,7 @@ from pipeline.bus.session import zenoh_reason
 from qradar.cli import build_parser
 from replay.errors import ReplayError
 from replay.reprocess import parse_alphas
-
-
-def qradar(*args, timeout_s=60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True,
-                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+from zenoh_helpers import qradar
 
 
 def subcommands() -> dict[str, argparse.ArgumentParser]:

@@ -6,6 +6,7 @@ per-sensor structure is empty, the Python heap (tracemalloc) is back within a fr
 of a MB of what it was before them, and the C heap's free memory went back to the
 system (the node's expiry sweep calls malloc_trim)."""
 
+import pytest
 import gc
 import time
 import tracemalloc
@@ -18,6 +19,8 @@ from pipeline.nodes.memory import release_memory
 from pipeline.nodes.runtime import TRIM_AFTER_SENSORS
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
 from zenoh_helpers import rss_mb, wait_until
+
+pytestmark = pytest.mark.measure
 
 #: distinct sensor ids, one frame each (the issue's 10 000: benchmarks/bench_expiry.py)
 N = 3000

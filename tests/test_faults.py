@@ -11,7 +11,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -30,9 +29,8 @@ from qradar.view import FoxgloveView, ViewConfig
 from replay.recorder import RecorderNode
 from test_hardening import raw
 from test_orphans import alive, drivers_of, kill_all, wait_for
-from zenoh_helpers import free_port, wait_until
+from zenoh_helpers import QRADAR, free_port, wait_until
 
-QRADAR = [sys.executable, "-m", "qradar"]
 #: what an attacker puts on a targets or health key: nested far deeper than any reader takes
 DEEP = b'{"version":1,"type":"targets","x":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
 DEEP_HEALTH = b'{"version":1,"type":"health","node":"source","x":' + b"{\"a\":" * 50_000 + b"1" + b"}" * 50_001

@@ -179,6 +179,7 @@ def test_the_nodes_check_each_frame_once_and_parse_each_message_once(probe, tmp_
     assert copies[8240] == 3 * FRAMES and copies[320] == 3 * FRAMES
 
 
+@pytest.mark.measure
 def test_the_driver_builds_a_frame_with_no_full_size_temporary():
     """FrameAssembler.frame(): the words of a frame's RADCs -> its complex64 (M, 2) array,
     written in place (RadcLayout.to_complex): at its peak the call holds the frame and less

@@ -4,8 +4,6 @@ target, a target inside is unaffected, and the options are checked on load."""
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 from replay.errors import ReplayError
 from replay.reprocess import ReprocessConfig
+from zenoh_helpers import qradar
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = RadarConfig()
@@ -100,11 +99,6 @@ def test_a_gate_is_checked_against_the_radar_of_each_api():
         ReprocessConfig(Path("x.mcap"), max_range_m=-2.0)
 
 
-def qradar(*args, timeout_s=120):
-    return subprocess.run([sys.executable, "-m", "qradar", *args], capture_output=True, text=True, timeout=timeout_s,
-                          stdin=subprocess.DEVNULL, cwd=ROOT)
-
-
 @pytest.mark.parametrize("args, message", [
     (["localize", "--min-range-m", "5", "--max-range-m", "4", "--duration", "1"],
      "range gate: min_range_m=5 must be below max_range_m=4"),
@@ -116,7 +110,7 @@ def qradar(*args, timeout_s=120):
      "range gate: min_range_m=9 must be below max_range_m=3"),
 ])
 def test_commands_refuse_a_bad_gate_in_one_line_before_they_start(args, message):
-    proc = qradar(*args)
+    proc = qradar(*args, cwd=ROOT)
     assert proc.returncode == 2, proc.stderr
     errors = [ln for ln in proc.stderr.splitlines() if ": error: " in ln]
     assert len(errors) == 1 and message in errors[0], proc.stderr

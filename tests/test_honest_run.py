@@ -11,23 +11,16 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from zenoh_helpers import free_port
+from zenoh_helpers import QRADAR, free_port, qradar
 
 ROOT = Path(__file__).resolve().parents[1]
-QRADAR = [sys.executable, "-m", "qradar"]
 CAL = ROOT / "recordings" / "chamber-cal.json"
-
-
-def qradar(*args, timeout_s: float = 120, cwd=None, env=None) -> subprocess.CompletedProcess:
-    return subprocess.run([*QRADAR, *map(str, args)], capture_output=True, text=True, timeout=timeout_s,
-                          stdin=subprocess.DEVNULL, cwd=cwd, env=env)
 
 
 def one_line(err: str) -> str:

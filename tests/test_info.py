@@ -5,8 +5,6 @@ summary and metadata only (no chunk) when the file has a summary; ``qradar inspe
 an MCAP file here."""
 
 import json
-import subprocess
-import sys
 from collections import Counter
 from datetime import datetime
 from pathlib import Path
@@ -17,14 +15,10 @@ from radar_driver.model import RadarConfig
 from replay.mcapinfo import describe, format_info
 from replay.mcapio import recover
 from replay.mcapread import McapFile
+from zenoh_helpers import qradar
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
-
-
-def qradar(*args, timeout_s=60):
-    return subprocess.run([sys.executable, "-m", "qradar", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout_s, stdin=subprocess.DEVNULL)
 
 
 def whole_read(path: Path) -> tuple[Counter, int, int, McapFile]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,9 +21,8 @@ from radar_driver.simulator import PtyLink, SimulatorServer
 from replay.errors import ReplayError
 from replay.mcapio import McapFile
 from replay.recorder import RecorderNode, default_recording_path
-from zenoh_helpers import wait_until
+from zenoh_helpers import QRADAR, wait_until
 
-QRADAR = [sys.executable, "-m", "qradar"]
 
 
 def sim(link: Path, timeout_s: float = 30, **kw) -> subprocess.CompletedProcess:

@@ -184,11 +184,10 @@ def test_qradar_quantize_alpha_auto_publishes_the_noise_and_quantizes_with_its_a
 
 
 @pytest.mark.parametrize("cmd", [["quantize"], ["run"], ["drive", "--quantize"], ["source", "--quantized"]])
-def test_a_bad_alpha_is_one_line(cmd):
-    r = subprocess.run([sys.executable, "-m", "qradar", *cmd, "--alpha", "1.5"], capture_output=True, text=True,
-                       timeout=60, stdin=subprocess.DEVNULL)
-    assert r.returncode == 2
-    assert "--alpha: alpha='1.5' must be 'auto' or a number in [0, 1]" in r.stderr.strip().splitlines()[-1]
+def test_a_bad_alpha_is_one_line(cmd, cli):
+    code, _, err = cli(*cmd, "--alpha", "1.5")
+    assert code == 2
+    assert "--alpha: alpha='1.5' must be 'auto' or a number in [0, 1]" in err.strip().splitlines()[-1]
 
 
 def test_the_monte_carlo_auto_alpha_scheme():

@@ -18,8 +18,8 @@ import pytest
 
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
+from zenoh_helpers import QRADAR
 
-QRADAR = [sys.executable, "-m", "qradar"]
 
 
 def cmdline(pid: int) -> list[str]:

@@ -16,7 +16,6 @@ import json
 import os
 import select
 import subprocess
-import sys
 import threading
 import time
 import tty
@@ -35,18 +34,13 @@ from radar_driver.protocol import Gbye, Init, StreamDecoder
 from radar_driver.scene import SimScene, SimTarget, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
+from zenoh_helpers import QRADAR, qradar
 
-QRADAR = [sys.executable, "-m", "qradar"]
 SCENE = SimScene((SimTarget(12.0, 20.0, 0.5),))
 #: the probes' wait for a RESP here, s (a silent pty waits twice: INIT, then INIT again after the speed reset)
 TIMEOUT_S = 0.2
 #: what a probe of a silent port may take at most: two waits, the GBYEs at the other speeds, slack for a busy host
 SILENT_BOUND_S = 2 * TIMEOUT_S + 1.5
-
-
-def qradar(*args, timeout_s: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([*QRADAR, *args], capture_output=True, text=True, timeout=timeout_s,
-                          stdin=subprocess.DEVNULL)
 
 
 class Peer:

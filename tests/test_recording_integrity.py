@@ -16,7 +16,6 @@ import json
 import random
 import struct
 import subprocess
-import sys
 import time
 import tracemalloc
 from collections import Counter
@@ -40,11 +39,10 @@ from replay.mcapio import DERIVED, McapFile, McapSink, topic_of
 from replay.player import PlayConfig, play
 from replay.recorder import DEAD_CHANNELS_MAX, RecorderNode
 from replay.reprocess import load_raw
-from zenoh_helpers import Collector, rss_mb, wait_until
+from zenoh_helpers import Collector, QRADAR, rss_mb, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
-QRADAR = [sys.executable, "-m", "qradar"]
 CONFIG = RadarConfig().config_id()  # M = 512, as the nodes announce it
 RNG = np.random.default_rng(36)
 
@@ -344,6 +342,7 @@ def test_a_killed_recording_with_its_first_chunk_damaged_loses_that_chunk_only(t
 
 
 # -- memory -------------------------------------------------------------------------------------
+@pytest.mark.measure
 def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_session):
     """10 000 short-lived sensor ids a round, one quantized frame each: every id's state goes
     when it expires, and mcap's Writer's (its channels, statistics and chunk indexes) when

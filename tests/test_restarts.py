@@ -8,14 +8,14 @@ for a busy host's noise)."""
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 
 import pytest
 
-from zenoh_helpers import free_port, rss_mb, wait_port
+from zenoh_helpers import QRADAR, free_port, rss_mb, wait_port
 
-QRADAR = [sys.executable, "-m", "qradar"]
+pytestmark = pytest.mark.measure
+
 RESTARTS = 20
 #: the most RSS a long-running process may grow by over RESTARTS publisher restarts (held: 0.2-0.3 MB)
 MAX_GROWTH_MB = 3.0

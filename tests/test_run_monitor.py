@@ -15,6 +15,8 @@ from radar_driver.scene import resolve_scene
 
 T0_NS = 1_700_000_000_000_000_000
 BATCH = 10_000
+#: batches fed after the first before the last one is measured
+WARM_BATCHES = 2
 
 
 def targets_batch(scene, start: int, n: int, rng) -> tuple[list[bytes], np.ndarray, np.ndarray]:
@@ -46,6 +48,7 @@ def state_bytes(mon: Monitor) -> int:
     return sum(deep(v) for k, v in vars(mon).items() if k not in skip)
 
 
+@pytest.mark.measure
 def test_monitor_memory_is_flat_and_its_percentiles_are_right():
     scene = resolve_scene("chamber")
     assert scene.truth(0.0) == scene.truth(1e4)  # a static scene: the truth of every message is known
@@ -62,18 +65,18 @@ def test_monitor_memory_is_flat_and_its_percentiles_are_right():
 
     feed(0)  # warm-up: every lazily made object exists now
     held = state_bytes(mon)
-    for b in range(1, 9):
+    for b in range(1, WARM_BATCHES + 1):  # past every amortized growth (dicts, histograms' arrays)
         feed(b * BATCH)
     tracemalloc.start()  # everything the last 10 000 messages leave allocated, wherever it is
     try:
         before = tracemalloc.get_traced_memory()[0]
-        feed(9 * BATCH)
+        feed((WARM_BATCHES + 1) * BATCH)
         for i in range(2000):  # unknown topics are counted together, not one entry each
             mon.on_message(f"radar/m0/junk{i}", b"x")
         grown = tracemalloc.get_traced_memory()[0] - before - lat[-1].nbytes - err[-1].nbytes  # but the test's own
     finally:
         tracemalloc.stop()
-    n = 10 * BATCH
+    n = (WARM_BATCHES + 2) * BATCH
     assert grown < 16_000, f"the monitor grew by {grown} bytes over {BATCH} messages"
     assert state_bytes(mon) - held < 200  # the one "other" count
     assert mon.latency_ms.count == n and mon.errors_m.count == n * len(scene.targets)

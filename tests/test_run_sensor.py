@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -33,16 +32,11 @@ from radar_driver.simulator import SimulatorServer
 from replay.mcapio import McapFile
 from ser2net_helpers import ser2net_for
 from test_orphans import alive, drivers_of, kill_all, wait_for
+from zenoh_helpers import QRADAR, qradar
 
-QRADAR = [sys.executable, "-m", "qradar"]
 FRAMES = 30
 #: a run of FRAMES frames at 20 a second ends well within this (start-up included)
 RUN_TIMEOUT_S = 60
-
-
-def qradar(*args, cwd, timeout_s: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
-    return subprocess.run([*QRADAR, *args], capture_output=True, text=True, timeout=timeout_s, cwd=cwd,
-                          stdin=subprocess.DEVNULL)
 
 
 def simulator(link: Path) -> SimulatorServer:
@@ -68,7 +62,8 @@ def recorded(path: Path) -> tuple[dict[int, np.ndarray], dict[int, list[tuple[fl
 def run_json(tmp: Path, name: str, *args) -> tuple[dict, str, tuple]:
     """``qradar run --json --frames FRAMES --record NAME.mcap ARGS``: (summary, stderr, recorded)."""
     rec = tmp / f"{name}.mcap"
-    proc = qradar("run", "--json", "--frames", str(FRAMES), "--record", str(rec), *args, cwd=tmp)
+    proc = qradar("run", "--json", "--frames", str(FRAMES), "--record", str(rec), *args,
+                  cwd=tmp, timeout_s=RUN_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == 1, proc.stdout
@@ -144,7 +139,7 @@ def test_without_truth_a_real_sensor_has_targets_rates_and_drops_but_no_error(tm
     with simulator(links[0]), simulator(links[1]):
         proc = qradar("run", "--no-record", "--frames", "30", "--driver-in-process",
                       "--sensor", f"{links[0]},id=left", "--sensor", f"{links[1]},id=right,profile=kmd2-blocks",
-                      cwd=tmp_path)
+                      cwd=tmp_path, timeout_s=RUN_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout
     live = [ln for ln in out.splitlines() if " targets (" in ln]
@@ -234,7 +229,8 @@ def test_a_truth_file_without_targets_or_unreadable_is_refused(tmp_path):
 
 def test_a_port_that_cannot_be_opened_names_the_sensor_before_anything_starts(tmp_path):
     rec = tmp_path / "never.mcap"
-    proc = qradar("run", "--record", str(rec), "--json", "--sensor", "/dev/qradar-no-such-port,id=lab1", cwd=tmp_path)
+    proc = qradar("run", "--record", str(rec), "--json", "--sensor", "/dev/qradar-no-such-port,id=lab1",
+                  cwd=tmp_path, timeout_s=RUN_TIMEOUT_S)
     assert proc.returncode == 2
     errors = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert errors == ["qradar run: error: sensor lab1: cannot open /dev/qradar-no-such-port: no such device (is the "
@@ -256,7 +252,7 @@ def test_a_device_held_by_another_process_is_refused_naming_it(tmp_path):
                 seen.append(holder.stderr.readline())
             assert any("connected to" in ln for ln in seen), seen  # it holds the port
             proc = qradar("run", "--no-record", "--sensor", f"{free},id=other", "--sensor", f"{held},id=lab1",
-                          cwd=tmp_path)
+                          cwd=tmp_path, timeout_s=RUN_TIMEOUT_S)
         finally:
             holder.kill()
             holder.wait(10)

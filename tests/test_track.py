@@ -468,7 +468,7 @@ def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
     payloads = encode_quantized_batch(headers, q)
     ep = f"tcp/127.0.0.1:{free_port}"
     proc = subprocess.Popen([sys.executable, "-m", "qradar", "localize", "--listen", ep, "--K", "2", "--track",
-                             "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--duration", "240"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         session = connect_when_ready(ep, timeout_s=20, mode="client")
         col = Collector(session, "radar/walk0/**")
@@ -482,7 +482,8 @@ def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
         for p in payloads:  # in order, at about the sensor's pace
             pub.put(p)
             time.sleep(0.01)
-        wait_until(lambda: len(col.of("walk0/tracks")) == n, 60, f"{n} tracks messages")
+        wait_until(lambda: len(col.of("walk0/tracks")) == n, 120,
+                   lambda: f"{n} tracks messages (got {len(col.of('walk0/tracks'))})")
         msgs = [decode_tracks(p, "radar/walk0/tracks") for p in col.of("walk0/tracks")]
         raw = [json.loads(p) for p in col.of("walk0/tracks")]
         session.close()

@@ -9,7 +9,6 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,8 +17,8 @@ import pytest
 from qradar.cli.up import plan_nodes, read_lab
 from replay.mcapio import McapFile
 from test_orphans import alive, child_config, children_of, kill_all, wait_for
+from zenoh_helpers import QRADAR
 
-QRADAR = [sys.executable, "-m", "qradar"]
 STARTED = re.compile(r"qradar up: (.+?): started \(pid (\d+)\) on (\S+)")
 
 

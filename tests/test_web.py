@@ -90,6 +90,7 @@ def status_of(url: str, method: str = "GET", body: bytes | None = None, headers:
 
 
 # -- the page, live --------------------------------------------------------------------------
+@pytest.mark.measure
 def test_the_page_shows_a_run_of_three_sensors_at_20_hz_and_keeps_up(browser):
     """``qradar run --sensors 3 --rate 20 --track --web PORT``: the page opened while the run
     streams shows targets within 2 s, each sensor's range profile, the truth, tracks and

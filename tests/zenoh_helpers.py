@@ -1,14 +1,28 @@
-"""Helpers shared by the tests (not fixtures; those are in conftest.py): a bounded wait, a
-collecting zenoh subscriber, a free loopback port for code that needs one outside a fixture,
-a wait for a port, the listening sockets and the memory of a process."""
+"""Helpers shared by the tests (not fixtures; those are in conftest.py): the one way to run
+``qradar`` in a process of its own, a bounded wait, a collecting zenoh subscriber, a free
+loopback port for code that needs one outside a fixture, a wait for a port, the listening
+sockets and the memory of a process."""
 
 import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
+
+
+#: the command line that starts ``qradar`` with this interpreter
+QRADAR = [sys.executable, "-m", "qradar"]
+
+
+def qradar(*args, timeout_s: float = 120, cwd=None, env=None) -> subprocess.CompletedProcess:
+    """``qradar ARGS`` (each made a string) in a process of its own, its output captured as
+    text, stdin closed; ended (and the test failed by ``TimeoutExpired``) after ``timeout_s``."""
+    return subprocess.run([*QRADAR, *map(str, args)], capture_output=True, text=True, timeout=timeout_s,
+                          stdin=subprocess.DEVNULL, cwd=cwd, env=env)
 
 
 def _ephemeral_range() -> tuple[int, int]:
@@ -49,7 +63,8 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 def wait_until(pred, timeout_s=20.0, what="condition", poll_s=0.05):
     """Poll ``pred`` every ``poll_s`` s until it is true; fail the test once ``timeout_s`` has
-    passed or after ``timeout_s / poll_s + 1`` polls, whichever comes first."""
+    passed or after ``timeout_s / poll_s + 1`` polls, whichever comes first. ``what`` may be a
+    callable, asked then (to say how far it got)."""
     deadline = time.monotonic() + timeout_s
     for _ in range(int(timeout_s / poll_s) + 1):
         if pred():
@@ -57,7 +72,7 @@ def wait_until(pred, timeout_s=20.0, what="condition", poll_s=0.05):
         if time.monotonic() >= deadline:
             break
         time.sleep(poll_s)
-    pytest.fail(f"timed out after {timeout_s} s waiting for {what}", pytrace=False)
+    pytest.fail(f"timed out after {timeout_s} s waiting for {what() if callable(what) else what}", pytrace=False)
 
 
 class Collector:

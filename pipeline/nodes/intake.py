@@ -215,7 +215,9 @@ class ProcessingNode(Node):
     def _workers_ended(self) -> None:
         """A frame a callback still in flight queued after the worker finished is counted
         in its sensor's drops (received, never processed), not left unaccounted."""
-        late = self._queue.get_batch(len(self._queue) + 1, 0.0) if not self._queue.empty() else []
+        if self._queue.empty() or any(t.is_alive() for t in self._threads):  # a busy worker still owns it
+            return
+        late = self._queue.get_batch(len(self._queue) + 1, 0.0)
         for item in late:
             with self._lock:
                 self.sensor_stats(item.sensor).drops += 1

@@ -73,6 +73,15 @@ class KeyMemory:
         if len(self._keys) * 4 < self._held:  # a dict never shrinks as it empties: made anew
             self._keys, self._held = dict(self._keys), len(self._keys)
 
+def _undeclare_all(publishers: list) -> None:
+    """Undeclare each of ``publishers``; one already gone with its session is no error."""
+    for pub in publishers:
+        try:
+            pub.undeclare()
+        except TransportError:
+            pass
+
+
 class Node(Counters):
     """Base of every node: transport, liveliness, health, publishers, statistics.
 
@@ -166,19 +175,14 @@ class Node(Counters):
         for t in self._threads:
             t.join(timeout_s)
         busy = [t.name for t in self._threads if t.is_alive()]
-        if not busy:
-            self._workers_ended()
+        self._workers_ended()
         self._publish_health()  # last counters
         self.log_summary()
-        if busy:  # a worker still in a batch may be putting on a publisher: undeclaring it under the
-            # put fails in zenoh ("Already borrowed"); the session's close undeclares them instead
+        if busy:  # undeclaring a publisher under a worker's put fails in zenoh ("Already borrowed")
             log.warning("%s: %s still busy %.1f s after stop; its publishers are left to the session's close",
                         self.name, ", ".join(busy), timeout_s)
-        for pub in [] if busy else [p for pubs in self._publishers.values() for p in pubs.values()] + self._retiring:
-            try:
-                pub.undeclare()
-            except TransportError:
-                pass
+        else:
+            _undeclare_all([p for pubs in self._publishers.values() for p in pubs.values()] + self._retiring)
         if self._token is not None:
             self._token.undeclare()
         if self._own_session:
@@ -188,7 +192,7 @@ class Node(Counters):
         """Subclass hook, called once stop is requested."""
 
     def _workers_ended(self) -> None:
-        """Subclass hook, called once the node's threads have ended (after :meth:`_stopping`)."""
+        """Subclass hook, called after stop has waited for the node's threads to end."""
 
     def __enter__(self):
         return self.start()
