@@ -41,6 +41,7 @@ from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames
 from pipeline.dsp.score import summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
 from replay.progress import Progress
+from experiments.speeds import draw_speeds, parse_speeds
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
 GRID_CELLS = 40
@@ -102,26 +103,6 @@ class Scheme:
 RANGE_PLACEMENTS = ("grid", "cells", "continuous")
 
 
-def parse_speeds(text: str) -> tuple[float, float]:
-    """A command line's ``--speeds``: ``LO:HI`` (m/s, 0 <= LO <= HI) or one speed."""
-    parts = text.split(":")
-    if len(parts) > 2:
-        raise ValueError(f"{text!r} is not LO:HI (m/s)")
-    lo, hi = (finite_float(p) for p in (parts * 2)[:2])
-    if not 0 <= lo <= hi:
-        raise ValueError(f"{text!r}: LO:HI needs 0 <= LO <= HI")
-    return lo, hi
-
-
-def draw_speeds(n_runs: int, k: int, seed: int, chunk: int, scene: SceneSpec) -> np.ndarray | None:
-    """The targets' radial velocities (n_runs, K) m/s of a chunk (None: static), from their
-    own generator (the static scenes' draws stay as they were)."""
-    if scene.speeds is None:
-        return None
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, 2)))
-    lo, hi = scene.speeds
-    return rng.uniform(lo, hi, (n_runs, k)) * rng.choice([-1.0, 1.0], (n_runs, k))
-
 
 @dataclass(frozen=True)
 class SceneSpec:
@@ -152,7 +133,7 @@ class SceneSpec:
                                 "target (default 0)", parse=nonneg_float)
     speeds: tuple[float, float] | None = option(None, "radial speeds of the targets, m/s: uniform in LO:HI with a "
                                                 "random sign, moving between the ramps (default: static)",
-                                                parse=lambda text: parse_speeds(text), metavar="LO:HI")
+                                                parse=parse_speeds, metavar="LO:HI")
 
     def __post_init__(self) -> None:
         if self.speeds is not None:
@@ -419,7 +400,7 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
     crc = zlib.crc32(scheme_name.encode())
     noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
-    v = draw_speeds(n_runs, k, seed, chunk, scene)
+    v = draw_speeds(n_runs, k, seed, chunk, scene.speeds)
     if v is not None and not scheme.ramps(radar):
         raise ParameterError(f"--speeds needs whole ramps; scheme {scheme_name} measures a frequency subset")
     z, indices, xi, delta, *est = measure(

@@ -8,7 +8,8 @@ and ``qiht``, which keep the paper's static model:
 Off-grid ranges uniform in 3-150 m, angles in +-60 deg, unit amplitudes, a random sign of
 the velocity, noise sigma 0.1 (I and Q), 1-bit codes at the default alpha, K = 1; found: the
 range within 0.6 m (one bin). Prints one Markdown table (docs/design.md, "Targets that move
-between ramps")."""
+between ramps"). Also the Monte Carlo's speeds (``qradar montecarlo --speeds``:
+:func:`parse_speeds`, :func:`draw_speeds`)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from pipeline.dsp.decode import DecoderConfig, decode
 from pipeline.dsp.localize import nearest_estimates
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 from radar_driver.model import RadarConfig, simulate_frames, wrap_velocity
+from radar_driver.options import finite_float
 
 #: the speeds of the table (m/s; "0:3": uniform in 0-3 m/s)
 SPEEDS = ("0", "0.0625", "0.125", "0.375", "1.125", "1.5", "0:3")
@@ -41,6 +43,28 @@ def frames(speed: str, b: int, seed: int, config: RadarConfig):
     delta = auto_delta(g)
     xi = DEFAULT_ALPHA * delta[:, None, None] * batch_unit_dither(g.shape, rng)
     return dequantize(quantize(g, delta, 1, xi), delta, 1), xi, delta, r, a, v
+
+
+def parse_speeds(text: str) -> tuple[float, float]:
+    """A command line's ``--speeds``: ``LO:HI`` (m/s, 0 <= LO <= HI) or one speed."""
+    parts = text.split(":")
+    if len(parts) > 2:
+        raise ValueError(f"{text!r} is not LO:HI (m/s)")
+    lo, hi = (finite_float(p) for p in (parts * 2)[:2])
+    if not 0 <= lo <= hi:
+        raise ValueError(f"{text!r}: LO:HI needs 0 <= LO <= HI")
+    return lo, hi
+
+
+def draw_speeds(n_runs: int, k: int, seed: int, chunk: int, speeds: tuple[float, float] | None) -> np.ndarray | None:
+    """The Monte Carlo's targets' radial velocities (n_runs, K) m/s of a chunk, uniform in
+    ``speeds`` (lo, hi) with a random sign (None: static, None), from their own generator
+    (the static scenes' draws stay as they were)."""
+    if speeds is None:
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, 2)))
+    lo, hi = speeds
+    return rng.uniform(lo, hi, (n_runs, k)) * rng.choice([-1.0, 1.0], (n_runs, k))
 
 
 #: the rows: cml with the phase step, cml's static model, the paper's decoders

@@ -272,7 +272,7 @@ def test_targets_that_move_between_ramps():
     own generator (the static draws stay as they were); cml finds the moving targets as the
     static ones (1 bit, alpha 0.45, sigma 0.1, continuous ranges: median within 1.2x), the
     static decoders lose some; a frequency subset cannot move."""
-    from experiments.montecarlo import draw_speeds, parse_speeds
+    from experiments.speeds import draw_speeds, parse_speeds
 
     assert parse_speeds("0:3") == (0.0, 3.0) and parse_speeds("0.125") == (0.125, 0.125)
     for bad in ("3:0", "a:b", "1:2:3", "-1:2"):
@@ -280,8 +280,8 @@ def test_targets_that_move_between_ramps():
             parse_speeds(bad)
     with pytest.raises(ParameterError, match="speeds"):
         SceneSpec(speeds=(2.0, 1.0))
-    assert draw_speeds(4, 2, 7, 0, SceneSpec()) is None
-    v = draw_speeds(400, 2, 7, 0, SceneSpec(speeds=(0.5, 3.0)))
+    assert draw_speeds(4, 2, 7, 0, SceneSpec().speeds) is None
+    v = draw_speeds(400, 2, 7, 0, (0.5, 3.0))
     assert v.shape == (400, 2) and 0.5 <= np.abs(v).min() and np.abs(v).max() <= 3.0 and (v < 0).any()
     medians = {}
     for speeds in (None, (0.0, 3.0), (0.125, 0.125)):
