@@ -265,7 +265,8 @@ def _angles(cov: np.ndarray, a: np.ndarray, live: np.ndarray, config: RadarConfi
         jac[:, 0, 0] = 1.0
         jac[:, 1, 1:3] = g1 * dtheta[:, None]
         jac[:, 1, 3:5] = g2 * dtheta[:, None]
-        c = jac @ block @ np.swapaxes(jac, 1, 2)  # (B, 2, 2): range m, angle rad
+        with np.errstate(invalid="ignore"):  # NaN where the information is singular (not ok below)
+            c = jac @ block @ np.swapaxes(jac, 1, 2)  # (B, 2, 2): range m, angle rad
         ok = live[:, t] & np.isfinite(c).all(axis=(1, 2)) & (c[:, 0, 0] > 0) & (c[:, 1, 1] > 0)
         deg = np.rad2deg(1.0)
         out.sigma_range_m[ok, t] = np.sqrt(c[ok, 0, 0])
