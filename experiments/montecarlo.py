@@ -41,6 +41,7 @@ from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames
 from pipeline.dsp.score import summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
 from replay.progress import Progress
+from experiments.speeds import draw_speeds, parse_speeds
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
 GRID_CELLS = 40
@@ -102,6 +103,7 @@ class Scheme:
 RANGE_PLACEMENTS = ("grid", "cells", "continuous")
 
 
+
 @dataclass(frozen=True)
 class SceneSpec:
     """How the Monte Carlo places targets and what the sensor adds.
@@ -113,7 +115,10 @@ class SceneSpec:
     continuous: uniform). min_amplitude: the weaker targets' amplitudes are uniform in
     [min_amplitude, 1] (the strongest is 1). noise_sigma: complex white Gaussian noise,
     std of each of I and Q relative to the strongest amplitude, added to Gamma before
-    quantization (every scheme, the 32-bit ones too). The defaults are the paper's."""
+    quantization (every scheme, the 32-bit ones too). speeds: None (static targets, the
+    paper's) or (lo, hi) m/s: each target's radial speed uniform in [lo, hi] with a random
+    sign, the targets moving between the ramps of a frame (whole-ramp schemes only). The
+    defaults are the paper's."""
 
     ranges: str = option("grid", "grid: cell centres on the range grid; cells: cell centres; continuous: uniform "
                          "over --range-interval (default grid)", choices=RANGE_PLACEMENTS)
@@ -126,8 +131,15 @@ class SceneSpec:
                                   parse=nonneg_float)
     noise_sigma: float = option(0.0, "sensor noise before quantization: std of I and of Q relative to the strongest "
                                 "target (default 0)", parse=nonneg_float)
+    speeds: tuple[float, float] | None = option(None, "radial speeds of the targets, m/s: uniform in LO:HI with a "
+                                                "random sign, moving between the ramps (default: static)",
+                                                parse=parse_speeds, metavar="LO:HI")
 
     def __post_init__(self) -> None:
+        if self.speeds is not None:
+            lo, hi = self.speeds
+            if not (np.isfinite(lo) and np.isfinite(hi) and 0 <= lo <= hi):
+                raise ParameterError(f"speeds={self.speeds!r} must be LO:HI m/s with 0 <= LO <= HI")
         if self.ranges not in RANGE_PLACEMENTS:
             raise ParameterError(f"ranges={self.ranges!r} must be one of {', '.join(RANGE_PLACEMENTS)}")
         for name in ("range_min_m", "range_max_m", "min_separation_m", "max_angle_deg", "min_amplitude",
@@ -155,7 +167,11 @@ class SceneSpec:
             raise ParameterError(f"no angle cell centre lies within +-{self.max_angle_deg} deg")
 
     def to_dict(self) -> dict:
-        return dict(vars(self))
+        """The fields; ``speeds`` only when the targets move (static scenes' files stand as they were)."""
+        out = dict(vars(self))
+        if self.speeds is None:
+            del out["speeds"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -384,8 +400,12 @@ def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scen
     crc = zlib.crc32(scheme_name.encode())
     noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
+    v = draw_speeds(n_runs, k, seed, chunk, scene.speeds)
+    if v is not None and not scheme.ramps(radar):
+        raise ParameterError(f"--speeds needs whole ramps; scheme {scheme_name} measures a frequency subset")
     z, indices, xi, delta, *est = measure(
-        scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None), n_runs,
+        scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None, velocity_mps=v),
+        n_runs,
         scheme_rng, radar, scene.noise_sigma, noise_rng, estimate=decoder_noise == "frames")
     noise = {"codes": None, "true": scene.noise_sigma, "frames": est[0] if est else None}[decoder_noise]
     out = {}

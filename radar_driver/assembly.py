@@ -23,7 +23,6 @@ from typing import Callable
 import numpy as np
 
 from .errors import SensorResponseError, SensorTimeout
-from .model import RadarConfig
 from .profile import SensorProfile
 from .protocol import Done, Message, Radc, Resp, RespCode, StreamDecoder
 from .source import RawFrame
@@ -88,7 +87,7 @@ class FrameAssembler:
         lay = profile.radc
         self.radcs_per_frame = ramps_per_frame if lay.chirps == 1 else 1
         self._chirps = lay.chirp_indices(ramps_per_frame, chirp_select) if lay.chirps > 1 else None
-        self._config_id = RadarConfig(samples_per_ramp=lay.samples, ramps_per_frame=ramps_per_frame).config_id()
+        self._config_id = profile.radar(ramps_per_frame, chirp_select).config_id()
         self._pending: Radc | None = None  # the RADC of the answer under way
         self._last_counter: int | None = None
         self._radcs: list[tuple[int, int, np.ndarray]] = []  # (counter, t_ns, words) of a partial frame

@@ -12,6 +12,11 @@ Conventions held here and nowhere else:
   See :func:`polar_to_xy`.
 * **Frequencies**: measurement ``m`` of a frame of whole ramps is at
   ``f_m = f0 + B (m mod N) / N``; a subset is given as frequency indices in ``[0, N)``.
+* **Motion**: the ramps of a frame are ``ramp_interval_s`` (dt) apart; a target of radial
+  velocity v (m/s, + = moving away) is at ``R + v t`` at ramp time t, so its phase turns by
+  ``phi = -4 pi f_c v dt / c`` from one ramp to the next at the sweep's middle frequency
+  f_c (:func:`phase_step_rad`, :func:`velocity_from_phase_step`); a phase step is known
+  modulo 2 pi, a velocity modulo ``c / (2 f_c dt)`` (:attr:`RadarConfig.velocity_ambiguity_mps`).
 
 Arrays put the batch axis first: a scene batch has shape ``(B, K)``, a frame batch
 ``(B, M, 2)`` (measurement, antenna).
@@ -30,6 +35,9 @@ import numpy as np
 from .errors import ConfigError, InputError
 
 SPEED_OF_LIGHT_M_S = 3e8
+#: the ramp spacing of the simulated K-MD2 (and of the default sensor profile): two ramps a
+#: frame at 20 frames a second, back to back, s
+DEFAULT_RAMP_INTERVAL_S = 0.025
 
 
 @dataclass(frozen=True)
@@ -44,6 +52,11 @@ class RadarConfig:
     ramps_per_frame : whole ramps in a frame; M = ramps_per_frame * N.
     c_m_s : propagation speed c, m/s.
     antenna_spacing_m : d, m; ``None`` means half a wavelength, c / (2 f0).
+    ramp_interval_s : dt, s, from one ramp's start to the next one's in a frame (the
+        simulated K-MD2's: two ramps a frame, 20 frames a second, back to back; a real
+        sensor's from its profile, :meth:`radar_driver.profile.SensorProfile.radar`).
+        At its default it is left out of :meth:`config_id`, so the ids of configurations
+        made before it existed stand.
     """
 
     f0_hz: float = 24e9
@@ -52,9 +65,10 @@ class RadarConfig:
     ramps_per_frame: int = 2
     c_m_s: float = SPEED_OF_LIGHT_M_S
     antenna_spacing_m: float | None = None
+    ramp_interval_s: float = DEFAULT_RAMP_INTERVAL_S
 
     def __post_init__(self) -> None:
-        for name in ("f0_hz", "bandwidth_hz", "c_m_s"):
+        for name in ("f0_hz", "bandwidth_hz", "c_m_s", "ramp_interval_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ConfigError(f"RadarConfig.{name}={value!r} must be a finite number > 0")
@@ -78,6 +92,20 @@ class RadarConfig:
         if self.antenna_spacing_m is None:
             return self.c_m_s / (2.0 * self.f0_hz)
         return float(self.antenna_spacing_m)
+
+    @property
+    def center_frequency_hz(self) -> float:
+        """f_c = f0 + B (N - 1) / (2 N), Hz: the frequency of the sweep's middle sample, where
+        cml refers its amplitudes and its phase steps."""
+        n = self.samples_per_ramp
+        return self.f0_hz + self.bandwidth_hz * (n - 1) / (2.0 * n)
+
+    @property
+    def velocity_ambiguity_mps(self) -> float:
+        """The interval of radial velocities a phase step between ramps tells apart,
+        ``c / (2 f_c dt)`` = lambda_c / (2 dt), m/s (0.249 m/s for the defaults): velocities
+        are known modulo it, in [-it / 2, it / 2)."""
+        return self.c_m_s / (2.0 * self.center_frequency_hz * self.ramp_interval_s)
 
     @property
     def n_measurements(self) -> int:
@@ -124,7 +152,12 @@ class RadarConfig:
         return _config_id(self)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The fields as a mapping; ``ramp_interval_s`` only where it is not its default (the
+        configurations written before it was a field stand as they were)."""
+        data = asdict(self)
+        if data["ramp_interval_s"] == DEFAULT_RAMP_INTERVAL_S:
+            del data["ramp_interval_s"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RadarConfig":
@@ -178,6 +211,30 @@ def carrier(config: RadarConfig) -> np.ndarray:
     return range_phase(config.f0_hz, config.range_grid_m(), config)
 
 
+def phase_step_rad(velocity_mps: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """The phase step between consecutive ramps of a target of radial velocity
+    ``velocity_mps`` (+ = away) at the sweep's middle frequency, ``-4 pi f_c v dt / c``, rad
+    (not wrapped); same shape."""
+    return -4.0 * np.pi * config.center_frequency_hz * config.ramp_interval_s / config.c_m_s * np.asarray(
+        velocity_mps, dtype=float)
+
+
+def velocity_from_phase_step(phase_step_rad: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """The radial velocity (m/s, + = away) of a phase step between ramps (rad): the inverse
+    of :func:`phase_step_rad`; a step in (-pi, pi] gives the velocity in
+    ``[-V/2, V/2)``, V = :attr:`RadarConfig.velocity_ambiguity_mps`. Same shape."""
+    return -np.asarray(phase_step_rad, dtype=float) * config.c_m_s / (
+        4.0 * np.pi * config.center_frequency_hz * config.ramp_interval_s)
+
+
+def wrap_velocity(velocity_mps: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """Velocities (m/s) folded into ``[-V/2, V/2)``, V the ambiguity interval
+    (:attr:`RadarConfig.velocity_ambiguity_mps`): what a phase step between ramps can tell
+    of them. Same shape."""
+    v = config.velocity_ambiguity_mps
+    return (np.asarray(velocity_mps, dtype=float) + v / 2.0) % v - v / 2.0
+
+
 def sensing_matrix(config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:
     """Range measurement matrix Phi, ``Phi_mn = exp(-i 4 pi f_m R_n / c)``.
 
@@ -194,16 +251,25 @@ def simulate_frames(
     config: RadarConfig,
     indices: np.ndarray | None = None,
     ramps: int | None = None,
+    velocity_mps: np.ndarray | None = None,
 ) -> np.ndarray:
     """Noiseless measurements Gamma = Phi [x, G x] of a batch of scenes (eq. 2).
 
     Parameters
     ----------
     range_m, angle_deg : (B, K) target ranges (m, on or off the range grid) and
-        angles (deg, positive = antenna 2 leads).
-    amplitude : (B, K) complex amplitudes x; 0 marks an absent target.
+        angles (deg, positive = antenna 2 leads); with velocities, the ranges at the
+        middle of the frame.
+    amplitude : (B, K) complex amplitudes x; 0 marks an absent target (with velocities,
+        at the middle of the frame).
     indices : None for whole ramps, or (M,) / (B, M) frequency indices of a subset.
     ramps : whole ramps when ``indices`` is None (default ``config.ramps_per_frame``).
+    velocity_mps : None (static), or (B, K) radial velocities (m/s, + = away), whole
+        ramps only: ramp r, at ``t_r = (r - (R - 1) / 2) dt`` from the middle of the frame
+        (dt = ``config.ramp_interval_s``), sees each target at ``R + v t_r``: its phase
+        turns by ``4 pi f_m v dt / c`` from ramp to ramp at each frequency and its range
+        moves by ``v dt`` (range migration). Each ramp's samples are taken at the ramp's
+        time (the motion within a ramp is left out, as the simulated sensor leaves it).
 
     Returns
     -------
@@ -212,14 +278,29 @@ def simulate_frames(
     range_m, angle_deg, amplitude = _check_scene(range_m, angle_deg, amplitude)
     gain2 = np.exp(1j * antenna_phase_rad(np.deg2rad(angle_deg), config))  # (B, K)
     per_target = np.stack([amplitude, amplitude * gain2], axis=-1)  # (B, K, 2)
+    if velocity_mps is not None and indices is not None:
+        raise InputError("velocity_mps needs whole ramps (indices=None)")
     if indices is None:
-        # one ramp, then tiled: every ramp sees the same N frequencies
         f = config.frequencies_hz(np.arange(config.samples_per_ramp))
-        ramp = _project(f, range_m, per_target, config)  # (B, N, 2)
         reps = config.ramps_per_frame if ramps is None else ramps
         if isinstance(reps, bool) or not isinstance(reps, (int, np.integer)) or reps < 1:
             raise InputError(f"ramps={ramps!r} must be an integer >= 1")
-        return np.tile(ramp, (1, reps, 1))
+        if velocity_mps is None:
+            # one ramp, then tiled: every ramp sees the same N frequencies
+            ramp = _project(f, range_m, per_target, config)  # (B, N, 2)
+            return np.tile(ramp, (1, reps, 1))
+        v = np.asarray(velocity_mps, dtype=float).reshape(range_m.shape)
+        if not np.all(np.isfinite(v)):
+            raise InputError("velocity_mps must be finite")
+        t = (np.arange(reps) - (reps - 1) / 2.0) * config.ramp_interval_s  # (R,) from the frame's middle
+        r_at = range_m[:, None, :] + v[:, None, :] * t[None, :, None]  # (B, R, K)
+        if np.any(r_at < 0):
+            raise InputError("a moving target's range falls below 0 within the frame")
+        out = np.empty((range_m.shape[0], reps * config.samples_per_ramp, 2), complex)
+        n = config.samples_per_ramp
+        for r in range(reps):
+            out[:, r * n:(r + 1) * n] = _project(f, r_at[:, r], per_target, config)
+        return out
     f = config.frequencies_hz(indices)
     if f.ndim == 2 and f.shape[0] != range_m.shape[0]:
         raise InputError(f"indices batch {f.shape[0]} does not match scene batch {range_m.shape[0]}")
@@ -285,6 +366,8 @@ def snap_to_range_grid(range_m: np.ndarray, config: RadarConfig) -> np.ndarray:
 
 @lru_cache(maxsize=1024)
 def _config_id(config: RadarConfig) -> int:
-    """:meth:`RadarConfig.config_id`, computed once per configuration."""
-    blob = json.dumps(config.to_dict(), sort_keys=True).encode()
+    """:meth:`RadarConfig.config_id`, computed once per configuration (the ramp spacing left
+    out at its default: the ids from before it was a field)."""
+    data = config.to_dict()
+    blob = json.dumps(data, sort_keys=True).encode()
     return int.from_bytes(hashlib.sha256(blob).digest()[:4], "little")

@@ -7,9 +7,10 @@ per ``RADC``, samples per chirp, sample order, word format, ADC bits and offset)
 frames the driver passes on uninterpreted. Two ship in ``radar_driver/profiles/``:
 
 - ``kmd2-blocks`` (the default): one ramp per ``RADC``; for each azimuth receiver 256 I
-  words then 256 Q words (2 048 bytes);
+  words then 256 Q words (2 048 bytes); a frame's ramps 25 ms apart (``chirp_interval_s``);
 - ``kmd2-cube256``: one range-Doppler cube per ``RADC``, 3 receivers x 256 chirps x 256
-  samples, I and Q interleaved (786 432 bytes), as a public C reader of the K-MD2 reads.
+  samples, I and Q interleaved (786 432 bytes), as a public C reader of the K-MD2 reads;
+  chirps 1/5120 s apart (256 a measurement, 20 measurements a second).
 
 The codec (:mod:`.protocol`), the session and the simulator take a profile; nothing
 else in the package knows a byte offset. ``qradar inspect`` tries every shipped profile
@@ -22,6 +23,7 @@ whatever the byte order on the wire. Complex samples are in units of full scale:
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +33,7 @@ import numpy as np
 
 from .errors import ConfigError, ProtocolError
 from .limits import ADC_WORD_BITS
+from .model import DEFAULT_RAMP_INTERVAL_S, RadarConfig
 
 #: word format name -> numpy dtype of one word on the wire
 WORD_DTYPES: dict[str, str] = {"uint16le": "<u2", "uint16be": ">u2", "int16le": "<i2"}
@@ -44,12 +47,17 @@ MAX_OTHER_LENGTH = 1 << 20
 
 @dataclass(frozen=True)
 class RadcLayout:
-    """The ``RADC`` payload: ``receivers`` x ``chirps`` x ``samples`` complex samples as
+    r"""The ``RADC`` payload: ``receivers`` x ``chirps`` x ``samples`` complex samples as
     pairs of words (I, Q). ``order``: ``blocks`` (per receiver and chirp, ``samples`` I
     words then ``samples`` Q words) or ``interleaved`` (I, Q per sample). ``azimuth``:
     the receivers that are antenna 1 and antenna 2 of the model (their order sets the
     angle's sign). ``word``: one of :data:`WORD_DTYPES`; ``adc_bits``-bit codes, 0 V at
-    ``offset``."""
+    ``offset``. ``chirp_interval_s``: the time from one chirp's start to the next one's,
+    s: in a layout of one chirp a ``RADC``, between the chirps of consecutive ``RADC``\ s
+    of a frame (the sensor measuring a frame's ``RADC``\ s back to back); in one of many,
+    between consecutive chirps of a ``RADC``. A frame's ramp spacing follows from it
+    (:meth:`ramp_interval_s`), and with it the radial velocities the decoder gives
+    (docs/sensor.md)."""
 
     receivers: int = 2
     azimuth: tuple[int, int] = (0, 1)
@@ -59,6 +67,7 @@ class RadcLayout:
     word: str = "uint16le"
     adc_bits: int = 12
     offset: int = 2048
+    chirp_interval_s: float = DEFAULT_RAMP_INTERVAL_S
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "azimuth", tuple(self.azimuth))
@@ -81,6 +90,9 @@ class RadcLayout:
             raise ConfigError(f"radc.offset={self.offset!r} must be an integer code in [{self.min_word}, {self.max_word}]")
         if self.payload_len > 64 << 20:
             raise ConfigError(f"radc: {self.payload_len} bytes per RADC is beyond 64 MiB")
+        t = self.chirp_interval_s
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or not 0 < t <= 10.0:
+            raise ConfigError(f"radc.chirp_interval_s={t!r} must be a number of seconds in (0, 10]")
 
     # -- sizes and ranges --------------------------------------------------------------------
     @property
@@ -206,6 +218,16 @@ class RadcLayout:
         step = self.chirps // ramps_per_frame if select == "stride" else 1
         return np.arange(ramps_per_frame) * step
 
+    def ramp_interval_s(self, ramps_per_frame: int, select: str = "first") -> float:
+        """The spacing of the ramps of a frame of ``ramps_per_frame`` ramps, s: the chirp
+        interval, times the chirps between the ones a frame takes (``select``,
+        :meth:`chirp_indices`) in a layout of several chirps a RADC."""
+        if self.chirps == 1:
+            return float(self.chirp_interval_s)
+        idx = self.chirp_indices(ramps_per_frame, select)
+        step = int(idx[1] - idx[0]) if idx.size > 1 else 1
+        return float(self.chirp_interval_s * step)
+
 
 @dataclass(frozen=True)
 class SensorProfile:
@@ -278,12 +300,20 @@ class SensorProfile:
         (the codec asks per message); do not modify."""
         return self._plausible
 
+    def radar(self, ramps_per_frame: int, select: str = "first") -> RadarConfig:
+        """The radar configuration of this sensor's frames of ``ramps_per_frame`` ramps
+        (chirps taken by ``select``): its samples a ramp and ramp spacing, the rest the
+        K-MD2's (:class:`~radar_driver.model.RadarConfig`'s defaults). The driver's frames
+        carry its id; the simulated device measures on the same spacing."""
+        return RadarConfig(samples_per_ramp=self.radc.samples, ramps_per_frame=ramps_per_frame,
+                           ramp_interval_s=self.radc.ramp_interval_s(ramps_per_frame, select))
+
     def to_dict(self) -> dict[str, Any]:
         r = self.radc
         return {"name": self.name, "description": self.description, "startup_baud": self.startup_baud,
                 "radc": {"receivers": r.receivers, "azimuth": list(r.azimuth), "chirps": r.chirps,
                          "samples": r.samples, "order": r.order, "word": r.word, "adc_bits": r.adc_bits,
-                         "offset": r.offset, "payload_len": r.payload_len},
+                         "offset": r.offset, "chirp_interval_s": r.chirp_interval_s, "payload_len": r.payload_len},
                 "baud_codes": {str(k): v for k, v in self.baud_codes.items()},
                 "gnfd_bits": dict(self.gnfd_bits), "lengths": {k: list(v) for k, v in self.lengths.items()}}
 

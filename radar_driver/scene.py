@@ -135,14 +135,16 @@ class SimScene:
         return self.ramps([t_s], rng)[0]
 
     def truth(self, t_s: float = 0.0) -> list[dict[str, float]]:
-        """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude per target (the
-        front end's leakage and I/Q ghosts are not targets)."""
+        """Ground truth at ``t_s``: range_m, angle_deg, x_m, y_m, amplitude and radial
+        velocity (``radial_velocity_mps``, + = away) per target (the front end's leakage and
+        I/Q ghosts are not targets)."""
         out = []
         for tg in self.targets:
             r = float(tg.range_at(t_s))
             x, y = polar_to_xy(r, math.radians(tg.angle_deg))
+            v = tg.velocity_m_s if r > 0.0 or tg.velocity_m_s > 0 else 0.0  # stopped at the sensor
             out.append({"range_m": r, "angle_deg": tg.angle_deg, "x_m": float(x), "y_m": float(y),
-                        "amplitude": tg.amplitude})
+                        "amplitude": tg.amplitude, "radial_velocity_mps": v})
         return out
 
     def arrays(self, t_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -238,12 +240,25 @@ NOMINAL_RAMP_RATE_HZ = 40.0
 DEFAULT_SCENE = "chamber"
 #: a simulated K-MD2's frames per second unless told (a K-MD2 makes about 20 measurements a second)
 SIM_RATE_HZ = 20.0
+#: time base of the frames (frames/s) of a sensor that is polled as fast as it answers
+NOMINAL_FRAME_RATE_HZ = 20.0
 
 
 def ramp_time_s(ramp_index, ramp_rate_hz: float) -> np.ndarray:
     """Time (s) of ramp ``ramp_index`` (int or array) of a sensor measuring ``ramp_rate_hz``
-    ramps a second (0: free-running, on the nominal time base)."""
+    ramps a second, evenly (0: free-running, on the nominal time base)."""
     return np.asarray(ramp_index, dtype=float) / (ramp_rate_hz or NOMINAL_RAMP_RATE_HZ)
+
+
+def frame_ramp_times_s(frame_index, ramps, frame_rate_hz: float, ramp_interval_s: float) -> np.ndarray:
+    """Times (s) of ramps ``ramps`` (int or array, from 0) of frame ``frame_index`` of a sensor
+    measuring ``frame_rate_hz`` frames a second (0: free-running, on the nominal time base),
+    its ramps ``ramp_interval_s`` apart from the frame's start (the radar's
+    :attr:`~radar_driver.model.RadarConfig.ramp_interval_s`, the profile's chirp spacing):
+    ``k / rate + r dt``. At 20 frames a second and two ramps 25 ms apart, the ramps are
+    evenly spaced, as :func:`ramp_time_s` at 40 ramps a second."""
+    return (float(frame_index) / (frame_rate_hz or NOMINAL_FRAME_RATE_HZ)
+            + np.asarray(ramps, dtype=float) * ramp_interval_s)
 
 
 SCENES_DIR = Path(__file__).with_name("scenes")

@@ -142,7 +142,9 @@ class SessionConfig:
         return self.ramps_per_frame if self.profile.radc.chirps == 1 else 1
 
     def radar(self) -> RadarConfig:
-        return RadarConfig(samples_per_ramp=self.profile.radc.samples, ramps_per_frame=self.ramps_per_frame)
+        """The radar configuration of this session's frames (its profile's samples and ramp
+        spacing, :meth:`~radar_driver.profile.SensorProfile.radar`)."""
+        return self.profile.radar(self.ramps_per_frame, self.chirp_select)
 
 
 

@@ -50,7 +50,7 @@ from .protocol import (
     StreamDecoder,
     encode,
 )
-from .scene import SIM_RATE_HZ, SimScene, ramp_time_s
+from .scene import SIM_RATE_HZ, SimScene, frame_ramp_times_s
 from .simlinks import PtyLink, TcpLink
 
 log = logging.getLogger("qradar.sim")
@@ -166,6 +166,11 @@ class SimulatedKMD2:
         if lay.chirps > 1 and rpf > lay.chirps:
             raise ConfigError(f"a frame of {rpf} ramps does not fit the {lay.chirps} chirps of a "
                               f"{self.profile.name} RADC")
+        if lay.chirps == 1 and not math.isclose(lay.chirp_interval_s, radar.ramp_interval_s, rel_tol=1e-9):
+            raise ConfigError(f"the scene's ramps are {radar.ramp_interval_s:g} s apart ([radar] ramp_interval_s), "
+                              f"profile {self.profile.name}'s chirps {lay.chirp_interval_s:g} s (chirp_interval_s): "
+                              "the simulated sensor measures on its profile's, the decoder's velocities on the "
+                              "scene's; make them agree")
         self.decoder = StreamDecoder(self.profile)
         self.baud = self.profile.startup_baud
         self.counter = -1  # frame counter of the last RADC sent
@@ -297,7 +302,10 @@ class SimulatedKMD2:
         chirps at their times through its front end, noise, the profile's ADC."""
         lay, scene = self.profile.radc, self.scene
         chirps = lay.chirps
-        t_s = ramp_time_s(index * chirps + np.arange(chirps), self.radc_rate_hz * chirps)
+        # the chirps' places in their frame, spaced by the profile's chirp interval
+        start = (index % self.radcs_per_frame) * chirps
+        t_s = frame_ramp_times_s(index // self.radcs_per_frame, start + np.arange(chirps), self.rate_hz,
+                                 lay.chirp_interval_s)
         clean = scene.clean_ramps(t_s)  # (chirps, N, 2)
         first = min(chirps, scene.radar.ramps_per_frame)
         azimuth = clean + np.concatenate([scene.noise(first, self._noise_rng),

@@ -28,7 +28,7 @@ from .errors import ConfigError
 from .options import nonneg_int, option, pos_int
 from .limits import check_sensor_id
 from .profile import DEFAULT_PROFILE
-from .scene import SIM_RATE_HZ, SimScene, ramp_time_s
+from .scene import SIM_RATE_HZ, SimScene, frame_ramp_times_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,7 +204,8 @@ class SimulatedSource(StoppableSource):
         rpf, n = self.radar.ramps_per_frame, self.radar.samples_per_ramp
         ramp_index = k * rpf + np.arange(rpf)
         if self._clean is None or self._clean[0] != k:
-            self._clean = (k, scene.clean_ramps(ramp_time_s(ramp_index, cfg.rate_hz * rpf)))  # (R, N, 2)
+            t_s = frame_ramp_times_s(k, np.arange(rpf), cfg.rate_hz, self.radar.ramp_interval_s)
+            self._clean = (k, scene.clean_ramps(t_s))  # (R, N, 2)
         clean = self._clean[1]
         parts = np.empty((len(sensors), rpf, 2, n, 2))  # (S, R, re/im, N, antenna)
         if scene.noise_std:

@@ -7,7 +7,8 @@ from pipeline.dsp.cml import BLOCK_FRAMES, CmlOptions, CmlResult, cml, cml_detec
 from pipeline.errors import ParameterError
 from pipeline.dsp.localize import Detections, localize, nearest_estimates, position_error_m
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
-from radar_driver.model import RadarConfig, angle_from_antennas_rad, antenna_phase_rad, polar_to_xy, simulate_frames
+from radar_driver.model import (RadarConfig, angle_from_antennas_rad, antenna_phase_rad, polar_to_xy, simulate_frames,
+                                velocity_from_phase_step)
 
 
 def measure(r, a, x, cfg, rng, bits=1, alpha=1.0, noise=0.0):
@@ -162,7 +163,9 @@ def reference_detections(result: CmlResult, config: RadarConfig) -> Detections:
     r = result.range_m
     bins = np.rint(np.where(np.isnan(r), 0.0, r) / config.range_resolution_m).astype(np.int64) % \
         config.samples_per_ramp
-    det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db)
+    v = velocity_from_phase_step(result.phase_step_rad, config)
+    v = np.minimum(v, 0.5 * config.velocity_ambiguity_mps * (1.0 - 1e-12))  # phi = -pi: in [-V/2, V/2)
+    det = Detections(result.range_m, np.rad2deg(angle), x, y, amp, bins, result.statistic_db, None, radial_velocity_mps=v)
     return det if result.present.all() else det.masked(result.present)
 
 
@@ -179,8 +182,11 @@ def test_detections_are_the_model_functions_to_the_bit(cfg, spacing_m):
     amp[1, 0, 1] = -amp[1, 0, 0]  # a phase difference of pi
     amp = np.where(present[..., None], amp, 0.0)
     stat = np.where(present, rng.uniform(5, 60, (b, k)), np.nan)
+    phi = np.where(present, rng.uniform(-np.pi, np.pi, (b, k)), np.nan)
+    phi[2, 0] = -np.pi  # the end of the ambiguity interval: +V/2, kept below it
+    phi[3] = np.nan  # the static model's frames
     for sl in (slice(0, 1), slice(0, b // 2), slice(b // 2, b // 2 + 1), slice(0, b)):
-        res = CmlResult(r[sl], amp[sl], stat[sl], np.ones(sl.stop - sl.start), present[sl])
+        res = CmlResult(r[sl], amp[sl], stat[sl], np.ones(sl.stop - sl.start), present[sl], phi[sl])
         got, want = cml_detections(res, config), reference_detections(res, config)
         for name in Detections.__dataclass_fields__:
             g, w = getattr(got, name), getattr(want, name)

@@ -30,8 +30,8 @@ STAT_RTOL = 1e-9
 def energies(x):
     """The fine grid's joint energy (L,) of ``x`` (2, N) and the coarse one's, as the kernel keeps it."""
     fine = (np.abs(np.fft.ifft(x, n=SIZE, axis=1)) ** 2).sum(axis=0)
-    s = kernels.scratch(N, SIZE, SMALL, np.exp(2j * np.pi * np.arange(SIZE) / SIZE))
-    total = count_kernels.coarse_energies(np.fft.ifft(x, n=SMALL, axis=1), SIZE, s)
+    s = kernels.scratch(N, SIZE, SMALL, np.exp(2j * np.pi * np.arange(SIZE) / SIZE), 1)
+    total = count_kernels.coarse_energies(np.fft.ifft(x, n=SMALL, axis=1)[None], SIZE, s)
     return fine, s.coarse.copy(), total
 
 
@@ -48,8 +48,8 @@ def coarse_ratio(x, nu, live, gate=None, threshold=-1.0, n=N, oversample=OVERSAM
     ``gate`` a SearchGrid or None), decided at ``threshold`` (< 0: exact)."""
     size, small = n * oversample, n * COARSE_PER_BIN
     grid, kgate = search(gate, n, oversample)
-    s = kernels.scratch(n, size, small, grid.table)
-    ratio, _ = kernels.coarse_ratio(np.fft.ifft(x, n=small, axis=1), np.ascontiguousarray(x), n,
+    s = kernels.scratch(n, size, small, grid.table, 1)
+    ratio, _ = kernels.coarse_ratio(np.fft.ifft(x, n=small, axis=1)[None], np.ascontiguousarray(x[None]), n,
                                     np.asarray(nu, dtype=float), np.asarray(live, dtype=bool), grid, kgate, s,
                                     threshold, 0.0)
     return ratio
@@ -59,7 +59,7 @@ def reference_ratio(x, nu, live, gate=None, oversample=OVERSAMPLE):
     """numpy's (pipeline.dsp.cml.reference.peak_ratio) on the full fine grid."""
     grid = gate if gate is not None else SearchGrid(None, RadarConfig(samples_per_ramp=x.shape[1]), oversample)
     fit = SimpleNamespace(nu=np.asarray(nu, dtype=float)[None], live=np.asarray(live, dtype=bool)[None], grid=grid)
-    return reference.peak_ratio(x.T[None], fit, oversample)[0]
+    return reference.peak_ratio(x.T[None, None], fit, oversample)[0]
 
 
 def tones(nu, amp, noise, rng):

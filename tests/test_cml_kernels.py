@@ -22,7 +22,7 @@ from test_cml import measure, random_scenes
 from pipeline.dsp.cml import CmlDecoder, CmlOptions, cml, reference
 from pipeline.dsp.cml.checks import check_frames
 from pipeline.dsp.cml.compiled import CompiledBlocks
-from pipeline.dsp.cml.detect import back_projections, count_floor
+from pipeline.dsp.cml.detect import back_projections, count_floor, settled_score
 from pipeline.dsp.cml.grid import SearchGrid
 from pipeline.dsp.cml.kernels import KERNELS, entry, likelihood as lik, linalg, model
 from pipeline.dsp.cml.kernels.layout import Codes, Decision, Fit
@@ -30,7 +30,7 @@ from pipeline.dsp.cml.likelihood import block_codes
 from pipeline.dsp.cml.schedule import start
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate
-from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+from pipeline.dsp.quantize import QuantizerConfig, auto_delta, batch_unit_dither, dequantize, quantize, quantize_frames
 from radar_driver.model import RadarConfig, simulate_frames
 
 RANGE_TOL_M = 1e-4
@@ -53,11 +53,11 @@ def off_grid(b, k, seed):
     return random_scenes(b, k, rng), rng
 
 
-def reference_codes(z, xi, delta, bits, cfg, likelihood="logistic"):
+def reference_codes(z, xi, delta, bits, cfg, likelihood="logistic", motion=True):
     """The numpy reference's codes of checked frames, and the same arrays as the kernels'
     :data:`~pipeline.dsp.cml.kernels.layout.Codes`."""
     frames = check_frames(z, xi, delta, bits, cfg, 1, None)
-    codes = reference.Codes(frames, cfg.samples_per_ramp, likelihood)
+    codes = reference.Codes(frames, cfg.samples_per_ramp, likelihood, motion)
     b, r, n = z.shape[0], codes.ramps, cfg.samples_per_ramp
     if bits is None:
         a = bb = codes.y.reshape(b, r, n, 4)
@@ -66,7 +66,7 @@ def reference_codes(z, xi, delta, bits, cfg, likelihood="logistic"):
         a, bb = codes.ka.reshape(b, r, n, 4), codes.kb.reshape(b, r, n, 4)
         kind = lik.ONE_BIT if bits == 1 else lik.MULTI_BIT
     kernel = Codes(kind, {"logistic": lik.LOGISTIC, "gaussian": lik.GAUSSIAN}[likelihood], a, bb,
-                   np.ascontiguousarray(codes.folded).view(float).reshape(b, n, 4))
+                   np.ascontiguousarray(codes.data).view(float).reshape(b, codes.rm, n, 4))
     return codes, kernel
 
 
@@ -132,21 +132,22 @@ def test_the_compiled_logistic_likelihood_matches_the_reference(cfg):
     (``nll_frame``, the LM candidates' test) is the same NLL."""
     (r, a, x), rng = off_grid(4, 2, 21)
     n = cfg.samples_per_ramp
-    for bits in (1, 3):
+    for bits, motion in ((1, True), (3, True), (1, False)):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, noise=0.05)
-        codes, kernel = reference_codes(z, xi, delta, bits, cfg)
+        codes, kernel = reference_codes(z, xi, delta, bits, cfg, motion=motion)
+        rm = codes.rm  # a model of each ramp (motion) or one for all
         for scale in (0.25, 0.03, 1.0 / 512):
-            mu = 0.4 * delta[:, None, None, None] * rng.standard_normal((4, n, 2, 2))
+            mu = 0.4 * delta[:, None, None, None, None] * rng.standard_normal((4, rm, n, 2, 2))
             sigma = scale * delta
             nll, g, h = codes.evaluate(mu, sigma)
-            kg, kh = np.empty((4, n, 4)), np.empty((4, n, 4))
-            knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(4, n, 4), sigma, kg, kh)
+            kg, kh = np.empty((4, rm, n, 4)), np.empty((4, rm, n, 4))
+            knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(4, rm, n, 4), sigma, kg, kh)
             np.testing.assert_allclose(knll, nll, rtol=1e-6)
-            np.testing.assert_allclose(kg, g.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(g).max())
-            np.testing.assert_allclose(kh, h.reshape(4, n, 4), rtol=0, atol=1e-5 * np.abs(h).max())
+            np.testing.assert_allclose(kg, g.reshape(4, rm, n, 4), rtol=0, atol=1e-5 * np.abs(g).max())
+            np.testing.assert_allclose(kh, h.reshape(4, rm, n, 4), rtol=0, atol=1e-5 * np.abs(h).max())
             if bits == 1:
-                work = np.empty((3, 4 * n), np.float32)
-                alone = [lik.nll_frame(kernel.a[f], kernel.b[f], np.ascontiguousarray(mu[f]).reshape(n, 4),
+                work = np.empty((3, rm, 4 * n), np.float32)
+                alone = [lik.nll_frame(kernel.a[f], kernel.b[f], np.ascontiguousarray(mu[f]).reshape(rm, n, 4),
                                        sigma[f], work) for f in range(4)]
                 np.testing.assert_allclose(alone, knll, rtol=1e-6)
     assert lik.softplus(np.float32(np.inf))[0] < 1e-17  # -log F(+inf) = 0
@@ -172,24 +173,25 @@ def test_the_gaussian_likelihood_is_the_probability_of_the_code(cfg):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, noise=0.05)
         n = cfg.samples_per_ramp
         codes, kernel = reference_codes(z, xi, delta, bits, cfg, "gaussian")
-        mu = 0.3 * delta[:, None, None, None] * rng.standard_normal((2, n, 2, 2))
+        rm, ramps = codes.rm, codes.ramps
+        mu = 0.3 * delta[:, None, None, None, None] * rng.standard_normal((2, rm, n, 2, 2))
         sigma = np.array([0.1, 0.3]) * delta  # codes within ~20 sigma: the direct P is finite
         nll, g, h = codes.evaluate(mu, sigma)
         # direct: the cell of lambda = Re/Im(Gamma + xi) - xi, Phi by scipy's log_ndtr (float64, no tricks)
         so = kernel.b.astype(float)  # 1 bit: s xi; lambda >= -xi for s = 1, < -xi for s = -1
         lo = kernel.a.astype(float) if bits > 1 else np.where(kernel.a > 0, -so, -np.inf)
         hi = kernel.b.astype(float) if bits > 1 else np.where(kernel.a > 0, np.inf, so)
-        m = mu.reshape(2, 1, n, 4)
+        m = np.broadcast_to(mu.reshape(2, rm, n, 4), (2, ramps, n, 4))  # each ramp's model
         s = sigma[:, None, None, None]
         up_, lo_ = (hi - m) / s, (lo - m) / s
         p = np.where(lo_ + up_ > 0, ndtr(-lo_) - ndtr(-up_), ndtr(up_) - ndtr(lo_))  # the tail without cancellation
         np.testing.assert_allclose(nll, -np.log(p).reshape(2, -1).sum(axis=1), rtol=1e-6)
-        kg, kh = np.empty((2, n, 4)), np.empty((2, n, 4))
-        knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(2, n, 4), sigma, kg, kh)
+        kg, kh = np.empty((2, rm, n, 4)), np.empty((2, rm, n, 4))
+        knll = lik.evaluate(kernel, np.ascontiguousarray(mu).reshape(2, rm, n, 4), sigma, kg, kh)
         np.testing.assert_allclose(knll, nll, rtol=1e-9)
-        np.testing.assert_allclose(kg, g.reshape(2, n, 4), rtol=1e-6, atol=1e-9 * np.abs(g).max())
-        np.testing.assert_allclose(kh, h.reshape(2, n, 4), rtol=1e-5, atol=1e-9 * np.abs(h).max())
-        eps = 1e-6 * delta[:, None, None, None]
+        np.testing.assert_allclose(kg, g.reshape(2, rm, n, 4), rtol=1e-6, atol=1e-9 * np.abs(g).max())
+        np.testing.assert_allclose(kh, h.reshape(2, rm, n, 4), rtol=1e-5, atol=1e-9 * np.abs(h).max())
+        eps = 1e-6 * delta[:, None, None, None, None]
         up = codes.evaluate(mu + eps, sigma)[1]
         down = codes.evaluate(mu - eps, sigma)[1]
         np.testing.assert_allclose((up - down) / (2 * eps), h, rtol=1e-4, atol=1e-6 * np.abs(h).max())
@@ -215,58 +217,60 @@ def test_the_kinds_of_frames_are_the_kernels_codes(cfg):
     for bits, kind in ((None, lik.LSQ), (1, lik.ONE_BIT), (3, lik.MULTI_BIT)):
         z, xi, delta = measure(r, a, x, cfg, rng, bits=bits)
         frames = check_frames(z, xi, delta, bits, cfg, 1, None)
-        assert block_codes(frames, cfg.samples_per_ramp, "logistic").kernel.kind == kind
+        assert block_codes(frames, cfg.samples_per_ramp, "logistic", True).kernel.kind == kind
 
 
 def compiled_detect(blocks, codes, ref, grid, count, nu0=None):
     """The compiled count statistic (``count``; else None), detection (unless ``nu0`` (B,) bins is
-    given) and amplitudes there, on the state of the reference's fit ``ref``."""
-    b, n = ref.nu.shape[0], codes.n
-    mu = np.ascontiguousarray(ref.mu).reshape(b, n, 4)
-    g = np.ascontiguousarray(ref.g).reshape(b, n, 4) if hasattr(ref, "g") else mu
-    h = np.ascontiguousarray(ref.h).reshape(b, n, 4) if hasattr(ref, "h") else mu
-    fit = Fit(np.ascontiguousarray(ref.nu), np.ascontiguousarray(ref.amp), np.ascontiguousarray(ref.live),
-              np.ones(b), np.zeros(b), np.ones(b), mu, g, h)
+    given), the amplitudes and the phase step there, on the state of the reference's fit ``ref``."""
+    b, n, rm = ref.nu.shape[0], codes.n, codes.rm
+    mu = np.ascontiguousarray(ref.mu).reshape(b, rm, n, 4)
+    g = np.ascontiguousarray(ref.g).reshape(b, rm, n, 4) if hasattr(ref, "g") else mu
+    h = np.ascontiguousarray(ref.h).reshape(b, rm, n, 4) if hasattr(ref, "h") else mu
+    fit = Fit(np.ascontiguousarray(ref.nu), np.ascontiguousarray(ref.phi), np.ascontiguousarray(ref.amp),
+              np.ascontiguousarray(ref.live), np.ones(b), np.zeros(b), np.ones(b), mu, g, h)
     search = blocks.search(grid)
     src = back_projections(codes, fit, search, count, nu0 is not None, False)
     found = Decision(-1.0, np.ones(b, dtype=bool), np.zeros(b), np.empty(b) if nu0 is None else np.array(nu0, float),
-                     np.empty((b, 2), dtype=complex), count_floor(codes, fit, search.grid.oversample))
+                     np.empty((b, 2), dtype=complex), count_floor(codes, fit, search.grid.oversample), np.zeros(b))
     entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(found))
-    return (found.stat if count else None), found.nu0, found.amp0
+    return (found.stat if count else None), found.nu0, found.amp0, found.phi0
 
 
-def detection_agrees(z, xi, delta, bits, cfg, gate=None, oversample=8):
-    """The compiled detection, count statistic and amplitudes against the reference's, on the
-    empty model and after one and two targets found (the second detection on the score)."""
+def detection_agrees(z, xi, delta, bits, cfg, gate=None, oversample=8, motion=True):
+    """The compiled detection, count statistic, amplitudes and phase step against the
+    reference's, on the empty model and after one and two targets found (the second
+    detection on the score)."""
     b = z.shape[0]
-    options = CmlOptions(oversample=oversample)
+    options = CmlOptions(oversample=oversample, motion=motion)
     grid = SearchGrid(gate, cfg, oversample)
     frames = check_frames(z, xi, delta, bits, cfg, 1, None)
     blocks = CompiledBlocks(cfg, options)
-    codes = block_codes(frames, cfg.samples_per_ramp, "logistic")
-    ref_codes = reference.Codes(frames, cfg.samples_per_ramp, "logistic")
+    codes = block_codes(frames, cfg.samples_per_ramp, "logistic", motion)
+    ref_codes = reference.Codes(frames, cfg.samples_per_ramp, "logistic", motion)
     fit = reference.Fit(ref_codes, grid)
     sigma, _, amp_cap = start(frames)
     fit.evaluate(sigma)
     for t in range(2):
-        stat, nu0, amp0 = compiled_detect(blocks, codes, fit, grid, True)
+        stat, nu0, amp0, phi0 = compiled_detect(blocks, codes, fit, grid, True)
         np.testing.assert_allclose(stat, reference.count_statistic(fit, ref_codes, oversample), rtol=1e-9)
         ref_nu = reference.detect(fit, ref_codes, oversample)
         np.testing.assert_allclose(nu0, ref_nu, rtol=0, atol=1e-9)
-        ref_amp = reference.amplitude_at(ref_codes, fit, ref_nu)
+        ref_amp, ref_phi = reference.amplitude_at(ref_codes, fit, ref_nu)
         np.testing.assert_allclose(amp0, ref_amp, rtol=0, atol=1e-9 * np.abs(ref_amp).max())
+        np.testing.assert_allclose(phi0, ref_phi, rtol=0, atol=1e-9)
         assert compiled_detect(blocks, codes, fit, grid, False)[0] is None
         np.testing.assert_allclose(compiled_detect(blocks, codes, fit, grid, False)[1], ref_nu, rtol=0, atol=1e-9)
         live = np.ones((b, 1), dtype=bool)
         live[::4] = t == 0  # some frames' second target is not live: its guard band is cleared
-        fit.set(np.concatenate([fit.nu, ref_nu[:, None]], axis=1), np.concatenate([fit.amp, ref_amp[:, None]], axis=1),
-                np.concatenate([fit.live, live], axis=1))
+        fit.set(np.concatenate([fit.nu, ref_nu[:, None]], axis=1), np.concatenate([fit.phi, ref_phi[:, None]], axis=1),
+                np.concatenate([fit.amp, ref_amp[:, None]], axis=1), np.concatenate([fit.live, live], axis=1))
         fit.evaluate(sigma)
         fit.run(np.repeat(sigma[:, None], 2, axis=1), amp_cap)
     given = fit.nu[:, 0] + 0.25
-    _, nu_given, amp_given = compiled_detect(blocks, codes, fit, grid, False, given)
+    _, nu_given, amp_given, _ = compiled_detect(blocks, codes, fit, grid, False, given)
     np.testing.assert_array_equal(nu_given, given)
-    ref = reference.amplitude_at(ref_codes, fit, given)
+    ref = reference.amplitude_at(ref_codes, fit, given)[0]
     np.testing.assert_allclose(amp_given, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
@@ -282,7 +286,56 @@ def test_compiled_detection_and_count_agree_with_numpy(cfg, kind):
     bits = {"three_bit": 3, "unquantized": None}.get(kind, 1)
     z, xi, delta = measure(r, a, x, cfg, rng, bits=bits, **({"alpha": 0.1, "noise": 0.1}
                                                            if kind == "noisy_small_alpha" else {}))
-    detection_agrees(z, xi, delta, bits, cfg, gate)
+    for motion in (True, False):
+        detection_agrees(z, xi, delta, bits, cfg, gate, motion=motion)
+
+
+@pytest.mark.parametrize("motion", [True, False])
+def test_the_settled_score_agrees_with_numpy(cfg, motion):
+    """The efficient score the count test reads once the fit settled (the NLL's derivatives
+    less what the live targets' own parameters explain, on each model ramp; with a phase step
+    its share too): the compiled one (kernels.refine.settled_score) against the reference's
+    (Fit.settled_score), on 1-bit frames of two moving targets after a few refinement steps,
+    one frame's second target not live. It takes out what the parameters explain: the
+    gradient of the live targets' parameters on it is a small part of the one on ``g``."""
+    (r, a, x), rng = off_grid(6, 2, 60)
+    v = rng.uniform(-2.0, 2.0, r.shape)
+    gam = simulate_frames(r, a, x, cfg, velocity_mps=v)
+    gam = gam + 0.05 * (rng.standard_normal(gam.shape) + 1j * rng.standard_normal(gam.shape))
+    delta = auto_delta(gam)
+    xi = 0.45 * delta[:, None, None] * batch_unit_dither(gam.shape, rng)
+    z = dequantize(quantize(gam, delta, 1, xi), delta, 1)
+    grid = SearchGrid(None, cfg, 8)
+    frames = check_frames(z, xi, delta, 1, cfg, 1, None)
+    codes = block_codes(frames, cfg.samples_per_ramp, "logistic", motion)
+    ref_codes = reference.Codes(frames, cfg.samples_per_ramp, "logistic", motion)
+    fit = reference.Fit(ref_codes, grid)
+    sigma, _, amp_cap = start(frames)
+    nu = r / cfg.range_resolution_m + 0.05
+    live = np.ones(r.shape, dtype=bool)
+    live[0, 1] = False
+    phi = np.zeros(r.shape)
+    amp = reference.amplitude_at(ref_codes, fit, nu[:, 0])[0]
+    fit.set(nu, phi, np.stack([amp, np.where(live[:, 1:], 0.5 * amp, 0.0)], axis=1), live)
+    fit.evaluate(sigma)
+    fit.run(np.repeat(sigma[:, None], 3, axis=1), amp_cap)
+    fit.settled_score()
+    b, n, rm = r.shape[0], codes.n, codes.rm
+    ker = Fit(np.ascontiguousarray(fit.nu), np.ascontiguousarray(fit.phi), np.ascontiguousarray(fit.amp),
+              np.ascontiguousarray(fit.live), np.ones(b), np.zeros(b), np.ones(b),
+              *(np.ascontiguousarray(y).reshape(b, rm, n, 4) for y in (fit.mu, fit.g, fit.h)))
+    ge = settled_score(codes, ker)
+    want = np.ascontiguousarray(fit.ge).reshape(b, rm, n, 4)
+    moved = want - ker.g
+    assert np.abs(moved).max() > 0.0
+    np.testing.assert_allclose(ge, want, rtol=0, atol=1e-6 * np.abs(moved).max())
+    # the live targets' parameters take (almost) none of it up: their Gauss--Newton step on ge
+    # is a small part of the one on g (not 0: the system's curvature is the ramps' mean)
+    fit.lm = np.zeros(b)
+    before = np.abs(fit._solve()[fit.live])
+    fit.g = fit.ge
+    left = np.abs(fit._solve()[fit.live])
+    assert left.max() < 0.05 * before.max()
 
 
 @pytest.mark.parametrize("bits", [1, 3])
@@ -306,14 +359,16 @@ def test_compiled_codes_arrays_are_numpys(cfg, bits):
     q = quantize_frames(simulate_frames(r, a, x, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(3))
     n = cfg.samples_per_ramp
     delta = np.broadcast_to(q.delta, (3,)).astype(float)
-    _, ref = reference_codes(q.values(), q.dither(), delta, bits, cfg)
-    ref_folded = q.values().reshape(3, -1, n, 2).sum(axis=1) - q.dither().reshape(3, -1, n, 2).sum(axis=1)
-    for z in (q.values(), q.codes):
-        got = block_codes(check_frames(z, q.dither(), delta, bits, cfg, 1, None), n, "logistic").kernel
-        assert got.kind == ref.kind
-        np.testing.assert_array_equal(got.a, ref.a)
-        np.testing.assert_array_equal(got.b, ref.b)
-        np.testing.assert_allclose(got.folded.view(complex).reshape(3, n, 2), ref_folded, rtol=0, atol=1e-12)
+    per_ramp = q.values().reshape(3, -1, n, 2) - q.dither().reshape(3, -1, n, 2)
+    for motion in (True, False):
+        _, ref = reference_codes(q.values(), q.dither(), delta, bits, cfg, motion=motion)
+        want = per_ramp if motion else per_ramp.sum(axis=1, keepdims=True)
+        for z in (q.values(), q.codes):
+            got = block_codes(check_frames(z, q.dither(), delta, bits, cfg, 1, None), n, "logistic", motion).kernel
+            assert got.kind == ref.kind
+            np.testing.assert_array_equal(got.a, ref.a)
+            np.testing.assert_array_equal(got.b, ref.b)
+            np.testing.assert_allclose(got.data.view(complex).reshape(want.shape), want, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
@@ -339,44 +394,63 @@ def test_codes_beyond_the_bits_are_a_parameter_error(cfg):
 
 def test_model_is_the_atoms_times_the_amplitudes():
     """The compiled model (blocks of 32 samples by products) against exp() directly, also
-    for N not a multiple of the block."""
-    rng = np.random.default_rng(50)
-    for n in (256, 100, 7):
+    for N not a multiple of the block; with a phase step, ramp q's amplitudes turned by
+    ``exp(i (q - (Rm - 1) / 2) phi)``."""
+    rng, steps = np.random.default_rng(50), np.random.default_rng(53)
+    for n, rm in ((256, 1), (100, 1), (7, 1), (256, 2), (100, 3)):
         kc = np.arange(n) - (n - 1) / 2.0
         nu = rng.uniform(0, n, 3)
+        phi = steps.uniform(-np.pi, np.pi, 3)
         amp = rng.standard_normal((3, 2)) + 1j * rng.standard_normal((3, 2))
-        w, mu = np.empty((3, 2, n)), np.empty((n, 4))
-        model.model(nu, amp, kc, w, mu)
+        w, mu = np.empty((3, 2, n)), np.empty((rm, n, 4))
+        cr = model.ramp_offsets(rm)
+        model.model(nu, phi, amp, kc, cr, w, mu)
         atoms = np.exp((-2j * np.pi / n) * nu[:, None] * kc)
         np.testing.assert_allclose(w[:, 0] + 1j * w[:, 1], atoms, rtol=0, atol=1e-13)
-        np.testing.assert_allclose(mu.view(complex), atoms.T @ amp, rtol=0, atol=1e-12)
+        for q in range(rm):
+            turn = np.exp(1j * cr[q] * phi)[:, None] if rm > 1 else 1.0
+            np.testing.assert_allclose(mu[q].view(complex), atoms.T @ (amp * turn), rtol=0, atol=1e-12)
 
 
-def test_normal_equations_are_the_jacobians():
-    """The Gauss--Newton system from the weighted sums against ``sum_j J_j^T diag(h_j) J_j``
-    and ``sum_j J_j^T g_j`` with the numpy reference's Jacobians (float64): the Hessian's
-    sums are float32 (as the reference's), so it agrees to 1e-6 of its largest entry."""
+@pytest.mark.parametrize("rm", [1, 2, 3])
+def test_normal_equations_are_the_jacobians(rm):
+    """The Gauss--Newton system from the weighted sums against ``sum_q sum_j J_qj^T diag(h_j)
+    J_qj`` and ``sum_q sum_j J_qj^T g_qj`` with the numpy reference's Jacobians (float64) of
+    each model ramp q (the ramps share one curvature h, as :func:`model.sums` takes them):
+    the Hessian's sums are float32 (as the reference's), so it agrees to 1e-6 of its largest
+    entry."""
     rng = np.random.default_rng(51)
     n, k = 256, 2
     kc = np.arange(n) - (n - 1) / 2.0
     nu = np.array([40.3, 41.9])
+    phi = np.array([0.7, -2.9]) if rm > 1 else np.zeros(2)
     amp = rng.standard_normal((k, 2)) + 1j * rng.standard_normal((k, 2))
-    g, h = rng.standard_normal((n, 4)), rng.uniform(0.0, 2.0, (n, 4))
-    w, mu = np.empty((k, 2, n)), np.empty((n, 4))
-    model.model(nu, amp, kc, w, mu)
+    g, h1 = rng.standard_normal((rm, n, 4)), rng.uniform(0.0, 2.0, (n, 4))
+    h = np.repeat(h1[None], rm, axis=0)
+    cr = model.ramp_offsets(rm)
+    w, mu = np.empty((k, 2, n)), np.empty((rm, n, 4))
+    model.model(nu, phi, amp, kc, cr, w, mu)
     cw = 2.0 * np.pi * kc / n
-    gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((2, 4, 2 * k))
+    gram, proj = np.empty((3, 4, 2 * k, 2 * k)), np.empty((rm, 2, 4, 2 * k))
     model.sums(w, cw, cw.astype(np.float32), g, h, np.empty((4, n), np.float32), np.empty((2 * k, n), np.float32),
                gram, proj)
-    hess, grad = np.empty((model.PARAMS * k, model.PARAMS * k)), np.empty(model.PARAMS * k)
-    model.normal_equations(amp, gram, proj, hess, grad)
+    npar = model.PARAMS * k
+    hess, grad = np.empty((npar, npar)), np.empty(npar)
+    model.normal_equations(amp, phi, cr, gram, proj, hess, grad, np.empty((k, 2)), np.empty((rm, 4, 4 * k, 2)),
+                           np.empty((4, 4 * k, 4), dtype=np.int64))
     atoms = w[:, 0] + 1j * w[:, 1]
     dw = atoms * (-1j * cw)
     r = np.concatenate([atoms.real, dw.real, atoms.imag, dw.imag])  # the reference's rows (4K, N)
-    zc = reference.coefficients(amp[None])[0]  # (4, 4K, 5K)
-    jac = np.einsum("rn,jrq->jnq", r, zc)
-    np.testing.assert_allclose(hess, np.einsum("jnq,nj,jnp->qp", jac, h, jac), rtol=0, atol=1e-6 * np.abs(hess).max())
-    np.testing.assert_allclose(grad, np.einsum("jnq,nj->q", jac, g), rtol=1e-9, atol=1e-12 * np.abs(grad).max())
+    want_h, want_g = np.zeros((npar, npar)), np.zeros(npar)
+    for q in range(rm):
+        zc = reference.coefficients(amp[None], phi[None], cr[q])[0]  # (4, 4K, 6K)
+        if rm == 1:
+            zc[..., 5::model.PARAMS] = 0.0  # the static model has no phase step
+        jac = np.einsum("rn,jrq->jnq", r, zc)
+        want_h += np.einsum("jnq,nj,jnp->qp", jac, h1, jac)
+        want_g += np.einsum("jnq,nj->q", jac, g[q])
+    np.testing.assert_allclose(hess, want_h, rtol=0, atol=1e-6 * np.abs(hess).max())
+    np.testing.assert_allclose(grad, want_g, rtol=1e-9, atol=1e-12 * np.abs(grad).max())
 
 
 def test_solve_by_cholesky_and_by_elimination():

@@ -71,3 +71,17 @@ def test_the_paper_runs_table_holds_on_a_reduced_run(tmp_path):
             doc = float(cells[col])
             ok = abs(got[field] - doc) <= 1e-3 if doc < 1e-3 else abs(got[field] / doc - 1) <= REDUCED_TOL[field]
             assert ok, f"K = {k} {scheme} {field}: the docs say {doc}, {REDUCED_RUNS} runs give {got[field]:.4f}"
+
+
+def test_the_speed_table_is_what_its_command_gives():
+    """docs/design.md's table of found rate and error against radial speed
+    (``python -m experiments.speeds``, seeded: the same digits)."""
+    from experiments.speeds import table
+
+    text = (ROOT / "docs" / "design.md").read_text()
+    assert "Measured by `python -m experiments.speeds` (600 frames a speed" in text
+    got = table(600, 1)
+    head = got.splitlines()[0]
+    assert head in text, "docs/design.md no longer has the speed table"
+    written = text[text.index(head):].split("\n\n")[0]
+    assert written == got

@@ -27,8 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("radar_driver", "pipeline", "replay", "qradar")
 
 #: what a later issue adds to a target: one line of the definition
-VELOCITY = Field("radial_velocity_mps", "number", "m/s", "radial velocity, positive away from the sensor",
-                 optional=True)
+EXTRA = Field("snr_db", "number", "dB", "signal to noise ratio of the target", optional=True)
 
 
 def test_the_docs_tables_are_the_definitions():
@@ -50,45 +49,45 @@ def test_the_message_classes_hold_the_definitions_fields():
     assert set(TARGETS.item_names) <= det  # what the localizer writes has every target field
 
 
-def _targets(fmt, with_velocity: bool):
+def _targets(fmt, with_extra: bool):
     t = {"range_m": 10.0, "angle_deg": 30.0, "x_m": 8.66025404, "y_m": 5.0, "amplitude": 0.5, "statistic_db": 21.5}
-    if with_velocity:
-        t["radial_velocity_mps"] = -1.25
+    if with_extra:
+        t["snr_db"] = -1.25
     return TargetsMsg("s0", 4, 123, 7, "cml", 2, "quantized", [t, {k: v for k, v in t.items() if k != "statistic_db"}])
 
 
 def test_a_target_field_added_to_the_definition_is_enough():
-    fmt = TARGETS.with_item(VELOCITY)  # the one-line change, on a copy
+    fmt = TARGETS.with_item(EXTRA)  # the one-line change, on a copy
     msg = _targets(fmt, True)
     # written (one frame, and a batch of detections that carry it), and read back
     payload = msg.to_json(fmt)
-    assert b'"radial_velocity_mps":-1.25' in payload
+    assert b'"snr_db":-1.25' in payload
     back = decode_targets(payload, "radar/s0/targets", fmt)
-    assert back == msg and back.targets[0]["radial_velocity_mps"] == -1.25
+    assert back == msg and back.targets[0]["snr_db"] == -1.25
     cols = TargetColumns.of(msg.targets, fmt)
     heads = FrameHeaders(["s0"], [4], [123], [7])
     assert encode_targets_batch(heads, cols, "cml", 2, "quantized", 0, fmt=fmt) == [msg.to_json(fmt)]
     # optional: absent where not finite, and a writer whose detections lack it writes none
-    cols.radial_velocity_mps[0, 1] = np.nan
-    assert encode_targets_batch(heads, cols, "cml", 2, "quantized", 0, fmt=fmt)[0].count(b"radial_velocity") == 1
-    assert b"radial_velocity" not in _targets(fmt, False).to_json(fmt)
+    cols.snr_db[0, 1] = np.nan
+    assert encode_targets_batch(heads, cols, "cml", 2, "quantized", 0, fmt=fmt)[0].count(b"snr_db") == 1
+    assert b"snr_db" not in _targets(fmt, False).to_json(fmt)
     # checked when read: a bad value is a WireError naming it
-    with pytest.raises(ValueError, match="target field radial_velocity_mps='fast' is not a number"):
+    with pytest.raises(ValueError, match="target field snr_db='fast' is not a number"):
         decode_targets(payload.replace(b"-1.25", b'"fast"'), "radar/s0/targets", fmt)
     # in the JSON Schema, with its unit
     item = json_schema(fmt)["properties"]["targets"]["items"]
-    assert item["properties"]["radial_velocity_mps"] == {"type": "number", "description":
-                                                          "radial velocity, positive away from the sensor (m/s)"}
-    assert "radial_velocity_mps" not in item["required"]
+    assert item["properties"]["snr_db"] == {"type": "number", "description":
+                                                          "signal to noise ratio of the target (dB)"}
+    assert "snr_db" not in item["required"]
     # in the Foxglove point (recordings' JSON point cloud, the live view's protobuf one)
-    assert point_fields(fmt)[-1] == "radial_velocity_mps"
-    assert target_points(msg, fmt)["radial_velocity_mps"].tolist() == [-1.25, -1.25]
+    assert point_fields(fmt)[-1] == "snr_db"
+    assert target_points(msg, fmt)["snr_db"].tolist() == [-1.25, -1.25]
     cloud = json.loads(pointcloud_json(msg, fmt=fmt))
-    assert cloud["fields"][-1] == {"name": "radial_velocity_mps", "offset": 4 * len(point_fields(fmt)) - 4, "type": 7}
+    assert cloud["fields"][-1] == {"name": "snr_db", "offset": 4 * len(point_fields(fmt)) - 4, "type": 7}
     pts = np.frombuffer(base64.b64decode(cloud["data"]), dtype=np.dtype([(f, "<f4") for f in point_fields(fmt)]))
-    assert pts["radial_velocity_mps"].tolist() == [-1.25, -1.25] and cloud["point_stride"] == 4 * len(point_fields(fmt))
+    assert pts["snr_db"].tolist() == [-1.25, -1.25] and cloud["point_stride"] == 4 * len(point_fields(fmt))
     # in the docs' table
-    assert "| `radial_velocity_mps` | number | m/s | yes | radial velocity, positive away" in field_table(fmt, True)
+    assert "| `snr_db` | number | dB | yes | signal to noise ratio of the target" in field_table(fmt, True)
     # and the definition itself still writes today's bytes (tests/test_wire_golden.py has them all)
     assert msg.to_json() == _targets(TARGETS, False).to_json()
 
@@ -178,11 +177,11 @@ def test_a_target_field_added_to_the_definition_reaches_the_web_page():
     """qradar/web/events.py sends the page every field the wire decoder kept: the new one under its own name."""
     from qradar.web.events import targets_event
 
-    fmt = TARGETS.with_item(VELOCITY)
+    fmt = TARGETS.with_item(EXTRA)
     msg = decode_targets(_targets(fmt, True).to_json(fmt), "radar/s0/targets", fmt)
     first = targets_event(msg, None)["targets"][0]
-    assert first["radial_velocity_mps"] == -1.25
+    assert first["snr_db"] == -1.25
     assert {k: first[k] for k in ("r", "a", "amp", "stat")} == {"r": 10.0, "a": 30.0, "amp": 0.5, "stat": 21.5}
     assert "x_m" not in first and first["x"] == pytest.approx(8.66, abs=1e-3)
     today = decode_targets(_targets(fmt, True).to_json(fmt), "radar/s0/targets")  # read with today's definition
-    assert "radial_velocity_mps" not in targets_event(today, None)["targets"][0]
+    assert "snr_db" not in targets_event(today, None)["targets"][0]

@@ -155,7 +155,13 @@ def test_a_return_outside_the_gate_is_modelled_where_it_is_even_with_a_gate_to_t
 
 def test_cml_a_target_just_outside_the_gate_is_modelled_outside_it_not_reported_at_its_end():
     """A gate that ends between the target and the leakage: the refinement walks the target
-    out of it (to 7.3 m, where it is), and it is not reported; nothing sits at the gate's end."""
+    out of it (to 7.3 m, where it is), and it is not reported; nothing sits at the gate's end.
+    With K = 2 given and nothing inside, a frame's extra stages may find a noise peak inside
+    the gate (K given: a target is reported there); it then takes the frame's first slot and
+    the leakage (stronger) the second, so the 7.3 m target is not among the K shown: such a
+    fill is a noise peak (amplitude under a tenth of the target's), never the target pinned
+    inside. (Measured over 8 seeds of 16 frames: 18/128 frames hold a fill with the static
+    model, 17/128 with the phase step; seed 1: 0 and 2.)"""
     z, xi, delta = leaky_frames(16)
     tight = RangeGate(7.5, 20.0)  # the target at 7.3 m is just outside
     res = cml(z, xi, delta, 1, CFG, 2, gate=tight)
@@ -163,7 +169,12 @@ def test_cml_a_target_just_outside_the_gate_is_modelled_outside_it_not_reported_
     assert np.all((r >= 7.5 - 1e-12) & (r <= 20.0 + 1e-12))
     assert not np.any(np.abs(r - 7.5) < 0.05)
     modelled = np.abs(res.range_m - TARGET_RANGE_M) < 0.05
-    assert (modelled & ~res.present).any(axis=1).all()
+    filled = res.present.any(axis=1)
+    assert (modelled & ~res.present).any(axis=1)[~filled].all()
+    strength = np.sqrt((np.abs(res.amplitudes) ** 2).sum(axis=2))
+    target = strength[modelled].min()
+    assert np.all(strength[res.present] < 0.1 * target)
+    assert filled.mean() <= 0.25
 
 
 def lone_frames(range_m: float, alpha: float, b: int = 64, seed: int = 3, noise: float = 0.03):

@@ -256,6 +256,40 @@ def test_cli_scene_options_go_to_config_json(tmp_path):
     assert scene == {"ranges": "continuous", "range_min_m": 5.0, "range_max_m": 100.0, "min_separation_m": 1.5,
                      "max_angle_deg": 45.0, "min_amplitude": 0.1, "noise_sigma": 0.05}
     assert json.loads((tmp_path / "summary.json").read_text())["scene"] == scene
+    proc = subprocess.run(
+        [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "--runs", "50", "--schemes", "dither_m512",
+         "--speeds", "0:3", "--quiet", "--no-plots", "--out", str(tmp_path / "moving")],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "moving" / "config.json").read_text())["scene"]["speeds"] == [0.0, 3.0]
     bad = subprocess.run([sys.executable, "-m", "qradar", "montecarlo", "--ranges", "continuous", "--range-interval",
                           "5", "400", "--runs", "10", "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "range_max_m=400.0" in bad.stderr
+
+
+def test_targets_that_move_between_ramps():
+    """``--speeds LO:HI``: radial speeds uniform in LO:HI with a random sign, drawn from their
+    own generator (the static draws stay as they were); cml finds the moving targets as the
+    static ones (1 bit, alpha 0.45, sigma 0.1, continuous ranges: median within 1.2x), the
+    static decoders lose some; a frequency subset cannot move."""
+    from experiments.speeds import draw_speeds, parse_speeds
+
+    assert parse_speeds("0:3") == (0.0, 3.0) and parse_speeds("0.125") == (0.125, 0.125)
+    for bad in ("3:0", "a:b", "1:2:3", "-1:2"):
+        with pytest.raises(ValueError):
+            parse_speeds(bad)
+    with pytest.raises(ParameterError, match="speeds"):
+        SceneSpec(speeds=(2.0, 1.0))
+    assert draw_speeds(4, 2, 7, 0, SceneSpec().speeds) is None
+    v = draw_speeds(400, 2, 7, 0, (0.5, 3.0))
+    assert v.shape == (400, 2) and 0.5 <= np.abs(v).min() and np.abs(v).max() <= 3.0 and (v < 0).any()
+    medians = {}
+    for speeds in (None, (0.0, 3.0), (0.125, 0.125)):
+        scene = SceneSpec(ranges="continuous", max_angle_deg=60.0, noise_sigma=0.1, speeds=speeds)
+        r = run_montecarlo(MonteCarloConfig(ks=(1,), runs=200, seed=3, workers=1, algos=("cml",),
+                                            schemes=("dither_a0.45_m512",), scene=scene), progress=False)
+        medians[speeds] = r.summary["K1"]["dither_a0.45_m512@cml"]["median_m"]
+    assert max(medians.values()) <= 1.2 * medians[None], medians
+    with pytest.raises(ParameterError, match="whole ramps"):
+        run_montecarlo(MonteCarloConfig(ks=(1,), runs=10, seed=3, workers=1, schemes=("dither_m64",),
+                                        scene=SceneSpec(speeds=(0.0, 1.0))), progress=False)

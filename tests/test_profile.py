@@ -105,3 +105,27 @@ def test_cube_frames_of_four_chirps_equal_the_model(tmp_path, select):
         assert f.data.shape == (1024, 2) and f.counters == (i,)
         assert np.abs(f.data - gamma).max() <= LSB
     assert s.counters.frames == 3 and s.counters.dropped == 0 and s.counters.ramps == 3
+
+
+def test_each_profile_gives_its_ramp_spacing_and_the_simulated_sensor_measures_on_it():
+    """The driver's radar configuration of a profile's frames (its id on every frame) has the
+    profile's ramp spacing, and the simulated K-MD2 measures its chirps on the same times:
+    kmd2-blocks, one chirp a RADC, a frame's two RADCs 25 ms apart (V = 0.249 m/s);
+    kmd2-cube256, 256 chirps a RADC 1/5120 s apart, a frame the first two (V = 32 m/s)."""
+    import math
+
+    from radar_driver.errors import ConfigError
+    from radar_driver.scene import SimScene, SimTarget
+    from radar_driver.simulator import SimulatedKMD2
+
+    blocks, cube = resolve_profile("kmd2-blocks"), resolve_profile("kmd2-cube256")
+    assert blocks.radar(2).ramp_interval_s == 0.025 and blocks.radar(2).config_id() == RadarConfig().config_id()
+    assert cube.radar(2).ramp_interval_s == 1 / 5120
+    assert cube.radar(2, "stride").ramp_interval_s == 128 / 5120
+    assert math.isclose(blocks.radar(2).velocity_ambiguity_mps, 0.2487, rel_tol=1e-3)
+    assert math.isclose(cube.radar(2).velocity_ambiguity_mps, 31.83, rel_tol=1e-3)
+    scene = SimScene(targets=(SimTarget(range_m=12.0, angle_deg=0.0, amplitude=0.5),))
+    SimulatedKMD2(scene, profile=blocks)  # the scene's ramps (25 ms) are the profile's
+    other = SimScene(targets=scene.targets, radar=RadarConfig(ramp_interval_s=0.05))
+    with pytest.raises(ConfigError, match="ramp_interval_s"):
+        SimulatedKMD2(other, profile=blocks)

@@ -49,7 +49,7 @@ class Opened:
     def __init__(self, kind: str, scene: SimScene, seed: int, tmp_path: Path, n_recorded: int = 12):
         self.kind, self.server = kind, None
         if kind.startswith("serial-"):
-            profile = resolve_profile(kind.removeprefix("serial-"))
+            profile = self.profile = resolve_profile(kind.removeprefix("serial-"))
             link = tmp_path / f"kmd2-{scene.name}-{seed}"
             self.server = SimulatorServer(scene, link_path=link, rate_hz=0, seed=seed, profile=profile).start()
             self.source = SensorSession(SessionConfig(str(link), sensor_id="s0", reconnect_timeout_s=5.0,
@@ -76,6 +76,7 @@ def opened(request, tmp_path):
         made.append(Opened(request.param, scene, seed, tmp_path, **kw))
         return made[-1]
 
+    make.made = made
     yield make
     for o in made:
         o.close()
@@ -90,13 +91,20 @@ def test_is_a_frame_source(opened):
     assert isinstance(opened().source, FrameSource)
 
 
+def opened_profile(opened):
+    """The sensor profile of the last source ``opened`` made (None: not a serial sensor's)."""
+    return getattr(opened.made[-1], "profile", None)
+
+
 def test_frames_equal_the_model_within_adc_quantization(opened):
     frames = read(opened().source, 8)
     gamma = simulate_frames(*STATIC.arrays(), STATIC.radar)[0]
     assert len(frames) == 8
     for f in frames:
         assert f.sensor_id == "s0" and f.data.shape == (512, 2) and f.data.dtype == np.complex64
-        assert f.config_id == STATIC.radar.config_id()
+        # a sensor's frames carry its profile's radar (its ramp spacing: the cube's chirps 1/5120 s apart)
+        want = opened_profile(opened).radar(STATIC.radar.ramps_per_frame) if opened_profile(opened) else STATIC.radar
+        assert f.config_id == want.config_id()
         assert np.abs(f.data - gamma).max() <= LSB
 
 

@@ -442,7 +442,8 @@ class Decoder:
                                          bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
                                          pfa=pfa, gate=cfg.gate, init_range_m=init_range_m)
             unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
-                                     estimated=noise_sigma is None and cfg.noise_sigma is None)
+                                     estimated=noise_sigma is None and cfg.noise_sigma is None,
+                                     phase_step_rad=res.phase_step_rad)
             return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         if cfg.algo == Algo.PBP:

@@ -226,7 +226,10 @@ class Detections:
     noise power per range bin of the back projection; see each decoder), present
     (bool: with ``K auto`` the slots past a frame's count are False and hold NaN);
     sigma_range_m (m), sigma_angle_deg (deg), cov_range_angle (m deg): how sure each target
-    is (:mod:`pipeline.dsp.uncertainty`; NaN where the decoder gives none).
+    is (:mod:`pipeline.dsp.uncertainty`; NaN where the decoder gives none);
+    radial_velocity_mps (m/s, + = moving away, from the phase step between ramps: known
+    modulo the radar's ``velocity_ambiguity_mps`` V and given in [-V/2, V/2); NaN where the
+    decoder keeps the static model, as PBP and QIHT do).
     """
 
     range_m: np.ndarray
@@ -240,10 +243,11 @@ class Detections:
     sigma_range_m: np.ndarray | None = None
     sigma_angle_deg: np.ndarray | None = None
     cov_range_angle: np.ndarray | None = None
+    radial_velocity_mps: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = np.shape(self.range_m)
-        for name in ("statistic_db",) + UNCERTAINTY_FIELDS:
+        for name in ("statistic_db",) + UNCERTAINTY_FIELDS + ("radial_velocity_mps",):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(shape, np.nan))
         if self.present is None:
@@ -261,7 +265,7 @@ class Detections:
         nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
         return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
                           nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present,
-                          *(nan(getattr(self, name)) for name in UNCERTAINTY_FIELDS))
+                          *(nan(getattr(self, name)) for name in UNCERTAINTY_FIELDS), nan(self.radial_velocity_mps))
 
     def with_uncertainty(self, sigma_range_m: np.ndarray, sigma_angle_deg: np.ndarray,
                          cov_range_angle: np.ndarray) -> "Detections":
@@ -280,7 +284,8 @@ class Detections:
                 "y_m": float(self.y_m[i, j]),
                 "amplitude": float(self.amplitude[i, j]),
                 "bin": int(self.bin[i, j]),
-                **{name: float(getattr(self, name)[i, j]) for name in ("statistic_db",) + UNCERTAINTY_FIELDS
+                **{name: float(getattr(self, name)[i, j])
+                   for name in ("statistic_db",) + UNCERTAINTY_FIELDS + ("radial_velocity_mps",)
                    if np.isfinite(getattr(self, name)[i, j])},
             }
             for j in range(self.range_m.shape[1]) if self.present[i, j]

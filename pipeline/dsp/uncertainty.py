@@ -4,7 +4,10 @@ information of the frame's codes at the estimate (the maths of :mod:`pipeline.ds
 The model is the one :mod:`pipeline.dsp.cml` fits: ``Gamma_{m,p} = sum_t a_{t,p}
 exp(-i 4 pi f_m r_t / c)`` (:func:`pipeline.dsp.cml.result.model_frames`), five real
 parameters a target (``r_t`` m, ``Re a_{t,1}``, ``Im a_{t,1}``, ``Re a_{t,2}``,
-``Im a_{t,2}``), all present targets of a frame jointly. Per real sample the information
+``Im a_{t,2}``), all present targets of a frame jointly; with a phase step between ramps
+(the radial velocity, cml's default model) ramp r's amplitudes are ``a_t exp(i (r - (R - 1)
+/ 2) phi_t)`` and ``phi_t`` is a sixth parameter (a nuisance of the range and angle: the
+codes of each ramp are weighed at that ramp's signal). Per real sample the information
 weight is the one of its code (:func:`~pipeline.dsp.crb.weights_1bit` with the frame's own
 dither, :func:`~pipeline.dsp.crb.weights_bits`, or ``1 / sigma^2`` unquantized) at the
 estimated signal and noise ``sigma`` (for 1-bit codes, the sandwich of the logistic
@@ -27,8 +30,10 @@ from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.crb import fisher, weights_bits
 
-#: real parameters a target: r, Re a1, Im a1, Re a2, Im a2
+#: real parameters a target: r, Re a1, Im a1, Re a2, Im a2 (with a phase step between ramps,
+#: phi after them: :data:`MOVING_PARAMS`)
 PARAMS = 5
+MOVING_PARAMS = 6
 #: a 1-bit code whose margin ``|s + d|`` exceeds this many noise stds carries no information
 #: (its weight below 1e-5 of the largest, the probit's below 1e-13); the weights are computed on the
 #: others only
@@ -52,7 +57,7 @@ def model_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarCon
     """The model's real samples ``s`` (B, 4N) on one ramp and their derivatives ``ds``
     (B, 4N, 5K) for targets ``range_m`` (B, K) m of amplitudes (B, K, 2) complex;
     (sample, antenna, I/Q) in C order as the quantizer lays out its codes (every ramp of a
-    frame the same)."""
+    frame the same; with a phase step between ramps: :func:`moving_jacobian`)."""
     b, k = range_m.shape
     n = config.samples_per_ramp
     f = config.frequencies_hz(np.arange(n))
@@ -67,6 +72,35 @@ def model_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarCon
         d[:, :, p, 0, :, 2 + 2 * p], d[:, :, p, 1, :, 2 + 2 * p] = -si, sr  # d/d Im a_p
     s = np.einsum("bnk,bkp->bnp", steer, amplitudes)  # (B, N, 2)
     return np.ascontiguousarray(s).view(float).reshape(b, -1), d.reshape(b, 4 * n, k * PARAMS)
+
+
+def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.ndarray,
+                    config: RadarConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`model_jacobian` with a phase step between ramps: each of the frame's R ramps'
+    real samples ``s`` (B, R, 4N) and their derivatives ``ds`` (B, R, 4N, 6K) in the
+    parameters ``[r, Re a1, Im a1, Re a2, Im a2, phi]`` of each target, amplitudes (B, K, 2)
+    at the middle of the frame, ramp r's ``a exp(i c_r phi)``, ``c_r = r - (R - 1) / 2``,
+    ``phase_step_rad`` (B, K) (NaN counts as 0)."""
+    b, k = range_m.shape
+    n, ramps = config.samples_per_ramp, config.ramps_per_frame
+    f = config.frequencies_hz(np.arange(n))
+    steer = range_phase(f[None, :, None], range_m[:, None, :], config)  # (B, N, K)
+    kr = (4.0 * np.pi / config.c_m_s) * f
+    c = np.arange(ramps) - (ramps - 1) / 2.0
+    turn = np.exp(1j * c[None, :, None] * np.nan_to_num(phase_step_rad)[:, None, :])  # (B, R, K)
+    a = amplitudes[:, None, :, :] * turn[..., None]  # (B, R, K, 2): each ramp's amplitudes
+    at = steer[:, None, :, None, :] * turn[:, :, None, None, :]  # (B, R, N, 1, K): d/d Re a
+    d = np.zeros((b, ramps, n, 2, k, MOVING_PARAMS), dtype=complex)  # (ramp, sample, antenna) x (target, parameter)
+    for p in range(2):
+        ap = a[:, :, None, :, p]  # (B, R, 1, K)
+        d[:, :, :, p, :, 0] = ap * steer[:, None] * (-1j * kr)[None, None, :, None]
+        d[:, :, :, p, :, 1 + 2 * p] = at[:, :, :, 0]
+        d[:, :, :, p, :, 2 + 2 * p] = 1j * at[:, :, :, 0]
+        d[:, :, :, p, :, 5] = 1j * c[None, :, None, None] * ap * steer[:, None]
+    s = np.einsum("bnk,brkp->brnp", steer, a)  # (B, R, N, 2)
+    ds = np.stack([d.real, d.imag], axis=4)  # (B, R, N, 2, 2, K, 6): (sample, antenna, I/Q) in C order
+    return (np.ascontiguousarray(s).view(float).reshape(b, ramps, -1),
+            ds.reshape(b, ramps, 4 * n, k * MOVING_PARAMS))
 
 
 def _near(margin: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -122,20 +156,25 @@ def fitted_noise(sigma: np.ndarray, margin: np.ndarray, ds: np.ndarray, live: np
 
 def _masked(fim: np.ndarray, live: np.ndarray, eye: float = 1.0) -> np.ndarray:
     """Fisher matrices (B, P, P) with the parameters of absent targets (``live`` (B, K)
-    False) held fixed (their rows and columns ``eye`` times the identity's)."""
+    False) held fixed (their rows and columns ``eye`` times the identity's); P / K
+    parameters a target."""
     k = live.shape[1]
-    cols = np.repeat(live, PARAMS, axis=1)
-    return np.where(cols[:, :, None] & cols[:, None, :], fim, 0.0) + eye * np.eye(k * PARAMS) * ~cols[:, None, :]
+    per = fim.shape[1] // k
+    cols = np.repeat(live, per, axis=1)
+    return np.where(cols[:, :, None] & cols[:, None, :], fim, 0.0) + eye * np.eye(k * per) * ~cols[:, None, :]
 
 
 def target_uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, present: np.ndarray, config: RadarConfig,
                        sigma: np.ndarray, dither: np.ndarray | None = None, delta=None, bits: int | None = None,
-                       estimated: bool = True) -> Uncertainty:
+                       estimated: bool = True, phase_step_rad: np.ndarray | None = None) -> Uncertainty:
     """:class:`Uncertainty` of the ``present`` (B, K) targets ``range_m`` (B, K) m,
     ``amplitudes`` (B, K, 2) of frames of whole ramps in noise ``sigma`` (B,) (std of each
     real part, frame units; ``estimated`` from the frames themselves: 1-bit codes correct it
     for their fit, :func:`fitted_noise`): unquantized when ``bits`` is None, else b-bit codes
-    of step ``delta`` (scalar or (B,)) after the ``dither`` (B, M, 2) complex (None: none)."""
+    of step ``delta`` (scalar or (B,)) after the ``dither`` (B, M, 2) complex (None: none).
+    ``phase_step_rad`` (B, K): the targets' phase steps between ramps (cml's model with the
+    radial velocity, :func:`moving_jacobian`: a sixth parameter a target, each ramp's codes at
+    its own signal); None or all NaN: the static model."""
     b, k = range_m.shape
     nan = np.full((b, k), np.nan)
     out = Uncertainty(nan.copy(), nan.copy(), nan.copy())
@@ -143,11 +182,19 @@ def target_uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, present: np.
         return out
     live = np.asarray(present, dtype=bool) & np.isfinite(range_m)
     a = np.where(live[..., None], amplitudes, 0.0)
-    s, ds = model_jacobian(np.where(live, range_m, 0.0), a, config)
     ramps = config.ramps_per_frame
-    margin = np.broadcast_to(s[:, None, :], (b, ramps, s.shape[1]))
+    moving = phase_step_rad is not None and ramps > 1 and bool(np.isfinite(phase_step_rad).any())
+    if moving:  # each ramp its own samples: one "ramp" of R 4N samples
+        s, ds = moving_jacobian(np.where(live, range_m, 0.0), a, np.where(live, phase_step_rad, 0.0), config)
+        margin = s
+    else:
+        s, ds = model_jacobian(np.where(live, range_m, 0.0), a, config)
+        margin = np.broadcast_to(s[:, None, :], (b, ramps, s.shape[1]))
     if dither is not None:
         margin = margin + np.ascontiguousarray(dither, dtype=complex).view(float).reshape(b, ramps, -1)
+    if moving:
+        margin, ds = margin.reshape(b, 1, -1), ds.reshape(b, -1, ds.shape[-1])
+        ramps = 1
     sg = np.maximum(np.asarray(sigma, dtype=float).reshape(-1) * np.ones(b), 1e-12)
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         if bits == 1:
@@ -155,7 +202,7 @@ def target_uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, present: np.
             cov = _sandwich(ds, margin, noise, sg, live)
         else:
             if bits is None:
-                w = np.full((b, s.shape[1]), ramps / sg[:, None] ** 2)
+                w = np.full((b, ds.shape[1]), ramps / sg[:, None] ** 2)
             else:
                 dl = np.asarray(delta, dtype=float) * np.ones(b)
                 w = weights_bits(margin.reshape(b, -1), None, sg, dl, bits).reshape(margin.shape).sum(axis=1)
@@ -199,11 +246,13 @@ def _inverse(fim: np.ndarray) -> np.ndarray:
 
 def _angles(cov: np.ndarray, a: np.ndarray, live: np.ndarray, config: RadarConfig, out: Uncertainty) -> None:
     """Range and angle (co)variances of each target from the parameters' covariance ``cov``
-    (B, 5K, 5K) by the delta method into ``out``; amplitudes ``a`` (B, K, 2)."""
+    (B, PK, PK), P = 5 or 6 (the phase step last), by the delta method into ``out``;
+    amplitudes ``a`` (B, K, 2)."""
     b, k = live.shape
+    per = cov.shape[1] // k
     per_phase = 2.0 * np.pi * config.f0_hz * config.d_m / config.c_m_s  # phase per sin(theta)
     for t in range(k):
-        idx = t * PARAMS + np.arange(PARAMS)
+        idx = t * per + np.arange(PARAMS)
         block = cov[:, idx[:, None], idx[None, :]]  # (B, 5, 5)
         a1, a2 = a[:, t, 0], a[:, t, 1]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -216,7 +265,8 @@ def _angles(cov: np.ndarray, a: np.ndarray, live: np.ndarray, config: RadarConfi
         jac[:, 0, 0] = 1.0
         jac[:, 1, 1:3] = g1 * dtheta[:, None]
         jac[:, 1, 3:5] = g2 * dtheta[:, None]
-        c = jac @ block @ np.swapaxes(jac, 1, 2)  # (B, 2, 2): range m, angle rad
+        with np.errstate(invalid="ignore"):  # NaN where the information is singular (not ok below)
+            c = jac @ block @ np.swapaxes(jac, 1, 2)  # (B, 2, 2): range m, angle rad
         ok = live[:, t] & np.isfinite(c).all(axis=(1, 2)) & (c[:, 0, 0] > 0) & (c[:, 1, 1] > 0)
         deg = np.rad2deg(1.0)
         out.sigma_range_m[ok, t] = np.sqrt(c[ok, 0, 0])

@@ -114,6 +114,10 @@ TARGET_ITEM = (
           "frame's codes at the estimate (cml)", optional=True),
     Field("sigma_angle_deg", "number", "deg", "standard deviation of angle_deg, likewise", optional=True),
     Field("cov_range_angle", "number", "m·deg", "covariance of range_m and angle_deg, likewise", optional=True),
+    Field("radial_velocity_mps", "number", "m/s",
+          "radial velocity, + = away, from the phase step between the frame's ramps: known modulo the "
+          "ambiguity interval V = c / (2 f_c Δt) (f_c mid-sweep, Δt the ramp spacing: 0.249 m/s for 25 ms) "
+          "and given in [−V/2, V/2); cml only", optional=True),
 )
 
 TARGETS = Format("targets", "qradar.Targets", _envelope("targets") + (

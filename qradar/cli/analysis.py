@@ -69,7 +69,7 @@ def add_montecarlo(sub) -> None:
         Part(MonteCarloConfig, only=("ks", "runs", "schemes", "seed", "algos", "fallback_pbp", "off_grid")),
         Part(SceneSpec, "scene", only=("ranges",), group="scenes (defaults: the paper's protocol)"),
         Part(MonteCarlo, "scene", only=("range_interval",), group="scenes (defaults: the paper's protocol)"),
-        Part(SceneSpec, "scene", only=("min_separation_m", "max_angle_deg", "min_amplitude", "noise_sigma"),
+        Part(SceneSpec, "scene", only=("min_separation_m", "max_angle_deg", "min_amplitude", "noise_sigma", "speeds"),
              group="scenes (defaults: the paper's protocol)"),
         Part(MonteCarloConfig, "scene", only=("decoder_noise",), group="scenes (defaults: the paper's protocol)"),
         Part(MonteCarlo, "count", only=("count",), group="target count (default: each decoder is told the scene's K)"),

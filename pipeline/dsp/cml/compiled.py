@@ -79,8 +79,8 @@ class CompiledBlocks:
         b = frames.z.shape[0]
         n, anneal = self.config.samples_per_ramp, self.options.anneal
         search = self.search(grid)
-        codes = block_codes(frames, n, self.options.likelihood)
-        fit = empty_fit(b, n)
+        codes = block_codes(frames, n, self.options.likelihood, self.options.motion)
+        fit = empty_fit(b, n, codes.rm)
         sigma, floor, amp_cap = start(frames)
         # active: the frames whose residual may still hold a target; as plain tuples, read by the kernels only
         found = tuple(decision(b, threshold, np.ones(b, dtype=bool), count_floor(codes, fit, grid.oversample)))
@@ -136,7 +136,7 @@ class CompiledBlocks:
         b = frames.z.shape[0]
         n, anneal = self.config.samples_per_ramp, self.options.anneal
         search = self.search(grid)
-        codes = block_codes(frames, n, self.options.likelihood)
+        codes = block_codes(frames, n, self.options.likelihood, self.options.motion)
         sigma, floor, amp_cap = start(frames)
         live_all = ~np.isnan(init)
         order = np.argsort(~live_all, axis=1, kind="stable")  # the given ranges first
@@ -149,10 +149,10 @@ class CompiledBlocks:
             plan = steps(warm_levels(sigma, floor, anneal) if anneal else np.empty((b, 0)), amp_cap,
                          adapt=frames.noise_sigma is None)
         out = targets(b, k)
-        fit = new_fit(b, int(live_all.sum(axis=1).max()), n)
+        fit = new_fit(b, int(live_all.sum(axis=1).max()), n, codes.rm)
         first = steps(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
         warm(codes.args, (nu_all, live_all), tuple(first), tuple(plan), sigma, search.report, tuple(out),
              tuple(fit))
-        sigma = fit.sigma if frames.bits is not None else residual_rms(codes.y, fit.mu.reshape(b, n, 2, 2))
-        res = CmlResult(out.range_m, out.amp, out.stat, sigma, out.present)
+        sigma = fit.sigma if frames.bits is not None else residual_rms(codes.y, fit.mu.reshape(b, codes.rm, n, 2, 2))
+        res = CmlResult(out.range_m, out.amp, out.stat, sigma, out.present, out.phi)
         return res, (fit.live & grid.inside(fit.nu)).sum(axis=1), statistic(codes, fit, search, at)

@@ -12,6 +12,7 @@ from pipeline.dsp.cml import engine
 from pipeline.dsp.cml.checks import check_frames, check_init
 from pipeline.dsp.cml.count import WARM_PFA, threshold
 from pipeline.dsp.cml.grid import SearchGrid
+from pipeline.dsp.cml.likelihood import model_ramps
 from pipeline.dsp.cml.options import BLOCK_FRAMES, CmlOptions
 from pipeline.dsp.cml.result import CmlResult
 from pipeline.dsp.cml.warm import warm_or_cold
@@ -46,12 +47,13 @@ class CmlDecoder:
             self._grids[gate] = grid
         return grid
 
-    def threshold(self, pfa: float, grid: SearchGrid) -> float:
-        """The count test's threshold (linear) at ``pfa`` on ``grid`` (:mod:`pipeline.dsp.cml.count`)."""
-        key = (pfa, grid.gate)
+    def threshold(self, pfa: float, grid: SearchGrid, rm: int = 1) -> float:
+        """The count test's threshold (linear) at ``pfa`` on ``grid`` with ``rm`` model ramps
+        (:mod:`pipeline.dsp.cml.count`)."""
+        key = (pfa, grid.gate, rm)
         value = self._thresholds.get(key)
         if value is None:
-            value = threshold(pfa, self.config, grid)
+            value = threshold(pfa, self.config, grid, rm)
             if len(self._thresholds) >= KEPT:
                 self._thresholds.clear()
             self._thresholds[key] = value
@@ -64,14 +66,15 @@ class CmlDecoder:
         (see there for the arguments)."""
         frames = check_frames(z, xi, delta, bits, self.config, k, noise_sigma, self._blocks.in_kernel)
         grid = self.grid(gate)
-        limit = None if pfa is None else self.threshold(pfa, grid)
+        rm = model_ramps(frames.z.shape[1] // self.config.samples_per_ramp, self.options.motion)
+        limit = None if pfa is None else self.threshold(pfa, grid, rm)
         iters = self.options.iters_for(frames.bits, frames.dithered)
         b = frames.z.shape[0]
         if b == 0:
             return CmlResult.empty(k)
         if init_range_m is not None:
             init = check_init(init_range_m, b, k, self.config, grid.gate)
-            return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid))
+            return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid, rm))
         if b <= BLOCK_FRAMES:  # one block: the arrays as they are
             res = self._blocks.decode(frames, k, iters, grid, limit)
         else:

@@ -4,9 +4,12 @@ then one kernel call for the count test, the detection, the new target's amplitu
 refinement (:func:`pipeline.dsp.cml.kernels.stages.add_target`).
 
 Detection (greedy, as in NOMP, Mamandipoor et al., arXiv 1509.01942): back-project a residual
-(folded over the ramps, zero-padded inverse FFT of ``oversample * N`` points) and take the
-peak of the joint energy ``|U1|^2 + |U2|^2`` at least a range bin away from the targets
-already found (inside the range gate). The residual is ``Z - xi`` for the first target (full
+(each ramp's, zero-padded inverse FFT of ``oversample * N`` points; the static model: folded
+over the ramps) and take the peak of the joint energy ``|U1|^2 + |U2|^2`` at least a range
+bin away from the targets already found (inside the range gate); with a phase step between
+ramps the energy of a range is its largest over the phase step (two ramps, U and V:
+``|U|^2 + |V|^2 + 2 |U1* V1 + U2* V2|``, :func:`pipeline.dsp.cml.kernels.doppler.doppler`),
+and the new target's phase step is where it peaks. The residual is ``Z - xi`` for the first target (full
 frames: ``Z``), then the score of the likelihood in each measurement: for quantized codes it
 sits on the few codes the current model gets wrong, which is far less noisy than
 ``Z - xi - model``."""
@@ -32,16 +35,16 @@ except ImportError:
 
 
 class Buffers:
-    """The zero-padded inverse FFT's input buffers of one decoder, per thread: a (B, S, 2, L)
-    complex buffer whose points beyond N stay zero (only the first ``n`` points of each row
-    are ever written), the first B frames of one buffer per (S, L, n), as large as the
-    largest block seen (8 MB for 64 frames, S = 2, L = 2048)."""
+    """The zero-padded inverse FFT's input buffers of one decoder, per thread: a (B, S, Rm, 2,
+    L) complex buffer whose points beyond N stay zero (only the first ``n`` points of each row
+    are ever written), the first B frames of one buffer per (S, Rm, L, n), as large as the
+    largest block seen (8 MB for 64 frames, S = 2, Rm = 1, L = 2048)."""
 
     def __init__(self):
         self._local = threading.local()
 
-    def padded(self, shape: tuple[int, int, int, int], n: int) -> np.ndarray:
-        """A zeroed-beyond-``n`` buffer of ``shape`` (B, S, 2, L)."""
+    def padded(self, shape: tuple[int, int, int, int, int], n: int) -> np.ndarray:
+        """A zeroed-beyond-``n`` buffer of ``shape`` (B, S, Rm, 2, L)."""
         cache = getattr(self._local, "cache", None)
         if cache is None:
             cache = self._local.cache = {}
@@ -91,13 +94,13 @@ def back_projections(codes: BlockCodes, fit: Fit, search: Search, count: bool, g
     with_residual = count or (not given and not on_score)
     with_score = codes.bits is not None and (count or on_score)
     coarse = (not given or decide) and search.grid.coarse
-    b, n = fit.mu.shape[:2]
-    y = np.empty((b, n, 2), dtype=complex)
-    buf = search.buffers.padded((b, int(with_residual) + int(with_score), 2, (COARSE_PER_BIN if coarse else
-                                                                            search.grid.oversample) * n), n)
+    b, rm, n = fit.mu.shape[:3]
+    y = np.empty((b, rm, n, 2), dtype=complex)
+    buf = search.buffers.padded((b, int(with_residual) + int(with_score), rm, 2, (COARSE_PER_BIN if coarse else
+                                                                                search.grid.oversample) * n), n)
     g = fit.g if score is None else score
-    stages.sources(codes.kernel.folded, fit.mu, g if with_score else fit.mu, float(codes.ramps), with_residual,
-                   with_score, y.view(float).reshape(b, n, 4), buf)
+    stages.sources(codes.kernel.data, fit.mu, g if with_score else fit.mu, float(codes.ramps), with_residual,
+                   with_score, y.view(float).reshape(b, rm, n, 4), buf)
     count_sources = buf.shape[1]
     u = ifft(buf) if count_sources else buf
     # the kernels' Sources, as a plain tuple (the entry kernels take those)
@@ -109,7 +112,7 @@ def decision(b: int, threshold: float | None, active: np.ndarray, floor: np.ndar
     (B, 2) (:func:`count_floor`), and the arrays detection writes, for ``b`` frames (reused by
     the greedy stages of a decode)."""
     return Decision(-1.0 if threshold is None else float(threshold), active, np.zeros(b), np.empty(b),
-                    np.empty((b, 2), dtype=complex), floor)
+                    np.empty((b, 2), dtype=complex), floor, np.zeros(b))
 
 
 def count_floor(codes: BlockCodes, fit: Fit, oversample: int, out: np.ndarray | None = None) -> np.ndarray:
@@ -123,12 +126,12 @@ def count_floor(codes: BlockCodes, fit: Fit, oversample: int, out: np.ndarray | 
         if codes.bits is None:
             out[:, 0] = precision_floor(codes.y, oversample)
     if codes.bits is not None:
-        out[:, 1] = information_floor(fit.h, oversample) if fit.nu.shape[1] else 0.0
+        out[:, 1] = information_floor(fit.h, codes.n, oversample) if fit.nu.shape[1] else 0.0
     return out
 
 
 def settled_score(codes: BlockCodes, fit: Fit) -> np.ndarray | None:
-    """The efficient score's ``g`` (B, N, 4) of a settled fit of quantized frames
+    """The efficient score's ``g`` (B, Rm, N, 4) of a settled fit of quantized frames
     (:func:`pipeline.dsp.cml.kernels.refine.settled_score`), what its count test reads; None
     unquantized (the linear residual is the test's)."""
     if codes.bits is None:
@@ -150,7 +153,7 @@ def add_target(codes: BlockCodes, fit: Fit, search: Search, found: tuple, plan: 
     if found[0] >= 0.0:
         count_floor(codes, fit, search.grid.oversample, found[5])
     b, t = fit.nu.shape
-    new = new_fit(b, t + 1, fit.mu.shape[1])
+    new = new_fit(b, t + 1, fit.mu.shape[2], fit.mu.shape[1])
     grew = entry.add_target(src, search.kernel, search.gate, search.seed_gate, tuple(fit), codes.args, plan, sigma,
                             found, tuple(new))
     return grew, (new if grew else fit)
@@ -162,6 +165,6 @@ def statistic(codes: BlockCodes, fit: Fit, search: Search, at: float) -> np.ndar
     src = back_projections(codes, fit, search, True, True, True, settled_score(codes, fit))
     b = fit.nu.shape[0]
     test = Decision(float(at), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), np.empty((b, 2), dtype=complex),
-                    count_floor(codes, fit, search.grid.oversample))
+                    count_floor(codes, fit, search.grid.oversample), np.zeros(b))
     entry.detect(src, search.kernel, search.gate, search.seed_gate, fit.nu, fit.live, tuple(test))
     return test.stat

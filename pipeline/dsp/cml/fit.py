@@ -4,14 +4,17 @@ once (:func:`pipeline.dsp.cml.kernels.refine.refine`) and the result in the mode
 
 Refinement: Levenberg--Marquardt steps (Gauss--Newton, a step kept only when the likelihood
 improves) on the negative log-likelihood of the codes given the known dither, over all the
-parameters of all the targets found so far at once (5 reals a target: range and two complex
-amplitudes, :data:`pipeline.dsp.cml.kernels.model.PARAMS`). This joint step does what NOMP's
+parameters of all the targets found so far at once (6 reals a target: range, two complex
+amplitudes and the phase step between ramps, :data:`pipeline.dsp.cml.kernels.model.PARAMS`;
+the static model keeps the phase step at 0). This joint step does what NOMP's
 cyclic re-refinement does -- a strong off-grid target's sidelobes no longer hide a weak one --
 with one likelihood evaluation a step for all the targets.
 
 Internally ranges are in bins (``nu = r / dR``) and amplitudes are referred to the middle
 of the sweep (``b = a exp(-i 2 pi nu (f0 / B + (N - 1) / (2 N)))``), which decorrelates
-range from phase; the result gives them in the model's terms."""
+range from phase, and to the middle of the frame (ramp r's is ``b exp(i (r - (R - 1) / 2)
+phi)``), which decorrelates the phase step from the phase; the result gives them in the
+model's terms."""
 
 from __future__ import annotations
 
@@ -24,34 +27,36 @@ from pipeline.dsp.cml.kernels.layout import Fit, Report, Steps, Targets
 from pipeline.dsp.cml.kernels.entry import finish, refine, result
 from pipeline.dsp.cml.kernels.stages import sources
 from pipeline.dsp.cml.likelihood import BlockCodes, array, evaluate_fit
-from pipeline.dsp.cml.options import MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA
+from pipeline.dsp.cml.options import MAX_PHASE_STEP_RAD, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA
 from pipeline.dsp.cml.result import CmlResult
 from pipeline.dsp.cml.schedule import residual_rms, wrong_codes_rms
 from pipeline.dsp.localize import STATISTIC_CAP_DB
 
 
-def empty_fit(b: int, n: int) -> Fit:
-    """No target yet in a block of ``b`` frames of ``n`` samples a ramp: the model is 0."""
-    fit = new_fit(b, 0, n)
+def empty_fit(b: int, n: int, rm: int) -> Fit:
+    """No target yet in a block of ``b`` frames of ``n`` samples a ramp, ``rm`` model ramps:
+    the model is 0."""
+    fit = new_fit(b, 0, n, rm)
     fit.mu.fill(0.0)
     fit.nll.fill(np.nan)
     return fit
 
 
-def new_fit(b: int, t: int, n: int) -> Fit:
+def new_fit(b: int, t: int, n: int, rm: int) -> Fit:
     """A fit of ``t`` targets to be filled by a kernel (``lm`` 1e-3, ``nll`` 0, ``sigma`` NaN: no
     level evaluated yet, the first refinement step evaluates)."""
     lm, nll, sigma = np.empty(b), np.zeros(b), np.empty(b)
     lm.fill(1e-3)
     sigma.fill(np.nan)
-    return Fit(np.empty((b, t)), np.empty((b, t, 2), dtype=complex), np.empty((b, t), dtype=bool), lm, nll, sigma,
-               np.empty((b, n, 4)), np.empty((b, n, 4)), np.empty((b, n, 4)))
+    return Fit(np.empty((b, t)), np.empty((b, t)), np.empty((b, t, 2), dtype=complex), np.empty((b, t), dtype=bool),
+               lm, nll, sigma, np.empty((b, rm, n, 4)), np.empty((b, rm, n, 4)), np.empty((b, rm, n, 4)))
 
 
 def steps(levels: np.ndarray, amp_cap: np.ndarray, adapt: bool = False) -> Steps:
     """Refinement steps at the noise std ``levels`` (B, S) (``adapt``: not below the noise the
     model leaves), amplitude changes capped at ``amp_cap`` (B,)."""
-    return Steps(array(levels, float), adapt, array(amp_cap, float), MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA)
+    return Steps(array(levels, float), adapt, array(amp_cap, float), MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA,
+                 MAX_PHASE_STEP_RAD)
 
 
 def run(codes: BlockCodes, fit: Fit, plan: Steps) -> Fit:
@@ -64,10 +69,10 @@ def run(codes: BlockCodes, fit: Fit, plan: Steps) -> Fit:
         return fit
     sigma = plan.levels[:, -1]
     if plan.adapt:
-        b, n = fit.mu.shape[:2]
+        b, rm, n = fit.mu.shape[:3]
         shape = (b, codes.ramps, n, 2, 2)
         noise = wrong_codes_rms(codes.kernel.a.reshape(shape), codes.kernel.b.reshape(shape), codes.bits,
-                                fit.mu.reshape(b, n, 2, 2))
+                                fit.mu.reshape(b, rm, n, 2, 2))
         sigma = np.maximum(sigma, noise / WRONG_RMS_PER_SIGMA)
     return evaluate_fit(codes, fit, sigma)
 
@@ -80,7 +85,8 @@ def report(config: RadarConfig, grid: SearchGrid) -> Report:
 
 def targets(b: int, k: int) -> Targets:
     """A result's arrays for ``b`` frames of ``k`` targets."""
-    return Targets(np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool))
+    return Targets(np.empty((b, k)), np.empty((b, k, 2), dtype=complex), np.empty((b, k)), np.empty((b, k), dtype=bool),
+                   np.empty((b, k)))
 
 
 def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, about: tuple, k: int) -> CmlResult:
@@ -88,19 +94,19 @@ def finish_fit(codes: BlockCodes, fit: Fit, plan: Steps, about: tuple, k: int) -
     the radar's :func:`report`), in one kernel call (the kernels' namedtuples as plain tuples)."""
     out = targets(fit.nu.shape[0], k)
     finish(codes.args, tuple(fit), tuple(plan), about, tuple(out))
-    return CmlResult(out.range_m, out.amp, out.stat, fit.sigma, out.present)
+    return CmlResult(out.range_m, out.amp, out.stat, fit.sigma, out.present, out.phi)
 
 
 def fit_result(codes: BlockCodes, fit: Fit, about: tuple, k: int, sigma: np.ndarray | None) -> CmlResult:
     """The fit in the model's terms (``about``: the radar's :func:`report`, a plain tuple), its
     statistic, padded to ``k`` targets (absent ones last), present ones strongest first, with
     sigma_eff ``sigma`` (None: unquantized, the RMS of the residual)."""
-    b, n = fit.mu.shape[:2]
-    y = np.empty((b, n, 2), dtype=complex)
-    sources(codes.kernel.folded, fit.mu, fit.mu, float(codes.ramps), False, False, y.view(float).reshape(b, n, 4),
-            np.zeros((b, 0, 2, n), dtype=complex))
+    b, rm, n = fit.mu.shape[:3]
+    y = np.empty((b, rm, n, 2), dtype=complex)
+    sources(codes.kernel.data, fit.mu, fit.mu, float(codes.ramps), False, False, y.view(float).reshape(b, rm, n, 4),
+            np.zeros((b, 0, rm, 2, n), dtype=complex))
     out = targets(b, k)
     result(tuple(fit), y, codes.ramps, about, tuple(out))
     if sigma is None:
-        sigma = residual_rms(codes.y, fit.mu.reshape(b, n, 2, 2))
-    return CmlResult(out.range_m, out.amp, out.stat, sigma, out.present)
+        sigma = residual_rms(codes.y, fit.mu.reshape(b, rm, n, 2, 2))
+    return CmlResult(out.range_m, out.amp, out.stat, sigma, out.present, out.phi)

@@ -48,13 +48,15 @@ def array(x, dtype) -> np.ndarray:
 
 class BlockCodes(NamedTuple):
     """A block's measurements for the kernels: ``kernel`` (the
-    :data:`~pipeline.dsp.cml.kernels.layout.Codes`), ``bits`` (None: unquantized), ``ramps``
-    and ``n`` (samples a ramp), and unquantized the frames as reals ``y`` (B, R, N, 2, 2)."""
+    :data:`~pipeline.dsp.cml.kernels.layout.Codes`), ``bits`` (None: unquantized), ``ramps``,
+    ``n`` (samples a ramp) and ``rm`` (the model's ramps: ``ramps`` with a phase step, 1
+    static), and unquantized the frames as reals ``y`` (B, R, N, 2, 2)."""
 
     kernel: Codes
     bits: int | None
     ramps: int
     n: int
+    rm: int
     y: np.ndarray | None = None
 
     @property
@@ -63,22 +65,30 @@ class BlockCodes(NamedTuple):
         return tuple(self.kernel)
 
 
-def block_codes(frames: Frames, n: int, likelihood: str) -> BlockCodes:
-    """The kernels' arrays of checked ``frames`` of N = ``n`` samples a ramp: quantized, built
-    by one kernel pass (:func:`~pipeline.dsp.cml.kernels.stages.codes_arrays`; the
-    quantizer's codes taken as they are, values turned back into codes); unquantized, the
-    frames as they are."""
+def model_ramps(ramps: int, motion: bool) -> int:
+    """The model's ramps of frames of ``ramps`` ramps: each ramp its own with a phase step
+    between ramps (``motion``), else one for all (the static model)."""
+    return ramps if motion else 1
+
+
+def block_codes(frames: Frames, n: int, likelihood: str, motion: bool) -> BlockCodes:
+    """The kernels' arrays of checked ``frames`` of N = ``n`` samples a ramp, for the model
+    with a phase step between ramps (``motion``) or the static one: quantized, built by one
+    kernel pass (:func:`~pipeline.dsp.cml.kernels.stages.codes_arrays`; the quantizer's codes
+    taken as they are, values turned back into codes); unquantized, the frames as they are."""
     z, bits = frames.z, frames.bits
     b, m = z.shape[:2]
     ramps = m // n
+    rm = model_ramps(ramps, motion)
     shape = (b, ramps, n, 4)
     lik = LIKELIHOOD_CODES[likelihood]
     if bits is None:
         zr = array(z, complex).view(float).reshape(b, ramps, n, 2, 2)
-        folded = z.reshape(b, ramps, n, 2).sum(axis=1)  # Z summed over the ramps
+        data = z.reshape(b, ramps, n, 2)
+        data = data if rm > 1 else data.sum(axis=1, keepdims=True)  # static: Z summed over the ramps
         kernel = Codes(LSQ, lik, zr.reshape(shape), zr.reshape(shape),
-                       array(folded.view(float).reshape(b, n, 4), float))
-        return BlockCodes(kernel, None, ramps, n, zr)
+                       array(np.ascontiguousarray(data, dtype=complex).view(float).reshape(b, rm, n, 4), float))
+        return BlockCodes(kernel, None, ramps, n, rm, zr)
     from_codes = z.ndim == 4
     if from_codes:
         zk = array(z if z.dtype == np.uint8 else z.astype(np.int64), z.dtype if z.dtype == np.uint8 else np.int64)
@@ -86,10 +96,10 @@ def block_codes(frames: Frames, n: int, likelihood: str) -> BlockCodes:
     else:
         zk = array(z, complex).view(float).reshape(shape)
     ka, kb = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
-    folded = np.empty((b, n, 4))
+    data = np.empty((b, rm, n, 4))
     codes_arrays(zk, from_codes, array(frames.xi, complex).view(float).reshape(shape), array(frames.delta, float), bits,
-                 ka, kb, folded)
-    return BlockCodes(Codes(ONE_BIT if bits == 1 else MULTI_BIT, lik, ka, kb, folded), bits, ramps, n)
+                 ka, kb, data)
+    return BlockCodes(Codes(ONE_BIT if bits == 1 else MULTI_BIT, lik, ka, kb, data), bits, ramps, n, rm)
 
 
 def check_in_kernel(z, xi, delta, bits: int, codes: bool) -> np.ndarray:
@@ -109,8 +119,7 @@ def check_in_kernel(z, xi, delta, bits: int, codes: bool) -> np.ndarray:
 
 def evaluate_fit(codes: BlockCodes, fit: Fit, sigma: np.ndarray) -> Fit:
     """``fit`` with the NLL, its derivatives ``g``, ``h`` at its model and noise std ``sigma`` (B,)."""
-    b, n = fit.mu.shape[:2]
-    g, h = np.empty((b, n, 4)), np.empty((b, n, 4))
+    g, h = np.empty(fit.mu.shape), np.empty(fit.mu.shape)
     sigma = array(sigma, float)
     nll = evaluate(codes.args, fit.mu, sigma, g, h)
     return fit._replace(nll=nll, sigma=sigma, g=g, h=h)

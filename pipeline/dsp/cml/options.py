@@ -33,6 +33,8 @@ BLOCK_FRAMES = 64
 LOGISTIC_PER_SIGMA = 1.702
 #: largest range change of one refinement step, range bins
 MAX_RANGE_STEP_BINS = 0.5
+#: largest change of a phase step between ramps in one refinement step, rad
+MAX_PHASE_STEP_RAD = 1.0
 #: RMS distance of the wrong codes to their cells, in units of the noise std
 WRONG_RMS_PER_SIGMA = math.sqrt(2.0 / 3.0)
 
@@ -55,6 +57,10 @@ class CmlOptions:
     anneal : final levels of ``sigma_eff``, falling geometrically to its floor (one
         refinement step each); unquantized frames: more least-squares steps.
     oversample : detection grid of ``oversample * N`` ranges.
+    motion : each target has a phase step between consecutive ramps (its radial velocity,
+        :mod:`pipeline.dsp.cml`), found by detection and refined with the rest; False: the
+        paper's static model (every ramp of a frame the same; blind to targets whose phase
+        turns by pi between ramps). Frames of one ramp are static whatever it says.
     """
 
     engine: str | None = None
@@ -62,6 +68,7 @@ class CmlOptions:
     iters: int | None = None
     anneal: int = 6
     oversample: int = 8
+    motion: bool = True
 
     def __post_init__(self) -> None:
         if self.engine not in (None, *ENGINES):
@@ -69,6 +76,8 @@ class CmlOptions:
         if self.likelihood not in LIKELIHOODS:
             raise ParameterError(f"cml: likelihood={self.likelihood!r} is not known; available: "
                                  f"{', '.join(LIKELIHOODS)}")
+        if not isinstance(self.motion, bool):
+            raise ParameterError(f"cml: motion={self.motion!r} must be True or False")
         for name, value, lo in (("iters", self.iters, 0), ("anneal", self.anneal, 0),
                                 ("oversample", self.oversample, 1)):
             if (value is not None or name != "iters") and (not is_int(value) or not lo <= value <= 1000):

@@ -1,11 +1,13 @@
 """cml's numpy reference (``engine="numpy"``): the same decode as the compiled engine, vectorized
-over a block of frames in numpy, with the exact logistic (numpy's ``exp`` and ``log1p``) and the
-Gauss--Newton system from explicit Jacobians. It is the oracle the compiled kernels are tested
+over a block of frames in numpy, with the exact logistic (numpy's ``exp`` and ``log1p``, the
+codes' likelihood in :mod:`pipeline.dsp.cml.reference_codes`) and the Gauss--Newton system from
+explicit Jacobians. It is the oracle the compiled kernels are tested
 against (tests/test_cml_kernels.py and the others): the two take the same steps, in another
 floating-point order.
 
-Shapes: a block of B frames of R ramps of N samples; the real parts of a sample as
-(antenna, re/im); per-target arrays (B, K), amplitudes (B, K, 2); ranges in bins."""
+Shapes: a block of B frames of R ramps of N samples; Rm the model's ramps (R with a phase step
+between ramps, 1 for the static model); the real parts of a sample as (antenna, re/im);
+per-target arrays (B, K), amplitudes (B, K, 2); ranges in bins, phase steps in rad."""
 
 from __future__ import annotations
 
@@ -15,147 +17,12 @@ from radar_driver.model import RadarConfig, range_phase
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.count import COUNT_GUARD_BINS, information_floor, precision_floor
-from pipeline.dsp.cml.grid import MIN_SEPARATION_BINS, SearchGrid
-from pipeline.dsp.cml.options import LOGISTIC_PER_SIGMA, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, CmlOptions
+from pipeline.dsp.cml.grid import COARSE_PER_BIN, MIN_SEPARATION_BINS, SearchGrid
+from pipeline.dsp.cml.options import MAX_PHASE_STEP_RAD, MAX_RANGE_STEP_BINS, WRONG_RMS_PER_SIGMA, CmlOptions
+from pipeline.dsp.cml.reference_codes import Codes
 from pipeline.dsp.cml.result import CmlResult
-from pipeline.dsp.cml.schedule import WARM_STEPS, anneal_levels, residual_rms, start, warm_levels, wrong_codes_rms
+from pipeline.dsp.cml.schedule import WARM_STEPS, anneal_levels, start, warm_levels
 from pipeline.dsp.localize import to_db
-
-_LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
-
-
-class Codes:
-    """A block's measurements as real arrays (B, R, N, 2 antennas, 2 re/im) and the negative
-    log-likelihood (NLL) of a model ``mu`` (B, N, 2, 2) repeated on every ramp, in float32 work
-    arrays (quantized) as the kernels'."""
-
-    def __init__(self, frames: Frames, n: int, likelihood: str):
-        z, bits, delta = frames.z, frames.bits, frames.delta
-        b, m = z.shape[:2]
-        self.bits, self.ramps, self.n, self.likelihood = bits, m // n, n, likelihood
-        shape = (b, self.ramps, n, 2, 2)
-        q = None
-        if z.ndim == 4:  # codes: the levels q in [-2^(b-1), 2^(b-1)), Z = delta (q + 1/2)
-            q = z.reshape(shape).astype(np.float64) - (1 << (bits - 1))
-            z = (delta[:, None, None, None, None] * (q + 0.5)).view(complex).reshape(b, m, 2)
-        zr = np.ascontiguousarray(z, dtype=complex).view(float).reshape(shape)
-        self.data = z if bits is None else z - frames.xi  # what detection and amplitudes back-project
-        self.folded = self.data.reshape(b, self.ramps, n, 2).sum(axis=1)  # summed over the ramps, (B, N, 2)
-        if bits is None:
-            self.y = zr
-            return
-        xr = np.ascontiguousarray(frames.xi, dtype=complex).view(float).reshape(shape)
-        d = delta[:, None, None, None, None]
-        half = 1 << (bits - 1)
-        if q is None:
-            q = np.rint(zr / d - 0.5)  # zr = (q + 1/2) delta
-        self.work = [np.empty(shape, dtype=np.float32) for _ in range(3)]
-        if bits == 1:
-            s = np.where(q >= 0, 1.0, -1.0)  # the sign of lambda + xi
-            self.s, self.so, self.half_s = s.astype(np.float32), (s * xr).astype(np.float32), 0.5 * s.sum(axis=1)
-            self.ka, self.kb = self.s, self.so
-            return
-        self.lo = (np.where(q <= -half, -np.inf, q * d) - xr).astype(np.float32)  # lambda's cell: [lo, hi)
-        self.hi = (np.where(q >= half - 1, np.inf, (q + 1) * d) - xr).astype(np.float32)
-        self.ka, self.kb = self.lo, self.hi
-
-    def evaluate(self, mu: np.ndarray, sigma: np.ndarray):
-        """NLL (B,) and its first and second derivatives in each real measurement, summed
-        over the ramps (B, N, 2, 2). mu : (B, N, 2, 2); sigma : (B,) the noise std of the
-        likelihood (the logistic's scale is ``sigma / LOGISTIC_PER_SIGMA``)."""
-        if self.bits is None:
-            r = mu[:, None] - self.y
-            return 0.5 * np.einsum("brnpc,brnpc->b", r, r), r.sum(axis=1), np.full(mu.shape, float(self.ramps))
-        if self.likelihood == "gaussian":
-            return self._gaussian(mu, sigma)
-        scale = sigma / LOGISTIC_PER_SIGMA
-        mu = mu[:, None].astype(np.float32)
-        inv = (1.0 / scale).astype(np.float32)[:, None, None, None, None]
-        u = self.work[0]
-        if self.bits == 1:
-            np.multiply(self.s, mu, out=u)
-            u += self.so
-            u *= inv  # s (mu + xi) / T: the margin, > 0 for a code the model gets right
-            nll, g, h = self._softplus(u, self.s)
-        else:
-            # -log(F(c) - F(a)) = -log F(-a) - log F(c) + const, a = (lo - mu) / T, c = (hi - mu) / T
-            np.subtract(mu, self.lo, out=u)
-            u *= inv
-            nll, g, h = self._softplus(u, 1.0)
-            np.subtract(self.hi, mu, out=u)
-            u *= inv
-            nll_c, g_c, h_c = self._softplus(u, -1.0)
-            nll, g, h = nll + nll_c, g + g_c, h + h_c
-        inv = inv[:, 0].astype(float)
-        return nll, g * inv, h * (inv * inv)
-
-    def _gaussian(self, mu: np.ndarray, sigma: np.ndarray):
-        """:meth:`evaluate` with the exact Gaussian likelihood (float64, scipy's log_ndtr)."""
-        from scipy.special import log_ndtr  # here: importing scipy costs the others' start-up
-
-        b = mu.shape[0]
-        inv = (1.0 / sigma)[:, None, None, None, None]
-        mu = mu[:, None]
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            if self.bits == 1:
-                s = self.s.astype(float)
-                v = (s * mu + self.so) * inv  # the margin in units of sigma
-                lp = log_ndtr(v)
-                r = np.exp(-0.5 * v * v - _LOG_SQRT_2PI - lp)  # phi(v) / Phi(v)
-                nll, dv, d2v = -lp, -r * s, r * (v + r)
-            else:
-                nll, dv, d2v = _gauss_cells((self.lo - mu) * inv, (self.hi - mu) * inv, log_ndtr)
-        inv = inv[:, 0]
-        return nll.reshape(b, -1).sum(axis=1), dv.sum(axis=1) * inv, d2v.sum(axis=1) * (inv * inv)
-
-    def _softplus(self, u, sign):
-        """Sum per frame of ``-log F(u)`` (B,), and its first and second derivatives in
-        lambda times T and T^2, summed over the ramps (B, N, 2, 2), where
-        ``u = sign lambda / T + const``; ``sign`` is +-1 or an array. Overwrites work arrays."""
-        b = u.shape[0]
-        e, t = self.work[1], self.work[2]
-        np.abs(u, out=e)
-        np.minimum(e, 40.0, out=e)  # exp(-40) ~ 4e-18: no float32 subnormals (slow) downstream
-        np.negative(e, out=e)
-        np.exp(e, out=e)  # exp(-|u|)
-        np.minimum(u, 0.0, out=t)
-        nll = -t.reshape(b, -1).sum(axis=1, dtype=float)
-        np.log1p(e, out=t)
-        nll += t.reshape(b, -1).sum(axis=1, dtype=float)  # -log F(u) = max(-u, 0) + log(1 + exp(-|u|))
-        np.add(e, 1.0, out=t)
-        np.reciprocal(t, out=t)
-        np.multiply(e, t, out=e)  # q = F(-|u|)
-        np.multiply(e, t, out=t)  # F(u) F(-u) = q (1 - q)
-        h = t.sum(axis=1, dtype=float)
-        np.subtract(0.5, e, out=e)
-        np.copysign(e, u, out=e)  # F(-u) = 1/2 - copysign(1/2 - q, u)
-        if np.isscalar(sign):  # d(-log F(u)) / d lambda = -sign F(-u) / T
-            g = sign * (e.sum(axis=1, dtype=float) - 0.5 * self.ramps)
-        else:
-            e *= sign
-            g = e.sum(axis=1, dtype=float) - self.half_s
-        return nll, g, h
-
-    def noise_rms(self, mu: np.ndarray) -> np.ndarray:
-        """RMS distance (B,) of the codes that ``mu`` gets wrong to their cells (0 when none
-        is wrong); unquantized frames: RMS of the residual."""
-        if self.bits is None:
-            return residual_rms(self.y, mu)
-        return wrong_codes_rms(self.ka, self.kb, self.bits, mu)
-
-
-def _gauss_cells(a: np.ndarray, c: np.ndarray, log_ndtr):
-    """``-log(Phi(c) - Phi(a))`` and its first and second derivatives in lambda times s and
-    s^2, with ``a = (lo - lambda) / s``, ``c = (hi - lambda) / s``, stable in both tails."""
-    flip = a + c > 0.0  # the upper tail: Phi(c) - Phi(a) = Phi(-a) - Phi(-c)
-    a2, c2 = np.where(flip, -c, a), np.where(flip, -a, c)
-    lh = log_ndtr(c2)
-    ld = lh + np.log1p(-np.exp(log_ndtr(a2) - lh))  # log(Phi(c) - Phi(a))
-    pa = np.where(np.isfinite(a), np.exp(-0.5 * a * a - _LOG_SQRT_2PI - ld), 0.0)  # phi(a) / P
-    pc = np.where(np.isfinite(c), np.exp(-0.5 * c * c - _LOG_SQRT_2PI - ld), 0.0)
-    dv = pc - pa
-    d2v = dv * dv + np.where(np.isfinite(c), c * pc, 0.0) - np.where(np.isfinite(a), a * pa, 0.0)
-    return -ld, dv, d2v
 
 
 def atoms(nu: np.ndarray, kc: np.ndarray) -> np.ndarray:
@@ -170,57 +37,78 @@ def atoms(nu: np.ndarray, kc: np.ndarray) -> np.ndarray:
     return (outer[..., :, None] * inner[..., None, :]).reshape(nu.shape + (n1 * n2,))[..., :n]
 
 
-def coefficients(amp: np.ndarray) -> np.ndarray:
-    """Z (B, 4, 4K, 5K): the derivative of part c (0 real, 1 imaginary) of the model on
-    antenna p in the parameters is ``R^T Z[2p + c]`` (see :meth:`Fit.step`)."""
+def coefficients(amp: np.ndarray, phi: np.ndarray, cq: float) -> np.ndarray:
+    """Z (B, 4, 4K, 6K): on a ramp of offset ``cq`` from the middle of the frame (target t's
+    amplitude there ``b_tq = b_t exp(i cq phi_t)``) the derivative of part c (0 real, 1
+    imaginary) of the model on antenna p in the parameters is ``R^T Z[2p + c]`` (see
+    :meth:`Fit.step`)."""
     b, k, _ = amp.shape
-    z = np.zeros((b, 4, 4 * k, 5 * k))
+    z = np.zeros((b, 4, 4 * k, 6 * k))
     t = np.arange(k)
+    cs, sn = np.cos(cq * phi), np.sin(cq * phi)  # (B, K)
     for p in range(2):
         re, im = 2 * p, 2 * p + 1
-        # a parameter moves mu_p along A v: Re b_tp: v = e_t; Im b_tp: v = i e_t; nu_t:
-        # v = b_tp e_{K+t}. Re(A v) = Re A Re v - Im A Im v, Im(A v) = Re A Im v + Im A Re v;
-        # rows [0, 2K) of R are Re A, rows [2K, 4K) Im A.
-        z[:, re, t, 5 * t + 1 + 2 * p] = 1.0
-        z[:, im, 2 * k + t, 5 * t + 1 + 2 * p] = 1.0
-        z[:, re, 2 * k + t, 5 * t + 2 + 2 * p] = -1.0
-        z[:, im, t, 5 * t + 2 + 2 * p] = 1.0
-        a = amp[:, :, p]
-        z[:, re, k + t, 5 * t] = a.real
-        z[:, re, 3 * k + t, 5 * t] = -a.imag
-        z[:, im, k + t, 5 * t] = a.imag
-        z[:, im, 3 * k + t, 5 * t] = a.real
+        # a parameter moves mu_p along A v: Re b_tp: v = e^{i theta} e_t; Im b_tp: v = i e^{i theta} e_t;
+        # nu_t: v = b_tpq e_{K+t}; phi_t: v = i cq b_tpq e_t. Re(A v) = Re A Re v - Im A Im v,
+        # Im(A v) = Re A Im v + Im A Re v; rows [0, 2K) of R are Re A, rows [2K, 4K) Im A.
+        z[:, re, t, 6 * t + 1 + 2 * p] = cs
+        z[:, re, 2 * k + t, 6 * t + 1 + 2 * p] = -sn
+        z[:, im, t, 6 * t + 1 + 2 * p] = sn
+        z[:, im, 2 * k + t, 6 * t + 1 + 2 * p] = cs
+        z[:, re, t, 6 * t + 2 + 2 * p] = -sn
+        z[:, re, 2 * k + t, 6 * t + 2 + 2 * p] = -cs
+        z[:, im, t, 6 * t + 2 + 2 * p] = cs
+        z[:, im, 2 * k + t, 6 * t + 2 + 2 * p] = -sn
+        a = amp[:, :, p] * (cs + 1j * sn)
+        z[:, re, k + t, 6 * t] = a.real
+        z[:, re, 3 * k + t, 6 * t] = -a.imag
+        z[:, im, k + t, 6 * t] = a.imag
+        z[:, im, 3 * k + t, 6 * t] = a.real
+        z[:, re, t, 6 * t + 5] = -cq * a.imag
+        z[:, re, 2 * k + t, 6 * t + 5] = -cq * a.real
+        z[:, im, t, 6 * t + 5] = cq * a.real
+        z[:, im, 2 * k + t, 6 * t + 5] = -cq * a.imag
     return z
+
+
+def ramp_offsets(rm: int) -> np.ndarray:
+    """Each model ramp's offset from the middle of the frame, ``r - (Rm - 1) / 2`` (Rm,)."""
+    return np.arange(rm) - (rm - 1) / 2.0
 
 
 class Fit:
     """The targets found so far, the model and the likelihood at them, and
     Levenberg--Marquardt steps on all of them at once. A target's parameters are [nu, Re b1,
-    Im b1, Re b2, Im b2]: range in bins and the amplitudes referred to mid-sweep; on one ramp
-    the model is ``mu_{n,p} = sum_t b_{t,p} w_t[n]`` with ``w_t[n] = exp(-i 2 pi kc_n nu_t / N)``."""
+    Im b1, Re b2, Im b2, phi]: range in bins, the amplitudes referred to mid-sweep and to the
+    middle of the frame, and the phase step between ramps; on ramp q the model is
+    ``mu_{q,n,p} = sum_t b_{t,p} exp(i c_q phi_t) w_t[n]`` with ``w_t[n] = exp(-i 2 pi kc_n
+    nu_t / N)`` and ``c_q = q - (Rm - 1) / 2`` (the static model: Rm = 1, phi stays 0)."""
 
     def __init__(self, codes: Codes, grid: SearchGrid):
         n = codes.n
         self.codes, self.grid, self.kc = codes, grid, np.arange(n) - (n - 1) / 2.0
-        b = codes.folded.shape[0]
-        self.set(np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool))
+        self.cr = ramp_offsets(codes.rm)
+        b = codes.data.shape[0]
+        self.set(np.zeros((b, 0)), np.zeros((b, 0)), np.zeros((b, 0, 2), dtype=complex), np.zeros((b, 0), dtype=bool))
 
-    def set(self, nu: np.ndarray, amp: np.ndarray, live: np.ndarray) -> None:
-        """Targets (B, K) in bins, amplitudes (B, K, 2); ``live`` (B, K): the targets
-        that move (the others stay where they are: zero amplitude, past a frame's count)."""
-        self.nu, self.amp, self.live = nu, amp, live
+    def set(self, nu: np.ndarray, phi: np.ndarray, amp: np.ndarray, live: np.ndarray) -> None:
+        """Targets (B, K) in bins, phase steps (B, K), amplitudes (B, K, 2); ``live`` (B, K):
+        the targets that move (the others stay where they are: zero amplitude, past a frame's
+        count)."""
+        self.nu, self.phi, self.amp, self.live = nu, phi, amp, live
         self.ge = None  # the efficient score's g (:meth:`settled_score`), while the fit does not move
         self.w = atoms(nu, self.kc)
-        self.mu = self._mu(self.w, amp)
+        self.mu = self._mu(self.w, phi, amp)
         self.lm = np.full(nu.shape[0], 1e-3)  # damping, per frame
 
-    @staticmethod
-    def _mu(w: np.ndarray, amp: np.ndarray) -> np.ndarray:
-        mu = np.matmul(w.transpose(0, 2, 1), amp)  # (B, N, 2) complex
+    def _mu(self, w: np.ndarray, phi: np.ndarray, amp: np.ndarray) -> np.ndarray:
+        """The model (B, Rm, N, 2, 2) of atoms ``w`` (B, K, N), phase steps and amplitudes."""
+        turned = amp[:, None] * np.exp(1j * self.cr[None, :, None, None] * phi[:, None, :, None])  # (B, Rm, K, 2)
+        mu = np.matmul(w.transpose(0, 2, 1)[:, None], turned)  # (B, Rm, N, 2) complex
         return mu.view(float).reshape(mu.shape + (2,))
 
     def model(self) -> np.ndarray:
-        """One ramp of the model, (B, N, 2) complex."""
+        """Each model ramp, (B, Rm, N, 2) complex."""
         return self.mu.view(complex)[..., 0]
 
     def evaluate(self, sigma: np.ndarray) -> None:
@@ -250,31 +138,35 @@ class Fit:
         step = self._solve()
         step[~self.live] = 0.0
         step[..., 0] = np.clip(step[..., 0], -MAX_RANGE_STEP_BINS, MAX_RANGE_STEP_BINS)
-        norm = np.linalg.norm(step[..., 1:], axis=2)
-        step[..., 1:] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
+        step[..., 5] = np.clip(step[..., 5], -MAX_PHASE_STEP_RAD, MAX_PHASE_STEP_RAD)
+        norm = np.linalg.norm(step[..., 1:5], axis=2)
+        step[..., 1:5] *= np.minimum(1.0, amp_cap[:, None] / np.maximum(norm, 1e-300))[..., None]
         nu = self.nu + step[..., 0]
-        amp = self.amp + (step[..., 1::2] + 1j * step[..., 2::2])
+        phi = self.phi + step[..., 5]
+        amp = self.amp + (step[..., 1:5:2] + 1j * step[..., 2:5:2])
         w = atoms(nu, self.kc)
-        mu = self._mu(w, amp)
+        mu = self._mu(w, phi, amp)
         nll, g, h = self.codes.evaluate(mu, self.sigma)
         ok = nll <= self.nll
         self.lm = np.clip(np.where(ok, self.lm / 3.0, self.lm * 8.0), 1e-9, 1e9)
         bad = np.flatnonzero(~ok)  # frames that keep their parameters (few)
-        for new, old in ((nu, self.nu), (amp, self.amp), (w, self.w), (mu, self.mu), (g, self.g), (h, self.h),
-                         (nll, self.nll)):
+        for new, old in ((nu, self.nu), (phi, self.phi), (amp, self.amp), (w, self.w), (mu, self.mu), (g, self.g),
+                         (h, self.h), (nll, self.nll)):
             new[bad] = old[bad]
-        self.nu, self.amp, self.w, self.mu, self.g, self.h, self.nll = nu, amp, w, mu, g, h, nll
+        self.nu, self.phi, self.amp, self.w, self.mu, self.g, self.h, self.nll = nu, phi, amp, w, mu, g, h, nll
         self.ge = None
 
     def settled_score(self) -> None:
-        """Into ``ge`` (B, N, 2, 2) the efficient score's ``g``: the NLL's derivatives at the
-        model less what the targets' own parameters explain, ``g + h (J d)`` with ``d`` the
-        undamped Gauss--Newton step of the live targets (:meth:`_solve`) and ``J`` the model's
-        Jacobian: ``J^T ge = 0``, the score no target found could take up by moving (Rao's
-        test with the found targets' parameters as nuisances). A fit not yet at its optimum
-        (steps left in a direction the codes barely fix, as the amplitudes of 1-bit codes
-        without a dither) otherwise leaves a score along ``h J d``, which the weights ``h``
-        (periodic with the targets where the codes are) carry to the targets' harmonics."""
+        """Into ``ge`` (B, Rm, N, 2, 2) the efficient score's ``g``: the NLL's derivatives at
+        the model less what the targets' own parameters explain, on each model ramp q ``g_q +
+        h_q (J_q d)`` with ``d`` the undamped Gauss--Newton step of the live targets (all their
+        parameters, the phase step too, :meth:`_solve`) and ``J_q`` the model's Jacobian on
+        ramp q: ``sum_q J_q^T ge_q = 0`` (up to the ramps' shared curvature of the system), the
+        score no target found could take up by moving (Rao's test with the found targets'
+        parameters as nuisances). A fit not yet at its optimum (steps left in a direction the
+        codes barely fix, as the amplitudes of 1-bit codes without a dither) otherwise leaves a
+        score along ``h J d``, which the weights ``h`` (periodic with the targets where the
+        codes are) carry to the targets' harmonics."""
         b, k = self.nu.shape
         if k == 0:
             self.ge = self.g
@@ -284,15 +176,22 @@ class Fit:
         self.lm = lm
         step[~self.live] = 0.0
         n = self.kc.size
-        db = step[..., 1::2] + 1j * step[..., 2::2]  # (B, K, 2)
+        cr = self.cr[None, :, None, None]  # (1, Rm, 1, 1)
+        turn = np.exp(1j * cr[..., 0] * self.phi[:, None, :])[..., None]  # (B, Rm, K, 1)
+        db = (step[..., 1:5:2] + 1j * step[..., 2:5:2])[:, None]  # (B, 1, K, 2)
+        dphi = step[..., 5][:, None, :, None] if self.codes.rm > 1 else 0.0
+        ca = turn * (db + 1j * cr * dphi * self.amp[:, None])  # (B, Rm, K, 2): along w
+        cb = turn * (self.amp * step[..., :1])[:, None]  # along d w / d nu
         dw = self.w * ((-2j * np.pi / n) * self.kc)  # d w / d nu
-        dmu = np.einsum("bkn,bkp->bnp", self.w, db) + np.einsum("bkn,bkp->bnp", dw, self.amp * step[..., :1])
-        self.ge = self.g + self.h * dmu.view(float).reshape(self.g.shape)
+        dmu = np.einsum("bkn,brkp->brnp", self.w, ca) + np.einsum("bkn,brkp->brnp", dw, cb)  # (B, Rm, N, 2)
+        self.ge = self.g + self.h * np.ascontiguousarray(dmu).view(float).reshape(self.g.shape)
 
     def _solve(self) -> np.ndarray:
-        """The damped Gauss--Newton step (B, K, 5): the Jacobian of part c of mu_p is
-        ``R^T Z[2p + c]``, R (4K, N) the real and imaginary parts of the atoms w_t and of
-        dw_t / dnu, Z how each parameter mixes them (:func:`coefficients`). The system is the
+        """The damped Gauss--Newton step (B, K, 6): on model ramp q the Jacobian of part c of
+        mu_p is ``R^T Z_q[2p + c]``, R (4K, N) the real and imaginary parts of the atoms w_t and
+        of dw_t / dnu, Z_q how each parameter mixes them there (:func:`coefficients`); the
+        matrix ``sum_q J_q^T diag(hbar) J_q`` with hbar the mean curvature over the ramps (as
+        :func:`pipeline.dsp.cml.kernels.model.sums`), the gradient exact. The system is the
         live targets' alone: a target that is not live (zero amplitude) takes no part in it
         (its rows and columns zero), so it does not bend the live ones' step."""
         b, k = self.nu.shape
@@ -300,63 +199,144 @@ class Fit:
         dw = self.w * ((-2j * np.pi / n) * self.kc)
         r = np.concatenate([self.w.real, dw.real, self.w.imag, dw.imag], axis=1)  # (B, 4K, N)
         r32 = r.astype(np.float32)
-        hw = np.ascontiguousarray(self.h.reshape(b, n, 4).transpose(0, 2, 1), dtype=np.float32)
+        # the ramps share one curvature, the mean of h over them (as the kernels' sums)
+        hbar = self.h[:, 0] if self.codes.rm == 1 else self.h.mean(axis=1)
+        hw = np.ascontiguousarray(hbar.reshape(b, n, 4).transpose(0, 2, 1), dtype=np.float32)
         gram = np.matmul(r32[:, None] * hw[:, :, None], np.ascontiguousarray(r32.transpose(0, 2, 1))[:, None])
-        zc = coefficients(self.amp)
-        hess = np.matmul(zc.transpose(0, 1, 3, 2), np.matmul(gram.astype(float), zc)).sum(axis=1)
-        proj = np.matmul(r, self.g.reshape(b, n, 4)).transpose(0, 2, 1)[..., None]  # (B, 4, 4K, 1)
-        grad = np.matmul(zc.transpose(0, 1, 3, 2), proj).sum(axis=1)[..., 0]
-        dead = np.repeat(~self.live, 5, axis=1)  # (B, 5K): the system of the live targets' parameters alone
+        gram = gram.astype(float)
+        hess = np.zeros((b, 6 * k, 6 * k))
+        grad = np.zeros((b, 6 * k))
+        for q, cq in enumerate(self.cr):
+            zc = coefficients(self.amp, self.phi, cq)
+            hess += np.matmul(zc.transpose(0, 1, 3, 2), np.matmul(gram, zc)).sum(axis=1)
+            proj = np.matmul(r, self.g[:, q].reshape(b, n, 4)).transpose(0, 2, 1)[..., None]  # (B, 4, 4K, 1)
+            grad += np.matmul(zc.transpose(0, 1, 3, 2), proj).sum(axis=1)[..., 0]
+        dead = np.repeat(~self.live, 6, axis=1)  # (B, 6K): the system of the live targets' parameters alone
         if dead.any():
             hess = np.where(dead[:, :, None] | dead[:, None, :], 0.0, hess)
             grad = np.where(dead, 0.0, grad)
         diag = np.diagonal(hess, axis1=1, axis2=2)
         damp = self.lm[:, None] * diag + 1e-9 * diag.max(axis=1, keepdims=True) + 1e-300
-        step = -np.linalg.solve(hess + damp[:, :, None] * np.eye(5 * k), grad[..., None])[..., 0]
-        return step.reshape(b, k, 5)
+        step = -np.linalg.solve(hess + damp[:, :, None] * np.eye(6 * k), grad[..., None])[..., 0]
+        return step.reshape(b, k, 6)
 
 
 # -- detection and the count test ------------------------------------------------------------
-def energy(y: np.ndarray, fit: Fit, oversample: int, guard_bins: float) -> tuple[np.ndarray, np.ndarray]:
-    """Joint energy ``|U1|^2 + |U2|^2`` (B, L) of the back projection of ``y`` (B, N, 2)
-    on a grid of ``oversample`` points a bin (zero-padded inverse FFT), zero within
-    ``guard_bins`` of the live targets found, and that mask (B, L) bool."""
-    b, n = y.shape[:2]
+#: the phase steps of a search of R >= 3 model ramps, a ramp (as the kernels':
+#: :data:`pipeline.dsp.cml.kernels.doppler.DOPPLER_PER_RAMP`)
+DOPPLER_PER_RAMP = 4
+#: the static channel unless the phase step gains this many mean totals (as the kernels':
+#: :data:`pipeline.dsp.cml.kernels.doppler.STEER_GAIN`)
+STEER_GAIN = 8.0
+
+
+def _steered(u: np.ndarray, cr: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """``sum_p |sum_r exp(-i c_r phi) u[..., r, p, :]|^2`` for each phase step ``phi`` (D,):
+    u (B, Rm, 2, L) -> (B, D, L)."""
+    steer = np.exp(-1j * cr[None, :] * phi[:, None])  # (D, Rm)
+    v = np.einsum("dr,brpl->bdpl", steer, u)
+    return (np.abs(v) ** 2).sum(axis=2)
+
+
+def doppler(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The total ``sum_r |U_r|^2`` and the peak over the phase step of the back projections
+    ``u`` (B, Rm, 2, L), each (B, L) (as :func:`pipeline.dsp.cml.kernels.doppler.doppler`)."""
+    rm = u.shape[1]
+    if rm == 1:
+        w = np.ascontiguousarray(u[:, 0]).view(float)  # (B, 2, 2L)
+        w = w * w
+        both = w[:, 0] + w[:, 1]
+        e = both[:, 0::2] + both[:, 1::2]  # (B, L): |U1|^2 + |U2|^2, the kernels' order
+        return e, e.copy()
+    total = (np.abs(u) ** 2).sum(axis=(1, 2))
+    if rm == 2:
+        x = (np.conj(u[:, 0]) * u[:, 1]).sum(axis=1)
+        return total, total + 2.0 * np.abs(x)
+    d = DOPPLER_PER_RAMP * rm
+    return total, _steered(u, ramp_offsets(rm), 2.0 * np.pi * np.arange(d) / d).max(axis=1)
+
+
+def doppler_phase(vals: np.ndarray) -> np.ndarray:
+    """The phase step (B,) rad in (-pi, pi] at the peak of :func:`doppler` of one point's back
+    projections ``vals`` (B, Rm, 2) (as :func:`pipeline.dsp.cml.kernels.doppler.doppler_phase`)."""
+    b, rm = vals.shape[:2]
+    if rm == 1:
+        return np.zeros(b)
+    if rm == 2:
+        x = (np.conj(vals[:, 0]) * vals[:, 1]).sum(axis=1)
+        return np.arctan2(x.imag, x.real)
+    d = DOPPLER_PER_RAMP * rm
+    step = 2.0 * np.pi / d
+    e = _steered(vals[..., None], ramp_offsets(rm), step * np.arange(d))[..., 0]  # (B, D)
+    best = np.argmax(e, axis=1)
+    top, left, right = (np.take_along_axis(e, ((best + j) % d)[:, None], axis=1)[:, 0] for j in (0, -1, 1))
+    curv = left - 2.0 * top + right
+    off = np.where(curv < 0, np.clip(0.5 * (left - right) / np.where(curv < 0, curv, -1.0), -0.5, 0.5), 0.0)
+    phi = step * (best + off)
+    return np.where(phi > np.pi, phi - 2.0 * np.pi, phi)
+
+
+def energy(y: np.ndarray, fit: Fit, oversample: int, guard_bins: float,
+           gated: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The joint energy searched and the total (B, L) of the back projections of ``y`` (B,
+    Rm, N, 2) (one a model ramp, :func:`doppler`) on a grid of ``oversample`` points a bin
+    (zero-padded inverse FFT), zero within ``guard_bins`` of the live targets found, and that
+    mask (B, L) bool. The energy searched: one ramp, ``|U1|^2 + |U2|^2``; more, on a grid
+    with a coarse one (:attr:`SearchGrid.coarse`) the energy at the phase step of the best
+    coarse point not masked (largest peak over the phase step; beyond the range gate -1 when
+    ``gated``, the count test's search: detection's is the whole axis; within the guard 0; 0
+    unless it gains :data:`STEER_GAIN` mean totals), as
+    :func:`pipeline.dsp.cml.kernels.search.steer`; without one, each point's
+    peak over the phase step."""
+    b, rm, n = y.shape[:3]
     size = oversample * n
-    u = np.fft.ifft(np.ascontiguousarray(y.transpose(0, 2, 1)), n=size, axis=2).view(float)  # (B, 2, 2L)
-    np.square(u, out=u)
-    both = u[:, 0] + u[:, 1]
-    e = both[:, 0::2] + both[:, 1::2]  # (B, L): |U1|^2 + |U2|^2
+    u = np.fft.ifft(np.ascontiguousarray(y.transpose(0, 1, 3, 2)), n=size, axis=3)  # (B, Rm, 2, L)
+    total, e = doppler(u)
     near = np.zeros(e.shape, dtype=bool)
     reach = int(np.ceil(guard_bins * oversample)) - 1
     for j in range(fit.nu.shape[1]):
         idx = np.rint(fit.nu[:, j] * oversample).astype(np.int64)[:, None] + np.arange(-reach, reach + 1)
         np.put_along_axis(near, idx % size, fit.live[:, j, None], axis=1)
+    if rm > 1 and fit.grid.coarse:
+        points = np.arange(0, size, oversample // COARSE_PER_BIN)
+        v = np.where(near[:, points], 0.0, e[:, points])
+        if gated and fit.grid.use:
+            v = np.where(fit.grid.outside[points], -1.0, v)
+        best = points[np.argmax(v, axis=1)]
+        at = u[np.arange(b), :, :, best]  # (B, Rm, 2)
+        gain = e[np.arange(b), best] - (np.abs(at.sum(axis=1)) ** 2).sum(axis=1)
+        phi = np.where(gain > STEER_GAIN * total[:, points].mean(axis=1), doppler_phase(at), 0.0)
+        steer = np.exp(-1j * fit.cr[None, :] * phi[:, None])  # (B, Rm)
+        e = (np.abs(np.einsum("br,brpl->bpl", steer, u)) ** 2).sum(axis=1)
     e[near] = 0.0
-    return e, near
+    total[near] = 0.0
+    return e, total, near
 
 
 def residual(codes: Codes, fit: Fit) -> np.ndarray:
-    """``Z - xi - model`` (full frames: ``Z - model``) summed over the ramps, (B, N, 2)."""
-    return codes.folded - codes.ramps * fit.model()
+    """``Z - xi - model`` (full frames: ``Z - model``) of each model ramp (static: summed over
+    the ramps), (B, Rm, N, 2)."""
+    return codes.data - (codes.ramps // codes.rm) * fit.model()
 
 
 def score(codes: Codes, fit: Fit) -> np.ndarray:
     """The likelihood's score ``-g`` at the model (the efficient score once the fit settled,
-    :meth:`Fit.settled_score`), (B, N, 2) complex."""
+    :meth:`Fit.settled_score`), (B, Rm, N, 2) complex."""
     g = fit.g if fit.ge is None else fit.ge
-    return np.ascontiguousarray(-g).reshape(fit.nu.shape[0], codes.n, 4).view(complex)
+    return np.ascontiguousarray(-g).reshape(fit.nu.shape[0], codes.rm, codes.n, 4).view(complex)
 
 
 def peak_ratio(y: np.ndarray, fit: Fit, oversample: int, floor: np.ndarray | None = None) -> np.ndarray:
-    """Peak over mean (B,) of the joint energy of the back projection of ``y`` (B, N, 2)
+    """Peak over mean (B,) of the joint energy of the back projections of ``y`` (B, Rm, N, 2)
     beyond COUNT_GUARD_BINS of the targets found and inside the range gate (0 where ``y`` is
-    exactly 0); the mean not below ``floor`` (B,) (:func:`pipeline.dsp.cml.count.precision_floor`)."""
-    e, near = energy(y, fit, oversample, COUNT_GUARD_BINS)
+    exactly 0): the peak energy's largest over the totals' mean, the mean not below ``floor``
+    (B,) (:func:`pipeline.dsp.cml.count.precision_floor`, :func:`~pipeline.dsp.cml.count.information_floor`)."""
+    e, total, near = energy(y, fit, oversample, COUNT_GUARD_BINS, gated=True)
     if fit.grid.use:
         e[:, fit.grid.outside] = 0.0
+        total[:, fit.grid.outside] = 0.0
         near |= fit.grid.outside
-    mean = e.sum(axis=1) / np.maximum(e.shape[1] - near.sum(axis=1), 1)
+    mean = total.sum(axis=1) / np.maximum(e.shape[1] - near.sum(axis=1), 1)
     if floor is not None:
         mean = np.maximum(mean, floor)
     peak = e.max(axis=1)
@@ -370,7 +350,7 @@ def count_statistic(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     if codes.bits is None:
         return peak_ratio(residual(codes, fit), fit, oversample, precision_floor(codes.y, oversample))
     ratio = peak_ratio(residual(codes, fit), fit, oversample)
-    floor = information_floor(fit.h, oversample) if fit.nu.shape[1] else None
+    floor = information_floor(fit.h, codes.n, oversample) if fit.nu.shape[1] else None
     return np.minimum(ratio, peak_ratio(score(codes, fit), fit, oversample, floor))
 
 
@@ -379,7 +359,7 @@ def detect(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     (the score after the first target) on a grid of ``oversample`` points a bin, refined by a
     parabola, on the whole axis (a range gate bounds what is reported, not what is modelled)."""
     first = fit.nu.shape[1] == 0 or codes.bits is None
-    e, _ = energy(residual(codes, fit) if first else score(codes, fit), fit, oversample, MIN_SEPARATION_BINS)
+    e, _, _ = energy(residual(codes, fit) if first else score(codes, fit), fit, oversample, MIN_SEPARATION_BINS)
     size = e.shape[1]
     peak = np.argmax(e, axis=1)
     left, centre, right = (np.take_along_axis(e, ((peak + d) % size)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
@@ -388,10 +368,17 @@ def detect(fit: Fit, codes: Codes, oversample: int) -> np.ndarray:
     return (peak + np.clip(off, -0.5, 0.5)) / oversample
 
 
-def amplitude_at(codes: Codes, fit: Fit, nu0: np.ndarray) -> np.ndarray:
-    """Least-squares amplitudes (B, 2) of one target at ``nu0`` (bins) in ``Z - xi - model``."""
+def amplitude_at(codes: Codes, fit: Fit, nu0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares amplitudes (B, 2) and phase step (B,) of one target at ``nu0`` (bins) in
+    ``Z - xi - model``: each model ramp's matched filter, the phase step where they add up
+    best (:func:`doppler_phase`), the ramps turned back by it and averaged."""
     w = atoms(nu0[:, None], fit.kc)[:, 0]
-    return np.einsum("bn,bnp->bp", np.conj(w), residual(codes, fit)) / (codes.ramps * codes.n)
+    vals = np.einsum("bn,brnp->brp", np.conj(w), residual(codes, fit))  # (B, Rm, 2)
+    if codes.rm == 1:
+        return vals[:, 0] / (codes.ramps * codes.n), np.zeros(nu0.shape[0])
+    phi = doppler_phase(vals)
+    back = np.exp(-1j * fit.cr[None, :] * phi[:, None])  # (B, Rm)
+    return np.einsum("br,brp->bp", back, vals) / (codes.rm * codes.n), phi
 
 
 class ReferenceBlocks:
@@ -412,7 +399,7 @@ class ReferenceBlocks:
         targets inside it (as :meth:`pipeline.dsp.cml.compiled.CompiledBlocks.decode`)."""
         b = frames.z.shape[0]
         oversample, anneal = self.options.oversample, self.options.anneal
-        codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood)
+        codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood, self.options.motion)
         fit = Fit(codes, grid)
         sigma, floor, amp_cap = start(frames)
         active = np.ones(b, dtype=bool)  # frames whose residual may still hold a target
@@ -434,9 +421,11 @@ class ReferenceBlocks:
                 break
             settled = False
             nu0 = detect(fit, codes, oversample)
-            amp0 = np.where(active[:, None], amplitude_at(codes, fit, nu0), 0.0)
-            fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.amp, amp0[:, None]], axis=1),
-                    np.concatenate([fit.live, active[:, None]], axis=1))
+            amp0, phi0 = amplitude_at(codes, fit, nu0)
+            amp0 = np.where(active[:, None], amp0, 0.0)
+            phi0 = np.where(active, phi0, 0.0)
+            fit.set(np.concatenate([fit.nu, nu0[:, None]], axis=1), np.concatenate([fit.phi, phi0[:, None]], axis=1),
+                    np.concatenate([fit.amp, amp0[:, None]], axis=1), np.concatenate([fit.live, active[:, None]], axis=1))
             fit.evaluate(sigma)
             fit.run(np.repeat(sigma[:, None], iters, axis=1), amp_cap)
         if settled:
@@ -470,7 +459,7 @@ class ReferenceBlocks:
              at: float) -> tuple[CmlResult, np.ndarray, np.ndarray]:
         """One block refined from the ranges ``init`` (B, k) m (NaN: absent); returns the
         result, the targets a frame and the count test's statistic of the final residual."""
-        codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood)
+        codes = Codes(frames, self.config.samples_per_ramp, self.options.likelihood, self.options.motion)
         fit = Fit(codes, grid)
         sigma, floor, amp_cap = start(frames)
         live_all = ~np.isnan(init)
@@ -478,8 +467,11 @@ class ReferenceBlocks:
         nu_all = np.nan_to_num(np.take_along_axis(init, order, axis=1)) / self.config.range_resolution_m
         live_all = np.take_along_axis(live_all, order, axis=1)
         for t in range(int(live_all.sum(axis=1).max())):  # amplitudes one at a time in the residual
-            amp0 = np.where(live_all[:, t, None], amplitude_at(codes, fit, nu_all[:, t]), 0.0)
-            fit.set(nu_all[:, :t + 1], np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
+            amp0, phi0 = amplitude_at(codes, fit, nu_all[:, t])
+            amp0 = np.where(live_all[:, t, None], amp0, 0.0)
+            phi0 = np.where(live_all[:, t], phi0, 0.0)
+            fit.set(nu_all[:, :t + 1], np.concatenate([fit.phi, phi0[:, None]], axis=1),
+                    np.concatenate([fit.amp, amp0[:, None]], axis=1), live_all[:, :t + 1])
         fit.evaluate(sigma)
         fit.run(np.repeat(sigma[:, None], WARM_STEPS, axis=1), amp_cap)
         levels = warm_levels(sigma, floor, self.options.anneal) if codes.bits is not None and self.options.anneal \
@@ -498,6 +490,11 @@ class ReferenceBlocks:
         # a = mu at k = 0 over the carrier term there, exp(-i 4 pi f0 r / c)
         amp = fit.amp * (np.exp((-2j * np.pi / n) * fit.nu * fit.kc[0]) / range_phase(config.f0_hz, range_m, config))[
             ..., None]
+        # the phase step in (-pi, pi]; a turn of 2 pi turns the amplitudes by pi with an even Rm
+        turns = np.rint(fit.phi / (2.0 * np.pi))
+        phi = fit.phi - 2.0 * np.pi * turns if codes.rm > 1 else np.full(fit.phi.shape, np.nan)
+        if codes.rm > 1 and codes.rm % 2 == 0:
+            amp = amp * np.where(turns % 2 != 0, -1.0, 1.0)[..., None]
         # the mean joint power a bin of the residual's back projection, |ifft(y) / R|^2 summed over the
         # antennas and averaged over the N bins: by Parseval sum |y|^2 / (N R)^2, without the FFT
         y = residual(codes, fit).view(float)
@@ -509,8 +506,10 @@ class ReferenceBlocks:
         range_m = np.concatenate([range_m, np.full((b, pad), np.nan)], axis=1)
         amp = np.concatenate([amp, np.zeros((b, pad, 2), dtype=complex)], axis=1)
         stat = np.concatenate([stat, np.full((b, pad), np.nan)], axis=1)
+        phi = np.concatenate([phi, np.full((b, pad), np.nan)], axis=1)
         power = np.concatenate([power, np.zeros((b, pad))], axis=1)
         present = np.concatenate([fit.live & fit.grid.inside(fit.nu), np.zeros((b, pad), dtype=bool)], axis=1)
         order = np.lexsort((-power, ~present), axis=1)[:, :k]  # present first, then strongest first
         return CmlResult(np.take_along_axis(range_m, order, axis=1), np.take_along_axis(amp, order[..., None], axis=1),
-                         np.take_along_axis(stat, order, axis=1), sigma, np.take_along_axis(present, order, axis=1))
+                         np.take_along_axis(stat, order, axis=1), sigma, np.take_along_axis(present, order, axis=1),
+                         np.take_along_axis(phi, order, axis=1))

@@ -67,12 +67,12 @@ def warm_levels(sigma: np.ndarray, floor: np.ndarray, anneal: int) -> np.ndarray
 
 
 def wrong_codes_rms(a: np.ndarray, b: np.ndarray, bits: int, mu: np.ndarray) -> np.ndarray:
-    """RMS distance (B,) of the codes that the model ``mu`` (B, N, 2, 2) gets wrong to their
-    cells, frame units (0 when none is wrong), in float32 as the likelihood: ``a``, ``b`` (B,
-    R, N, 2, 2) float32 the codes' arrays (1 bit: the sign s and ``s xi``; b bits: the cell
-    ``[lo, hi)`` of lambda)."""
+    """RMS distance (B,) of the codes that the model ``mu`` (B, Rm, N, 2, 2) (Rm = 1: every
+    ramp's) gets wrong to their cells, frame units (0 when none is wrong), in float32 as the
+    likelihood: ``a``, ``b`` (B, R, N, 2, 2) float32 the codes' arrays (1 bit: the sign s and
+    ``s xi``; b bits: the cell ``[lo, hi)`` of lambda)."""
     nb = mu.shape[0]
-    mu = mu[:, None].astype(np.float32)
+    mu = mu.astype(np.float32)
     v = np.empty(a.shape, dtype=np.float32)
     if bits == 1:
         np.multiply(a, mu, out=v)
@@ -92,6 +92,6 @@ def wrong_codes_rms(a: np.ndarray, b: np.ndarray, bits: int, mu: np.ndarray) -> 
 
 def residual_rms(y: np.ndarray, mu: np.ndarray) -> np.ndarray:
     """RMS (B,) of the residual of unquantized frames ``y`` (B, R, N, 2, 2) less the model
-    ``mu`` (B, N, 2, 2) on every ramp (their sigma_eff)."""
+    ``mu`` (B, Rm, N, 2, 2) of each ramp (Rm = 1: every ramp's) (their sigma_eff)."""
     b = mu.shape[0]
-    return np.sqrt(np.mean((mu[:, None] - y).reshape(b, -1) ** 2, axis=1))
+    return np.sqrt(np.mean((mu - y).reshape(b, -1) ** 2, axis=1))

@@ -1,6 +1,7 @@
 """cml's compiled (numba) kernels: the likelihood of the codes (:mod:`.likelihood`), the model
 and its Jacobian (:mod:`.model`), the linear solves (:mod:`.linalg`), the Levenberg--Marquardt
-refinement (:mod:`.refine`), the search of the oversampled range grid (:mod:`.search`),
+refinement (:mod:`.refine`), the search over the phase step between ramps (:mod:`.doppler`)
+and of the oversampled range grid (:mod:`.search`),
 detection and the count test (:mod:`.detect`), the stages a decode calls, one call a block
 each (:mod:`.stages`), and the kernels Python calls (:mod:`.entry`); their arguments:
 :mod:`.layout`.
@@ -19,10 +20,10 @@ from pathlib import Path
 
 from numba.core.dispatcher import Dispatcher
 
-from pipeline.dsp.cml.kernels import detect, entry, layout, likelihood, linalg, model, refine, search, stages
+from pipeline.dsp.cml.kernels import detect, doppler, entry, layout, likelihood, linalg, model, refine, search, stages
 from pipeline.dsp.kernel_cache import drop_stale
 
-MODULES = (layout, likelihood, model, linalg, refine, search, detect, stages, entry)
+MODULES = (layout, likelihood, model, linalg, refine, doppler, search, detect, stages, entry)
 #: every kernel of the package
 KERNELS = tuple(v for m in MODULES for v in vars(m).values() if isinstance(v, Dispatcher)
                 and v.py_func.__module__ == m.__name__)

@@ -1,6 +1,7 @@
 """Compiled (numba) likelihood of the codes: the negative log-likelihood (NLL) of one frame's
-codes at a model and its first and second derivatives in each real measurement, summed over
-the ramps (layouts and kinds: :mod:`pipeline.dsp.cml.kernels.layout`).
+codes at a model and its first and second derivatives in each real measurement of each model
+ramp (the static model's one ramp: summed over the ramps; layouts and kinds:
+:mod:`pipeline.dsp.cml.kernels.layout`).
 
 The logistic likelihood, the common case, runs as flat float32 loops without branches or
 calls that LLVM vectorizes (AVX2: 8 codes an instruction; ``error_model="numpy"`` keeps
@@ -88,10 +89,12 @@ def softplus_nll(u):
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
 def _one_bit_logistic(s, so, mu32, inv, g, h, ga, ha) -> float:
     """The 1-bit logistic NLL of the codes' signs ``s`` and ``s xi`` (R, 4N) float32 at the
-    model ``mu32`` (4N,) float32 and inverse logistic scale ``inv``; writes its derivatives
-    in lambda to ``g``, ``h`` (4N,) float64 (``ga``, ``ha`` (4N,) float32: work). One flat
-    loop the compiler vectorizes (8 codes an instruction)."""
+    model ``mu32`` (Rm, 4N) float32 (Rm = 1: every ramp's) and inverse logistic scale
+    ``inv``; writes its derivatives in lambda to ``g``, ``h`` (Rm 4N,) float64 (``ga``, ``ha``
+    (Rm, 4N) float32: work). One flat loop a ramp the compiler vectorizes (8 codes an
+    instruction)."""
     ramps, m4 = s.shape
+    rm = mu32.shape[0]
     inv32 = _F32(inv)
     ga[:] = 0.0
     ha[:] = 0.0
@@ -99,14 +102,18 @@ def _one_bit_logistic(s, so, mu32, inv, g, h, ga, ha) -> float:
     for r in range(ramps):
         sr = s[r]
         sor = so[r]
+        q = r if rm > 1 else 0
+        mr = mu32[q]
+        gr = ga[q]
+        hr = ha[q]
         part = _F32(0.0)  # float32 sums (a float64 one stops the vectorizer), one a ramp
         for i in range(m4):
-            v, fneg, ff = softplus((sr[i] * mu32[i] + sor[i]) * inv32)  # the margin: > 0 for a right code
+            v, fneg, ff = softplus((sr[i] * mr[i] + sor[i]) * inv32)  # the margin: > 0 for a right code
             part += v
-            ga[i] -= sr[i] * fneg
-            ha[i] += ff
+            gr[i] -= sr[i] * fneg
+            hr[i] += ff
         total += part
-    _store(g, h, ga, ha, inv)
+    _store(g, h, ga.reshape(g.shape[0]), ha.reshape(h.shape[0]), inv)
     return total
 
 
@@ -114,14 +121,16 @@ def _one_bit_logistic(s, so, mu32, inv, g, h, ga, ha) -> float:
 def _one_bit_logistic_nll(s, so, mu32, inv) -> float:
     """:func:`_one_bit_logistic`'s NLL alone."""
     ramps, m4 = s.shape
+    rm = mu32.shape[0]
     inv32 = _F32(inv)
     total = 0.0
     for r in range(ramps):
         sr = s[r]
         sor = so[r]
+        mr = mu32[r if rm > 1 else 0]
         part = _F32(0.0)
         for i in range(m4):
-            part += softplus_nll((sr[i] * mu32[i] + sor[i]) * inv32)
+            part += softplus_nll((sr[i] * mr[i] + sor[i]) * inv32)
         total += part
     return total
 
@@ -129,9 +138,10 @@ def _one_bit_logistic_nll(s, so, mu32, inv) -> float:
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
 def _multi_bit_logistic(lo, hi, mu32, inv, g, h, ga, ha) -> float:
     """The b-bit logistic NLL ``-log F((mu - lo) / T) - log F((hi - mu) / T)`` (+ const) of
-    the cells ``[lo, hi)`` (R, 4N) float32 (open ends infinite) at ``mu32``, ``inv = 1 / T``;
-    writes its derivatives to ``g``, ``h``, as :func:`_one_bit_logistic`."""
+    the cells ``[lo, hi)`` (R, 4N) float32 (open ends infinite) at ``mu32`` (Rm, 4N),
+    ``inv = 1 / T``; writes its derivatives to ``g``, ``h``, as :func:`_one_bit_logistic`."""
     ramps, m4 = lo.shape
+    rm = mu32.shape[0]
     inv32 = _F32(inv)
     ga[:] = 0.0
     ha[:] = 0.0
@@ -139,15 +149,19 @@ def _multi_bit_logistic(lo, hi, mu32, inv, g, h, ga, ha) -> float:
     for r in range(ramps):
         lr = lo[r]
         hr = hi[r]
+        q = r if rm > 1 else 0
+        mr = mu32[q]
+        gr = ga[q]
+        har = ha[q]
         part = _F32(0.0)
         for i in range(m4):
-            v1, f1, h1 = softplus((mu32[i] - lr[i]) * inv32)
-            v2, f2, h2 = softplus((hr[i] - mu32[i]) * inv32)
+            v1, f1, h1 = softplus((mr[i] - lr[i]) * inv32)
+            v2, f2, h2 = softplus((hr[i] - mr[i]) * inv32)
             part += v1 + v2
-            ga[i] += f2 - f1
-            ha[i] += h1 + h2
+            gr[i] += f2 - f1
+            har[i] += h1 + h2
         total += part
-    _store(g, h, ga, ha, inv)
+    _store(g, h, ga.reshape(g.shape[0]), ha.reshape(h.shape[0]), inv)
     return total
 
 
@@ -206,12 +220,12 @@ def _gauss_cell(a: float, c: float):
 
 @njit(**JIT)
 def evaluate(codes, mu, sigma, g, h):
-    """NLL (B,) of the models ``mu`` (B, N, 4) at noise std ``sigma`` (B,) of ``codes`` (a
+    """NLL (B,) of the models ``mu`` (B, Rm, N, 4) at noise std ``sigma`` (B,) of ``codes`` (a
     :data:`~pipeline.dsp.cml.kernels.layout.Codes`; the logistic's scale is ``sigma / 1.702``,
-    least squares ignores it); writes ``g``, ``h`` (B, N, 4)."""
+    least squares ignores it); writes ``g``, ``h`` (B, Rm, N, 4)."""
     nb = mu.shape[0]
     nll = np.zeros(nb)
-    work = np.empty((3, 4 * mu.shape[1]), dtype=np.float32)
+    work = np.empty((3, mu.shape[1], 4 * mu.shape[2]), dtype=np.float32)
     for f in range(nb):
         nll[f] = evaluate_frame(codes.kind, codes.lik, codes.a[f], codes.b[f], mu[f], sigma[f], g[f], h[f], work)
     return nll
@@ -219,23 +233,26 @@ def evaluate(codes, mu, sigma, g, h):
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _to_float32(mu, out):
-    """``out`` (4N,) float32 = ``mu`` (N, 4) float64 (rounded to nearest)."""
-    muf = mu.reshape(out.shape[0])
-    for i in range(out.shape[0]):
-        out[i] = muf[i]
+    """``out`` (Rm, 4N) float32 = ``mu`` (Rm, N, 4) float64 (rounded to nearest)."""
+    muf = mu.reshape(out.size)
+    outf = out.reshape(out.size)
+    for i in range(out.size):
+        outf[i] = muf[i]
     return out
 
 
 @njit(**JIT)
 def evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
-    """The NLL of one frame's codes ``a``, ``b`` (R, N, 4) at the model ``mu`` (N, 4) and
-    noise std ``sigma``; writes its derivatives to ``g``, ``h`` (N, 4). ``work`` (3, 4N)
-    float32: the logistic's work arrays (the model in float32, its float32 sums)."""
+    """The NLL of one frame's codes ``a``, ``b`` (R, N, 4) at the model ``mu`` (Rm, N, 4)
+    (Rm = 1: every ramp's) and noise std ``sigma``; writes its derivatives to ``g``, ``h``
+    (Rm, N, 4). ``work`` (3, Rm, 4N) float32: the logistic's work arrays (the model in
+    float32, its float32 sums)."""
     ramps, n = a.shape[0], a.shape[1]
+    rm = mu.shape[0]
     if lik == LOGISTIC and kind != LSQ:  # vectorized, float32 (as the numpy reference)
         m4 = n * 4
         mu32 = _to_float32(mu, work[0])
-        gf, hf = g.reshape(m4), h.reshape(m4)
+        gf, hf = g.reshape(rm * m4), h.reshape(rm * m4)
         if kind == ONE_BIT:
             return _one_bit_logistic(a.reshape(ramps, m4), b.reshape(ramps, m4), mu32, 1.702 / sigma, gf, hf,
                                      work[1], work[2])
@@ -246,19 +263,21 @@ def evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
     total = 0.0
     if kind == LSQ:
         for r in range(ramps):
+            q = r if rm > 1 else 0
             for i in range(n):
                 for j in range(4):
-                    d = mu[i, j] - a[r, i, j]
+                    d = mu[q, i, j] - a[r, i, j]
                     total += 0.5 * d * d
-                    g[i, j] += d
-                    h[i, j] += 1.0
+                    g[q, i, j] += d
+                    h[q, i, j] += 1.0
         return total
     inv = 1.0 / sigma
     inv2 = inv * inv
     for r in range(ramps):
+        q = r if rm > 1 else 0
         for i in range(n):
             for j in range(4):
-                m = mu[i, j]
+                m = mu[q, i, j]
                 if kind == ONE_BIT:
                     s = float(a[r, i, j])
                     u = (s * m + float(b[r, i, j])) * inv  # the margin: > 0 for a code the model gets right
@@ -266,13 +285,13 @@ def evaluate_frame(kind, lik, a, b, mu, sigma, g, h, work) -> float:
                         continue
                     v, dv, d2v = _gauss_tail(u)
                     total += v
-                    g[i, j] += s * dv * inv
-                    h[i, j] += d2v * inv2
+                    g[q, i, j] += s * dv * inv
+                    h[q, i, j] += d2v * inv2
                 else:
                     v, dv, d2v = _gauss_cell((float(a[r, i, j]) - m) * inv, (float(b[r, i, j]) - m) * inv)
                     total += v
-                    g[i, j] += dv * inv
-                    h[i, j] += d2v * inv2
+                    g[q, i, j] += dv * inv
+                    h[q, i, j] += d2v * inv2
     return total
 
 
@@ -287,16 +306,18 @@ def nll_frame(a, b, mu, sigma, work) -> float:
 
 @njit(cache=True, nogil=True, fastmath=_SIMD, error_model="numpy")
 def wrong_rms(kind, a, b, mu) -> float:
-    """RMS distance of the codes ``mu`` gets wrong to their cells (0 when none is)."""
+    """RMS distance of the codes ``mu`` (Rm, N, 4) gets wrong to their cells (0 when none is)."""
     ramps, m4 = a.shape[0], a.shape[1] * 4
+    rm = mu.shape[0]
     af = a.reshape(ramps, m4)
     bf = b.reshape(ramps, m4)
-    muf = mu.reshape(m4)
+    mf = mu.reshape(rm, m4)
     acc = 0.0
     wrong = 0
     for r in range(ramps):
         ar = af[r]
         br = bf[r]
+        muf = mf[r if rm > 1 else 0]
         if kind == ONE_BIT:
             for i in range(m4):
                 v = min(float(ar[i]) * muf[i] + float(br[i]), 0.0)

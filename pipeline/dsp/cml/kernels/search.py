@@ -7,13 +7,25 @@ maximum and every cell by a masked point summed, measured against the full grid
 (tests/test_cml_count.py).
 
 Grids: the fine one of L = ``oversample`` N points (``grid.table`` (L,) its twiddles
-``exp(2 pi i k / L)``), the coarse one of Lc = L / ``ratio`` points, ``uc`` (2, Lc) the
-zero-padded inverse FFT per antenna of ``x`` (2, >= N) (its first N points). Energies in
-the fine FFT's scale (``|ifft(x, L)|^2`` summed over the antennas). The work arrays of a
-search are a :data:`~pipeline.dsp.cml.kernels.layout.Scratch` ``s``: ``s.near`` (L,) bool
-within the guard of the targets found, ``s.energy`` (L,) the fine energies found
-(``s.known``), ``s.coarse`` (Lc,) the coarse energies; ``gate.outside`` (L,) bool: beyond
-the range gate."""
+``exp(2 pi i k / L)``), the coarse one of Lc = L / ``ratio`` points, ``uc`` (Rm, 2, Lc) the
+zero-padded inverse FFT per model ramp and antenna of ``x`` (Rm, 2, >= N) (its first N
+points). Energies in the fine FFT's scale (``|ifft(x, L)|^2`` summed over the antennas).
+
+With a phase step between ramps (Rm > 1 model ramps, back projections ``U_r`` per ramp r
+and antenna) a point has a **total** ``sum_r |U_r|^2`` (the mean's: the energy's mean over
+the phase step) and the energy at a phase step phi, ``E_phi = sum_p |sum_r exp(-i c_r phi)
+U_rp|^2`` (:func:`doppler`: its peak over phi). The search over range then runs on one
+**channel**: the residual steered to the phase step phi* of the best coarse point (the
+largest peak over phi among the coarse points not masked, :func:`steer`), so that the fine
+grid's peak is that of ``E_phi*`` (the energy of a residual of N points: Riesz's bound
+below holds) at the cost of the static search. One ramp (the static model): the channel is
+the residual itself. The work arrays of a search are a
+:data:`~pipeline.dsp.cml.kernels.layout.Scratch` ``s``: ``s.near`` (L,) bool within the
+guard of the targets found, ``s.energy`` (L,) the channel's fine energies found
+(``s.known``), ``s.coarse`` (Lc,) the coarse totals, ``s.peaks`` (Lc,) the coarse peaks over
+phi, ``s.chan`` (Lc,) the channel's coarse energies, ``s.steered`` (1, 2, N) the steered
+residual and ``s.phis`` (1,) its phase step (NaN: none yet); ``gate.outside`` (L,) bool:
+beyond the range gate."""
 
 from __future__ import annotations
 
@@ -22,6 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
+from pipeline.dsp.cml.kernels.doppler import STEER_GAIN, doppler, doppler_phase, static_energy, two_ramps
 from pipeline.dsp.cml.kernels.layout import FAST, JIT
 
 
@@ -38,55 +51,63 @@ def parabola(best, left, centre, right, oversample, gate) -> float:
 
 
 @njit(**JIT, inline="always")
-def fine_energy(x, n, p, table):
-    """Joint energy at point ``p`` of the inverse FFT of ``x`` (2, >= N) zero-padded to L =
-    ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
-    ``|U1|^2 + |U2|^2``, ``U = (1 / L) sum_i x[i] exp(2 pi i i p / L)`` summed directly."""
+def fine_energy(x, n, p, table, vals):
+    """Joint energy at point ``p`` of the inverse FFT of ``x`` (Rm, 2, >= N) zero-padded to L
+    = ``table.shape[0]`` points (its first ``n`` points; ``table`` (L,) ``exp(2 pi i k / L)``):
+    ``U_r = (1 / L) sum_i x[r, :, i] exp(2 pi i i p / L)`` summed directly; one ramp (a
+    channel) ``|U1|^2 + |U2|^2``, more the peak over the phase step (:func:`doppler`;
+    ``vals`` (Rm, 2): work)."""
     size = table.shape[0]
-    ar = ai = br = bi = 0.0
-    k = 0
-    for i in range(n):
-        w = table[k]
-        a = x[0, i]
-        b = x[1, i]
-        ar += a.real * w.real - a.imag * w.imag
-        ai += a.real * w.imag + a.imag * w.real
-        br += b.real * w.real - b.imag * w.imag
-        bi += b.real * w.imag + b.imag * w.real
-        k += p
-        if k >= size:
-            k -= size
+    rm = x.shape[0]
     inv = 1.0 / size  # as the FFT's, before squaring
-    ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
-    return (ar * ar + br * br) + (ai * ai + bi * bi)
+    for r in range(rm):
+        ar = ai = br = bi = 0.0
+        k = 0
+        for i in range(n):
+            w = table[k]
+            a = x[r, 0, i]
+            b = x[r, 1, i]
+            ar += a.real * w.real - a.imag * w.imag
+            ai += a.real * w.imag + a.imag * w.real
+            br += b.real * w.real - b.imag * w.imag
+            bi += b.real * w.imag + b.imag * w.real
+            k += p
+            if k >= size:
+                k -= size
+        ar, ai, br, bi = ar * inv, ai * inv, br * inv, bi * inv
+        if rm == 1:
+            return (ar * ar + br * br) + (ai * ai + bi * bi)
+        vals[r, 0] = complex(ar, ai)
+        vals[r, 1] = complex(br, bi)
+    return doppler(vals, rm)[1]
 
 
 @njit(**JIT, inline="always")
-def _fine_value(x, n, p, table, near, energy, known) -> float:
-    """The masked fine energy at ``p`` (0 within the guard ``near``), computed once
+def _fine_value(x, n, p, table, near, energy, known, vals) -> float:
+    """The masked fine peak energy at ``p`` (0 within the guard ``near``), computed once
     (:func:`fine_energy`) and kept in ``energy`` (``known``). (The kernels' hot loops take
     arrays, not the namedtuples holding them: a field read from a namedtuple is a reference
     counted each time, measured 10-15 % of the search.)"""
     if near[p]:
         return 0.0
     if not known[p]:
-        energy[p] = fine_energy(x, n, p, table)
+        energy[p] = fine_energy(x, n, p, table, vals)
         known[p] = True
     return energy[p]
 
 
 @njit(**FAST)
 def _cell_energies(x, n, s, table, offsets, v, out):
-    """:func:`fine_energy` at the fine points ``s + d`` for the offsets ``d`` of ``offsets``
-    (2, D, N) (real and imaginary parts of ``exp(2 pi i i d / L)``) into ``out`` (D,), in one
-    pass: ``x`` turned by the twiddles of point ``s`` into ``v`` (4, N) (work), then one
-    vectorized sum a point."""
+    """:func:`fine_energy` of a channel ``x`` (1, 2, >= N) at the fine points ``s + d`` for
+    the offsets ``d`` of ``offsets`` (2, D, N) (real and imaginary parts of ``exp(2 pi i i d
+    / L)``) into ``out`` (D,), in one pass: ``x`` turned by the twiddles of point ``s`` into
+    ``v`` (4, N) (work), then one vectorized sum a point."""
     size = table.shape[0]
     k = 0
     for i in range(n):
         w = table[k]
-        a = x[0, i]
-        b = x[1, i]
+        a = x[0, 0, i]
+        b = x[0, 1, i]
         v[0, i], v[1, i] = a.real * w.real - a.imag * w.imag, a.real * w.imag + a.imag * w.real
         v[2, i], v[3, i] = b.real * w.real - b.imag * w.imag, b.real * w.imag + b.imag * w.real
         k += s
@@ -140,23 +161,97 @@ def gate_edge(outside, lc, edge):
 
 @njit(**JIT, inline="always")
 def coarse_energies(uc, size, s) -> float:
-    """The joint energy of the coarse inverse FFT ``uc`` (2, Lc) in the fine FFT's scale
-    (L = ``size`` points) into ``s.coarse`` (Lc,), and into ``s.energy`` (L,) at the fine
-    points it samples (``s.known`` (L,) then True there only). Returns its sum over the Lc
-    points."""
-    coarse, energy, known = s.coarse, s.energy, s.known
-    lc = uc.shape[1]
+    """The energies of the coarse inverse FFT ``uc`` (Rm, 2, Lc) in the fine FFT's scale (L =
+    ``size`` points): the totals into ``s.coarse`` (Lc,) and the peaks over the phase step
+    (:func:`doppler`) into ``s.peaks`` (Lc,); with one ramp also the channel's (the same)
+    into ``s.chan`` and into ``s.energy`` (L,) at the fine points it samples (``s.known``
+    (L,) then True there only; with more, :func:`steer` fills them). Returns the totals' sum
+    over the Lc points."""
+    coarse, peaks, chan, energy, known, vals = s.coarse, s.peaks, s.chan, s.energy, s.known, s.vals
+    rm, lc = uc.shape[0], uc.shape[2]
     ratio = size // lc
-    known[:] = False
+    s.phis[0] = np.nan
     sc = lc / size  # the coarse FFT's 1 / Lc to the fine one's 1 / L
-    for c in range(lc):
-        a = uc[0, c] * sc
-        b = uc[1, c] * sc
-        coarse[c] = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
-    for c in range(lc):
-        energy[c * ratio] = coarse[c]
-        known[c * ratio] = True
+    if rm == 1:  # the channel is the residual: its energies, as they are
+        known[:] = False
+        for c in range(lc):
+            a = uc[0, 0, c] * sc
+            b = uc[0, 1, c] * sc
+            coarse[c] = (a.real * a.real + b.real * b.real) + (a.imag * a.imag + b.imag * b.imag)
+        for c in range(lc):
+            peaks[c] = chan[c] = energy[c * ratio] = coarse[c]
+            known[c * ratio] = True
+        return _sum(coarse)
+    if rm == 2:
+        two_ramps(uc, sc, coarse, peaks)
+    else:
+        for c in range(lc):
+            for r in range(rm):
+                vals[r, 0] = uc[r, 0, c] * sc
+                vals[r, 1] = uc[r, 1, c] * sc
+            coarse[c], peaks[c] = doppler(vals, rm)
     return _sum(coarse)
+
+
+@njit(**JIT, inline="always")
+def steer(uc, x, n, gate, s):
+    """The channel the search runs on (see the module docstring): ``x`` itself with one ramp;
+    with more, the residual ``x`` (Rm, 2, >= N) steered to the phase step phi* of the best
+    coarse point not masked (``s.peaks``, the guard ``s.near``, beyond the gate -1; the
+    first of equal ones) into ``s.steered`` (1, 2, N), its coarse energies from ``uc`` (Rm,
+    2, Lc) into ``s.chan`` and ``s.energy`` at the coarse points (``s.known``), phi* into
+    ``s.phis[0]``; kept as they are when phi* is the one already steered to. phi* is 0 (the
+    static channel) unless the peak over the phase step there beats the static energy by
+    more than :data:`~pipeline.dsp.cml.kernels.doppler.STEER_GAIN` times the mean total of
+    the coarse points (``s.coarse``)."""
+    rm = x.shape[0]
+    if rm == 1:
+        return x
+    peaks, chan, energy, known, near, vals = s.peaks, s.chan, s.energy, s.known, s.near, s.vals
+    use, outside = gate.use, gate.outside
+    size, lc = energy.shape[0], peaks.shape[0]
+    ratio = size // lc
+    sc = lc / size
+    best, top = 0, -math.inf
+    for c in range(lc):
+        p = c * ratio
+        v = -1.0 if use and outside[p] else (0.0 if near[p] else peaks[c])
+        if v > top:
+            top, best = v, c
+    for r in range(rm):
+        vals[r, 0] = uc[r, 0, best] * sc
+        vals[r, 1] = uc[r, 1, best] * sc
+    phi = doppler_phase(vals, rm)
+    if peaks[best] - static_energy(vals, rm) <= STEER_GAIN * _sum(s.coarse) / lc:
+        phi = 0.0
+    if phi == s.phis[0]:
+        return s.steered
+    s.phis[0] = phi
+    out, turns = s.steered, s.turns
+    for r in range(rm):
+        c = r - (rm - 1) / 2.0
+        turns[r] = complex(math.cos(c * phi), -math.sin(c * phi))
+    for p in range(2):
+        for i in range(n):
+            out[0, p, i] = 0.0
+    for r in range(rm):
+        back = turns[r]
+        for p in range(2):
+            for i in range(n):
+                out[0, p, i] += back * x[r, p, i]
+    known[:] = False
+    for c in range(lc):
+        e = 0.0
+        for p in range(2):
+            acc = 0.0j
+            for r in range(rm):
+                acc += turns[r] * uc[r, p, c]
+            acc *= sc
+            e += acc.real * acc.real + acc.imag * acc.imag
+        chan[c] = e
+        energy[c * ratio] = e
+        known[c * ratio] = True
+    return out
 
 
 @njit(**FAST)
@@ -217,7 +312,7 @@ def coarse_peak(x, n, grid, gate, s, bar, stop):
     if stop and floor >= bar:  # a coarse point reaches it
         return at, floor
     floor = max(floor, bar)
-    if first >= 0 and s.coarse[first] < grid.rho * floor:
+    if first >= 0 and s.chan[first] < grid.rho * floor:
         first = -1
     return _search_cells(x, n, grid, gate, s, first, floor, bar, stop)
 
@@ -225,10 +320,10 @@ def coarse_peak(x, n, grid, gate, s, bar, stop):
 @njit(**JIT, inline="always")
 def _first_cell(grid, gate, s):
     """The best coarse point as a fine one (its point and value, -1 beyond the gate), the
-    cell of the largest coarse energy (the first of equal ones; -1: none inside the gate),
-    and into ``s.span`` (Lc,) what each cell may hold: its coarse energy, by a masked point
-    its neighbours' too."""
-    coarse, span, edge, near = s.coarse, s.span, s.edge, s.near
+    cell of the largest coarse energy of the channel (the first of equal ones; -1: none
+    inside the gate), and into ``s.span`` (Lc,) what each cell may hold: its coarse energy,
+    by a masked point its neighbours' too."""
+    coarse, span, edge, near = s.chan, s.span, s.edge, s.near
     use, outside = gate.use, gate.outside
     size = grid.table.shape[0]
     lc = coarse.shape[0]
@@ -254,7 +349,7 @@ def _search_cells(x, n, grid, gate, s, first, floor, bar, stop):
     """:func:`coarse_peak`'s search of the cells, ``first`` first: ``(best, top)``."""
     table, rho = grid.table, grid.rho
     use, outside = gate.use, gate.outside
-    near, energy, known, span, edge = s.near, s.energy, s.known, s.span, s.edge
+    near, energy, known, span, edge, vals = s.near, s.energy, s.known, s.span, s.edge, s.vals
     size = table.shape[0]
     lc = span.shape[0]
     ratio = size // lc
@@ -268,12 +363,12 @@ def _search_cells(x, n, grid, gate, s, first, floor, bar, stop):
                 c, ratio, half, size, use, outside):
             continue
         if span[c] < lim:  # by a masked point: only its points against the mask (a peak there need not be a maximum)
-            top, best = _against_mask(x, n, c * ratio, half, table, use, outside, near, energy, known, top, best)
+            top, best = _against_mask(x, n, c * ratio, half, table, gate, near, energy, known, top, best, vals)
         else:
-            _sum_cell(x, n, c * ratio, half, table, energy, known, s.offsets, s.turned, s.cell)
+            _sum_cell(x, n, c * ratio, half, table, energy, known, s.offsets, s.turned, s.cell, vals)
             for d in range(-half, half + 1):
                 p = (c * ratio + d) % size
-                v = -1.0 if use and outside[p] else _fine_value(x, n, p, table, near, energy, known)
+                v = -1.0 if use and outside[p] else _fine_value(x, n, p, table, near, energy, known, vals)
                 if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
                     top = v
                     best = p
@@ -284,7 +379,7 @@ def _search_cells(x, n, grid, gate, s, first, floor, bar, stop):
 
 
 @njit(**JIT, inline="always")
-def _sum_cell(x, n, p0, half, table, energy, known, offsets, turned, cell):
+def _sum_cell(x, n, p0, half, table, energy, known, offsets, turned, cell, vals):
     """The fine energies of the points within ``half`` of ``p0`` not summed yet (by another
     search of the same energies) into ``energy`` (``known``), in one pass
     (:func:`_cell_energies`, its work arrays ``offsets``, ``turned``, ``cell``)."""
@@ -302,18 +397,19 @@ def _sum_cell(x, n, p0, half, table, energy, known, offsets, turned, cell):
 
 
 @njit(**JIT, inline="always")
-def _against_mask(x, n, p0, half, table, use, outside, near, energy, known, top, best):
+def _against_mask(x, n, p0, half, table, gate, near, energy, known, top, best, vals):
     """``(top, best)`` updated with the fine points within ``half`` of ``p0`` that are not
-    masked but have a masked neighbour (within the guard ``near`` or beyond the gate, ``use``
-    and ``outside``): the grid's peak is a maximum of the energy or such a point."""
+    masked but have a masked neighbour (within the guard ``near`` or beyond the gate, ``gate.use``
+    and ``gate.outside``): the grid's peak is a maximum of the energy or such a point."""
     size = table.shape[0]
+    use, outside = gate.use, gate.outside
     for d in range(-half, half + 1):
         p = (p0 + d) % size
         lo, hi = (p - 1) % size, (p + 1) % size
         if near[p] or (use and outside[p]):
             continue
         if near[lo] or near[hi] or (use and (outside[lo] or outside[hi])):
-            v = _fine_value(x, n, p, table, near, energy, known)
+            v = _fine_value(x, n, p, table, near, energy, known, vals)
             if v > top or (v == top and p < best):  # the first of equal peaks, as argmax
                 top = v
                 best = p
@@ -324,11 +420,11 @@ def _against_mask(x, n, p0, half, table, use, outside, near, energy, known, top,
 def peak_range(x, n, best, grid, gate, s) -> float:
     """Range (bins) of fine point ``best`` refined by the parabola through its masked energy
     and its neighbours' (:func:`parabola`), in the gate (``gate.use``)."""
-    table, near, energy, known = grid.table, s.near, s.energy, s.known
+    table, near, energy, known, vals = grid.table, s.near, s.energy, s.known, s.vals
     size = table.shape[0]
-    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known)
-    centre = _fine_value(x, n, best, table, near, energy, known)
-    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known)
+    left = _fine_value(x, n, (best - 1) % size, table, near, energy, known, vals)
+    centre = _fine_value(x, n, best, table, near, energy, known, vals)
+    right = _fine_value(x, n, (best + 1) % size, table, near, energy, known, vals)
     return parabola(best, left, centre, right, grid.oversample, gate)
 
 
@@ -394,11 +490,11 @@ def gate_weights(outside, tables, lc, weights) -> int:
 
 @njit(**JIT, inline="always")
 def open_sum(total, nu, reach, grid, gate, s):
-    """The sum of the fine energy over the points inside the gate (``gate.use``:
+    """The sum of the fine total energy over the points inside the gate (``gate.use``:
     ``grid.weights`` (Lc + 1,) and ``grid.inside`` of :func:`gate_weights`) and not within
     the guard (``s.near`` (L,), :func:`guard` of ``reach`` fine points about the targets
     ``nu`` (T,) bins), and how many those points are: the sum inside less the guard's points
-    inside, summed by runs (:func:`run_sum`) from the coarse energies ``s.coarse`` (Lc,) (sum
+    inside, summed by runs (:func:`run_sum`) from the coarse totals ``s.coarse`` (Lc,) (sum
     ``total``). ``s.seen`` (L,) bool: work, all False (left so)."""
     coarse, near, seen, tables, weights = s.coarse, s.near, s.seen, grid.tables, grid.weights
     use, outside, oversample = gate.use, gate.outside, grid.oversample
