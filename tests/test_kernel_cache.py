@@ -64,5 +64,5 @@ def test_cml_kernels_are_guarded_by_what_they_import():
     short = {k.rsplit(".", 1)[1]: {d.rsplit(".", 1)[1] for d in v} for k, v in kernels.DEPENDS.items()}
     assert short["likelihood"] == {"layout"} and short["layout"] == set()
     assert short["refine"] == {"layout", "likelihood", "linalg", "model"}
-    assert short["stages"] == {"layout", "likelihood", "linalg", "model", "refine", "search", "detect"}
+    assert short["stages"] == {"layout", "likelihood", "linalg", "model", "refine", "search", "detect", "doppler"}
     assert short["entry"] == short["stages"] | {"stages"}
