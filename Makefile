@@ -3,22 +3,30 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
+KERNEL_STAMP := $(VENV)/.kernels-stamp
 JS_STAMP := tests/js/node_modules/.installed-stamp
 OUT    ?= out
 
 .PHONY: run test test-fast js-deps web-vendor bench montecarlo-quick montecarlo-paper docs-figures docs-lab clean
 
-# Set-up, once: a line per step with the time it takes on a busy 2-core host (3-5 min in all, measured).
+# Set-up, once: a line per step with the time it takes on a 2-core host (4-7 min in all, measured).
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "qradar needs Python >= 3.11; set PYTHON=python3.11")'
 	@echo "qradar set-up, once: a virtual environment in $(VENV), its packages, then cml's compiled kernels"
 	$(PYTHON) -m venv $(VENV)
 	@echo "installing qradar and its dependencies with pip (numpy, scipy, numba, zenoh, mcap, ...): 1-2 min"
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
+	@touch $(STAMP)
+
+# cml's and the dither's compiled kernels into numba's cache: on set-up, and again whenever their
+# source changed (after a pull, a node would otherwise compile them while frames wait: a run's
+# first minutes without targets)
+KERNEL_SOURCES := $(wildcard pipeline/dsp/cml/*.py pipeline/dsp/cml/kernels/*.py pipeline/dsp/dither*.py)
+$(KERNEL_STAMP): $(STAMP) $(KERNEL_SOURCES)
 	@$(PY) -c 'from pipeline.dsp.cml.loading import compile_verbose; compile_verbose()'
 	@$(PY) -c 'from pipeline.dsp.dither import load_kernel; load_kernel()'
 	@echo "set-up done: the next commands start at once"
-	@touch $(STAMP)
+	@touch $(KERNEL_STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.
 $(JS_STAMP): tests/js/package.json tests/js/package-lock.json
@@ -45,23 +53,23 @@ web-vendor:
 	&& echo "vendored uplot@$(UPLOT_VERSION) ($(UPLOT_INTEGRITY)) into $(UPLOT_DIR)"
 
 # The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
-run: $(STAMP)
+run: $(KERNEL_STAMP)
 	$(VENV)/bin/qradar run --duration 15 --calibration recordings/chamber-cal.json
 
 # A short Monte Carlo of the paper's four schemes.
-montecarlo-quick: $(STAMP)
+montecarlo-quick: $(KERNEL_STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --runs 4000 --out $(OUT)/montecarlo-quick
 
 # The deterministic figures of docs/ (tests/test_doc_figures.py checks the docs against them), and
 # the web view's screenshot in the README (headless chromium on the README's command).
-docs-figures: $(STAMP)
+docs-figures: $(KERNEL_STAMP)
 	$(PY) docs/figures/regenerate.py
 	$(PY) docs/figures/web_view.py
 	$(PY) -m experiments.curves docs/figures
 
 # The whole suite, slow tests included (CI runs this).
 # docs/lab.md's tables of the lab file's keys, from the options' definitions (tests/test_lab.py checks them).
-docs-lab: $(STAMP)
+docs-lab: $(KERNEL_STAMP)
 	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
@@ -70,19 +78,19 @@ docs-lab: $(STAMP)
 TEST_WORKERS ?= 2
 TEST_DIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
-test: $(STAMP) $(JS_STAMP)
+test: $(KERNEL_STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q $(TEST_DIST)
 
-test-fast: $(STAMP) $(JS_STAMP)
+test-fast: $(KERNEL_STAMP) $(JS_STAMP)
 	$(PY) -m pytest -q $(TEST_DIST) -m "not slow"
 
 # Every benchmark that runs alone on one host (the list: SUITE in benchmarks/suite.py), each in a
 # fresh process; `make bench SHORT=1`: each with its shortest options (a smoke run, a few minutes).
-bench: $(STAMP)
+bench: $(KERNEL_STAMP)
 	$(PY) benchmarks/suite.py $(if $(SHORT),--short)
 
 # The paper's full run: 320 000 x K runs per scheme, K = 1 and 2, all four schemes.
-montecarlo-paper: $(STAMP)
+montecarlo-paper: $(KERNEL_STAMP)
 	$(VENV)/bin/qradar montecarlo --K 1 2 --out $(OUT)/montecarlo-paper
 
 clean:

@@ -337,7 +337,8 @@ def test_8_the_set_up_says_each_step_with_its_expected_time():
     assert len(steps) == len(loading.KINDS) and all(re.search(r"expect (\d+-\d+ (s|min)|under a second)", ln) and
                                                       re.search(r"\.\.\. [0-9.]+ s$", ln) for ln in steps), steps
     make = (ROOT / "Makefile").read_text()
-    stamp = make[make.index("$(STAMP): pyproject.toml"):make.index("@touch $(STAMP)")]
+    stamp = make[make.index("$(STAMP): pyproject.toml"):make.index("@touch $(KERNEL_STAMP)")]  # venv, then kernels
+    assert "$(KERNEL_STAMP): $(STAMP) $(KERNEL_SOURCES)" in make  # compiled again when their source changes
     assert "compile_verbose" in stamp and "~0.5 s" not in stamp and stamp.count("@echo") >= 3
     readme = (ROOT / "README.md").read_text()
     assert "about a minute" not in readme and re.search(r"measured:\s+\d+ s", readme)
