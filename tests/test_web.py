@@ -396,7 +396,9 @@ def test_a_slow_page_loses_its_oldest_events_never_memory(bus, zenoh_session):
     finally:
         sock.close()
         view.stop()
-    assert view.summary()["dropped_for_slow_clients"] == dropped
+    # the summary says what the hub counted; the page, still behind as it read, may have lost a
+    # later event (a health or status tick) after ``dropped`` was read
+    assert view.summary()["dropped_for_slow_clients"] == view.hub.totals()["dropped_for_slow_clients"] >= dropped
 
 
 def test_a_client_queue_is_bounded_in_events_and_bytes():
