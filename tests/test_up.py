@@ -79,7 +79,8 @@ def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
     report = json.loads(out.strip().splitlines()[-1])["up"]
     nodes = report["nodes"]
     assert set(nodes) == {"router", "record", "localize", "quantize", "sources"} and report["host"] == "localhost"
-    assert all(n["restarts"] == 0 and n["exit_code"] == 0 for n in nodes.values()), nodes
+    assert all(n["restarts"] == 0 and n["exit_code"] == 0 for n in nodes.values()), \
+        {name: (n["restarts"], n["exit_code"], n["exits"]) for name, n in nodes.items()}
     assert nodes["localize"]["summary"]["frames_out"] >= 30 and nodes["record"]["summary"]["written"] >= 90
     # each node starts once the one before it is alive: the sensors' first frames reach the localizer
     sent = nodes["sources"]["summary"]["frames_out"]
