@@ -56,6 +56,10 @@ PACE_MIN = 0.98
 SENSOR_ID_PREFIX = "b"
 TARGETS_BYTES = 330  # a targets message of K = 2 (JSON), for the bare baseline
 
+#: a step's busy process (``--busy``): a loop its own command line names (a test finds it by that,
+#: not another busy loop on the host)
+BUSY_LOOP = "while True: pass  # bench_stream busy"
+
 
 # -- processes -----------------------------------------------------------------------------
 def last_json(text: str) -> dict | None:
@@ -328,7 +332,7 @@ def run_step(spec: StepSpec, topo: Topology, logdir: Path | None = None, progres
     node_cmds, src_cmd = node_commands(spec, topo, sid_prefix)
     procs: list[Proc] = []
     reasons: list[str] = []
-    busy = [Proc(f"busy{i}", [sys.executable, "-c", "while True: pass"], logdir) for i in range(spec.busy)]
+    busy = [Proc(f"busy{i}", [sys.executable, "-c", BUSY_LOOP], logdir) for i in range(spec.busy)]
     try:
         for i, (name, role, argv) in enumerate(node_cmds):
             procs.append(Proc(name, argv, logdir))

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from streamlib import BUSY_LOOP
 
 pytestmark = pytest.mark.measure
 
@@ -82,7 +83,7 @@ def test_quick_edge_on_a_busy_host(tmp_path):
     (step,) = res["steps"]
     check_step(step, {"localize0"})
     assert step["busy"] == 1 and res["summary"][0]["label"] == "edge/burst/pbp +1 busy"
-    spinning = subprocess.run(["pgrep", "-f", "while True: pass"], capture_output=True, text=True).stdout.split()
+    spinning = subprocess.run(["pgrep", "-f", BUSY_LOOP], capture_output=True, text=True).stdout.split()
     assert not spinning
 
 
