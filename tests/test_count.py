@@ -146,8 +146,9 @@ def test_monte_carlo_reports_detection_probability_and_false_targets():
     assert r.summary["K1"]["dither_m512@cml"]["count_exact"] >= 0.95
     assert sum(n for _, _, n in st["pd_weak_by_amplitude"]) == 300
     assert r.summary["count"] == r.run_config["count"] == CountSpec(auto=True, max_targets=3).to_dict()
-    # PBP off the grid: a strong target's sidelobes pass for targets
-    assert r.summary["K1"]["dither_m512"]["false_targets_per_frame"] > 0.5
+    # PBP off the grid: its test reads the residual of its targets' tones (pipeline.dsp.residual), not the
+    # back projection, where a strong target's sidelobes passed for targets (0.5-2 a frame)
+    assert r.summary["K1"]["dither_m512"]["false_targets_per_frame"] <= 0.02
 
 
 def test_targets_carry_their_statistic_and_the_count_mode_on_the_wire():

@@ -27,6 +27,7 @@ from radar_driver.model import (RadarConfig, angle_from_antennas_rad, carrier, p
 
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import LEAKAGE_BINS, RangeGate, boundary_skirts, check_gate
+from pipeline.dsp.residual import residual_support
 
 
 def _check_z(z: np.ndarray) -> np.ndarray:
@@ -54,6 +55,14 @@ def back_project_ramps(z: np.ndarray, config: RadarConfig) -> np.ndarray:
         spectrum *= n / m
     spectrum *= _conj_carrier(config)[None, :, None]
     return spectrum
+
+
+def fold_ramps(z: np.ndarray, config: RadarConfig) -> np.ndarray:
+    """The mean of the ramps of frames Z (B, M, 2) of whole ramps: (B, N, 2) complex."""
+    z = _check_z(z)
+    n = config.samples_per_ramp
+    b, m, _ = z.shape
+    return z.reshape(b, m // n, n, 2).mean(axis=1, dtype=np.complex128)
 
 
 @lru_cache(maxsize=32)
@@ -338,11 +347,16 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     energy = joint_energy(u)
     pick, stat, cells = gated_energy(energy, mask, k, None if gate is None else gate.bins(config))
     support = joint_support(u, k, pick)
-    det = detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
     if pfa is None:
-        return det
-    threshold_db = 10 * np.log10(cfar_threshold(pfa, cells))
-    return det.masked(sequential_present(det.statistic_db, threshold_db))
+        return detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
+    threshold = cfar_threshold(pfa, cells)
+    if indices is None:  # whole ramps: each test on the residual of the targets before it
+        inside = np.ones(u.shape[1], dtype=bool) if mask is None else mask
+        support, statistic = residual_support(fold_ramps(z, config), pick, inside, k, threshold)
+    else:
+        statistic = grid_statistic_db(u, support, stat, cells)
+    det = detections_from_support(u, support, config, statistic)
+    return det.masked(sequential_present(det.statistic_db, 10 * np.log10(threshold)))
 
 
 def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,

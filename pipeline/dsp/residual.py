@@ -1,0 +1,190 @@
+"""PBP's count test on residuals (``K auto``): each target found is fitted to the folded ramps
+as a tone at its continuous range bin, together with the tones the 1-bit quantizer makes of
+the targets found so far, and removed before the next target is tested.
+
+Why: a target between two range bins spreads over every bin of the back projection (the
+Dirichlet kernel's sidelobes, -13 dB next to it, falling as 1/distance), and a 1-bit
+quantizer adds its odd harmonics and intermodulation (``sign`` of I and of Q: tones at
+``sum_t c_t nu_t`` with ``sum_t c_t = 1 (mod 4)``, e.g. -3 nu, 5 nu, 2 nu_1 - nu_2). Read
+off the back projection, these passed the cell-averaging test beside a strong target
+(0.7-1.9 false targets a frame at pfa 1e-3). Tested on the residual, each test sees what
+the targets found so far do not explain.
+
+Shapes: ``y`` the folded ramps (B, N, 2) (the mean of a frame's ramps, per antenna),
+bins in units of the range grid (N bins, the inverse FFT's convention: a tone
+``exp(-2 pi i k nu / N)`` peaks at bin ``nu``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from itertools import product
+
+import numpy as np
+
+#: the highest order of the quantizer's tones of one target kept in the model (-3, 5, ..., -15)
+ORDER_SINGLE = 15
+#: the highest order of the intermodulation of several targets kept (2 nu_1 - nu_2, -2 nu_1 - nu_2, ...)
+ORDER_MIXED = 3
+#: a range bin this close (bins) to a target found is that target (its model's residue), not another
+RESOLUTION_BINS = 1
+#: an intermodulation tone is at most 1/this of its strongest target's amplitude (a hard
+#: limiter makes 1/3 of two equal tones; the bound keeps it from taking a real target)
+MIXED_BOUND = 2.0
+#: the residual's floor, dB under the strongest target: what the tone model leaves of a
+#: target (its unmodelled higher orders, the error of its continuous bin) is not a target
+DYNAMIC_RANGE_DB = 45.0
+#: the ridge of the tone fit, relative to the samples (N): coinciding tones stay solvable
+RIDGE = 1e-9
+
+
+@lru_cache(maxsize=16)
+def tone_combinations(k: int) -> np.ndarray:
+    """The integer combinations ``c`` (P, k) of ``k`` tones whose frequency ``c @ nu`` a
+    1-bit quantizer of I and Q makes of them and the model keeps: ``sum |c|`` odd,
+    ``sum c = 1 (mod 4)``; up to ORDER_SINGLE for one tone alone, ORDER_MIXED when several
+    mix. The fundamentals first (the k unit vectors)."""
+    out = [tuple(int(i == t) for i in range(k)) for t in range(k)]
+    span = range(-ORDER_SINGLE, ORDER_SINGLE + 1)
+    for t, h in product(range(k), span):
+        if h != 1 and abs(h) % 2 == 1 and h % 4 == 1:
+            out.append(tuple(h if i == t else 0 for i in range(k)))
+    if k > 1:
+        for c in product(range(-ORDER_MIXED, ORDER_MIXED + 1), repeat=k):
+            order = sum(abs(x) for x in c)
+            if sum(x != 0 for x in c) > 1 and order <= ORDER_MIXED and order % 2 == 1 and sum(c) % 4 == 1:
+                out.append(c)
+    out.sort(key=lambda c: sum(abs(x) for x in c))  # by order (stable: the fundamentals first)
+    combos = np.array(out, dtype=float).reshape(-1, k)
+    combos.flags.writeable = False
+    return combos
+
+
+def tones(nu: np.ndarray, n: int) -> np.ndarray:
+    """Tones at continuous bins ``nu`` (B, P): ``exp(-2 pi i k nu / n)``, (B, n, P) complex."""
+    k = np.arange(n, dtype=float)
+    return np.exp(-2j * np.pi * k[None, :, None] * (np.asarray(nu, dtype=float)[:, None, :] / n))
+
+
+def refine_bins(y: np.ndarray, bins: np.ndarray, steps: tuple[float, ...] = (0.125, 1 / 64)) -> np.ndarray:
+    """The continuous bin (B,) near integer ``bins`` (B,) where the joint power of ``y``
+    (B, N, 2) peaks: a grid of 17 points ``steps[0]`` apart around the bin, then one
+    ``steps[1]`` apart around the best, then the parabola through the best and its neighbours."""
+    n = y.shape[1]
+    nu = np.asarray(bins, dtype=float)
+    offsets = np.arange(-8, 9, dtype=float)
+    for step in steps:
+        grid = nu[:, None] + step * offsets[None, :]  # (B, 17)
+        power = _joint_power(y, grid, n)
+        best = np.clip(power.argmax(axis=1), 1, offsets.size - 2)
+        rows = np.arange(y.shape[0])
+        lo, mid, hi = power[rows, best - 1], power[rows, best], power[rows, best + 1]
+        nu = grid[rows, best]
+    curv = lo - 2.0 * mid + hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.where(curv < 0, 0.5 * (lo - hi) / curv, 0.0)
+    return nu + steps[-1] * np.clip(shift, -1.0, 1.0)
+
+
+def _joint_power(y: np.ndarray, nu: np.ndarray, n: int) -> np.ndarray:
+    """``sum_antenna |sum_k y_k exp(+2 pi i k nu / n)|^2`` at bins ``nu`` (B, G): (B, G)."""
+    proj = np.ascontiguousarray(np.conj(tones(nu, n)).transpose(0, 2, 1)) @ y  # (B, G, 2)
+    return np.square(np.abs(proj)).sum(axis=-1)
+
+
+def fit_residual(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """``y`` (B, N, 2) less its fit by the tones of the targets at bins ``nu`` (B, J)
+    (:func:`tone_combinations`, one complex amplitude a tone and antenna): (B, N, 2). The
+    quantizer's tones are bounded as a hard limiter bounds them (a harmonic of order ``h`` at
+    most ``1/h`` of its target's joint amplitude, an intermodulation tone 1/MIXED_BOUND of its
+    strongest target's), so that a high order aliased onto another target does not take it;
+    of tones within a bin of each other the fit keeps the lowest order (:func:`separated`)."""
+    n, j = y.shape[1], nu.shape[1]
+    combos = tone_combinations(j)
+    freq = nu @ combos.T  # (B, P)
+    order = np.abs(combos).sum(axis=1)  # (P,)
+    keep = separated(freq, n)
+    a = tones(freq, n) * keep[:, None, :]  # (B, N, P)
+    gram = dirichlet(freq[:, :, None] - freq[:, None, :], n) * (keep[:, :, None] & keep[:, None, :])
+    gram += RIDGE * n * np.eye(gram.shape[-1])
+    amp = np.linalg.solve(gram, np.ascontiguousarray(np.conj(a).transpose(0, 2, 1)) @ y)  # (B, P, 2)
+    size = np.sqrt(np.square(np.abs(amp)).sum(axis=-1))  # (B, P)
+    involved = np.abs(combos) > 0  # (P, J)
+    mixed = involved.sum(axis=1) > 1
+    bound = np.where(involved[None], size[:, None, :j], 0.0).max(axis=2) / np.where(mixed, MIXED_BOUND, order)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(order[None] > 1, np.minimum(1.0, bound / size), 1.0)
+    amp *= np.nan_to_num(scale, nan=0.0)[:, :, None]
+    return y - a @ amp
+
+
+def dirichlet(delta: np.ndarray, n: int) -> np.ndarray:
+    """``sum_k exp(2 pi i k delta / n)`` over k < n, for bin differences ``delta`` (any shape):
+    the inner product of two tones (:func:`tones`) ``delta`` bins apart, in closed form."""
+    theta = 2 * np.pi * np.asarray(delta, dtype=float) / n
+    den = np.expm1(1j * theta)
+    small = np.abs(den) < 1e-9  # the same tone (modulo n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.expm1(1j * theta * n) / np.where(small, 1.0, den)
+    return np.where(small, complex(n), out)
+
+
+def separated(freq: np.ndarray, n: int) -> np.ndarray:
+    """Which tones at bins ``freq`` (B, P) (lowest order first) the fit keeps: (B, P) bool,
+    each farther than RESOLUTION_BINS from every tone kept before it (two tones closer
+    are one to the fit: its amplitudes would be ill-posed)."""
+    gap = np.abs((freq[:, :, None] - freq[:, None, :] + n / 2) % n - n / 2)  # (B, P, P) bins
+    keep = np.ones(freq.shape, dtype=bool)
+    for p in range(1, freq.shape[1]):  # over the few tones, each for the whole batch
+        keep[:, p] = ~((gap[:, p, :p] <= RESOLUTION_BINS) & keep[:, :p]).any(axis=1)
+    return keep
+
+
+def residual_support(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int, threshold: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``k`` targets of the folded ramps ``y`` (B, N, 2), each the strongest bin of the
+    residual of the ones before it: (support (B, k) int, statistic_db (B, k)). ``pick`` (B, N):
+    the back projection's joint energy with -1 where no target may be (outside the range gate,
+    the skirt of a return beyond it); ``inside`` (N,) bool: the gate's bins, over which the
+    statistic's mean is taken (the first target's statistic is PBP's cell-averaging one).
+    A frame's testing stops at its first statistic under ``threshold`` (linear): its later
+    slots repeat that pick and statistic (the caller masks them); the fits are made for the
+    frames still being tested only."""
+    b, n, _ = y.shape
+    cells = max(int(inside.sum()), 2)
+    support = np.zeros((b, k), dtype=np.int64)
+    stat = np.zeros((b, k))
+    idx, blocked, nu, strongest = np.arange(b), pick < 0, np.zeros((b, 0)), None
+    energy = _bin_energy(y)
+    for t in range(k):
+        p = np.where(blocked, -1.0, energy).argmax(axis=1)
+        e = energy[np.arange(idx.size), p]
+        rest = (np.where(inside[None, :], energy, 0.0).sum(axis=1) - e) / (cells - 1)
+        if strongest is None:  # the first: PBP's statistic as it is
+            strongest = e
+        else:  # what the tone model leaves of the strongest target is not a target
+            rest = np.maximum(rest, strongest * 10 ** (-DYNAMIC_RANGE_DB / 10))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_db = np.clip(np.nan_to_num(10 * np.log10(e / rest), nan=-300.0), -300.0, 300.0)
+        stat[idx, t:], support[idx, t:] = s_db[:, None], p[:, None]
+        go = e >= threshold * rest
+        if t == k - 1 or not go.any():
+            break
+        near = np.abs((np.arange(n)[None, :] - p[:, None] + n // 2) % n - n // 2) <= RESOLUTION_BINS
+        blocked, strongest, y_t = (blocked | near)[go], strongest[go], y[idx[go]]
+        nu = np.concatenate([nu[go], refine_bins(_residual_of(y_t, nu[go]), p[go])[:, None]], axis=1)
+        idx = idx[go]
+        energy = _bin_energy(fit_residual(y_t, nu))
+    return support, stat
+
+
+def _residual_of(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """``y`` less the fit of the targets at ``nu`` (B, J) (``y`` itself for none)."""
+    return y if nu.shape[1] == 0 else fit_residual(y, nu)
+
+
+def _bin_energy(y: np.ndarray) -> np.ndarray:
+    """The joint energy of each range bin of ``y`` (B, N, 2): its inverse FFT's
+    ``|U_1|^2 + |U_2|^2`` (the back projection's, up to the carrier's phase): (B, N)."""
+    u = np.fft.ifft(y, axis=1)
+    return np.square(np.abs(u)).sum(axis=-1)

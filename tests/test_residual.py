@@ -1,0 +1,82 @@
+"""PBP's count test on residuals (pipeline.dsp.residual): the tone model of the targets found
+removes an off-grid target's sidelobes and a 1-bit quantizer's harmonics of it, leaves a
+target that one of those harmonics aliases onto, and the first test is PBP's own."""
+
+import numpy as np
+import pytest
+
+from radar_driver.model import RadarConfig
+from pipeline.dsp.localize import cfar_threshold, fold_ramps, gated_energy, grid_statistic_db, joint_energy, \
+    joint_support, back_project
+from pipeline.dsp.residual import dirichlet, fit_residual, refine_bins, residual_support, tone_combinations, tones
+
+N = 256
+
+
+def tone(nu: float, amp=(1.0, 0.8j)) -> np.ndarray:
+    """One frame (1, N, 2): a tone at continuous bin ``nu`` on both antennas."""
+    return tones(np.array([[nu]]), N)[..., 0][..., None] * np.asarray(amp)[None, None, :]
+
+
+def one_bit(y: np.ndarray) -> np.ndarray:
+    return np.sign(y.real) + 1j * np.sign(y.imag)
+
+
+def spectrum(y: np.ndarray) -> np.ndarray:
+    """The joint energy of each bin of ``y`` (1, N, 2): (N,)."""
+    return np.square(np.abs(np.fft.ifft(y, axis=1))).sum(axis=-1)[0]
+
+
+def away(e: np.ndarray, nu: float) -> np.ndarray:
+    """The bins of ``e`` farther than 1.5 bins from ``nu``."""
+    return e[np.abs((np.arange(N) - nu + N / 2) % N - N / 2) > 1.5]
+
+
+def test_the_gram_in_closed_form_is_the_tones_inner_products():
+    f = np.random.default_rng(0).random((3, 6)) * 400
+    a = tones(f, N)
+    assert np.allclose(np.conj(a).transpose(0, 2, 1) @ a, dirichlet(f[:, :, None] - f[:, None, :], N), atol=1e-9)
+
+
+def test_the_quantizer_tones_follow_its_symmetry():
+    one = tone_combinations(1)[:, 0]
+    assert one[0] == 1 and set(one) == {1, -3, 5, -7, 9, -11, 13, -15}  # sum = 1 (mod 4), odd orders
+    two = tone_combinations(2)
+    assert (two[:2] == np.eye(2)).all() and all(c.sum() % 4 == 1 for c in two)
+    assert {tuple(c) for c in two} >= {(2, -1), (-1, 2), (-2, -1), (-1, -2)}
+
+
+def test_an_off_grid_tone_and_its_one_bit_harmonics_are_removed():
+    nu = 71.37
+    y = tone(nu)
+    est = refine_bins(y, np.array([71]))
+    assert abs(est[0] - nu) < 0.002
+    e, r = spectrum(y), spectrum(fit_residual(y, est[:, None]))
+    assert away(e, nu).max() > 1e-2 * e.max() and away(r, nu).max() < 1e-5 * e.max()  # sidelobes -15 dB -> < -50 dB
+    q = one_bit(y + 0.3 * np.random.default_rng(1).standard_normal((1, N, 2)))  # noise as a dither (alpha 0: docs)
+    est = refine_bins(q, np.array([71]))
+    e, r = spectrum(q), spectrum(fit_residual(q, est[:, None]))
+    assert abs(est[0] - nu) < 0.01 and away(e, nu).max() > 10 * np.median(e)  # the -3rd harmonic stands out
+    assert away(r, nu).max() < 10 ** 0.9 * r.mean()  # under a CFAR threshold at pfa 1e-3 (8.9 dB)
+
+
+def test_a_target_where_a_harmonic_aliases_is_kept():
+    """-11 x 217.9 = 163.1 (mod 256): the strong target's 11th harmonic falls on a real target
+    at 163.1, which the fit of the first (bounded to 1/11 of it) leaves."""
+    y = one_bit(tone(217.9) + tone(163.1, (0.9, 0.9)))
+    est = refine_bins(y, np.array([218]))
+    res = spectrum(fit_residual(y, est[:, None]))
+    assert res.argmax() in (163, 164) and 10 * np.log10(res.max() / np.median(res)) > 15
+
+
+def test_the_first_statistic_is_pbps_and_a_noise_frame_stops_at_once():
+    cfg = RadarConfig()
+    rng = np.random.default_rng(2)
+    z = one_bit(rng.standard_normal((4, cfg.n_measurements, 2)) + 1j * rng.standard_normal((4, cfg.n_measurements, 2)))
+    u = back_project(z, cfg)
+    pick, stat, cells = gated_energy(joint_energy(u), None, 3)
+    support, statistic = residual_support(fold_ramps(z, cfg), pick, np.ones(N, bool), 3, cfar_threshold(1e-3, cells))
+    first = grid_statistic_db(u, joint_support(u, 1, pick), stat, cells)
+    assert support[:, 0] == pytest.approx(joint_support(u, 1)[:, 0])
+    assert statistic[:, 0] == pytest.approx(first[:, 0], abs=1e-6)
+    assert (statistic[:, 1:] == statistic[:, :1]).all()  # stopped at the first test: the later slots repeat it
