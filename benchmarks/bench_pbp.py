@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Decoder throughput on the same 1-bit dithered frames (M = 512, K = 2), in batch and
 frame by frame, in one process: PBP on the FFT path (fold + inverse FFT), PBP on the
-dense Phi^H Z path, and the dither-aware decoder (QIHT + likelihood on the support).
+dense Phi^H Z path, PBP with ``--K auto`` (its count test on residuals), and the
+dither-aware decoder (QIHT + likelihood on the support).
 Prints one JSON object; the ratios are what to compare across machines.
 
     .venv/bin/python benchmarks/bench_pbp.py [--batch 4096] [--single 300] [--repeat 5]
@@ -54,6 +55,16 @@ def main() -> None:
             lambda: [localize_frame(f, cfg, args.K, indices=ramp_indices) for f in single], len(single), args.repeat
         ),
     }
+    # --K auto (pfa 1e-3, at most K + 2): each target tested on the residual of the ones before it
+    # (pipeline.dsp.residual), against the count given, in the same process
+    ab, kmax = min(args.batch, 1024), args.K + 2
+    results["auto_batch_fps"] = best_rate(lambda: localize(z[:ab], cfg, kmax, pfa=1e-3), ab, args.repeat)
+    results["auto_single_fps"] = best_rate(lambda: [localize(f[None], cfg, kmax, pfa=1e-3) for f in single],
+                                           len(single), args.repeat)
+    results["auto_batch_ms_per_frame"] = 1e3 / results["auto_batch_fps"]
+    results["auto_single_ms_per_frame"] = 1e3 / results["auto_single_fps"]
+    results["given_over_auto_batch"] = results["fft_batch_fps"] / results["auto_batch_fps"]
+    results["given_over_auto_single"] = results["fft_single_fps"] / results["auto_single_fps"]
     qb = min(args.batch, 1024)
     results["qiht_batch_fps"] = best_rate(lambda: decode(z[:qb], xi[:qb], q.delta[:qb], 1, cfg, args.K, QIHT), qb,
                                           max(1, args.repeat // 2))

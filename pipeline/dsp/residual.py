@@ -66,24 +66,45 @@ def tones(nu: np.ndarray, n: int) -> np.ndarray:
     return np.exp(-2j * np.pi * k[None, :, None] * (np.asarray(nu, dtype=float)[:, None, :] / n))
 
 
-def refine_bins(y: np.ndarray, bins: np.ndarray, steps: tuple[float, ...] = (0.125, 1 / 64)) -> np.ndarray:
+def combination_tones(nu: np.ndarray, combos: np.ndarray, n: int) -> np.ndarray:
+    """:func:`tones` at the bins ``nu @ combos.T`` ((B, J) bins, (P, J) integers), made of
+    the J tones' integer powers (products, not an exponential a sample and tone): (B, n, P)."""
+    base = tones(nu, n)  # (B, n, J)
+    powers = [{1: base[:, :, t]} for t in range(base.shape[2])]  # tone t -> {|h|: base_t ** |h|}
+
+    def power(t: int, h: int) -> np.ndarray:
+        have = powers[t]
+        if abs(h) not in have:
+            low = max(m for m in have if m < abs(h))
+            have[abs(h)] = have[low] * power(t, abs(h) - low)
+        return np.conj(have[abs(h)]) if h < 0 else have[abs(h)]
+
+    out = np.empty(base.shape[:2] + (combos.shape[0],), dtype=complex)
+    for p, c in enumerate(combos.astype(int)):  # over the few tones of the model
+        factors = [power(t, h) for t, h in enumerate(c) if h]
+        out[:, :, p] = factors[0] if len(factors) == 1 else np.prod(factors, axis=0)
+    return out
+
+
+def refine_bins(y: np.ndarray, bins: np.ndarray, newton: int = 3) -> np.ndarray:
     """The continuous bin (B,) near integer ``bins`` (B,) where the joint power of ``y``
-    (B, N, 2) peaks: a grid of 17 points ``steps[0]`` apart around the bin, then one
-    ``steps[1]`` apart around the best, then the parabola through the best and its neighbours."""
+    (B, N, 2) peaks: the parabola through the magnitude at the bin and its neighbours, then
+    ``newton`` Newton steps on the power's derivatives (each at most half a bin)."""
     n = y.shape[1]
-    nu = np.asarray(bins, dtype=float)
-    offsets = np.arange(-8, 9, dtype=float)
-    for step in steps:
-        grid = nu[:, None] + step * offsets[None, :]  # (B, 17)
-        power = _joint_power(y, grid, n)
-        best = np.clip(power.argmax(axis=1), 1, offsets.size - 2)
-        rows = np.arange(y.shape[0])
-        lo, mid, hi = power[rows, best - 1], power[rows, best], power[rows, best + 1]
-        nu = grid[rows, best]
+    p = np.asarray(bins, dtype=float)
+    lo, mid, hi = np.sqrt(_joint_power(y, p[:, None] + np.array([-1.0, 0.0, 1.0])[None, :], n).T)
     curv = lo - 2.0 * mid + hi
     with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(curv < 0, 0.5 * (lo - hi) / curv, 0.0)
-    return nu + steps[-1] * np.clip(shift, -1.0, 1.0)
+        nu = p + np.clip(np.where(curv < 0, 0.5 * (lo - hi) / curv, 0.0), -0.5, 0.5)
+    w = 2j * np.pi * np.arange(n) / n  # d/dnu of the phase of exp(+2 pi i k nu / n)
+    for _ in range(newton):
+        e = np.exp(w[None, :] * nu[:, None])[:, :, None] * y  # (B, N, 2)
+        s0, s1, s2 = e.sum(axis=1), (w[None, :, None] * e).sum(axis=1), (w[None, :, None] ** 2 * e).sum(axis=1)
+        d1 = 2 * np.real(np.conj(s0) * s1).sum(axis=-1)
+        d2 = 2 * np.real(np.square(np.abs(s1)) + np.conj(s0) * s2).sum(axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            nu = nu - np.where(d2 < 0, np.clip(d1 / d2, -0.5, 0.5), 0.0)
+    return nu
 
 
 def _joint_power(y: np.ndarray, nu: np.ndarray, n: int) -> np.ndarray:
@@ -104,7 +125,7 @@ def fit_residual(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
     freq = nu @ combos.T  # (B, P)
     order = np.abs(combos).sum(axis=1)  # (P,)
     keep = separated(freq, n)
-    a = tones(freq, n) * keep[:, None, :]  # (B, N, P)
+    a = combination_tones(nu, combos, n) * keep[:, None, :]  # (B, N, P)
     gram = dirichlet(freq[:, :, None] - freq[:, None, :], n) * (keep[:, :, None] & keep[:, None, :])
     gram += RIDGE * n * np.eye(gram.shape[-1])
     amp = np.linalg.solve(gram, np.ascontiguousarray(np.conj(a).transpose(0, 2, 1)) @ y)  # (B, P, 2)
@@ -131,17 +152,30 @@ def dirichlet(delta: np.ndarray, n: int) -> np.ndarray:
 
 def separated(freq: np.ndarray, n: int) -> np.ndarray:
     """Which tones at bins ``freq`` (B, P) (lowest order first) the fit keeps: (B, P) bool,
-    each farther than RESOLUTION_BINS from every tone kept before it (two tones closer
-    are one to the fit: its amplitudes would be ill-posed)."""
+    each farther than RESOLUTION_BINS from every tone before it (two tones closer are one
+    to the fit: its amplitudes would be ill-posed)."""
     gap = np.abs((freq[:, :, None] - freq[:, None, :] + n / 2) % n - n / 2)  # (B, P, P) bins
-    keep = np.ones(freq.shape, dtype=bool)
-    for p in range(1, freq.shape[1]):  # over the few tones, each for the whole batch
-        keep[:, p] = ~((gap[:, p, :p] <= RESOLUTION_BINS) & keep[:, :p]).any(axis=1)
-    return keep
+    before = np.tri(freq.shape[1], k=-1, dtype=bool)  # [p, q]: q comes before p
+    return ~((gap <= RESOLUTION_BINS) & before[None]).any(axis=2)
+
+
+#: frames decoded together by :func:`residual_support` (its tone tables are (frames, N, tones))
+CHUNK_FRAMES = 128
 
 
 def residual_support(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int, threshold: float
                      ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
+    batch, the tables small enough to stay in cache)."""
+    if y.shape[0] <= CHUNK_FRAMES:
+        return residual_support_of(y, pick, inside, k, threshold)
+    parts = [residual_support_of(y[i:i + CHUNK_FRAMES], pick[i:i + CHUNK_FRAMES], inside, k, threshold)
+             for i in range(0, y.shape[0], CHUNK_FRAMES)]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def residual_support_of(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int, threshold: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``k`` targets of the folded ramps ``y`` (B, N, 2), each the strongest bin of the
     residual of the ones before it: (support (B, k) int, statistic_db (B, k)). ``pick`` (B, N):
     the back projection's joint energy with -1 where no target may be (outside the range gate,
@@ -154,7 +188,7 @@ def residual_support(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int
     cells = max(int(inside.sum()), 2)
     support = np.zeros((b, k), dtype=np.int64)
     stat = np.zeros((b, k))
-    idx, blocked, nu, strongest = np.arange(b), pick < 0, np.zeros((b, 0)), None
+    idx, blocked, nu, strongest, residual = np.arange(b), pick < 0, np.zeros((b, 0)), None, y
     energy = _bin_energy(y)
     for t in range(k):
         p = np.where(blocked, -1.0, energy).argmax(axis=1)
@@ -171,16 +205,11 @@ def residual_support(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int
         if t == k - 1 or not go.any():
             break
         near = np.abs((np.arange(n)[None, :] - p[:, None] + n // 2) % n - n // 2) <= RESOLUTION_BINS
-        blocked, strongest, y_t = (blocked | near)[go], strongest[go], y[idx[go]]
-        nu = np.concatenate([nu[go], refine_bins(_residual_of(y_t, nu[go]), p[go])[:, None]], axis=1)
-        idx = idx[go]
-        energy = _bin_energy(fit_residual(y_t, nu))
+        blocked, strongest, idx = (blocked | near)[go], strongest[go], idx[go]
+        nu = np.concatenate([nu[go], refine_bins(residual[go], p[go])[:, None]], axis=1)
+        residual = fit_residual(y[idx], nu)
+        energy = _bin_energy(residual)
     return support, stat
-
-
-def _residual_of(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
-    """``y`` less the fit of the targets at ``nu`` (B, J) (``y`` itself for none)."""
-    return y if nu.shape[1] == 0 else fit_residual(y, nu)
 
 
 def _bin_energy(y: np.ndarray) -> np.ndarray:
