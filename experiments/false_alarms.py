@@ -3,7 +3,9 @@ farther than MATCH_BINS range bins from every true target) of cml's count test a
 configured pfa, beside ``k`` strong targets (amplitude 1, 5-145 m, at least 10 m apart,
 +-50 deg), 1-bit at a dither scale alpha or unquantized, in complex Gaussian noise.
 
-Run ``python -m experiments.false_alarms`` for the table of the README's headline row.
+Run ``python -m experiments.false_alarms`` for the table of the README's headline row,
+``python -m experiments.false_alarms --grid pbp`` (or ``cml``) for a decoder over K, alpha and
+noise.
 """
 
 from __future__ import annotations
@@ -80,5 +82,21 @@ def table(cases=CASES) -> str:
     return "\n".join(lines)
 
 
+def grid(algo: str = "pbp", frames: int = 1000) -> str:
+    """False targets a frame / targets found of ``algo`` over K 0-2, 1-bit alpha 0, 0.45 and 1,
+    noise sigma 0-0.3 (one row a K and alpha), as a markdown table."""
+    sigmas = (0.0, 0.01, 0.03, 0.1, 0.3)
+    lines = ["| K | α | " + " | ".join(f"σ {s:g}" for s in sigmas) + " |", "|---|---|" + "---|" * len(sigmas)]
+    for k in (0, 1, 2):
+        for alpha in (0.0, 0.45, 1.0):
+            cells = [false_targets(AlarmCase(k, s, alpha=alpha, seed=100 + i, algo=algo, frames=frames))
+                     for i, s in enumerate(sigmas)]
+            lines.append(f"| {k} | {alpha:g} | " + " | ".join(f"{f:.3f} ({100 * found:.1f} %)" for f, found in cells)
+                         + " |")
+    return "\n".join(lines)
+
+
 if __name__ == "__main__":
-    print(table())
+    import sys
+
+    print(grid(sys.argv[2]) if sys.argv[1:2] == ["--grid"] else table())
