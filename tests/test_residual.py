@@ -80,3 +80,14 @@ def test_the_first_statistic_is_pbps_and_a_noise_frame_stops_at_once():
     assert support[:, 0] == pytest.approx(joint_support(u, 1)[:, 0])
     assert statistic[:, 0] == pytest.approx(first[:, 0], abs=1e-6)
     assert (statistic[:, 1:] == statistic[:, :1]).all()  # stopped at the first test: the later slots repeat it
+
+
+def test_a_gate_too_narrow_for_more_targets_ends_the_test():
+    """Three bins inside the gate: after the first target and its neighbours none is left, and
+    no bin outside the gate is ever tested."""
+    y = tone(100.3) + tone(140.0)
+    pick = np.full((1, N), -1.0)
+    pick[0, 99:102] = 1.0
+    inside = pick[0] > 0
+    support, statistic = residual_support(y, pick, inside, 3, cfar_threshold(1e-3, 3))
+    assert support[0, 0] == 100 and (statistic[0, 1:] == -300.0).all()  # the later slots fail (masked)

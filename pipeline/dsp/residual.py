@@ -191,8 +191,9 @@ def residual_support_of(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: 
     idx, blocked, nu, strongest, residual = np.arange(b), pick < 0, np.zeros((b, 0)), None, y
     energy = _bin_energy(y)
     for t in range(k):
-        p = np.where(blocked, -1.0, energy).argmax(axis=1)
-        e = energy[np.arange(idx.size), p]
+        choice = np.where(blocked, -1.0, energy)
+        p = choice.argmax(axis=1)
+        e = np.where(choice[np.arange(idx.size), p] < 0, 0.0, energy[np.arange(idx.size), p])  # none left: 0
         rest = (np.where(inside[None, :], energy, 0.0).sum(axis=1) - e) / (cells - 1)
         if strongest is None:  # the first: PBP's statistic as it is
             strongest = e
@@ -201,7 +202,7 @@ def residual_support_of(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: 
         with np.errstate(divide="ignore", invalid="ignore"):
             s_db = np.clip(np.nan_to_num(10 * np.log10(e / rest), nan=-300.0), -300.0, 300.0)
         stat[idx, t:], support[idx, t:] = s_db[:, None], p[:, None]
-        go = e >= threshold * rest
+        go = (e >= threshold * rest) & (e > 0)
         if t == k - 1 or not go.any():
             break
         near = np.abs((np.arange(n)[None, :] - p[:, None] + n // 2) % n - n // 2) <= RESOLUTION_BINS
