@@ -99,6 +99,22 @@ class RunSummary:
     def format(self) -> str:
         return format_summary(self)
 
+    @property
+    def produced_nothing(self) -> bool:
+        """Raw frames came and not one targets message: the run's result is empty (its
+        command ends with a non-zero status unless it was interrupted)."""
+        return self.frames_raw > 0 and self.frames_targets == 0
+
+
+def localizer_warning(raw: int, targets: int) -> str | None:
+    """What a run whose localizer published targets for under half its raw frames says
+    (None otherwise)."""
+    if not raw or targets >= raw / 2:
+        return None
+    return (f"the localizer published targets for {targets} of {raw} raw frames: it fell behind or failed (see drops "
+            "and processing errors) or spent the run loading its kernels (`make` compiles them at set-up; a pip "
+            "install compiles them on first use, for minutes)")
+
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
               simulator: dict | None = None, truth: SimScene | None = None,
@@ -164,7 +180,7 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
             "file": calibration.source, "made": calibration.meta.get("created_utc"),
             "sensor_ids": sorted(calibration.sensors)},
         front_end={sid: dict(st) for sid, st in sorted(monitor.front_end.items())},
-        warnings=list(monitor.warnings.values()),
+        warnings=[*monitor.warnings.values(), *filter(None, [localizer_warning(cnt["raw"], cnt["targets"])])],
         driver=driver_stats,
         driver_process=cfg.driver_process,
         driver_restarts={d.sensor_id: d.restarts for d in drivers if hasattr(d, "restarts")},
@@ -245,6 +261,8 @@ def format_summary(s: "dict | RunSummary") -> str:
     return "\n".join(lines)
 
 
-def print_json(summary: "RunSummary | dict", stream: TextIO = sys.stdout) -> None:
+def print_json(summary: "RunSummary | dict", stream: TextIO | None = None) -> None:
+    """``summary`` as one JSON line on ``stream`` (None: the process's stdout at the call)."""
+    stream = sys.stdout if stream is None else stream
     stream.write(json.dumps(summary.to_dict() if isinstance(summary, RunSummary) else summary) + "\n")
     stream.flush()

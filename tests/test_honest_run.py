@@ -218,6 +218,21 @@ def test_4_frames_that_are_every_one_refused_end_the_run(tmp_path):
     assert "raw frames arrived and every one was refused, none decoded" in line and "bytes, a length no" in line
 
 
+def test_4_a_run_whose_localizer_publishes_nothing_says_so_and_fails(monkeypatch, cli):
+    """The localizer takes the frames and publishes nothing (as one loading its kernels for
+    the whole run did, a pip install's first use): the summary says so and the status is 1,
+    where it was 0 with 0 targets and no word."""
+    from pipeline.nodes.stream import LocalizeNode
+
+    monkeypatch.setattr(LocalizeNode, "process", lambda self, batch: time.sleep(0.01))
+    code, out, err = cli("run", "--frames", 20, "--no-record", "--json", "--calibration", CAL)
+    s = json.loads(out.strip().splitlines()[-1])
+    assert code == 1 and s["frames_raw"] == 20 and s["frames_targets"] == 0
+    assert any("the localizer published targets for 0 of 20 raw frames" in w for w in s["warnings"]), s["warnings"]
+    assert "qradar run: error: the localizer published targets for 0 of 20 raw frames" in err and \
+        "loading its kernels" in err
+
+
 def test_4_an_empty_scene_without_targets_is_a_result():
     out = qradar("run", "--empty", "--K", "auto", "--frames", 40, "--no-record", "--json", "--calibration", CAL)
     assert out.returncode == 0, out.stderr[-2000:]

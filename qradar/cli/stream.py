@@ -26,6 +26,7 @@ from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
 from ..run import RunConfig, print_json, remove_run_dirs, run
+from ..summary import localizer_warning
 from ..view import ViewConfig, parse_endpoint
 from . import lab
 from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, load_calibration, watch_parent
@@ -280,4 +281,7 @@ def cmd_run(args) -> int:
         print_json(summary)
     else:
         print(summary.format())
+    if summary.produced_nothing and not summary.interrupted:
+        print(f"qradar run: error: {localizer_warning(summary.frames_raw, 0)}", file=sys.stderr, flush=True)
+        return 1
     return 0
