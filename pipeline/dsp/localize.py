@@ -191,6 +191,16 @@ def cfar_threshold(pfa: float, cells: float) -> float:
     return float(y / 2.0)
 
 
+def cfar_p_value(statistic_db: np.ndarray, cells: float) -> np.ndarray:
+    """The chance that white Gaussian noise alone makes the largest of ``cells`` bins reach
+    ``statistic_db`` (its joint energy over the bins' mean, dB; any shape): ``1 - (1 - e^-2x
+    (1 + 2x))^cells`` with x the linear statistic (the null of :func:`cfar_threshold`)."""
+    x = 10.0 ** (np.clip(np.asarray(statistic_db, dtype=float), -300.0, 300.0) / 10.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        one = np.exp(-2.0 * x) * (1.0 + 2.0 * x)  # one bin's
+        return -np.expm1(max(cells, 1.0) * np.log1p(-np.minimum(one, 1.0 - 1e-16)))
+
+
 def sequential_present(statistic_db: np.ndarray, threshold_db: float) -> np.ndarray:
     """Targets kept by a sequential test (B, K) bool: target t of a frame is kept while
     every target up to t has ``statistic_db >= threshold_db`` (targets in test order)."""
@@ -223,6 +233,9 @@ def grid_statistic_db(u: np.ndarray, support: np.ndarray, energy: np.ndarray | N
 
 #: the per-target uncertainty columns of :class:`Detections` (the targets JSON's optional fields)
 UNCERTAINTY_FIELDS = ("sigma_range_m", "sigma_angle_deg", "cov_range_angle")
+#: the per-target columns of :class:`Detections` beyond its position, NaN where a decoder gives none
+#: (the targets JSON's optional fields, in their order)
+OPTIONAL_FIELDS = ("statistic_db", "p_value") + UNCERTAINTY_FIELDS + ("radial_velocity_mps",)
 
 
 @dataclass(frozen=True)
@@ -236,6 +249,8 @@ class Detections:
     (bool: with ``K auto`` the slots past a frame's count are False and hold NaN);
     sigma_range_m (m), sigma_angle_deg (deg), cov_range_angle (m deg): how sure each target
     is (:mod:`pipeline.dsp.uncertainty`; NaN where the decoder gives none);
+    p_value (PBP: the chance that noise alone makes ``statistic_db`` in the gate:
+    :func:`cfar_p_value`);
     radial_velocity_mps (m/s, + = moving away, from the phase step between ramps: known
     modulo the radar's ``velocity_ambiguity_mps`` V and given in [-V/2, V/2); NaN where the
     decoder keeps the static model, as PBP and QIHT do).
@@ -253,10 +268,11 @@ class Detections:
     sigma_angle_deg: np.ndarray | None = None
     cov_range_angle: np.ndarray | None = None
     radial_velocity_mps: np.ndarray | None = None
+    p_value: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = np.shape(self.range_m)
-        for name in ("statistic_db",) + UNCERTAINTY_FIELDS + ("radial_velocity_mps",):
+        for name in OPTIONAL_FIELDS:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(shape, np.nan))
         if self.present is None:
@@ -274,7 +290,8 @@ class Detections:
         nan = lambda a: np.where(present, a, np.nan)  # noqa: E731
         return Detections(nan(self.range_m), nan(self.angle_deg), nan(self.x_m), nan(self.y_m),
                           nan(self.amplitude), np.where(present, self.bin, -1), nan(self.statistic_db), present,
-                          *(nan(getattr(self, name)) for name in UNCERTAINTY_FIELDS), nan(self.radial_velocity_mps))
+                          *(nan(getattr(self, name)) for name in UNCERTAINTY_FIELDS), nan(self.radial_velocity_mps),
+                          nan(self.p_value))
 
     def with_uncertainty(self, sigma_range_m: np.ndarray, sigma_angle_deg: np.ndarray,
                          cov_range_angle: np.ndarray) -> "Detections":
@@ -293,8 +310,7 @@ class Detections:
                 "y_m": float(self.y_m[i, j]),
                 "amplitude": float(self.amplitude[i, j]),
                 "bin": int(self.bin[i, j]),
-                **{name: float(getattr(self, name)[i, j])
-                   for name in ("statistic_db",) + UNCERTAINTY_FIELDS + ("radial_velocity_mps",)
+                **{name: float(getattr(self, name)[i, j]) for name in OPTIONAL_FIELDS
                    if np.isfinite(getattr(self, name)[i, j])},
             }
             for j in range(self.range_m.shape[1]) if self.present[i, j]
@@ -348,14 +364,16 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     pick, stat, cells = gated_energy(energy, mask, k, None if gate is None else gate.bins(config))
     support = joint_support(u, k, pick)
     if pfa is None:
-        return detections_from_support(u, support, config, grid_statistic_db(u, support, stat, cells))
+        statistic = grid_statistic_db(u, support, stat, cells)
+        return replace(detections_from_support(u, support, config, statistic),
+                       p_value=cfar_p_value(statistic, cells))
     threshold = cfar_threshold(pfa, cells)
     if indices is None:  # whole ramps: each test on the residual of the targets before it
         inside = np.ones(u.shape[1], dtype=bool) if mask is None else mask
         support, statistic = residual_support(fold_ramps(z, config), pick, inside, k, threshold)
     else:
         statistic = grid_statistic_db(u, support, stat, cells)
-    det = detections_from_support(u, support, config, statistic)
+    det = replace(detections_from_support(u, support, config, statistic), p_value=cfar_p_value(statistic, cells))
     return det.masked(sequential_present(det.statistic_db, 10 * np.log10(threshold)))
 
 
