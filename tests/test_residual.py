@@ -75,7 +75,8 @@ def test_the_first_statistic_is_pbps_and_a_noise_frame_stops_at_once():
     z = one_bit(rng.standard_normal((4, cfg.n_measurements, 2)) + 1j * rng.standard_normal((4, cfg.n_measurements, 2)))
     u = back_project(z, cfg)
     pick, stat, cells = gated_energy(joint_energy(u), None, 3)
-    support, statistic = residual_support(fold_ramps(z, cfg), pick, np.ones(N, bool), 3, cfar_threshold(1e-3, cells))
+    support, statistic = residual_support(fold_ramps(z, cfg), joint_energy(u), pick, np.ones(N, bool), 3,
+                                          cfar_threshold(1e-3, cells))
     first = grid_statistic_db(u, joint_support(u, 1, pick), stat, cells)
     assert support[:, 0] == pytest.approx(joint_support(u, 1)[:, 0])
     assert statistic[:, 0] == pytest.approx(first[:, 0], abs=1e-6)
@@ -89,5 +90,5 @@ def test_a_gate_too_narrow_for_more_targets_ends_the_test():
     pick = np.full((1, N), -1.0)
     pick[0, 99:102] = 1.0
     inside = pick[0] > 0
-    support, statistic = residual_support(y, pick, inside, 3, cfar_threshold(1e-3, 3))
+    support, statistic = residual_support(y, spectrum(y)[None], pick, inside, 3, cfar_threshold(1e-3, 3))
     assert support[0, 0] == 100 and (statistic[0, 1:] == -300.0).all()  # the later slots fail (masked)

@@ -357,24 +357,25 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     most ``k``) by a sequential CFAR test with this false-alarm probability per frame
     and test over the N bins (:func:`cfar_threshold`); None: exactly ``k`` targets.
     ``gate``: search only the range bins inside this :class:`~pipeline.dsp.gate.RangeGate`
-    (the statistic and the test then over those bins); None: the whole range axis."""
+    (the statistic and the test then over those bins); None: the whole range axis. With
+    ``pfa`` and whole ramps, each target after the first is tested on the residual of the ones
+    before it (:func:`pipeline.dsp.residual.residual_support`). Each target's ``p_value``:
+    :func:`cfar_p_value` of its statistic."""
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)
     energy = joint_energy(u)
     pick, stat, cells = gated_energy(energy, mask, k, None if gate is None else gate.bins(config))
-    support = joint_support(u, k, pick)
-    if pfa is None:
-        statistic = grid_statistic_db(u, support, stat, cells)
-        return replace(detections_from_support(u, support, config, statistic),
-                       p_value=cfar_p_value(statistic, cells))
-    threshold = cfar_threshold(pfa, cells)
-    if indices is None:  # whole ramps: each test on the residual of the targets before it
+    if pfa is not None and indices is None:  # whole ramps: each test on the residual of the targets before it
         inside = np.ones(u.shape[1], dtype=bool) if mask is None else mask
-        support, statistic = residual_support(fold_ramps(z, config), pick, inside, k, threshold)
+        support, statistic = residual_support(fold_ramps(z, config), energy, pick, inside, k,
+                                              cfar_threshold(pfa, cells))
     else:
+        support = joint_support(u, k, pick)
         statistic = grid_statistic_db(u, support, stat, cells)
     det = replace(detections_from_support(u, support, config, statistic), p_value=cfar_p_value(statistic, cells))
-    return det.masked(sequential_present(det.statistic_db, 10 * np.log10(threshold)))
+    if pfa is None:
+        return det
+    return det.masked(sequential_present(det.statistic_db, 10 * np.log10(cfar_threshold(pfa, cells))))
 
 
 def localize_frame(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,

@@ -163,21 +163,23 @@ def separated(freq: np.ndarray, n: int) -> np.ndarray:
 CHUNK_FRAMES = 128
 
 
-def residual_support(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int, threshold: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
+                     threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
     batch, the tables small enough to stay in cache)."""
     if y.shape[0] <= CHUNK_FRAMES:
-        return residual_support_of(y, pick, inside, k, threshold)
-    parts = [residual_support_of(y[i:i + CHUNK_FRAMES], pick[i:i + CHUNK_FRAMES], inside, k, threshold)
+        return residual_support_of(y, energy, pick, inside, k, threshold)
+    parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold)
              for i in range(0, y.shape[0], CHUNK_FRAMES)]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
-def residual_support_of(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int, threshold: float
-                        ) -> tuple[np.ndarray, np.ndarray]:
+def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
+                        threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``k`` targets of the folded ramps ``y`` (B, N, 2), each the strongest bin of the
-    residual of the ones before it: (support (B, k) int, statistic_db (B, k)). ``pick`` (B, N):
+    residual of the ones before it: (support (B, k) int, statistic_db (B, k)). ``energy``
+    (B, N): the joint energy of ``y``'s bins (the back projection's, known to the caller);
+    ``pick`` (B, N):
     the back projection's joint energy with -1 where no target may be (outside the range gate,
     the skirt of a return beyond it); ``inside`` (N,) bool: the gate's bins, over which the
     statistic's mean is taken (the first target's statistic is PBP's cell-averaging one).
@@ -189,7 +191,6 @@ def residual_support_of(y: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: 
     support = np.zeros((b, k), dtype=np.int64)
     stat = np.zeros((b, k))
     idx, blocked, nu, strongest, residual = np.arange(b), pick < 0, np.zeros((b, 0)), None, y
-    energy = _bin_energy(y)
     for t in range(k):
         choice = np.where(blocked, -1.0, energy)
         p = choice.argmax(axis=1)
