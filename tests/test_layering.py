@@ -105,6 +105,10 @@ def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
     ("experiments.montecarlo", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
     ("experiments.report", ["qradar", "zenoh", "serial", "mcap", "pipeline.wire", "pipeline.bus", "pipeline.nodes"]),
     ("replay.reprocess", ["qradar", "zenoh", "experiments"]),
+    # every qradar process (each node, driver, router) imports the command line: numba (the
+    # compiled kernels, ~0.25 s) and scipy (~0.12 s) load when a cml decoder or an uncertainty
+    # is first asked for, not at its start
+    ("qradar.cli", ["numba", "scipy", "pipeline.dsp.cml.decoder", "pipeline.dsp.cml.kernels"]),
 ])
 def test_offline_modules_do_not_pull_in_the_bus(module, absent):
     code = (f"import sys, {module}; bad = [m for m in {absent!r} if m in sys.modules]; "

@@ -36,12 +36,26 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import log_ndtr, ndtr
 
 from radar_driver.model import RadarConfig, antenna_phase_rad
 
 from pipeline.errors import ParameterError
 from pipeline.dsp.quantize import check_bits
+
+
+def ndtr(x):
+    """The standard normal CDF, ``scipy.special.ndtr``; scipy.special imported on first use
+    (~0.12 s: a process that never asks for an uncertainty does not pay it)."""
+    from scipy.special import ndtr as phi
+
+    return phi(x)
+
+
+def log_ndtr(x):
+    """``log`` of the standard normal CDF, ``scipy.special.log_ndtr`` (imported on first use)."""
+    from scipy.special import log_ndtr as log_phi
+
+    return log_phi(x)
 
 #: parameters per target: range (m), angle (rad), Re A, Im A
 PARAMS_PER_TARGET = 4

@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,9 +44,12 @@ from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
 from pipeline.dsp.uncertainty import target_uncertainty
-from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlDecoder, CmlOptions
+from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlOptions
 from pipeline.dsp.cml.engine import resolve as resolve_engine
 from pipeline.dsp.quantize import QuantizedFrames, check_bits
+
+if TYPE_CHECKING:
+    from pipeline.dsp.cml.decoder import CmlDecoder
 
 
 class Algo(StrEnum):
@@ -427,6 +431,8 @@ class Decoder:
         if decoder is None:
             if len(self._cml) >= self.KEPT:
                 self._cml.clear()
+            from pipeline.dsp.cml.decoder import CmlDecoder  # the compiled kernels: loaded on first use
+
             decoder = self._cml[radar] = CmlDecoder(radar, self._options)
         return decoder
 

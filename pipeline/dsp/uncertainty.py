@@ -24,11 +24,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import log_ndtr, ndtr
 
 from radar_driver.model import RadarConfig, range_phase
 
-from pipeline.dsp.crb import fisher, weights_bits
+from pipeline.dsp.crb import fisher, log_ndtr, ndtr, weights_bits
 
 #: real parameters a target: r, Re a1, Im a1, Re a2, Im a2 (with a phase step between ramps,
 #: phi after them: :data:`MOVING_PARAMS`)

@@ -24,7 +24,6 @@ from radar_driver.source import FrameSource, RawFrame, frame_batches
 
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.calibration import Calibration
-from pipeline.dsp.cml import load_kernels
 from pipeline.dsp.dither import load_kernel as load_dither_kernel
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, Decoder, DecoderConfig, DitherUnavailable
 from pipeline.errors import CalibrationError, ParameterError
@@ -422,6 +421,8 @@ class LocalizeNode(FrameNode):
         if self.config.algo == Algo.CML and self._decoder.cml(self.config.radar).engine == "numba":
             # cml's kernels of 1-bit codes from numba's cache (~1 s; `make` compiles them at install)
             # before subscribing (the session already listens), the other kinds' after in a thread
+            from pipeline.dsp.cml.loading import load_kernels  # numba: only a cml localizer loads it
+
             load_kernels(common=True)
             self._loading = threading.Thread(target=load_kernels, name="cml-kernels", daemon=True)
             self._loading.start()

@@ -35,9 +35,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig
 
-from pipeline.dsp.cml.decoder import CmlDecoder
 from pipeline.dsp.cml.engine import DEFAULT_ENGINE, HAVE_NUMBA
-from pipeline.dsp.cml.loading import load_kernels
 from pipeline.dsp.cml.options import (BLOCK_FRAMES, DEFAULT_ITERS, DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS,
                                       UNDITHERED_ITERS, CmlOptions)
 from pipeline.dsp.cml.result import CmlResult, cml_detections, model_frames
@@ -46,6 +44,20 @@ from pipeline.dsp.gate import RangeGate
 __all__ = ["BLOCK_FRAMES", "DEFAULT_ENGINE", "DEFAULT_ITERS", "DEFAULT_LIKELIHOOD", "ENGINES", "HAVE_NUMBA",
            "LIKELIHOODS", "UNDITHERED_ITERS", "CmlDecoder", "CmlOptions", "CmlResult", "cml", "cml_detections",
            "load_kernels", "model_frames"]
+
+
+#: the names whose modules load the compiled kernels (numba, ~0.25 s): imported on first use, so
+#: that a process that never decodes with cml (a router, a driver, the quantizer) does not pay it
+_LAZY = {"CmlDecoder": "pipeline.dsp.cml.decoder", "load_kernels": "pipeline.dsp.cml.loading"}
+
+
+def __getattr__(name: str):
+    """``CmlDecoder`` and ``load_kernels``, from their modules on first use (PEP 562)."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int, *,
@@ -90,6 +102,8 @@ def cml(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: R
     K = 2 (M = 512). A call builds its decoder's tables (about 0.8 ms): where calls follow
     one another, hold a :class:`CmlDecoder`.
     """
+    from pipeline.dsp.cml.decoder import CmlDecoder
+
     decoder = CmlDecoder(config, CmlOptions() if options is None else options)
     return decoder.decode(z, xi, delta, bits, k, noise_sigma=noise_sigma, pfa=pfa, gate=gate,
                           init_range_m=init_range_m)
