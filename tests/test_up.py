@@ -70,7 +70,9 @@ def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
         assert socket_dir.is_dir()  # the nodes meet on a unix socket: nothing listens on the network
         # frames go all the way: source -> quantize -> localize -> record (a file being written reads up to its
         # last flushed chunk)
-        assert wait_for(lambda: recorded(tmp_path / "up.mcap").count("radar/kmd2-0/targets") >= 30, 90.0)
+        # (read every 0.5 s: each look parses the file so far, which at 20 looks a second took a core from
+        # the nodes on a loaded host)
+        assert wait_for(lambda: recorded(tmp_path / "up.mcap").count("radar/kmd2-0/targets") >= 30, 90.0, 0.5)
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=60)
     finally:
