@@ -8,7 +8,9 @@ quantizer adds its odd harmonics and intermodulation (``sign`` of I and of Q: to
 ``sum_t c_t nu_t`` with ``sum_t c_t = 1 (mod 4)``, e.g. -3 nu, 5 nu, 2 nu_1 - nu_2). Read
 off the back projection, these passed the cell-averaging test beside a strong target
 (0.7-1.9 false targets a frame at pfa 1e-3). Tested on the residual, each test sees what
-the targets found so far do not explain.
+the targets found so far do not explain. With a range gate, strong returns beyond it are
+fitted first, unreported (:func:`outside_returns`): their skirts and tones inside the gate
+are theirs, not targets.
 
 Shapes: ``y`` the folded ramps (B, N, 2) (the mean of a frame's ramps, per antenna),
 bins in units of the range grid (N bins, the inverse FFT's convention: a tone
@@ -113,9 +115,11 @@ def _joint_power(y: np.ndarray, nu: np.ndarray, n: int) -> np.ndarray:
     return np.square(np.abs(proj)).sum(axis=-1)
 
 
-def fit_residual(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
+def fit_residual(y: np.ndarray, nu: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
     """``y`` (B, N, 2) less its fit by the tones of the targets at bins ``nu`` (B, J)
-    (:func:`tone_combinations`, one complex amplitude a tone and antenna): (B, N, 2). The
+    (:func:`tone_combinations`, one complex amplitude a tone and antenna): (B, N, 2).
+    ``active`` (B, J) bool: the targets a frame has (None: all); a tone made of one a frame
+    lacks is left out of its fit. The
     quantizer's tones are bounded as a hard limiter bounds them (a harmonic of order ``h`` at
     most ``1/h`` of its target's joint amplitude, an intermodulation tone 1/MIXED_BOUND of its
     strongest target's), so that a high order aliased onto another target does not take it;
@@ -125,12 +129,14 @@ def fit_residual(y: np.ndarray, nu: np.ndarray) -> np.ndarray:
     freq = nu @ combos.T  # (B, P)
     order = np.abs(combos).sum(axis=1)  # (P,)
     keep = separated(freq, n)
+    involved = np.abs(combos) > 0  # (P, J)
+    if active is not None:
+        keep &= ~(involved[None] & ~active[:, None, :]).any(axis=2)
     a = combination_tones(nu, combos, n) * keep[:, None, :]  # (B, N, P)
     gram = dirichlet(freq[:, :, None] - freq[:, None, :], n) * (keep[:, :, None] & keep[:, None, :])
     gram += RIDGE * n * np.eye(gram.shape[-1])
     amp = np.linalg.solve(gram, np.ascontiguousarray(np.conj(a).transpose(0, 2, 1)) @ y)  # (B, P, 2)
     size = np.sqrt(np.square(np.abs(amp)).sum(axis=-1))  # (B, P)
-    involved = np.abs(combos) > 0  # (P, J)
     mixed = involved.sum(axis=1) > 1
     bound = np.where(involved[None], size[:, None, :j], 0.0).max(axis=2) / np.where(mixed, MIXED_BOUND, order)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -190,16 +196,19 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
     cells = max(int(inside.sum()), 2)
     support = np.zeros((b, k), dtype=np.int64)
     stat = np.zeros((b, k))
-    idx, blocked, nu, strongest, residual = np.arange(b), pick < 0, np.zeros((b, 0)), None, y
+    idx, blocked = np.arange(b), pick < 0
+    energy, nu, active, strongest = outside_returns(y, energy, inside, threshold)
+    residual = y
     for t in range(k):
         choice = np.where(blocked, -1.0, energy)
         p = choice.argmax(axis=1)
         e = np.where(choice[np.arange(idx.size), p] < 0, 0.0, energy[np.arange(idx.size), p])  # none left: 0
         rest = (np.where(inside[None, :], energy, 0.0).sum(axis=1) - e) / (cells - 1)
-        if strongest is None:  # the first: PBP's statistic as it is
-            strongest = e
-        else:  # what the tone model leaves of the strongest target is not a target
-            rest = np.maximum(rest, strongest * 10 ** (-DYNAMIC_RANGE_DB / 10))
+        # what the tone model leaves of the strongest return is not a target (the first test,
+        # PBP's statistic as it is, has no floor but that of a strong return beyond the gate)
+        rest = np.maximum(rest, strongest * 10 ** (-DYNAMIC_RANGE_DB / 10))
+        if t == 0:
+            strongest = np.maximum(strongest, e)
         with np.errstate(divide="ignore", invalid="ignore"):
             s_db = np.clip(np.nan_to_num(10 * np.log10(e / rest), nan=-300.0), -300.0, 300.0)
         stat[idx, t:], support[idx, t:] = s_db[:, None], p[:, None]
@@ -209,9 +218,48 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
         near = np.abs((np.arange(n)[None, :] - p[:, None] + n // 2) % n - n // 2) <= RESOLUTION_BINS
         blocked, strongest, idx = (blocked | near)[go], strongest[go], idx[go]
         nu = np.concatenate([nu[go], refine_bins(residual[go], p[go])[:, None]], axis=1)
-        residual = fit_residual(y[idx], nu)
+        active = np.concatenate([active[go], np.ones((idx.size, 1), dtype=bool)], axis=1)
+        residual = fit_residual(y[idx], nu, active)
         energy = _bin_energy(residual)
     return support, stat
+
+
+#: strong returns beyond the range gate fitted (unreported) before the gate's first test, at most
+OUTSIDE_RETURNS = 2
+
+
+def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, threshold: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The returns beyond the range gate strong enough to be targets (their bin's energy over
+    the gate's mean reaches ``threshold``), fitted as tones, unreported, before the gate is
+    tested: a strong reflector just beyond the gate puts its Dirichlet skirt and its 1-bit
+    quantizer's tones (-3 nu, 5 nu, ...) inside the gate, where they would read as targets
+    (1.06 false targets a frame for a target at 100.3 m and a gate ending at 100 m). Returns
+    the energy (B, N) the gate is tested on (``energy`` itself in frames with no such
+    return), their bins ``nu`` (B, J) and which frames have each (``active`` (B, J)), and the
+    strongest one's energy (B,) (0 without), under which DYNAMIC_RANGE_DB is not a target."""
+    b, n, _ = y.shape
+    nu, active, strongest = np.zeros((b, 0)), np.zeros((b, 0), dtype=bool), np.zeros(b)
+    if inside.all() or not inside.any():
+        return energy, nu, active, strongest
+    cells = max(int(inside.sum()), 2)
+    rows, current = np.arange(b), energy
+    for _ in range(OUTSIDE_RETURNS):
+        beyond = np.where(inside[None, :], -1.0, current)
+        taken = np.abs((np.arange(n)[None, None, :] - nu[:, :, None] + n / 2) % n - n / 2) <= RESOLUTION_BINS
+        beyond = np.where((taken & active[:, :, None]).any(axis=1), -1.0, beyond)
+        q = beyond.argmax(axis=1)
+        mean = np.where(inside[None, :], current, 0.0).sum(axis=1) / cells
+        strong = current[rows, q] >= threshold * mean
+        if not strong.any():
+            break
+        strongest = np.maximum(strongest, np.where(strong, current[rows, q], 0.0))
+        residual = y if nu.shape[1] == 0 else fit_residual(y, nu, active)
+        nu = np.concatenate([nu, refine_bins(residual, q)[:, None]], axis=1)
+        active = np.concatenate([active, strong[:, None]], axis=1)
+        fitted = active.any(axis=1)
+        current = np.where(fitted[:, None], _bin_energy(fit_residual(y, nu, active)), energy)
+    return current, nu, active, strongest
 
 
 def _bin_energy(y: np.ndarray) -> np.ndarray:
