@@ -15,13 +15,12 @@ ratio to PBP, and how many 20-frames/s sensors one core decodes with cml.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from functools import partial
 
 import numpy as np
 
-from harness import machine, take_turns
+from harness import emit, machine, take_turns
 from pipeline.dsp.decode import Decoder, DecoderConfig
 from experiments.montecarlo import SceneSpec, draw_scenes
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
@@ -51,14 +50,14 @@ def main() -> None:
     calls = {label: partial(Decoder(decoder).decode, z, xi, q.delta, 1, cfg, k) for label, (decoder, k) in runs.items()}
     times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
     ms = {algo: float(np.median(v)) / args.batch * 1e3 for algo, v in times.items()}
-    print(json.dumps({
+    emit({
         "machine": machine(),
         "batch": args.batch, "K": args.K, "max_targets_auto": args.max_targets, "rounds": len(times["pbp"]), "seconds": args.seconds,
         "ms_per_frame": {k: round(v, 4) for k, v in ms.items()},
         "ratio_to_pbp": {k: round(v / ms["pbp"], 1) for k, v in ms.items()},
         "cml_sensors_per_core_at_20_fps": int(1000.0 / ms["cml"] / 20.0),
         "cml_auto_sensors_per_core_at_20_fps": int(1000.0 / ms["cml_auto"] / 20.0),
-    }, indent=1))
+    }, indent=1)
 
 
 if __name__ == "__main__":

@@ -17,18 +17,23 @@ processes of a shared machine.
 ``--baseline DIR`` also times the code of another checkout (e.g. main) in a subprocess,
 the two taking turns for ``--rounds`` rounds (best over the rounds), and prints both and
 the speedup. ``--code DIR`` times the checkout at DIR instead of this one.
+
+The figures (``harness.emit``, after the table; alone with ``--json``) are keyed
+``<algo>_b<batch>``: ``ms_per_frame``, with ``--baseline`` also ``baseline_ms_per_frame``
+and ``speedup`` (baseline over this).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from functools import partial
 from pathlib import Path
 
-from harness import machine, time_calls
+from harness import RESULTS_ENV, emit, machine, time_calls
 
 HERE = Path(__file__).resolve().parents[1]
 
@@ -97,10 +102,25 @@ def _run(code: Path, args: argparse.Namespace) -> dict[str, dict[str, float]]:
     """:func:`measure` of ``code`` in a fresh Python process."""
     cmd = [sys.executable, __file__, "--code", str(code), "--json", "--batches", args.batches, "--repeats",
            str(args.repeats), "--algos", args.algos, "--K", str(args.K)]
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    env = {k: v for k, v in os.environ.items() if k != RESULTS_ENV}  # the child writes no result file
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if res.returncode:
         raise SystemExit(f"bench_decoders: timing {code} failed:\n{res.stderr}")
-    return json.loads(res.stdout)["ms_per_frame"]
+    return _nested(json.loads(res.stdout)["ms_per_frame"])
+
+
+def _flat(ms: dict[str, dict[str, float]]) -> dict[str, float]:
+    """{algo: {batch: v}} -> {"<algo>_b<batch>": v} (the figures' keys)."""
+    return {f"{algo}_b{b}": v for algo, row in ms.items() for b, v in row.items()}
+
+
+def _nested(flat: dict[str, float]) -> dict[str, dict[str, float]]:
+    """The inverse of :func:`_flat`."""
+    out: dict[str, dict[str, float]] = {}
+    for key, v in flat.items():
+        algo, b = key.rsplit("_b", 1)
+        out.setdefault(algo, {})[b] = v
+    return out
 
 
 def _best(a: dict, b: dict) -> dict:
@@ -131,15 +151,15 @@ def main(argv=None) -> None:
             base = b if base is None else _best(base, b)
             ms = m if ms is None else _best(ms, m)
     report = {"machine": machine(),
-              "code": str(args.code), "K": args.K, "repeats": args.repeats, "ms_per_frame": ms}
+              "code": str(args.code), "K": args.K, "repeats": args.repeats, "ms_per_frame": _flat(ms)}
     if base is not None:
-        report |= {"baseline": str(args.baseline), "rounds": args.rounds, "baseline_ms_per_frame": base,
-                   "speedup": {a: {b: round(base[a][b] / ms[a][b], 2) for b in ms[a]} for a in ms}}
+        report |= {"baseline": str(args.baseline), "rounds": args.rounds, "baseline_ms_per_frame": _flat(base),
+                   "speedup": _flat({a: {b: round(base[a][b] / ms[a][b], 2) for b in ms[a]} for a in ms})}
     if args.json:
-        print(json.dumps(report))
+        emit(report, indent=None)
         return
     print(_table(ms, base))
-    print(json.dumps(report, indent=1))
+    emit(report, indent=1)
 
 
 if __name__ == "__main__":

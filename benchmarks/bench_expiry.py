@@ -10,6 +10,8 @@ forgotten and its publishers undeclared (plus one expiry sweep); with ``--trace`
 Python heap (tracemalloc, which slows the node ~5x and whose own tables distort RSS) too.
 
     .venv/bin/python benchmarks/bench_expiry.py [--ids 10000] [--rounds 3] [--trace]
+
+One JSON line before the rounds and one a round, then the summary (``harness.emit``, one line).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from qradar.cli import limit_malloc_arenas
 
 import numpy as np
 
-from harness import rss_mb
+from harness import emit, rss_mb
 from pipeline.nodes.budget import IntakeBudget
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.counters import NO_SENSOR
@@ -95,6 +97,7 @@ def main() -> None:
         if args.trace:
             base["python_mb"] = round(tracemalloc.get_traced_memory()[0] / 2**20, 2)
         print(json.dumps({"ids": args.ids, "expiry_s": args.expiry, "before": base}), flush=True)
+        rounds = []
         for r in range(args.rounds):
             msgs = frames([f"r{r}x{i}" for i in range(args.ids)])
             t0 = time.monotonic()
@@ -109,9 +112,30 @@ def main() -> None:
             t = node.totals()
             out["totals"] = {k: t[k] for k in ("frames_in", "frames_out", "drops", "refused", "sensors_expired")}
             print(json.dumps(out), flush=True)
+            rounds.append(out)
     finally:
         node.stop()
         session.close()
+    emit(summary(args, base, rounds), indent=None)
+
+
+def summary(args, base: dict, rounds: list[dict]) -> dict:
+    """The rounds' figures, two levels: RSS before, its peak and where it ends, per-round lists,
+    and what the node still held and had counted after the last round."""
+    last = rounds[-1] if rounds else {}
+    fig = {"ids": args.ids, "expiry_s": args.expiry, "rounds": len(rounds),
+           "rss_mb": {"before": base["rss_mb"],
+                      "targets_out_max": max((r["rss_mb_targets_out"] for r in rounds), default=None),
+                      "forgotten_last": last.get("rss_mb_forgotten"),
+                      "forgotten_last_minus_before": None if not rounds else
+                      round(last["rss_mb_forgotten"] - base["rss_mb"], 1)},
+           "per_round": {"rss_mb_targets_out": [r["rss_mb_targets_out"] for r in rounds],
+                         "rss_mb_forgotten": [r["rss_mb_forgotten"] for r in rounds],
+                         "seconds": [r["seconds"] for r in rounds]},
+           "left_after_last_round": last.get("left"), "totals_after_last_round": last.get("totals")}
+    if "python_mb" in base:
+        fig["python_mb"] = {"before": base["python_mb"], "forgotten_last_above_before": last.get("python_mb_forgotten")}
+    return fig
 
 
 if __name__ == "__main__":

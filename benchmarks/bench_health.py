@@ -4,13 +4,15 @@
 tenth of a period) against every sensor at once (what a period cost before slices).
 
     .venv/bin/python benchmarks/bench_health.py
+
+After the line, the same figures as one JSON object (``harness.emit``).
 """
 
 import itertools
 
 import numpy as np
 
-from harness import time_calls
+from harness import emit, time_calls
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
 
@@ -30,6 +32,9 @@ def main() -> None:
               f"all at once {full*1e3:.1f} ms")
     finally:
         s.close()
+    emit({"sensors": 500, "slice_sensors": 50, "latency_values_per_sensor": 5000,
+          "slice_median_ms": round(float(np.median(t)) * 1e3, 3), "slice_max_ms": round(float(max(t)) * 1e3, 3),
+          "all_at_once_ms": round(float(full) * 1e3, 3)})
 
 
 if __name__ == "__main__":

@@ -24,6 +24,9 @@ and quantize; their RSS (VmRSS) after the first and after the last.
 
     .venv/bin/python benchmarks/bench_isolation.py [--case quantized raw new-ids restarts] \\
         [--seconds 30] [--rate 5000]
+
+A JSON line a case, the table, then the figures as one JSON object (``harness.emit``), keyed
+by case (``quantized``, ``raw``, ``new_ids``, ``restarts``).
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import cpu_s, free_port, rss_mb, wait_port
+from harness import cpu_s, emit, free_port, rss_mb, wait_port
 from streamlib import Proc
 
 CASES = ("quantized", "raw", "new-ids", "restarts")
@@ -307,7 +310,33 @@ def main() -> None:
         print(json.dumps(row), flush=True)
         rows.append(row)
     print(table(rows))
+    emit(figures(rows))
     print(f"logs: {logdir}", file=sys.stderr)
+
+
+#: a flood case's figures (the table's), from its row
+FLOOD_FIGURES = ("flood_rate", "flood_sent", "flood_rate_achieved", "flood_s", "honest_sent", "honest_targets",
+                 "honest_lost", "honest_p50_ms", "honest_p99_ms", "honest_max_ms", "baseline_p50_ms",
+                 "baseline_p99_ms", "honest_quantized_p99_ms", "node", "flood_excess_counted", "unaccounted",
+                 "node_balance")
+
+
+def figures(rows: list[dict]) -> dict:
+    """The cases' figures, two levels: by case (``new-ids`` as ``new_ids``), each the table's
+    numbers; a flood case's CPU as ``cpu_pct_<process>`` (% of a core over the flood)."""
+    out = {}
+    for r in rows:
+        if r["case"] == "restarts":
+            fig = {"restarts": r["restarts"], "router_mb_first": r["router_mb"][0], "router_mb_last": r["router_mb"][1],
+                   "quantize_mb_first": r["quantize_mb"][0], "quantize_mb_last": r["quantize_mb"][1],
+                   "router_growth_mb": r["router_growth_mb"], "quantize_growth_mb": r["quantize_growth_mb"]}
+        else:
+            units = {"flood_rate": "flood_rate_per_s", "flood_rate_achieved": "flood_rate_achieved_per_s"}
+            fig = {units.get(k, k): r.get(k) for k in FLOOD_FIGURES}
+            fig["over_budget_at_node"] = (r.get("node_totals") or {}).get("over_budget")
+            fig |= {f"cpu_pct_{proc}": v for proc, v in r.get("cpu_percent", {}).items()}
+        out[r["case"].replace("-", "_")] = fig | {"passed": passed(r)}
+    return out
 
 
 def passed(row: dict) -> bool:

@@ -10,6 +10,9 @@ histograms). Every batch of the ``--frames`` is processed once per pass, best of
 per frame.
 
     .venv/bin/python benchmarks/bench_localize_steps.py [--batches 1,16,32,128] [--frames 3000] [--algo cml]
+
+After the table, the same figures as one JSON object (``harness.emit``), each keyed by
+batch size (``b1``, ``b16`` ...).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import time
 import numpy as np
 
 from bench_nodes import payloads
+from harness import emit
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.intake import QueuedFrame
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, take_detections
@@ -70,6 +74,8 @@ def main() -> None:
     try:
         print("| batch | " + " | ".join(f"{s} (µs)" for s in STEPS) + " | µs per batch | µs per frame |")
         print("|---" * (len(STEPS) + 3) + "|")
+        fig: dict = {"algo": args.algo, "frames": args.frames, "passes": args.passes,
+                     **{f"{s}_us_per_batch": {} for s in STEPS}, "us_per_batch": {}, "us_per_frame": {}}
         for b in (int(x) for x in args.batches.split(",")):
             batches = [items[i:i + b] for i in range(0, len(items) - b + 1, b)]
             if not batches:
@@ -79,8 +85,13 @@ def main() -> None:
             per_batch = sum(best.values()) * 1e6
             print(f"| {b} | " + " | ".join(f"{best[s] * 1e6:.0f}" for s in STEPS)
                   + f" | {per_batch:.0f} | {per_batch / b:.1f} |", flush=True)
+            for s in STEPS:
+                fig[f"{s}_us_per_batch"][f"b{b}"] = round(best[s] * 1e6, 1)
+            fig["us_per_batch"][f"b{b}"] = round(per_batch, 1)
+            fig["us_per_frame"][f"b{b}"] = round(per_batch / b, 2)
     finally:
         node.session.close()
+    emit(fig)
 
 
 if __name__ == "__main__":

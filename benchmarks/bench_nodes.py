@@ -11,6 +11,9 @@ bursts of one frame per sensor, so the node's batches span many sensors, as in a
 chain of many sensors.
 
     .venv/bin/python benchmarks/bench_nodes.py [--sensors 500] [--frames 20000] [--algos pbp qiht cml]
+
+After the table, the same figures as one JSON object (``harness.emit``), each keyed by node
+(``quantize``, ``localize_pbp`` ...).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import time
 
 import numpy as np
 
+from harness import emit
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
@@ -132,6 +136,13 @@ def main() -> None:
     for r in rows:
         print(f"| {r['node']} | {r['frames']} | {r['cpu_us_per_frame']} | {r['bare_zenoh_us_per_msg']} | "
               f"{r['ratio_to_bare']} |")
+    fig: dict = {"sensors": args.sensors}
+    for name, key in (("frames", "frames"), ("cpu_us_per_frame", "cpu_us_per_frame"),
+                      ("bare_zenoh_us_per_msg", "bare_zenoh_us_per_msg"), ("ratio_to_bare", "ratio_to_bare"),
+                      ("wall_s", "wall_s"), ("frames_out", "out"), ("drops", "drops"),
+                      ("processing_errors", "processing_errors")):
+        fig[name] = {r["node"].replace("-", "_"): r[key] for r in rows}
+    emit(fig)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,9 @@ alone. Best of ``--repeat`` runs, us per frame; the ratio is taken in the same p
 (the machine may be shared, so absolute figures drift more than ratios).
 
     .venv/bin/python benchmarks/bench_noise.py [--repeat 7]
+
+After the table, the same figures as one JSON object (``harness.emit``), each keyed by
+batch size (``b1``, ``b16`` ...).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import numpy as np
 
 from bench_wire import per_frame_us
+from harness import emit
 from pipeline.dsp.noise import NoiseTracker, estimate_noise_sigma
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 
@@ -29,6 +33,8 @@ def main() -> None:
     rng = np.random.default_rng(0)
     fixed, auto = QuantizerConfig(alpha=0.45), QuantizerConfig(alpha="auto")
     print(f"{'batch':>6} {'fixed alpha':>12} {'alpha auto':>12} {'ratio':>7} {'estimate':>10}   (us per frame)")
+    fig: dict = {name: {} for name in ("fixed_alpha_us_per_frame", "alpha_auto_us_per_frame",
+                                       "ratio_auto_to_fixed", "estimate_us_per_frame")}
     for b in (1, 16, 64, 512):
         frames = 0.3 * (rng.standard_normal((b, M, 2)) + 1j * rng.standard_normal((b, M, 2)))
         ids = [f"s{i}" for i in range(b)]
@@ -46,6 +52,9 @@ def main() -> None:
         ta = per_frame_us(run_auto, b, args.repeat, calls)
         te = per_frame_us(lambda: estimate_noise_sigma(frames, N), b, args.repeat, calls)
         print(f"{b:>6} {tf:>12.1f} {ta:>12.1f} {ta / tf:>6.2f}x {te:>10.1f}")
+        for name, v in zip(fig, (tf, ta, ta / tf, te)):
+            fig[name][f"b{b}"] = round(v, 3)
+    emit(fig)
 
 
 if __name__ == "__main__":

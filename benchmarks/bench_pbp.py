@@ -11,13 +11,12 @@ Prints one JSON object; the ratios are what to compare across machines.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 
 import numpy as np
 
-from harness import best_rate
+from harness import best_rate, emit
 from pipeline.dsp.decode import DecoderConfig, decode
 
 QIHT = DecoderConfig(algo="qiht")
@@ -83,7 +82,7 @@ def main() -> None:
         M=cfg.n_measurements, N=cfg.samples_per_ramp, K=args.K, batch=args.batch, single=len(single),
         numpy=np.__version__, python=platform.python_version(), cpus=os.cpu_count(),
     )
-    print(json.dumps(results, indent=2))
+    emit(results)
 
 
 if __name__ == "__main__":

@@ -138,6 +138,9 @@ def main() -> None:
             out["memory_per_window_second_mb"] = round(slope, 3)
             out["memory_at_zero_window_mb"] = round(ra["tracemalloc_peak_mb"] - slope * a, 1)
         out["targets_of_the_whole_recording"] = in_child(path, 0, info["duration_s"] + 1, "targets")
+    # two levels: each window's figures as "window_<seconds>s" ("window_10s", "window_0_5s")
+    for label, figures in out.pop("windows").items():
+        out["window_" + label.replace(" ", "").replace(".", "_")] = figures
     emit(out)
 
 

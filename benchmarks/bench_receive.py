@@ -13,6 +13,8 @@ The figure is the subscriber process's CPU time (process_time, all its threads) 
 messages, in µs per message; the ratio is to ``poll`` of the same round.
 
     .venv/bin/python benchmarks/bench_receive.py [--messages 100000] [--rate 10000] [--rounds 2]
+
+A JSON line a subscriber on stderr; the table, then the figures (``harness.emit``) on stdout.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+from harness import emit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -165,6 +169,16 @@ def main() -> None:
     for row in rows:
         print(f"| {row['round']} | {row['mode']} | {row.get('cpu_us_per_msg', '–')} | {row.get('ratio_to_poll', '–')} "
               f"| {row.get('complete', row.get('error'))} |")
+    by_mode = {mode: [row for row in rows if row["mode"] == mode] for mode in ("poll", "notify", "fifo")}
+    best = {mode: min((x["cpu_us_per_msg"] for x in mine if x.get("cpu_us_per_msg")), default=None)
+            for mode, mine in by_mode.items()}
+    emit({"messages": args.messages, "rate_msgs_per_s": args.rate, "payload_bytes": SIZE, "rounds": args.rounds,
+          "cpu_us_per_msg_best": best,
+          "ratio_best_to_poll_best": {m: round(v / best["poll"], 2) if v and best["poll"] else None
+                                      for m, v in best.items()},
+          "cpu_us_per_msg": {m: [x.get("cpu_us_per_msg") for x in mine] for m, mine in by_mode.items()},
+          "ratio_to_poll": {m: [x.get("ratio_to_poll") for x in mine] for m, mine in by_mode.items()},
+          "complete": {m: all(x.get("complete", False) for x in mine) for m, mine in by_mode.items()}})
 
 
 if __name__ == "__main__":

@@ -23,6 +23,9 @@
     .venv/bin/python benchmarks/bench_record.py [--sensors 100] [--seconds 4]
     .venv/bin/python benchmarks/bench_record.py --index [--sensors 3] [--seconds 20] [--index-of FILE]
     .venv/bin/python benchmarks/bench_record.py --long /tmp/hour.mcap [--minutes 60]
+
+The recorder and player figures end with one JSON object (``harness.emit``, which also
+writes the suite's result file); ``--index`` and ``--long`` print theirs only.
 """
 
 from __future__ import annotations
@@ -47,10 +50,11 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Message, MessageIndex
 from mcap.stream_reader import StreamReader
 
-from harness import free_port
+from harness import emit, free_port
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import Algo
 from pipeline.errors import BusError
+from pipeline.keys import DERIVED_TOPICS
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
 from pipeline.wire import QuantizedFrameMsg, RawFrameMsg, TargetsMsg, encode_quantized, encode_raw
 from radar_driver.model import RadarConfig
@@ -126,7 +130,8 @@ def trial(msgs, rate: float, seconds: float, tmp: Path) -> dict:
     proc.terminate()
     out, _ = proc.communicate(timeout=60)
     f = McapFile(path)
-    written = sum(1 for ch, _ in f.messages() if not ch.topic.endswith(("pointcloud", "health")))
+    # what was sent: not what the recorder derives (pointcloud, scene, profile) nor the nodes' health
+    written = sum(1 for ch, _ in f.messages() if ch.topic.rsplit("/", 1)[-1] not in (*DERIVED_TOPICS, "health"))
     counters = f.metadata_dict().get("qradar.recorder_counters", {})
     sent = frames * len(msgs)
     return {"frames_per_s_per_sensor": rate, "messages_per_s": round(sent / elapsed, 1), "sent": sent,
@@ -333,22 +338,26 @@ def main() -> None:
     args.sensors = 100 if args.sensors is None else args.sensors
     args.seconds = 4.0 if args.seconds is None else args.seconds
     msgs = messages(args.sensors)
-    out = {"sensors": args.sensors, "bytes_per_frame_set": sum(len(p) for _, p in msgs) // args.sensors,
-           "mcapsink_in_process_messages_per_s": round(baseline_sink(msgs, 20), 1), "trials": []}
+    out = {"sensors": args.sensors, "seconds": args.seconds,
+           "bytes_per_frame_set": sum(len(p) for _, p in msgs) // args.sensors,
+           "mcapsink_in_process_messages_per_s": round(baseline_sink(msgs, 20), 1)}
+    trials = []
     best = None
     with tempfile.TemporaryDirectory() as tmp:
         for rate in args.rates:
             r = trial(msgs, rate, args.seconds, Path(tmp))
             print(json.dumps(r), file=sys.stderr, flush=True)
-            out["trials"].append(r)
+            trials.append(r)
             if not r["ok"]:
                 break
             best = r
+        # each trial's figures as a list, one a rate in order (two levels; the file's path left out)
+        out["trials"] = {k: [t[k] for t in trials] for k in trials[0] if k != "path"} if trials else {}
         if best is not None:
-            out["best"] = best
+            out["best"] = {k: v for k, v in best.items() if k != "path"}
             out["recorder_over_mcapsink"] = round(best["messages_per_s"] / out["mcapsink_in_process_messages_per_s"], 3)
             out.update(bench_replay(best["path"]))
-    print(json.dumps(out, indent=1))
+    emit(out, indent=1)
 
 
 if __name__ == "__main__":

@@ -30,18 +30,23 @@ the gap between the last pass and the first failure down to ``--resolution`` sen
     .venv/bin/python benchmarks/bench_stream.py --case edge --algo pbp --sensors 300 400 500 --bisect
     .venv/bin/python benchmarks/bench_stream.py --case edge --send spread --premade --sensors 300 500 --bisect
     .venv/bin/python benchmarks/bench_stream.py --quick                # 5 sensors, 3 s, pbp: < 1 min
+
+After the tables, the summary's figures as one JSON object (``harness.emit``), each keyed by
+the case/send/decoder label as a name (``edge_burst_pbp``, ``central_spread_cml_2l_premade_1_busy`` ...).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 import streamlib as sl
+from harness import emit
 
 
 def sweep(base: sl.StepSpec, counts: list[int], topo_factory, bisect: bool, resolution: int,
@@ -191,12 +196,36 @@ def report(args, rows: list[dict]) -> None:
     print(summary_markdown(summ))
     print()
     print(sl.markdown(sl.STEP_COLUMNS, [sl.step_cells(r) for r in rows]))
+    emit(figures(args, rows, summ))
     if args.json is not None:
         args.json.write_text(json.dumps({"summary": [{"label": s["label"], "best": (s["best"] or {}).get("sensors"),
                                                       "first_fail": (s["first_fail"] or {}).get("sensors"),
                                                       }
                                                      for s in summ],
                                          "steps": rows}, indent=1))
+
+
+def figures(args, rows: list[dict], summ: list[dict]) -> dict:
+    """The summary table's figures, two levels: per label (as a name, ``edge_burst_pbp``) the
+    largest passing sensor count and, at that count, frames/s, p50/p99 latency and each
+    process's CPU (key ``<label>_<process>``); the first failing count (None: none failed)."""
+    def name(label: str) -> str:
+        return re.sub(r"[^a-z0-9]+", "_", label.lower()).strip("_")
+
+    fig: dict = {"steps": len(rows), "seconds_measured": args.seconds, "warmup_s": args.warmup,
+                 "max_p99_ms": sl.MAX_P99_MS, "largest_passing_sensors": {}, "first_failing_sensors": {},
+                 "frames_per_s_at_largest": {}, "p50_ms_at_largest": {}, "p99_ms_at_largest": {},
+                 "cpu_pct_of_core_at_largest": {}}
+    for s in summ:
+        key, b, f = name(s["label"]), s["best"] or {}, s["first_fail"]
+        fig["largest_passing_sensors"][key] = b.get("sensors")
+        fig["first_failing_sensors"][key] = f["sensors"] if f else None
+        fig["frames_per_s_at_largest"][key] = b.get("offered_fps")
+        fig["p50_ms_at_largest"][key] = b.get("p50_ms")
+        fig["p99_ms_at_largest"][key] = b.get("p99_ms")
+        for proc, v in b.get("nodes", {}).items():
+            fig["cpu_pct_of_core_at_largest"][f"{key}_{name(proc)}"] = v.get("cpu_pct")
+    return fig
 
 
 if __name__ == "__main__":

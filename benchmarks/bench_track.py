@@ -17,14 +17,13 @@ tracker without integration, the ratio, and the integration's cost.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
 
 import numpy as np
 
-from harness import take_turns
+from harness import emit, take_turns
 from pipeline.dsp.decode import Decoder, DecoderConfig, decode_batch
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
@@ -72,7 +71,7 @@ def main() -> None:
     track_batch(tracker, headers, det, q, radar)
     with_integration_ms = (time.perf_counter() - t0) / n * 1e3
     loc, trk = float(np.median(loc_ms)), float(np.median(trk_ms))
-    print(json.dumps({
+    emit({
         "scene": "walker", "frames": n, "batch": args.batch, "rounds": len(loc_ms),
         "localizer_ms_per_frame": round(loc, 4), "tracker_ms_per_frame": round(trk, 4),
         "tracker_over_localizer": round(trk / loc, 4),
@@ -81,7 +80,7 @@ def main() -> None:
                         "tracker_with_integration_ms_per_frame": round(with_integration_ms, 3),
                         "over_localizer": round(with_integration_ms / loc, 3)},
         "host": {"cpus": os.cpu_count(), "python": platform.python_version(), "load1": round(os.getloadavg()[0], 2)},
-    }))
+    }, indent=None)
 
 
 if __name__ == "__main__":

@@ -11,7 +11,8 @@ system, from /proc), the page's frame time (its own work per frame: the events i
 since the last frame and the drawing, ``performance.now()``), the interval between its
 animation frames, the frames the browser itself counts over 50 ms (Long Animation Frames),
 the targets each sensor got through, and the events the view dropped for the page. N = 0 is
-the view and the page with nothing to show. Prints one JSON object.
+the view and the page with nothing to show. Prints one JSON object (``harness.emit``), each
+count's figures under ``sensors_<N>``.
 
     .venv/bin/python benchmarks/bench_web.py [--sensors 0 1 3 6] [--seconds 10] [--warmup 3]
 """
@@ -118,7 +119,21 @@ def main() -> None:
             x["view_cpu_pct_per_sensor"] = round(x["view_cpu_pct"] / x["sensors"], 2)
             if idle is not None:
                 x["view_cpu_pct_per_sensor_above_idle"] = round((x["view_cpu_pct"] - idle) / x["sensors"], 2)
-    emit({"machine": machine(), "rate_hz": RATE_HZ, "runs": runs})
+    emit({"machine": machine(), "rate_hz": RATE_HZ, **{f"sensors_{x['sensors']}": flat(x) for x in runs}})
+
+
+def flat(run: dict) -> dict:
+    """One count's figures, one level: the page's as ``page_<figure>[_<p50|p99|max>]``, the
+    targets each sensor got through as ``targets_hz_<sensor>``."""
+    out = {k: v for k, v in run.items() if k != "page"}
+    for k, v in run["page"].items():
+        if k == "targets_hz":
+            out |= {f"targets_hz_{sensor}": hz for sensor, hz in v.items()}
+        elif isinstance(v, dict):
+            out |= {f"page_{k}_{stat}": x for stat, x in v.items()}
+        else:
+            out[f"page_{k}"] = v
+    return out
 
 
 if __name__ == "__main__":

@@ -16,6 +16,9 @@ Best of ``--repeat`` runs, us per frame; ratios are taken in the same process (t
 machine may be shared, so absolute figures drift more than ratios).
 
     .venv/bin/python benchmarks/bench_wire.py [--repeat 7] [--against REV]
+
+After the tables, the same figures as one JSON object (``harness.emit``); ``b<N>``: a batch
+of N frames.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import numpy as np
 
 import pipeline.wire as wire
 import radar_driver
-from harness import ROOT, best_time
+from harness import ROOT, best_time, emit
 from pipeline.dsp.localize import Detections
 from pipeline.dsp.quantize import (DITHER_COUNTER, DITHER_SEEDSEQ, QuantizerConfig, quantize_frames,
                                sensor_dither_seeds, unit_dither)
@@ -122,9 +125,19 @@ def floor_costs(repeat: int) -> dict[str, float]:
             "decode": per_frame_us(decode, 1, repeat, 256)}
 
 
-def fixed_cost(repeat: int, against: str | None) -> None:
-    """Prints the table of :func:`codec_costs` at B = 1, 16, 256 (and against ``against``)."""
+def _key(name: str) -> str:
+    """A codec case's name as a figure's key ("encode_raw single" -> "encode_raw_single")."""
+    return {"TargetsMsg.to_json": "targets_msg_to_json"}.get(name, name.replace(" ", "_"))
+
+
+def fixed_cost(repeat: int, against: str | None) -> dict:
+    """Prints the table of :func:`codec_costs` at B = 1, 16, 256 (and against ``against``);
+    returns its figures."""
     floor = floor_costs(repeat)
+    figures: dict = {"fixed_floor_us_per_frame": {k: round(v, 3) for k, v in floor.items()},
+                     "fixed_us_per_frame": {}}
+    if against:
+        figures |= {"against": against, "fixed_against_us_per_frame": {}, "ratio_now_to_against": {}}
     print(f"\nfixed cost: us per frame, M = {M}; the floor of a Python codec (struct header + body bytes): "
           f"encode {floor['encode']:.2f}, decode {floor['decode']:.2f}")
     old = wire_at(against) if against else None
@@ -139,9 +152,14 @@ def fixed_cost(repeat: int, against: str | None) -> None:
                 if then:
                     old_us = min(old_us, per_frame_us(then[name], b, 1, calls))
             line = f"B={b:4d}  {name:24s} {us:8.2f}"
+            key = f"{_key(name)}_b{b}"
+            figures["fixed_us_per_frame"][key] = round(us, 3)
             if then:
                 line += f"   {against} {old_us:8.2f}   now/{against} {us / old_us:5.2f}x"
+                figures["fixed_against_us_per_frame"][key] = round(old_us, 3)
+                figures["ratio_now_to_against"][key] = round(us / old_us, 3)
             print(line)
+    return figures
 
 
 def main() -> None:
@@ -152,10 +170,13 @@ def main() -> None:
     args = ap.parse_args()
     r = args.repeat
     if args.only_fixed:
-        fixed_cost(r, args.against)
+        emit(fixed_cost(r, args.against))
         return
     rng = np.random.default_rng(0)
     print(f"us per frame, M = {M}, best of {r}")
+    fig: dict = {name: {} for name in ("dither_counter_us_per_frame", "dither_seedseq_us_per_frame",
+                                       "ratio_dither_seedseq_to_counter", "quantize_counter_us_per_frame",
+                                       "quantize_seedseq_us_per_frame")}
     for b in (1, 16, 64, 512):
         ids = [f"s{i}" for i in range(b)]
         seeds, seqs = sensor_dither_seeds(0, ids), np.arange(b, dtype=np.uint64) + np.uint64(2**40)
@@ -168,6 +189,10 @@ def main() -> None:
                           max(1, calls // 4))
         print(f"B={b:4d}  unit_dither counter {c:6.2f}  seedseq {s:6.2f}  (seedseq/counter {s / c:4.1f}x)   "
               f"quantize_frames counter {qc:6.2f}  seedseq {qs:6.2f}")
+        for name, v in (("dither_counter_us_per_frame", c), ("dither_seedseq_us_per_frame", s),
+                        ("ratio_dither_seedseq_to_counter", s / c), ("quantize_counter_us_per_frame", qc),
+                        ("quantize_seedseq_us_per_frame", qs)):
+            fig[name][f"b{b}"] = round(v, 3)
 
     b = 64
     ids = [f"s{i % 16}" for i in range(b)]
@@ -181,6 +206,10 @@ def main() -> None:
     enc = per_frame_us(lambda: encode_quantized_batch(heads, q), b, r, 4)
     print(f"B={b}  decode_quantized_batch {batch:6.2f}  decode_quantized {single:6.2f}  "
           f"(single/batch {single / batch:4.1f}x)   encode_quantized_batch {enc:6.2f}")
+    fig["quantized_codec_b64_us_per_frame"] = {"decode_quantized_batch": round(batch, 3),
+                                               "decode_quantized_single": round(single, 3),
+                                               "encode_quantized_batch": round(enc, 3)}
+    fig["ratio_decode_quantized_single_to_batch_b64"] = round(single / batch, 3)
 
     k = 2
     f = lambda: rng.uniform(1, 50, (b, k))  # noqa: E731
@@ -195,7 +224,10 @@ def main() -> None:
     tj = per_frame_us(to_json, b, r, 4)
     print(f"B={b}, K={k}  encode_targets_batch {tb:6.2f}  TargetsMsg(det.frame(i)).to_json {tj:6.2f}  "
           f"(to_json/batch {tj / tb:4.1f}x)")
-    fixed_cost(r, args.against)
+    fig["targets_b64_k2_us_per_frame"] = {"encode_targets_batch": round(tb, 3), "targets_msg_to_json": round(tj, 3)}
+    fig["ratio_targets_to_json_to_batch_b64"] = round(tj / tb, 3)
+    fig |= fixed_cost(r, args.against)
+    emit(fig)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Timings", "best_rate", "best_time", "cpu_s", "emit", "free_port", "machine", "rss_mb", "take_turns",
+__all__ = ["Timings", "best_rate", "best_time", "cpu_s", "emit", "free_port", "machine", "rss_mb", "run_record", "take_turns",
            "tests_module", "time_calls", "wait_port"]
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -147,12 +147,48 @@ def machine() -> dict[str, Any]:
     return {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__}
 
 
+#: the folder where ``emit`` also writes its script's result file, with the run's date, host and
+#: command (``benchmarks/suite.py`` sets it; docs/benchmarks.md's current figures come from there)
+RESULTS_ENV = "QRADAR_BENCH_RESULTS"
+
+
+def run_record(figures: Mapping[str, Any]) -> dict[str, Any]:
+    """A benchmark's figures with what says where they come from: the script, its command line,
+    the date (UTC, ISO 8601), the host (name, cores, 1-min load average at the end, Python, numpy)
+    and the commit of the checkout (``git describe``; None outside a git checkout)."""
+    import datetime
+    import shlex
+    import subprocess
+
+    try:
+        commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
+                                text=True, timeout=10, check=True).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    script = Path(sys.argv[0]).name
+    return {
+        "script": script,
+        "command": shlex.join(["benchmarks/" + script, *sys.argv[1:]]),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "host": {"name": platform.node(), "load_1min": round(os.getloadavg()[0], 2), **machine()},
+        "commit": commit,
+        "figures": dict(figures),
+    }
+
+
 def emit(figures: Mapping[str, Any], indent: int | None = 2, path: str | Path | None = None) -> None:
-    """Print the figures as one JSON object (and write them to ``path`` if given)."""
+    """Print the figures as one JSON object (and write them to ``path`` if given). With
+    ``$QRADAR_BENCH_RESULTS`` set (the suite sets it), also write ``<that folder>/<script>.json``:
+    the figures inside ``run_record``'s description of the run."""
     text = json.dumps(figures, indent=indent)
     print(text, flush=True)
     if path is not None:
         Path(path).write_text(text + "\n")
+    folder = os.environ.get(RESULTS_ENV)
+    if folder:
+        out = Path(folder) / (Path(sys.argv[0]).stem + ".json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(run_record(figures), indent=1) + "\n")
 
 
 def tests_module(name: str):

@@ -9,12 +9,18 @@ bench_driver_load.py and soak.py (load trials of 10 min and more), bench_web_plo
 registry), and the accuracy studies
 (cml_likelihood.py, chamber_frontend.py, sweep_alpha.py, track_integration.py).
 
-    .venv/bin/python benchmarks/suite.py [--short] [--only bench_pbp bench_cml ...] [--list]
+    .venv/bin/python benchmarks/suite.py [--short] [--only bench_pbp bench_cml ...] [--list] [--results DIR]
+
+Each script writes its figures, with the run's date, host and command, to ``<DIR>/<script>.json``
+(``harness.emit``; DIR is ``benchmarks/results`` for a full run, ``out/bench-short`` with
+``--short``, whose figures are not worth quoting). docs/benchmarks.md's current figures are made
+from ``benchmarks/results``: ``.venv/bin/python benchmarks/figures.py --update docs/benchmarks.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -22,6 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+#: where a full run's result files go (committed: docs/benchmarks.md's current figures read them)
+RESULTS = HERE / "results"
+#: where a short (smoke) run's go, never over the quoted ones
+SHORT_RESULTS = HERE.parent / "out" / "bench-short"
 
 
 @dataclass(frozen=True)
@@ -61,7 +71,12 @@ def main() -> int:
     ap.add_argument("--short", action="store_true", help="each script with its shortest options")
     ap.add_argument("--only", nargs="+", default=None, metavar="NAME", help="these scripts only (bench_pbp ...)")
     ap.add_argument("--list", action="store_true", help="print the commands and run nothing")
+    ap.add_argument("--results", type=Path, default=None, metavar="DIR",
+                    help=f"each script's figures as DIR/<script>.json (default: {RESULTS.relative_to(HERE.parent)}, "
+                         f"with --short {SHORT_RESULTS.relative_to(HERE.parent)})")
     args = ap.parse_args()
+    results = args.results or (SHORT_RESULTS if args.short else RESULTS)
+    env = {**os.environ, "QRADAR_BENCH_RESULTS": str(results.resolve())}
     steps = list(SUITE)
     if args.only is not None:
         names = {s.script.removesuffix(".py") for s in SUITE}
@@ -76,10 +91,18 @@ def main() -> int:
         if args.list:
             continue
         t0 = time.monotonic()
-        rc = subprocess.run(cmd, check=False).returncode
+        rc = subprocess.run(cmd, check=False, env=env).returncode
         print(f"== {step.script}: exit {rc}, {time.monotonic() - t0:.1f} s", flush=True)
         if rc != 0:
             failed.append(step.script)
+    if not args.list:
+        print(f"suite: figures in {results}", flush=True)
+        if results.resolve() == RESULTS.resolve() and not failed:
+            # docs/benchmarks.md's current figures, from the result files just written
+            rc = subprocess.run([sys.executable, str(HERE / "figures.py"), "--update",
+                                 str(HERE.parent / "docs" / "benchmarks.md")], check=False).returncode
+            if rc != 0:
+                failed.append("figures.py")
     if failed:
         print(f"suite: {len(failed)} of {len(steps)} failed: {' '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0
