@@ -63,8 +63,9 @@ def test_a_run_recording_and_its_split_set(track_recording):
             pytest.approx(first / 1e9, abs=1e-3)
         assert datetime.fromisoformat(info["end"]["local"]).timestamp() == pytest.approx(last / 1e9, abs=1e-3)
         for t in info["topics"]:
-            assert t["sensor"] == "kmd2-0" and t["rate_hz"] == pytest.approx(t["messages"] * 1e9 / (last - first),
-                                                                             rel=1e-3)
+            # a part of the set can hold one instant (the last, on a loaded host): no rate, not a division by 0
+            rate = None if last == first else pytest.approx(t["messages"] * 1e9 / (last - first), rel=1e-3)
+            assert t["sensor"] == "kmd2-0" and t["rate_hz"] == rate
         assert info["sensors"] == ["kmd2-0"]
         assert info["radar"]["config_id"] == RadarConfig().config_id()
         assert info["quantizer"]["alpha"] == 0.55 and info["quantizer"]["bits"] == 1
