@@ -66,7 +66,8 @@ def test_a_run_recording_and_its_split_set(track_recording):
             # a part of the set can hold one instant (the last, on a loaded host): no rate, not a division by 0
             rate = None if last == first else pytest.approx(t["messages"] * 1e9 / (last - first), rel=1e-3)
             assert t["sensor"] == "kmd2-0" and t["rate_hz"] == rate
-        assert info["sensors"] == ["kmd2-0"]
+        # a part of the set may hold no sensor's message (its last instant: the run's own, on a loaded host)
+        assert info["sensors"] == (["kmd2-0"] if any(topic.startswith("radar/kmd2-0/") for topic in counts) else [])
         assert info["radar"]["config_id"] == RadarConfig().config_id()
         assert info["quantizer"]["alpha"] == 0.55 and info["quantizer"]["bits"] == 1
         assert info["decoder"]["algo"] == "pbp" and info["decoder"]["K"] == 2
