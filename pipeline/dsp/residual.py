@@ -243,7 +243,7 @@ def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, thres
     if inside.all() or not inside.any():
         return energy, nu, active, strongest
     cells = max(int(inside.sum()), 2)
-    rows, current = np.arange(b), energy
+    rows, current, residual = np.arange(b), energy, y
     for _ in range(OUTSIDE_RETURNS):
         beyond = np.where(inside[None, :], -1.0, current)
         taken = np.abs((np.arange(n)[None, None, :] - nu[:, :, None] + n / 2) % n - n / 2) <= RESOLUTION_BINS
@@ -254,11 +254,10 @@ def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, thres
         if not strong.any():
             break
         strongest = np.maximum(strongest, np.where(strong, current[rows, q], 0.0))
-        residual = y if nu.shape[1] == 0 else fit_residual(y, nu, active)
         nu = np.concatenate([nu, refine_bins(residual, q)[:, None]], axis=1)
         active = np.concatenate([active, strong[:, None]], axis=1)
-        fitted = active.any(axis=1)
-        current = np.where(fitted[:, None], _bin_energy(fit_residual(y, nu, active)), energy)
+        residual = fit_residual(y, nu, active)  # the next return is refined on it
+        current = np.where(active.any(axis=1)[:, None], _bin_energy(residual), energy)
     return current, nu, active, strongest
 
 
