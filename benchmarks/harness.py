@@ -8,10 +8,13 @@ venv, so ``import harness`` and ``import pipeline`` work from any working direct
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import platform
+import shlex
 import socket
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -156,10 +159,6 @@ def run_record(figures: Mapping[str, Any]) -> dict[str, Any]:
     """A benchmark's figures with what says where they come from: the script, its command line,
     the date (UTC, ISO 8601), the host (name, cores, 1-min load average at the end, Python, numpy)
     and the commit of the checkout (``git describe``; None outside a git checkout)."""
-    import datetime
-    import shlex
-    import subprocess
-
     try:
         commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
                                 text=True, timeout=10, check=True).stdout.strip() or None

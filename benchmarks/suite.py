@@ -27,6 +27,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from harness import RESULTS_ENV
+
 HERE = Path(__file__).resolve().parent
 #: where a full run's result files go (committed: docs/benchmarks.md's current figures read them)
 RESULTS = HERE / "results"
@@ -76,7 +78,7 @@ def main() -> int:
                          f"with --short {SHORT_RESULTS.relative_to(HERE.parent)})")
     args = ap.parse_args()
     results = args.results or (SHORT_RESULTS if args.short else RESULTS)
-    env = {**os.environ, "QRADAR_BENCH_RESULTS": str(results.resolve())}
+    env = {**os.environ, RESULTS_ENV: str(results.resolve())}
     steps = list(SUITE)
     if args.only is not None:
         names = {s.script.removesuffix(".py") for s in SUITE}
