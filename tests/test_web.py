@@ -118,16 +118,21 @@ def test_the_page_shows_a_run_of_three_sensors_at_20_hz_and_keeps_up(browser):
         stop.set()
         job.join(30)
     frames = {s: after["sensors"][s]["frames"] - before["sensors"][s]["frames"] for s in after["sensors"]}
+    made = {s: after["sensors"][s]["seq"] - before["sensors"][s]["seq"] for s in after["sensors"]}  # by the run
     seconds = after["interval"]["n"] * after["interval"]["mean"] / 1e3
     print(f"\nfirst targets {first:.0f} ms after opening; 3 sensors at 20 Hz over {seconds:.1f} s: frame time "
           f"p50 {after['frame']['p50']:.1f} ms, p99 {after['frame']['p99']:.1f} ms, max {after['frame']['max']:.1f} ms "
           f"(drawing p99 {after['render']['p99']:.1f} ms); frame interval p50 {after['interval']['p50']:.1f} ms, "
           f"p99 {after['interval']['p99']:.1f} ms; frames over 50 ms {after['longFrames']} of {after['interval']['n']}; "
-          f"targets events {frames}")
+          f"targets events {frames} of {made} the run made")
     assert after["frame"]["p99"] <= FRAME_P99_MS, after  # the page's own work for a frame
     # the frames' cadence also depends on what else the host runs (2 busy cores): 30 frames/s at the median
     assert after["interval"]["p50"] <= 34.0, after
-    assert all(n >= 0.7 * 20 * seconds for n in frames.values()), (frames, seconds)  # every frame reached the page
+    # every frame the run made reached the page; the run's own rate is the host's (on a fresh clone
+    # beside two other test workers it made 37-56 of a sensor's 62 frames in 3 s), so it is only
+    # asked to stream
+    assert all(frames[s] >= made[s] > 0 for s in frames), (frames, made)
+    assert all(n >= 0.3 * 20 * seconds for n in frames.values()), (frames, seconds)
     assert after["dropped"] == 0 and after["errors"] == [] and after["connected"]
     assert after["truthDrawn"] == 3 * 2 and after["targetsDrawn"] >= 3  # the chamber's two reflectors, per sensor
     assert after["healthRows"] >= 3 * 4  # source, quantize, localize, view per sensor

@@ -404,7 +404,7 @@
   window.qradarView = {
     stats() {
       const per = {};
-      for (const s of sensors.values()) per[s.id] = { frames: s.frames, targets: s.targets.length, tracks: s.tracks.length,
+      for (const s of sensors.values()) per[s.id] = { frames: s.frames, seq: s.seq, targets: s.targets.length, tracks: s.tracks.length,
                                                       truth: (s.truth || []).length, profile: !!s.profile, nodes: s.health.size };
       return { connected, connects: perf.connects, refused: perf.refused, mode: hello && hello.mode, events: { ...perf.events },
                firstEventMs: perf.firstEventMs, firstTargetsMs: perf.firstTargetsMs, renders: perf.renders,
