@@ -97,3 +97,21 @@ def test_a_changed_field_default_changes_the_option(monkeypatch):
     monkeypatch.setattr(f, "default", 1234)
     args = build_parser().parse_args(["quantize"])
     assert args.queue_size == 1234
+
+
+def test_each_command_is_built_alone_from_the_adder_the_table_names():
+    """``qradar CMD`` builds only CMD's group (qradar.cli.ADDERS): the table names every
+    command the full parser has, in `qradar -h`'s order, and each command's parser built alone
+    is the full parser's."""
+    from qradar.cli import ADDERS
+
+    def commands(parser):
+        return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+    full = commands(build_parser())
+    assert list(full) == [c for names in ADDERS.values() for c in names]
+    for name, sub in full.items():
+        alone = commands(build_parser(name))
+        assert name in alone and len(alone) < len(full)
+        assert [a.option_strings for a in alone[name]._actions] == [a.option_strings for a in sub._actions], name
+    assert list(commands(build_parser("no-such-command"))) == list(full)  # argparse names them all
