@@ -34,6 +34,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import zenoh
+
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import default_alpha
 from pipeline.errors import ParameterError
@@ -115,7 +117,7 @@ def read_lab(path: Path):
     from . import build_parser, with_config  # (this module is one of the package's commands)
 
     explicit = lab.read_file(path, Schema("run", RUN_PARTS))
-    parser = build_parser()
+    parser = build_parser("run")
     argv = ["run", str(path)]
     return with_config(parser, parser.parse_args(argv), argv), explicit
 
@@ -305,20 +307,36 @@ NODE_READY_S = 30.0
 class Readiness:
     """``up``'s own zenoh session, a client of its router (none under ``--secure``, where
     ``up`` has no identity of its own, nor on a host without the router): the liveliness
-    tokens of its nodes, counted by kind."""
+    tokens of its nodes, counted by kind as a liveliness subscriber sees them come and go
+    (an event each, not a poll: a loop of liveliness queries took half a core from ``up``
+    and a fifth from its router while a node loaded)."""
 
     def __init__(self, bus: BusConfig | None):
-        self.bus, self.session = bus, None
+        self.bus, self.session, self._subscriber = bus, None, None
+        self._alive: set[str] = set()
+        self._changed = threading.Condition()
 
     def open(self) -> None:
         if self.bus is not None and self.session is None:
             self.session = self.bus.open()
+            self._subscriber = self.session.liveliness().declare_subscriber(
+                f"{self.bus.prefix}/alive/**", self._on_token, history=True)
+
+    def _on_token(self, sample) -> None:
+        key = str(sample.key_expr)
+        with self._changed:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(key)
+            else:
+                self._alive.discard(key)
+            self._changed.notify_all()
 
     def count(self, command: str) -> int:
         if self.session is None or command not in TOKEN:
             return 0
-        key = f"{self.bus.prefix}/alive/{TOKEN[command]}/**"
-        return sum(r.ok is not None for r in self.session.liveliness().get(key, timeout=0.5))
+        kind = f"{self.bus.prefix}/alive/{TOKEN[command]}/"
+        with self._changed:
+            return sum(k.startswith(kind) for k in self._alive)
 
     def wait(self, command: str, before: int, proc: NodeProcess, timeout_s: float = NODE_READY_S) -> bool:
         """Until a token of ``command``'s kind more than ``before`` is seen (True), ``proc``
@@ -326,12 +344,20 @@ class Readiness:
         if self.session is None or command not in TOKEN:
             return True
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and proc.returncode is None:
+        while proc.returncode is None:
             if self.count(command) > before:
                 return True
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            with self._changed:  # a token, or a look at whether proc ended
+                self._changed.wait(min(left, 0.5))
         return False
 
     def close(self) -> None:
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
         if self.session is not None:
             self.session.close()
             self.session = None
