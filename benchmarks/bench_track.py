@@ -62,7 +62,8 @@ def main() -> None:
         for idx in batches:
             held.decode_batch(q.take(idx), radar, 2)
 
-    times = take_turns({"loc": localize, "trk": lambda: track_batch(Tracker(TrackerConfig(integrate_s=0)), headers, det)},
+    times = take_turns({"loc": localize, "trk": lambda: track_batch(Tracker(TrackerConfig(integrate_s=0)), headers, det,
+                                                                    radar=radar)},
                        args.seconds, "bench_track", clock=time.perf_counter)
     loc_ms, trk_ms = (np.asarray(times[k]) / n * 1e3 for k in ("loc", "trk"))
 

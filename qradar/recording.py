@@ -288,7 +288,7 @@ class Recording:
         order = _ordered([m.seq for m in msgs])
         msgs = [msgs[i] for i in order]
         rows = [(i, t) for i, m in enumerate(msgs) for t in m.tracks]
-        col = {name: np.array([t[name] for _, t in rows],
+        col = {name: np.array([t.get(name, np.nan) for _, t in rows],  # an optional field absent: NaN
                               dtype=np.int64 if name in ("track_id", "hits") else bool if name == "static" else float)
                for name in TRACK_FIELDS}
         return Tracks(sensor, np.array([m.seq for m in msgs], np.uint64),

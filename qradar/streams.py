@@ -79,8 +79,9 @@ class Tracks(_Messages):
     message; a track is the rows of one ``track_id``. Per row (N,): ``frame`` (the index of
     its message in the per-message arrays), ``track_id`` and ``hits`` int64, ``range_m``,
     ``angle_deg``, ``x_m``, ``y_m``, ``vx_mps``, ``vy_mps``, ``sigma_m``, ``age_s`` float,
-    ``static`` bool. Per message (F,), in sequence order (:class:`_Messages`), and
-    ``published_ns``, ``count`` (its tracks)."""
+    ``static`` bool, ``radial_velocity_mps`` float (the Doppler's, ambiguity resolved; NaN
+    while unresolved, without Doppler, or in older recordings). Per message (F,), in sequence
+    order (:class:`_Messages`), and ``published_ns``, ``count`` (its tracks)."""
 
     published_ns: np.ndarray
     count: np.ndarray
@@ -96,6 +97,7 @@ class Tracks(_Messages):
     age_s: np.ndarray
     hits: np.ndarray
     static: np.ndarray
+    radial_velocity_mps: np.ndarray
 
 
 def frames_table(frames: Frames | Quantized) -> dict[str, np.ndarray]:

@@ -395,7 +395,7 @@ def test_a_run_recording_shows_itself_in_foxglove(node, tmp_path):
 def test_tracks_as_a_scene_update_and_sensors_at_their_poses(node, bus, zenoh_session, tmp_path):
     """Tracks messages -> foxglove.SceneUpdate, decoded by the foreign client with the
     official schema the server advertises: one entity per track, a sphere at its position
-    and a label with its id, speed and sigma; each sensor's frame at its pose of the
+    and a label with its id, speed, radial velocity (the Doppler's) and sigma; each sensor's frame at its pose of the
     sensors file."""
     from pipeline.wire import TracksMsg
     from qradar.view import load_poses, track_label
@@ -407,7 +407,7 @@ def test_tracks_as_a_scene_update_and_sensors_at_their_poses(node, bus, zenoh_se
     view.start()
     client = Client(node, view.url, topic=r"/(tracks|tf)$")
     tracks = [{"track_id": 3, "range_m": 5.0, "angle_deg": 0.0, "x_m": 5.0, "y_m": 0.0, "vx_mps": 1.2,
-               "vy_mps": -0.5, "sigma_m": 0.25, "age_s": 2.0, "hits": 40, "static": False},
+               "vy_mps": -0.5, "sigma_m": 0.25, "age_s": 2.0, "hits": 40, "static": False, "radial_velocity_mps": 1.187},
               {"track_id": 4, "range_m": 10.0, "angle_deg": 30.0, "x_m": 8.66, "y_m": 5.0, "vx_mps": 0.0,
                "vy_mps": 0.0, "sigma_m": 0.02, "age_s": 9.0, "hits": 180, "static": True}]
     try:
@@ -436,7 +436,7 @@ def test_tracks_as_a_scene_update_and_sensors_at_their_poses(node, bus, zenoh_se
     assert moving["spheres"][0]["size"]["x"] == pytest.approx(0.5)  # 2 sigma
     assert static["spheres"][0]["size"]["x"] == pytest.approx(0.2)  # at least 0.2 m
     assert static["spheres"][0]["pose"]["position"]["y"] == pytest.approx(5.0)
-    assert moving["texts"][0]["text"] == track_label(tracks[0]) == "#3 1.30 m/s σ 0.250 m"
+    assert moving["texts"][0]["text"] == track_label(tracks[0]) == "#3 1.30 m/s radial +1.187 m/s σ 0.250 m"
     assert static["texts"][0]["text"] == "#4 static σ 0.020 m"
     assert static["spheres"][0]["color"]["g"] > static["spheres"][0]["color"]["r"]  # green while static
     tf = {e["data"]["childFrameId"]: e["data"] for e in client.messages("/tf")}

@@ -201,7 +201,8 @@ def test_targets_with_their_uncertainty_get_ellipses(browser, bus, zenoh_session
         tracks = {"version": 1, "type": "tracks", "sensor_id": "u0", "seq": 1, "timestamp_ns": time.time_ns(),
                   "published_ns": time.time_ns(), "tracks": [
                       {"track_id": 7, "range_m": 8.0, "angle_deg": 10.0, "x_m": 7.878, "y_m": 1.389, "vx_mps": 0.5,
-                       "vy_mps": 0.0, "sigma_m": 0.2, "age_s": 1.0, "hits": 10, "static": False}]}
+                       "vy_mps": 0.0, "sigma_m": 0.2, "age_s": 1.0, "hits": 10, "static": False,
+                       "radial_velocity_mps": 0.493}]}  # its label shows the Doppler's radial velocity
         for _ in range(5):  # a burst: the page's frames are at most one per event
             zenoh_session.put("radar/u0/targets", json.dumps(msg).encode())
             zenoh_session.put("radar/u0/tracks", json.dumps(tracks).encode())

@@ -28,6 +28,19 @@ Per sensor, in the sensor's plane (``x_m`` along boresight, ``y_m`` across it:
   static, above ``moving_chi2`` (13.8 = 99.9 %) to stop being static (a hysteresis, so
   that the 1 % of frames of a static reflector whose estimate strays do not end it).
 
+* **Doppler** (decoders that measure it, ``cml``): a target's ``radial_velocity_mps`` is its
+  radial velocity modulo the radar's ambiguity interval V (0.249 m/s for 25 ms between
+  ramps). A track unwraps its targets' Doppler from frame to frame (a change under V/2 a
+  frame: 2.5 m/s^2 at 20 Hz) and integrates it to the displacement D(t); its measured
+  ranges then follow ``R(t) - D(t) = R0 + n V t``, and a weighted straight-line fit over
+  the last ``doppler_window_s`` (forgotten exponentially) tells the whole number n: the
+  ambiguity, resolved over frames once the slope is known to ``V / 8`` (its residual
+  scatter counted) and lies within a quarter of V of a whole n. From then on the unwrapped
+  Doppler plus n V is a measurement of the filter's radial velocity (an extended Kalman
+  update, noise ``doppler_sigma_mps``; one whose innovation is beyond 99.9 % is left out),
+  so the track's velocity and the frames' Doppler agree, and the track reports it. A gap
+  without Doppler longer than ``doppler_gap_s`` starts the track's Doppler history afresh.
+
 Only confirmed tracks are reported. The math is pure functions on arrays with the
 track axis first, and :class:`SensorTracks` one sensor's state;
 :class:`pipeline.nodes.tracker.Tracker` holds the sensors' states (bounded, forgotten with
@@ -54,6 +67,14 @@ _FORBIDDEN = 1e12
 
 #: H: the filter's measurement is its position
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
+#: chi-square quantile, 1 degree of freedom, 99.9 %: the gate of a Doppler update
+CHI2_1DOF_999 = 10.8276
+#: the Doppler's ambiguity is resolved when the fit's slope is known to V / RESOLVE_SIGMAS ...
+RESOLVE_SIGMAS = 8.0
+#: ... lies within this fraction of V of a whole number of V ...
+RESOLVE_FRACTION = 0.25
+#: ... on at least this many frames
+RESOLVE_FRAMES = 10
 
 
 @dataclass(frozen=True)
@@ -79,6 +100,9 @@ class TrackerConfig:
         is left out.
     integrate_s : static tracks are refined on the codes of this many seconds of frames
         together (0: no integration; :mod:`pipeline.dsp.integrate`).
+    doppler_sigma_mps : noise of a track's resolved Doppler (its radial velocity), m/s.
+    doppler_window_s : memory of the fit that resolves the Doppler's ambiguity, s.
+    doppler_gap_s : a track without Doppler for longer starts its Doppler history afresh, s.
     """
 
     accel_mps2: float = 1.0
@@ -99,11 +123,15 @@ class TrackerConfig:
     max_tracks: int = 16
     max_gap_s: float = 5.0
     integrate_s: float = 1.0
+    doppler_sigma_mps: float = 0.02
+    doppler_window_s: float = 5.0
+    doppler_gap_s: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("accel_mps2", "range_sigma_m", "angle_sigma_deg", "snr_range_m", "snr_angle_rad",
                      "min_range_sigma_m", "min_angle_sigma_deg", "gate_chi2", "max_coast_s", "static_chi2",
-                     "moving_chi2", "init_speed_mps", "max_gap_s"):
+                     "moving_chi2", "init_speed_mps", "max_gap_s", "doppler_sigma_mps", "doppler_window_s",
+                     "doppler_gap_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
                 raise ParameterError(f"tracker: {name}={v!r} must be a finite number > 0")
@@ -227,6 +255,49 @@ def velocity_chi2(x: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.einsum("ti,tij,tj->t", v, _inv2(p[:, 2:, 2:]), v)
 
 
+def radial_velocity(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The radial velocity h (T,) (m/s, + = away) of states x (T, 4) and its Jacobian
+    (T, 4): ``h = (x vx + y vy) / R``."""
+    rho = np.maximum(np.hypot(x[:, 0], x[:, 1]), 1e-9)
+    ux, uy = x[:, 0] / rho, x[:, 1] / rho
+    h = ux * x[:, 2] + uy * x[:, 3]
+    jac = np.stack([(x[:, 2] - ux * h) / rho, (x[:, 3] - uy * h) / rho, ux, uy], axis=1)
+    return h, jac
+
+
+def update_radial_velocity(x: np.ndarray, p: np.ndarray, v: np.ndarray, sigma_mps: float,
+                           gate_chi2: float = CHI2_1DOF_999) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Extended Kalman update of T tracks by measured radial velocities v (T,) (m/s) of
+    std ``sigma_mps``: x (T, 4), p (T, 4, 4) -> x, p, and the mask (T,) of the updates made
+    (an innovation beyond ``gate_chi2``, 1 dof, is left out)."""
+    h, jac = radial_velocity(x)
+    ph = (p @ jac[:, :, None])[:, :, 0]  # P H^T (T, 4)
+    s = (jac * ph).sum(axis=1) + sigma_mps ** 2
+    nu = v - h
+    ok = nu * nu / s <= gate_chi2
+    gain = np.where(ok[:, None], ph / s[:, None], 0.0)  # K (T, 4)
+    x = x + gain * nu[:, None]
+    p = p - gain[:, :, None] * ph[:, None, :]  # P - K S K^T = P - K (P H^T)^T: a scalar measurement
+    return x, 0.5 * (p + p.transpose(0, 2, 1)), ok
+
+
+def doppler_fit(sums: np.ndarray, ambiguity_mps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The straight-line fit of ``R - D = R0 + n V t`` from its weighted sums (T, 7) (W, Wt,
+    Wtt, Wy, Wty, Wyy, N: weights 1/sigma_R^2, t in s, y = R - D in m, N the decayed count):
+    the slope in units of V (T,), its std in those units (scaled up by the residual scatter
+    when it exceeds the ranges' sigmas), and the nearest whole n (T,)."""
+    w, wt, wtt, wy, wty, wyy, n = sums.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = w * wtt - wt * wt
+        slope = (w * wty - wt * wy) / den
+        icpt = (wy - slope * wt) / w
+        chi2 = np.maximum(wyy - 2 * icpt * wy - 2 * slope * wty + icpt * icpt * w + 2 * icpt * slope * wt
+                          + slope * slope * wtt, 0.0)
+        scale = np.maximum(1.0, chi2 / np.maximum(n - 2.0, 1.0))
+        sd = np.sqrt(w / den * scale)
+    return slope / ambiguity_mps, sd / ambiguity_mps, np.round(slope / ambiguity_mps)
+
+
 def _inv2(a: np.ndarray) -> np.ndarray:
     """Inverses of 2 x 2 matrices (..., 2, 2), written out."""
     det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
@@ -267,10 +338,26 @@ class SensorTracks:
     static_since_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     #: the integrated position (x_m, y_m) of a static track, NaN when there is none
     refined: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    #: Doppler history (module docstring): the last unwrapped Doppler (m/s, NaN: none), when
+    #: (ns), since when (ns), its integral D (m), the fit's decayed sums (T, 7), frames in it,
+    #: the resolved whole number of V (NaN: unresolved)
+    dop_u: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dop_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    dop_t0_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    dop_d: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dop_sums: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    dop_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    dop_n: np.ndarray = field(default_factory=lambda: np.zeros(0))
     last_ns: int | None = None
     next_id: int = 1
+    #: the Doppler's ambiguity interval V of the sensor's radar, m/s (NaN: no Doppler seen)
+    ambiguity_mps: float = float("nan")
+    #: Doppler updates left out (innovation beyond the gate), and resolutions that changed n
+    doppler_rejected: int = 0
+    doppler_changed: int = 0
 
-    PER_TRACK = ("ids", "x", "p", "hits", "misses", "born_ns", "seen_ns", "confirmed", "static_since_ns", "refined")
+    PER_TRACK = ("ids", "x", "p", "hits", "misses", "born_ns", "seen_ns", "confirmed", "static_since_ns", "refined",
+                 "dop_u", "dop_ns", "dop_t0_ns", "dop_d", "dop_sums", "dop_frames", "dop_n")
 
     def keep(self, mask: np.ndarray) -> None:
         for name in self.PER_TRACK:
@@ -283,7 +370,10 @@ class SensorTracks:
         add = {"ids": ids, "x": x, "p": p, "hits": np.ones(k, dtype=np.int64), "misses": np.zeros(k, dtype=np.int64),
                "born_ns": np.full(k, now_ns, dtype=np.int64), "seen_ns": np.full(k, now_ns, dtype=np.int64),
                "confirmed": np.zeros(k, dtype=bool), "static_since_ns": np.full(k, -1, dtype=np.int64),
-               "refined": np.full((k, 2), np.nan)}
+               "refined": np.full((k, 2), np.nan), "dop_u": np.full(k, np.nan),
+               "dop_ns": np.zeros(k, dtype=np.int64), "dop_t0_ns": np.zeros(k, dtype=np.int64),
+               "dop_d": np.zeros(k), "dop_sums": np.zeros((k, 7)), "dop_frames": np.zeros(k, dtype=np.int64),
+               "dop_n": np.full(k, np.nan)}
         for name in self.PER_TRACK:
             setattr(self, name, np.concatenate([getattr(self, name), add[name]]))
 
@@ -291,12 +381,21 @@ class SensorTracks:
     def static(self) -> np.ndarray:
         return self.static_since_ns >= 0
 
+    @property
+    def doppler_mps(self) -> np.ndarray:
+        """Each track's radial velocity from its Doppler, ambiguity resolved (m/s, + = away;
+        NaN while unresolved or without Doppler), (T,)."""
+        return self.dop_u + self.dop_n * self.ambiguity_mps
+
 
 def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.ndarray, angle_deg: np.ndarray,
-                statistic_db: np.ndarray | None = None) -> None:
+                statistic_db: np.ndarray | None = None, radial_velocity_mps: np.ndarray | None = None,
+                ambiguity_mps: float | None = None) -> None:
     """One frame of one sensor: predict to ``now_ns``, gate and assign its targets (K,)
     (``statistic_db`` (K,): their detection statistics, for their noise), update, confirm,
-    end and start tracks, and test each for being static. In place."""
+    end and start tracks, and test each for being static. ``radial_velocity_mps`` (K,): the
+    targets' Doppler, known modulo ``ambiguity_mps`` (the radar's V; NaN or None: none), for
+    the tracks' velocity (module docstring). In place."""
     if late(st, cfg, now_ns):
         return  # a frame that came late: the tracks have moved past it
     if st.last_ns is not None and not 0 <= now_ns - st.last_ns <= cfg.max_gap_s * 1e9:
@@ -316,6 +415,12 @@ def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.n
     hit[rows] = True
     if rows.size:
         st.x[rows], st.p[rows] = update(st.x[rows], st.p[rows], z[cols], r[cols])
+        if radial_velocity_mps is not None and ambiguity_mps is not None and ambiguity_mps > 0:
+            dop = np.asarray(radial_velocity_mps, float)[ok][cols]
+            has = np.isfinite(dop)
+            if has.any():
+                doppler_step(st, cfg, now_ns, rows[has], np.asarray(range_m, float)[ok][cols][has], sr[cols][has],
+                             dop[has], float(ambiguity_mps))
     st.hits[hit] += 1
     st.misses[hit] = 0
     st.misses[~hit] += 1
@@ -336,6 +441,45 @@ def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.n
     born = np.flatnonzero(free)[:max(room, 0)]
     if born.size:
         st.append(*new_tracks(z[born], r[born], cfg.init_speed_mps), now_ns)
+
+
+def doppler_step(st: SensorTracks, cfg: TrackerConfig, now_ns: int, rows: np.ndarray, range_m: np.ndarray,
+                 range_sigma_m: np.ndarray, doppler_mps: np.ndarray, ambiguity_mps: float) -> None:
+    """The Doppler of the targets (J,) that tracks ``rows`` (J,) took this frame, of ranges
+    ``range_m`` (m) and range noise ``range_sigma_m`` (m): unwrapped onto each track's history,
+    integrated, the ambiguity's fit updated and, where it is resolved, the filter updated
+    by the radial velocity (module docstring). In place."""
+    v = ambiguity_mps
+    if st.ambiguity_mps != v:  # another radar (or the first Doppler): every history afresh
+        st.dop_u[:] = np.nan
+        st.ambiguity_mps = v
+    dt = (now_ns - st.dop_ns[rows]) / 1e9
+    fresh = ~np.isfinite(st.dop_u[rows]) | (dt > cfg.doppler_gap_s) | (dt < 0)
+    dt = np.where(fresh, 0.0, dt)
+    prev = np.where(fresh, doppler_mps, st.dop_u[rows])
+    u = prev + ((doppler_mps - prev + v / 2.0) % v - v / 2.0)  # the alias nearest the last: continuity
+    d = np.where(fresh, 0.0, st.dop_d[rows] + 0.5 * (prev + u) * dt)
+    t0 = np.where(fresh, now_ns, st.dop_t0_ns[rows])
+    t = (now_ns - t0) / 1e9
+    y = range_m - d
+    w = 1.0 / range_sigma_m ** 2
+    keep = np.where(fresh, 0.0, np.exp(-dt / cfg.doppler_window_s))
+    sums = st.dop_sums[rows] * keep[:, None] + np.stack([w, w * t, w * t * t, w * y, w * t * y, w * y * y,
+                                                         np.ones_like(w)], axis=1)
+    frames = np.where(fresh, 1, st.dop_frames[rows] + 1)
+    slope, sd, whole = doppler_fit(sums, v)
+    sure = (frames >= RESOLVE_FRAMES) & (sd <= 1.0 / RESOLVE_SIGMAS) & (np.abs(slope - whole) <= RESOLVE_FRACTION)
+    was = np.where(fresh, np.nan, st.dop_n[rows])
+    n = np.where(sure, whole, was)
+    st.doppler_changed += int(np.sum(sure & np.isfinite(was) & (whole != was)))
+    st.dop_u[rows], st.dop_ns[rows], st.dop_t0_ns[rows], st.dop_d[rows] = u, now_ns, t0, d
+    st.dop_sums[rows], st.dop_frames[rows], st.dop_n[rows] = sums, frames, n
+    known = np.isfinite(n)
+    if known.any():
+        upd = rows[known]
+        st.x[upd], st.p[upd], made = update_radial_velocity(st.x[upd], st.p[upd], u[known] + n[known] * v,
+                                                            cfg.doppler_sigma_mps)
+        st.doppler_rejected += int(np.sum(~made))
 
 
 def late(st: SensorTracks, cfg: TrackerConfig, now_ns: int) -> bool:
@@ -361,8 +505,10 @@ def _assign_confirmed_first(d2, logdet, confirmed, gate_chi2):
 def report(st: SensorTracks, now_ns: int) -> list[dict]:
     """The confirmed tracks as the tracks message lists them (docs/wire-formats.md):
     position (the integrated one while static and integrated), velocity, ``sigma_m`` (the
-    filter's position std, RMS of the two axes), age, hits, static."""
+    filter's position std, RMS of the two axes), age, hits, static, and the radial velocity
+    of the Doppler with its ambiguity resolved (left out while unresolved)."""
     out = []
+    doppler = st.doppler_mps
     for i in np.flatnonzero(st.confirmed).tolist():
         xy = st.refined[i] if np.isfinite(st.refined[i]).all() else st.x[i, :2]
         x, y = float(xy[0]), float(xy[1])
@@ -372,4 +518,6 @@ def report(st: SensorTracks, now_ns: int) -> list[dict]:
                     "sigma_m": float(np.sqrt(0.5 * (st.p[i, 0, 0] + st.p[i, 1, 1]))),
                     "age_s": (now_ns - int(st.born_ns[i])) / 1e9, "hits": int(st.hits[i]),
                     "static": bool(st.static_since_ns[i] >= 0)})
+        if np.isfinite(doppler[i]):
+            out[-1]["radial_velocity_mps"] = float(doppler[i])
     return out

@@ -100,11 +100,12 @@ class Tracker:
         return st
 
     def step(self, sensor_id: str, timestamp_ns: int, range_m, angle_deg, frame: QuantizedFrames | None = None,
-             radar: RadarConfig | None = None, statistic_db=None) -> list[dict]:
+             radar: RadarConfig | None = None, statistic_db=None, radial_velocity_mps=None) -> list[dict]:
         """One frame's targets (K,) of ``sensor_id`` at ``timestamp_ns`` (``statistic_db``:
-        their detection statistics, dB, or None): its confirmed tracks (:func:`report`).
-        ``frame``: the frame itself (a batch of one) and its ``radar``, for the integration
-        of static tracks."""
+        their detection statistics, dB, or None; ``radial_velocity_mps``: their Doppler,
+        modulo the ``radar``'s ambiguity interval, or None): its confirmed tracks
+        (:func:`report`). ``frame``: the frame itself (a batch of one) and its ``radar``, for
+        the integration of static tracks."""
         now = int(timestamp_ns)
         with self._lock:
             st = self.state(sensor_id)
@@ -112,7 +113,9 @@ class Tracker:
                 return report(st, st.last_ns)
             restart = st.last_ns is not None and not 0 <= now - st.last_ns <= self.config.max_gap_s * 1e9
             step_tracks(st, self.config, now, np.atleast_1d(range_m), np.atleast_1d(angle_deg),
-                        None if statistic_db is None else np.atleast_1d(statistic_db))
+                        None if statistic_db is None else np.atleast_1d(statistic_db),
+                        None if radial_velocity_mps is None or radar is None else np.atleast_1d(radial_velocity_mps),
+                        None if radar is None else radar.velocity_ambiguity_mps)
             if self.integration is not None:
                 self._integrate(sensor_id, st, now, frame, radar, restart)
             return report(st, now)
@@ -229,12 +232,14 @@ def track_batch(tracker: Tracker, headers, det, frames=None, radar: RadarConfig 
     quantized = isinstance(frames, QuantizedFrames)
     present = np.asarray(det.present, dtype=bool)
     stat = np.asarray(det.statistic_db, dtype=float)
+    doppler = np.asarray(det.radial_velocity_mps, dtype=float)
     out = []
     seqs, stamps = headers.seq.tolist(), headers.timestamp_ns.tolist()
     for i, sid in enumerate(headers.sensor_id):
         keep = present[i]
         tracks = tracker.step(sid, stamps[i], det.range_m[i][keep], det.angle_deg[i][keep],
-                              frames.take(np.array([i])) if quantized else None, radar, stat[i][keep])
+                              frames.take(np.array([i])) if quantized else None, radar, stat[i][keep],
+                              doppler[i][keep])
         out.append(TracksMsg(sid, seqs[i], stamps[i], tracks, published_ns).to_json())
     return out
 

@@ -148,6 +148,9 @@ TRACK_ITEM = (
     Field("age_s", "number", "s", "time since the track's first target (sensor time)"),
     Field("hits", "integer", doc="frames whose target the track took", minimum=0),
     Field("static", "boolean", doc="the velocity is consistent with zero (χ² test)"),
+    Field("radial_velocity_mps", "number", "m/s", "radial velocity, + = away, from the Doppler of the targets "
+          "the track took, its ambiguity (a whole number of V) resolved over their ranges; absent until it is, "
+          "and with a decoder without Doppler (pbp, qiht)", optional=True),
 )
 
 TRACKS = Format("tracks", "qradar.Tracks", _envelope("tracks") + (

@@ -100,9 +100,12 @@ def _entity(stamp: dict, frame_id: str, ident: str, x: float, y: float, ellipse,
 
 
 def track_label(track: dict) -> str:
-    """``#3 1.52 m/s σ 0.041 m`` (``static`` instead of the speed while static)."""
+    """``#3 1.52 m/s σ 0.041 m`` (``static`` instead of the speed while static), and the
+    Doppler's radial velocity once resolved: ``#3 1.52 m/s radial +1.498 m/s σ 0.041 m``."""
     speed = "static" if track["static"] else f"{math.hypot(track['vx_mps'], track['vy_mps']):.2f} m/s"
-    return f"#{track['track_id']} {speed} σ {track['sigma_m']:.3f} m"
+    vr = track.get("radial_velocity_mps")
+    radial = "" if vr is None else f" radial {vr:+.3f} m/s"
+    return f"#{track['track_id']} {speed}{radial} σ {track['sigma_m']:.3f} m"
 
 
 def target_ellipses(msg: TargetsMsg) -> np.ndarray | None:

@@ -89,7 +89,8 @@ def targets_event(msg: TargetsMsg, pose: tuple[float, float, float] | None, trut
 
 def tracks_event(msg: TracksMsg, pose: tuple[float, float, float] | None) -> dict:
     """One tracks message for the page: per track its id, world x, y (m), velocity (m/s,
-    world), σ (m: a circle), hits, age (s) and whether it is static."""
+    world), σ (m: a circle), hits, age (s), whether it is static, and ``vr``, the Doppler's
+    radial velocity (m/s, + = away) once its ambiguity is resolved."""
     n = len(msg.tracks)
     x, y = to_world(np.array([t["x_m"] for t in msg.tracks], dtype=float),
                     np.array([t["y_m"] for t in msg.tracks], dtype=float), pose)
@@ -99,7 +100,9 @@ def tracks_event(msg: TracksMsg, pose: tuple[float, float, float] | None) -> dic
     cols = [_round(c, XY_DIGITS) for c in (x, y, vx, vy)]
     tracks = [{"id": t["track_id"], "x": cols[0][i], "y": cols[1][i], "vx": cols[2][i], "vy": cols[3][i],
                "sigma": round(t["sigma_m"], 4), "hits": t["hits"], "age": round(t["age_s"], 2),
-               "static": t["static"]} for i, t in enumerate(msg.tracks)] if n else []
+               "static": t["static"], **({"vr": round(t["radial_velocity_mps"], 4)}
+                                         if "radial_velocity_mps" in t else {})}
+              for i, t in enumerate(msg.tracks)] if n else []
     return {"s": msg.sensor_id, "seq": msg.seq, "t": msg.timestamp_ns, "tracks": tracks}
 
 

@@ -219,7 +219,8 @@
         }
         ctx.fillStyle = "#111";
         const speed = Math.hypot(t.vx, t.vy);
-        ctx.fillText(`#${t.id}` + (t.static ? "" : ` ${speed.toFixed(1)} m/s`), tx + rad + 6 * pr, ty - rad - 4 * pr);
+        const radial = t.vr === undefined ? "" : ` (radial ${t.vr >= 0 ? "+" : ""}${t.vr.toFixed(2)})`;  // the Doppler's
+        ctx.fillText(`#${t.id}` + (t.static ? "" : ` ${speed.toFixed(1)} m/s${radial}`), tx + rad + 6 * pr, ty - rad - 4 * pr);
         tracks++;
       }
     }
