@@ -46,13 +46,16 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber():
         localize = subprocess.Popen([*QRADAR, "localize", "--K", "1", *client], stdin=subprocess.DEVNULL,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
-        def source() -> None:
-            out = subprocess.run([*QRADAR, "source", "--frames", "5", "--rate", "50", *client],
+        def source(frames: int = 5, rate: float = 50.0) -> None:
+            out = subprocess.run([*QRADAR, "source", "--frames", str(frames), "--rate", str(rate), *client],
                                  capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
-            assert out.returncode == 0 and '"frames_out": 5' in out.stdout, out.stderr[-2000:]
+            assert out.returncode == 0 and f'"frames_out": {frames}' in out.stdout, out.stderr[-2000:]
 
         for _ in range(3):  # the first sessions warm every cache up (the localizer loads its compiled kernels)
             source()
+        # and a burst: a node takes what its queue holds as one batch, and its arrays' memory is that of the
+        # largest batch so far (a busy host batches a restart's 5 frames; 12 MB once, read as growth)
+        source(60, 1000.0)
         settled(localize.pid)
         before = rss_mb(router.pid), rss_mb(quantize.pid), rss_mb(localize.pid)
         for _ in range(RESTARTS):
