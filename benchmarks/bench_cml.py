@@ -9,7 +9,9 @@ across machines is the ratio to PBP. Each step is meant to run in a fresh proces
     .venv/bin/python benchmarks/bench_cml.py [--seconds 60] [--batch 256] [--K 2]
 
 Prints one JSON object: ms per frame (median over the rounds) for each decoder, the
-ratio to PBP, and how many 20-frames/s sensors one core decodes with cml.
+ratio to PBP, how many 20-frames/s sensors one core decodes with cml, and the cost of cml's
+default model (a phase step between ramps) over its static one (``cml_static``,
+``cml_static_auto``: ``DecoderConfig(motion=False)``, taking turns with the others).
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ def main() -> None:
     # each decoder told K, and pbp and cml deciding the count (K auto, at most --max-targets)
     runs = {algo: (DecoderConfig(algo=algo), args.K) for algo in ALGOS}
     runs |= {f"{algo}_auto": (DecoderConfig(algo=algo, auto_k=True), args.max_targets) for algo in ("pbp", "cml")}
+    # cml's static model (no phase step between ramps), K given and K auto: what the motion model costs
+    runs |= {"cml_static": (DecoderConfig(algo="cml", motion=False), args.K),
+             "cml_static_auto": (DecoderConfig(algo="cml", auto_k=True, motion=False), args.max_targets)}
     # each decoder held across calls, as the localizer node holds it (its tables built once)
     calls = {label: partial(Decoder(decoder).decode, z, xi, q.delta, 1, cfg, k) for label, (decoder, k) in runs.items()}
     times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
@@ -57,6 +62,8 @@ def main() -> None:
         "ratio_to_pbp": {k: round(v / ms["pbp"], 1) for k, v in ms.items()},
         "cml_sensors_per_core_at_20_fps": int(1000.0 / ms["cml"] / 20.0),
         "cml_auto_sensors_per_core_at_20_fps": int(1000.0 / ms["cml_auto"] / 20.0),
+        "motion_over_static": {"cml": round(ms["cml"] / ms["cml_static"], 3),
+                               "cml_auto": round(ms["cml_auto"] / ms["cml_static_auto"], 3)},
     }, indent=1)
 
 

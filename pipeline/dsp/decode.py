@@ -99,7 +99,9 @@ class DecoderConfig:
     gate: the :class:`~pipeline.dsp.gate.RangeGate` every decoder searches inside (None: the
     whole range axis, the paper's protocol; the live localizer's default is
     :meth:`RangeGate.default <pipeline.dsp.gate.RangeGate.default>`). engine, likelihood:
-    cml's (:func:`pipeline.dsp.cml.cml`; None: its defaults)."""
+    cml's (:func:`pipeline.dsp.cml.cml`; None: its defaults). motion: cml's model, a phase
+    step between ramps (the default) or, False, the static one
+    (:class:`~pipeline.dsp.cml.CmlOptions`)."""
 
     algo: Algo = DEFAULT_ALGO
     iters: int = 10
@@ -112,6 +114,7 @@ class DecoderConfig:
     gate: RangeGate | None = None
     engine: str | None = None
     likelihood: str | None = None
+    motion: bool = True
 
     def __post_init__(self) -> None:
         check_gate(self.gate)
@@ -119,6 +122,8 @@ class DecoderConfig:
             raise ParameterError(f"engine={self.engine!r} is not known; available: {', '.join(ENGINES)}")
         if self.likelihood not in (None, *LIKELIHOODS):
             raise ParameterError(f"likelihood={self.likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
+        if not isinstance(self.motion, bool):
+            raise ParameterError(f"motion={self.motion!r} must be True or False")
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
@@ -422,7 +427,8 @@ class Decoder:
         #: how it regenerates a frame's dither (:data:`pipeline.dsp.dither.DITHER_ENGINES`): as
         #: cml's engine (numba when it imports: the same bits, one compiled pass)
         self.dither_engine = resolve_engine(config.engine)
-        self._options = CmlOptions(engine=config.engine, likelihood=config.likelihood or DEFAULT_LIKELIHOOD)
+        self._options = CmlOptions(engine=config.engine, likelihood=config.likelihood or DEFAULT_LIKELIHOOD,
+                                   motion=config.motion)
         self._cml: dict[RadarConfig, CmlDecoder] = {}
 
     def cml(self, radar: RadarConfig) -> CmlDecoder:

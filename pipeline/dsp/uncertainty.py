@@ -57,11 +57,13 @@ def model_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarCon
     (B, 4N, 5K) for targets ``range_m`` (B, K) m of amplitudes (B, K, 2) complex;
     (sample, antenna, I/Q) in C order as the quantizer lays out its codes (every ramp of a
     frame the same; with a phase step between ramps: :func:`moving_jacobian`)."""
-    b, k = range_m.shape
-    n = config.samples_per_ramp
-    f = config.frequencies_hz(np.arange(n))
-    steer = range_phase(f[None, :, None], range_m[:, None, :], config)  # (B, N, K)
-    kr = (4.0 * np.pi / config.c_m_s) * f  # d/dr of the phase is -i kr
+    steer, kr = _steering(range_m, config)
+    return _static_samples(steer, amplitudes), _static_derivatives(steer, kr, amplitudes)
+
+
+def _static_derivatives(steer: np.ndarray, kr: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
+    """:func:`model_jacobian`'s ``ds`` (B, 4N, 5K) from the targets' :func:`_steering`."""
+    b, n, k = steer.shape
     d = np.zeros((b, n, 2, 2, k, PARAMS))  # (sample, antenna, I/Q) x (target, parameter)
     sr, si = steer.real, steer.imag
     for p in range(2):
@@ -69,8 +71,7 @@ def model_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarCon
         d[:, :, p, 0, :, 0], d[:, :, p, 1, :, 0] = dr.real, dr.imag
         d[:, :, p, 0, :, 1 + 2 * p], d[:, :, p, 1, :, 1 + 2 * p] = sr, si  # d/d Re a_p
         d[:, :, p, 0, :, 2 + 2 * p], d[:, :, p, 1, :, 2 + 2 * p] = -si, sr  # d/d Im a_p
-    s = np.einsum("bnk,bkp->bnp", steer, amplitudes)  # (B, N, 2)
-    return np.ascontiguousarray(s).view(float).reshape(b, -1), d.reshape(b, 4 * n, k * PARAMS)
+    return d.reshape(b, 4 * n, k * PARAMS)
 
 
 def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.ndarray,
@@ -80,14 +81,17 @@ def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad:
     parameters ``[r, Re a1, Im a1, Re a2, Im a2, phi]`` of each target, amplitudes (B, K, 2)
     at the middle of the frame, ramp r's ``a exp(i c_r phi)``, ``c_r = r - (R - 1) / 2``,
     ``phase_step_rad`` (B, K) (NaN counts as 0)."""
-    b, k = range_m.shape
-    n, ramps = config.samples_per_ramp, config.ramps_per_frame
-    f = config.frequencies_hz(np.arange(n))
-    steer = range_phase(f[None, :, None], range_m[:, None, :], config)  # (B, N, K)
-    kr = (4.0 * np.pi / config.c_m_s) * f
-    c = np.arange(ramps) - (ramps - 1) / 2.0
-    turn = np.exp(1j * c[None, :, None] * np.nan_to_num(phase_step_rad)[:, None, :])  # (B, R, K)
-    a = amplitudes[:, None, :, :] * turn[..., None]  # (B, R, K, 2): each ramp's amplitudes
+    steer, kr = _steering(range_m, config)
+    c, turn, a = _turns(amplitudes, phase_step_rad, config.ramps_per_frame)
+    return _moving_samples(steer, a), _moving_derivatives(steer, kr, c, turn, a)
+
+
+def _moving_derivatives(steer: np.ndarray, kr: np.ndarray, c: np.ndarray, turn: np.ndarray,
+                        a: np.ndarray) -> np.ndarray:
+    """:func:`moving_jacobian`'s ``ds`` (B, R, 4N, 6K) from the targets' :func:`_steering`
+    and :func:`_turns`."""
+    b, n, k = steer.shape
+    ramps = c.shape[0]
     at = steer[:, None, :, None, :] * turn[:, :, None, None, :]  # (B, R, N, 1, K): d/d Re a
     d = np.zeros((b, ramps, n, 2, k, MOVING_PARAMS), dtype=complex)  # (ramp, sample, antenna) x (target, parameter)
     for p in range(2):
@@ -96,10 +100,103 @@ def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad:
         d[:, :, :, p, :, 1 + 2 * p] = at[:, :, :, 0]
         d[:, :, :, p, :, 2 + 2 * p] = 1j * at[:, :, :, 0]
         d[:, :, :, p, :, 5] = 1j * c[None, :, None, None] * ap * steer[:, None]
-    s = np.einsum("bnk,brkp->brnp", steer, a)  # (B, R, N, 2)
     ds = np.stack([d.real, d.imag], axis=4)  # (B, R, N, 2, 2, K, 6): (sample, antenna, I/Q) in C order
-    return (np.ascontiguousarray(s).view(float).reshape(b, ramps, -1),
-            ds.reshape(b, ramps, 4 * n, k * MOVING_PARAMS))
+    return ds.reshape(b, ramps, 4 * n, k * MOVING_PARAMS)
+
+
+def _steering(range_m: np.ndarray, config: RadarConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Each target's range term at each sample of a ramp, ``steer`` (B, N, K), and ``kr``
+    (N,): ``d steer / dr = -i kr steer``."""
+    f = config.frequencies_hz(np.arange(config.samples_per_ramp))
+    steer = range_phase(f[None, :, None], range_m[:, None, :], config)  # (B, N, K)
+    return steer, (4.0 * np.pi / config.c_m_s) * f
+
+
+def _turns(amplitudes: np.ndarray, phase_step_rad: np.ndarray, ramps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ramps' offsets from the middle of the frame ``c`` (R,), each target's turn
+    ``exp(i c_r phi)`` (B, R, K) (NaN counts as 0) and each ramp's amplitudes (B, R, K, 2)."""
+    c = np.arange(ramps) - (ramps - 1) / 2.0
+    turn = np.exp(1j * c[None, :, None] * np.nan_to_num(phase_step_rad)[:, None, :])  # (B, R, K)
+    return c, turn, amplitudes[:, None, :, :] * turn[..., None]
+
+
+def _static_samples(steer: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
+    """The model's real samples (B, 4N) of one ramp (:func:`model_jacobian`'s ``s``)."""
+    s = steer @ amplitudes  # (B, N, 2) (a batched product: einsum's loops take 15 x longer)
+    return np.ascontiguousarray(s).view(float).reshape(steer.shape[0], -1)
+
+
+def _moving_samples(steer: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Each ramp's real samples (B, R, 4N) (:func:`moving_jacobian`'s ``s``); ``a`` (B, R, K,
+    2) the ramps' amplitudes."""
+    s = steer[:, None] @ a  # (B, R, N, 2) (a batched product: einsum's loops take 15 x longer)
+    return np.ascontiguousarray(s).view(float).reshape(steer.shape[0], a.shape[1], -1)
+
+
+def _near_rows(near: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, ...]]:
+    """The samples ``near`` (B, L) bool (those near the threshold): as the padded rows
+    ``(rows, real)`` (B, J) (flat indices, padded to the most a frame has, J, with sample 0;
+    ``real``: not padding), and as ``(frame, sample, slot)`` (S,) each (the slot: its column
+    of ``rows``)."""
+    counts = near.sum(axis=1)
+    fb, fl = np.nonzero(near)
+    slot = np.arange(fb.size) - (np.cumsum(counts) - counts)[fb]
+    rows = np.zeros((near.shape[0], int(counts.max(initial=0))), dtype=np.intp)
+    rows[fb, slot] = fl
+    return (rows, np.arange(rows.shape[1])[None, :] < counts[:, None]), (fb, fl, slot)
+
+
+def _jacobian_rows(steer: np.ndarray, kr: np.ndarray, amplitudes: np.ndarray, rows: tuple, near: tuple, c=None,
+                   turn=None) -> np.ndarray:
+    """:func:`model_jacobian`'s ``ds`` (``turn`` None) or :func:`moving_jacobian`'s (``c``
+    (R,), ``turn`` (B, R, K): :func:`_turns`) at the samples of :func:`_near_rows` only
+    (``rows``, ``near``: what it returns; flat indices, (ramp, sample, antenna, I/Q) in C
+    order): (B, J, PK), the same values (the same operations on the same numbers), zeros
+    in the padding. The information of 1-bit codes sits on the few samples near the
+    threshold: the Fisher matrices need those rows only."""
+    b, n, k = steer.shape
+    fb, fl, slot = near
+    iq, p, smp = fl & 1, (fl >> 1) & 1, fl >> 2
+    ni = smp % n
+    st = steer[fb, ni]  # (S, K)
+    amp = amplitudes[fb, :, p]  # (S, K): antenna p's
+    dkr = (-1j * kr)[ni][:, None]
+    real = (iq == 0)[:, None]
+    moving = turn is not None
+    per = MOVING_PARAMS if moving else PARAMS
+    d = np.zeros((fb.size, k, per))
+    if moving:
+        ri = smp // n
+        tr = turn[fb, ri]  # (S, K)
+        ap = amp * tr
+        dr = ap * st * dkr
+        at = st * tr
+        d[..., 5] = _part(1j * c[ri][:, None] * ap * st, real)
+    else:
+        dr = st * (amp * dkr)
+        at = st
+    d[..., 0] = _part(dr, real)
+    re, im = _part(at, real), np.where(real, -at.imag, at.real)  # at and i at
+    first = (p == 0)[:, None]
+    d[..., 1], d[..., 2] = np.where(first, re, 0.0), np.where(first, im, 0.0)
+    d[..., 3], d[..., 4] = np.where(first, 0.0, re), np.where(first, 0.0, im)
+    out = np.zeros((b, rows[0].shape[1], k * per))
+    out[fb, slot] = d.reshape(fb.size, -1)
+    return out
+
+
+def _part(z: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """The real part of ``z`` where ``real``, else its imaginary part."""
+    return np.where(real, z.real, z.imag)
+
+
+def _pick(w: np.ndarray, rows) -> np.ndarray:
+    """Per-sample weights ``w`` (B, L) at ``rows`` = (the samples (B, J), which are real (B,
+    J)) (:func:`_near_rows`; the padding weighs 0); None: ``w`` as it is."""
+    if rows is None:
+        return w
+    idx, real = rows
+    return np.where(real, np.take_along_axis(w, idx, axis=1), 0.0)
 
 
 def _near(margin: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +223,7 @@ def _probit(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return h, -2.0 * z - np.exp(log_phi - lo) + np.exp(log_phi - hi)
 
 
-def fitted_noise(sigma: np.ndarray, margin: np.ndarray, ds: np.ndarray, live: np.ndarray) -> np.ndarray:
+def fitted_noise(sigma: np.ndarray, margin: np.ndarray, ds: np.ndarray, live: np.ndarray, rows=None) -> np.ndarray:
     """The noise std (B,) of 1-bit codes: ``sigma`` (B,), the likeliest at the fitted signal
     (margins ``margin = s + d`` (B, R, L) of R ramps), less its bias: the fitted parameters
     (``ds`` (B, L, P), ``live`` (B, K) the targets present) explain part of the noise, so the
@@ -136,21 +233,38 @@ def fitted_noise(sigma: np.ndarray, margin: np.ndarray, ds: np.ndarray, live: np
     ``sigma^2 (n - P) / n``, the least-squares residual's; dithered 1-bit codes, whose
     information about a target falls as ``1 / sigma`` rather than ``1 / sigma^2``: about half
     that.) Measured, 1 bit at alpha 0.45, K = 2, noise 0.03: the likeliest sigma 0.83 of the
-    noise's, corrected 0.93."""
+    noise's, corrected 0.93. ``rows``: ``ds`` (B, J, P) holds only those samples (:func:`_pick`),
+    a superset of the ones near the threshold."""
     idx, z = _near(margin, sigma)
     h, dlog = _probit(z)
     sg = sigma[:, None]
     shape = margin.shape
     about_sigma = _scatter(idx, h * z * z, shape).sum(axis=1) / sigma**2
-    info = _masked(fisher(ds, _scatter(idx, h, shape) / sg**2), live)
+    info = _masked(_fisher(ds, _pick(_scatter(idx, h, shape), rows) / sg**2), live)
     # d/dsigma of h(m / sigma) / sigma^2 = -(z h'(z) + 2 h) / sigma^3
-    moved = _masked(fisher(ds, _scatter(idx, -(z * dlog + 2.0) * h, shape) / sg**3), live, eye=0.0)
+    moved = _masked(_fisher(ds, _pick(_scatter(idx, -(z * dlog + 2.0) * h, shape), rows) / sg**3), live, eye=0.0)
     with np.errstate(invalid="ignore", over="ignore"):
         trace = np.trace(_inverse(info) @ moved, axis1=1, axis2=2)
     # the bias of sigma^2 relative to the noise's, 2 bias / sigma, as a least-squares
     # residual's (n - P) / n: divided out (first order alike; exact for Gaussian samples)
     fixed = sigma / np.sqrt(np.maximum(1.0 + trace / (about_sigma * sigma), 0.25))
     return np.where(np.isfinite(fixed) & (fixed > sigma), fixed, sigma)
+
+
+#: the most ``P^2 L`` of one batched product of :func:`_fisher` (P parameters, L samples):
+#: OpenBLAS runs a larger product on all its threads, which on a busy host wait for each
+#: other far longer than the product takes (measured: K auto with the phase step, 4-10 x the
+#: time of the same sums in pieces)
+FISHER_PIECE = 1 << 17
+
+
+def _fisher(ds: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """:func:`pipeline.dsp.crb.fisher` of ``ds`` (B, L, P) and ``weights`` (B, L), summed over
+    pieces of the samples of at most :data:`FISHER_PIECE` ``/ P^2`` each."""
+    step = max(FISHER_PIECE // max(ds.shape[2] ** 2, 1), 1)
+    if ds.shape[1] <= step:
+        return fisher(ds, weights)
+    return sum(fisher(ds[:, i:i + step], weights[:, i:i + step]) for i in range(0, ds.shape[1], step))
 
 
 def _masked(fim: np.ndarray, live: np.ndarray, eye: float = 1.0) -> np.ndarray:
@@ -183,49 +297,80 @@ def target_uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, present: np.
     a = np.where(live[..., None], amplitudes, 0.0)
     ramps = config.ramps_per_frame
     moving = phase_step_rad is not None and ramps > 1 and bool(np.isfinite(phase_step_rad).any())
+    r_live = np.where(live, range_m, 0.0)
+    steer, kr = _steering(r_live, config)
     if moving:  # each ramp its own samples: one "ramp" of R 4N samples
-        s, ds = moving_jacobian(np.where(live, range_m, 0.0), a, np.where(live, phase_step_rad, 0.0), config)
-        margin = s
+        c, turn, a_ramps = _turns(a, np.where(live, phase_step_rad, 0.0), ramps)
+        margin = _moving_samples(steer, a_ramps)
     else:
-        s, ds = model_jacobian(np.where(live, range_m, 0.0), a, config)
+        s = _static_samples(steer, a)
         margin = np.broadcast_to(s[:, None, :], (b, ramps, s.shape[1]))
     if dither is not None:
         margin = margin + np.ascontiguousarray(dither, dtype=complex).view(float).reshape(b, ramps, -1)
     if moving:
-        margin, ds = margin.reshape(b, 1, -1), ds.reshape(b, -1, ds.shape[-1])
-        ramps = 1
+        margin = margin.reshape(b, 1, -1)
     sg = np.maximum(np.asarray(sigma, dtype=float).reshape(-1) * np.ones(b), 1e-12)
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         if bits == 1:
-            noise = fitted_noise(sg, margin, ds, live) if estimated else sg
-            cov = _sandwich(ds, margin, noise, sg, live)
+            # the Jacobian at the samples that may lie within NEAR_Z noise stds of the threshold
+            # only (a few % at low noise): fitted_noise's std is sg, _sandwich's at most 2 sg
+            # (fitted_noise divides sg by at least 1/2); the others weigh 0. The frames with
+            # more than a quarter of their samples there (high noise) take the whole Jacobian
+            limit = NEAR_Z * sg * ((2.0 if estimated else 1.0) * (1.0 + 1e-6))
+            near = (np.abs(margin) < limit[:, None, None]).any(axis=1)  # (B, L)
+            few = 4 * near.sum(axis=1) <= near.shape[1]
+            per = k * (MOVING_PARAMS if moving else PARAMS)
+            cov = np.empty((b, per, per))
+            for part, compact in ((np.flatnonzero(few), True), (np.flatnonzero(~few), False)):
+                if part.size == 0:
+                    continue
+                if compact:
+                    rows, flat = _near_rows(near[part])
+                    ds = _jacobian_rows(steer[part], kr, a[part], rows, flat, *((c, turn[part]) if moving else ()))
+                else:
+                    rows = None
+                    ds = _dense_jacobian(steer[part], kr, a[part], *((c, turn[part], a_ramps[part]) if moving else ()))
+                noise = fitted_noise(sg[part], margin[part], ds, live[part], rows) if estimated else sg[part]
+                cov[part] = _sandwich(ds, margin[part], noise, sg[part], live[part], rows)
         else:
+            ds = _dense_jacobian(steer, kr, a, *((c, turn, a_ramps) if moving else ()))
             if bits is None:
-                w = np.full((b, ds.shape[1]), ramps / sg[:, None] ** 2)
+                w = np.full((b, ds.shape[1]), (1 if moving else ramps) / sg[:, None] ** 2)
             else:
                 dl = np.asarray(delta, dtype=float) * np.ones(b)
                 w = weights_bits(margin.reshape(b, -1), None, sg, dl, bits).reshape(margin.shape).sum(axis=1)
-            cov = _inverse(_masked(fisher(ds, w), live))
+            cov = _inverse(_masked(_fisher(ds, w), live))
     _angles(cov, a, live, config, out)
     return out
 
 
+def _dense_jacobian(steer: np.ndarray, kr: np.ndarray, a: np.ndarray, c=None, turn=None,
+                    a_ramps=None) -> np.ndarray:
+    """The derivatives (B, L, P) of every sample of a frame: :func:`moving_jacobian`'s, its
+    ramps one after the other (``c``, ``turn``, ``a_ramps``: :func:`_turns`), or
+    :func:`model_jacobian`'s (``turn`` None)."""
+    if turn is not None:
+        ds = _moving_derivatives(steer, kr, c, turn, a_ramps)
+        return ds.reshape(ds.shape[0], -1, ds.shape[-1])
+    return _static_derivatives(steer, kr, a)
+
+
 def _sandwich(ds: np.ndarray, margin: np.ndarray, sigma: np.ndarray, level: np.ndarray,
-              live: np.ndarray) -> np.ndarray:
+              live: np.ndarray, rows=None) -> np.ndarray:
     """The covariance ``H^-1 J H^-1`` (B, P, P) of the estimate that maximizes the 1-bit
     logistic likelihood of the decoder (:mod:`pipeline.dsp.cml.likelihood`, scale
     ``T = level / 1.702``, ``level`` (B,) its last ``sigma_eff``) when the codes come from
     Gaussian noise ``sigma`` (B,) (``P(+) = Phi(m / sigma)`` at the margins ``m`` (B, R, L)):
     per sample the curvature ``F (1 - F) / T^2`` (H) and the variance of the score
     ``(P(+) (1 - F)^2 + P(-) F^2) / T^2`` (J), ``F = F(m / T)``; absent targets' (``live``
-    (B, K) False) parameters held fixed."""
+    (B, K) False) parameters held fixed; ``rows``: as :func:`fitted_noise` takes them."""
     t = level / LOGISTIC_SCALE
     idx, x = _near(margin, np.maximum(t, sigma))
     m = x * np.repeat(np.maximum(t, sigma), margin[0].size)[idx]  # the margins near the threshold
     tt, sg = np.repeat(t, margin[0].size)[idx], np.repeat(sigma, margin[0].size)[idx]
     f = 0.5 * (1.0 + np.tanh(0.5 * m / tt))  # the logistic, without overflow
     p = ndtr(m / sg)
-    h, j = (_masked(fisher(ds, _scatter(idx, w, margin.shape)), live)
+    h, j = (_masked(_fisher(ds, _pick(_scatter(idx, w, margin.shape), rows)), live)
             for w in (f * (1.0 - f) / tt**2, (p * (1.0 - f) ** 2 + (1.0 - p) * f * f) / tt**2))
     hi = _inverse(h)
     return hi @ j @ hi
