@@ -69,7 +69,10 @@ def integrate(frames: QuantizedFrames, radar: RadarConfig, k: int, gate: RangeGa
         raise ParameterError(f"integrate: M={frames.codes.shape[1]} is not a whole number of ramps of {n}")
     z, xi, delta = stack_windows(frames, frames.codes.shape[0] if window is None else window)
     g = None if gate is None else gate.check(radar)
-    options = CmlOptions(iters=INTEGRATE_ITERS, anneal=anneal_levels(z.shape[1]))
+    # the static model: the scene is static, and the stacked ramps are of frames far apart in
+    # time, not a frame's evenly spaced ramps (a phase step between them means nothing); the
+    # phase step's search over T R ramps made a refinement of 20 frames 206 ms, 2.5 ms without
+    options = CmlOptions(iters=INTEGRATE_ITERS, anneal=anneal_levels(z.shape[1]), motion=False)
     return cml(z, xi, delta, frames.bits, radar, k, pfa=pfa, gate=g, options=options).detections(radar)
 
 
