@@ -5,7 +5,8 @@ configured pfa, beside ``k`` strong targets (amplitude 1, 5-145 m, at least 10 m
 
 Run ``python -m experiments.false_alarms`` for the table of the README's headline row,
 ``python -m experiments.false_alarms --grid pbp`` (or ``cml``) for a decoder over K, alpha and
-noise.
+noise, ``python -m experiments.false_alarms --accuracy`` for ``--K auto``'s error on the targets
+it keeps against the count given's, on the same frames.
 """
 
 from __future__ import annotations
@@ -71,6 +72,51 @@ CASES = tuple(AlarmCase(1, s, seed=i) for i, s in enumerate((0.0, 0.01, 0.03, 0.
         ((1, 0.45, 0.0), (1, 0.45, 0.1), (1, 1.0, 0.0), (1, 1.0, 0.1), (2, 0.45, 0.03), (1, 0.0, 0.03))))
 
 
+def accuracy(case: AlarmCase, config: RadarConfig | None = None) -> tuple[float, float]:
+    """The median position error (m) of the true targets of ``case``'s frames that both runs
+    find (an estimate within MATCH_BINS), with the count given (``case.k``) and with ``--K
+    auto`` (at most MAX_K), on the same frames: (given, auto). A target counts only where
+    both find it, so the figure compares the estimates, not the detections."""
+    config = RadarConfig() if config is None else config
+    rng = np.random.default_rng(case.seed)
+    r, a, x = scenes(case, rng)
+    g = simulate_frames(r, a, x, config)
+    g = g + case.sigma * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    frames = g if case.bits is None else quantize_frames(g, QuantizerConfig(alpha=case.alpha, bits=case.bits),
+                                                          np.arange(case.frames))
+    errs, found = [], []
+    for auto, k in ((False, case.k), (True, MAX_K)):
+        det = Decoder(DecoderConfig(algo=case.algo, auto_k=auto, pfa=case.pfa)).decode_batch(frames, config, k)
+        t = r * np.exp(1j * np.deg2rad(a))  # (B, k) positions
+        e = np.where(det.present, det.range_m * np.exp(1j * np.deg2rad(det.angle_deg)), np.nan)  # (B, L)
+        dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, k, L)
+        near = np.abs(det.range_m[:, None, :] - r[:, :, None]) / config.range_resolution_m <= MATCH_BINS
+        near &= det.present[:, None, :]
+        errs.append(np.where(near, dist, np.inf).min(axis=2))
+        found.append(near.any(axis=2))
+    both = found[0] & found[1]
+    return float(np.median(errs[0][both])), float(np.median(errs[1][both]))
+
+
+#: the cases of the accuracy table: cml and PBP, one and two strong targets, 1 bit at the
+#: default alpha and unquantized, noise 0.01-0.1
+ACCURACY_CASES = tuple(AlarmCase(k, s, bits=bits, seed=20 + i, algo=algo, frames=1000) for i, (algo, k, bits, s) in
+                       enumerate((a, k, b, s) for a in ("cml", "pbp") for k in (1, 2) for b in (1, None)
+                                 for s in (0.01, 0.1)))
+
+
+def accuracy_table(cases=ACCURACY_CASES) -> str:
+    """A markdown table of :func:`accuracy` for ``cases``: ``--K auto``'s median error over the
+    count given's."""
+    lines = ["| decoder | K | frames | noise σ | median error, K given | median error, `--K auto` | ratio |",
+             "|---|---|---|---|---|---|---|"]
+    for c in cases:
+        given, auto = accuracy(c)
+        what = "unquantized" if c.bits is None else f"{c.bits}-bit, α {c.alpha:g}"
+        lines.append(f"| {c.algo} | {c.k} | {what} | {c.sigma:g} | {given:.4f} m | {auto:.4f} m | {auto / given:.2f} |")
+    return "\n".join(lines)
+
+
 def table(cases=CASES) -> str:
     """A markdown table of :func:`false_targets` for ``cases``."""
     lines = ["| decoder | K | frames | noise σ | pfa | false targets a frame | targets found |",
@@ -99,4 +145,9 @@ def grid(algo: str = "pbp", frames: int = 1000) -> str:
 if __name__ == "__main__":
     import sys
 
-    print(grid(sys.argv[2]) if sys.argv[1:2] == ["--grid"] else table())
+    if sys.argv[1:2] == ["--grid"]:
+        print(grid(sys.argv[2]))
+    elif sys.argv[1:2] == ["--accuracy"]:
+        print(accuracy_table())
+    else:
+        print(table())
