@@ -287,13 +287,39 @@ def target_uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, present: np.
     of step ``delta`` (scalar or (B,)) after the ``dither`` (B, M, 2) complex (None: none).
     ``phase_step_rad`` (B, K): the targets' phase steps between ramps (cml's model with the
     radial velocity, :func:`moving_jacobian`: a sixth parameter a target, each ramp's codes at
-    its own signal); None or all NaN: the static model."""
+    its own signal); None or all NaN: the static model.
+
+    The frames are taken in groups by how many target slots they use (up to their last
+    present one): a count test's frames hold fewer targets than their slots, and each slot
+    is a block of the Fisher matrix (K auto at most 4 with 2 targets found: half the work)."""
     b, k = range_m.shape
     nan = np.full((b, k), np.nan)
     out = Uncertainty(nan.copy(), nan.copy(), nan.copy())
     if b == 0 or k == 0:
         return out
     live = np.asarray(present, dtype=bool) & np.isfinite(range_m)
+    width = np.where(live, np.arange(1, k + 1), 0).max(axis=1)  # (B,) slots a frame uses
+    if (width == k).all():
+        return _uncertainty(range_m, amplitudes, live, config, sigma, dither, delta, bits, estimated,
+                            phase_step_rad, out)
+    sg, dl = np.asarray(sigma, dtype=float).reshape(-1) * np.ones(b), np.asarray(delta, dtype=float) * np.ones(b)
+    for w in np.unique(width[width > 0]).tolist():  # a few groups (the counts), not the frames
+        idx = np.flatnonzero(width == w)
+        part = Uncertainty(*(np.full((idx.size, w), np.nan) for _ in range(3)))
+        _uncertainty(range_m[idx, :w], amplitudes[idx, :w], live[idx, :w], config, sg[idx],
+                     None if dither is None else dither[idx], None if delta is None else dl[idx], bits, estimated,
+                     None if phase_step_rad is None else phase_step_rad[idx, :w], part)
+        for name in ("sigma_range_m", "sigma_angle_deg", "cov_range_angle"):
+            getattr(out, name)[idx, :w] = getattr(part, name)
+    return out
+
+
+def _uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, live: np.ndarray, config: RadarConfig,
+                 sigma: np.ndarray, dither: np.ndarray | None, delta, bits: int | None, estimated: bool,
+                 phase_step_rad: np.ndarray | None, out: "Uncertainty") -> "Uncertainty":
+    """:func:`target_uncertainty` of frames (B,) whose ``live`` (B, K) targets are known,
+    written into ``out`` ((B, K) arrays of NaN)."""
+    b, k = range_m.shape
     a = np.where(live[..., None], amplitudes, 0.0)
     ramps = config.ramps_per_frame
     moving = phase_step_rad is not None and ramps > 1 and bool(np.isfinite(phase_step_rad).any())
