@@ -65,3 +65,33 @@ def test_the_uncertainty_reaches_the_targets_json_from_cml_only():
         if has:
             assert 0 < target["sigma_range_m"] < 0.05 and 0 < target["sigma_angle_deg"] < 3.0
             assert json.loads(payload)["targets"][0]["sigma_range_m"] == target["sigma_range_m"]
+
+
+@pytest.mark.parametrize("bits", [1, None])
+def test_frames_are_grouped_by_the_slots_they_use_with_the_same_figures(bits):
+    """A count test's frames hold fewer targets than their slots: the uncertainty takes them
+    in groups by the slots they use (each slot a block of the Fisher matrix); a frame's
+    figures are those of its targets alone, wherever its slots end, and NaN past them."""
+    from pipeline.dsp.uncertainty import target_uncertainty
+
+    g = frames(24, 2, 0.05, seed=3)
+    q = quantize_frames(g, QuantizerConfig(alpha=0.45), np.arange(24))
+    z, xi, delta = (q.values(), q.dither(), q.delta) if bits == 1 else (g, None, None)
+    res = cml(z, xi, delta, bits, CFG, 2)
+    args = (CFG, res.sigma_eff, xi, delta, bits)
+    alone = target_uncertainty(res.range_m, res.amplitudes, res.present, *args, phase_step_rad=res.phase_step_rad)
+    pad = lambda x, v: np.concatenate([x, np.full(x.shape[:1] + (2,) + x.shape[2:], v, dtype=x.dtype)], axis=1)  # noqa: E731
+    present = pad(res.present, False)
+    present[::3, 1] = False  # every third frame: one target
+    padded = target_uncertainty(pad(res.range_m, np.nan), pad(res.amplitudes, 0), present, *args,
+                                phase_step_rad=pad(res.phase_step_rad, np.nan))
+    one = target_uncertainty(res.range_m[::3, :1], res.amplitudes[::3, :1], res.present[::3, :1], CFG,
+                             res.sigma_eff[::3], None if xi is None else xi[::3],
+                             None if delta is None else np.asarray(delta)[::3], bits,
+                             phase_step_rad=res.phase_step_rad[::3, :1])
+    for name in ("sigma_range_m", "sigma_angle_deg", "cov_range_angle"):
+        got, want = getattr(padded, name), getattr(alone, name).copy()
+        want[::3, 1] = np.nan
+        want[::3, :1] = getattr(one, name)
+        assert np.isnan(got[:, 2:]).all()
+        np.testing.assert_allclose(got[:, :2], want, rtol=1e-7, atol=1e-12, err_msg=name)
