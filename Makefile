@@ -74,7 +74,7 @@ docs-lab: $(KERNEL_STAMP)
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
 # three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
-# of the time, so two kept 1.4 cores busy (612-749 s), three 1.66 (460-529 s; 460 s on a fresh
+# of the time, so two kept 1.4 cores busy (612-749 s), three 1.66 (453-529 s; 453 s on a fresh
 # clone, 2026-11-28); the tests that measure time or memory (marked `measure`) share one worker
 # (--dist loadgroup); `make test TEST_WORKERS=0`: one process
 TEST_WORKERS ?= 3
