@@ -44,20 +44,29 @@ class AlarmCase:
     algo: str = "cml"
 
 
-def false_targets(case: AlarmCase, config: RadarConfig | None = None) -> tuple[float, float]:
-    """(false targets a frame, share of the true targets found) of ``case`` decoded by its
-    decoder with ``--K auto`` (at most MAX_K a frame)."""
-    config = RadarConfig() if config is None else config
+def case_frames(case: AlarmCase, config: RadarConfig):
+    """``case``'s true ranges (m) and angles (deg) (B, k) and its frames: complex (B, M, 2) in
+    noise, or their QuantizedFrames when ``case.bits`` is set."""
     rng = np.random.default_rng(case.seed)
     r, a, x = scenes(case, rng) if case.k else (np.zeros((case.frames, 0)),) * 3
     g = simulate_frames(r, a, x, config) if case.k else np.zeros((case.frames, config.n_measurements, 2), complex)
     g = g + case.sigma * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
-    dec = Decoder(DecoderConfig(algo=case.algo, auto_k=True, pfa=case.pfa))
     if case.bits is None:
-        det = dec.decode_batch(g, config, MAX_K)
-    else:
-        q = quantize_frames(g, QuantizerConfig(alpha=case.alpha, bits=case.bits), np.arange(case.frames))
-        det = dec.decode_batch(q, config, MAX_K)
+        return r, a, g
+    return r, a, quantize_frames(g, QuantizerConfig(alpha=case.alpha, bits=case.bits), np.arange(case.frames))
+
+
+def frames_label(case: AlarmCase) -> str:
+    """The tables' "frames" cell of ``case``: ``unquantized`` or ``1-bit, α 0.45``."""
+    return "unquantized" if case.bits is None else f"{case.bits}-bit, α {case.alpha:g}"
+
+
+def false_targets(case: AlarmCase, config: RadarConfig | None = None) -> tuple[float, float]:
+    """(false targets a frame, share of the true targets found) of ``case`` decoded by its
+    decoder with ``--K auto`` (at most MAX_K a frame)."""
+    config = RadarConfig() if config is None else config
+    r, _, frames = case_frames(case, config)
+    det = Decoder(DecoderConfig(algo=case.algo, auto_k=True, pfa=case.pfa)).decode_batch(frames, config, MAX_K)
     dist = np.abs(det.range_m[:, :, None] - r[:, None, :]) / config.range_resolution_m  # (B, MAX_K, k)
     near = (dist <= MATCH_BINS) & det.present[:, :, None]
     false = det.present & ~near.any(axis=2)
@@ -78,12 +87,7 @@ def accuracy(case: AlarmCase, config: RadarConfig | None = None) -> tuple[float,
     auto`` (at most MAX_K), on the same frames: (given, auto). A target counts only where
     both find it, so the figure compares the estimates, not the detections."""
     config = RadarConfig() if config is None else config
-    rng = np.random.default_rng(case.seed)
-    r, a, x = scenes(case, rng)
-    g = simulate_frames(r, a, x, config)
-    g = g + case.sigma * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
-    frames = g if case.bits is None else quantize_frames(g, QuantizerConfig(alpha=case.alpha, bits=case.bits),
-                                                          np.arange(case.frames))
+    r, a, frames = case_frames(case, config)
     errs, found = [], []
     for auto, k in ((False, case.k), (True, MAX_K)):
         det = Decoder(DecoderConfig(algo=case.algo, auto_k=auto, pfa=case.pfa)).decode_batch(frames, config, k)
@@ -112,8 +116,8 @@ def accuracy_table(cases=ACCURACY_CASES) -> str:
              "|---|---|---|---|---|---|---|"]
     for c in cases:
         given, auto = accuracy(c)
-        what = "unquantized" if c.bits is None else f"{c.bits}-bit, α {c.alpha:g}"
-        lines.append(f"| {c.algo} | {c.k} | {what} | {c.sigma:g} | {given:.4f} m | {auto:.4f} m | {auto / given:.2f} |")
+        lines.append(f"| {c.algo} | {c.k} | {frames_label(c)} | {c.sigma:g} | {given:.4f} m | {auto:.4f} m "
+                     f"| {auto / given:.2f} |")
     return "\n".join(lines)
 
 
@@ -123,8 +127,7 @@ def table(cases=CASES) -> str:
              "|---|---|---|---|---|---|---|"]
     for c in cases:
         f, found = false_targets(c)
-        what = "unquantized" if c.bits is None else f"{c.bits}-bit, α {c.alpha:g}"
-        lines.append(f"| {c.algo} | {c.k} | {what} | {c.sigma:g} | {c.pfa:g} | {f:.4f} ({c.frames} frames) | {100 * found:.1f} % |")
+        lines.append(f"| {c.algo} | {c.k} | {frames_label(c)} | {c.sigma:g} | {c.pfa:g} | {f:.4f} ({c.frames} frames) | {100 * found:.1f} % |")
     return "\n".join(lines)
 
 

@@ -39,11 +39,16 @@ def frames(speed: str, b: int, seed: int, config: RadarConfig):
     x = np.exp(2j * np.pi * rng.random((b, 1)))
     v = rng.uniform(0, 3, (b, 1)) if speed == "0:3" else np.full((b, 1), float(speed))
     v = v * rng.choice([-1.0, 1.0], (b, 1))
-    g = simulate_frames(r, a, x, config, velocity_mps=v)
+    return (*noisy_codes(simulate_frames(r, a, x, config, velocity_mps=v), rng), r, a, v)
+
+
+def noisy_codes(g: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames ``g`` (B, M, 2) in noise SIGMA, quantized to 1 bit at the default alpha:
+    (codes' values z, dither xi, delta), as the decoders take them."""
     g = g + SIGMA * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
     delta = auto_delta(g)
     xi = DEFAULT_ALPHA * delta[:, None, None] * batch_unit_dither(g.shape, rng)
-    return dequantize(quantize(g, delta, 1, xi), delta, 1), xi, delta, r, a, v
+    return dequantize(quantize(g, delta, 1, xi), delta, 1), xi, delta
 
 
 def parse_speeds(text: str) -> tuple[float, float]:
@@ -123,11 +128,7 @@ def pair_frames(speed: str, b: int, seed: int, config: RadarConfig):
     lo, hi = (0.0, 3.0) if speed == "0:3" else (float(speed),) * 2
     v = np.zeros((b, 2))
     v[:, 1] = rng.uniform(lo, hi, b) * rng.choice([-1.0, 1.0], b)
-    g = simulate_frames(r, a, x, config, velocity_mps=v)
-    g = g + SIGMA * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
-    delta = auto_delta(g)
-    xi = DEFAULT_ALPHA * delta[:, None, None] * batch_unit_dither(g.shape, rng)
-    return dequantize(quantize(g, delta, 1, xi), delta, 1), xi, delta, r, a
+    return (*noisy_codes(simulate_frames(r, a, x, config, velocity_mps=v), rng), r, a)
 
 
 def pair_figures(speed: str, b: int, seed: int, decoder: str, config: RadarConfig) -> tuple[float, float, float]:

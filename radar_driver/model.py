@@ -227,12 +227,16 @@ def velocity_from_phase_step(phase_step_rad: np.ndarray, config: RadarConfig) ->
         4.0 * np.pi * config.center_frequency_hz * config.ramp_interval_s)
 
 
+def fold(x: np.ndarray, period: float) -> np.ndarray:
+    """``x`` folded into ``[-period/2, period/2)``: its value modulo ``period`` nearest 0."""
+    return (np.asarray(x, dtype=float) + period / 2.0) % period - period / 2.0
+
+
 def wrap_velocity(velocity_mps: np.ndarray, config: RadarConfig) -> np.ndarray:
     """Velocities (m/s) folded into ``[-V/2, V/2)``, V the ambiguity interval
     (:attr:`RadarConfig.velocity_ambiguity_mps`): what a phase step between ramps can tell
     of them. Same shape."""
-    v = config.velocity_ambiguity_mps
-    return (np.asarray(velocity_mps, dtype=float) + v / 2.0) % v - v / 2.0
+    return fold(velocity_mps, config.velocity_ambiguity_mps)
 
 
 def sensing_matrix(config: RadarConfig, indices: np.ndarray | None = None) -> np.ndarray:

@@ -55,7 +55,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from radar_driver.model import polar_to_xy
+from radar_driver.model import fold, polar_to_xy
 
 from pipeline.errors import ParameterError
 
@@ -457,7 +457,7 @@ def doppler_step(st: SensorTracks, cfg: TrackerConfig, now_ns: int, rows: np.nda
     fresh = ~np.isfinite(st.dop_u[rows]) | (dt > cfg.doppler_gap_s) | (dt < 0)
     dt = np.where(fresh, 0.0, dt)
     prev = np.where(fresh, doppler_mps, st.dop_u[rows])
-    u = prev + ((doppler_mps - prev + v / 2.0) % v - v / 2.0)  # the alias nearest the last: continuity
+    u = prev + fold(doppler_mps - prev, v)  # the alias nearest the last: continuity
     d = np.where(fresh, 0.0, st.dop_d[rows] + 0.5 * (prev + u) * dt)
     t0 = np.where(fresh, now_ns, st.dop_t0_ns[rows])
     t = (now_ns - t0) / 1e9
