@@ -176,3 +176,29 @@ def test_a_set_up_up_cannot_start_is_one_line_and_starts_nothing(tmp_path, text,
     lines = err.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and words in lines[0], err
     assert "started" not in err
+
+
+def test_readiness_counts_tokens_by_kind_and_holds_a_bounded_number():
+    """``up`` sees its nodes' liveliness tokens come and go (a subscriber's samples); a peer
+    declaring tokens without end takes no more than MAX_TOKENS of its memory."""
+    from types import SimpleNamespace
+
+    import zenoh
+
+    from pipeline.bus.session import BusConfig
+    from qradar.cli.up import MAX_TOKENS, Readiness
+
+    ready = Readiness(BusConfig(prefix="radar"))
+    ready.session = object()  # counted without a session of its own: the samples are handed in
+
+    def token(key, kind=zenoh.SampleKind.PUT):
+        ready._on_token(SimpleNamespace(key_expr=key, kind=kind))
+
+    token("radar/alive/quantize/a1")
+    token("radar/alive/localize/b2")
+    assert ready.count("quantize") == 1 and ready.count("localize") == 1 and ready.count("record") == 0
+    token("radar/alive/quantize/a1", zenoh.SampleKind.DELETE)
+    assert ready.count("quantize") == 0
+    for i in range(MAX_TOKENS + 500):
+        token(f"radar/alive/source/x{i}")
+    assert len(ready._alive) == MAX_TOKENS

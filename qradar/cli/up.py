@@ -304,6 +304,11 @@ TOKEN = {"quantize": "quantize", "localize": "localize", "record": "record", "vi
 NODE_READY_S = 30.0
 
 
+#: the liveliness tokens ``up`` holds at most (a lab's nodes have a few; others on the network
+#: may declare any number)
+MAX_TOKENS = 4096
+
+
 class Readiness:
     """``up``'s own zenoh session, a client of its router (none under ``--secure``, where
     ``up`` has no identity of its own, nor on a host without the router): the liveliness
@@ -326,7 +331,8 @@ class Readiness:
         key = str(sample.key_expr)
         with self._changed:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(key)
+                if len(self._alive) < MAX_TOKENS:  # a peer declaring tokens without end takes no more
+                    self._alive.add(key)
             else:
                 self._alive.discard(key)
             self._changed.notify_all()
