@@ -384,6 +384,28 @@ def test_a_track_resolves_its_dopplers_ambiguity_and_its_velocity_agrees(v):
     assert st.doppler_rejected == 0 and st.doppler_changed == 0
 
 
+@pytest.mark.parametrize("v", [0.125, 0.8, -2.3])
+def test_decoded_frames_in_noise_resolve_the_right_whole_number_of_v(v):
+    """cml's Doppler of a target moving between the ramps (0.125 m/s: a blind speed of the
+    static model), 1-bit at the default alpha in noise 0.1 with amplitude 0.3, off the grid:
+    the track's radial velocity resolved within 25 frames and never a wrong whole V after."""
+    n = 120
+    radar, frames, r, a = _moving(n, [23.37], [v], [12.0], [0.3], seed=4, noise=0.1)
+    _, det = _decode(frames, radar, 1)
+    msgs = [decode_tracks(p) for p in track_batch(Tracker(TrackerConfig(integrate_s=0)), _headers(n), det,
+                                                  radar=radar)]
+    got = []
+    for i, m in enumerate(msgs):
+        x, y = polar_to_xy(r[i, 0], np.deg2rad(a[i, 0]))
+        t = _nearest_track(m.tracks, x, y)
+        got.append(None if t is None else t.get("radial_velocity_mps"))
+    first = next(i for i, g in enumerate(got) if g is not None)
+    assert first <= 25, got[:30]
+    err = np.array([np.inf if g is None else g - v for g in got[first:]])
+    assert (np.abs(err) < radar.velocity_ambiguity_mps / 4).all(), got[first:]  # never a wrong whole V
+    assert np.median(np.abs(err)) < 0.005, np.median(np.abs(err))
+
+
 def test_a_gap_in_the_doppler_starts_its_history_afresh():
     _, out = _doppler_targets(1.1, n=80, gap=(30, 40))  # 0.5 s without the target: 1.1 m/s may have changed
     assert "radial_velocity_mps" in out[29][0]
@@ -427,6 +449,9 @@ def test_tracks_json_round_trip_and_exact_fields():
     (lambda o: o["tracks"][0].update(hits=-1), "hits"),
     (lambda o: o["tracks"][0].update(track_id=True), "track_id"),
     (lambda o: o["tracks"][0].pop("sigma_m"), "sigma_m"),
+    (lambda o: o["tracks"][0].update(radial_velocity_mps="fast"), "radial_velocity_mps"),
+    (lambda o: o["tracks"][0].update(radial_velocity_mps=True), "radial_velocity_mps"),
+    (lambda o: o["tracks"][0].update(vx_mps="1.5"), "vx_mps"),
     (lambda o: o.update(tracks={}), "tracks"),
     (lambda o: o.update(sensor_id="a/b"), "sensor_id"),
     (lambda o: o.update(type="targets"), "type"),

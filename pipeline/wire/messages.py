@@ -48,6 +48,8 @@ def read_value(v, f: Field, what: str):
     range, a boolean, a string, an object (dict) or an array (list)."""
     if f.type == "number":
         try:
+            if isinstance(v, (bool, str)):  # float() would take true and "1.5"; JSON's numbers only
+                raise TypeError
             x = float(v)
         except (TypeError, ValueError):
             raise WireError(f"{what} field {f.name}={_short(v)} is not a number") from None
