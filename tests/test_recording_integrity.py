@@ -344,11 +344,12 @@ def test_a_killed_recording_with_its_first_chunk_damaged_loses_that_chunk_only(t
 # -- memory -------------------------------------------------------------------------------------
 @pytest.mark.measure
 def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_session):
-    """10 000 short-lived sensor ids a round, one quantized frame each: every id's state goes
-    when it expires, and mcap's Writer's (its channels, statistics and chunk indexes) when
-    the file holds DEAD_CHANNELS_MAX channels of expired ids and the next file starts. After
+    """6000 short-lived sensor ids a round (more than DEAD_CHANNELS_MAX), one quantized frame
+    each: every id's state goes when it expires, and mcap's Writer's (its channels, statistics
+    and chunk indexes) when the file holds DEAD_CHANNELS_MAX channels of expired ids and the
+    next file starts. After
     a first round (zenoh's and the decoders' caches), the Python heap (traced) after each of
-    three more rounds stays within 5 MB: the ids of a round cost 50 MB while they live."""
+    three more rounds stays within 5 MB: the ids of a round cost 30 MB while they live."""
     import bench_expiry
 
     def settled_heap() -> int:
@@ -363,7 +364,7 @@ def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_
 
     rec = RecorderNode(bus, tmp_path / "ids.mcap", session=zenoh_session, health_period_s=0.5, sensor_expiry_s=0.3,
                        topics="radar/*/quantized", intake=IntakeBudget.unlimited()).start()
-    n_ids, rounds = 10_000, 4
+    n_ids, rounds = 6_000, 4
     msgs = [bench_expiry.frames([f"r{r}i{i}" for i in range(n_ids)]) for r in range(rounds)]
     heaps, rss, sent = [], [], 0
     try:

