@@ -191,6 +191,10 @@ class SimulatedKMD2:
         self.radc_rate_hz = self.rate_hz * self.radcs_per_frame
         self.late_writes = 0
         self.late_s = 0.0
+        #: the frame being measured (device frame index) and the seconds its scene is later
+        #: than its device time (``late_s`` when its first RADC was measured: hold_clock)
+        self._scene_frame: int | None = None
+        self._scene_late_s = 0.0
 
     def _event(self, kind: str, value: float | None) -> None:
         self.events.append((kind, value))
@@ -201,7 +205,10 @@ class SimulatedKMD2:
         (it was not scheduled: a loaded host). A real K-MD2 measures on its own clock
         and would have sent it on time, so the device clock stands still for that long
         instead of counting the host's next GNFD late (a drop that is the simulator's,
-        not the driver's). Counted in ``late_writes`` / ``late_s``."""
+        not the driver's). The scene does not stand still: the world went on meanwhile,
+        so the frames measured after show it ``late_s`` later than their device time (a
+        moving target is where it is when the host's clock stamps the frame, as with a
+        real sensor; :meth:`measure`). Counted in ``late_writes`` / ``late_s``."""
         if late_s > self.LATE_TOLERANCE_S and self._t0 is not None:
             self._t0 += late_s
             self.late_writes += 1
@@ -299,13 +306,19 @@ class SimulatedKMD2:
 
     def measure(self, index: int) -> np.ndarray:
         """The ADC words (receivers, chirps, samples, 2) of RADC ``index``: the scene's
-        chirps at their times through its front end, noise, the profile's ADC."""
+        chirps at their times through its front end, noise, the profile's ADC. Their times:
+        the device clock's, plus the seconds it was held (:meth:`hold_clock`) when the
+        frame's first RADC was measured (the world does not wait for a late simulator; a
+        frame's ramps stay the profile's chirp interval apart)."""
         lay, scene = self.profile.radc, self.scene
         chirps = lay.chirps
+        frame = index // self.radcs_per_frame
+        if frame != self._scene_frame:
+            self._scene_frame, self._scene_late_s = frame, self.late_s
         # the chirps' places in their frame, spaced by the profile's chirp interval
         start = (index % self.radcs_per_frame) * chirps
-        t_s = frame_ramp_times_s(index // self.radcs_per_frame, start + np.arange(chirps), self.rate_hz,
-                                 lay.chirp_interval_s)
+        t_s = frame_ramp_times_s(frame, start + np.arange(chirps), self.rate_hz,
+                                 lay.chirp_interval_s) + self._scene_late_s
         clean = scene.clean_ramps(t_s)  # (chirps, N, 2)
         first = min(chirps, scene.radar.ramps_per_frame)
         azimuth = clean + np.concatenate([scene.noise(first, self._noise_rng),

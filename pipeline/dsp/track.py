@@ -19,6 +19,13 @@ Per sensor, in the sensor's plane (``x_m`` along boresight, ``y_m`` across it:
   (chi-square, 2 degrees of freedom; 13.8 = 99.9 %) are forbidden, and the rest solved as
   one assignment (Hungarian, ``scipy.optimize.linear_sum_assignment``) on the cost
   ``d^2 + ln det S`` (the negative log-likelihood of the pair, as GNN trackers use).
+* **Timestamps**: a frame's timestamp is the host's clock when it arrived (a K-MD2's
+  frames carry none), late by however long a busy host took, and the frames after a stall
+  come bunched. A target stamped ``e`` late is where the track was ``e`` before the stamp:
+  ``v e`` behind its prediction. So each (track, target) pair's measurement noise adds
+  ``timestamp_sigma_s^2 (v v^T + P_vv)`` (the track's predicted velocity and its
+  covariance): a moving track keeps its targets through the host's delays, and the range's
+  precision along the motion is what the clock allows (a static track's is untouched).
 * **Births and deaths**: a target no track takes starts a *tentative* track; it is
   *confirmed* after ``confirm_hits`` hits and dies at its ``tentative_misses``-th miss
   before that. A confirmed track dies when it has not been seen for ``max_coast_s``.
@@ -103,6 +110,9 @@ class TrackerConfig:
     doppler_sigma_mps : noise of a track's resolved Doppler (its radial velocity), m/s.
     doppler_window_s : memory of the fit that resolves the Doppler's ambiguity, s.
     doppler_gap_s : a track without Doppler for longer starts its Doppler history afresh, s.
+    timestamp_sigma_s : std of a frame's timestamp error (the host's clock when the frame
+        arrived: its delays on a busy host), s; a moving track's measurement noise along its
+        velocity (module docstring).
     """
 
     accel_mps2: float = 1.0
@@ -126,12 +136,13 @@ class TrackerConfig:
     doppler_sigma_mps: float = 0.02
     doppler_window_s: float = 5.0
     doppler_gap_s: float = 0.25
+    timestamp_sigma_s: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("accel_mps2", "range_sigma_m", "angle_sigma_deg", "snr_range_m", "snr_angle_rad",
                      "min_range_sigma_m", "min_angle_sigma_deg", "gate_chi2", "max_coast_s", "static_chi2",
                      "moving_chi2", "init_speed_mps", "max_gap_s", "doppler_sigma_mps", "doppler_window_s",
-                     "doppler_gap_s"):
+                     "doppler_gap_s", "timestamp_sigma_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
                 raise ParameterError(f"tracker: {name}={v!r} must be a finite number > 0")
@@ -205,10 +216,13 @@ def measurements(range_m: np.ndarray, angle_deg: np.ndarray, range_sigma_m,
     return z, r
 
 
-def innovations(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def innovations(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray,
+                track_r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Squared Mahalanobis distance d2 (T, K) of every (track, target) pair, and the
-    pair's ``ln det S`` (T, K), S = H P H^T + R (m^2)."""
-    s = p[:, None, :2, :2] + r[None]  # (T, K, 2, 2)
+    pair's ``ln det S`` (T, K), S = H P H^T + R (m^2); ``track_r`` (T, 2, 2): measurement
+    noise of each track's own added to every target's R (:func:`timing_noise`)."""
+    hp = p[:, :2, :2] if track_r is None else p[:, :2, :2] + track_r
+    s = hp[:, None] + r[None]  # (T, K, 2, 2)
     nu = z[None] - x[:, None, :2]  # (T, K, 2)
     det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
     # nu^T S^-1 nu of a 2 x 2 S, written out
@@ -237,6 +251,15 @@ def assign(d2: np.ndarray, logdet: np.ndarray, gate_chi2: float) -> tuple[np.nda
     rows, cols = assignment_solver()(cost)
     keep = ok[rows, cols]
     return rows[keep], cols[keep]
+
+
+def timing_noise(x: np.ndarray, p: np.ndarray, timestamp_sigma_s: float) -> np.ndarray:
+    """The position noise (T, 2, 2) (m^2) of a measurement whose timestamp is off by a
+    random error of std ``timestamp_sigma_s`` (s), for tracks x (T, 4), p (T, 4, 4) at that
+    timestamp: the target is where the track was ``e`` earlier, ``v e`` from its prediction,
+    so ``sigma^2 E[v v^T] = sigma^2 (v v^T + P_vv)``."""
+    v = x[:, 2:]
+    return timestamp_sigma_s ** 2 * (v[:, :, None] * v[:, None, :] + p[:, 2:, 2:])
 
 
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -408,13 +431,14 @@ def step_tracks(st: SensorTracks, cfg: TrackerConfig, now_ns: int, range_m: np.n
     angle = np.asarray(angle_deg, float)[ok]
     sr, sa = measurement_sigmas(None if statistic_db is None else np.asarray(statistic_db, float)[ok], angle, cfg)
     z, r = measurements(np.asarray(range_m, float)[ok], angle, sr, sa)
-    d2, logdet = innovations(st.x, st.p, z, r)
+    rt = timing_noise(st.x, st.p, cfg.timestamp_sigma_s)  # the host clock's delays, per track
+    d2, logdet = innovations(st.x, st.p, z, r, rt)
     # confirmed tracks choose first: a tentative track never takes a confirmed one's target
     rows, cols = _assign_confirmed_first(d2, logdet, st.confirmed, cfg.gate_chi2)
     hit = np.zeros(len(st.ids), dtype=bool)
     hit[rows] = True
     if rows.size:
-        st.x[rows], st.p[rows] = update(st.x[rows], st.p[rows], z[cols], r[cols])
+        st.x[rows], st.p[rows] = update(st.x[rows], st.p[rows], z[cols], r[cols] + rt[rows])
         if radial_velocity_mps is not None and ambiguity_mps is not None and ambiguity_mps > 0:
             dop = np.asarray(radial_velocity_mps, float)[ok][cols]
             has = np.isfinite(dop)

@@ -58,7 +58,8 @@ class Sim:
     line_rate: bool = option(False, "on the pty, take as long as a real serial line at the host's speed (8E1)")
     hold_clock_when_late: bool = option(False, "when this process itself writes a reply late (a loaded host), stop "
                                         "the device clock for as long, as a K-MD2 on its own clock would: the drops "
-                                        "left are the driver's")
+                                        "left are the driver's (the scene goes on: a moving target is where "
+                                        "it is when the frame is stamped)")
     profile: str | None = like(SessionConfig, "profile")
 
 
