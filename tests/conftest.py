@@ -4,21 +4,27 @@ a real recording of ``qradar run --track`` split into files, and a count of the 
 MCAP reader opens.
 Helpers that are not fixtures (qradar, QRADAR, Collector, wait_until, free_port, wait_port,
 rss_mb) live in zenoh_helpers. A test marked ``measure`` (it measures time or memory) runs on
-one pytest-xdist worker with the others so marked (``make test`` runs two workers,
-``--dist loadgroup``), never beside another measurement. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name."""
+one pytest-xdist worker with the others so marked (``make test`` runs three workers,
+``--dist loadgroup``), never beside another measurement. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name.
+A test process is prepared as a ``qradar`` process is (:func:`qradar.entry.prepare_process`:
+one BLAS thread), before numpy loads."""
 
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import pytest
+from qradar.entry import prepare_process
 
-import zenoh_helpers
-from pipeline.bus.session import BusConfig
-from pipeline.errors import PipelineError
-from radar_driver.model import RadarConfig
+prepare_process()
+
+import numpy as np  # noqa: E402 (after prepare_process, as in a qradar process)
+import pytest  # noqa: E402
+
+import zenoh_helpers  # noqa: E402
+from pipeline.bus.session import BusConfig  # noqa: E402
+from pipeline.errors import PipelineError  # noqa: E402
+from radar_driver.model import RadarConfig  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 

@@ -1,0 +1,53 @@
+"""The ``qradar`` command's processes run one BLAS thread unless the environment says
+otherwise (qradar.entry): OpenBLAS's threads on a shared 2-core host spin waiting."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: a child that prepares itself as the command's process does, then asks numpy's OpenBLAS
+#: how many threads it runs
+PROBE = """
+from qradar.entry import prepare_process
+prepare_process()
+import ctypes, glob, os, numpy
+lib, = glob.glob(os.path.join(os.path.dirname(numpy.__path__[0]), "numpy.libs", "libscipy_openblas*.so"))
+print(ctypes.CDLL(lib).scipy_openblas_get_num_threads64_())
+"""
+
+
+def blas_threads(env_value: str | None) -> int:
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if env_value is not None:
+        env["OPENBLAS_NUM_THREADS"] = env_value
+    out = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return int(out.stdout)
+
+
+def test_a_qradar_process_runs_one_blas_thread_unless_told():
+    assert blas_threads(None) == 1
+    assert blas_threads("2") == 2  # the user's choice stands
+
+
+def test_both_ways_of_starting_qradar_go_through_the_entry():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts == {"qradar": "qradar.entry:main"}
+    assert "from .entry import main" in (ROOT / "qradar" / "__main__.py").read_text()
+
+
+def test_the_tests_run_as_a_qradar_process_does():
+    """tests/conftest.py prepares the test processes before numpy loads."""
+    import ctypes
+    import glob
+
+    import numpy
+
+    lib, = glob.glob(os.path.join(os.path.dirname(numpy.__path__[0]), "numpy.libs", "libscipy_openblas*.so"))
+    assert ctypes.CDLL(lib).scipy_openblas_get_num_threads64_() == int(os.environ["OPENBLAS_NUM_THREADS"])
