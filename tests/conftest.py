@@ -28,6 +28,7 @@ from radar_driver.model import RadarConfig  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads xdist_group into the nodeid
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("measure") is not None:
