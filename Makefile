@@ -76,7 +76,7 @@ docs-lab: $(KERNEL_STAMP)
 
 # three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
 # of the time, so two kept 1.4 cores busy (612-749 s), three 1.66 (453-529 s; 453 s on a fresh
-# clone, 2026-11-28; 406 s with bytecode and one BLAS thread a process); four: 371 s against
+# clone, 2026-11-28; 382 s with bytecode and one BLAS thread a process); four: 371 s against
 # 385 s, more CPU and a flaky test; the tests that measure time or memory (marked `measure`)
 # share one worker (--dist loadgroup); `make test TEST_WORKERS=0`: one process
 TEST_WORKERS ?= 3
