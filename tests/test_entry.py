@@ -12,18 +12,26 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 #: a child that prepares itself as the command's process does, then asks numpy's OpenBLAS
-#: how many threads it runs
-PROBE = """
-from qradar.entry import prepare_process
-prepare_process()
-import ctypes, glob, os, numpy
-lib, = glob.glob(os.path.join(os.path.dirname(numpy.__path__[0]), "numpy.libs", "libscipy_openblas*.so"))
-print(ctypes.CDLL(lib).scipy_openblas_get_num_threads64_())
-"""
+PROBE = "from qradar.entry import prepare_process; prepare_process(); from test_entry import openblas_threads; " \
+        "print(openblas_threads())"
+
+
+def openblas_threads() -> int:
+    """The threads numpy's OpenBLAS runs in this process."""
+    import ctypes
+    import glob
+
+    import numpy
+
+    lib, = glob.glob(os.path.join(os.path.dirname(numpy.__path__[0]), "numpy.libs", "libscipy_openblas*.so"))
+    return ctypes.CDLL(lib).scipy_openblas_get_num_threads64_()
 
 
 def blas_threads(env_value: str | None) -> int:
+    """:func:`openblas_threads` of a prepared child whose environment sets
+    ``OPENBLAS_NUM_THREADS`` to ``env_value`` (None: unset)."""
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), env.get("PYTHONPATH", "")])
     if env_value is not None:
         env["OPENBLAS_NUM_THREADS"] = env_value
     out = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=60)
@@ -44,10 +52,4 @@ def test_both_ways_of_starting_qradar_go_through_the_entry():
 
 def test_the_tests_run_as_a_qradar_process_does():
     """tests/conftest.py prepares the test processes before numpy loads."""
-    import ctypes
-    import glob
-
-    import numpy
-
-    lib, = glob.glob(os.path.join(os.path.dirname(numpy.__path__[0]), "numpy.libs", "libscipy_openblas*.so"))
-    assert ctypes.CDLL(lib).scipy_openblas_get_num_threads64_() == int(os.environ["OPENBLAS_NUM_THREADS"])
+    assert openblas_threads() == int(os.environ["OPENBLAS_NUM_THREADS"])

@@ -132,7 +132,8 @@ def test_assign_is_the_brute_force_optimum():
 
 @pytest.mark.parametrize("kw", [{"accel_mps2": 0}, {"gate_chi2": float("nan")}, {"confirm_hits": 0},
                                 {"max_tracks": 2.5}, {"static_chi2": 20.0, "moving_chi2": 10.0},
-                                {"integrate_s": -1}, {"integrate_s": True}])
+                                {"integrate_s": -1}, {"integrate_s": True}, {"timestamp_sigma_s": 0},
+                                {"timestamp_sigma_s": float("inf")}])
 def test_bad_config_is_refused(kw):
     with pytest.raises(ParameterError, match="tracker: "):
         TrackerConfig(**kw)
