@@ -9,8 +9,11 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+
+import pytest
 
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
@@ -71,3 +74,34 @@ def test_a_second_signal_while_a_driver_stops_exits_at_once(tmp_path):
     assert [ln for ln in err.splitlines() if "while stopping" in ln] == [
         "qradar drive: SIGTERM again while stopping: exiting at once (status 130)"]
     assert "Traceback" not in err and out == ""
+
+
+@pytest.fixture
+def own_signals():
+    """StopOnSignals made in this test: the process's handlers and wakeup fd restored after."""
+    from qradar.cli.common import StopOnSignals
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield StopOnSignals
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        signal.set_wakeup_fd(-1)
+        StopOnSignals._current = None
+
+
+@pytest.mark.parametrize("handled_apart_s, forced", [(0.6, True), (0.0, False)])
+def test_two_signals_read_together_are_two_when_they_came_apart(own_signals, monkeypatch, handled_apart_s, forced):
+    """The watcher thread reads the signals' bytes when it runs: on a busy host two signals
+    0.6 s apart are read together, and a second that was not a duplicate was taken for one (a
+    driver ended 0, not 130). The main thread's handler dates them as they come: apart, the
+    second forces the exit; one signal delivered twice (the handler runs once) stays one."""
+    stops = own_signals(threading.Event(), "test")
+    calls = []
+    monkeypatch.setattr(stops, "force", calls.append)
+    now = time.monotonic()
+    stops._handled_s = (now - handled_apart_s, now)
+    stops._on_signal("SIGTERM")
+    stops._on_signal("SIGTERM")  # read at once after the first
+    assert calls == (["SIGTERM"] if forced else []) and stops.stop.is_set()

@@ -69,6 +69,9 @@ class StopOnSignals:
         self.interrupted: str | None = None  # the signal's name, once one came
         self._received = 0
         self._first_s = 0.0  # monotonic time of the first signal
+        #: when the main thread's handler ran for the first and the last signal (monotonic, s; None:
+        #: not yet): the signals' own times, where the watcher may read them late and together
+        self._handled_s: tuple[float, float] | None = None
         self._raised = False
         if StopOnSignals._wakeup is None:
             r, w = os.pipe()
@@ -81,7 +84,9 @@ class StopOnSignals:
         signal.signal(signal.SIGTERM, self._handler)
 
     def _handler(self, signum, frame) -> None:
-        """In the main thread; the watcher does the rest."""
+        """In the main thread: when the signal came (:meth:`_apart`); the watcher does the rest."""
+        now = time.monotonic()
+        self._handled_s = (now, now) if self._handled_s is None else (self._handled_s[0], now)
         if self.stop is None and not self._raised:
             self._raised = True
             raise KeyboardInterrupt
@@ -96,7 +101,7 @@ class StopOnSignals:
 
     def _on_signal(self, name: str) -> None:
         now = time.monotonic()
-        if self._received and now - self._first_s < SAME_SIGNAL_S:
+        if self._received and now - self._first_s < SAME_SIGNAL_S and not self._apart():
             return  # the same interrupt delivered twice (to the process and to its group): not "again"
         self._received += 1
         if self._received == 1:
@@ -110,6 +115,13 @@ class StopOnSignals:
             except (OSError, ValueError):
                 pass
             self.stop.set()
+
+    def _apart(self) -> bool:
+        """The main thread's handler ran for signals SAME_SIGNAL_S or more apart: two signals,
+        however late the watcher (a busy host) read them (the handler runs once for a signal
+        that came twice before it could: a duplicate is never apart)."""
+        h = self._handled_s
+        return h is not None and h[1] - h[0] >= SAME_SIGNAL_S
 
     def force(self, name: str) -> None:
         """Exit at once, status 130, after one line and ``on_force``."""
