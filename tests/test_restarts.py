@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from zenoh_helpers import QRADAR, free_port, rss_mb, wait_port
+from zenoh_helpers import QRADAR, Collector, free_port, rss_mb, wait_port, wait_until
 
 pytestmark = pytest.mark.measure
 
@@ -33,7 +33,7 @@ def settled(pid: int, timeout_s: float = 20.0) -> None:
 
 
 @pytest.mark.slow
-def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber():
+def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber(connect_when_ready):
     port = free_port()
     client = ["--mode", "client", "--connect", f"tcp/127.0.0.1:{port}"]
     router = subprocess.Popen([*QRADAR, "router", "--listen", f"tcp/127.0.0.1:{port}"],
@@ -51,11 +51,26 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber():
                                  capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
             assert out.returncode == 0 and f'"frames_out": {frames}' in out.stdout, out.stderr[-2000:]
 
-        for _ in range(3):  # the first sessions warm every cache up (the localizer loads its compiled kernels)
+        # the warm-up must reach the nodes: a node subscribes only once its kernels are loaded (the localizer's
+        # cml kernels: 1.5 s idle, 3.5 s on a busy host), then declares its liveliness token. Frames published
+        # before are lost, and the localizer's first decodes (~12 MB once: its worker's first frame, its first
+        # batches) came after the baseline, read as growth
+        session = connect_when_ready(f"tcp/127.0.0.1:{port}", mode="client")
+
+        def alive() -> set[str]:
+            return {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
+                    if r.ok is not None}
+
+        wait_until(lambda: {"quantize", "localize"} <= alive(), 60, "the quantize and localize nodes up")
+        targets = Collector(session, "radar/*/targets")
+        for _ in range(3):  # the first sessions warm every cache up
             source()
         # and a burst: a node takes what its queue holds as one batch, and its arrays' memory is that of the
-        # largest batch so far (a busy host batches a restart's 5 frames; 12 MB once, read as growth)
+        # largest batch so far (a busy host batches a restart's 5 frames)
         source(60, 1000.0)
+        wait_until(lambda: len(targets.of("/targets")) >= 60, 60,
+                   lambda: f"the warm-up's targets (the localizer decoded {len(targets.of('/targets'))} frames)")
+        targets.sub.undeclare()
         settled(localize.pid)
         before = rss_mb(router.pid), rss_mb(quantize.pid), rss_mb(localize.pid)
         for _ in range(RESTARTS):
