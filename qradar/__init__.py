@@ -13,12 +13,17 @@ recorder) together.
 does not pay for them.
 """
 
-from importlib import metadata as _metadata
 
-try:
-    __version__ = _metadata.version("qradar")
-except _metadata.PackageNotFoundError:  # run from a source tree that was never installed
-    __version__ = "0+unknown"
+def _version() -> str:
+    """The installed package's version ("0+unknown" from a source tree never installed); read
+    on first use: importing ``importlib.metadata`` and scanning site-packages cost every
+    process 30 ms of CPU at start, and only ``--version`` and recordings need it."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("qradar")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
 
 
 #: the names of qradar.api reachable as qradar.<name>
@@ -38,7 +43,10 @@ def __dir__() -> list[str]:
 
 
 def __getattr__(name: str):
-    """The names of :mod:`qradar.api`, imported on first use (submodules import as usual)."""
+    """The names of :mod:`qradar.api`, imported on first use (submodules import as usual), and
+    ``__version__``."""
+    if name == "__version__":
+        return _version()
     if name in _API:
         from importlib import import_module
 

@@ -39,7 +39,6 @@ import platform
 import threading
 import time
 from enum import Enum
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 import zenoh
@@ -102,6 +101,9 @@ class RecordingState(str, Enum):
 
 
 def versions() -> dict[str, str]:
+    """Python's and the packages' versions, for a recording's metadata."""
+    from importlib import metadata as importlib_metadata  # here: its import costs every process's start
+
     out = {"python": platform.python_version()}
     for pkg in ("qradar", "numpy", "eclipse-zenoh", "mcap", "pyserial"):
         try:

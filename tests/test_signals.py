@@ -64,6 +64,7 @@ def test_a_second_signal_while_a_driver_stops_exits_at_once(tmp_path):
             assert counters["frames"] >= 1 and drive.poll() is None
             time.sleep(max(0.0, 0.6 - (time.monotonic() - t_first)))
             drive.send_signal(signal.SIGTERM)
+            drive.wait(timeout=10)  # before stdin closes: its end would end the lingering driver normally
             out, err = drive.communicate(timeout=10)
         finally:
             if drive.poll() is None:

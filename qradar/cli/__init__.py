@@ -35,10 +35,23 @@ from radar_driver.errors import RadarError, SetupError
 from replay.errors import ReplayError
 
 from . import lab
-from .. import __version__
-from .common import DefaultsFormatter
+from .common import DefaultsFormatter, StopOnSignals
 
 log = logging.getLogger("qradar")
+
+
+class VersionAction(argparse.Action):
+    """``--version``: the installed version, looked up only when asked (``qradar.__version__``)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0,
+                         help=help or "show the installed version and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import qradar
+
+        print(f"qradar {qradar.__version__}")  # on stdout, as argparse's version action
+        parser.exit()
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -82,7 +95,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         formatter_class=DefaultsFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging, tracebacks on errors")
-    parser.add_argument("--version", action="version", version=f"qradar {__version__}")
+    parser.add_argument("--version", action=VersionAction)
     sub = parser.add_subparsers(dest="command", required=True)
     known = any(command in names for names in ADDERS.values())
     for (module, adder), names in ADDERS.items():
@@ -136,6 +149,7 @@ def _end_process(code: int) -> None:
             out.flush()
         except (OSError, ValueError):
             pass
+    StopOnSignals.EXIT.acquire()  # never released: a forced exit (status 130) under way ends the process first
     os._exit(code if isinstance(code, int) else 1)
 
 

@@ -61,6 +61,10 @@ class StopOnSignals:
     handlers, so the newest instance is the one in charge."""
 
     _current: "StopOnSignals | None" = None
+    #: held by whoever ends the process: :meth:`force` (status 130) or the command's normal end
+    #: (:func:`qradar.cli._end_process`), so that a process that said "exiting at once (status
+    #: 130)" never ends 0 (the main thread ending normally between that line and the exit)
+    EXIT = threading.Lock()
     _wakeup: tuple[int, int] | None = None  # the pipe the signals' numbers come through (read, write)
 
     def __init__(self, stop: threading.Event | None, name: str, json_error: bool = False,
@@ -124,7 +128,9 @@ class StopOnSignals:
         return h is not None and h[1] - h[0] >= SAME_SIGNAL_S
 
     def force(self, name: str) -> None:
-        """Exit at once, status 130, after one line and ``on_force``."""
+        """Exit at once, status 130, after one line and ``on_force`` (none if the command is
+        already ending normally: it ends with its own status)."""
+        StopOnSignals.EXIT.acquire()
         try:
             os.write(2, f"qradar {self.name}: {name} again while stopping: exiting at once (status 130)\n".encode())
             if self.json_error:
