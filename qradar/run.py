@@ -316,7 +316,8 @@ class RunNodes:
         self.monitor = Monitor(cfg.bus, session, p.truth, time.time_ns(), self.live, clock_per_sensor=not cfg.real,
                                calibration=None if p.calibration is None else p.calibration.source,
                                truths=p.truths, decoded=self.decoded).start()
-        self.localizer = LocalizeNode(cfg.bus, p.localizer, session=session, tracking=cfg.tracking)
+        self.localizer = LocalizeNode(cfg.bus, p.localizer, session=session, tracking=cfg.tracking,
+                                      bits=None if p.localizer.source == "raw" else cfg.quantizer.bits)
         self.quantizer = QuantizeNode(cfg.bus, cfg.quantizer, session=session, radar=p.radar,
                                       calibration=p.calibration,
                                       calibration_required=True)  # a file that does not fit: refused at the first frame

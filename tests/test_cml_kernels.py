@@ -493,13 +493,38 @@ def test_load_kernels_loads_1_bit_codes_first():
 
     code = ("from pipeline.dsp.cml import load_kernels\n"
             "from pipeline.dsp.cml.kernels import KERNELS\n"
+            "from pipeline.dsp.cml.loading import kind_of\n"
             "count = lambda: sum(len(k.signatures) for k in KERNELS)\n"
-            "before = count(); load_kernels(common=True); common = count(); load_kernels()\n"
-            "print(before, common, count())")
+            "before = count(); load_kernels(kinds=(kind_of(1),)); one_bit = count()\n"
+            "load_kernels(common=True); common = count(); load_kernels(); everything = count()\n"
+            "load_kernels(kinds=(kind_of(None), kind_of(5))); print(before, one_bit, common, everything, count())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
-    before, common, everything = map(int, out.stdout.split())
-    assert before == 0 < common < everything
+    before, one_bit, common, everything, again = map(int, out.stdout.split())
+    # the kind of 1-bit codes alone is the common kind; every kind loads more; loaded kinds add nothing
+    assert before == 0 < one_bit == common < everything == again
+
+
+def test_a_node_told_its_bits_loads_their_kernels_alone():
+    """``qradar run``'s localizer knows its quantizer's bits: it loads that kind's kernels (codes
+    of 2-16 bits share the 3-bit kind's) and starts no thread for the others; a standalone one
+    loads the others in a thread. A kind cml does not have is refused by name."""
+    from pipeline.dsp.cml.loading import KINDS, kind_of, load_kernels
+    from pipeline.dsp.cml.options import DEFAULT_LIKELIHOOD
+    from pipeline.nodes.stream import LocalizeNode, LocalizerConfig
+    from pipeline.bus.session import BusConfig
+    from pipeline.nodes.transport import MemoryTransport
+
+    assert kind_of(1) == KINDS[0] and kind_of(None) == (None, DEFAULT_LIKELIHOOD)
+    assert kind_of(2) == kind_of(16) == (3, DEFAULT_LIKELIHOOD)
+    with pytest.raises(ValueError, match="none of cml's"):
+        load_kernels(kinds=((2, DEFAULT_LIKELIHOOD),))
+    for bits, thread in ((1, False), ("any", True)):
+        node = LocalizeNode(BusConfig(), LocalizerConfig(k=1), session=MemoryTransport(), bits=bits).start()
+        try:
+            assert (node._loading is not None) == thread, bits
+        finally:
+            node.stop()
 
 
 def test_no_array_layout_makes_a_new_compiled_signature(cfg):

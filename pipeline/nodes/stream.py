@@ -398,8 +398,14 @@ class LocalizeNode(FrameNode):
     role = "localizer"
 
     def __init__(self, bus: BusConfig, config: LocalizerConfig, session: zenoh.Session | Transport | None = None,
-                 tracking: TrackerConfig | None = None, **kw):
+                 tracking: TrackerConfig | None = None, bits: int | None | str = "any", **kw):
+        """``bits``: the bits of the codes this node will be sent (None: unquantized frames), when
+        the caller knows them (``qradar run``: its own quantizer's): cml then loads those frames'
+        kernels alone (the others cost 0.26 s of CPU at start, from numba's cache); "any": a
+        standalone node, which loads the common kind's kernels before it subscribes and the
+        others in a thread."""
         self.in_topic = config.source
+        self._bits = bits
         super().__init__(bus, config.radar, config.max_ramps, session, **kw)
         self.config = config
         # tracks (pipeline.dsp.track): ``<prefix>/<sensor>/tracks`` after each frame's targets
@@ -421,11 +427,14 @@ class LocalizeNode(FrameNode):
         if self.config.algo == Algo.CML and self._decoder.cml(self.config.radar).engine == "numba":
             # cml's kernels of 1-bit codes from numba's cache (~1 s; `make` compiles them at install)
             # before subscribing (the session already listens), the other kinds' after in a thread
-            from pipeline.dsp.cml.loading import load_kernels  # numba: only a cml localizer loads it
+            from pipeline.dsp.cml.loading import kind_of, load_kernels  # numba: only a cml localizer loads it
 
-            load_kernels(common=True)
-            self._loading = threading.Thread(target=load_kernels, name="cml-kernels", daemon=True)
-            self._loading.start()
+            if self._bits == "any":
+                load_kernels(common=True)
+                self._loading = threading.Thread(target=load_kernels, name="cml-kernels", daemon=True)
+                self._loading.start()
+            else:
+                load_kernels(kinds=(kind_of(self._bits),))
         if self.config.algo != Algo.PBP and self._decoder.dither_engine == "numba":
             load_dither_kernel()  # the compiled dither (pipeline.dsp.dither_kernels), from the same cache
         return super().start()

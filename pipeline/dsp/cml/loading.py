@@ -26,25 +26,35 @@ KINDS = ((1, DEFAULT_LIKELIHOOD),) + tuple((b, lik) for b in (1, 3, None) for li
 EXPECTED_COMPILE_S = {0: (180.0, 300.0), 4: (20.0, 40.0)}
 
 
+def kind_of(bits: int | None, likelihood: str = DEFAULT_LIKELIHOOD) -> tuple[int | None, str]:
+    """The kind of :data:`KINDS` whose kernels decode frames of ``bits`` (None: unquantized)
+    with ``likelihood``: codes of 2 to 16 bits share the 3-bit kind's kernels."""
+    return (bits if bits in (None, 1) else 3, likelihood)
+
+
 def kind_label(bits: int | None, likelihood: str) -> str:
     """A kind of frame in words."""
     return f"{'unquantized' if bits is None else f'{bits}-bit'} frames, {likelihood} likelihood"
 
 
-def load_kernels(common: bool = False, on_step=None) -> None:
+def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None) -> None:
     """Load (or compile) the compiled engine's kernels for every kind of frame (``common``:
-    1-bit codes with the default likelihood alone): about 1 s from numba's cache, a first
-    compile a minute or more; nothing without numba. A caller that cannot wait runs it in a
-    thread of its own (a frame of a kind not loaded yet meanwhile waits for numba's lock).
-    ``on_step(i, bits, likelihood, seconds)`` before each kind (seconds None) and after it."""
+    1-bit codes with the default likelihood alone; ``kinds``: these (bits, likelihood) of
+    :data:`KINDS` alone): about 1 s from numba's cache, a first compile a minute or more;
+    nothing without numba. A caller that cannot wait runs it in a thread of its own (a frame
+    of a kind not loaded yet meanwhile waits for numba's lock). ``on_step(i, bits,
+    likelihood, seconds)`` before each kind (seconds None) and after it."""
     if not HAVE_NUMBA:
         return
+    if kinds is not None and not set(kinds) <= set(KINDS):
+        raise ValueError(f"kinds {sorted(set(kinds) - set(KINDS), key=str)} are none of cml's {KINDS}")
     cfg = RadarConfig()
     n = cfg.samples_per_ramp
     rng = np.random.default_rng(0)
     g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
     xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
-    for i, (bits, lik) in enumerate(KINDS[:1] if common else KINDS):
+    chosen = KINDS[:1] if common else KINDS if kinds is None else tuple(k for k in KINDS if k in kinds)
+    for i, (bits, lik) in enumerate(chosen):
         if on_step is not None:
             on_step(i, bits, lik, None)
         t0 = time.monotonic()
