@@ -26,6 +26,7 @@ import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from pipeline.defaults import DEFAULT_MAX_TARGETS
 from pipeline.errors import ParameterError
 from pipeline.dsp.decode import ALGOS, Algo, DecoderConfig, decode
 from pipeline.dsp.gate import RangeGate, check_gate
-from pipeline.dsp.localize import DEFAULT_PFA, check_pfa, match_detections, position_error_m
+from pipeline.dsp.localize import DEFAULT_PFA, Detections, check_pfa, match_detections, position_error_m
 from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames
 from pipeline.dsp.score import summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
@@ -75,16 +76,13 @@ class Scheme:
         m = _SCHEME_RE.match(name)
         if not m or (m.group(2) is not None and (m.group(1) != "dither" or (
                 m.group(2) != "auto" and not 0 < float(m.group(2)) <= 1))):
-            raise ParameterError(
-                f"scheme {name!r} is not of the form dither_m<M>, dither_a<alpha>_m<M> (0 < alpha <= 1), "
-                "dither_aauto_m<M> (alpha from the noise), nodither_m<M> or 32bit_m<M>"
-            )
+            raise ParameterError(f"scheme {name!r} is not of the form dither_m<M>, dither_a<alpha>_m<M> (0 < alpha "
+                                 "<= 1), dither_aauto_m<M> (alpha from the noise), nodither_m<M> or 32bit_m<M>")
         kind, n_meas = m.group(1), int(m.group(3))
         n = config.samples_per_ramp
         if n_meas % n and n_meas > n:
-            raise ParameterError(
-                f"scheme {name!r}: M={n_meas} must be a multiple of N={n} (whole ramps) or below N (a subset)"
-            )
+            raise ParameterError(f"scheme {name!r}: M={n_meas} must be a multiple of N={n} (whole ramps) or below "
+                                 f"N (a subset)")
         if kind == "32bit":
             return cls(name, n_meas, None, 0.0)
         if m.group(2) == "auto":
@@ -101,7 +99,6 @@ class Scheme:
 
 
 RANGE_PLACEMENTS = ("grid", "cells", "continuous")
-
 
 
 @dataclass(frozen=True)
@@ -385,50 +382,62 @@ class ChunkResult:
     score_nearest_m: np.ndarray | None = None  # (n, K) each true target to the nearest target
 
 
-def run_chunk(k: int, scheme_name: str, chunk: int, n_runs: int, seed: int, scene: SceneSpec, radar: RadarConfig,
-              algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True,
+def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: int, scene: SceneSpec,
+              radar: RadarConfig, algos: tuple[str, ...] = (Algo.PBP,), fallback_pbp: bool = True,
               count: CountSpec = CountSpec(), gate: RangeGate | None = None,
-              decoder_noise: str = "codes") -> dict[str, ChunkResult]:
-    """One chunk of runs of one scheme, decoded by each algo (same measurements); pure
-    given its arguments. ``decoder_noise``: what cml is told of the noise
-    (:data:`DECODER_NOISE`). Returns {algo: ChunkResult}."""
-    scheme = Scheme.parse(scheme_name, radar)
+              decoder_noise: str = "codes") -> dict[str, dict[str, ChunkResult]]:
+    """One chunk of runs of each of ``schemes`` (the same scenes, their noiseless frames
+    simulated once), decoded by each algo (a scheme's measurements the same for all); pure
+    given its arguments, a scheme's results the same whichever others run. ``decoder_noise``:
+    what cml is told of the noise (:data:`DECODER_NOISE`). Returns {scheme: {algo: ChunkResult}}."""
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
-    scheme_rng = np.random.default_rng(
-        np.random.SeedSequence(seed, spawn_key=(k, chunk, zlib.crc32(scheme_name.encode())))
-    )
-    crc = zlib.crc32(scheme_name.encode())
-    noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
     v = draw_speeds(n_runs, k, seed, chunk, scene.speeds)
-    if v is not None and not scheme.ramps(radar):
-        raise ParameterError(f"--speeds needs whole ramps; scheme {scheme_name} measures a frequency subset")
-    z, indices, xi, delta, *est = measure(
-        scheme, lambda idx: simulate_frames(r, a, x, radar, idx, ramps=scheme.ramps(radar) or None, velocity_mps=v),
-        n_runs,
-        scheme_rng, radar, scene.noise_sigma, noise_rng, estimate=decoder_noise == "frames")
-    noise = {"codes": None, "true": scene.noise_sigma, "frames": est[0] if est else None}[decoder_noise]
+    whole: dict[int, np.ndarray] = {}  # the noiseless frames of whole ramps, by ramp count
+
+    def gamma_fn(scheme: Scheme, idx):
+        ramps = scheme.ramps(radar)
+        if idx is not None:
+            return simulate_frames(r, a, x, radar, idx)
+        if ramps not in whole:
+            whole[ramps] = simulate_frames(r, a, x, radar, None, ramps=ramps, velocity_mps=v)
+        return whole[ramps]
+
     out = {}
-    values = z if scheme.bits is None else None  # the codes' values, made once if a decoder needs them
-    for algo in algos:
-        decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
-        takes_codes = scheme.bits is not None and algo == Algo.CML and indices is None  # cml: the codes as they are
-        if not takes_codes and values is None:
-            values = dequantize(z, delta, scheme.bits)
-        frames = z if takes_codes else values
-        det = decode(frames, xi, delta, scheme.bits, radar, count.max_targets if count.auto else k, decoder, indices,
-                     noise_sigma=noise)
-        err = position_error_m(r, a, det.range_m, det.angle_deg)
-        sc = score_frames(r, a, det.range_m, det.angle_deg)
-        scored = dict(score_error_m=sc.error_m.astype(np.float32), score_false=sc.false_targets.astype(np.int16),
-                      score_targets=sc.targets.astype(np.int16), score_nearest_m=sc.nearest_m.astype(np.float32))
-        res = ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err, **scored)
-        if count.auto:
-            found, false_targets = match_detections(r, det.range_m, count.gate_m)
-            res = ChunkResult(res.range_cell, res.angle_cell, a, np.where(found, err, np.nan), np.abs(x), found,
-                              false_targets, **scored)
-        out[algo] = res
+    for name in schemes:
+        scheme = Scheme.parse(name, radar)
+        if v is not None and not scheme.ramps(radar):
+            raise ParameterError(f"--speeds needs whole ramps; scheme {name} measures a frequency subset")
+        crc = zlib.crc32(name.encode())
+        scheme_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc)))
+        noise_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk, crc, 1)))
+        z, indices, xi, delta, *est = measure(scheme, partial(gamma_fn, scheme), n_runs, scheme_rng, radar,
+                                              scene.noise_sigma, noise_rng, estimate=decoder_noise == "frames")
+        noise = {"codes": None, "true": scene.noise_sigma, "frames": est[0] if est else None}[decoder_noise]
+        out[name] = {}
+        values = z if scheme.bits is None else None  # the codes' values, made once if a decoder needs them
+        for algo in algos:
+            decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
+            takes_codes = scheme.bits is not None and algo == Algo.CML and indices is None  # cml: the codes as they are
+            if not takes_codes and values is None:
+                values = dequantize(z, delta, scheme.bits)
+            det = decode(z if takes_codes else values, xi, delta, scheme.bits, radar,
+                         count.max_targets if count.auto else k, decoder, indices, noise_sigma=noise)
+            out[name][algo] = chunk_result(r, a, x, rc, ac, det, count)
     return out
+
+
+def chunk_result(r, a, x, rc, ac, det: Detections, count: CountSpec) -> ChunkResult:
+    """The errors and scores of one decoder's detections ``det`` of scenes ``r, a, x`` (cells ``rc, ac``)."""
+    err = position_error_m(r, a, det.range_m, det.angle_deg)
+    sc = score_frames(r, a, det.range_m, det.angle_deg)
+    scored = dict(score_error_m=sc.error_m.astype(np.float32), score_false=sc.false_targets.astype(np.int16),
+                  score_targets=sc.targets.astype(np.int16), score_nearest_m=sc.nearest_m.astype(np.float32))
+    if not count.auto:
+        return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err, **scored)
+    found, false_targets = match_detections(r, det.range_m, count.gate_m)
+    return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, np.where(found, err, np.nan), np.abs(x), found,
+                       false_targets, **scored)
 
 
 # -- aggregation ----------------------------------------------------------------------------
@@ -537,28 +546,25 @@ class MonteCarloResult:
 def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloResult:
     """Run every (K, scheme) of ``cfg``; returns the summary dict and the cell maps."""
     t0 = time.perf_counter()
-    jobs = []
-    for k in cfg.ks:
-        total = cfg.runs_for(k)
-        for s in cfg.schemes:
-            for c, start in enumerate(range(0, total, CHUNK_RUNS)):
-                jobs.append((k, s, c, min(CHUNK_RUNS, total - start)))
-    total_runs = sum(j[3] for j in jobs)
+    schemes = tuple(cfg.schemes)  # a job: (K, schemes, chunk, runs), a chunk's scenes simulated once for all schemes
+    jobs = [(k, schemes, c, min(CHUNK_RUNS, cfg.runs_for(k) - start)) for k in cfg.ks
+            for c, start in enumerate(range(0, cfg.runs_for(k), CHUNK_RUNS))]
+    total_runs = sum(j[3] for j in jobs) * len(schemes)
     workers = cfg.workers or os.cpu_count() or 1
-    parts: dict[tuple[int, str, str], list] = {(k, s, a): [] for k in cfg.ks for s in cfg.schemes
-                                               for a in cfg.algos}
+    parts: dict[tuple[int, str, str], list] = {(k, s, a): [] for k in cfg.ks for s in schemes for a in cfg.algos}
     algos = tuple(cfg.algos)
 
-    def collect(job, result: dict[str, ChunkResult]) -> None:
-        for a, res in result.items():
-            parts[(job[0], job[1], a)].append(res)
+    def collect(job, result: dict[str, dict[str, ChunkResult]]) -> None:
+        for s, by_algo in result.items():
+            for a, res in by_algo.items():
+                parts[(job[0], s, a)].append(res)
 
     with Progress(total_runs, "montecarlo", unit="runs", enabled=progress) as bar:
         if workers == 1:
             for job in jobs:
                 collect(job, run_chunk(*job, cfg.seed, cfg.scene, cfg.radar, algos, cfg.fallback_pbp, cfg.count,
-                                       cfg.gate, cfg.decoder_noise))
-                bar.update(job[3])
+                                        cfg.gate, cfg.decoder_noise))
+                bar.update(job[3] * len(schemes))
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
@@ -566,7 +572,7 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                            for job in jobs]
                 for job, fut in futures:  # in submission order: deterministic assembly
                     collect(job, fut.result())
-                    bar.update(job[3])
+                    bar.update(job[3] * len(schemes))
     summary: dict = {}
     maps: dict[str, np.ndarray] = {}
     for k in cfg.ks:
@@ -580,8 +586,7 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                     maps[f"K{k}_{name_sa}_{name}"] = arr
     runs_per_k = {f"K{k}": cfg.runs_for(k) for k in cfg.ks}
     summary["runs"] = cfg.runs if cfg.runs is not None else runs_per_k
-    summary["scene"] = cfg.scene.to_dict()
-    summary["count"] = cfg.count.to_dict()
+    summary["scene"], summary["count"] = cfg.scene.to_dict(), cfg.count.to_dict()
     if cfg.gate is not None:  # (the paper's protocol searches the whole range axis)
         summary["gate"] = cfg.gate.to_dict()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
@@ -590,6 +595,5 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
         "runs_per_k": runs_per_k, "workers": workers, "chunk_runs": CHUNK_RUNS, "radar": cfg.radar.to_dict(),
         "algos": [str(a) for a in cfg.algos], "fallback_pbp": cfg.fallback_pbp, "scene": cfg.scene.to_dict(),
         "count": cfg.count.to_dict(), "gate": None if cfg.gate is None else cfg.gate.to_dict(),
-        "decoder_noise": cfg.decoder_noise,
-    }
+        "decoder_noise": cfg.decoder_noise}
     return MonteCarloResult(summary, maps, run_config)

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, replace
-from functools import lru_cache, partial
+from functools import partial
 from typing import Literal, Sequence
 
 import numpy as np
@@ -228,17 +228,9 @@ def dequantize(codes: np.ndarray, delta, bits: int) -> np.ndarray:
 
 def _dequantize(c: np.ndarray, d: np.ndarray, bits: int) -> np.ndarray:
     """:func:`dequantize` of checked arguments (codes within 2**bits, ``d`` () or (B,))."""
-    v = _levels(bits)[c]  # (B, M, 2, 2) float64: code - 2**(b-1) + 1/2
+    v = np.subtract(c, (1 << (bits - 1)) - 0.5, dtype=np.float64)  # (B, M, 2, 2): code - 2**(b-1) + 1/2, exact
     v *= _per_frame(d, 4)
     return v.view(np.complex128).reshape(c.shape[:3])
-
-
-@lru_cache(maxsize=MAX_BITS)
-def _levels(bits: int) -> np.ndarray:
-    """The level of each code of ``bits`` bits in steps: ``code - 2**(b-1) + 1/2``, (2**b,)."""
-    lv = np.arange(1 << bits, dtype=np.float64) - ((1 << (bits - 1)) - 0.5)
-    lv.flags.writeable = False
-    return lv
 
 
 # -- the dither -------------------------------------------------------------------------
@@ -298,8 +290,13 @@ def sensor_dither_seeds(seed: int, sensor_ids: Sequence[str]) -> np.ndarray:
 
 def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
     """Unit dither for a Monte Carlo batch from one generator: complex array of ``shape``."""
-    u = rng.random((2,) + tuple(shape)) - 0.5
-    return u[0] + 1j * u[1]
+    shape = tuple(shape)
+    u = rng.random((2,) + shape)  # the real parts, then the imaginary ones
+    out = np.empty(shape, dtype=complex)
+    parts = out.view(np.float64).reshape(shape + (2,))
+    parts[..., 0], parts[..., 1] = u[0], u[1]
+    parts -= 0.5
+    return out
 
 
 # -- packing ----------------------------------------------------------------------------
