@@ -9,6 +9,7 @@ one pytest-xdist worker with the others so marked (``make test`` runs three work
 A test process is prepared as a ``qradar`` process is (:func:`qradar.entry.prepare_process`:
 one BLAS thread), before numpy loads."""
 
+import os
 import subprocess
 import sys
 import time
@@ -30,9 +31,14 @@ sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads xdist_group into the nodeid
 def pytest_collection_modifyitems(config, items):
+    """Groups for ``--dist loadgroup``: the tests that measure on one worker; the tests of a
+    module that share one of its module-scoped fixtures (a run, a PKI, a Monte Carlo) on one
+    worker, so that it runs once, not once on each worker that draws one of them."""
     for item in items:
         if item.get_closest_marker("measure") is not None:
             item.add_marker(pytest.mark.xdist_group("measure"))
+        elif any(d.scope == "module" for defs in item._fixtureinfo.name2fixturedefs.values() for d in defs):
+            item.add_marker(pytest.mark.xdist_group(f"module-fixture:{item.module.__name__}"))
 
 
 #: pause between two connection attempts, s
@@ -73,8 +79,30 @@ def zenoh_session(bus):
 def track_recording(tmp_path_factory) -> list[Path]:
     """The files of a real ``qradar run --track --record`` of 3 s (one simulated sensor, PBP,
     calibrated with recordings/chamber-cal.json), split every 0.1 MB: ``run.mcap``,
-    ``run_0001.mcap``, ... (at least two), in order."""
-    folder = tmp_path_factory.mktemp("track-recording")
+    ``run_0001.mcap``, ... (at least two), in order; read only. Made once for the whole
+    session: under pytest-xdist the first worker to need it makes it in the workers'
+    common folder (under a lock), the others read it."""
+    import fcntl
+
+    shared = tmp_path_factory.getbasetemp()
+    if "PYTEST_XDIST_WORKER" in os.environ:  # pytest-xdist's pattern: the workers' basetemps share a parent
+        shared = shared.parent
+    folder = shared / "track-recording"
+    with open(shared / "track-recording.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        done = folder / "made"
+        if not done.exists():
+            _record_track_run(folder)
+            done.touch()
+    return sorted(folder.glob("run*.mcap"))
+
+
+def _record_track_run(folder: Path) -> None:
+    """The run of :func:`track_recording` into ``folder`` (made anew)."""
+    import shutil
+
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
     calibration = Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json"
     proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--track", "--algo", "pbp",
                            "--calibration", str(calibration), "--split-size", "0.1",
@@ -83,7 +111,6 @@ def track_recording(tmp_path_factory) -> list[Path]:
     assert proc.returncode == 0, proc.stderr[-2000:]
     files = sorted(folder.glob("run*.mcap"))
     assert files[0].name == "run.mcap" and len(files) >= 2, files
-    return files
 
 
 @pytest.fixture
