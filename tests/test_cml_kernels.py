@@ -525,6 +525,9 @@ def test_a_node_told_its_bits_loads_their_kernels_alone():
             assert (node._loading is not None) == thread, bits
         finally:
             node.stop()
+            if node._loading is not None:  # its kernels loaded before the next test counts signatures
+                node._loading.join(600)
+                assert not node._loading.is_alive()
 
 
 def test_no_array_layout_makes_a_new_compiled_signature(cfg):
