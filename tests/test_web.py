@@ -206,8 +206,8 @@ def test_targets_with_their_uncertainty_get_ellipses(browser, bus, zenoh_session
         for _ in range(5):  # a burst: the page's frames are at most one per event
             zenoh_session.put("radar/u0/targets", json.dumps(msg).encode())
             zenoh_session.put("radar/u0/tracks", json.dumps(tracks).encode())
-        got = page.wait_for("window.qradarView.stats().ellipsesDrawn === 2 && window.qradarView.stats()", 10.0,
-                            "two ellipses")
+        got = page.wait_for("window.qradarView.stats().ellipsesDrawn === 2 && window.qradarView.stats().tracksDrawn "
+                            "=== 1 && window.qradarView.stats()", 10.0, "two ellipses and the track")  # (their own events)
         assert got["targetsDrawn"] == 2 and got["tracksDrawn"] == 1 and got["errors"] == []
     finally:
         view.stop()
