@@ -138,7 +138,9 @@ def test_a_foreign_client_decodes_the_targets_of_a_run(node, tmp_path):
     assert summary["foxglove"]["url"] == f"ws://127.0.0.1:{port}" and summary["foxglove"]["decode_errors"] == 0
     recorded = [json.loads(m.data) for ch, m in McapFile(tmp_path / "run.mcap").messages()
                 if ch.topic == "radar/kmd2-0/targets"]
-    assert len(recorded) == summary["frames_targets"] >= 30
+    # (135 of 137 once, on a fresh clone's 4-worker suite: the recording's own account, to tell a counted
+    # drop from a message the recorder never got)
+    assert len(recorded) == summary["frames_targets"] >= 30, summary.get("recording")
     by_time = {t["timestamp_ns"]: t for t in recorded}
     advertised = {e["topic"]: e for e in client.events("advertise")}
     assert set(sensor_topics("radar", "kmd2-0").values()) | {TF_TOPIC} <= set(advertised)
