@@ -74,13 +74,13 @@ docs-lab: $(KERNEL_STAMP)
 	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
-# four pytest-xdist workers on this 2-core machine: the process tests wait on their children much
-# of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (345-370 s on 2026-11-29);
-# four 1.7-1.8 (305-319 s, the same tests, same day, idle host; before the suite's CPU came down
-# from 580 to 500 s four were no faster than three); the tests that measure time or memory (marked
-# `measure`) share one worker, the tests sharing a module's fixture another (--dist loadgroup,
-# tests/conftest.py); `make test TEST_WORKERS=0`: one process
-TEST_WORKERS ?= 4
+# three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
+# of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (345-370 s in the working
+# tree, 351 s on a fresh clone, 2026-11-29); four were faster in the working tree (305-322 s) but
+# not on fresh clones (357-370 s), where two of three suites had a timing-bound failure; the tests
+# that measure time or memory (marked `measure`) share one worker, the tests sharing a module's
+# fixture another (--dist loadgroup, tests/conftest.py); `make test TEST_WORKERS=0`: one process
+TEST_WORKERS ?= 3
 TEST_DIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
 # qradar's modules compiled to bytecode (__pycache__/, git-ignored) before the tests start their

@@ -4,7 +4,7 @@ a real recording of ``qradar run --track`` split into files, and a count of the 
 MCAP reader opens.
 Helpers that are not fixtures (qradar, QRADAR, Collector, wait_until, free_port, wait_port,
 rss_mb) live in zenoh_helpers. A test marked ``measure`` (it measures time or memory) runs on
-one pytest-xdist worker with the others so marked (``make test`` runs four workers,
+one pytest-xdist worker with the others so marked (``make test`` runs three workers,
 ``--dist loadgroup``), never beside another measurement. benchmarks/ is on ``sys.path``: tests import a benchmark's pieces by name.
 A test process is prepared as a ``qradar`` process is (:func:`qradar.entry.prepare_process`:
 one BLAS thread), before numpy loads."""

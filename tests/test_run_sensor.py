@@ -79,7 +79,10 @@ def simulated_run(tmp_path_factory):
 
 def check_clean(s: dict, sensor: str) -> None:
     assert s["frames_raw"] == s["frames_quantized"] == s["frames_targets"] == FRAMES
-    assert s["drops"] == 0 and s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0}
+    # (the reference run counted 1 drop once, on a fresh clone's 4-worker suite, its 30 frames all through:
+    # the summary's other counts, to tell where)
+    assert s["drops"] == 0 and s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0}, \
+        {k: v for k, v in s.items() if k not in ("position_error_m", "score")}
     d = s["driver"][sensor]
     assert d["frames"] == FRAMES and d["dropped"] == 0 and d["timeouts"] == 0 and d["reconnects"] == 0
     assert 10.0 < s["rate_hz"][sensor] < 30.0  # the sensor's own 20 frames/s (its clock held on a busy host)
