@@ -392,6 +392,7 @@ def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: i
     what cml is told of the noise (:data:`DECODER_NOISE`). Returns {scheme: {algo: ChunkResult}}."""
     scene_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k, chunk)))
     rc, ac, r, a, x = draw_scenes(n_runs, k, scene_rng, radar, scene=scene)
+    rc, ac = rc.astype(np.int8), ac.astype(np.int8)  # (n, K) cells, as the results keep them
     v = draw_speeds(n_runs, k, seed, chunk, scene.speeds)
     whole: dict[int, np.ndarray] = {}  # the noiseless frames of whole ramps, by ramp count
 
@@ -428,16 +429,15 @@ def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: i
 
 
 def chunk_result(r, a, x, rc, ac, det: Detections, count: CountSpec) -> ChunkResult:
-    """The errors and scores of one decoder's detections ``det`` of scenes ``r, a, x`` (cells ``rc, ac``)."""
+    """The errors and scores of one decoder's detections ``det`` of scenes ``r, a, x`` (int8 cells ``rc, ac``)."""
     err = position_error_m(r, a, det.range_m, det.angle_deg)
     sc = score_frames(r, a, det.range_m, det.angle_deg)
     scored = dict(score_error_m=sc.error_m.astype(np.float32), score_false=sc.false_targets.astype(np.int16),
                   score_targets=sc.targets.astype(np.int16), score_nearest_m=sc.nearest_m.astype(np.float32))
     if not count.auto:
-        return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, err, **scored)
+        return ChunkResult(rc, ac, a, err, **scored)
     found, false_targets = match_detections(r, det.range_m, count.gate_m)
-    return ChunkResult(rc.astype(np.int8), ac.astype(np.int8), a, np.where(found, err, np.nan), np.abs(x), found,
-                       false_targets, **scored)
+    return ChunkResult(rc, ac, a, np.where(found, err, np.nan), np.abs(x), found, false_targets, **scored)
 
 
 # -- aggregation ----------------------------------------------------------------------------

@@ -13,7 +13,10 @@ recorder) together.
 does not pay for them.
 """
 
+from functools import cache
 
+
+@cache
 def _version() -> str:
     """The installed package's version ("0+unknown" from a source tree never installed); read
     on first use: importing ``importlib.metadata`` and scanning site-packages cost every

@@ -29,7 +29,7 @@ from pipeline.wire import (
 from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import Collector, alive_nodes, wait_until
 
 
 def truth_error(scene, targets_msgs):
@@ -184,11 +184,7 @@ def test_nodes_in_separate_processes_over_loopback(free_port, connect_when_ready
         session = connect_when_ready(ep, timeout_s=20, mode="client")  # routed by the listening peer
         col = Collector(session, "radar/**")
 
-        def alive():
-            return {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
-                    if r.ok is not None}
-
-        wait_until(lambda: {"quantize", "localize"} <= alive(), 30, "both nodes alive")
+        wait_until(lambda: {"quantize", "localize"} <= set(alive_nodes(session)), 30, "both nodes alive")
         scene = resolve_scene("single")
         frame = np.tile(scene.clean_ramp(0.0), (2, 1)).astype(np.complex64)
         pub = session.declare_publisher("radar/lo0/raw", congestion_control=zenoh.CongestionControl.BLOCK)

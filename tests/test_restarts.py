@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from zenoh_helpers import QRADAR, Collector, free_port, rss_mb, wait_port, wait_until
+from zenoh_helpers import QRADAR, Collector, alive_nodes, free_port, rss_mb, wait_port, wait_until
 
 pytestmark = pytest.mark.measure
 
@@ -56,12 +56,7 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber(connect_whe
         # before are lost, and the localizer's first decodes (~12 MB once: its worker's first frame, its first
         # batches) came after the baseline, read as growth
         session = connect_when_ready(f"tcp/127.0.0.1:{port}", mode="client")
-
-        def alive() -> set[str]:
-            return {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
-                    if r.ok is not None}
-
-        wait_until(lambda: {"quantize", "localize"} <= alive(), 60, "the quantize and localize nodes up")
+        wait_until(lambda: {"quantize", "localize"} <= set(alive_nodes(session)), 60, "the quantize and localize nodes up")
         targets = Collector(session, "radar/*/targets")
         for _ in range(3):  # the first sessions warm every cache up
             source()

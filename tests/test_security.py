@@ -30,7 +30,7 @@ from pipeline.wire import (
 from qradar.cli import main
 from radar_driver.scene import resolve_scene
 from test_nodes import truth_error
-from zenoh_helpers import Collector, free_port, listening_sockets, wait_port, wait_until
+from zenoh_helpers import Collector, alive_nodes, free_port, listening_sockets, wait_port, wait_until
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/net/tcp").exists() or shutil.which("openssl") is None,
                                 reason="reads listening sockets from /proc; makes certificates with openssl")
@@ -58,11 +58,6 @@ def stop(procs, timeout_s=20):
             p.kill()
             outs.append(p.communicate(timeout=timeout_s))
     return outs
-
-
-def alive_nodes(session) -> list[str]:
-    return [str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
-            if r.ok is not None]
 
 
 @pytest.fixture(scope="module")

@@ -130,3 +130,10 @@ def rss_mb(pid: int | str = "self") -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     raise AssertionError(f"no VmRSS for {pid}")
+
+
+def alive_nodes(session) -> list[str]:
+    """The kinds of the nodes whose liveliness token ``session`` sees (``radar/alive/<kind>/...``),
+    one entry per node: a node declares it once it subscribes."""
+    return [str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get("radar/alive/**", timeout=1.0)
+            if r.ok is not None]
