@@ -17,6 +17,7 @@ import zenoh
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
 from pipeline.nodes.histogram import LogHistogram
+from pipeline.nodes.transport import as_transport
 from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
 from pipeline.wire import TOPICS, WireError
@@ -124,7 +125,8 @@ class Monitor:
         self._sub = None
 
     def start(self) -> "Monitor":
-        self._sub = self.session.declare_subscriber(f"{self.bus.prefix}/**", self._on_sample)
+        # its counts are final once stop returns: the messages zenoh still held are handed over first
+        self._sub = as_transport(self.session).declare_subscriber(f"{self.bus.prefix}/**", self._on_sample)
         return self
 
     def stop(self) -> None:

@@ -138,9 +138,11 @@ def test_a_foreign_client_decodes_the_targets_of_a_run(node, tmp_path):
     assert summary["foxglove"]["url"] == f"ws://127.0.0.1:{port}" and summary["foxglove"]["decode_errors"] == 0
     recorded = [json.loads(m.data) for ch, m in McapFile(tmp_path / "run.mcap").messages()
                 if ch.topic == "radar/kmd2-0/targets"]
-    # (135 of 137 once, on a fresh clone's 4-worker suite: the recording's own account, to tell a counted
-    # drop from a message the recorder never got)
-    assert len(recorded) == summary["frames_targets"] >= 30, summary.get("recording")
+    # (135 of 137 and 136 of 138 once each on fresh clones, before a stopping node waited for the messages
+    # zenoh's callback thread still held for it: the recording's own account, to tell a counted drop from
+    # a message the recorder never got)
+    account = {k: summary["recording"][k] for k in ("received", "written", "dropped", "lost", "error")}
+    assert len(recorded) == summary["frames_targets"] >= 30, account
     by_time = {t["timestamp_ns"]: t for t in recorded}
     advertised = {e["topic"]: e for e in client.events("advertise")}
     assert set(sensor_topics("radar", "kmd2-0").values()) | {TF_TOPIC} <= set(advertised)

@@ -41,7 +41,7 @@ from pipeline.nodes.counters import NO_SENSOR
 from pipeline.errors import ParameterError, WireError
 from pipeline.nodes.fairqueue import FairQueue
 from pipeline.nodes.runtime import DEFAULT_SENSOR_EXPIRY_S, Node
-from pipeline.nodes.transport import PullSubscriber, Sample, Transport, TransportError
+from pipeline.nodes.transport import DRAIN_S, PullSubscriber, Sample, Transport, TransportError
 from pipeline.wire import TOPICS, check_sensor_id, peek_seq
 
 log = logging.getLogger("qradar.node")
@@ -209,7 +209,9 @@ class ProcessingNode(Node):
 
     def _stopping(self) -> None:
         if self._subscriber is not None:  # a pulling worker then drains what zenoh holds, and ends
-            self._subscriber.undeclare()
+            if self._subscriber.undeclare() is False:  # a callback's: what zenoh held is handed over first
+                log.warning("%s: zenoh still held messages for it %.0f s after stop; those that come later "
+                            "are not processed", self.name, DRAIN_S)
             self._subscriber = None
 
     def _workers_ended(self) -> None:

@@ -21,6 +21,9 @@ from typing import Callable, Protocol
 import zenoh
 
 OCTETS = "application/octet-stream"
+#: how long undeclaring a callback subscriber waits for zenoh's callback thread to hand over
+#: the messages it already held (s)
+DRAIN_S = 5.0
 #: what a transport raises when a declaration, a put or a drained input fails or is closed
 TransportError = zenoh.ZError
 
@@ -107,7 +110,7 @@ class ZenohTransport:
         return self.session.liveliness().declare_token(key)
 
     def declare_subscriber(self, key: str, callback: Callable[[Sample], None]) -> Declared:
-        return self.session.declare_subscriber(key, callback)
+        return DrainingSubscriber(self.session, key, callback)
 
     def declare_pull_subscriber(self, key: str, capacity: int) -> PullSubscriber:
         return _ZenohPull(self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity)))
@@ -121,6 +124,23 @@ class ZenohTransport:
 
     def close(self) -> None:
         self.session.close()
+
+
+class DrainingSubscriber:
+    """A zenoh subscriber with a Python callback, which zenoh runs on a callback thread of its
+    own, fed by a queue: a message put before :meth:`undeclare` may still wait there when
+    zenoh's undeclare returns. This one's undeclare returns once that thread has handed over
+    every message it held (zenoh then calls the handler's ``drop``), so a node that stops
+    after its producers has seen all they put."""
+
+    def __init__(self, session: zenoh.Session, key: str, callback: Callable[[Sample], None]):
+        self._drained = threading.Event()
+        self._sub = session.declare_subscriber(key, zenoh.handlers.Callback(callback, self._drained.set))
+
+    def undeclare(self, timeout_s: float = DRAIN_S) -> bool:
+        """Undeclare; whether the callback had every held message within ``timeout_s`` (s)."""
+        self._sub.undeclare()
+        return self._drained.wait(timeout_s)
 
 
 def as_transport(session: zenoh.Session | Transport) -> Transport:
