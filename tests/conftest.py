@@ -29,14 +29,23 @@ from radar_driver.model import RadarConfig  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+#: the modules that call cml's inner kernels on their own (``coarse_ratio``, ``peak``, ...): numba
+#: compiles each on its first call in a process, ~30 s of CPU in all on a fresh clone (a node
+#: uses them only inlined in the entry kernels that ``make`` compiles), so they share a worker
+INNER_KERNEL_TESTS = {"test_cml_count", "test_cml_detect", "test_cml_kernels"}
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads xdist_group into the nodeid
 def pytest_collection_modifyitems(config, items):
-    """Groups for ``--dist loadgroup``: the tests that measure on one worker; the tests of a
-    module that share one of its module-scoped fixtures (a run, a PKI, a Monte Carlo) on one
-    worker, so that it runs once, not once on each worker that draws one of them."""
+    """Groups for ``--dist loadgroup``: the tests that measure on one worker; those of cml's
+    inner kernels on one (:data:`INNER_KERNEL_TESTS`); the tests of a module that share one of
+    its module-scoped fixtures (a run, a PKI, a Monte Carlo) on one worker, so that it runs
+    once, not once on each worker that draws one of them."""
     for item in items:
         if item.get_closest_marker("measure") is not None:
             item.add_marker(pytest.mark.xdist_group("measure"))
+        elif item.module.__name__ in INNER_KERNEL_TESTS:
+            item.add_marker(pytest.mark.xdist_group("cml-inner-kernels"))
         elif any(d.scope == "module" for defs in item._fixtureinfo.name2fixturedefs.values() for d in defs):
             item.add_marker(pytest.mark.xdist_group(f"module-fixture:{item.module.__name__}"))
 

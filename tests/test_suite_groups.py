@@ -13,3 +13,14 @@ def test_a_measure_test_runs_in_the_measure_group(request):
     if getattr(request.config, "workerinput", None) is None or not request.config.getvalue("loadgroup"):
         pytest.skip("not on a pytest-xdist worker under --dist loadgroup")
     assert request.node.nodeid.endswith("@measure"), request.node.nodeid
+
+
+def test_the_inner_kernel_tests_share_a_worker(request):
+    """The modules that compile cml's inner kernels on their first call exist and are grouped."""
+    from conftest import INNER_KERNEL_TESTS
+
+    here = request.path.parent
+    assert all((here / f"{m}.py").exists() for m in INNER_KERNEL_TESTS), INNER_KERNEL_TESTS
+    if getattr(request.config, "workerinput", None) is not None and request.config.getvalue("loadgroup"):
+        names = {i.nodeid for i in request.session.items if i.module.__name__ in INNER_KERNEL_TESTS}
+        assert names and all(n.endswith("@cml-inner-kernels") for n in names), sorted(names)[:3]
