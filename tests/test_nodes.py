@@ -178,6 +178,19 @@ def test_a_stopped_node_has_every_message_zenoh_held_for_its_callback(bus, zenoh
     assert t["frames_in"] == 200 and t["frames_out"] + t["drops"] + t["over_budget"] == 200, repr(t)
 
 
+def test_a_frame_zenoh_hands_over_after_the_node_stopped_is_counted_in_its_drops(bus, zenoh_session):
+    """What zenoh's callback thread still delivers after a stop gave up waiting for it
+    (DRAIN_S) reaches no worker: it is counted in its sensor's drops, as it comes."""
+    from pipeline.nodes.transport import OCTETS, MemoryPayload, MemorySample
+
+    q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session).start()
+    q.stop()
+    frame = encode_raw(RawFrameMsg("fl", 0, 0, RadarConfig().config_id(), np.zeros((512, 2), np.complex64)))
+    q._on_sample(MemorySample("radar/fl/raw", MemoryPayload(frame), OCTETS))  # as zenoh's callback thread would
+    t = q.totals()
+    assert (t["frames_in"], t["drops"], t["frames_out"]) == (1, 1, 0), repr(t)
+
+
 def _spawn(args):
     return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)

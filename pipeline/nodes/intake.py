@@ -180,6 +180,7 @@ class ProcessingNode(Node):
         self._queue = FairQueue(queue_size, per_sensor, queue_bytes)
         self.batch_max = batch_max
         self._subscriber = None
+        self._ended = False  # the node stopped and its workers ended (_workers_ended)
 
     def totals(self) -> dict[str, int]:
         """:meth:`Node.totals`, plus ``foreign_frames`` (other shards' frames) with a shard."""
@@ -211,13 +212,17 @@ class ProcessingNode(Node):
         if self._subscriber is not None:  # a pulling worker then drains what zenoh holds, and ends
             if self._subscriber.undeclare() is False:  # a callback's: what zenoh held is handed over first
                 log.warning("%s: zenoh still held messages for it %.0f s after stop; those that come later "
-                            "are not processed", self.name, DRAIN_S)
+                            "are counted in drops", self.name, DRAIN_S)
             self._subscriber = None
 
     def _workers_ended(self) -> None:
         """A frame a callback still in flight queued after the worker finished is counted
         in its sensor's drops (received, never processed), not left unaccounted."""
-        if self._queue.empty() or any(t.is_alive() for t in self._threads):  # a busy worker still owns it
+        if any(t.is_alive() for t in self._threads):  # a busy worker still owns it
+            return
+        with self._lock:
+            self._ended = True  # what comes later is counted as it comes (_admit_sample)
+        if self._queue.empty():
             return
         late = self._queue.get_batch(len(self._queue) + 1, 0.0)
         for item in late:
@@ -366,9 +371,17 @@ class ProcessingNode(Node):
             seq = peek_seq(payload) if sensor != NO_SENSOR else None
             if seq is not None:
                 st.note_seq(topic, seq, now, self.intake.rate_hz)
-        for victim in self._queue.put(sensor, QueuedFrame(sensor, key, payload, time.time_ns()), n):
-            with self._lock:
-                self.sensor_stats(victim).drops += 1
+            if self._ended:  # zenoh held it past DRAIN_S after stop: no worker will take it
+                st.drops += 1
+                victims = None
+            else:  # queued under the lock: _workers_ended's flag and its last look at the queue are one step
+                victims = self._queue.put(sensor, QueuedFrame(sensor, key, payload, time.time_ns()), n)
+                for victim in victims:
+                    self.sensor_stats(victim).drops += 1
+        if victims is None:
+            self.log_limited("drops", "%s: a frame of %s came after the node stopped (counted in its drops)",
+                             self.name, key)
+        for victim in victims or ():
             self.log_limited("drops", "%s: queue full, dropped a frame of %s (counted in its drops)",
                              self.name, victim or key)
 
