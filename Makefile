@@ -76,7 +76,7 @@ docs-lab: $(KERNEL_STAMP)
 
 # three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
 # of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (345-370 s in the working
-# tree, 352-383 s on fresh clones, 493 s under two busy loops, 2026-11-29); four: 327 and 346 s on
+# tree, 352-385 s on fresh clones, 493 s under two busy loops, 2026-11-29); four: 327 and 346 s on
 # fresh clones, but under two busy loops a sensor's frame came late and counted lost; the tests
 # that measure time or memory (marked `measure`) share one worker, the tests sharing a module's
 # fixture another (--dist loadgroup, tests/conftest.py); `make test TEST_WORKERS=0`: one process
