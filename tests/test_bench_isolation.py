@@ -17,7 +17,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_isolation.py
 
 
 def test_a_short_flood_beside_an_honest_sensor_is_accounted_for(tmp_path):
-    proc = subprocess.run([sys.executable, str(BENCH), "--case", "quantized", "--seconds", "3", "--warmup", "3",
+    proc = subprocess.run([sys.executable, str(BENCH), "--case", "quantized", "--seconds", "2", "--warmup", "1.5",
                            "--rate", "1000", "--logdir", str(tmp_path)], capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-2000:]
     row = json.loads(next(line for line in proc.stdout.splitlines() if line.startswith("{")))

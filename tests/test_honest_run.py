@@ -11,6 +11,7 @@ import os
 import re
 import signal
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -46,6 +47,22 @@ def stop(proc: subprocess.Popen) -> tuple[str, str]:
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
+
+
+def lines_until(stream, text: str) -> tuple[list[str], threading.Event, threading.Thread]:
+    """Every line of ``stream``, read by a thread (returned) into a list, and an event set at
+    the first line holding ``text``."""
+    lines, seen = [], threading.Event()
+
+    def read():
+        for line in stream:
+            lines.append(line)
+            if text in line:
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return lines, seen, reader
 
 
 # -- 1. uncalibrated runs say so -------------------------------------------------------------------
@@ -241,18 +258,28 @@ def test_4_an_empty_scene_without_targets_is_a_result():
 
 
 # -- 6. nodes that say they are alive; one-line argument errors; the API in dir() ---------------------
-def test_6_quantize_and_localize_say_where_they_listen_and_report_every_few_seconds():
+def test_6_quantize_and_localize_say_where_they_listen_and_report_every_few_seconds(connect_when_ready):
+    """Each node's first status line (every 5 s) waited for, then Ctrl-C: its summary."""
     port = free_port()
     z = ["--mode", "client", "--connect", f"tcp/127.0.0.1:{port}"]
-    source = subprocess.Popen([*QRADAR, "source", "--listen", f"tcp/127.0.0.1:{port}", "--duration", "12", "--quiet"],
+    source = subprocess.Popen([*QRADAR, "source", "--listen", f"tcp/127.0.0.1:{port}", "--duration", "60", "--quiet"],
                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    nodes = []
+    nodes, outs = [], []
     try:
-        time.sleep(1.0)
-        nodes = [subprocess.Popen([*QRADAR, cmd, *z, *extra, "--duration", "8"], stdin=subprocess.DEVNULL,
+        connect_when_ready(f"tcp/127.0.0.1:{port}", mode="client").close()  # the source listens
+        nodes = [subprocess.Popen([*QRADAR, cmd, *z, *extra, "--duration", "60"], stdin=subprocess.DEVNULL,
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                  for cmd, extra in (("quantize", []), ("localize", ["--source", "raw", "--algo", "pbp"]))]
-        outs = [p.communicate(timeout=60) for p in nodes]
+        readers = [lines_until(p.stderr, "frames/s in") for p in nodes]
+        for (_, status, _), name in zip(readers, ("quantize", "localize")):
+            assert status.wait(60), f"qradar {name} wrote no status line in 60 s"
+        for p in nodes:
+            p.send_signal(signal.SIGINT)
+        for p, (err, _, reader) in zip(nodes, readers):
+            out = p.stdout.read()
+            p.wait(30)
+            reader.join(10)
+            outs.append((out, "".join(err)))
     finally:
         for p in [source, *nodes]:
             stop(p)
@@ -275,8 +302,7 @@ def test_6_quiet_nodes_and_the_sims_summary_on_ctrl_c(tmp_path):
     from radar_driver.scene import packaged_scenes
     listed = " ".join(qradar("sim", "--help").stdout.split())
     assert all(name in listed for name in packaged_scenes()) and "chamber-reflector" in listed
-    sim = start_sim(tmp_path / "kmd2")
-    time.sleep(0.5)
+    sim = start_sim(tmp_path / "kmd2")  # up: it said so
     text, err = stop(sim)  # Ctrl-C
     assert sim.returncode == 0 and "Traceback" not in err
     assert re.search(r"simulator: [0-9.]+ s; 0 RADCs sent \(0 frames of 2\), 0 INIT\(s\)", text), text

@@ -3,6 +3,7 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -243,20 +244,22 @@ def test_router_joins_clients(free_port, connect_when_ready):
     ep = f"tcp/127.0.0.1:{free_port}"
     router = _spawn(["router", "--listen", ep, "--duration", "30"])
     try:
+        banner = router.stdout.readline()  # it says it listens (bounded: EOF when its --duration ends)
         a = connect_when_ready(ep, timeout_s=20, mode="client")
         b = connect_when_ready(ep, timeout_s=20, mode="client")
         col = Collector(b, "radar/**")
-        time.sleep(0.5)
+        pub = a.declare_publisher("radar/r0/health")
+        wait_until(lambda: pub.matching_status.matching, 10, "b's subscription to reach a through the router")
         for _ in range(5):
-            a.put("radar/r0/health", b"{}")
-            time.sleep(0.05)
+            pub.put(b"{}")
         wait_until(lambda: len(col.of("r0/health")) == 5, 10, "messages through the router")
+        pub.undeclare()
         a.close()
         b.close()
     finally:
         [(out, err)] = _stop([router])
     assert router.returncode == 0, err
-    assert out.startswith("zenoh router"), out
+    assert banner.startswith("zenoh router"), banner + out
 
 
 def test_qradar_run_end_to_end_json():
@@ -342,20 +345,24 @@ def _socket_inodes(pid: int) -> set[str]:
 
 
 def test_qradar_run_listens_on_no_port_and_its_driver_is_another_process():
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "6", "--no-record", "--json"],
+    proc = subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "60", "--no-record", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         def children() -> list[int]:
             path = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
             return [int(p) for p in path.read_text().split()] if path.exists() else []
 
-        wait_until(lambda: any("drive" in Path(f"/proc/{c}/cmdline").read_text() for c in children()), 30,
-                   "the driver process")
-        time.sleep(1.0)  # running
+        for _ in range(80):  # bounded: up to the first live line (frames went from the driver to the targets)
+            line = proc.stderr.readline()
+            if " targets " in line or not line:
+                break
+        assert " targets " in line, line
+        assert any("drive" in Path(f"/proc/{c}/cmdline").read_text() for c in children()), "no driver process"
         pids = [proc.pid, *children()]
         listening = _listening_inodes()
         assert all(not (_socket_inodes(p) & listening) for p in pids)
     finally:
+        proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert json.loads(out)["frames_targets"] > 0

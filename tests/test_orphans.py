@@ -97,9 +97,8 @@ def test_a_killed_run_leaves_no_driver_behind(how, tmp_path):
     try:
         drivers = wait_for(lambda: (d := drivers_of(run.pid)) and len(d) == 2 and d, 30.0)
         assert drivers and len(drivers) == 2, "qradar run started no driver processes"
-        time.sleep(2.0)
+        assert wait_for(lambda: unix_listeners(tmp), 30.0), "the run's zenoh socket does not listen"
         assert all(alive(p) for p in drivers), "a driver ended before the run was killed"
-        assert unix_listeners(tmp), "the run's zenoh socket does not listen"
         if how == "group":
             os.killpg(run.pid, signal.SIGKILL)
         else:

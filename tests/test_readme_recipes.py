@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from replay.mcapio import McapFile
-from zenoh_helpers import free_port, wait_port
+from pipeline.bus.session import BusConfig
+from zenoh_helpers import alive_nodes, free_port, wait_port, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -76,21 +77,35 @@ class Terminals:
             proc.communicate(timeout=10)
 
 
+#: the node (its liveliness token, ``radar/alive/<node>/...``) each command of a recipe runs;
+#: publishers alone (drive, replay) declare none: the later lines need not wait for them
+NODE_OF = {"quantize": "quantize", "localize": "localize", "record": "record", "view": "view"}
+
+
 def start_all(lines: list[str], t: Terminals, ports: dict[str, int]) -> None:
-    for line in lines:
-        proc = t.run(substitute(line, t.tmp, ports))
-        if proc is None:
-            continue
-        command = line.split()[1]
-        if command == "router":
-            wait_port(ports["7447"])
-        elif command == "sim":
-            deadline = time.monotonic() + 20
-            while not (t.tmp / "kmd2").exists() and time.monotonic() < deadline:
-                time.sleep(0.1)
-        else:
-            time.sleep(1.0)  # the node is up (a person types the next line)
-        assert proc.poll() is None, f"{line!r} exited: {proc.communicate()[1][-2000:]}"
+    """Each line in a terminal of its own, the next once this one is up (as a person types
+    the next line when the last says it is running): a router once it listens, a simulator
+    once its link is there, a node once the router sees its liveliness token (it declares
+    it after its subscribers), a publisher (drive, replay) at once."""
+    session = None
+    try:
+        for line in lines:
+            proc = t.run(substitute(line, t.tmp, ports))
+            if proc is None:
+                continue
+            command = line.split()[1]
+            if command == "router":
+                wait_port(ports["7447"])
+                session = BusConfig(mode="client", connect=(f"tcp/127.0.0.1:{ports['7447']}",)).open()
+            elif command == "sim":
+                wait_until(lambda: (t.tmp / "kmd2").exists() or proc.poll() is not None, 20, "the simulator's link")
+            elif command in NODE_OF and session is not None:
+                node = NODE_OF[command]
+                wait_until(lambda: node in alive_nodes(session) or proc.poll() is not None, 60, f"{line!r} up")
+            assert proc.poll() is None, f"{line!r} exited: {proc.communicate()[1][-2000:]}"
+    finally:
+        if session is not None:
+            session.close()
 
 
 @pytest.mark.slow
@@ -165,8 +180,7 @@ def test_replay_and_view_work_as_written(tmp_path):
         replay_out, replay_err = t.procs["replay"].communicate(timeout=60)
         assert t.procs["replay"].returncode == 0, replay_err[-2000:]
         published = json.loads(replay_out.strip().splitlines()[-1])["published"]
-        time.sleep(0.5)
-        view_out, view_err = t.stop("view")
+        view_out, view_err = t.stop("view")  # it saw frames while the replay ran (seconds of them)
         t.stop("router")
     finally:
         t.close()

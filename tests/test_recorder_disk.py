@@ -7,6 +7,7 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -196,6 +197,44 @@ def read_lines(stream, on_line=None) -> tuple[list[str], threading.Thread]:
     return lines, t
 
 
+#: live target lines (a line a second, ~20 frames) a run shows after the event a test waits
+#: for, before its Ctrl-C: frames written after the event, not a fixed duration
+LINES_AFTER = 2
+
+
+def run_until(argv: list[str], event: str, on_line=None, timeout_s: float = 120.0) -> tuple[int, list[str], str]:
+    """``qradar run`` (``argv``, its ``--json`` summary on stdout) until a stderr line holds
+    ``event`` and :data:`LINES_AFTER` live target lines follow it, then Ctrl-C (as a user
+    would; the run ends with its summary); ``on_line`` is called on each stderr line.
+    Returns the exit status, the stderr lines and stdout. Every wait is bounded."""
+    seen, after = threading.Event(), [0]
+
+    def watch(line):
+        if on_line is not None:
+            on_line(line)
+        if event in line:
+            seen.set()
+        elif seen.is_set() and " targets " in line:
+            after[0] += 1
+            if after[0] == LINES_AFTER:
+                proc.send_signal(signal.SIGINT)
+
+    proc = subprocess.Popen(argv, cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    lines, err_reader = read_lines(proc.stderr, watch)
+    out, out_reader = read_lines(proc.stdout)
+    try:
+        proc.wait(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    err_reader.join(10)
+    out_reader.join(10)
+    assert seen.is_set(), f"no {event!r} in the run's lines: " + "".join(lines[-20:])
+    return proc.returncode, lines, "".join(out)
+
+
 @pytest.mark.slow
 def test_qradar_run_goes_on_through_a_full_disk_and_records_again_when_space_returns(tmp_path):
     with private_tmpfs(tmp_path / "disk", 4 << 20) as disk:
@@ -208,24 +247,13 @@ def test_qradar_run_goes_on_through_a_full_disk_and_records_again_when_space_ret
                 filler.unlink()
                 freed.set()
 
-        proc = subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "14", "--json", "--record",
-                                 str(path), "--write-retry", "0.5"], cwd=ROOT, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        lines, err_reader = read_lines(proc.stderr, on_line)
-        out, out_reader = read_lines(proc.stdout)
-        try:
-            proc.wait(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-        err_reader.join(10)
-        out_reader.join(10)
-        assert proc.returncode == 0, "".join(lines[-20:])
+        code, lines, out = run_until([sys.executable, "-m", "qradar", "run", "--duration", "60", "--json", "--record",
+                                      str(path), "--write-retry", "0.5"], "recording resumed", on_line)
+        assert code == 0, "".join(lines[-20:])
         assert freed.is_set(), "the recording never paused: " + "".join(lines[-20:])
         paused = [ln for ln in lines if "recording paused" in ln]
         assert len(paused) == 1 and str(path) in paused[0] and "ENOSPC" in paused[0]
-        s = json.loads("".join(out))
+        s = json.loads(out)
         rec = s["recording"]
         second = disk / "run_0001.mcap"
         assert rec["state"] == "writing" and rec["files"] == [str(path), str(second)] and rec["files_written"] == 2
@@ -258,13 +286,12 @@ def qradar_with_fsize_limit(limit_bytes: int, *args: str) -> list[str]:
 def test_qradar_run_with_stop_ends_the_recording_on_efbig_and_runs_on(tmp_path):
     path = tmp_path / "run.mcap"
     limit = 300_000
-    proc = subprocess.run(qradar_with_fsize_limit(limit, "run", "--duration", "8", "--json", "--record", str(path),
-                                                  "--on-write-error", "stop"),
-                          cwd=ROOT, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
-    assert proc.returncode == 0, proc.stderr
-    stopped = [ln for ln in proc.stderr.splitlines() if "recording stopped" in ln]
+    code, lines, out = run_until(qradar_with_fsize_limit(limit, "run", "--duration", "60", "--json", "--record",
+                                                         str(path), "--on-write-error", "stop"), "recording stopped")
+    assert code == 0, "".join(lines[-20:])
+    stopped = [ln for ln in lines if "recording stopped" in ln]
     assert len(stopped) == 1 and "File too large (EFBIG)" in stopped[0] and str(path) in stopped[0]
-    s = json.loads(proc.stdout)
+    s = json.loads(out)
     rec = s["recording"]
     assert rec["state"] == "stopped" and rec["files"] == [str(path)] and "EFBIG" in rec["error"]
     f = McapFile(path)
