@@ -136,10 +136,10 @@ def cmd_sim(args) -> int:
             where.append(f"socket://127.0.0.1:{server.tcp_port}")
         front = ("ideal front end" if scene.front_end.ideal else
                  "front end: DC offset, TX leakage, receiver mismatch (calibrate: docs/chamber.md, section 7)")
-        print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {front}, {args.rate:g} frames/s, "
-              f"profile {profile.name}) on "
-              f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
-        try:
+        try:  # a Ctrl-C as soon as it says it is up ends it with its summary too
+            print(f"simulated K-MD2 ({scene.name}, {len(scene.targets)} targets, {front}, {args.rate:g} frames/s, "
+                  f"profile {profile.name}) on "
+                  f"{' and '.join(where)}; Ctrl-C to stop", flush=True)
             while not server.wait(0.5):
                 if server.errors:
                     raise server.errors[0]
