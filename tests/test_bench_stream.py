@@ -8,7 +8,6 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -106,7 +105,7 @@ def test_premade_frames_are_what_an_edge_source_publishes(tmp_path, bus, zenoh_s
     from pipeline.wire import COMMON_DTYPE
     from radar_driver.scene import resolve_scene
     from radar_driver.source import SimSourceConfig, SimulatedSource
-    from zenoh_helpers import Collector
+    from zenoh_helpers import Collector, stop_when
 
     import streamlib
 
@@ -119,7 +118,7 @@ def test_premade_frames_are_what_an_edge_source_publishes(tmp_path, bus, zenoh_s
     src = SimulatedSource(SimSourceConfig(resolve_scene("chamber"), sensors=3, rate_hz=0.0, frames=4, id_prefix="b"))
     node = SourceNode(bus, src, session=zenoh_session, quantizer=QuantizerConfig(bits=1, alpha=1.0))
     stop = threading.Event()
-    threading.Thread(target=lambda: (node.done.wait(20), time.sleep(0.5), stop.set()), daemon=True).start()
+    threading.Thread(target=stop_when, args=(lambda: len(col.items) >= 12, stop, 20), daemon=True).start()
     run_nodes([node], 30, stop)
     with col.lock:
         published = list(col.items)

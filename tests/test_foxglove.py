@@ -28,7 +28,7 @@ from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from replay.mcapio import McapFile
-from zenoh_helpers import Collector, free_port, wait_until
+from zenoh_helpers import Collector, free_port, stop_when, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 JS = ROOT / "tests" / "js"
@@ -178,10 +178,14 @@ def test_the_view_serves_profiles_and_health_and_survives_garbage(node, bus, zen
         nodes = [LocalizeNode(bus, LocalizerConfig(k=1, algo="pbp"), session=session, health_period_s=0.2),
                  QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=3), session=session, health_period_s=0.2),
                  src]
+        def all_localized() -> bool:  # the localizer's health of each sensor says all 75 frames are out
+            return all((h := client.messages(f"/{sensor}/health/localize")) and h[-1]["data"]["frames_out"] == 75
+                       for sensor in ("sim0", "sim1"))
+
         stop = threading.Event()
-        threading.Thread(target=lambda: (src.done.wait(20), time.sleep(0.5), stop.set()), daemon=True).start()
+        threading.Thread(target=stop_when, args=(all_localized, stop, 20), daemon=True).start()
         t0 = time.monotonic()
-        run_nodes(nodes, duration_s=20.0, stop=stop)
+        run_nodes(nodes, duration_s=25.0, stop=stop)
         seconds = time.monotonic() - t0
         for key, payload in [("radar/bad/targets", b"not json"), ("radar/bad/quantized", b"QRDR\x01"),
                              ("radar/bad/health", b"{}"), ("radar/sim0/targets", TargetsMsg(

@@ -16,7 +16,7 @@ import zenoh
 
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.localize import position_error_m
-from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
+from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from pipeline.dsp.quantize import QuantizerConfig, unit_dither
 from pipeline.wire import (
@@ -30,7 +30,7 @@ from pipeline.wire import (
 from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import Collector, alive_nodes, wait_until
+from zenoh_helpers import Collector, alive_nodes, run_until, wait_until
 
 
 def truth_error(scene, targets_msgs):
@@ -55,9 +55,7 @@ def test_in_process_pipeline_localizes_the_scenes(bus, zenoh_session):
                  chamber, sensors=3, rate_hz=100, id_prefix="ch", frames=60)), session=session),
              SourceNode(bus, SimulatedSource(SimSourceConfig(
                  single, sensors=1, rate_hz=100, id_prefix="one", frames=60)), session=session)]
-    threading.Thread(target=lambda: (nodes[2].done.wait(30), nodes[3].done.wait(30), time.sleep(0.5)),
-                     daemon=True).start()
-    run_nodes(nodes, duration_s=3.0)
+    run_until(nodes, lambda: len(col.of("/targets")) >= 4 * 60)  # every frame's targets (frames, not seconds)
     targets = [decode_targets(p) for p in col.of("/targets")]
     by_sensor = {}
     for t in targets:
@@ -90,7 +88,7 @@ def test_quantized_frames_carry_a_reproducible_dither(bus, zenoh_session):
     src = SourceNode(bus, SimulatedSource(SimSourceConfig(
                  scene, sensors=1, rate_hz=200, frames=5)), session=session)
     raw = Collector(session, "radar/*/raw")
-    run_nodes([q, src], duration_s=1.5)
+    run_until([q, src], lambda: len(col.of("/quantized")) >= 5 and len(raw.of("/raw")) >= 5)
     from pipeline.dsp.quantize import quantize
     from pipeline.wire import decode_raw
 
@@ -107,8 +105,7 @@ def test_a_node_survives_garbage_and_reports_it_in_health(bus, zenoh_session):
     col = Collector(session, "radar/**")
     q = QuantizeNode(bus, QuantizerConfig(), session=session, health_period_s=0.2).start()
     loc = LocalizeNode(bus, LocalizerConfig(k=1), session=session, health_period_s=0.2).start()
-    time.sleep(0.2)
-    session.put("radar/bad1/raw", b"\x00garbage")
+    session.put("radar/bad1/raw", b"\x00garbage")  # (started: subscribed on this session)
     session.put("radar/bad1/quantized", b"QRDR\x01\x02\x01\x01" + bytes(10))
     session.put("radar/bad1/raw", encode_raw(RawFrameMsg("other", 0, 0, 0, np.zeros((512, 2), np.complex64))))
     scene = resolve_scene("single")
@@ -390,7 +387,7 @@ def test_localizer_node_with_the_dither_aware_decoder(bus, zenoh_session):
              QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=2), session=session),
              SourceNode(bus, SimulatedSource(SimSourceConfig(
                  scene, sensors=1, rate_hz=100, id_prefix="qd", frames=30)), session=session)]
-    run_nodes(nodes, duration_s=1.5)
+    run_until(nodes, lambda: len(col.of("qd0/targets")) >= 30)
     targets = [decode_targets(p) for p in col.of("qd0/targets")]
     assert len(targets) == 30 and all(t.algo == "qiht" for t in targets)
     assert np.percentile(truth_error(scene, targets), 90) < 0.3
@@ -415,7 +412,7 @@ def test_localizer_node_with_the_continuous_decoder_off_the_grid(bus, zenoh_sess
              QuantizeNode(bus, QuantizerConfig(alpha=1.0, dither_seed=3), session=session),
              SourceNode(bus, SimulatedSource(SimSourceConfig(scene, rate_hz=100, id_prefix="cm", frames=20)),
                         session=session)]
-    run_nodes(nodes, duration_s=2.0)
+    run_until(nodes, lambda: len(col.of("cm0/targets")) >= 20)
     targets = [decode_targets(p) for p in col.of("cm0/targets")]
     assert len(targets) == 20 and all(t.algo == "cml" for t in targets)
     err = truth_error(scene, targets)

@@ -21,7 +21,7 @@ from pipeline.dsp.quantize import QuantizerConfig, quantize, quantize_frames, un
 from pipeline.wire import RawFrameMsg, decode_health, decode_quantized, encode_raw
 from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import Collector, run_until, wait_until
 
 N = 256
 
@@ -216,7 +216,7 @@ def test_the_edge_quantizer_publishes_the_noise_and_forgets_an_expired_sensor(bu
     """drive --quantize's path in process: a source node quantizing with alpha auto puts the
     estimate in its sensor's health (the walker scene's noise_std, within 5 %), and a
     quantize node forgets a sensor's noise when the sensor expires."""
-    from pipeline.nodes.stream import QuantizeNode, SourceNode, run_nodes
+    from pipeline.nodes.stream import QuantizeNode, SourceNode
     from radar_driver.source import SimSourceConfig, SimulatedSource
 
     session = zenoh_session
@@ -224,7 +224,11 @@ def test_the_edge_quantizer_publishes_the_noise_and_forgets_an_expired_sensor(bu
     scene = resolve_scene("walker")
     src = SourceNode(bus, SimulatedSource(SimSourceConfig(scene, sensors=1, rate_hz=200, frames=60)),
                      session=session, quantizer=QuantizerConfig(alpha="auto"), health_period_s=0.2)
-    run_nodes([src], duration_s=2.0)
+    def noise_known() -> bool:
+        return len(col.of("/quantized")) >= 60 and any(
+            h.node == "source" and h.extra.get("noise_frames", 0) >= 40 for h in map(decode_health, col.of("/health")))
+
+    run_until([src], noise_known)
     hs = [decode_health(p) for p in col.of("/health")]
     hs = [h for h in hs if h.node == "source" and h.extra.get("noise_frames", 0) >= 40]
     assert hs, "no health with the noise estimate"

@@ -303,16 +303,44 @@ def test_the_reprocess_recipe_works_as_written(workdir):
 def test_the_foxglove_recipe_works_as_written(workdir):
     (line,) = steps("foxglove")
     port = free_port()
-    out = run_step(line.replace("8765", str(port)), workdir)
-    assert f"ws://127.0.0.1:{port}" in out.stdout + out.stderr
+    out = run_until_ctrl_c(line.replace("8765", str(port)), workdir, f"ws://127.0.0.1:{port}")
+    assert "frames " in out and "Traceback" not in out  # its summary
 
 
 @pytest.mark.slow
 def test_the_web_recipe_works_as_written(workdir):
     (line,) = steps("web")
     port = free_port()
-    out = run_step(line.replace("8080", str(port)) + " --duration 5", workdir)
-    assert f"web: page on http://127.0.0.1:{port}/" in out.stdout
+    out = run_until_ctrl_c(line.replace("8080", str(port)), workdir, f"web: page on http://127.0.0.1:{port}/")
+    assert "frames " in out and "Traceback" not in out
+
+
+def run_until_ctrl_c(line: str, tmp: Path, says: str, timeout_s: float = 60) -> str:
+    """A line a user leaves running (as typed, in ``tmp``): once it ``says`` so on stdout and
+    shows a frame's targets, Ctrl-C; its exit status 0 and what it printed (stdout)."""
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    proc = subprocess.Popen(["bash", "-c", f"exec {line}"], cwd=tmp, env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen, lines = False, []
+    try:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:  # bounded: in time, and by the process's end (EOF)
+            text = proc.stdout.readline()
+            if not text:
+                break
+            lines.append(text)
+            seen = seen or says in text
+            if seen and " targets (" in text:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert seen, f"{line!r} never said {says!r}: " + "".join(lines)[-2000:] + err[-2000:]
+    assert proc.returncode == 0 and "Traceback" not in err, (line, proc.returncode, err[-3000:])
+    return "".join(lines) + out
 
 
 @pytest.mark.slow

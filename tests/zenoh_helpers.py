@@ -91,6 +91,27 @@ class Collector:
             return [p for k, p in self.items if k.endswith(suffix)]
 
 
+def stop_when(pred, stop: threading.Event, timeout_s: float, poll_s: float = 0.05) -> None:
+    """Set ``stop`` once ``pred()`` holds, or after ``timeout_s`` (the test's assertions then
+    say what is missing): a run's end on what it is to produce, not on a duration."""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not pred() and time.monotonic() < deadline:
+            time.sleep(poll_s)
+    finally:
+        stop.set()
+
+
+def run_until(nodes, pred, timeout_s: float = 60.0) -> None:
+    """``run_nodes(nodes)`` until ``pred()`` holds (what the run is to produce: frames, not
+    seconds), at most ``timeout_s``."""
+    from pipeline.nodes.runtime import run_nodes
+
+    stop = threading.Event()
+    threading.Thread(target=stop_when, args=(pred, stop, timeout_s), daemon=True).start()
+    run_nodes(nodes, duration_s=timeout_s + 5.0, stop=stop)
+
+
 def listening_sockets(pid: int) -> set[tuple[str, str, int]]:
     """(protocol, local address as /proc/net writes it in hex, port) of every TCP socket in
     LISTEN state and every unconnected UDP socket that process ``pid`` holds."""
