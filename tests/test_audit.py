@@ -323,7 +323,10 @@ def test_router_logs_and_counts_refused_handshakes_and_denied_publications(pki, 
     counts = final["audit"]
     handshakes = summed(err, r"qradar router: audit: (\d+) refused TLS handshakes? \(.*\) in the last \d+ s")
     assert counts["refused_handshakes"] == handshakes >= 3, err.lines  # the plain connections, the other CA
-    assert summed(err, r".* (\d+) refused TLS handshakes? \(received corrupt message of type InvalidContentType\) "
+    # the two plain connections: not TLS, each a corrupt message to the router's TLS (which TLS field
+    # the first bytes break depends on how they arrive: InvalidContentType, at times
+    # UnknownProtocolVersion for the zenoh client's, seen 1 in 4 under three busy loops)
+    assert summed(err, r".* (\d+) refused TLS handshakes? \(received corrupt message of type \w+\) "
                        r"in the last \d+ s") >= 2, err.lines
     assert counts["denied_publications"] == puts and counts["unlisted_identities"] == 1, counts
     assert not err.matching(r".*radar/s1/health.*")  # allowed, not audited
