@@ -74,13 +74,13 @@ docs-lab: $(KERNEL_STAMP)
 	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
 	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
 
-# three pytest-xdist workers on this 2-core machine: the process tests wait on their children much
-# of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (345-370 s in the working
-# tree, 352-385 s on fresh clones, 493 s under two busy loops, 2026-11-29); four: 327 and 346 s on
-# fresh clones, but under two busy loops a sensor's frame came late and counted lost; the tests
-# that measure time or memory (marked `measure`) share one worker, the tests sharing a module's
-# fixture another (--dist loadgroup, tests/conftest.py); `make test TEST_WORKERS=0`: one process
-TEST_WORKERS ?= 3
+# four pytest-xdist workers on this 2-core machine: the process tests wait on their children much
+# of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (327-370 s), four 1.68
+# (286 s in the working tree, 436 s under two busy loops, 2026-11-29, after the tests waited on
+# events instead of fixed durations); the tests that measure time or memory (marked `measure`)
+# share one worker, the tests sharing a module's fixture another (--dist loadgroup,
+# tests/conftest.py); `make test TEST_WORKERS=0`: one process
+TEST_WORKERS ?= 4
 TEST_DIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup)
 
 # qradar's modules compiled to bytecode (__pycache__/, git-ignored) before the tests start their
