@@ -40,10 +40,14 @@ FRAMES = 30
 RUN_TIMEOUT_S = 60
 
 
-def simulator(link: Path) -> SimulatorServer:
+def simulator(link: Path, rate_hz: float = 20.0) -> SimulatorServer:
     """The chamber K-MD2 the run's first simulated sensor is: seed 0, 20 frames/s, device
-    clock held when this process writes late."""
-    return SimulatorServer(resolve_scene("chamber-ideal"), link_path=link, rate_hz=20.0, seed=0, hold_clock_when_late=True)
+    clock held when this process writes late. ``rate_hz`` 0: a frame each time the driver
+    polls (on the same time base: the same frames while none is missed), so a driver late on
+    a busy host loses none (at 20 frames/s, a fresh clone's 4-worker suite once lost 5 of 30
+    through ser2net): the tests of the same frames bit for bit."""
+    return SimulatorServer(resolve_scene("chamber-ideal"), link_path=link, rate_hz=rate_hz, seed=0,
+                           hold_clock_when_late=True)
 
 
 def recorded(path: Path) -> tuple[dict[int, np.ndarray], dict[int, list[tuple[float, float]]], dict]:
@@ -78,21 +82,22 @@ def simulated_run(tmp_path_factory):
     return run_json(tmp_path_factory.mktemp("simulated"), "simulated", "--scene", "chamber-ideal")
 
 
-def check_clean(s: dict, sensor: str) -> None:
+def check_clean(s: dict, sensor: str, paced: bool = True) -> None:
     assert s["frames_raw"] == s["frames_quantized"] == s["frames_targets"] == FRAMES
     # (the reference run counted 1 drop once, on a fresh clone's 4-worker suite, its 30 frames all through:
     # the summary's other counts, to tell where)
     assert s["drops"] == 0 and s["frames_missing"] == {"quantize": 0, "localize": 0, "targets": 0}, \
-        {k: v for k, v in s.items() if k not in ("position_error_m", "score")}
+        (s["drops_detail"], s["frames_missing"], s["driver"], s.get("simulator"))
     d = s["driver"][sensor]
     assert d["frames"] == FRAMES and d["dropped"] == 0 and d["timeouts"] == 0 and d["reconnects"] == 0
-    assert 10.0 < s["rate_hz"][sensor] < 30.0  # the sensor's own 20 frames/s (its clock held on a busy host)
+    if paced:  # (a sensor that sends a frame each time it is polled has no rate of its own)
+        assert 10.0 < s["rate_hz"][sensor] < 30.0  # the sensor's own 20 frames/s (its clock held on a busy host)
 
 
 def check_same_as_simulated(real, simulated) -> None:
     (s, _, (raw, targets, _)), (ref, _, (ref_raw, ref_targets, _)) = real, simulated
     check_clean(ref, "kmd2-0")
-    check_clean(s, "kmd2-0")
+    check_clean(s, "kmd2-0", paced=False)
     assert sorted(raw) == sorted(ref_raw) == list(range(FRAMES))
     for seq in range(FRAMES):  # the same measurements, bit for bit
         assert np.array_equal(raw[seq], ref_raw[seq]), f"raw frame {seq} differs"
@@ -105,7 +110,7 @@ def check_same_as_simulated(real, simulated) -> None:
 
 def test_a_sensor_on_a_pty_gives_the_simulated_runs_frames_targets_and_errors(tmp_path, simulated_run):
     link = tmp_path / "kmd2"
-    with simulator(link) as sim:
+    with simulator(link, rate_hz=0.0) as sim:
         real = run_json(tmp_path, "pty", "--sensor", f"{link},id=kmd2-0", "--truth", "chamber-ideal", "--outstanding", "2")
         assert not sim.errors
         assert sim.devices[0].event_counts["GBYE"] == 1  # the driver let the sensor go
@@ -123,7 +128,7 @@ def test_a_sensor_on_a_pty_gives_the_simulated_runs_frames_targets_and_errors(tm
 
 def test_a_sensor_behind_ser2net_raw_gives_the_simulated_runs_frames_targets_and_errors(tmp_path, simulated_run):
     link = tmp_path / "kmd2"
-    with simulator(link) as sim, ser2net_for(link, "raw", workdir=tmp_path) as s2n:
+    with simulator(link, rate_hz=0.0) as sim, ser2net_for(link, "raw", workdir=tmp_path) as s2n:
         real = run_json(tmp_path, "ser2net", "--sensor", f"{s2n.url},id=kmd2-0", "--truth", "chamber-ideal",
                         "--outstanding", "2")
         assert not sim.errors
