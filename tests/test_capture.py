@@ -41,6 +41,7 @@ from radar_driver.profile import RadcLayout, SensorProfile, packaged_profiles, r
 from radar_driver.protocol import Done, OtherMessage, Radc, Resp, encode
 from radar_driver.scene import SimScene, SimTarget
 from radar_driver.simulator import SimFaults, SimulatorServer
+from zenoh_helpers import wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 #: one reflector off the range grid (bin 20.5), on antenna 2's side, with sensor noise
@@ -176,7 +177,7 @@ def test_capturing_port_logs_reads_writes_speed_and_close(tmp_path):
         port.baudrate = 921_600
         assert port.baudrate == 921_600
         port.write(b"left over")
-        time.sleep(0.05)
+        wait_until(lambda: port.in_waiting == 9, 5, "the bytes looped back")
         port.reset_input_buffer()  # the bytes thrown away are captured too
         assert port.in_waiting == 0 and port.is_open  # delegated
         port.close()
