@@ -26,6 +26,7 @@ import zenoh_helpers  # noqa: E402
 from pipeline.bus.session import BusConfig  # noqa: E402
 from pipeline.errors import PipelineError  # noqa: E402
 from radar_driver.model import RadarConfig  # noqa: E402
+from zenoh_helpers import QRADAR  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -113,7 +114,7 @@ def _record_track_run(folder: Path) -> None:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir()
     calibration = Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--track", "--algo", "pbp",
+    proc = subprocess.run([*QRADAR, "run", "--duration", "3", "--track", "--algo", "pbp",
                            "--calibration", str(calibration), "--split-size", "0.1",
                            "--record", str(folder / "run.mcap"), "--json"],
                           capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)

@@ -19,6 +19,7 @@ from pipeline.wire import RawFrameMsg, decode_raw, decode_targets, decode_tracks
 from replay.errors import ReplayError
 from replay.mcapio import McapSink
 from replay.mcapread import McapFile
+from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
@@ -67,7 +68,7 @@ def test_errors_are_one_line(rec):
 
 
 def test_version():
-    out = subprocess.run([sys.executable, "-m", "qradar", "--version"], capture_output=True, text=True, timeout=60)
+    out = subprocess.run([*QRADAR, "--version"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == f"qradar {qradar.__version__}"
     assert re.fullmatch(r"\d+\.\d+\.\d+.*", qradar.__version__)
 
@@ -301,7 +302,7 @@ def test_to_pandas_without_pandas_says_how_to_install_it(monkeypatch):
 
 def test_info_is_what_the_command_prints():
     info = qradar.open_recording(CHAMBER).info()
-    out = subprocess.run([sys.executable, "-m", "qradar", "info", "--json", str(CHAMBER)], capture_output=True,
+    out = subprocess.run([*QRADAR, "info", "--json", str(CHAMBER)], capture_output=True,
                          text=True, timeout=60)
     printed = json.loads(out.stdout)
     info.pop("seconds_to_describe"), printed.pop("seconds_to_describe")

@@ -24,7 +24,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError
 from pipeline.bus.security import SecureConfig
 from test_security import pki, qradar  # noqa: F401 -- the module's fixture: the lab's CA and another
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 ACL = "zenoh::net::routing::interceptor::access_control"
@@ -285,7 +285,7 @@ def test_router_logs_and_counts_refused_handshakes_and_denied_publications(pki, 
     lab, other = pki
     routers = tmp_path / "router-pki"  # the router's copy: the recorder withdrawn
     shutil.copytree(lab, routers)
-    subprocess.run([sys.executable, "-m", "qradar", "security", "remove", str(routers), "recorder"], check=True,
+    subprocess.run([*QRADAR, "security", "remove", str(routers), "recorder"], check=True,
                    capture_output=True, timeout=60)
     ep = f"tls/127.0.0.1:{free_port}"
     router = qradar("router", "--secure", routers, "--listen", ep, "--duration", "60")

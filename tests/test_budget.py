@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import subprocess
-import sys
 import time
 
 import pytest
@@ -21,7 +20,7 @@ from pipeline.nodes.stream import QuantizeNode
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized
 from test_hardening import raw
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until
 
 BLOCK = zenoh.CongestionControl.BLOCK
 
@@ -150,10 +149,10 @@ def test_the_log_summarises_what_it_rate_limits(bus, zenoh_session, caplog):
 
 
 def test_the_intake_options_reach_the_node_and_are_checked():
-    bad = subprocess.run([sys.executable, "-m", "qradar", "quantize", "--budget-rate", "-3"], capture_output=True,
+    bad = subprocess.run([*QRADAR, "quantize", "--budget-rate", "-3"], capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "--budget-rate" in bad.stderr
-    help_text = subprocess.run([sys.executable, "-m", "qradar", "localize", "--help"], capture_output=True,
+    help_text = subprocess.run([*QRADAR, "localize", "--help"], capture_output=True,
                                text=True, timeout=60).stdout
     for opt in ("--budget-rate", "--budget-mb", "--admit-rate"):
         assert opt in help_text

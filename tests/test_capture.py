@@ -41,7 +41,7 @@ from radar_driver.profile import RadcLayout, SensorProfile, packaged_profiles, r
 from radar_driver.protocol import Done, OtherMessage, Radc, Resp, encode
 from radar_driver.scene import SimScene, SimTarget
 from radar_driver.simulator import SimFaults, SimulatorServer
-from zenoh_helpers import wait_until
+from zenoh_helpers import QRADAR, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 #: one reflector off the range grid (bin 20.5), on antenna 2's side, with sensor noise
@@ -320,7 +320,7 @@ def test_capture_as_a_process_ends_cleanly_on_sigint(tmp_path):
     link, out = tmp_path / "kmd2", tmp_path / "s.bin"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
-        proc = subprocess.Popen([sys.executable, "-m", "qradar", "capture", "--port", str(link), "-o", str(out),
+        proc = subprocess.Popen([*QRADAR, "capture", "--port", str(link), "-o", str(out),
                                  "--seconds", "30", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True, cwd=ROOT, env=env)
         try:
@@ -339,7 +339,7 @@ def test_capture_as_a_process_ends_cleanly_on_sigint(tmp_path):
     cap = Capture.read(out)
     assert cap.truncated is None and cap.byte_count(Kind.RX) == summary["bytes_rx"]
     assert cap.records[-1].kind == Kind.CLOSE
-    proc = subprocess.run([sys.executable, "-m", "qradar", "inspect", str(out)], capture_output=True, text=True,
+    proc = subprocess.run([*QRADAR, "inspect", str(out)], capture_output=True, text=True,
                           cwd=ROOT, env=env, timeout=60)
     assert proc.returncode == 0 and "verdict: kmd2-blocks fits" in proc.stdout
 

@@ -4,7 +4,6 @@ wire and the command line."""
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from experiments.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_m
 from pipeline.dsp.quantize import batch_unit_dither, dequantize, quantize
 from pipeline.wire import TargetsMsg, decode_targets
 from test_cml import measure, nearest_estimates, random_scenes
+from zenoh_helpers import QRADAR
 
 AUTO = DecoderConfig(algo="cml", auto_k=True)
 
@@ -170,7 +170,7 @@ def test_targets_carry_their_statistic_and_the_count_mode_on_the_wire():
     (["montecarlo", "--count", "auto", "--algos", "qiht", "--runs", "5"], "K auto needs"),
 ])
 def test_bad_count_options_are_one_line_errors(argv, match, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "qradar", *argv, *(["--out", str(tmp_path)] if argv[0] ==
+    proc = subprocess.run([*QRADAR, *argv, *(["--out", str(tmp_path)] if argv[0] ==
                                                                      "montecarlo" else [])],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and match in proc.stderr

@@ -5,6 +5,7 @@ must equal the run's to the digits it is written with (half a unit of its last d
 import importlib.util
 import re
 from pathlib import Path
+from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,7 +59,7 @@ def test_the_paper_runs_table_holds_on_a_reduced_run(tmp_path):
     head = "| K | scheme | mean | median | p90 | median, \\|θ\\|<60° |"
     assert head in text, "docs/science.md no longer has the paper run's table"
     rows = text[text.index(head):].split("\n\n")[0].splitlines()[2:]
-    cmd = [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "2", "--runs", str(REDUCED_RUNS), "--seed", "0",
+    cmd = [*QRADAR, "montecarlo", "--K", "1", "2", "--runs", str(REDUCED_RUNS), "--seed", "0",
            "--out", str(tmp_path), "--no-plots", "--quiet"]
     subprocess.run(cmd, check=True, capture_output=True, timeout=600, cwd=ROOT)
     summary = json.loads((tmp_path / "summary.json").read_text())

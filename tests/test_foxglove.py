@@ -7,7 +7,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -28,7 +27,7 @@ from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from replay.mcapio import McapFile
-from zenoh_helpers import Collector, free_port, stop_when, wait_until
+from zenoh_helpers import QRADAR, Collector, free_port, stop_when, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 JS = ROOT / "tests" / "js"
@@ -246,7 +245,7 @@ def listening(port: int) -> set[str]:
 @pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads listening sockets from /proc/net/tcp")
 def test_qradar_view_listens_on_loopback_only_by_default():
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "view", "--port", str(port), "--duration", "20"],
+    proc = subprocess.Popen([*QRADAR, "view", "--port", str(port), "--duration", "20"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
                             cwd=ROOT, env=os.environ | {"PYTHONPATH": str(ROOT)})
     try:

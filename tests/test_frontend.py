@@ -5,7 +5,6 @@ the simulated K-MD2 over a real pty emitting impaired frames."""
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from radar_driver.scene import SimScene, SimTarget, load_scene, resolve_scene, s
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import wait_until
+from zenoh_helpers import QRADAR, wait_until
 
 C = 3e8
 LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
@@ -304,11 +303,11 @@ def test_the_empty_scene_is_the_front_end_alone():
 def test_cli_sim_empty_serves_frames_without_targets(tmp_path):
     """qradar sim --empty over a real pty: the frames are the front end and the noise only."""
     link, out = tmp_path / "kmd2", tmp_path / "empty.npz"
-    sim = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--scene", "chamber", "--empty", "--link",
+    sim = subprocess.Popen([*QRADAR, "sim", "--scene", "chamber", "--empty", "--link",
                             str(link), "--rate", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         wait_until(link.exists, 20, f"{link} to appear")
-        drive = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--frames", "20",
+        drive = subprocess.run([*QRADAR, "drive", "--port", str(link), "--frames", "20",
                                 "--json", "--no-publish", "--quiet", "--out", str(out)],
                                capture_output=True, text=True, timeout=120)
         assert drive.returncode == 0, drive.stderr
@@ -332,7 +331,7 @@ def test_cli_sim_empty_serves_frames_without_targets(tmp_path):
 
 
 def test_cli_run_empty_reports_no_truth(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--empty", "--frames", "10", "--no-record",
+    proc = subprocess.run([*QRADAR, "run", "--empty", "--frames", "10", "--no-record",
                            "--json", "--driver-in-process"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout.strip().splitlines()[-1])

@@ -7,7 +7,6 @@ processes over 127.0.0.1) runs on real zenoh sessions. Every wait bounded."""
 import json
 import logging
 import subprocess
-import sys
 import threading
 import time
 
@@ -26,7 +25,7 @@ from pipeline.nodes.runtime import PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import Collector, wait_port, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_port, wait_until
 
 SCENE = resolve_scene("single")
 CONFIG_ID = SCENE.radar.config_id()
@@ -305,7 +304,7 @@ def test_a_forged_sequence_number_cannot_poison_the_missing_count(bus, mem):
 
 
 def _qradar(*args):
-    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([*QRADAR, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 

@@ -23,6 +23,7 @@ from qradar.cli.stream import RUN_PARTS, run_config
 from qradar.drivers import DriverProcess
 from qradar.sensors import SensorSpec
 from radar_driver.session import SessionConfig
+from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = Schema("run", RUN_PARTS)
@@ -287,7 +288,7 @@ def test_two_sensors_standing_apart_are_scored_against_one_measured_room(tmp_pat
     try:
         out = {}
         for name in ("lab", "unposed"):
-            proc = subprocess.run([sys.executable, "-m", "qradar", "run", f"{name}.toml"], cwd=tmp_path,
+            proc = subprocess.run([*QRADAR, "run", f"{name}.toml"], cwd=tmp_path,
                                   capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
             assert proc.returncode == 0, proc.stderr[-3000:]
             out[name] = json.loads(proc.stdout)

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ["radar_driver", "pipeline", "replay", "experiments", "qradar"]
@@ -118,7 +119,7 @@ def test_offline_modules_do_not_pull_in_the_bus(module, absent):
 
 
 def test_python_m_qradar_works():
-    proc = subprocess.run([sys.executable, "-m", "qradar", "--help"], capture_output=True, text=True, timeout=60,
+    proc = subprocess.run([*QRADAR, "--help"], capture_output=True, text=True, timeout=60,
                           cwd=ROOT)
     assert proc.returncode == 0 and "montecarlo" in proc.stdout and "reprocess" in proc.stdout
 

@@ -2,7 +2,6 @@
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ from experiments.montecarlo import (
     run_montecarlo,
     within_60_columns,
 )
+from zenoh_helpers import QRADAR
 
 SUMMARY_KEYS = {"mean_m", "median_m", "p90_m", "median_within_60deg_m", "cells_over_5m_within_60deg",
                 "strong_mean_m", "weak_mean_m", "score"}
@@ -125,7 +125,7 @@ def test_scheme_names(cfg):
 def test_cli_writes_summary_maps_and_pngs(tmp_path):
     out = tmp_path / "mc"
     proc = subprocess.run(
-        [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "2", "--runs", "300",
+        [*QRADAR, "montecarlo", "--K", "1", "2", "--runs", "300",
          "--schemes", "dither_m512", "nodither_m512", "--out", str(out), "--seed", "3"],
         capture_output=True, text=True, timeout=300,
     )
@@ -145,7 +145,7 @@ def test_cli_writes_summary_maps_and_pngs(tmp_path):
 
 def test_cli_rejects_a_bad_scheme(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "qradar", "montecarlo", "--schemes", "fourbit_m512", "--out", str(tmp_path)],
+        [*QRADAR, "montecarlo", "--schemes", "fourbit_m512", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=60,
     )
     assert proc.returncode == 2
@@ -247,7 +247,7 @@ def test_scenes_that_cannot_be_drawn_are_refused():
 
 def test_cli_scene_options_go_to_config_json(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "--runs", "200", "--schemes", "dither_m512",
+        [*QRADAR, "montecarlo", "--K", "1", "--runs", "200", "--schemes", "dither_m512",
          "--ranges", "continuous", "--range-interval", "5", "100", "--max-angle-deg", "45", "--noise-sigma", "0.05",
          "--min-amplitude", "0.1", "--quiet", "--no-plots", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=120)
@@ -257,12 +257,12 @@ def test_cli_scene_options_go_to_config_json(tmp_path):
                      "max_angle_deg": 45.0, "min_amplitude": 0.1, "noise_sigma": 0.05}
     assert json.loads((tmp_path / "summary.json").read_text())["scene"] == scene
     proc = subprocess.run(
-        [sys.executable, "-m", "qradar", "montecarlo", "--K", "1", "--runs", "50", "--schemes", "dither_m512",
+        [*QRADAR, "montecarlo", "--K", "1", "--runs", "50", "--schemes", "dither_m512",
          "--speeds", "0:3", "--quiet", "--no-plots", "--out", str(tmp_path / "moving")],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "moving" / "config.json").read_text())["scene"]["speeds"] == [0.0, 3.0]
-    bad = subprocess.run([sys.executable, "-m", "qradar", "montecarlo", "--ranges", "continuous", "--range-interval",
+    bad = subprocess.run([*QRADAR, "montecarlo", "--ranges", "continuous", "--range-interval",
                           "5", "400", "--runs", "10", "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "range_max_m=400.0" in bad.stderr
 

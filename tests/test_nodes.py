@@ -5,7 +5,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -30,7 +29,7 @@ from pipeline.wire import (
 from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import Collector, alive_nodes, run_until, wait_until
+from zenoh_helpers import QRADAR, Collector, alive_nodes, run_until, wait_until
 
 
 def truth_error(scene, targets_msgs):
@@ -190,7 +189,7 @@ def test_a_frame_zenoh_hands_over_after_the_node_stopped_is_counted_in_its_drops
 
 
 def _spawn(args):
-    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([*QRADAR, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
@@ -262,7 +261,7 @@ def test_router_joins_clients(free_port, connect_when_ready):
 def test_qradar_run_end_to_end_json():
     # the ideal chamber: the pipeline's accuracy on the paper's model (the real front end's, uncalibrated, is
     # in docs/chamber.md)
-    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "5", "--json",
+    proc = subprocess.run([*QRADAR, "run", "--duration", "5", "--json",
                            "--scene", "chamber-ideal"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()
@@ -301,7 +300,7 @@ def test_drive_keeps_its_zenoh_session_until_the_parent_has_its_frames(tmp_path)
     try:
         col = Collector(session, "radar/*/raw")
         with SimulatorServer(resolve_scene("single"), link_path=link, rate_hz=0):
-            drive = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--frames", "5",
+            drive = subprocess.Popen([*QRADAR, "drive", "--port", str(link), "--frames", "5",
                                       "--json", "--quiet", "--mode", "client", "--connect",
                                       f"unixsock-stream/{sock}", "--linger-stdin"],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -342,7 +341,7 @@ def _socket_inodes(pid: int) -> set[str]:
 
 
 def test_qradar_run_listens_on_no_port_and_its_driver_is_another_process():
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "60", "--no-record", "--json"],
+    proc = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         def children() -> list[int]:

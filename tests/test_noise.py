@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -21,7 +20,7 @@ from pipeline.dsp.quantize import QuantizerConfig, quantize, quantize_frames, un
 from pipeline.wire import RawFrameMsg, decode_health, decode_quantized, encode_raw
 from radar_driver.model import RadarConfig, simulate_frames
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import Collector, run_until, wait_until
+from zenoh_helpers import QRADAR, Collector, run_until, wait_until
 
 N = 256
 
@@ -123,7 +122,7 @@ def test_quantize_frames_with_alpha_auto():
 
 
 def _spawn(args):
-    return subprocess.Popen([sys.executable, "-m", "qradar", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([*QRADAR, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 

@@ -21,7 +21,7 @@ from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, recover
 from replay.recorder import RecorderNode, RecordingState
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHUNK = 64 * 1024
@@ -247,7 +247,7 @@ def test_qradar_run_goes_on_through_a_full_disk_and_records_again_when_space_ret
                 filler.unlink()
                 freed.set()
 
-        code, lines, out = run_until([sys.executable, "-m", "qradar", "run", "--duration", "60", "--json", "--record",
+        code, lines, out = run_until([*QRADAR, "run", "--duration", "60", "--json", "--record",
                                       str(path), "--write-retry", "0.5"], "recording resumed", on_line)
         assert code == 0, "".join(lines[-20:])
         assert freed.is_set(), "the recording never paused: " + "".join(lines[-20:])

@@ -5,7 +5,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -28,7 +27,7 @@ from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
-from zenoh_helpers import Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
@@ -132,7 +131,7 @@ def test_split_by_duration(tmp_path, bus, zenoh_session):
 def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_path, free_port, connect_when_ready):
     ep = f"tcp/127.0.0.1:{free_port}"
     path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "record", "-o", str(path), "--listen", ep],
+    proc = subprocess.Popen([*QRADAR, "record", "-o", str(path), "--listen", ep],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     session = None
     try:
@@ -159,7 +158,7 @@ def test_sigkill_loses_at_most_the_last_second_and_recover_gets_the_rest(tmp_pat
     flushed_before = [i for i, t in enumerate(sent_at) if kill_at - t > 1.5]
     assert set(flushed_before) <= set(seqs)  # the player's reader gets everything flushed
     out = tmp_path / "recovered.mcap"
-    r = subprocess.run([sys.executable, "-m", "qradar", "recover", str(path), "-o", str(out)],
+    r = subprocess.run([*QRADAR, "recover", str(path), "-o", str(out)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     g = McapFile(out)
@@ -224,7 +223,7 @@ def test_bad_files_give_clear_errors(tmp_path):
         load_raw(other)
     with pytest.raises(ReplayError, match="cannot open"):
         McapFile(tmp_path / "missing.mcap").scan()
-    proc = subprocess.run([sys.executable, "-m", "qradar", "replay", str(junk), "--fast"],
+    proc = subprocess.run([*QRADAR, "replay", str(junk), "--fast"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "is not an MCAP file" in proc.stderr
     for bad in ("2:1", "0:1:0", "-0.5", "a,b"):
@@ -306,7 +305,7 @@ def test_reprocess_is_deterministic_and_dither_helps_cml_on_the_off_grid_recordi
 
 def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
     out = tmp_path / "rp"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(CHAMBER), "--alpha", "0:1:0.25",
+    proc = subprocess.run([*QRADAR, "reprocess", str(CHAMBER), "--alpha", "0:1:0.25",
                            "--algos", "pbp", "cml", "--out", str(out), "--mcap", str(tmp_path / "re.mcap")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -322,19 +321,19 @@ def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
     targets = [json.loads(m.data)["targets"] for ch, m in McapFile(tmp_path / "re.mcap").messages()
                if ch.topic.endswith("/targets")]
     assert len(targets) == 106 and all("statistic_db" in t for frame in targets for t in frame)
-    truthless = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(tmp_path / "re.mcap")],
+    truthless = subprocess.run([*QRADAR, "reprocess", str(tmp_path / "re.mcap")],
                                capture_output=True, text=True, timeout=60)
     assert truthless.returncode == 2 and "no raw frames" in truthless.stderr
 
 
 def test_qradar_run_leaves_a_recording_that_replays(tmp_path):
     path = tmp_path / "run.mcap"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--duration", "3", "--json", "--record",
+    proc = subprocess.run([*QRADAR, "run", "--duration", "3", "--json", "--record",
                            str(path)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)
     assert s["recording"]["files"] == [str(path)] and s["recording"]["dropped"] == 0
-    rp = subprocess.run([sys.executable, "-m", "qradar", "replay", str(path), "--fast", "--replay-prefix",
+    rp = subprocess.run([*QRADAR, "replay", str(path), "--fast", "--replay-prefix",
                          "replay"], capture_output=True, text=True, timeout=120)
     assert rp.returncode == 0, rp.stderr
     out = json.loads(rp.stdout.strip().splitlines()[-1])

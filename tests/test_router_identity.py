@@ -31,7 +31,7 @@ from qradar.view import FoxgloveView, ViewConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from replay.recorder import RecorderNode
-from zenoh_helpers import free_port, wait_port, wait_until
+from zenoh_helpers import QRADAR, free_port, wait_port, wait_until
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="makes certificates with openssl")
 
@@ -179,7 +179,7 @@ def test_commands_refuse_an_impostor_naming_the_host_in_one_line(dirs):
     try:
         wait_port(port)
         for args in (("quantize",), ("localize", "--K", "1"), ("source", "--id-prefix", "s", "--frames", "3")):
-            out = subprocess.run([sys.executable, "-m", "qradar", *args, "--secure", str(lab), "--mode", "client",
+            out = subprocess.run([*QRADAR, *args, "--secure", str(lab), "--mode", "client",
                                   "--connect", ep, "--duration", "20"], capture_output=True, text=True, timeout=60)
             line = out.stderr.strip()
             assert out.returncode == 2 and "\n" not in line, (args[0], out.stderr)
@@ -203,7 +203,7 @@ def test_a_publisher_the_policy_denies_says_so_in_one_line(dirs):
     try:
         runs = {}
         for identity in ("sensor-s1", "sensor-s0"):
-            out = subprocess.run([sys.executable, "-m", "qradar", "source", "--secure", str(lab), "--identity",
+            out = subprocess.run([*QRADAR, "source", "--secure", str(lab), "--identity",
                                   identity, "--mode", "client", "--connect", ep, "--id-prefix", "s", "--frames",
                                   "20", "--rate", "100"], capture_output=True, text=True, timeout=60)
             assert out.returncode == 0, out.stderr

@@ -9,17 +9,17 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from test_orphans import alive, child_config, drivers_of, kill_all, wait_for
+from zenoh_helpers import QRADAR
 
 
 def start_run(tmp_path, *extra) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "qradar", "run", "--duration", "60", "--no-record", *extra],
+    return subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", *extra],
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=tmp_path)
 
@@ -77,7 +77,7 @@ def frozen_sensor_run(tmp_path):
     counters) takes seconds and a second signal comes while it stops. Yields (run, sim,
     its drivers' pids, the run's temporary directory); everything ends with the test."""
     link = tmp_path / "kmd2"
-    sim = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--link", str(link)], stdin=subprocess.DEVNULL,
+    sim = subprocess.Popen([*QRADAR, "sim", "--link", str(link)], stdin=subprocess.DEVNULL,
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     proc, drivers = None, []
     try:

@@ -1,11 +1,11 @@
 import subprocess
-import sys
 
 import pytest
 
 from radar_driver.errors import ConfigError
 from radar_driver.scene import load_scene, packaged_scenes, resolve_scene
 from radar_driver.simulator import SimFaults
+from zenoh_helpers import QRADAR
 
 
 def test_packaged_scenes_load():
@@ -65,7 +65,7 @@ def test_bad_faults():
 def test_cli_sim_rejects_a_bad_scene(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("[[target]]\nrange_m = -3\nangle_deg = 0\namplitude = 1\n")
-    proc = subprocess.run([sys.executable, "-m", "qradar", "sim", "--scene", str(path), "--link",
+    proc = subprocess.run([*QRADAR, "sim", "--scene", str(path), "--link",
                            str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "qradar sim: error:" in proc.stderr and "range_m: -3 is outside" in proc.stderr

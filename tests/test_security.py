@@ -30,7 +30,7 @@ from pipeline.wire import (
 from qradar.cli import main
 from radar_driver.scene import resolve_scene
 from test_nodes import truth_error
-from zenoh_helpers import Collector, alive_nodes, free_port, listening_sockets, wait_port, wait_until
+from zenoh_helpers import QRADAR, Collector, alive_nodes, free_port, listening_sockets, wait_port, wait_until
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/net/tcp").exists() or shutil.which("openssl") is None,
                                 reason="reads listening sockets from /proc; makes certificates with openssl")
@@ -40,7 +40,7 @@ FAKE_SEQ = 10_000  # every forged message carries a seq from here on
 
 
 def qradar(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "qradar", *map(str, args)], stdout=subprocess.PIPE,
+    return subprocess.Popen([*QRADAR, *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
@@ -67,7 +67,7 @@ def pki(tmp_path_factory):
     lab, other = root / "lab", root / "other"
     for argv in (["init", lab, "--sensors", "s1"], ["add", lab, "--role", "sensor", "--id", "s0"],
                  ["init", other, "--sensors", "s0"]):
-        proc = subprocess.run([sys.executable, "-m", "qradar", "security", *map(str, argv)], capture_output=True,
+        proc = subprocess.run([*QRADAR, "security", *map(str, argv)], capture_output=True,
                               text=True, timeout=120)
         assert proc.returncode == 0, proc.stderr
     return lab, other
@@ -378,7 +378,7 @@ def test_only_the_router_is_the_router(pki, free_port):
                  ("source", "--secure", lab, "--mode", "client", "--connect", ep, "--id-prefix", "s",
                   "--frames", "3")]
         for args in nodes:
-            out = subprocess.run([sys.executable, "-m", "qradar", *map(str, args)], capture_output=True, text=True,
+            out = subprocess.run([*QRADAR, *map(str, args)], capture_output=True, text=True,
                                  timeout=60)
             line = out.stderr.strip()
             assert out.returncode == 2 and "\n" not in line, (args[0], out.stderr)

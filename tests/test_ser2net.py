@@ -8,7 +8,6 @@ what ser2net does to the pty (and only that) decides whether a baud switch arriv
 
 import re
 import subprocess
-import sys
 import socket
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from ser2net_helpers import HOST, REQUIRE_ENV, listening_addresses, require_ser2net, ser2net_for, ser2net_yaml
 from test_session import LSB, SCENE, expected_frame
+from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
 #: every test here ends well within this (each takes about a second)
@@ -181,7 +181,7 @@ def test_ser2net_that_cannot_open_its_device_is_named(tmp_path, kind):
     # negotiate RFC 2217"; both name the likely cause
     says = "ser2net could not open its device?"
     with ser2net_for(tmp_path / "no-such-device", kind, workdir=tmp_path) as s2n:
-        proc = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", s2n.url.split("?")[0],
+        proc = subprocess.run([*QRADAR, "drive", "--port", s2n.url.split("?")[0],
                                "--no-publish", "--frames", "1"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
 
@@ -189,7 +189,7 @@ def test_ser2net_that_cannot_open_its_device_is_named(tmp_path, kind):
 def test_an_rfc2217_url_on_a_raw_port_says_so(link):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0), ser2net_for(link, "raw", workdir=link.parent) as s2n:
         url = s2n.url.replace("socket://", "rfc2217://")
-        proc = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", url, "--no-publish", "--frames", "1"],
+        proc = subprocess.run([*QRADAR, "drive", "--port", url, "--no-publish", "--frames", "1"],
                               capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert "did not negotiate RFC 2217 (a raw TCP port rather than telnet(rfc2217)?" in proc.stderr, proc.stderr

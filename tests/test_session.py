@@ -6,7 +6,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -26,7 +25,7 @@ from radar_driver.session import (
 )
 from radar_driver.simulator import SimFaults, SimulatedKMD2, SimulatorServer
 from radar_driver.source import RawFrame
-from zenoh_helpers import wait_until
+from zenoh_helpers import QRADAR, wait_until
 
 LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
 SCENE = SimScene((SimTarget(12.0, 20.0, 0.5), SimTarget(4.8, -35.0, 0.1, phase_deg=40.0)))
@@ -80,7 +79,7 @@ def test_init_baud_switch_gnfd_and_gbye_happen_in_order(link):
 def test_a_sensor_left_at_high_speed_is_recovered(link):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim:
         # a host that dies without GBYE: a driver process killed with SIGKILL
-        crashed = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--baud",
+        crashed = subprocess.Popen([*QRADAR, "drive", "--port", str(link), "--baud",
                                     "3000000", "--no-publish"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                    text=True)
         try:
@@ -150,7 +149,7 @@ def test_device_answers_errors_like_the_sensor():
 def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
     # the ideal chamber: this test's point is the two processes and the protocol, and that the frames carry
     # the scene's strong reflector (the front end's leakage would outshine it: tests/test_frontend.py)
-    sim_cmd = [sys.executable, "-m", "qradar", "sim", "--scene", "chamber-ideal", "--link", str(link)]
+    sim_cmd = [*QRADAR, "sim", "--scene", "chamber-ideal", "--link", str(link)]
     if garbage:
         sim_cmd += ["--garbage", "0.2"]
     sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -158,7 +157,7 @@ def test_cli_sim_and_drive_in_two_processes(link, tmp_path, garbage):
         wait_until(link.exists, 20, f"{link} to appear")
         out = tmp_path / "frames.npz"
         drive = subprocess.run(
-            [sys.executable, "-m", "qradar", "drive", "--port", str(link), "--frames", "40", "--json",
+            [*QRADAR, "drive", "--port", str(link), "--frames", "40", "--json",
              "--out", str(out)], capture_output=True, text=True, timeout=120)
         assert drive.returncode == 0, drive.stderr
         counters = json.loads(drive.stdout.strip().splitlines()[-1])
@@ -214,11 +213,11 @@ def test_socket_links_stay_at_the_start_up_speed_with_the_default_options(caplog
 
 
 def test_the_cli_drives_a_tcp_sensor_with_the_default_options(tmp_path, free_port):
-    sim = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--tcp", str(free_port), "--rate", "0"],
+    sim = subprocess.Popen([*QRADAR, "sim", "--tcp", str(free_port), "--rate", "0"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "socket://127.0.0.1" in sim.stdout.readline()
-        drive = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", f"socket://127.0.0.1:{free_port}",
+        drive = subprocess.run([*QRADAR, "drive", "--port", f"socket://127.0.0.1:{free_port}",
                                 "--frames", "10", "--no-publish", "--json", "--quiet"],
                                capture_output=True, text=True, timeout=60)
         assert drive.returncode == 0, drive.stderr
@@ -233,7 +232,7 @@ def test_the_cli_drives_a_tcp_sensor_with_the_default_options(tmp_path, free_por
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGINT"])
 def test_a_signal_leaves_the_sensor_at_its_start_up_speed(link, how):
     with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
-        drive = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--baud", "921600",
+        drive = subprocess.Popen([*QRADAR, "drive", "--port", str(link), "--baud", "921600",
                                   "--no-publish"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             assert drive.stdout.readline().startswith("frame")
@@ -456,11 +455,11 @@ def test_a_serial_port_has_one_owner_and_a_second_opener_is_told_who(link):
     """A driver process holds the pty (flock); a second opener gets one line naming the
     port and the holder's pid and command, and the first keeps its frames."""
     with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
-        first = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--no-publish"],
+        first = subprocess.Popen([*QRADAR, "drive", "--port", str(link), "--no-publish"],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         try:
             assert first.stdout.readline().startswith("frame")  # it holds the port
-            second = subprocess.run([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--no-publish",
+            second = subprocess.run([*QRADAR, "drive", "--port", str(link), "--no-publish",
                                      "--frames", "1"], capture_output=True, text=True, timeout=60)
             assert second.returncode != 0
             line = second.stderr.strip()
@@ -483,7 +482,7 @@ def test_a_reconnect_does_not_follow_the_path_to_another_device(link):
         s.open()
         assert len(list(s.frames(2))) == 2
         sim.stop()  # the device is gone (its link too) ...
-        other = subprocess.Popen([sys.executable, "-m", "qradar", "sim", "--link", str(link), "--rate", "0"],
+        other = subprocess.Popen([*QRADAR, "sim", "--link", str(link), "--rate", "0"],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         assert "simulated K-MD2" in other.stdout.readline()  # ... and the path names another program's pty
         with pytest.raises(LinkError, match="another device"):

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -17,7 +16,7 @@ import pytest
 
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import Collector, free_port, wait_until
+from zenoh_helpers import QRADAR, Collector, free_port, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,7 +25,7 @@ def test_ctrl_c_ends_a_replay_which_says_what_it_published(connect_when_ready):
     """``qradar replay --loop`` stopped by Ctrl-C prints its counters (as record, quantize,
     localize, view, source, drive and sim do), with ``"interrupted": true``."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "replay", str(ROOT / "recordings" / "chamber.mcap"),
+    proc = subprocess.Popen([*QRADAR, "replay", str(ROOT / "recordings" / "chamber.mcap"),
                              "--loop", "--rate", "4", "--listen", endpoint], cwd=ROOT, stdin=subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -50,7 +49,7 @@ def test_a_second_signal_while_a_driver_stops_exits_at_once(tmp_path):
     a second SIGTERM meanwhile ends it at once with status 130 and one line."""
     link = tmp_path / "kmd2"
     with SimulatorServer(resolve_scene("single"), link_path=link, rate_hz=20) as sim:
-        drive = subprocess.Popen([sys.executable, "-m", "qradar", "drive", "--port", str(link), "--json", "--quiet",
+        drive = subprocess.Popen([*QRADAR, "drive", "--port", str(link), "--json", "--quiet",
                                   "--linger-stdin"], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True)
         try:

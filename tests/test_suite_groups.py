@@ -24,3 +24,13 @@ def test_the_inner_kernel_tests_share_a_worker(request):
     if getattr(request.config, "workerinput", None) is not None and request.config.getvalue("loadgroup"):
         names = {i.nodeid for i in request.session.items if i.module.__name__ in INNER_KERNEL_TESTS}
         assert names and all(n.endswith("@cml-inner-kernels") for n in names), sorted(names)[:3]
+
+
+def test_every_test_starts_qradar_through_the_one_helper(request):
+    """``qradar`` in a process of its own: ``zenoh_helpers.qradar`` or its command line
+    ``zenoh_helpers.QRADAR`` (for ``Popen``), never a command line a test writes itself."""
+    here = request.path.parent
+    written = '"-m", ' + '"qradar"'  # (in two pieces: not a command line itself)
+    own = [f"{p.name}:{i}" for p in sorted(here.glob("*.py")) if p.name != "zenoh_helpers.py"
+           for i, line in enumerate(p.read_text().splitlines(), 1) if written in line]
+    assert own == [], own

@@ -35,6 +35,7 @@ from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import TRACK_FIELDS, FrameHeaders, TracksMsg, decode_tracks
 from radar_driver.model import RadarConfig, add_noise, polar_to_xy, simulate_frames, wrap_velocity
 from radar_driver.scene import ramp_time_s, resolve_scene
+from zenoh_helpers import QRADAR
 
 RATE_HZ = 20.0
 PERIOD_NS = 50_000_000
@@ -653,7 +654,7 @@ def test_live_localize_track_publishes_tracks(free_port, connect_when_ready):
                            np.full(n, radar.config_id(), dtype=np.uint32))
     payloads = encode_quantized_batch(headers, q)
     ep = f"tcp/127.0.0.1:{free_port}"
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "localize", "--listen", ep, "--K", "2", "--track",
+    proc = subprocess.Popen([*QRADAR, "localize", "--listen", ep, "--K", "2", "--track",
                              "--duration", "240"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         session = connect_when_ready(ep, timeout_s=20, mode="client")
@@ -706,7 +707,7 @@ def test_run_track_records_tracks_that_replay(tmp_path):
     from replay.mcapio import McapFile
 
     path = tmp_path / "run.mcap"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "run", "--scene", "walker", "--frames", "40", "--track",
+    proc = subprocess.run([*QRADAR, "run", "--scene", "walker", "--frames", "40", "--track",
                            "--json", "--record", str(path)], capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)
@@ -723,7 +724,7 @@ def test_run_track_records_tracks_that_replay(tmp_path):
     assert sorted(m.seq for m in msgs) == list(range(40))
     assert {len(m.tracks) for m in msgs[10:]} == {2}  # the walker and the reflector, from confirmation on
     assert schema.name == "qradar.Tracks" and json.loads(schema.data)["required"][-1] == "tracks"
-    rp = subprocess.run([sys.executable, "-m", "qradar", "replay", str(path), "--fast", "--replay-prefix", "replay"],
+    rp = subprocess.run([*QRADAR, "replay", str(path), "--fast", "--replay-prefix", "replay"],
                         capture_output=True, text=True, timeout=120)
     assert rp.returncode == 0, rp.stderr
     out = json.loads(rp.stdout.strip().splitlines()[-1])
@@ -739,7 +740,7 @@ def test_reprocess_track_integrates_the_chamber_recording(tmp_path):
 
     chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
     out = tmp_path / "rp"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "reprocess", str(chamber), "--alpha", "0.45", "--track",
+    proc = subprocess.run([*QRADAR, "reprocess", str(chamber), "--alpha", "0.45", "--track",
                            "--out", str(out), "--mcap", str(tmp_path / "re.mcap"), "--quiet"],
                           capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr
@@ -805,12 +806,12 @@ def test_cli_montecarlo_time_writes_its_curve(tmp_path):
     import sys
 
     out = tmp_path / "mct"
-    proc = subprocess.run([sys.executable, "-m", "qradar", "montecarlo-time", "--runs", "6", "--frames", "1", "8",
+    proc = subprocess.run([*QRADAR, "montecarlo-time", "--runs", "6", "--frames", "1", "8",
                            "--noise-sigma", "0", "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     res = json.loads((out / "time.json").read_text())
     assert len(res) == 1 and res[0]["T"] == [1, 8] and res[0]["median_m"][1] < res[0]["median_m"][0]
     assert (out / "time.png").read_bytes()[:4] == b"\x89PNG" and "slope" in proc.stdout
-    bad = subprocess.run([sys.executable, "-m", "qradar", "montecarlo-time", "--out", "/proc/qradar"],
+    bad = subprocess.run([*QRADAR, "montecarlo-time", "--out", "/proc/qradar"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("qradar montecarlo-time: error: ")

@@ -10,7 +10,6 @@ import json
 import re
 import socket
 import subprocess
-import sys
 import threading
 import time
 import tomllib
@@ -36,7 +35,7 @@ from qradar.web.hub import Client, EventHub
 from radar_driver.model import polar_to_xy
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import free_port, listening_sockets, wait_until
+from zenoh_helpers import QRADAR, free_port, listening_sockets, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 STATIC = ROOT / "qradar" / "web" / "static"
@@ -271,7 +270,7 @@ def test_under_secure_the_command_makes_a_token(tmp_path):
 
 def test_qradar_view_web_listens_on_loopback_only():
     """``qradar view --web 0``: one listening socket, 127.0.0.1; the page answers."""
-    proc = subprocess.Popen([sys.executable, "-m", "qradar", "view", "--web", "0", "--duration", "20"],
+    proc = subprocess.Popen([*QRADAR, "view", "--web", "0", "--duration", "20"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
     try:
         lines = []
