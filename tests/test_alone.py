@@ -4,11 +4,10 @@ and keeps running; ``qradar run`` (one in-process session on purpose) does not."
 
 from __future__ import annotations
 
-import signal
 import subprocess
 
 from pipeline.bus.session import ALONE_AFTER_S
-from zenoh_helpers import QRADAR, qradar
+from zenoh_helpers import QRADAR, interrupt, qradar
 
 WARNING = "no zenoh peer or router reached"
 
@@ -33,13 +32,10 @@ def test_a_connect_endpoint_that_answers_nothing_is_named(free_port):
             line = proc.stderr.readline()
             if WARNING in line or not line:
                 break
-        assert proc.poll() is None, "it did not keep running"
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        running = proc.poll() is None
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+        out, err = interrupt(proc, 30)
+    assert running, "it did not keep running"
     assert WARNING in line and f"nothing answers at {ep}" in line, line + err
     assert proc.returncode == 0 and WARNING not in err, err  # said once
 

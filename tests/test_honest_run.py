@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenoh_helpers import QRADAR, free_port, qradar
+from zenoh_helpers import QRADAR, free_port, qradar, read_lines
+from zenoh_helpers import interrupt as stop
 
 ROOT = Path(__file__).resolve().parents[1]
 CAL = ROOT / "recordings" / "chamber-cal.json"
@@ -38,30 +39,11 @@ def start_sim(link: Path, *args) -> subprocess.Popen:
     return sim
 
 
-def stop(proc: subprocess.Popen) -> tuple[str, str]:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        return proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-
-
 def lines_until(stream, text: str) -> tuple[list[str], threading.Event, threading.Thread]:
-    """Every line of ``stream``, read by a thread (returned) into a list, and an event set at
-    the first line holding ``text``."""
-    lines, seen = [], threading.Event()
-
-    def read():
-        for line in stream:
-            lines.append(line)
-            if text in line:
-                seen.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
+    """:func:`zenoh_helpers.read_lines` of ``stream``, and an event set at the first line
+    holding ``text``."""
+    seen = threading.Event()
+    lines, reader = read_lines(stream, lambda line: seen.set() if text in line else None)
     return lines, seen, reader
 
 

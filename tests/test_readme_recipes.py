@@ -19,7 +19,7 @@ import pytest
 
 from replay.mcapio import McapFile
 from pipeline.bus.session import BusConfig
-from zenoh_helpers import alive_nodes, free_port, wait_port, wait_until
+from zenoh_helpers import alive_nodes, free_port, interrupt, wait_port, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -332,12 +332,8 @@ def run_until_ctrl_c(line: str, tmp: Path, says: str, timeout_s: float = 60) -> 
             seen = seen or says in text
             if seen and " targets (" in text:
                 break
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+        out, err = interrupt(proc, 30)
     assert seen, f"{line!r} never said {says!r}: " + "".join(lines)[-2000:] + err[-2000:]
     assert proc.returncode == 0 and "Traceback" not in err, (line, proc.returncode, err[-3000:])
     return "".join(lines) + out

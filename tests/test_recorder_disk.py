@@ -21,7 +21,7 @@ from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, recover
 from replay.recorder import RecorderNode, RecordingState
-from zenoh_helpers import QRADAR, Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, read_lines, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHUNK = 64 * 1024
@@ -182,27 +182,12 @@ def test_a_removed_folder_pauses_the_recorder_until_it_can_write_again(tmp_path,
     assert rec.written == len(seqs) and t["frames_in"] == rec.written + rec.lost + t["drops"] and rec.lost >= 5
 
 
-def read_lines(stream, on_line=None) -> tuple[list[str], threading.Thread]:
-    """Lines of ``stream`` read by a thread into a list, ``on_line`` called on each."""
-    lines = []
-
-    def read():
-        for line in stream:
-            lines.append(line)
-            if on_line is not None:
-                on_line(line)
-
-    t = threading.Thread(target=read, daemon=True)
-    t.start()
-    return lines, t
-
-
 #: live target lines (a line a second, ~20 frames) a run shows after the event a test waits
 #: for, before its Ctrl-C: frames written after the event, not a fixed duration
 LINES_AFTER = 2
 
 
-def run_until(argv: list[str], event: str, on_line=None, timeout_s: float = 120.0) -> tuple[int, list[str], str]:
+def run_to_event(argv: list[str], event: str, on_line=None, timeout_s: float = 120.0) -> tuple[int, list[str], str]:
     """``qradar run`` (``argv``, its ``--json`` summary on stdout) until a stderr line holds
     ``event`` and :data:`LINES_AFTER` live target lines follow it, then Ctrl-C (as a user
     would; the run ends with its summary); ``on_line`` is called on each stderr line.
@@ -247,7 +232,7 @@ def test_qradar_run_goes_on_through_a_full_disk_and_records_again_when_space_ret
                 filler.unlink()
                 freed.set()
 
-        code, lines, out = run_until([*QRADAR, "run", "--duration", "60", "--json", "--record",
+        code, lines, out = run_to_event([*QRADAR, "run", "--duration", "60", "--json", "--record",
                                       str(path), "--write-retry", "0.5"], "recording resumed", on_line)
         assert code == 0, "".join(lines[-20:])
         assert freed.is_set(), "the recording never paused: " + "".join(lines[-20:])
@@ -286,7 +271,7 @@ def qradar_with_fsize_limit(limit_bytes: int, *args: str) -> list[str]:
 def test_qradar_run_with_stop_ends_the_recording_on_efbig_and_runs_on(tmp_path):
     path = tmp_path / "run.mcap"
     limit = 300_000
-    code, lines, out = run_until(qradar_with_fsize_limit(limit, "run", "--duration", "60", "--json", "--record",
+    code, lines, out = run_to_event(qradar_with_fsize_limit(limit, "run", "--duration", "60", "--json", "--record",
                                                          str(path), "--on-write-error", "stop"), "recording stopped")
     assert code == 0, "".join(lines[-20:])
     stopped = [ln for ln in lines if "recording stopped" in ln]

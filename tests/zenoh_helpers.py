@@ -4,6 +4,7 @@ loopback port for code that needs one outside a fixture, a wait for a port, the 
 sockets and the memory of a process."""
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -89,6 +90,34 @@ class Collector:
     def of(self, suffix):
         with self.lock:
             return [p for k, p in self.items if k.endswith(suffix)]
+
+
+def interrupt(proc: subprocess.Popen, timeout_s: float = 20) -> tuple[str, str]:
+    """Ctrl-C (SIGINT) to ``proc`` if it still runs, then its (stdout, stderr); killed if it
+    has not ended within ``timeout_s``."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
+def read_lines(stream, on_line=None) -> tuple[list[str], threading.Thread]:
+    """Lines of ``stream`` read by a thread (returned) into a list, ``on_line`` called on each."""
+    lines = []
+
+    def read():
+        for line in stream:
+            lines.append(line)
+            if on_line is not None:
+                on_line(line)
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    return lines, t
 
 
 def stop_when(pred, stop: threading.Event, timeout_s: float, poll_s: float = 0.05) -> None:
