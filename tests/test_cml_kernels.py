@@ -37,13 +37,13 @@ RANGE_TOL_M = 1e-4
 AMP_TOL = 1e-3
 
 
-def agree(z, xi, delta, bits, cfg, k, likelihood="logistic", **kw):
+def agree(z, xi, delta, bits, cfg, k, likelihood="logistic", amp_tol=AMP_TOL, **kw):
     ref = cml(z, xi, delta, bits, cfg, k, options=CmlOptions(engine="numpy", likelihood=likelihood), **kw)
     got = cml(z, xi, delta, bits, cfg, k, options=CmlOptions(engine="numba", likelihood=likelihood), **kw)
     np.testing.assert_array_equal(got.present, ref.present)
     p = ref.present
     np.testing.assert_allclose(got.range_m[p], ref.range_m[p], atol=RANGE_TOL_M)
-    np.testing.assert_allclose(got.amplitudes[p], ref.amplitudes[p], atol=AMP_TOL)
+    np.testing.assert_allclose(got.amplitudes[p], ref.amplitudes[p], atol=amp_tol)
     np.testing.assert_allclose(got.sigma_eff, ref.sigma_eff, rtol=1e-3, atol=1e-9)
     return ref, got
 
@@ -104,8 +104,11 @@ def test_unquantized(cfg):
 def test_noisy_small_alpha(cfg, noise_sigma):
     (r, a, x), rng = off_grid(16, 2, 8)
     z, xi, delta = measure(r, a, x, cfg, rng, alpha=0.1, noise=0.1)
+    # a dither this small leaves a weak target's amplitude ill-conditioned: frame 3's second target
+    # moves 1.5e-4 when the dither changes by 1e-10 of itself (reference engine), so the engines'
+    # different rounding shows there, by CPU: 1.09e-3 on an AMD EPYC host (avx2, no avx512)
     for likelihood in ("logistic", "gaussian"):
-        agree(z, xi, delta, 1, cfg, 2, noise_sigma=noise_sigma, likelihood=likelihood)
+        agree(z, xi, delta, 1, cfg, 2, noise_sigma=noise_sigma, likelihood=likelihood, amp_tol=2 * AMP_TOL)
 
 
 def test_k_auto_and_gate(cfg):
@@ -503,6 +506,40 @@ def test_load_kernels_loads_1_bit_codes_first():
     before, one_bit, common, everything, again = map(int, out.stdout.split())
     # the kind of 1-bit codes alone is the common kind; every kind loads more; loaded kinds add nothing
     assert before == 0 < one_bit == common < everything == again
+
+
+def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
+    """After ``load_kernels`` of 1-bit codes, the decodes a localizer makes (K given or K auto,
+    in a range gate, cold or warm, a target inside and one outside the gate) need no other
+    compiled signature: on a fresh install (``make`` compiles what ``load_kernels`` loads) a
+    run's first full search does not compile for a minute while frames wait."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np\n"
+            "from pipeline.dsp.cml import CmlDecoder, load_kernels\n"
+            "from pipeline.dsp.cml.kernels import KERNELS\n"
+            "from pipeline.dsp.cml.loading import kind_of\n"
+            "from pipeline.dsp.gate import RangeGate\n"
+            "from pipeline.dsp.quantize import QuantizerConfig, quantize_frames\n"
+            "from radar_driver.model import RadarConfig, simulate_frames\n"
+            "load_kernels(kinds=(kind_of(1),))\n"
+            "loaded = [len(k.signatures) for k in KERNELS]\n"
+            "cfg = RadarConfig()\n"
+            "r, a = np.array([[40.0, 150.0], [12.5, 80.3]]), np.array([[10.0, -20.0], [0.0, 30.0]])\n"
+            "g = simulate_frames(r, a, np.array([[1.0, 2.0], [0.5, 1.0]], dtype=complex), cfg)\n"
+            "g += 0.1 * np.random.default_rng(1).standard_normal(g.shape + (2,)).view(complex)[..., 0]\n"
+            "q = quantize_frames(g, QuantizerConfig(alpha=0.45), np.arange(2))\n"
+            "d, gate = CmlDecoder(cfg), RangeGate(2.0, 120.0)\n"
+            "for z in (q.codes, q.values()):\n"
+            "    d.decode(z, q.dither(), q.delta, 1, 2, gate=gate)\n"
+            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate)\n"
+            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=np.array([[40.0] + [np.nan] * 3] * 2))\n"
+            "print([f'{k.py_func.__module__}.{k.py_func.__qualname__}' for k, s in zip(KERNELS, loaded)\n"
+            "       if len(k.signatures) != s])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", f"kernels compiled after load_kernels: {out.stdout.strip()}"
 
 
 def test_a_node_told_its_bits_loads_their_kernels_alone():

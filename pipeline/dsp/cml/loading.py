@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from radar_driver.model import RadarConfig
+from radar_driver.model import RadarConfig, simulate_frames
 
 from pipeline.dsp.cml.decoder import CmlDecoder
 from pipeline.dsp.cml.engine import HAVE_NUMBA
@@ -49,9 +49,10 @@ def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None)
     if kinds is not None and not set(kinds) <= set(KINDS):
         raise ValueError(f"kinds {sorted(set(kinds) - set(KINDS), key=str)} are none of cml's {KINDS}")
     cfg = RadarConfig()
-    n = cfg.samples_per_ramp
     rng = np.random.default_rng(0)
-    g = 0.3 * np.exp(2j * np.pi * rng.random((1, 2 * n, 2)))
+    # a target at 30 m beside a return of random phases (what a count test finds, and settles)
+    g = simulate_frames(np.array([[30.0]]), np.array([[10.0]]), np.ones((1, 1), dtype=complex), cfg)
+    g = g + 0.3 * np.exp(2j * np.pi * rng.random(g.shape))
     xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
     chosen = KINDS[:1] if common else KINDS if kinds is None else tuple(k for k in KINDS if k in kinds)
     for i, (bits, lik) in enumerate(chosen):
@@ -65,8 +66,8 @@ def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None)
 
 def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int | None, lik: str) -> None:
     """Frames ``g`` (1, M, 2) of one kind (quantized with dither ``xi`` to ``bits``) decoded the
-    ways a node decodes them: values and (the default likelihood) the quantizer's codes, K given
-    and K auto in a gate with a warm start."""
+    ways a node decodes them: values and (the default likelihood) the quantizer's codes, K given,
+    and K auto in a gate with a warm start and from scratch."""
     delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
     half = 0 if bits is None else 1 << (bits - 1)
     z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
@@ -74,10 +75,12 @@ def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int |
     frames = [z]
     if bits is not None and lik == DEFAULT_LIKELIHOOD:  # the quantizer's codes (uint8)
         frames.append(np.rint(np.stack([z.real, z.imag], axis=-1) / delta - 0.5 + half).astype(np.uint8))
+    gate = RangeGate(5.0, 100.0)
     for zz in frames:
         decoder.decode(zz, xi, delta, bits, 2)
-        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=RangeGate(5.0, 100.0),
-                       init_range_m=np.array([[30.0, np.nan]]))
+        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate, init_range_m=np.array([[30.0, np.nan]]))
+        # a full search with a count test: the fit settled (refined) between its stages
+        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate)
 
 
 def _span(lo: float, hi: float) -> str:
