@@ -510,7 +510,8 @@ def test_load_kernels_loads_1_bit_codes_first():
 
 def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
     """After ``load_kernels`` of 1-bit codes, the decodes a localizer makes (K given or K auto,
-    in a range gate, cold or warm, a target inside and one outside the gate) need no other
+    in a range gate, cold or warm, a target inside and one outside the gate; its tracker's
+    refinement of a static track on stacked frames) need no other
     compiled signature: on a fresh install (``make`` compiles what ``load_kernels`` loads) a
     run's first full search does not compile for a minute while frames wait."""
     import subprocess
@@ -535,6 +536,9 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
             "    d.decode(z, q.dither(), q.delta, 1, 2, gate=gate)\n"
             "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate)\n"
             "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=np.array([[40.0] + [np.nan] * 3] * 2))\n"
+            "from pipeline.dsp.integrate import integrate\n"  # a static track's refinement (the tracker's)
+            "still = quantize_frames(np.repeat(g[:1], 10, axis=0), QuantizerConfig(alpha=0.45), np.arange(10))\n"
+            "integrate(still, cfg, 4, gate, 1e-3), integrate(still, cfg, 2, gate)\n"
             "print([f'{k.py_func.__module__}.{k.py_func.__qualname__}' for k, s in zip(KERNELS, loaded)\n"
             "       if len(k.signatures) != s])\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
