@@ -52,7 +52,7 @@ web-vendor:
 	&& cp package/dist/uPlot.iife.min.js package/dist/uPlot.min.css package/LICENSE "$(CURDIR)/$(UPLOT_DIR)/" \
 	&& echo "vendored uplot@$(UPLOT_VERSION) ($(UPLOT_INTEGRITY)) into $(UPLOT_DIR)"
 
-# The main job: simulated K-MD2 -> driver -> 1-bit dithered quantizer -> PBP, over zenoh.
+# The main job: simulated K-MD2 (the chamber, calibrated) -> driver -> 1-bit dithered quantizer -> cml, over zenoh.
 run: $(KERNEL_STAMP)
 	@$(BYTECODE)
 	$(VENV)/bin/qradar run --duration 15 --calibration recordings/chamber-cal.json

@@ -531,11 +531,11 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
             "g = simulate_frames(r, a, np.array([[1.0, 2.0], [0.5, 1.0]], dtype=complex), cfg)\n"
             "g += 0.1 * np.random.default_rng(1).standard_normal(g.shape + (2,)).view(complex)[..., 0]\n"
             "q = quantize_frames(g, QuantizerConfig(alpha=0.45), np.arange(2))\n"
-            "d, gate = CmlDecoder(cfg), RangeGate(2.0, 120.0)\n"
+            "d, gate, warm = CmlDecoder(cfg), RangeGate(2.0, 120.0), np.array([[40.0] + [np.nan] * 3] * 2)\n"
             "for z in (q.codes, q.values()):\n"
             "    d.decode(z, q.dither(), q.delta, 1, 2, gate=gate)\n"
             "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate)\n"
-            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=np.array([[40.0] + [np.nan] * 3] * 2))\n"
+            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=warm)\n"
             "from pipeline.dsp.integrate import integrate\n"  # a static track's refinement (the tracker's)
             "still = quantize_frames(np.repeat(g[:1], 10, axis=0), QuantizerConfig(alpha=0.45), np.arange(10))\n"
             "integrate(still, cfg, 4, gate, 1e-3), integrate(still, cfg, 2, gate)\n"
