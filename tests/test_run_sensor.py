@@ -160,9 +160,15 @@ def test_without_truth_a_real_sensor_has_targets_rates_and_drops_but_no_error(tm
     # shortens a long list's repr in the middle, where the count is.)
     said = [re.search(r" (\d+) lost   (\S+)$", ln) for ln in live]
     assert all(m and m.group(2).endswith("calibrated") for m in said), "\n".join(live)
-    last = {ln.split()[0]: int(m.group(1)) for ln, m in zip(live, said)}
-    drops = int(re.search(r"  drops       (\d+) ", out).group(1))
-    assert sum(last.values()) == drops, (last, drops, out[-1500:])
+    lost = {}  # each sensor's lost count, line by line: it never goes down
+    for ln, m in zip(live, said):
+        lost.setdefault(ln.split()[0], []).append(int(m.group(1)))
+    assert all(v == sorted(v) for v in lost.values()), lost
+    drops = re.search(r"  drops       (\d+) \((.*)\)", out)
+    # the summary's drops hold every loss a live line said, and those after a sensor's last line
+    # (8 against 3 + 3 once, on a busy host); none said: none counted
+    assert sum(v[-1] for v in lost.values()) <= int(drops.group(1)), (lost, drops.group(0), out[-1500:])
+    assert (drops.group(2) == "none") == (int(drops.group(1)) == 0), drops.group(0)
     assert any(re.search(r"frames/s, \d+ lost", ln) for ln in live), live
     assert "qradar run: 2 sensor(s) left on" in out and "frames      raw 60, quantized 60, targets 60" in out
     assert "error       none: no true positions (--truth SCENE.toml" in out
