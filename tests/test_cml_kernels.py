@@ -488,12 +488,20 @@ def test_a_decoder_keeps_its_tables_and_buffers_clean(cfg):
     np.testing.assert_allclose(got.range_m, ref.range_m, atol=RANGE_TOL_M)
 
 
-def test_load_kernels_loads_1_bit_codes_first():
-    """A localizer loads the kernels of 1-bit codes (``common``) before it listens; the other
-    kinds after. In a fresh process, from numba's cache: each call adds kernels' signatures."""
+def fresh_process(code: str) -> str:
+    """What ``code`` prints, run by this interpreter in a process of its own (numba's
+    dispatchers start empty there: what it loads is what ``code`` makes it load)."""
     import subprocess
     import sys
 
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+def test_load_kernels_loads_1_bit_codes_first():
+    """A localizer loads the kernels of 1-bit codes (``common``) before it listens; the other
+    kinds after. In a fresh process, from numba's cache: each call adds kernels' signatures."""
     code = ("from pipeline.dsp.cml import load_kernels\n"
             "from pipeline.dsp.cml.kernels import KERNELS\n"
             "from pipeline.dsp.cml.loading import kind_of\n"
@@ -501,9 +509,7 @@ def test_load_kernels_loads_1_bit_codes_first():
             "before = count(); load_kernels(kinds=(kind_of(1),)); one_bit = count()\n"
             "load_kernels(common=True); common = count(); load_kernels(); everything = count()\n"
             "load_kernels(kinds=(kind_of(None), kind_of(5))); print(before, one_bit, common, everything, count())")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr
-    before, one_bit, common, everything, again = map(int, out.stdout.split())
+    before, one_bit, common, everything, again = map(int, fresh_process(code).split())
     # the kind of 1-bit codes alone is the common kind; every kind loads more; loaded kinds add nothing
     assert before == 0 < one_bit == common < everything == again
 
@@ -514,9 +520,6 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
     refinement of a static track on stacked frames) need no other
     compiled signature: on a fresh install (``make`` compiles what ``load_kernels`` loads) a
     run's first full search does not compile for a minute while frames wait."""
-    import subprocess
-    import sys
-
     code = ("import numpy as np\n"
             "from pipeline.dsp.cml import CmlDecoder, load_kernels\n"
             "from pipeline.dsp.cml.kernels import KERNELS\n"
@@ -541,9 +544,8 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
             "integrate(still, cfg, 4, gate, 1e-3), integrate(still, cfg, 2, gate)\n"
             "print([f'{k.py_func.__module__}.{k.py_func.__qualname__}' for k, s in zip(KERNELS, loaded)\n"
             "       if len(k.signatures) != s])\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]", f"kernels compiled after load_kernels: {out.stdout.strip()}"
+    compiled = fresh_process(code).strip()
+    assert compiled == "[]", f"kernels compiled after load_kernels: {compiled}"
 
 
 def test_a_node_told_its_bits_loads_their_kernels_alone():
