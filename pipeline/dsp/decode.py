@@ -43,6 +43,7 @@ from pipeline.errors import DitherUnavailable, ParameterError
 from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
+from pipeline.dsp.significance import target_p_values
 from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlOptions
 from pipeline.dsp.cml.engine import resolve as resolve_engine
@@ -456,7 +457,10 @@ class Decoder:
             unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
                                      estimated=noise_sigma is None and cfg.noise_sigma is None,
                                      phase_step_rad=res.phase_step_rad)
-            return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle)
+            p = target_p_values(res.range_m, res.amplitudes, res.phase_step_rad, res.present, res.sigma_eff, z,
+                                xi if bits is not None else None, delta, bits, radar, cfg.gate)
+            return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle,
+                                                          p_value=p)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         if cfg.algo == Algo.PBP:
             return localize(z, radar, k, indices, pfa, gate)

@@ -249,8 +249,9 @@ class Detections:
     (bool: with ``K auto`` the slots past a frame's count are False and hold NaN);
     sigma_range_m (m), sigma_angle_deg (deg), cov_range_angle (m deg): how sure each target
     is (:mod:`pipeline.dsp.uncertainty`; NaN where the decoder gives none);
-    p_value (PBP: the chance that noise alone makes ``statistic_db`` in the gate:
-    :func:`cfar_p_value`);
+    p_value (the chance that noise alone makes the target in the gate: PBP, of its
+    ``statistic_db``, :func:`cfar_p_value`; cml, a score test of the frame given the other
+    targets, :mod:`pipeline.dsp.significance`);
     radial_velocity_mps (m/s, + = moving away, from the phase step between ramps: known
     modulo the radar's ``velocity_ambiguity_mps`` V and given in [-V/2, V/2); NaN where the
     decoder keeps the static model, as PBP and QIHT do).
@@ -294,11 +295,13 @@ class Detections:
                           nan(self.p_value))
 
     def with_uncertainty(self, sigma_range_m: np.ndarray, sigma_angle_deg: np.ndarray,
-                         cov_range_angle: np.ndarray) -> "Detections":
-        """These detections with each target's uncertainty (B, K) (NaN where absent)."""
+                         cov_range_angle: np.ndarray, p_value: np.ndarray | None = None) -> "Detections":
+        """These detections with each target's uncertainty (B, K) and, given, p-value (B, K)
+        (NaN where absent)."""
+        more = {} if p_value is None else {"p_value": np.where(self.present, p_value, np.nan)}
         return replace(self, sigma_range_m=np.where(self.present, sigma_range_m, np.nan),
                        sigma_angle_deg=np.where(self.present, sigma_angle_deg, np.nan),
-                       cov_range_angle=np.where(self.present, cov_range_angle, np.nan))
+                       cov_range_angle=np.where(self.present, cov_range_angle, np.nan), **more)
 
     def frame(self, i: int) -> list[dict[str, float]]:
         """The targets of frame ``i`` that are present, as plain dicts (for JSON)."""

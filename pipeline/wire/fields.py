@@ -111,8 +111,8 @@ TARGET_ITEM = (
     Field("amplitude", "number", "frame units", "joint magnitude over both antennas divided by √2"),
     Field("statistic_db", "number", "dB", "detection statistic, capped at ±300 dB", optional=True),
     Field("p_value", "number", "", "the chance that noise alone makes a statistic this large in the frame's "
-          "range gate: the largest of its bins' joint energy over their mean, white Gaussian noise (pbp)",
-          optional=True),
+          "range gate: pbp, the largest of its bins' joint energy over their mean, white Gaussian noise; cml, a "
+          "score test of the frame given the other targets, conservative for codes", optional=True),
     Field("sigma_range_m", "number", "m", "standard deviation of range_m, from the Fisher information of the "
           "frame's codes at the estimate (cml)", optional=True),
     Field("sigma_angle_deg", "number", "deg", "standard deviation of angle_deg, likewise", optional=True),
