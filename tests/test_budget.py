@@ -53,28 +53,33 @@ def test_budgets_are_checked_on_load(bad):
 
 # -- at a node --------------------------------------------------------------------------------------
 def test_a_flood_is_cut_where_it_arrives_and_every_frame_is_counted(bus, zenoh_session):
-    """200 frames of one key at once against a budget of 20/s (burst 1 s): 20 go in, 180 are
-    over budget, the honest sensor loses nothing, and the frames the budget dropped are not
-    counted again as missing (only a real gap is)."""
+    """200 frames of one key at once against a budget of 20/s (burst 1 s): 20 go in (and one
+    more for each 50 ms the flood takes to arrive: 21 once in a suite on a loaded host), the
+    rest are over budget, the honest sensor loses nothing, and the frames the budget dropped
+    are not counted again as missing (only a real gap is)."""
     col = Collector(zenoh_session, "radar/*/quantized")
     q = QuantizeNode(bus, QuantizerConfig(), session=zenoh_session, health_period_s=0.2,
                      intake=IntakeBudget(rate_hz=20, burst_s=1.0)).start()
     try:
         evil = zenoh_session.declare_publisher("radar/evil/raw", congestion_control=BLOCK)
+        start = time.monotonic()
         for i in range(200):
             evil.put(raw("evil", i))
         for i in range(10):
             zenoh_session.put("radar/good/raw", raw("good", i))
         wait_until(lambda: len(col.of("good/quantized")) == 10, 10, "the honest frames")
         wait_until(lambda: q.totals()["frames_in"] == 210, 10, "every frame counted in")
+        refilled = int(20 * (time.monotonic() - start))  # tokens the bucket can have gained meanwhile
         with q._lock:
             ev, good = q.stats["evil"], q.stats["good"]
-            assert (ev.frames_in, ev.over_budget, good.over_budget, good.drops) == (200, 180, 0, 0)
+            admitted = ev.frames_in - ev.over_budget
+            assert (ev.frames_in, good.over_budget, good.drops) == (200, 0, 0)
+            assert 20 <= admitted <= 20 + refilled, (admitted, refilled)
             assert ev.frames_missing == 0  # the budget's drops are not also "missing"
-        wait_until(lambda: len(col.of("evil/quantized")) == 20, 10, "the flood's admitted frames")
+        wait_until(lambda: len(col.of("evil/quantized")) == admitted, 10, "the flood's admitted frames")
         time.sleep(1.2)  # the bucket refills; a real gap after the budget's drops still counts
         evil.put(raw("evil", 205))
-        wait_until(lambda: len(col.of("evil/quantized")) == 21, 10, "the next admitted frame")
+        wait_until(lambda: len(col.of("evil/quantized")) == admitted + 1, 10, "the next admitted frame")
         with q._lock:
             assert q.stats["evil"].frames_missing == 5  # 200..204: never sent
         assert [decode_quantized(p).seq for p in col.of("evil/quantized")][:20] == list(range(20))
