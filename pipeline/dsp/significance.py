@@ -112,15 +112,15 @@ def leave_one_out_statistic(score, dst: np.ndarray, amplitudes: np.ndarray, nu: 
 
     ``dst`` (B, per K, S): the derivatives of the frames' S = R 4N real samples ((ramp,
     sample, antenna, I/Q) in C order) in each target's ``per`` parameters (:func:`jacobian`),
-    its amplitudes' ``Re a1, Im a1, Re a2, Im a2`` at 1..4 (the model is linear in them: target t's samples
-    are those columns times its ``amplitudes`` (B, K, 2)), ``nu`` (B, K) its range (bins);
-    ``score(model)`` the residual
-    ``g`` (B, S) of the frames given the model (B, S) of the others and its curvature ``h``
-    (B, S) (unquantized: ``y - model`` and 1); ``inside`` (N,) bool the range bins inside
-    the gate; ``floor`` (B,) the least mean energy per bin. ``g`` less its projection on
-    the other targets' parameters (``h``-weighted: what refitting them would explain,
-    their range, phase step and amplitudes) is back-projected on target j's amplitudes
-    (``|sum conj(w) g|^2 / N^2`` over ramps and samples, per antenna, summed), and over the
+    its amplitudes' ``Re a1, Im a1, Re a2, Im a2`` at 1..4 (the model is linear in them:
+    target t's samples are those rows times its ``amplitudes`` (B, K, 2)); ``nu`` (B, K)
+    the targets' ranges (bins); ``score(model)``: the residual ``g`` and its curvature ``h``
+    (both (B, J, S)) of the frames given J models a frame (B, J, S), model j that of the
+    targets besides j (unquantized: ``y - model`` and 1); ``inside`` (N,) bool the range
+    bins inside the gate; ``floor`` (B,) the least mean energy per bin. ``g`` less its
+    ``h``-weighted projection on the other targets' parameters (what refitting their range,
+    phase step and amplitudes would explain) is back-projected on target j's amplitudes
+    (``|sum conj(w) g|^2 / N^2`` over ramps and samples, per antenna, summed), over the
     mean of its spectrum's joint energy (``|FFT_N|^2 / N^2`` each ramp and antenna, summed)
     over the bins inside the gate beyond :data:`GUARD_BINS` of every target."""
     b, cols, samples = dst.shape
