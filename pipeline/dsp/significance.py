@@ -23,17 +23,15 @@ I/Q), M = R N whole ramps; per target (B, K)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from radar_driver.model import RadarConfig
 
-from pipeline.dsp.cml.count import COUNT_GUARD_BINS as GUARD_BINS, FRAME_ROUNDOFF, SEARCH_CELLS_PER_BIN
+from pipeline.dsp.cml.count import COUNT_GUARD_BINS as GUARD_BINS, SEARCH_CELLS_PER_BIN, precision_floor
 from pipeline.dsp.cml.options import LOGISTIC_PER_SIGMA
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.localize import cfar_p_value, to_db
-from pipeline.dsp.uncertainty import MOVING_PARAMS, PARAMS
+from pipeline.dsp.uncertainty import MOVING_PARAMS, PARAMS, jacobian
 
 #: independent cells a range bin of the static model's search is worth: the count test's
 #: (measured on noise-only frames for both)
@@ -170,7 +168,6 @@ def target_p_values(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad:
     if b == 0 or not live.any():
         return out
     ramps = z.shape[1] // n
-    config = config if config.ramps_per_frame == ramps else replace(config, ramps_per_frame=ramps)
     moving = ramps > 1 and bool(np.isfinite(phase_step_rad).any())
     if gate is None:
         inside, width = np.ones(n, dtype=bool), float(n)
@@ -198,49 +195,17 @@ def target_p_values(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad:
     return out
 
 
-def jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.ndarray, config: RadarConfig, ramps: int,
-             moving: bool) -> np.ndarray:
-    """The derivatives (B, P K, S) of a frame's S = R 4N real samples ((ramp, sample, antenna,
-    I/Q) in C order) in each target's parameters ``[r, Re a1, Im a1, Re a2, Im a2]`` and,
-    ``moving``, ``phi`` (P = 6; else P = 5): the model of :mod:`pipeline.dsp.uncertainty`
-    (:func:`~pipeline.dsp.uncertainty.moving_jacobian`'s ``ds``, transposed), each
-    parameter's row written as complex samples. Targets ``range_m`` (B, K) m,
-    ``amplitudes`` (B, K, 2) at the middle of the frame, ``phase_step_rad`` (B, K) (ignored
-    unless ``moving``)."""
-    b, k = range_m.shape
-    n = config.samples_per_ramp
-    per = MOVING_PARAMS if moving else PARAMS
-    kr = (4.0 * np.pi / config.c_m_s) * config.frequencies_hz(np.arange(n))
-    steer = np.exp(-1j * range_m[:, :, None] * kr[None, None, :])  # (B, K, N): radar_driver.model.range_phase
-    c = np.arange(ramps) - (ramps - 1) / 2.0
-    if moving:
-        turn = np.exp(1j * phase_step_rad[:, :, None] * c[None, None, :])  # (B, K, R): exp(i c_r phi)
-        at = steer[:, :, None, :] * turn[..., None]  # (B, K, R, N)
-    else:
-        at = np.broadcast_to(steer[:, :, None, :], (b, k, ramps, n))
-    d = np.zeros((b, k, per, ramps, n, 2), dtype=complex)  # (target, parameter) x (ramp, sample, antenna)
-    for p in range(2):
-        ap = amplitudes[:, :, p, None, None]  # (B, K, 1, 1)
-        d[:, :, 0, :, :, p] = at * ap * (-1j * kr)
-        d[:, :, 1 + 2 * p, :, :, p] = at
-        d[:, :, 2 + 2 * p, :, :, p] = 1j * at
-        if moving:
-            d[:, :, 5, :, :, p] = at * ap * (1j * c[:, None])
-    return d.view(float).reshape(b, k * per, ramps * 4 * n)
-
-
 def _residual(z: np.ndarray, xi: np.ndarray | None, delta: np.ndarray | None, bits: int | None, sigma: np.ndarray,
               ramps: int, n: int):
     """The residual of a block of frames given models, as :func:`leave_one_out_statistic`
     takes it (``score(model) -> (g, h)``, all (B, J, S) real: J models a frame), and the
     least mean energy per bin (B,): unquantized ``y - model`` and 1, the mean no less than a
-    white residual's of std :data:`FRAME_ROUNDOFF` of the frame's RMS; codes
-    :func:`code_score` (no floor)."""
+    white residual's at the frames' rounding (:func:`pipeline.dsp.cml.count.precision_floor`);
+    codes :func:`code_score` (no floor)."""
     b = z.shape[0]
     if bits is None:
         y = np.ascontiguousarray(z, dtype=complex).view(float).reshape(b, 1, -1)
-        floor = 2.0 * ramps * np.einsum("bj,bj->b", y[:, 0], y[:, 0]) / y.shape[2] * FRAME_ROUNDOFF ** 2 / n
-        return (lambda model: (y - model, np.ones_like(model))), floor
+        return (lambda model: (y - model, np.ones_like(model))), precision_floor(y.reshape(b, ramps, n, 2, 2), 1)
     dither = 0.0 if xi is None else np.ascontiguousarray(xi, dtype=complex).view(float).reshape(b, 1, -1)
     lo, hi = code_cells(z, delta, bits)
     lo, hi = lo.reshape(b, 1, -1), hi.reshape(b, 1, -1)

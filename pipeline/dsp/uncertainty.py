@@ -57,21 +57,9 @@ def model_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, config: RadarCon
     (B, 4N, 5K) for targets ``range_m`` (B, K) m of amplitudes (B, K, 2) complex;
     (sample, antenna, I/Q) in C order as the quantizer lays out its codes (every ramp of a
     frame the same; with a phase step between ramps: :func:`moving_jacobian`)."""
-    steer, kr = _steering(range_m, config)
-    return _static_samples(steer, amplitudes), _static_derivatives(steer, kr, amplitudes)
-
-
-def _static_derivatives(steer: np.ndarray, kr: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
-    """:func:`model_jacobian`'s ``ds`` (B, 4N, 5K) from the targets' :func:`_steering`."""
-    b, n, k = steer.shape
-    d = np.zeros((b, n, 2, 2, k, PARAMS))  # (sample, antenna, I/Q) x (target, parameter)
-    sr, si = steer.real, steer.imag
-    for p in range(2):
-        dr = steer * (amplitudes[:, None, :, p] * (-1j * kr)[None, :, None])
-        d[:, :, p, 0, :, 0], d[:, :, p, 1, :, 0] = dr.real, dr.imag
-        d[:, :, p, 0, :, 1 + 2 * p], d[:, :, p, 1, :, 1 + 2 * p] = sr, si  # d/d Re a_p
-        d[:, :, p, 0, :, 2 + 2 * p], d[:, :, p, 1, :, 2 + 2 * p] = -si, sr  # d/d Im a_p
-    return d.reshape(b, 4 * n, k * PARAMS)
+    steer, _ = _steering(range_m, config)
+    ds = jacobian(range_m, amplitudes, np.zeros(range_m.shape), config, 1, False)
+    return _static_samples(steer, amplitudes), np.swapaxes(ds, 1, 2)
 
 
 def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.ndarray,
@@ -81,27 +69,42 @@ def moving_jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad:
     parameters ``[r, Re a1, Im a1, Re a2, Im a2, phi]`` of each target, amplitudes (B, K, 2)
     at the middle of the frame, ramp r's ``a exp(i c_r phi)``, ``c_r = r - (R - 1) / 2``,
     ``phase_step_rad`` (B, K) (NaN counts as 0)."""
-    steer, kr = _steering(range_m, config)
-    c, turn, a = _turns(amplitudes, phase_step_rad, config.ramps_per_frame)
-    return _moving_samples(steer, a), _moving_derivatives(steer, kr, c, turn, a)
+    b, ramps = range_m.shape[0], config.ramps_per_frame
+    steer, _ = _steering(range_m, config)
+    _, _, a = _turns(amplitudes, phase_step_rad, ramps)
+    ds = jacobian(range_m, amplitudes, np.nan_to_num(phase_step_rad), config, ramps, True)
+    return _moving_samples(steer, a), np.swapaxes(ds, 1, 2).reshape(b, ramps, -1, ds.shape[1])
 
 
-def _moving_derivatives(steer: np.ndarray, kr: np.ndarray, c: np.ndarray, turn: np.ndarray,
-                        a: np.ndarray) -> np.ndarray:
-    """:func:`moving_jacobian`'s ``ds`` (B, R, 4N, 6K) from the targets' :func:`_steering`
-    and :func:`_turns`."""
-    b, n, k = steer.shape
-    ramps = c.shape[0]
-    at = steer[:, None, :, None, :] * turn[:, :, None, None, :]  # (B, R, N, 1, K): d/d Re a
-    d = np.zeros((b, ramps, n, 2, k, MOVING_PARAMS), dtype=complex)  # (ramp, sample, antenna) x (target, parameter)
+def jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.ndarray, config: RadarConfig, ramps: int,
+             moving: bool) -> np.ndarray:
+    """The derivatives (B, P K, S) of a frame's S = R 4N real samples ((ramp, sample, antenna,
+    I/Q) in C order) in each target's parameters ``[r, Re a1, Im a1, Re a2, Im a2]`` and,
+    ``moving``, ``phi`` (P = 6; else P = 5; the static model's ramps all the same), each
+    parameter's row written as complex samples (:func:`model_jacobian`'s and
+    :func:`moving_jacobian`'s ``ds`` are its transpose). Targets ``range_m`` (B, K) m,
+    ``amplitudes`` (B, K, 2) at the middle of the frame, ``phase_step_rad`` (B, K) (ignored
+    unless ``moving``)."""
+    b, k = range_m.shape
+    n = config.samples_per_ramp
+    per = MOVING_PARAMS if moving else PARAMS
+    kr = (4.0 * np.pi / config.c_m_s) * config.frequencies_hz(np.arange(n))
+    steer = np.exp(-1j * range_m[:, :, None] * kr[None, None, :])  # (B, K, N): radar_driver.model.range_phase
+    c = np.arange(ramps) - (ramps - 1) / 2.0
+    if moving:
+        turn = np.exp(1j * phase_step_rad[:, :, None] * c[None, None, :])  # (B, K, R): exp(i c_r phi)
+        at = steer[:, :, None, :] * turn[..., None]  # (B, K, R, N)
+    else:
+        at = np.broadcast_to(steer[:, :, None, :], (b, k, ramps, n))
+    d = np.zeros((b, k, per, ramps, n, 2), dtype=complex)  # (target, parameter) x (ramp, sample, antenna)
     for p in range(2):
-        ap = a[:, :, None, :, p]  # (B, R, 1, K)
-        d[:, :, :, p, :, 0] = ap * steer[:, None] * (-1j * kr)[None, None, :, None]
-        d[:, :, :, p, :, 1 + 2 * p] = at[:, :, :, 0]
-        d[:, :, :, p, :, 2 + 2 * p] = 1j * at[:, :, :, 0]
-        d[:, :, :, p, :, 5] = 1j * c[None, :, None, None] * ap * steer[:, None]
-    ds = np.stack([d.real, d.imag], axis=4)  # (B, R, N, 2, 2, K, 6): (sample, antenna, I/Q) in C order
-    return ds.reshape(b, ramps, 4 * n, k * MOVING_PARAMS)
+        ap = amplitudes[:, :, p, None, None]  # (B, K, 1, 1)
+        d[:, :, 0, :, :, p] = at * ap * (-1j * kr)
+        d[:, :, 1 + 2 * p, :, :, p] = at
+        d[:, :, 2 + 2 * p, :, :, p] = 1j * at
+        if moving:
+            d[:, :, 5, :, :, p] = at * ap * (1j * c[:, None])
+    return d.view(float).reshape(b, k * per, ramps * 4 * n)
 
 
 def _steering(range_m: np.ndarray, config: RadarConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -325,8 +328,10 @@ def _uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, live: np.ndarray, 
     moving = phase_step_rad is not None and ramps > 1 and bool(np.isfinite(phase_step_rad).any())
     r_live = np.where(live, range_m, 0.0)
     steer, kr = _steering(r_live, config)
+    phi = np.where(live, phase_step_rad, 0.0) if moving else np.zeros((b, k))
+    rows_ramps = ramps if moving else 1  # the dense Jacobian's: each ramp's samples, or one ramp's (all the same)
     if moving:  # each ramp its own samples: one "ramp" of R 4N samples
-        c, turn, a_ramps = _turns(a, np.where(live, phase_step_rad, 0.0), ramps)
+        c, turn, a_ramps = _turns(a, phi, ramps)
         margin = _moving_samples(steer, a_ramps)
     else:
         s = _static_samples(steer, a)
@@ -355,11 +360,11 @@ def _uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, live: np.ndarray, 
                     ds = _jacobian_rows(steer[part], kr, a[part], rows, flat, *((c, turn[part]) if moving else ()))
                 else:
                     rows = None
-                    ds = _dense_jacobian(steer[part], kr, a[part], *((c, turn[part], a_ramps[part]) if moving else ()))
+                    ds = np.swapaxes(jacobian(r_live[part], a[part], phi[part], config, rows_ramps, moving), 1, 2)
                 noise = fitted_noise(sg[part], margin[part], ds, live[part], rows) if estimated else sg[part]
                 cov[part] = _sandwich(ds, margin[part], noise, sg[part], live[part], rows)
         else:
-            ds = _dense_jacobian(steer, kr, a, *((c, turn, a_ramps) if moving else ()))
+            ds = np.swapaxes(jacobian(r_live, a, phi, config, rows_ramps, moving), 1, 2)
             if bits is None:
                 w = np.full((b, ds.shape[1]), (1 if moving else ramps) / sg[:, None] ** 2)
             else:
@@ -368,17 +373,6 @@ def _uncertainty(range_m: np.ndarray, amplitudes: np.ndarray, live: np.ndarray, 
             cov = _inverse(_masked(_fisher(ds, w), live))
     _angles(cov, a, live, config, out)
     return out
-
-
-def _dense_jacobian(steer: np.ndarray, kr: np.ndarray, a: np.ndarray, c=None, turn=None,
-                    a_ramps=None) -> np.ndarray:
-    """The derivatives (B, L, P) of every sample of a frame: :func:`moving_jacobian`'s, its
-    ramps one after the other (``c``, ``turn``, ``a_ramps``: :func:`_turns`), or
-    :func:`model_jacobian`'s (``turn`` None)."""
-    if turn is not None:
-        ds = _moving_derivatives(steer, kr, c, turn, a_ramps)
-        return ds.reshape(ds.shape[0], -1, ds.shape[-1])
-    return _static_derivatives(steer, kr, a)
 
 
 def _sandwich(ds: np.ndarray, margin: np.ndarray, sigma: np.ndarray, level: np.ndarray,
