@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from experiments.p_values import frames_of, shares as experiment_shares
 from pipeline.dsp.decode import Decoder, DecoderConfig
 from pipeline.dsp.gate import RangeGate
 from pipeline.dsp.localize import cfar_p_value
@@ -22,21 +23,9 @@ GATE = RangeGate.default(CFG)
 LEVELS = (0.05, 0.1, 0.5)
 
 
-def frames_of(frames: int, seed: int, alpha: float | None, strong: bool = False):
-    """Noise of std 0.1 on each real part (and, ``strong``, one target of amplitude 1 at 5-140 m,
-    -50..50 deg), 1-bit at ``alpha`` (None: unquantized); the true ranges (B, 1)."""
-    rng = np.random.default_rng(seed)
-    r, th = rng.uniform(5, 140, (frames, 1)), rng.uniform(-50, 50, (frames, 1))
-    shape = (frames, CFG.n_measurements, 2)
-    g = 0.1 * (rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
-    if strong:
-        g = g + simulate_frames(r, th, np.ones((frames, 1)), CFG)
-    return (g if alpha is None else quantize_frames(g, QuantizerConfig(alpha=alpha, bits=1), np.arange(frames))), r
-
-
 def shares(p: np.ndarray) -> list[float]:
-    """The share of ``p`` below each level over the level."""
-    return [float((p < a).mean() / a) for a in LEVELS]
+    """The share of ``p`` below each of LEVELS over the level."""
+    return experiment_shares(p, LEVELS)
 
 
 def test_the_p_value_of_the_static_search_is_the_count_tests_and_the_moving_one_falls():
@@ -108,3 +97,19 @@ def test_a_strong_cml_target_is_sure_warm_or_cold_and_says_so_in_its_message():
         (target, *others) = det.frame(0)
         assert not others and abs(target["range_m"] - 30.3) < CFG.range_resolution_m
         assert target["p_value"] < 1e-12 and json.loads(json.dumps(target))["p_value"] == target["p_value"]
+
+
+@pytest.mark.parametrize("range_m, velocity_mps", [((5, 140), 0.125), ((5, 140), 1.5), ((1.5, 2.5), 0.0),
+                                                   ((148, 150), 0.0)])
+def test_a_target_moving_at_a_blind_speed_or_near_the_gates_ends_is_sure(range_m, velocity_mps):
+    """0.125 m/s: a blind speed of the static model; 1.2 and 150 m: the live gate's ends
+    (1-bit, amplitude 0.3 in noise 0.1, --K auto)."""
+    rng = np.random.default_rng(4)
+    r = rng.uniform(*range_m, (60, 1))
+    g = simulate_frames(r, rng.uniform(-50, 50, (60, 1)), np.full((60, 1), 0.3), CFG,
+                        velocity_mps=np.full((60, 1), velocity_mps))
+    g = g + 0.1 * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    q = quantize_frames(g, QuantizerConfig(alpha=0.45, bits=1), np.arange(60))
+    det = Decoder(DecoderConfig(algo="cml", auto_k=True, gate=GATE)).decode_batch(q, CFG, 4)
+    hit = (np.abs(det.range_m - r) < 0.6) & det.present
+    assert hit.any(axis=1).all() and (det.p_value[hit] < 1e-100).all()
