@@ -11,7 +11,9 @@ across machines is the ratio to PBP. Each step is meant to run in a fresh proces
 Prints one JSON object: ms per frame (median over the rounds) for each decoder, the
 ratio to PBP, how many 20-frames/s sensors one core decodes with cml, and the cost of cml's
 default model (a phase step between ramps) over its static one (``cml_static``,
-``cml_static_auto``: ``DecoderConfig(motion=False)``, taking turns with the others).
+``cml_static_auto``: ``DecoderConfig(motion=False)``, taking turns with the others) and what
+the targets' uncertainty and p-values cost (``cml_positions``, ``cml_positions_auto``:
+``DecoderConfig(uncertainty=False)``, positions only, what cml computed before them).
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ def main() -> None:
     # cml's static model (no phase step between ramps), K given and K auto: what the motion model costs
     runs |= {"cml_static": (DecoderConfig(algo="cml", motion=False), args.K),
              "cml_static_auto": (DecoderConfig(algo="cml", auto_k=True, motion=False), args.max_targets)}
+    # positions only (no uncertainty, no p-values): what they cost
+    runs |= {"cml_positions": (DecoderConfig(algo="cml", uncertainty=False), args.K),
+             "cml_positions_auto": (DecoderConfig(algo="cml", auto_k=True, uncertainty=False), args.max_targets)}
     # each decoder held across calls, as the localizer node holds it (its tables built once)
     calls = {label: partial(Decoder(decoder).decode, z, xi, q.delta, 1, cfg, k) for label, (decoder, k) in runs.items()}
     times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
@@ -64,6 +69,8 @@ def main() -> None:
         "cml_auto_sensors_per_core_at_20_fps": int(1000.0 / ms["cml_auto"] / 20.0),
         "motion_over_static": {"cml": round(ms["cml"] / ms["cml_static"], 3),
                                "cml_auto": round(ms["cml_auto"] / ms["cml_static_auto"], 3)},
+        "uncertainty_share": {"cml": round(1 - ms["cml_positions"] / ms["cml"], 3),
+                              "cml_auto": round(1 - ms["cml_positions_auto"] / ms["cml_auto"], 3)},
     }, indent=1)
 
 

@@ -55,7 +55,7 @@ def detection(algo: str, bits: int | None, alpha: float, snr_db: float, frames: 
     sigma = np.sqrt(0.5 * 10.0 ** (-snr_db / 10.0))
     g = simulate_frames(r, a, x, config)
     g = g + sigma * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
-    dec = Decoder(DecoderConfig(algo=algo, auto_k=True))
+    dec = Decoder(DecoderConfig(algo=algo, auto_k=True, uncertainty=False))
     det = dec.decode_batch(g if bits is None else quantize_frames(g, QuantizerConfig(alpha=alpha, bits=bits),
                                                                    np.arange(frames)), config, 4)
     near = det.present & (np.abs(det.range_m - r) <= MATCH_BINS * config.range_resolution_m)

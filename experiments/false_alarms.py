@@ -66,7 +66,8 @@ def false_targets(case: AlarmCase, config: RadarConfig | None = None) -> tuple[f
     decoder with ``--K auto`` (at most MAX_K a frame)."""
     config = RadarConfig() if config is None else config
     r, _, frames = case_frames(case, config)
-    det = Decoder(DecoderConfig(algo=case.algo, auto_k=True, pfa=case.pfa)).decode_batch(frames, config, MAX_K)
+    decoder = Decoder(DecoderConfig(algo=case.algo, auto_k=True, pfa=case.pfa, uncertainty=False))  # positions
+    det = decoder.decode_batch(frames, config, MAX_K)
     dist = np.abs(det.range_m[:, :, None] - r[:, None, :]) / config.range_resolution_m  # (B, MAX_K, k)
     near = (dist <= MATCH_BINS) & det.present[:, :, None]
     false = det.present & ~near.any(axis=2)
@@ -90,7 +91,8 @@ def accuracy(case: AlarmCase, config: RadarConfig | None = None) -> tuple[float,
     r, a, frames = case_frames(case, config)
     errs, found = [], []
     for auto, k in ((False, case.k), (True, MAX_K)):
-        det = Decoder(DecoderConfig(algo=case.algo, auto_k=auto, pfa=case.pfa)).decode_batch(frames, config, k)
+        decoder = Decoder(DecoderConfig(algo=case.algo, auto_k=auto, pfa=case.pfa, uncertainty=False))
+        det = decoder.decode_batch(frames, config, k)
         t = r * np.exp(1j * np.deg2rad(a))  # (B, k) positions
         e = np.where(det.present, det.range_m * np.exp(1j * np.deg2rad(det.angle_deg)), np.nan)  # (B, L)
         dist = np.abs(t[:, :, None] - e[:, None, :])  # (B, k, L)

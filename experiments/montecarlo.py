@@ -418,7 +418,8 @@ def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: i
         out[name] = {}
         values = z if scheme.bits is None else None  # the codes' values, made once if a decoder needs them
         for algo in algos:
-            decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate)
+            decoder = DecoderConfig(algo=algo, fallback_pbp=fallback_pbp, auto_k=count.auto, pfa=count.pfa, gate=gate,
+                                    uncertainty=False)  # positions are what it scores
             takes_codes = scheme.bits is not None and algo == Algo.CML and indices is None  # cml: the codes as they are
             if not takes_codes and values is None:
                 values = dequantize(z, delta, scheme.bits)

@@ -85,7 +85,7 @@ def figures(speed: str, b: int, seed: int, decoder: str, config: RadarConfig) ->
     if decoder.startswith("cml"):
         det = cml(z, xi, delta, 1, config, 1, options=CmlOptions(motion=motion)).detections(config)
     else:
-        det = decode(z, xi, delta, 1, config, 1, DecoderConfig(algo=decoder))
+        det = decode(z, xi, delta, 1, config, 1, DecoderConfig(algo=decoder, uncertainty=False))
     err, _ = nearest_estimates(r, a, det.range_m, det.angle_deg)
     found = float(np.mean(np.abs(det.range_m[:, 0] - r[:, 0]) <= 0.6))
     dv = np.abs(wrap_velocity(det.radial_velocity_mps[:, 0] - v[:, 0], config))
@@ -136,7 +136,7 @@ def pair_figures(speed: str, b: int, seed: int, decoder: str, config: RadarConfi
     (:data:`PAIR_DECODERS`) on :func:`pair_frames`; found: an estimate within 0.6 m in range."""
     z, xi, delta, r, a = pair_frames(speed, b, seed, config)
     algo, auto = decoder.removesuffix("_auto"), decoder.endswith("_auto")
-    det = decode(z, xi, delta, 1, config, 4 if auto else 2, DecoderConfig(algo=algo, auto_k=auto))
+    det = decode(z, xi, delta, 1, config, 4 if auto else 2, DecoderConfig(algo=algo, auto_k=auto, uncertainty=False))
     gap = np.abs(det.range_m[:, None, :] - r[:, :, None])  # (B, 2, L)
     found = np.nanmin(np.where(np.isnan(gap), np.inf, gap), axis=2) <= 0.6  # (B, 2)
     return float(found[:, 0].mean()), float(found[:, 1].mean()), float(found.all(axis=1).mean())

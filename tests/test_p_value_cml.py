@@ -113,3 +113,32 @@ def test_a_target_moving_at_a_blind_speed_or_near_the_gates_ends_is_sure(range_m
     det = Decoder(DecoderConfig(algo="cml", auto_k=True, gate=GATE)).decode_batch(q, CFG, 4)
     hit = (np.abs(det.range_m - r) < 0.6) & det.present
     assert hit.any(axis=1).all() and (det.p_value[hit] < 1e-100).all()
+
+
+def test_without_the_uncertainty_the_targets_are_the_same_positions_only():
+    """``DecoderConfig(uncertainty=False)`` (a Monte Carlo, ``qradar localize
+    --no-uncertainty``): the same targets, without sigma_* and p_value."""
+    from qradar.cli import build_parser
+    from pipeline.nodes.stream import LocalizerConfig
+
+    rng = np.random.default_rng(6)
+    r = rng.uniform(5, 140, (20, 2))
+    g = simulate_frames(r, rng.uniform(-50, 50, (20, 2)), np.full((20, 2), 0.5), CFG)
+    g = g + 0.1 * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
+    q = quantize_frames(g, QuantizerConfig(alpha=0.45, bits=1), np.arange(20))
+    full, bare = (Decoder(DecoderConfig(algo="cml", auto_k=True, gate=GATE, uncertainty=u)).decode_batch(q, CFG, 4)
+                  for u in (True, False))
+    assert bare.present.sum() >= 30 and np.array_equal(full.present, bare.present)
+    for name in ("range_m", "angle_deg", "amplitude"):
+        np.testing.assert_array_equal(getattr(full, name), getattr(bare, name))
+    assert np.isfinite(full.p_value[full.present]).all() and np.isfinite(full.sigma_range_m[full.present]).all()
+    assert np.isnan(bare.sigma_range_m).all() and np.isnan(bare.p_value).all()  # as PBP's: NaN, not in the JSON
+    assert {"range_m", "sigma_range_m", "p_value"} <= set(full.frame(0)[0])
+    assert not {"sigma_range_m", "sigma_angle_deg", "cov_range_angle", "p_value"} & set(bare.frame(0)[0])
+
+    args = build_parser().parse_args(["localize", "--no-uncertainty"])
+    assert args.schema.build(LocalizerConfig, args, k=2, auto_k=False).decoder().uncertainty is False
+    args = build_parser().parse_args(["localize"])
+    assert args.schema.build(LocalizerConfig, args, k=2, auto_k=False).decoder().uncertainty is True
+    with pytest.raises(Exception, match="uncertainty=1 must be True or False"):
+        DecoderConfig(uncertainty=1)

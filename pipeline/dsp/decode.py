@@ -102,7 +102,10 @@ class DecoderConfig:
     :meth:`RangeGate.default <pipeline.dsp.gate.RangeGate.default>`). engine, likelihood:
     cml's (:func:`pipeline.dsp.cml.cml`; None: its defaults). motion: cml's model, a phase
     step between ramps (the default) or, False, the static one
-    (:class:`~pipeline.dsp.cml.CmlOptions`)."""
+    (:class:`~pipeline.dsp.cml.CmlOptions`). uncertainty: each cml target's uncertainty
+    (``sigma_range_m``, ``sigma_angle_deg``, ``cov_range_angle``) and ``p_value``; False:
+    neither (positions only, as PBP's: a Monte Carlo that scores positions, a node short of
+    CPU), the targets unchanged."""
 
     algo: Algo = DEFAULT_ALGO
     iters: int = 10
@@ -116,6 +119,7 @@ class DecoderConfig:
     engine: str | None = None
     likelihood: str | None = None
     motion: bool = True
+    uncertainty: bool = True
 
     def __post_init__(self) -> None:
         check_gate(self.gate)
@@ -123,8 +127,9 @@ class DecoderConfig:
             raise ParameterError(f"engine={self.engine!r} is not known; available: {', '.join(ENGINES)}")
         if self.likelihood not in (None, *LIKELIHOODS):
             raise ParameterError(f"likelihood={self.likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
-        if not isinstance(self.motion, bool):
-            raise ParameterError(f"motion={self.motion!r} must be True or False")
+        for name in ("motion", "uncertainty"):
+            if not isinstance(getattr(self, name), bool):
+                raise ParameterError(f"{name}={getattr(self, name)!r} must be True or False")
         if self.algo not in ALGOS:
             raise ParameterError(f"algo={self.algo!r} is not known; available: {', '.join(ALGOS)}")
         object.__setattr__(self, "algo", Algo(self.algo))
@@ -454,6 +459,8 @@ class Decoder:
             res = self.cml(radar).decode(z, xi if bits is not None else None, delta if bits is not None else None,
                                          bits, k, noise_sigma=cfg.noise_sigma if noise_sigma is None else noise_sigma,
                                          pfa=pfa, gate=cfg.gate, init_range_m=init_range_m)
+            if not cfg.uncertainty:
+                return res.detections(radar)
             unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
                                      estimated=noise_sigma is None and cfg.noise_sigma is None,
                                      phase_step_rad=res.phase_step_rad)

@@ -40,8 +40,8 @@ STATIC_CELLS_PER_BIN = SEARCH_CELLS_PER_BIN
 #: of the search over range and phase step is worth, measured on noise-only frames
 #: (docs/science.md)
 MOVING_AREA_PER_BIN = 2.4
-#: values in the largest array of a block of the computation, (B, J, per K, S) (32 MB)
-BLOCK_VALUES = 1 << 22
+#: values in the largest array of a block of the computation, (B, J, per K, S) (8 MB: faster than 32)
+BLOCK_VALUES = 1 << 20
 
 
 def moving_p_value(x: np.ndarray, bins: float) -> np.ndarray:
@@ -121,25 +121,28 @@ def leave_one_out_statistic(score, dst: np.ndarray, amplitudes: np.ndarray, nu: 
     (``|sum conj(w) g|^2 / N^2`` over ramps and samples, per antenna, summed), over the
     mean of its spectrum's joint energy (``|FFT_N|^2 / N^2`` each ramp and antenna, summed)
     over the bins inside the gate beyond :data:`GUARD_BINS` of every target."""
-    b, cols, samples = dst.shape
+    b = dst.shape[0]
     k = live.shape[1]
     theta = np.where(live[..., None], np.ascontiguousarray(amplitudes, dtype=complex), 0.0).view(float)  # (B, K, 4)
-    amp_rows = np.arange(k)[:, None] * per + np.arange(1, 5)[None, :]  # (K, 4): each target's amplitudes
     d = np.abs((np.arange(n)[None, None, :] - nu[:, :, None] + n / 2) % n - n / 2)
     away = inside[None, :] & ~((d < GUARD_BINS) & live[:, :, None]).any(axis=1)  # (B, N): the bins of the mean
-    amp = dst[:, amp_rows]  # (B, K, 4, S)
-    dst, ds = dst[:, None], np.swapaxes(dst, 1, 2)[:, None]  # (B, 1, per K, S), (B, 1, S, per K)
+    amp = dst.reshape(b, k, per, -1)[:, :, 1:5]  # (B, K, 4, S), a view: each target's amplitudes
     own = np.matmul(theta[:, :, None, :], amp)[:, :, 0]  # (B, K, S): each target's samples
     others = live[:, None, :] & ~np.eye(k, dtype=bool)[None]  # (B, J, K): the targets besides target j
     g, h = score(np.matmul(others.astype(float), own))  # (B, J, S) each
     if others.any():  # less what refitting the others would explain: the efficient score
-        keep = np.repeat(others, per, axis=2)  # (B, J, per K): the nuisance parameters
-        info = np.matmul(dst * h[:, :, None, :], ds)
-        info = info * (keep[..., :, None] & keep[..., None, :]) + np.eye(cols) * ~keep[..., None, :]
-        grad = np.where(keep, np.matmul(dst, g[..., None])[..., 0], 0.0)
+        slots = np.array([[t for t in range(k) if t != j] for j in range(k)])  # (J, K - 1): the others' slots
+        rows = (slots[..., None] * per + np.arange(per)).reshape(k, -1)  # (J, Q): their parameters, Q = (K-1) per
+        keep = np.repeat(np.take_along_axis(others, slots[None], axis=2), per, axis=2)  # (B, J, Q): of live ones
+        # (B, J, Q, S): the nuisance parameters' derivatives (two slots: the other one's, a view)
+        nuis = dst.reshape(b, k, per, -1)[:, ::-1] if k == 2 else dst[:, rows]
+        ns = np.swapaxes(nuis, 2, 3)  # (B, J, S, Q)
+        info = np.matmul(nuis * h[:, :, None, :], ns)
+        info = info * (keep[..., :, None] & keep[..., None, :]) + np.eye(rows.shape[1]) * ~keep[..., None, :]
+        grad = np.where(keep, np.matmul(nuis, g[..., None])[..., 0], 0.0)
         with np.errstate(invalid="ignore"):
             coef = np.linalg.solve(info, grad[..., None])
-        g = g - h * np.matmul(ds, coef)[..., 0]
+        g = g - h * np.matmul(ns, coef)[..., 0]
     u = np.matmul(amp, g[..., None])[..., 0]  # (B, J, 4): Re, Im of each antenna's back projection at target j
     energy = (u * u).sum(axis=2) / n ** 2
     spec = np.fft.fft(g.reshape(b, k, -1, n, 2, 2).view(complex)[..., 0], axis=3)  # (B, J, R, N, 2)

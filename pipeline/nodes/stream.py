@@ -337,7 +337,9 @@ class LocalizerConfig:
     filled in on construction. full_search_every: cml starts a sensor's frame from that
     sensor's last targets (warm start) and searches from scratch on its first frame, every
     ``full_search_every`` frames and whenever the fit no longer explains the codes
-    (:func:`pipeline.dsp.cml.cml`'s ``init_range_m``); 1: always from scratch."""
+    (:func:`pipeline.dsp.cml.cml`'s ``init_range_m``); 1: always from scratch. uncertainty:
+    cml's targets carry their uncertainty and p-value (:class:`~pipeline.dsp.decode.DecoderConfig`);
+    False: positions only, for a node short of CPU."""
 
     k: int = 2
     algo: Algo = DEFAULT_ALGO
@@ -350,6 +352,7 @@ class LocalizerConfig:
     min_range_m: float | None = None
     max_range_m: float | None = None
     full_search_every: int = DEFAULT_FULL_SEARCH_EVERY
+    uncertainty: bool = True
 
     def __post_init__(self) -> None:
         if not (isinstance(self.full_search_every, int) and self.full_search_every >= 1):
@@ -381,7 +384,7 @@ class LocalizerConfig:
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(algo=self.algo, fallback_pbp=self.fallback_pbp, auto_k=self.auto_k, pfa=self.pfa,
-                             gate=self.gate)
+                             gate=self.gate, uncertainty=self.uncertainty)
 
     def known_configs(self) -> dict[int, RadarConfig]:
         return radar_configs(self.radar, self.max_ramps)

@@ -111,6 +111,9 @@ LOCALIZER = {
                                 "scratch every N frames (and when the fit no longer explains the codes); 1 = always",
                                 parse=pos_int),
     "pfa": Option("with --K auto: false-alarm probability per frame and test", parse=false_alarm),
+    "uncertainty": Option("cml: targets without their uncertainty (sigma_range_m, sigma_angle_deg, cov_range_angle) "
+                          "and p_value, positions only: for a node short of CPU", flag="--no-uncertainty",
+                          negate=True),
     "min_range_m": Option(f"default {LEAKAGE_BINS} c/(2B): 1.2 m with the K-MD2's 250 MHz sweep", metavar="M",
                           parse=nonneg_float),
     "max_range_m": Option(f"default the unambiguous range N c/(2B) less {LEAKAGE_BINS} bins: 152.4 m for the K-MD2",

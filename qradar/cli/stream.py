@@ -92,7 +92,7 @@ QUANTIZE_PARTS = [quantizer_part(), CALIBRATION, QUEUE, INTAKE, SERVE, node_part
 LOCALIZE_PARTS = [
     *decoder_parts(algo_help="cml: continuous ranges (the most accurate off the range grid); pbp: the paper's; "
                    "qiht: dither-aware on the range grid (needs dithered frames)",
-                   extra=("fallback_pbp", "source", "full_search_every")),
+                   extra=("fallback_pbp", "source", "full_search_every", "uncertainty")),
     GATE, *TRACKS, QUEUE, INTAKE, SERVE, node_part(), *zenoh_parts()]
 SOURCE_PARTS = [Part(Source, only=("scene",)), Part(SimSourceConfig, "source"), Part(Source, only=("rate",)),
                 *edge_parts("--quantized"), Part(Source, only=("recording",)), node_part(), *zenoh_parts()]

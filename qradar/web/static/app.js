@@ -28,9 +28,10 @@
   const push = (r, x) => { r.v[r.n % RING] = x; r.n++; };
   function summary(r) {
     const a = Array.from(r.v.subarray(0, Math.min(r.n, RING))).sort((p, q) => p - q);
-    if (!a.length) return { n: 0, p50: null, p99: null, max: null, mean: null };
+    if (!a.length) return { n: 0, p50: null, p95: null, p99: null, max: null, mean: null };
     const at = p => a[Math.min(a.length - 1, Math.floor(p / 100 * a.length))];
-    return { n: r.n, p50: at(50), p99: at(99), max: a[a.length - 1], mean: a.reduce((s, x) => s + x, 0) / a.length };
+    return { n: r.n, p50: at(50), p95: at(95), p99: at(99), max: a[a.length - 1],
+             mean: a.reduce((s, x) => s + x, 0) / a.length };
   }
   // frame: the page's work for one frame (the events handled since the last one, and the drawing);
   // interval: between animation frames while data flow; longFrames: the browser's own count of
