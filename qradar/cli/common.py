@@ -23,12 +23,13 @@ from pipeline.nodes.budget import IntakeBudget
 
 
 class DefaultsFormatter(argparse.RawDescriptionHelpFormatter):
-    """``--help`` shows every option's default (unless its help already says it)."""
+    """``--help`` shows every option's default (unless its help already says it; not a
+    switch's: ``--no-uncertainty``'s field defaults to True, which the switch makes False)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         if ("default" in text.lower() or action.default in (None, False, [], (), argparse.SUPPRESS)
-                or action.option_strings == [] or isinstance(action, argparse._HelpAction)):
+                or action.option_strings == [] or isinstance(action, argparse._HelpAction) or action.nargs == 0):
             return text
         return f"{text} (default: %(default)s)"
 
