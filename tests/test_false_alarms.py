@@ -74,3 +74,37 @@ def test_k_auto_is_as_accurate_on_the_targets_it_keeps_as_the_count_given(case):
 
     given, auto = accuracy(case)
     assert auto <= 1.2 * given, (given, auto)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.45])
+def test_a_pbp_localizer_counting_on_undithered_1bit_frames_says_so_once_a_sensor(alpha, bus, zenoh_session, caplog):
+    """Real nodes: two simulated sensors -> quantize at ``alpha`` -> PBP with ``--K auto``.
+    Without dither its count test reads the quantizer's harmonics as targets (~3 false
+    targets a frame, docs/science.md): the localizer says so once for each sensor and
+    decodes on; with a dither it says nothing."""
+    import logging
+
+    from radar_driver.scene import resolve_scene
+    from radar_driver.source import SimSourceConfig, SimulatedSource
+    from zenoh_helpers import Collector, wait_until
+
+    from pipeline.dsp.quantize import QuantizerConfig
+    from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
+
+    caplog.set_level(logging.WARNING, logger="qradar.node")
+    col = Collector(zenoh_session, "radar/**")
+    nodes = [LocalizeNode(bus, LocalizerConfig(k=4, algo="pbp", auto_k=True), session=zenoh_session).start(),
+             QuantizeNode(bus, QuantizerConfig(alpha=alpha), session=zenoh_session).start()]
+    nodes.append(SourceNode(bus, SimulatedSource(SimSourceConfig(resolve_scene("chamber"), rate_hz=50, id_prefix="u",
+                                                                 sensors=2, frames=10)), session=zenoh_session).start())
+    try:
+        wait_until(lambda: all(len(col.of(f"u{i}/targets")) == 10 for i in range(2)), 30, "every frame's targets")
+    finally:
+        for node in reversed(nodes):
+            node.stop()
+    told = [r.getMessage() for r in caplog.records if "without dither" in r.getMessage()]
+    if alpha:
+        assert not told, told
+    else:
+        assert len(told) == 2 and {"u0's frames", "u1's frames"} == {m.split(": ")[1][:11] for m in told}, told
+        assert all("--algo cml" in m and "--alpha > 0" in m for m in told), told

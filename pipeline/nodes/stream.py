@@ -425,6 +425,8 @@ class LocalizeNode(FrameNode):
         self.front_end = FrontEndCheck()  # a front end's return in the first range bins, per sensor
         #: the targets of the last frame published: (sensor id, seq, targets as dicts), for a status line
         self.last_targets: tuple[str, int, list[dict]] | None = None
+        #: sensors told that PBP's count test cannot read their 1-bit frames without dither (once each)
+        self._told_undithered: set[str] = set()
 
     def start(self) -> "LocalizeNode":
         if self.config.algo == Algo.CML and self._decoder.cml(self.config.radar).engine == "numba":
@@ -450,6 +452,7 @@ class LocalizeNode(FrameNode):
     def forget(self, sensor_id: str) -> None:
         super().forget(sensor_id)
         self._last.pop(sensor_id, None)
+        self._told_undithered.discard(sensor_id)
         self.front_end.forget(sensor_id)
         if self.tracker is not None:
             self.tracker.forget(sensor_id)
@@ -490,6 +493,9 @@ class LocalizeNode(FrameNode):
         for g in groups:
             h = g.headers
             frames, dithered, bad = self.codec.frames(g)
+            if (self.config.algo == Algo.PBP and self.config.auto_k and isinstance(frames, QuantizedFrames)
+                    and frames.bits == 1 and not dithered.all()):
+                self._tell_undithered(s for s, d in zip(h.sensor_id, dithered.tolist()) if not d)
             if bad is not None:  # raw frames: finite samples only
                 for j in np.flatnonzero(bad).tolist():
                     self.count(h.sensor_id[j], "invalid_frames", f"frame {int(h.seq[j])} from {keys[g.index[j]]}: "
@@ -510,6 +516,15 @@ class LocalizeNode(FrameNode):
                 elif idx.size:
                     self._localize(self._configs[cid], h.take(idx), self.codec.select(frames, idx),
                                    [keys[i] for i in g.index[idx].tolist()])
+
+    def _tell_undithered(self, sensors) -> None:
+        """Once a sensor: PBP's count test reads the quantizer's harmonics in 1-bit frames
+        without dither as targets (docs/science.md); the frames are still decoded."""
+        for sid in sorted({str(s) for s in sensors} - self._told_undithered):
+            self._told_undithered.add(sid)
+            log.warning("%s: %s's frames are 1-bit without dither (alpha 0): PBP's --K auto reads the quantizer's "
+                        "harmonics as targets, about 3 false targets a frame below noise 0.1 (docs/science.md); "
+                        "decode them with --algo cml, or quantize with --alpha > 0", self.name, sid)
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
