@@ -64,7 +64,7 @@ def coverage(case: CoverageCase, config: RadarConfig | None = None) -> tuple[flo
     r, a, x = scenes(case, rng)
     g = simulate_frames(r, a, x, config)
     g = g + case.sigma * (rng.standard_normal(g.shape) + 1j * rng.standard_normal(g.shape))
-    dec = Decoder(DecoderConfig(algo="cml"))
+    dec = Decoder(DecoderConfig(algo="cml", p_values=False))  # the ellipses only
     if case.bits is None:
         det = dec.decode_batch(g, config, case.k)
     else:

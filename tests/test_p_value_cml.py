@@ -117,7 +117,8 @@ def test_a_target_moving_at_a_blind_speed_or_near_the_gates_ends_is_sure(range_m
 
 def test_without_the_uncertainty_the_targets_are_the_same_positions_only():
     """``DecoderConfig(uncertainty=False)`` (a Monte Carlo, ``qradar localize
-    --no-uncertainty``): the same targets, without sigma_* and p_value."""
+    --no-uncertainty``): the same targets, without sigma_* and p_value; ``p_values=False``:
+    the same sigma_*, no p_value."""
     from qradar.cli import build_parser
     from pipeline.nodes.stream import LocalizerConfig
 
@@ -134,6 +135,9 @@ def test_without_the_uncertainty_the_targets_are_the_same_positions_only():
     assert np.isfinite(full.p_value[full.present]).all() and np.isfinite(full.sigma_range_m[full.present]).all()
     assert np.isnan(bare.sigma_range_m).all() and np.isnan(bare.p_value).all()  # as PBP's: NaN, not in the JSON
     assert {"range_m", "sigma_range_m", "p_value"} <= set(full.frame(0)[0])
+    ellipses = Decoder(DecoderConfig(algo="cml", auto_k=True, gate=GATE, p_values=False)).decode_batch(q, CFG, 4)
+    np.testing.assert_array_equal(ellipses.sigma_range_m, full.sigma_range_m)  # the uncertainty alone
+    assert ellipses.p_value is None or np.isnan(ellipses.p_value).all()
     assert not {"sigma_range_m", "sigma_angle_deg", "cov_range_angle", "p_value"} & set(bare.frame(0)[0])
 
     args = build_parser().parse_args(["localize", "--no-uncertainty"])

@@ -105,7 +105,8 @@ class DecoderConfig:
     (:class:`~pipeline.dsp.cml.CmlOptions`). uncertainty: each cml target's uncertainty
     (``sigma_range_m``, ``sigma_angle_deg``, ``cov_range_angle``) and ``p_value``; False:
     neither (positions only, as PBP's: a Monte Carlo that scores positions, a node short of
-    CPU), the targets unchanged."""
+    CPU), the targets unchanged. p_values: with the uncertainty, each target's ``p_value``
+    too (False: its uncertainty alone, which is what an ellipse's coverage reads)."""
 
     algo: Algo = DEFAULT_ALGO
     iters: int = 10
@@ -120,6 +121,7 @@ class DecoderConfig:
     likelihood: str | None = None
     motion: bool = True
     uncertainty: bool = True
+    p_values: bool = True
 
     def __post_init__(self) -> None:
         check_gate(self.gate)
@@ -127,7 +129,7 @@ class DecoderConfig:
             raise ParameterError(f"engine={self.engine!r} is not known; available: {', '.join(ENGINES)}")
         if self.likelihood not in (None, *LIKELIHOODS):
             raise ParameterError(f"likelihood={self.likelihood!r} is not known; available: {', '.join(LIKELIHOODS)}")
-        for name in ("motion", "uncertainty"):
+        for name in ("motion", "uncertainty", "p_values"):
             if not isinstance(getattr(self, name), bool):
                 raise ParameterError(f"{name}={getattr(self, name)!r} must be True or False")
         if self.algo not in ALGOS:
@@ -464,8 +466,9 @@ class Decoder:
             unc = target_uncertainty(res.range_m, res.amplitudes, res.present, radar, res.sigma_eff, xi, delta, bits,
                                      estimated=noise_sigma is None and cfg.noise_sigma is None,
                                      phase_step_rad=res.phase_step_rad)
-            p = target_p_values(res.range_m, res.amplitudes, res.phase_step_rad, res.present, res.sigma_eff, z,
-                                xi if bits is not None else None, delta, bits, radar, cfg.gate)
+            p = None if not cfg.p_values else target_p_values(
+                res.range_m, res.amplitudes, res.phase_step_rad, res.present, res.sigma_eff, z,
+                xi if bits is not None else None, delta, bits, radar, cfg.gate)
             return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle,
                                                           p_value=p)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
