@@ -78,8 +78,14 @@ def run_json(tmp: Path, name: str, *args) -> tuple[dict, str, tuple]:
 @pytest.fixture(scope="module")
 def simulated_run(tmp_path_factory):
     """The reference: ``qradar run`` on its own simulated sensor, the chamber scene without
-    its front end (the point here is the same path, not the impairments)."""
-    return run_json(tmp_path_factory.mktemp("simulated"), "simulated", "--scene", "chamber-ideal")
+    its front end (the point here is the same path, not the impairments). Its sensor keeps
+    its own 20 frames/s, so a driver late by more than two frames loses one, as with a real
+    K-MD2 (counted in the summary's drops: 3 of 30 once, in a 4-worker suite on a 2-core
+    host); the comparisons need all 30, so such a run is made again, once."""
+    for attempt in (1, 2):
+        out = run_json(tmp_path_factory.mktemp("simulated"), "simulated", "--scene", "chamber-ideal")
+        if out[0]["drops"] == 0 or attempt == 2:
+            return out
 
 
 def check_clean(s: dict, sensor: str, paced: bool = True) -> None:
