@@ -88,12 +88,11 @@ def jacobian(range_m: np.ndarray, amplitudes: np.ndarray, phase_step_rad: np.nda
     b, k = range_m.shape
     n = config.samples_per_ramp
     per = MOVING_PARAMS if moving else PARAMS
-    kr = (4.0 * np.pi / config.c_m_s) * config.frequencies_hz(np.arange(n))
-    steer = np.exp(-1j * range_m[:, :, None] * kr[None, None, :])  # (B, K, N): radar_driver.model.range_phase
-    c = np.arange(ramps) - (ramps - 1) / 2.0
+    steer, kr = _steering(range_m, config)
+    steer = np.swapaxes(steer, 1, 2)  # (B, K, N)
     if moving:
-        turn = np.exp(1j * phase_step_rad[:, :, None] * c[None, None, :])  # (B, K, R): exp(i c_r phi)
-        at = steer[:, :, None, :] * turn[..., None]  # (B, K, R, N)
+        c, turn, _ = _turns(amplitudes, phase_step_rad, ramps)  # turn (B, R, K): exp(i c_r phi)
+        at = steer[:, :, None, :] * np.swapaxes(turn, 1, 2)[..., None]  # (B, K, R, N)
     else:
         at = np.broadcast_to(steer[:, :, None, :], (b, k, ramps, n))
     d = np.zeros((b, k, per, ramps, n, 2), dtype=complex)  # (target, parameter) x (ramp, sample, antenna)
