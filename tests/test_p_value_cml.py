@@ -146,3 +146,5 @@ def test_without_the_uncertainty_the_targets_are_the_same_positions_only():
     assert args.schema.build(LocalizerConfig, args, k=2, auto_k=False).decoder().uncertainty is True
     with pytest.raises(Exception, match="uncertainty=1 must be True or False"):
         DecoderConfig(uncertainty=1)
+    with pytest.raises(Exception, match="p_values='no' must be True or False"):
+        DecoderConfig(p_values="no")
