@@ -410,28 +410,26 @@ def _inverse(fim: np.ndarray) -> np.ndarray:
 def _angles(cov: np.ndarray, a: np.ndarray, live: np.ndarray, config: RadarConfig, out: Uncertainty) -> None:
     """Range and angle (co)variances of each target from the parameters' covariance ``cov``
     (B, PK, PK), P = 5 or 6 (the phase step last), by the delta method into ``out``;
-    amplitudes ``a`` (B, K, 2)."""
-    b, k = live.shape
+    amplitudes ``a`` (B, K, 2); every target at once."""
+    k = live.shape[1]
     per = cov.shape[1] // k
     per_phase = 2.0 * np.pi * config.f0_hz * config.d_m / config.c_m_s  # phase per sin(theta)
-    for t in range(k):
-        idx = t * per + np.arange(PARAMS)
-        block = cov[:, idx[:, None], idx[None, :]]  # (B, 5, 5)
-        a1, a2 = a[:, t, 0], a[:, t, 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            g1 = np.stack([a1.imag, -a1.real], axis=1) / np.abs(a1)[:, None] ** 2  # d(-arg a1)/d(Re, Im)
-            g2 = np.stack([-a2.imag, a2.real], axis=1) / np.abs(a2)[:, None] ** 2  # d arg a2 / d(Re, Im)
-            phi = np.angle(a2 * np.conj(a1))
-            sin = np.clip(phi / per_phase, -1.0, 1.0)
-            dtheta = 1.0 / (per_phase * np.sqrt(1.0 - sin * sin))  # d theta / d phi, rad
-        jac = np.zeros((b, 2, PARAMS))
-        jac[:, 0, 0] = 1.0
-        jac[:, 1, 1:3] = g1 * dtheta[:, None]
-        jac[:, 1, 3:5] = g2 * dtheta[:, None]
-        with np.errstate(invalid="ignore"):  # NaN where the information is singular (not ok below)
-            c = jac @ block @ np.swapaxes(jac, 1, 2)  # (B, 2, 2): range m, angle rad
-        ok = live[:, t] & np.isfinite(c).all(axis=(1, 2)) & (c[:, 0, 0] > 0) & (c[:, 1, 1] > 0)
-        deg = np.rad2deg(1.0)
-        out.sigma_range_m[ok, t] = np.sqrt(c[ok, 0, 0])
-        out.sigma_angle_deg[ok, t] = np.sqrt(c[ok, 1, 1]) * deg
-        out.cov_range_angle[ok, t] = c[ok, 0, 1] * deg
+    idx = (np.arange(k) * per)[:, None] + np.arange(PARAMS)  # (K, 5): each target's block
+    block = cov[:, idx[:, :, None], idx[:, None, :]]  # (B, K, 5, 5)
+    a1, a2 = a[..., 0], a[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g1 = np.stack([a1.imag, -a1.real], axis=-1) / np.abs(a1)[..., None] ** 2  # d(-arg a1)/d(Re, Im)
+        g2 = np.stack([-a2.imag, a2.real], axis=-1) / np.abs(a2)[..., None] ** 2  # d arg a2 / d(Re, Im)
+        sin = np.clip(np.angle(a2 * np.conj(a1)) / per_phase, -1.0, 1.0)
+        dtheta = 1.0 / (per_phase * np.sqrt(1.0 - sin * sin))  # d theta / d phi, rad
+    jac = np.zeros(live.shape + (2, PARAMS))
+    jac[..., 0, 0] = 1.0
+    jac[..., 1, 1:3] = g1 * dtheta[..., None]
+    jac[..., 1, 3:5] = g2 * dtheta[..., None]
+    with np.errstate(invalid="ignore"):  # NaN where the information is singular (not ok below)
+        c = jac @ block @ np.swapaxes(jac, -1, -2)  # (B, K, 2, 2): range m, angle rad
+    ok = live & np.isfinite(c).all(axis=(2, 3)) & (c[..., 0, 0] > 0) & (c[..., 1, 1] > 0)
+    c, deg = c[ok], np.rad2deg(1.0)
+    out.sigma_range_m[ok] = np.sqrt(c[:, 0, 0])
+    out.sigma_angle_deg[ok] = np.sqrt(c[:, 1, 1]) * deg
+    out.cov_range_angle[ok] = c[:, 0, 1] * deg
