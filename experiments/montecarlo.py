@@ -360,7 +360,7 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
     dither = None
     alpha = auto_alpha(sigma_hat, delta)[:, None, None] if scheme.adaptive else scheme.alpha
     if scheme.adaptive or scheme.alpha > 0:
-        dither = alpha * delta[:, None, None] * batch_unit_dither(gamma.shape, rng)
+        dither = batch_unit_dither(gamma.shape, rng, scale=alpha * delta[:, None, None])
     return (quantize(gamma, delta, scheme.bits, dither), indices, dither, delta) + extra
 
 

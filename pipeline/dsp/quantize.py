@@ -288,14 +288,17 @@ def sensor_dither_seeds(seed: int, sensor_ids: Sequence[str]) -> np.ndarray:
     return low | np.uint64(int(seed) * 2**32 % 2**64)
 
 
-def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
-    """Unit dither for a Monte Carlo batch from one generator: complex array of ``shape``."""
+def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator, scale=None) -> np.ndarray:
+    """Unit dither for a Monte Carlo batch from one generator: complex array of ``shape``,
+    times ``scale`` (real, broadcast to ``shape``; None: 1) in place, no other array made."""
     shape = tuple(shape)
     u = rng.random((2,) + shape)  # the real parts, then the imaginary ones
     out = np.empty(shape, dtype=complex)
     parts = out.view(np.float64).reshape(shape + (2,))
-    parts[..., 0], parts[..., 1] = u[0], u[1]
-    parts -= 0.5
+    np.subtract(u[0], 0.5, out=parts[..., 0])
+    np.subtract(u[1], 0.5, out=parts[..., 1])
+    if scale is not None:
+        parts *= np.asarray(scale, dtype=float)[..., None]
     return out
 
 
