@@ -290,7 +290,7 @@ def sensor_dither_seeds(seed: int, sensor_ids: Sequence[str]) -> np.ndarray:
 
 def batch_unit_dither(shape: tuple[int, ...], rng: np.random.Generator, scale=None) -> np.ndarray:
     """Unit dither for a Monte Carlo batch from one generator: complex array of ``shape``,
-    times ``scale`` (real, broadcast to ``shape``; None: 1) in place, no other array made."""
+    times ``scale`` (real, broadcast to ``shape``; None: 1) in place (no second complex array)."""
     shape = tuple(shape)
     u = rng.random((2,) + shape)  # the real parts, then the imaginary ones
     out = np.empty(shape, dtype=complex)
