@@ -351,9 +351,9 @@ class RecordingFiles(ProcessingNode):
             log.warning("recording still paused (%s); %d messages lost so far", why, self.lost)
 
     def on_idle(self) -> None:
-        self._maybe_flush_or_split()
+        self._maybe_flush()
 
-    def _maybe_flush_or_split(self) -> None:
+    def _maybe_flush(self) -> None:
         self._before_flush()
         if self._sink is None:
             if self.state is RecordingState.PAUSED and time.monotonic() >= self._next_probe:
@@ -366,9 +366,15 @@ class RecordingFiles(ProcessingNode):
                 self._last_flush = now
         except OSError as exc:
             self._write_failed(self._sink, exc)
-            return
-        if (self.split_size and self._sink.size >= self.split_size) or \
-                (self.split_duration_s and now - self._opened_at >= self.split_duration_s):
+
+    def _split_if_due(self) -> None:
+        """Before a message is written: the next file, if this one is at its size or age. A
+        file is split only when a message is there to start the next one, so no file of a set
+        holds its metadata alone (a run that stops, or sensors that fall silent, just after a
+        split point: a file every split period while nothing arrives)."""
+        if self._sink is not None and (
+                (self.split_size and self._sink.size >= self.split_size)
+                or (self.split_duration_s and time.monotonic() - self._opened_at >= self.split_duration_s)):
             self._next_file()
 
     def _next_file(self) -> None:
@@ -483,6 +489,7 @@ class RecorderNode(RecordingFiles):
         for a in admitted:
             item = batch[a.index]
             topic = topic_of(item.key) or "other"
+            self._split_if_due()
             if self._sink is not None and self._sink.n_channels >= min(self._dead_check_at, FILE_CHANNELS_MAX):
                 self._check_channels()
             sink = self._sink
@@ -514,7 +521,7 @@ class RecorderNode(RecordingFiles):
             self.pending += 1
             with self._lock:  # a late message of an expired sensor makes no new state
                 (self.stats.get(item.sensor) or self.sensor_stats(NO_SENSOR)).frames_out += 1
-        self._maybe_flush_or_split()
+        self._maybe_flush()
 
     def _check_channels(self) -> None:
         """The file holds many channels: count those of sensors no longer live; past
