@@ -8,7 +8,8 @@ import pytest
 from radar_driver.model import RadarConfig
 from pipeline.dsp.localize import cfar_threshold, fold_ramps, gated_energy, grid_statistic_db, joint_energy, \
     joint_support, back_project
-from pipeline.dsp.residual import dirichlet, fit_residual, refine_bins, residual_support, tone_combinations, tones
+from pipeline.dsp.residual import dirichlet, fit_residual, fitted_inside, kept_tones, refine_bins, residual_support, \
+    tone_combinations, tones
 
 N = 256
 
@@ -92,3 +93,31 @@ def test_a_gate_too_narrow_for_more_targets_ends_the_test():
     inside = pick[0] > 0
     support, statistic = residual_support(y, spectrum(y)[None], pick, inside, 3, cfar_threshold(1e-3, 3))
     assert support[0, 0] == 100 and (statistic[0, 1:] == -300.0).all()  # the later slots fail (masked)
+
+
+def test_the_tone_fit_takes_one_bin_of_noise_a_tone_and_the_test_counts_them():
+    """Two strong targets in white noise: the residual of their model's tones keeps (cells -
+    fitted) / cells of the noise's mean energy over the gate's bins (the least-squares fit
+    takes the noise along each tone it fits; the targets strong enough that no tone is held at
+    its amplitude bound, where it takes less: the count is then conservative), so the count
+    test's mean divides by the degrees of freedom left; a tone whose bin is beyond the gate
+    takes none of the gate's."""
+    rng = np.random.default_rng(3)
+    b = 4000
+    noise = rng.standard_normal((b, N, 2)) + 1j * rng.standard_normal((b, N, 2))
+    nu = np.tile([[40.3, 97.8]], (b, 1))
+    y = noise + 50.0 * (tone(40.3) + tone(97.8, (0.7j, -0.9)))
+    inside = np.zeros(N, dtype=bool)
+    inside[4:200] = True
+    freq, keep = kept_tones(nu, None, N)
+    bins = np.rint(freq[0, keep[0]]).astype(int) % N
+    fitted = fitted_inside(nu, None, N, inside)
+    assert (fitted == inside[bins].sum()).all() and 0 < fitted[0] < keep[0].sum()  # some tones fall beyond it
+    kept = spectrum_mean(fit_residual(y, nu), inside) / spectrum_mean(noise, inside)
+    assert kept == pytest.approx((inside.sum() - fitted[0]) / inside.sum(), abs=0.003)
+    assert fitted_inside(np.zeros((3, 0)), None, N, inside).tolist() == [0, 0, 0]
+
+
+def spectrum_mean(y: np.ndarray, inside: np.ndarray) -> float:
+    """The mean joint energy over frames and the bins ``inside`` of ``y`` (B, N, 2)."""
+    return float(np.square(np.abs(np.fft.ifft(y, axis=1))).sum(axis=-1)[:, inside].mean())
