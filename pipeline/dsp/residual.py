@@ -281,7 +281,9 @@ def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, thres
         taken = np.abs((np.arange(n)[None, None, :] - nu[:, :, None] + n / 2) % n - n / 2) <= RESOLUTION_BINS
         beyond = np.where((taken & active[:, :, None]).any(axis=1), -1.0, beyond)
         q = beyond.argmax(axis=1)
-        mean = np.where(inside[None, :], current, 0.0).sum(axis=1) / cells
+        # over the gate's degrees of freedom the returns fitted so far left it (:func:`fitted_inside`)
+        dof = np.maximum(cells - fitted_inside(nu, active, n, inside), 1)
+        mean = np.where(inside[None, :], current, 0.0).sum(axis=1) / dof
         strong = current[rows, q] >= threshold * mean
         if not strong.any():
             break
