@@ -145,3 +145,29 @@ def test_the_targets_json_carries_the_radial_velocity():
                 assert abs(wrap_velocity(target["radial_velocity_mps"] - v[i], CFG)) < 1e-3
             else:
                 assert "radial_velocity_mps" not in target
+
+
+def test_a_count_test_with_the_phase_step_decodes_in_smaller_blocks_to_the_same_digits(monkeypatch):
+    """The count test's back projections with two model ramps are twice the static model's, so
+    such a batch goes in blocks of 32 frames (pipeline.dsp.cml.decoder.block_frames: 64 held 4
+    MiB of them, out of cache); the frames are decoded one by one alike, so the targets are
+    the same to the last bit as in blocks of 64."""
+    import pipeline.dsp.cml.decoder as decoder
+    from pipeline.dsp.decode import Decoder, DecoderConfig
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+
+    n = CFG.samples_per_ramp
+    assert [decoder.block_frames(n, rm, s) for rm in (1, 2) for s in (1, 2)] == [64, 64, 64, 32]
+    rng = np.random.default_rng(4)
+    b = 80
+    r, a = rng.uniform(3, 150, (b, 2)), rng.uniform(-60, 60, (b, 2))
+    x = np.exp(2j * np.pi * rng.random((b, 2))) * rng.uniform(0.3, 1.0, (b, 2))
+    frames = simulate_frames(r, a, x, CFG, velocity_mps=rng.uniform(0, 3, (b, 2)))
+    q = quantize_frames(frames, QuantizerConfig(alpha=DEFAULT_ALPHA), np.arange(b))
+    dec = Decoder(DecoderConfig(algo="cml", auto_k=True, uncertainty=False))
+    blocks = dec.decode_batch(q, CFG, 4)
+    monkeypatch.setattr(decoder, "block_frames", lambda *args: 64)
+    whole = dec.decode_batch(q, CFG, 4)
+    for field in ("range_m", "angle_deg", "present"):
+        np.testing.assert_array_equal(getattr(blocks, field), getattr(whole, field))
+    assert blocks.present.sum() >= 1.9 * b

@@ -11,15 +11,25 @@ from radar_driver.model import RadarConfig
 from pipeline.dsp.cml import engine
 from pipeline.dsp.cml.checks import check_frames, check_init
 from pipeline.dsp.cml.count import WARM_PFA, threshold
-from pipeline.dsp.cml.grid import SearchGrid
+from pipeline.dsp.cml.grid import COARSE_PER_BIN, SearchGrid
 from pipeline.dsp.cml.likelihood import model_ramps
-from pipeline.dsp.cml.options import BLOCK_FRAMES, CmlOptions
+from pipeline.dsp.cml.options import BLOCK_FRAMES, BLOCK_SOURCE_BYTES, CmlOptions
 from pipeline.dsp.cml.result import CmlResult
 from pipeline.dsp.cml.warm import warm_or_cold
 from pipeline.dsp.gate import RangeGate, check_gate
 
 #: grids and thresholds a decoder keeps (a live node uses one gate and one pfa)
 KEPT = 16
+
+
+def block_frames(n: int, rm: int, sources: int) -> int:
+    """Frames decoded at once: :data:`BLOCK_FRAMES`, halved (down to 8) while a block's back
+    projections (``sources`` inverse FFTs a frame of ``rm`` model ramps, 2 antennas,
+    COARSE_PER_BIN ``n`` complex128 points each) exceed :data:`BLOCK_SOURCE_BYTES`."""
+    frames = BLOCK_FRAMES
+    while frames > 8 and frames * sources * rm * 2 * COARSE_PER_BIN * n * 16 > BLOCK_SOURCE_BYTES:
+        frames //= 2
+    return frames
 
 
 class CmlDecoder:
@@ -72,14 +82,18 @@ class CmlDecoder:
         b = frames.z.shape[0]
         if b == 0:
             return CmlResult.empty(k)
+        # a count test (or a warm start's statistic) reads the likelihood's score besides the residual
+        counting = (limit is not None or init_range_m is not None) and frames.bits is not None
+        block = block_frames(self.config.samples_per_ramp, rm, 2 if counting else 1)
         if init_range_m is not None:
             init = check_init(init_range_m, b, k, self.config, grid.gate)
-            return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid, rm))
-        if b <= BLOCK_FRAMES:  # one block: the arrays as they are
+            return warm_or_cold(self._blocks, frames, k, iters, grid, limit, init, self.threshold(WARM_PFA, grid, rm),
+                                block)
+        if b <= block:  # one block: the arrays as they are
             res = self._blocks.decode(frames, k, iters, grid, limit)
         else:
-            res = CmlResult.concatenate([self._blocks.decode(frames.part(slice(lo, lo + BLOCK_FRAMES)), k, iters, grid,
-                                                             limit) for lo in range(0, b, BLOCK_FRAMES)])
+            res = CmlResult.concatenate([self._blocks.decode(frames.part(slice(lo, lo + block)), k, iters, grid,
+                                                             limit) for lo in range(0, b, block)])
         if limit is None and grid.use:
             return self._short_frames(res, frames, k, iters, grid)
         return res

@@ -29,6 +29,12 @@ DEFAULT_ITERS = 1
 UNDITHERED_ITERS = 3
 #: frames decoded at once: the likelihood's work arrays (B x 4M float32 each) stay in cache
 BLOCK_FRAMES = 64
+#: the most bytes of a block's back projections, the count test's inverse FFTs (the residual's
+#: and the likelihood score's, each model ramp and antenna, COARSE_PER_BIN N complex points a
+#: frame): past it a block leaves the cache. With the phase step's two model ramps and a count
+#: test, 64 frames hold 4 MiB: 0.58-0.60 ms a frame, 0.50-0.51 in blocks of 32 (the static
+#: model: 0.31-0.34 ms at 16-64 frames; `--K auto`, positions only, 2026-11-29)
+BLOCK_SOURCE_BYTES = 2 << 20
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
 LOGISTIC_PER_SIGMA = 1.702
 #: largest range change of one refinement step, range bins

@@ -34,19 +34,19 @@ def misfit(res: CmlResult, count: np.ndarray, stat: np.ndarray, k: int, threshol
 
 
 def warm_or_cold(blocks, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None,
-                 init: np.ndarray, warm_threshold: float) -> CmlResult:
+                 init: np.ndarray, warm_threshold: float, block: int = BLOCK_FRAMES) -> CmlResult:
     """:func:`pipeline.dsp.cml.cml` of checked ``frames`` with starting ranges ``init`` (B, k)
-    m (NaN: none) by the engine's ``blocks``: warm frames refined from them, the others and
-    the warm ones the model no longer explains from scratch."""
+    m (NaN: none) by the engine's ``blocks``, ``block`` frames at a time: warm frames refined
+    from them, the others and the warm ones the model no longer explains from scratch."""
     b = frames.z.shape[0]
     warm = ~np.isnan(init).all(axis=1)
     out: list[CmlResult | None] = [None] * b
     cold = np.flatnonzero(~warm)
     widx = np.flatnonzero(warm)
     if widx.size:
-        whole = widx.size == b <= BLOCK_FRAMES  # one block of warm frames (a live node's call): no copies
-        for lo in range(0, widx.size, BLOCK_FRAMES):
-            idx = widx[lo:lo + BLOCK_FRAMES]
+        whole = widx.size == b <= block  # one block of warm frames (a live node's call): no copies
+        for lo in range(0, widx.size, block):
+            idx = widx[lo:lo + block]
             part, start = (frames, init) if whole else (frames.part(idx), init[idx])
             at = warm_threshold if threshold is None else threshold  # the statistic only decides stat >= at
             res, count, stat = blocks.warm(part, k, start, grid, at)
@@ -56,9 +56,9 @@ def warm_or_cold(blocks, frames: Frames, k: int, iters: int, grid: SearchGrid, t
             for j, i in enumerate(idx.tolist()):
                 out[i] = None if bad[j] else res.row(j)
         cold = np.flatnonzero([o is None for o in out])
-    whole = cold.size == b <= BLOCK_FRAMES  # one block, every frame from scratch: no copies
-    for lo in range(0, cold.size, BLOCK_FRAMES):
-        idx = cold[lo:lo + BLOCK_FRAMES]
+    whole = cold.size == b <= block  # one block, every frame from scratch: no copies
+    for lo in range(0, cold.size, block):
+        idx = cold[lo:lo + block]
         res = blocks.decode(frames if whole else frames.part(idx), k, iters, grid, threshold)
         if whole:
             return res
