@@ -149,9 +149,10 @@ def test_the_targets_json_carries_the_radial_velocity():
 
 def test_a_count_test_with_the_phase_step_decodes_in_smaller_blocks_to_the_same_digits(monkeypatch):
     """The count test's back projections with two model ramps are twice the static model's, so
-    such a batch goes in blocks of 32 frames (pipeline.dsp.cml.decoder.block_frames: 64 held 4
-    MiB of them, out of cache); the frames are decoded one by one alike, so the targets are
-    the same to the last bit as in blocks of 64."""
+    such a batch goes in blocks of 32 frames (pipeline.dsp.cml.decoder.block_frames: at 64 the
+    block's temporaries were mapped afresh at each call, 11 100 page faults a 256-frame call);
+    the frames are decoded one by one alike, so the targets are the same to the last bit as in
+    blocks of 64."""
     import pipeline.dsp.cml.decoder as decoder
     from pipeline.dsp.decode import Decoder, DecoderConfig
     from pipeline.dsp.quantize import QuantizerConfig, quantize_frames

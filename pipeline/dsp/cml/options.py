@@ -31,9 +31,11 @@ UNDITHERED_ITERS = 3
 BLOCK_FRAMES = 64
 #: the most bytes of a block's back projections, the count test's inverse FFTs (the residual's
 #: and the likelihood score's, each model ramp and antenna, COARSE_PER_BIN N complex points a
-#: frame): past it a block leaves the cache. With the phase step's two model ramps and a count
-#: test, 64 frames hold 4 MiB: 0.58-0.60 ms a frame, 0.50-0.51 in blocks of 32 (the static
-#: model: 0.31-0.34 ms at 16-64 frames; `--K auto`, positions only, 2026-11-29)
+#: frame): past it the block's temporaries are large enough that the C library maps them
+#: afresh at each call. With the phase step's two model ramps and a count test, blocks of 64
+#: frames (4 MiB of them) took 11 100 minor page faults a 256-frame call, and 0.53-0.56 ms a
+#: frame; blocks of 32, none and 0.45-0.48 ms (`--K auto`, positions only, a process holding
+#: that decoder alone, 2026-11-29)
 BLOCK_SOURCE_BYTES = 2 << 20
 #: logistic scale of a Gaussian of unit std (Phi(x) ~ F(1.702 x))
 LOGISTIC_PER_SIGMA = 1.702
