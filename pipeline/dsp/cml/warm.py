@@ -14,7 +14,6 @@ import numpy as np
 
 from pipeline.dsp.cml.checks import Frames
 from pipeline.dsp.cml.grid import SearchGrid
-from pipeline.dsp.cml.options import BLOCK_FRAMES
 from pipeline.dsp.cml.result import CmlResult
 from pipeline.dsp.localize import to_db
 
@@ -34,7 +33,7 @@ def misfit(res: CmlResult, count: np.ndarray, stat: np.ndarray, k: int, threshol
 
 
 def warm_or_cold(blocks, frames: Frames, k: int, iters: int, grid: SearchGrid, threshold: float | None,
-                 init: np.ndarray, warm_threshold: float, block: int = BLOCK_FRAMES) -> CmlResult:
+                 init: np.ndarray, warm_threshold: float, block: int) -> CmlResult:
     """:func:`pipeline.dsp.cml.cml` of checked ``frames`` with starting ranges ``init`` (B, k)
     m (NaN: none) by the engine's ``blocks``, ``block`` frames at a time: warm frames refined
     from them, the others and the warm ones the model no longer explains from scratch."""
