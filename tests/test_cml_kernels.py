@@ -514,12 +514,18 @@ def test_load_kernels_loads_1_bit_codes_first():
     assert before == 0 < one_bit == common < everything == again
 
 
-def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
+@pytest.mark.parametrize("auto", [True, False], ids=["K-auto", "K-given"])
+def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with(auto):
     """After ``load_kernels`` of 1-bit codes, the decodes a localizer makes (K given or K auto,
     in a range gate, cold or warm, a target inside and one outside the gate; its tracker's
     refinement of a static track on stacked frames) need no other
     compiled signature: on a fresh install (``make`` compiles what ``load_kernels`` loads) a
-    run's first full search does not compile for a minute while frames wait."""
+    run's first full search does not compile for a minute while frames wait. A node with K
+    given and no warm start loads those decodes alone (``count=False, warm=False``): K given
+    in a gate, a return outside it modelled, and its tracker's K given integration."""
+    decodes = ("    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate)\n"
+               "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=warm)\n") if auto else ""
+    tracker = "integrate(still, cfg, 4, gate, 1e-3), " if auto else ""
     code = ("import numpy as np\n"
             "from pipeline.dsp.cml import CmlDecoder, load_kernels\n"
             "from pipeline.dsp.cml.kernels import KERNELS\n"
@@ -527,7 +533,7 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
             "from pipeline.dsp.gate import RangeGate\n"
             "from pipeline.dsp.quantize import QuantizerConfig, quantize_frames\n"
             "from radar_driver.model import RadarConfig, simulate_frames\n"
-            "load_kernels(kinds=(kind_of(1),))\n"
+            f"load_kernels(kinds=(kind_of(1),), count={auto}, warm={auto})\n"
             "loaded = [len(k.signatures) for k in KERNELS]\n"
             "cfg = RadarConfig()\n"
             "r, a = np.array([[40.0, 150.0], [12.5, 80.3]]), np.array([[10.0, -20.0], [0.0, 30.0]])\n"
@@ -537,11 +543,10 @@ def test_the_loaded_kernels_are_every_kernel_a_localizer_decodes_with():
             "d, gate, warm = CmlDecoder(cfg), RangeGate(2.0, 120.0), np.array([[40.0] + [np.nan] * 3] * 2)\n"
             "for z in (q.codes, q.values()):\n"
             "    d.decode(z, q.dither(), q.delta, 1, 2, gate=gate)\n"
-            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate)\n"
-            "    d.decode(z, q.dither(), q.delta, 1, 4, pfa=1e-3, gate=gate, init_range_m=warm)\n"
+            f"{decodes}"
             "from pipeline.dsp.integrate import integrate\n"  # a static track's refinement (the tracker's)
             "still = quantize_frames(np.repeat(g[:1], 10, axis=0), QuantizerConfig(alpha=0.45), np.arange(10))\n"
-            "integrate(still, cfg, 4, gate, 1e-3), integrate(still, cfg, 2, gate)\n"
+            f"{tracker}integrate(still, cfg, 2, gate)\n"
             "print([f'{k.py_func.__module__}.{k.py_func.__qualname__}' for k, s in zip(KERNELS, loaded)\n"
             "       if len(k.signatures) != s])\n")
     compiled = fresh_process(code).strip()

@@ -434,12 +434,14 @@ class LocalizeNode(FrameNode):
             # before subscribing (the session already listens), the other kinds' after in a thread
             from pipeline.dsp.cml.loading import kind_of, load_kernels  # numba: only a cml localizer loads it
 
+            # the decodes this node makes: a count test with --K auto (its tracker's too), a warm start
+            paths = {"count": self.config.auto_k, "warm": self._warm}
             if self._bits == "any":
-                load_kernels(common=True)
-                self._loading = threading.Thread(target=load_kernels, name="cml-kernels", daemon=True)
+                load_kernels(common=True, **paths)
+                self._loading = threading.Thread(target=load_kernels, name="cml-kernels", kwargs=paths, daemon=True)
                 self._loading.start()
             else:
-                load_kernels(kinds=(kind_of(self._bits),))
+                load_kernels(kinds=(kind_of(self._bits),), **paths)
         if self.config.algo != Algo.PBP and self._decoder.dither_engine == "numba":
             load_dither_kernel()  # the compiled dither (pipeline.dsp.dither_kernels), from the same cache
         return super().start()

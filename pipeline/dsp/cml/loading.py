@@ -38,11 +38,15 @@ def kind_label(bits: int | None, likelihood: str) -> str:
     return f"{'unquantized' if bits is None else f'{bits}-bit'} frames, {likelihood} likelihood"
 
 
-def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None) -> None:
+def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None, count: bool = True,
+                 warm: bool = True) -> None:
     """Load (or compile) the compiled engine's kernels for every kind of frame (``common``:
     1-bit codes with the default likelihood alone; ``kinds``: these (bits, likelihood) of
     :data:`KINDS` alone): about 1 s from numba's cache, a first compile a minute or more;
-    nothing without numba. A caller that cannot wait runs it in a thread of its own (a frame
+    nothing without numba. The decodes loaded: K given, in a range gate with a return outside
+    it, always; with a count test (``count``, ``--K auto``) and from a warm start (``warm``)
+    when asked (a node with K given and no warm start: 0.14 s less CPU at its start; ``make``
+    compiles them all). A caller that cannot wait runs it in a thread of its own (a frame
     of a kind not loaded yet meanwhile waits for numba's lock). ``on_step(i, bits,
     likelihood, seconds)`` before each kind (seconds None) and after it."""
     if not HAVE_NUMBA:
@@ -51,8 +55,9 @@ def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None)
         raise ValueError(f"kinds {sorted(set(kinds) - set(KINDS), key=str)} are none of cml's {KINDS}")
     cfg = RadarConfig()
     rng = np.random.default_rng(0)
-    # a target at 30 m beside a return of random phases (what a count test finds, and settles)
-    g = simulate_frames(np.array([[30.0]]), np.array([[10.0]]), np.ones((1, 1), dtype=complex), cfg)
+    # a target at 30 m and a return at 2 m, outside the gate (what a decode in a range gate models
+    # and does not report), beside a return of random phases (what a count test finds, and settles)
+    g = simulate_frames(np.array([[30.0, 2.0]]), np.array([[10.0, -20.0]]), np.ones((1, 2), dtype=complex), cfg)
     g = g + 0.3 * np.exp(2j * np.pi * rng.random(g.shape))
     xi = 0.25 * (rng.random(g.shape) - 0.5 + 1j * (rng.random(g.shape) - 0.5))
     chosen = KINDS[:1] if common else KINDS if kinds is None else tuple(k for k in KINDS if k in kinds)
@@ -60,15 +65,17 @@ def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None)
         if on_step is not None:
             on_step(i, bits, lik, None)
         t0 = time.monotonic()
-        _decode_kind(CmlDecoder(cfg, CmlOptions(engine="numba", likelihood=lik)), g, xi, bits, lik)
+        _decode_kind(CmlDecoder(cfg, CmlOptions(engine="numba", likelihood=lik)), g, xi, bits, lik, count, warm)
         if on_step is not None:
             on_step(i, bits, lik, time.monotonic() - t0)
 
 
-def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int | None, lik: str) -> None:
+def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int | None, lik: str, count: bool = True,
+                 warm: bool = True) -> None:
     """Frames ``g`` (1, M, 2) of one kind (quantized with dither ``xi`` to ``bits``) decoded the
-    ways a node decodes them: values and (the default likelihood) the quantizer's codes, K given,
-    and K auto in a gate with a warm start and from scratch."""
+    ways a node decodes them: values and (the default likelihood) the quantizer's codes, K given
+    (alone and in a gate), then in a gate K auto from a warm start (``warm``) and from scratch
+    (``count``)."""
     delta = 1.0 if bits is None else 1.0 / (1 << (bits - 1))
     half = 0 if bits is None else 1 << (bits - 1)
     z = g if bits is None else delta * (np.clip(np.floor((g + xi).real / delta), -half, half - 1) + 0.5 + 1j * (
@@ -79,9 +86,11 @@ def _decode_kind(decoder: CmlDecoder, g: np.ndarray, xi: np.ndarray, bits: int |
     gate = RangeGate(5.0, 100.0)
     for zz in frames:
         decoder.decode(zz, xi, delta, bits, 2)
-        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate, init_range_m=np.array([[30.0, np.nan]]))
-        # a full search with a count test: the fit settled (refined) between its stages
-        decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate)
+        decoder.decode(zz, xi, delta, bits, 2, gate=gate)  # the return at 2 m modelled: stages settled
+        if warm:
+            decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate, init_range_m=np.array([[30.0, np.nan]]))
+        if count:  # a full search with a count test: the fit settled (refined) between its stages
+            decoder.decode(zz, xi, delta, bits, 2, pfa=1e-3, gate=gate)
 
 
 def _span(lo: float, hi: float) -> str:
