@@ -424,7 +424,8 @@ def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: i
             if not takes_codes and values is None:
                 values = dequantize(z, delta, scheme.bits)
             det = decode(z if takes_codes else values, xi, delta, scheme.bits, radar,
-                         count.max_targets if count.auto else k, decoder, indices, noise_sigma=noise)
+                         count.max_targets if count.auto else k, decoder, indices, noise_sigma=noise,
+                         alpha=scheme.alpha if xi is None else None)  # with a dither: read off it
             out[name][algo] = chunk_result(r, a, x, rc, ac, det, count)
     return out
 

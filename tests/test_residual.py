@@ -8,8 +8,8 @@ import pytest
 from radar_driver.model import RadarConfig
 from pipeline.dsp.localize import cfar_threshold, fold_ramps, gated_energy, grid_statistic_db, joint_energy, \
     joint_support, back_project
-from pipeline.dsp.residual import dirichlet, fit_residual, fitted_inside, kept_tones, refine_bins, residual_support, \
-    tone_combinations, tones
+from pipeline.dsp.residual import DYNAMIC_RANGE_DB, dirichlet, fit_residual, fitted_inside, kept_tones, merged_near, \
+    product_floor_db, refine_bins, residual_support, tone_combinations, tones
 
 N = 256
 
@@ -121,3 +121,31 @@ def test_the_tone_fit_takes_one_bin_of_noise_a_tone_and_the_test_counts_them():
 def spectrum_mean(y: np.ndarray, inside: np.ndarray) -> float:
     """The mean joint energy over frames and the bins ``inside`` of ``y`` (B, N, 2)."""
     return float(np.square(np.abs(np.fft.ifft(y, axis=1))).sum(axis=-1)[:, inside].mean())
+
+
+def test_the_floor_is_the_strongest_product_of_the_quantizer_the_model_leaves():
+    """Without dither a hard limiter: its 17th harmonic (the first the model leaves) is 1/17
+    of its target (24.6 dB under), the 5th-order intermodulation of two equal targets 1/5
+    (14.0 dB); with dither the products fall, at alpha 1 (no clipping) to none: the 45 dB
+    floor; not known (NaN): 45 dB. Per frame, never above 45 dB; between two of the dither
+    scales it is computed at, the lower of their two floors."""
+    single, mixed = product_floor_db(np.array([0.0, 0.45, 1.0, np.nan]))
+    assert single[0] == pytest.approx(20 * np.log10(17), abs=0.2) and mixed[0] == pytest.approx(20 * np.log10(5), abs=0.2)
+    assert 40.0 < single[1] <= DYNAMIC_RANGE_DB and 25.0 < mixed[1] < 35.0
+    assert single[2] == mixed[2] == single[3] == mixed[3] == DYNAMIC_RANGE_DB
+    grid = np.stack(product_floor_db(np.linspace(0.0, 1.0, 21)))  # (2, 21)
+    assert np.all(grid <= DYNAMIC_RANGE_DB) and np.all(grid[:, :10] < DYNAMIC_RANGE_DB)
+    between = np.stack(product_floor_db(np.linspace(0.025, 0.975, 20)))
+    assert np.array_equal(between, np.minimum(grid[:, :-1], grid[:, 1:]))
+
+
+def test_what_is_left_of_a_merged_tone_is_no_target():
+    """Targets at bins 20.0 and 100.3: the quantizer's -3 nu_1 (196) and 2 nu_1 - nu_2 (195.7)
+    are 0.3 bins apart, one to the fit (the first kept); the bins within a bin of the merged
+    one are the model's residue, not targets (as those around the 5th harmonic 5 nu_1 = 100,
+    merged into the second target, and one more pair's)."""
+    near = merged_near(np.array([[20.0, 100.3]]), np.ones((1, 2), dtype=bool), N)[0]
+    assert near[195] and near[196] and not near[194] and not near[197]
+    assert near[99:102].all() and near.sum() == 8
+    # a tone made of a target a frame lacks is no tone of its model
+    assert not merged_near(np.array([[20.0, 100.3]]), np.array([[True, False]]), N)[0].any()

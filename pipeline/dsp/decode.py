@@ -452,7 +452,7 @@ class Decoder:
 
     def decode(self, z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, radar: RadarConfig, k: int,
                indices: np.ndarray | None = None, noise_sigma=None,
-               init_range_m: np.ndarray | None = None) -> Detections:
+               init_range_m: np.ndarray | None = None, alpha=None) -> Detections:
         """:func:`decode` with this decoder."""
         z = np.asarray(z)
         cfg = self.config
@@ -473,10 +473,10 @@ class Decoder:
                                                           p_value=p)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         if cfg.algo == Algo.PBP:
-            return localize(z, radar, k, indices, pfa, gate)
+            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits))
         if xi is None or bits is None or indices is not None:
             if cfg.fallback_pbp:
-                return localize(z, radar, k, indices, pfa, gate)
+                return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits))
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
             needs = ("frames of whole ramps" if cfg.algo == Algo.CML else
@@ -492,12 +492,27 @@ class Decoder:
             n = radar.samples_per_ramp
             if algo == Algo.PBP and frames.codes.shape[1] % n == 0:
                 # PBP back-projects the ramps' sum: fold the codes first (no dither needed)
-                return self.decode(frames.ramp_mean(n), None, frames.delta, frames.bits, radar, k)
+                return self.decode(frames.ramp_mean(n), None, frames.delta, frames.bits, radar, k, alpha=frames.alpha)
             xi = None if algo == Algo.PBP else frames.dither(self.dither_engine)  # PBP does not use it
             z = frames.codes if algo == Algo.CML else frames.values()  # cml takes the codes as they are
             return self.decode(z, xi, frames.delta, frames.bits, radar, k, init_range_m=init_range_m)
         return self.decode(np.asarray(frames, dtype=np.complex128), None, None, None, radar, k,
                            init_range_m=init_range_m)
+
+
+def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
+    """The dither scale of 1-bit frames for PBP's count test (:func:`pipeline.dsp.residual.product_floor_db`):
+    ``alpha`` (scalar or (B,)) when given, else read off their dither ``xi`` (B, M, 2) (uniform
+    over ``alpha delta``: twice its largest real part over ``delta``); None for frames of more
+    bits, unquantized ones, or 1-bit frames whose dither is not known."""
+    if bits != 1:
+        return None
+    if alpha is not None:
+        return alpha
+    if xi is None or delta is None:
+        return None
+    x = np.asarray(xi).reshape(len(xi), -1)
+    return 2.0 * np.maximum(np.abs(x.real).max(axis=1), np.abs(x.imag).max(axis=1)) / np.asarray(delta, dtype=float)
 
 
 def _qiht_ml(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, decoder: DecoderConfig,
@@ -521,7 +536,7 @@ def _qiht_ml(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfi
 
 def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config: RadarConfig, k: int,
            decoder: DecoderConfig = DecoderConfig(), indices: np.ndarray | None = None,
-           noise_sigma=None, init_range_m: np.ndarray | None = None) -> Detections:
+           noise_sigma=None, init_range_m: np.ndarray | None = None, alpha=None) -> Detections:
     """Targets of a batch of frames with the configured decoder: the one place where a
     decoder is chosen.
 
@@ -536,9 +551,10 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     (checked against ``config``; None: the whole range axis). ``noise_sigma``: cml's
     sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that).
     ``init_range_m`` (B, J), NaN for none: cml's warm start (see :func:`pipeline.dsp.cml.cml`);
-    the others ignore it. One call, one :class:`Decoder` (where calls follow one another,
-    hold one: it keeps cml's tables)."""
-    return Decoder(decoder).decode(z, xi, delta, bits, config, k, indices, noise_sigma, init_range_m)
+    the others ignore it. ``alpha``: the dither scale of 1-bit frames (scalar or (B,); None:
+    read off ``xi``, not known without it), for PBP's count test (:func:`dither_alpha`). One
+    call, one :class:`Decoder` (where calls follow one another, hold one: it keeps cml's tables)."""
+    return Decoder(decoder).decode(z, xi, delta, bits, config, k, indices, noise_sigma, init_range_m, alpha)
 
 
 def decode_batch(frames: QuantizedFrames | np.ndarray, config: RadarConfig, k: int,

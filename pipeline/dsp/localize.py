@@ -354,7 +354,7 @@ def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int,
 
 
 def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
-             pfa: float | None = None, gate: RangeGate | None = None) -> Detections:
+             pfa: float | None = None, gate: RangeGate | None = None, alpha=None) -> Detections:
     """PBP targets of a batch of frames Z (B, M, 2) (quantized or not), each with its
     cell-averaging statistic (:func:`grid_statistic_db`). ``pfa``: decide the count (at
     most ``k``) by a sequential CFAR test with this false-alarm probability per frame
@@ -362,7 +362,9 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     ``gate``: search only the range bins inside this :class:`~pipeline.dsp.gate.RangeGate`
     (the statistic and the test then over those bins); None: the whole range axis. With
     ``pfa`` and whole ramps, each target after the first is tested on the residual of the ones
-    before it (:func:`pipeline.dsp.residual.residual_support`). Each target's ``p_value``:
+    before it (:func:`pipeline.dsp.residual.residual_support`; ``alpha``: the dither scale of
+    1-bit frames (scalar or (B,)), whose quantizer's products set the floor of that test; None:
+    not known, or not 1-bit). Each target's ``p_value``:
     :func:`cfar_p_value` of its statistic."""
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)
@@ -371,7 +373,7 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     if pfa is not None and indices is None:  # whole ramps: each test on the residual of the targets before it
         inside = np.ones(u.shape[1], dtype=bool) if mask is None else mask
         support, statistic = residual_support(fold_ramps(z, config), energy, pick, inside, k,
-                                              cfar_threshold(pfa, cells))
+                                              cfar_threshold(pfa, cells), alpha)
     else:
         support = joint_support(u, k, pick)
         statistic = grid_statistic_db(u, support, stat, cells)

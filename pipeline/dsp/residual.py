@@ -39,10 +39,62 @@ TONE_SEPARATION_BINS = 0.5
 #: limiter makes 1/3 of two equal tones; the bound keeps it from taking a real target)
 MIXED_BOUND = 2.0
 #: the residual's floor, dB under the strongest target: what the tone model leaves of a
-#: target (its unmodelled higher orders, the error of its continuous bin) is not a target
+#: target (its unmodelled higher orders, the error of its continuous bin) is not a target;
+#: higher where the quantizer's products the model leaves are stronger (:func:`product_floor_db`)
 DYNAMIC_RANGE_DB = 45.0
+#: the dither scales :func:`product_floor_db` is computed at (a frame's alpha between two of
+#: them takes the lower floor of the two: the products rise and fall with alpha)
+ALPHA_STEP = 0.05
 #: the ridge of the tone fit, relative to the samples (N): coinciding tones stay solvable
 RIDGE = 1e-9
+
+
+def product_floor_db(alpha) -> tuple[np.ndarray, np.ndarray]:
+    """The residual's floor (dB under the strongest return) of 1-bit frames dithered at
+    ``alpha`` (scalar or (B,), in [0, 1]; NaN: not known): the strongest product of the
+    quantizer that the tone model leaves out, (with one target in the model, with two or more)
+    each (B,), at most DYNAMIC_RANGE_DB (NaN alpha: DYNAMIC_RANGE_DB).
+
+    The quantizer's mean output at a sample is a line of slope 1 / alpha clipped at +-1 (the
+    uniform dither of width alpha delta, the step delta twice the frame's peak): without dither
+    a hard limiter, whose harmonics fall only as 1 / order (the 17th, the first the model leaves,
+    24.6 dB under its target) and whose intermodulation of two equal targets as much (the 5th
+    order, 3 nu_1 - 2 nu_2, 14 dB); at alpha 0.45 these are 42.9 and 30.3 dB under, at alpha 1
+    (no clipping) none. A residual holding them holds no noise to hide them in (alpha 0, little
+    noise): 3 false targets a frame beside one strong target at pfa 1e-3 with the 45 dB floor."""
+    a = np.atleast_1d(np.asarray(alpha, dtype=float))
+    single, mixed = np.full(a.shape, DYNAMIC_RANGE_DB), np.full(a.shape, DYNAMIC_RANGE_DB)
+    known = np.isfinite(a)
+    x = np.clip(a[known], 0.0, 1.0) / ALPHA_STEP
+    lo, hi = np.floor(x + 1e-9).astype(np.int64), np.ceil(x - 1e-9).astype(np.int64)
+    levels = np.array([_product_levels_db(int(i)) for i in range(int(hi.max(initial=0)) + 1)]).reshape(-1, 2)
+    if known.any():
+        single[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 0], levels[hi, 0]))
+        mixed[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 1], levels[hi, 1]))
+    return single, mixed
+
+
+@lru_cache(maxsize=32)
+def _product_levels_db(step: int, points: int = 256) -> tuple[float, float]:
+    """(:func:`product_floor_db` of one target, of two equal ones) at alpha = step ALPHA_STEP:
+    the strongest harmonic above ORDER_SINGLE of a tone through the clipped line, the strongest
+    product above ORDER_MIXED of two equal tones, each in dB under a tone's fundamental."""
+    alpha = step * ALPHA_STEP
+    t = 2.0 * np.pi * np.arange(points) / points
+
+    def mean_code(x):
+        return np.sign(x) if alpha == 0.0 else np.clip(x / alpha, -1.0, 1.0)
+
+    one = np.abs(np.fft.fft(mean_code(np.cos(t))))
+    m = np.arange(points)
+    order = np.minimum(m, points - m)
+    high = one[(order > ORDER_SINGLE) & (order < points // 4)].max()
+    two = np.abs(np.fft.fft2(mean_code(0.5 * (np.cos(t)[:, None] + np.cos(t)[None, :]))))
+    o1, o2 = order[:, None], order[None, :]
+    mixed = two[(o1 > 0) & (o2 > 0) & (o1 + o2 > ORDER_MIXED) & (o1 + o2 < points // 4)].max()
+    with np.errstate(divide="ignore"):
+        return (float(-20.0 * np.log10(high / one[1])) if high > 0 else np.inf,
+                float(-20.0 * np.log10(mixed / two[1, 0])) if mixed > 0 else np.inf)
 
 
 @lru_cache(maxsize=16)
@@ -199,18 +251,22 @@ CHUNK_FRAMES = 128
 
 
 def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
-                     threshold: float) -> tuple[np.ndarray, np.ndarray]:
+                     threshold: float, alpha=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
-    batch, the tables small enough to stay in cache)."""
-    if y.shape[0] <= CHUNK_FRAMES:
-        return residual_support_of(y, energy, pick, inside, k, threshold)
-    parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold)
-             for i in range(0, y.shape[0], CHUNK_FRAMES)]
+    batch, the tables small enough to stay in cache); ``alpha``: the 1-bit frames' dither scale
+    (scalar or (B,); None or NaN: not known, or not 1-bit frames), the floor under the strongest
+    return the quantizer's products the model leaves (:func:`product_floor_db`)."""
+    b = y.shape[0]
+    floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,))), axis=1)
+    if b <= CHUNK_FRAMES:
+        return residual_support_of(y, energy, pick, inside, k, threshold, floors)
+    parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold,
+                                 floors[i:i + CHUNK_FRAMES]) for i in range(0, b, CHUNK_FRAMES)]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
-                        threshold: float) -> tuple[np.ndarray, np.ndarray]:
+                        threshold: float, floors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``k`` targets of the folded ramps ``y`` (B, N, 2), each the strongest bin of the
     residual of the ones before it: (support (B, k) int, statistic_db (B, k)). ``energy``
     (B, N): the joint energy of ``y``'s bins (the back projection's, known to the caller);
@@ -220,8 +276,11 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
     statistic's mean is taken (the first target's statistic is PBP's cell-averaging one).
     A frame's testing stops at its first statistic under ``threshold`` (linear): its later
     slots repeat that pick and statistic (the caller masks them); the fits are made for the
-    frames still being tested only."""
+    frames still being tested only. ``floors`` (B, 2): the floor (dB under the strongest
+    return) with one return in the model and with two or more (:func:`product_floor_db`; None:
+    DYNAMIC_RANGE_DB)."""
     b, n, _ = y.shape
+    floors = np.full((b, 2), DYNAMIC_RANGE_DB) if floors is None else floors
     cells = max(int(inside.sum()), 2)
     support = np.zeros((b, k), dtype=np.int64)
     stat = np.zeros((b, k))
@@ -237,7 +296,8 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
         rest = (np.where(inside[None, :], energy, 0.0).sum(axis=1) - e) / np.maximum(cells - 1 - fitted, 1)
         # what the tone model leaves of the strongest return is not a target (the first test,
         # PBP's statistic as it is, has no floor but that of a strong return beyond the gate)
-        rest = np.maximum(rest, strongest * 10 ** (-DYNAMIC_RANGE_DB / 10))
+        floor_db = np.where(active.sum(axis=1) >= 2, floors[:, 1], floors[:, 0])
+        rest = np.maximum(rest, strongest * 10 ** (-floor_db / 10))
         if t == 0:
             strongest = np.maximum(strongest, e)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -247,13 +307,25 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
         if t == k - 1 or not go.any():
             break
         near = np.abs((np.arange(n)[None, :] - p[:, None] + n // 2) % n - n // 2) <= RESOLUTION_BINS
-        blocked, strongest, idx = (blocked | near)[go], strongest[go], idx[go]
+        blocked, strongest, idx, floors = (blocked | near)[go], strongest[go], idx[go], floors[go]
         nu = np.concatenate([nu[go], refine_bins(residual[go], p[go])[:, None]], axis=1)
         active = np.concatenate([active[go], np.ones((idx.size, 1), dtype=bool)], axis=1)
         residual = fit_residual(y[idx], nu, active)
         energy = _bin_energy(residual)
         fitted = fitted_inside(nu, active, n, inside)
+        blocked = blocked | merged_near(nu, active, n)
     return support, stat
+
+
+def merged_near(nu: np.ndarray, active: np.ndarray, n: int) -> np.ndarray:
+    """The bins (B, N) bool within RESOLUTION_BINS of a tone of the model that the fit merged
+    into a lower order one (:func:`separated`): what is left of it there is the model's residue."""
+    combos = tone_combinations(nu.shape[1])
+    freq = nu @ combos.T  # (B, P)
+    made = ~((np.abs(combos) > 0)[None] & ~active[:, None, :]).any(axis=2)  # of the frame's targets alone
+    merged = made & ~separated(np.where(made, freq, np.nan), n)  # (B, P)
+    gap = np.abs((np.arange(n)[None, None, :] - freq[:, :, None] + n / 2) % n - n / 2)  # (B, P, N)
+    return ((gap <= RESOLUTION_BINS) & merged[:, :, None]).any(axis=1)
 
 
 #: strong returns beyond the range gate fitted (unreported) before the gate's first test, at most

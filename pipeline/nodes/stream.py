@@ -520,13 +520,15 @@ class LocalizeNode(FrameNode):
                                    [keys[i] for i in g.index[idx].tolist()])
 
     def _tell_undithered(self, sensors) -> None:
-        """Once a sensor: PBP's count test reads the quantizer's harmonics in 1-bit frames
-        without dither as targets (docs/science.md); the frames are still decoded."""
+        """Once a sensor: PBP's count test cannot tell weak targets from the quantizer's
+        harmonics in 1-bit frames without dither (its floor: pipeline.dsp.residual.product_floor_db,
+        docs/science.md); the frames are still decoded."""
         for sid in sorted({str(s) for s in sensors} - self._told_undithered):
             self._told_undithered.add(sid)
-            log.warning("%s: %s's frames are 1-bit without dither (alpha 0): PBP's --K auto reads the quantizer's "
-                        "harmonics as targets, about 3 false targets a frame below noise 0.1 (docs/science.md); "
-                        "decode them with --algo cml, or quantize with --alpha > 0", self.name, sid)
+            log.warning("%s: %s's frames are 1-bit without dither (alpha 0): PBP's --K auto cannot tell a target "
+                        "weaker than the strongest by 25 dB (14 dB beside two) from the quantizer's harmonics, and "
+                        "reports none there (docs/science.md); decode them with --algo cml, or quantize with "
+                        "--alpha > 0", self.name, sid)
 
     def _localize(self, radar: RadarConfig, headers: FrameHeaders, frames, keys: list[str]) -> None:
         cfg = self.config
