@@ -423,9 +423,8 @@ def run_chunk(k: int, schemes: tuple[str, ...], chunk: int, n_runs: int, seed: i
             takes_codes = scheme.bits is not None and algo == Algo.CML and indices is None  # cml: the codes as they are
             if not takes_codes and values is None:
                 values = dequantize(z, delta, scheme.bits)
-            det = decode(z if takes_codes else values, xi, delta, scheme.bits, radar,
-                         count.max_targets if count.auto else k, decoder, indices, noise_sigma=noise,
-                         alpha=scheme.alpha if xi is None else None)  # with a dither: read off it
+            det = decode(z if takes_codes else values, xi, delta, scheme.bits, radar, count.max_targets if count.auto
+                         else k, decoder, indices, noise_sigma=noise, alpha=scheme.alpha if xi is None else None)
             out[name][algo] = chunk_result(r, a, x, rc, ac, det, count)
     return out
 

@@ -101,9 +101,18 @@ class RunSummary:
 
     @property
     def produced_nothing(self) -> bool:
-        """Raw frames came and not one targets message: the run's result is empty (its
-        command ends with a non-zero status unless it was interrupted)."""
-        return self.frames_raw > 0 and self.frames_targets == 0
+        """Not one targets message, whether raw frames came or none did (a sensor that never
+        answered, given up): the run's result is empty (its command ends with a non-zero status
+        unless it was interrupted, :meth:`nothing_reason` saying why)."""
+        return self.frames_targets == 0
+
+    def nothing_reason(self) -> str:
+        """Why a run that :attr:`produced_nothing` did: its localizer, or its sensors."""
+        if self.frames_raw:
+            return localizer_warning(self.frames_raw, 0)
+        gone = f" ({', '.join(self.sensors_gone)} given up after restarts)" if self.sensors_gone else ""
+        return (f"no frame came from any sensor in the run{gone}: check the sensor (power, cable, the --sensor URL "
+                "and its profile) and the driver lines above")
 
 
 def localizer_warning(raw: int, targets: int) -> str | None:

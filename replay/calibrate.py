@@ -44,7 +44,7 @@ class CalibrateConfig:
             raise ReplayError("--reflector needs --range-m (the reflector's measured range, m)")
         if self.reflector is None and self.range_m is not None:
             raise ReplayError("--range-m is the reflector's range: give --reflector REF.mcap too")
-        check_new_file(self.out, self.force, "calibration")
+        check_new_file(self.out, self.force, "calibration", inputs=(self.empty, self.reflector))
 
 
 def calibrate(cfg: CalibrateConfig) -> list[FrontEndCorrection]:

@@ -49,7 +49,7 @@ from pipeline.wire.foxglove import POINTCLOUD_SCHEMA, SCENE_UPDATE_SCHEMA, point
 from .errors import RecordingExists, ReplayError, UnwritableMessage
 from .outputs import own_folder
 from .mcapcheck import MAGIC, METADATA_CRC_KEY, metadata_crc, read_summary, written_counts
-from .mcapread import DamagedChunk, McapFile
+from .mcapread import DamagedChunk, McapFile, check_mcap
 
 __all__ = ["DamagedChunk", "McapFile", "McapSink", "pointcloud_json", "profile_json", "qradar_channels", "recover",
            "scene_json", "topic_of"]
@@ -432,6 +432,7 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict:
     A new file unless ``overwrite``. Returns :meth:`McapFile.report` (``messages``: those copied)."""
     if Path(src).resolve() == Path(dst).resolve():
         raise ReplayError(f"recover reads {src} and writes a new file: give another output than the file itself")
+    check_mcap(src)  # a missing, empty or foreign file: refused before an output exists
     f = McapFile(src)
     sink = McapSink(Path(dst), overwrite=overwrite)
     try:
@@ -452,7 +453,7 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict:
         raise ReplayError(f"cannot write {dst}: {describe_os_error(exc)} (it holds {kept['messages']} messages "
                           f"of {src})") from None
     finally:
-        if not sink.closed:  # src was not MCAP: dst ends empty but valid
+        if not sink.closed:  # src stopped reading: dst ends with what it read, valid
             try:
                 sink.close()
             except OSError:

@@ -202,6 +202,13 @@ def _mapped(path: Path):
             yield buf, st.st_size, (st.st_size, st.st_mtime_ns)
 
 
+def check_mcap(path: str | Path) -> None:
+    """A ReplayError (NotMcapError) unless ``path`` opens and starts as an MCAP file (a file cut
+    short passes: what it holds is read later)."""
+    with _mapped(Path(path)):
+        pass
+
+
 def indexed_metadata(buf, size: int, summary: Summary) -> tuple[list[Metadata], list[str]]:
     """The metadata records the summary indexes, and one line per record that does not read."""
     out, problems = [], []

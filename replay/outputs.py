@@ -37,22 +37,42 @@ def own_folder(folder: str | Path, output: str | Path | None = None) -> Path:
     return folder
 
 
-def check_new_file(path: str | Path, force: bool = False, what: str = "output") -> Path:
+def check_not_input(path: str | Path, inputs: Iterable[str | Path | None], what: str = "output") -> None:
+    """A ReplayError when the output ``path`` is one of the command's ``inputs`` (the same file,
+    by any name; None: none given): ``--force`` replaces an earlier output, never what the
+    command reads."""
+    for src in inputs:
+        if src is None or not os.path.lexists(src) or not os.path.lexists(path):
+            continue
+        if Path(src).resolve() == Path(path).resolve() or os.path.samefile(src, path):
+            raise ReplayError(f"{what} {path} is also this command's input {src}: give the output another name "
+                              "(--force replaces an earlier output, never an input)")
+
+
+def check_new_file(path: str | Path, force: bool = False, what: str = "output",
+                   inputs: Iterable[str | Path | None] = ()) -> Path:
     """A file about to be written: an existing one is refused unless ``force`` (an
-    OutputExists naming it), a folder always; its own folder made (:func:`own_folder`)."""
+    OutputExists naming it), a folder always, one of the command's ``inputs`` even with
+    ``force`` (:func:`check_not_input`); its own folder made (:func:`own_folder`)."""
     path = Path(path)
     if path.is_dir():
         raise ReplayError(f"{what} {path} is a folder, not a file")
+    check_not_input(path, inputs, what)
     if os.path.lexists(path) and not force:
         raise OutputExists(f"{what} {path} exists: qradar replaces no output unless told ({FORCE_HINT})")
     own_folder(path.parent, path)
     return path
 
 
-def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = False) -> Path:
+def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = False,
+                        inputs: Iterable[str | Path | None] = ()) -> Path:
     """A folder of outputs: if it holds any of the files ``names`` the command writes, refused
-    unless ``force``; then made if missing (:func:`own_folder`)."""
+    unless ``force`` (one of the command's ``inputs`` always, :func:`check_not_input`); then
+    made if missing (:func:`own_folder`)."""
     folder = Path(folder)
+    names, inputs = list(names), list(inputs)
+    for n in names:
+        check_not_input(folder / n, inputs)
     if folder.is_dir():
         taken = [n for n in names if os.path.lexists(folder / n)]
         if taken and not force:

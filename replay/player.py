@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import zenoh
 
-from pipeline.bus.session import BusConfig
+from pipeline.bus.session import BusConfig, check_prefix
+from pipeline.errors import ParameterError
 from radar_driver.options import option, pos_float
 
 from .errors import NoQradarChannelsError, ReplayError
@@ -43,6 +44,11 @@ class PlayConfig:
     def __post_init__(self) -> None:
         if not self.rate > 0:
             raise ReplayError(f"--rate {self.rate!r} must be > 0")
+        if self.prefix is not None:
+            try:
+                check_prefix(self.prefix, "--replay-prefix")
+            except ParameterError as exc:
+                raise ReplayError(str(exc)) from None
         if self.start_s is not None and self.end_s is not None and self.end_s <= self.start_s:
             raise ReplayError(f"--end {self.end_s} must come after --start {self.start_s}")
 

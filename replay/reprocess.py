@@ -488,9 +488,10 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     (optionally) an MCAP of the best (decoder, alpha)'s targets. Returns the summary,
     the files written, notes for the user (warnings) and the report lines. Existing outputs
     are refused before any work unless ``cfg.force`` (:mod:`replay.outputs`)."""
-    check_output_folder(cfg.out, OUTPUT_FILES, cfg.force)
+    inputs = (cfg.file, cfg.calibration, cfg.truth)
+    check_output_folder(cfg.out, OUTPUT_FILES, cfg.force, inputs)
     if cfg.mcap is not None:
-        check_new_file(cfg.mcap, cfg.force, "--mcap")
+        check_new_file(cfg.mcap, cfg.force, "--mcap", inputs)
     rec = load_raw(cfg.file, cfg.sensor)
     calibration = None
     if cfg.calibration is not None:

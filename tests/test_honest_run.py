@@ -191,6 +191,41 @@ def test_3_the_session_gives_up_after_its_barren_connections(tmp_path):
     assert session.counters.frames == 0 and session.counters.reconnects >= 0
 
 
+def test_3_a_sensor_that_never_answers_ends_the_run_with_a_non_zero_status(tmp_path):
+    """A sensor on the network that accepts and never answers: not one frame in the run. The run
+    ends with status 1 and one line saying no frame came and what to check, not status 0."""
+    import socket
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    stop_serving = threading.Event()
+    conns = []
+
+    def serve():  # accept, read, never answer
+        server.settimeout(0.2)
+        while not stop_serving.is_set():
+            try:
+                conns.append(server.accept()[0])
+            except OSError:
+                continue
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        out = qradar("run", "--sensor", f"socket://127.0.0.1:{port},id=silent", "--duration", 6, "--no-record",
+                     "--json", timeout_s=90)
+    finally:
+        stop_serving.set()
+        thread.join(5)
+        for c in conns:
+            c.close()
+        server.close()
+    assert out.returncode == 1, (out.returncode, out.stderr[-2000:])
+    assert json.loads(out.stdout)["frames_raw"] == 0
+    line = [x for x in out.stderr.splitlines() if x.startswith("qradar run: error:")]
+    assert len(line) == 1 and "no frame came from any sensor" in line[0] and "--sensor URL" in line[0], line
+
+
 # -- 4. a calibration that does not fit; every frame refused; an empty scene --------------------------
 def test_4_a_calibration_of_another_config_id_is_refused_at_the_first_frame(tmp_path):
     cal = json.loads(CAL.read_text())

@@ -148,3 +148,43 @@ def test_the_files_after_a_renamed_first_one_are_numbered_from_one(tmp_path, bus
     finally:
         rec.stop()
     assert [p.name for p in rec.paths][:2] == ["run-y-1.mcap", "run-y-1_0001.mcap"]
+
+
+def test_force_never_replaces_a_commands_own_input(tmp_path, cli):
+    """``--force`` replaces an earlier output, never the recording a command reads, by any name:
+    ``reprocess --mcap``, ``calibrate --out`` and ``recover -o`` naming the input are refused
+    in one line and the input is left as it was."""
+    src = tmp_path / "in.mcap"
+    src.write_bytes((Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap").read_bytes())
+    (tmp_path / "same.mcap").symlink_to(src)
+    before = src.read_bytes()
+    for argv in (["reprocess", src, "--algos", "pbp", "--alpha", "0.5", "--out", tmp_path / "rp", "--mcap", src],
+                 ["reprocess", src, "--algos", "pbp", "--out", tmp_path / "rp", "--mcap", tmp_path / "same.mcap"],
+                 ["calibrate", "--empty", src, "--out", tmp_path / "same.mcap"],
+                 ["recover", src, "-o", tmp_path / "same.mcap"]):
+        code, out, err = cli(*argv, "--force")
+        assert code == 2 and len(err.strip().splitlines()) == 1, (argv, err)
+        assert "input" in err or "give another output" in err, err
+    assert src.read_bytes() == before
+
+
+def test_a_recover_of_what_is_no_recording_leaves_no_output(tmp_path, cli):
+    """A missing input, a folder, an empty file or a text file: refused in one line before the
+    output exists, so the retry with the right input is not refused for it."""
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("the lab's notes\n")
+    (tmp_path / "dir.mcap").mkdir()
+    for src in ("missing.mcap", "empty.mcap", "notes.txt", "dir.mcap"):
+        code, _, err = cli("recover", tmp_path / src, "-o", tmp_path / "out" / "x.mcap")
+        assert code == 2 and str(tmp_path / src) in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "out" / "x.mcap").exists()
+    code, out, _ = cli("recover", Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap",
+                       "-o", tmp_path / "out" / "x.mcap")
+    assert code == 0 and json.loads(out)["messages"] > 0
+
+
+@pytest.mark.parametrize("prefix", ["", "x/", "/x", "a*"])
+def test_a_replay_prefix_that_is_no_key_is_one_line(prefix, cli):
+    code, _, err = cli("replay", Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap",
+                       "--replay-prefix", prefix, "--fast")
+    assert code == 2 and "--replay-prefix" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -51,6 +51,13 @@ def zenoh_reason(exc: BaseException) -> str:
 _DEFAULT_ENDPOINTS = {key: zenoh.Config().get_json(key) for key in ("listen/endpoints", "connect/endpoints")}
 
 
+def check_prefix(prefix: str, what: str = "key prefix") -> str:
+    """``prefix``, a plain key expression (``radar``, ``lab/radar``: no wildcard, no leading or
+    trailing ``/``); a ParameterError naming ``what`` otherwise."""
+    if not prefix or any(c in prefix for c in "*$?#@ ") or prefix.startswith("/") or prefix.endswith("/"):
+        raise ParameterError(f"{what} {prefix!r} must be a plain key expression like 'radar' or 'lab/radar'")
+    return prefix
+
 @dataclass(frozen=True)
 class BusConfig:
     """mode: "peer", "client" or "router". prefix: the first key chunk (default radar)."""
@@ -75,9 +82,7 @@ class BusConfig:
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
             raise ParameterError(f"zenoh mode={self.mode!r} must be peer, client or router")
-        if not self.prefix or any(c in self.prefix for c in "*$?#@ ") or self.prefix.startswith("/") \
-                or self.prefix.endswith("/"):
-            raise ParameterError(f"key prefix {self.prefix!r} must be a plain key expression like 'radar' or 'lab/radar'")
+        check_prefix(self.prefix)
         for ep in self.connect + self.listen:
             if "/" not in ep:
                 raise ParameterError(f"endpoint {ep!r} must look like tcp/127.0.0.1:7447")

@@ -26,7 +26,6 @@ from replay.recorder import default_recording_path
 from replay.source import RecordingSource
 
 from ..run import RunConfig, print_json, remove_run_dirs, run
-from ..summary import localizer_warning
 from ..view import ViewConfig, parse_endpoint
 from . import lab
 from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, load_calibration, watch_parent
@@ -282,6 +281,6 @@ def cmd_run(args) -> int:
     else:
         print(summary.format())
     if summary.produced_nothing and not summary.interrupted:
-        print(f"qradar run: error: {localizer_warning(summary.frames_raw, 0)}", file=sys.stderr, flush=True)
+        print(f"qradar run: error: {summary.nothing_reason()}", file=sys.stderr, flush=True)
         return 1
     return 0
