@@ -222,7 +222,7 @@ def cmd_up(args) -> int:
     host = args.host or run_args.host_default
     duration = args.duration_s if args.duration_s is not None else explicit.get("duration_s")
     stop = threading.Event()
-    StopOnSignals(stop, "up", on_force=remove_run_dirs)
+    signals = StopOnSignals(stop, "up", on_force=remove_run_dirs)
     with run_directory() as tmp:
         nodes = plan_nodes(run_args, Path(tmp))
         mine = [n for n in nodes if n.host == host]
@@ -247,6 +247,13 @@ def cmd_up(args) -> int:
         finally:
             ready.close()
     print(json.dumps({"up": {"host": host, "nodes": {s.sensor_id: report(s) for s in supervised}}}), flush=True)
+    # as run: a set-up whose node ended dead (given up, or waiting to restart after a failure) is no success
+    failed = [s for s in supervised if s.state in ("gone", "restarting") and s.exits]
+    if failed and signals.interrupted is None:
+        why = "; ".join(f"{s.sensor_id} ({s.state} after {s.restarts} restart(s)): {s.exits[-1]}" for s in failed)
+        print(f"qradar up: error: {why} (check the sensor, its url and profile in the lab file, and the lines "
+              "above)", file=sys.stderr, flush=True)
+        return 1
     return 0
 
 
