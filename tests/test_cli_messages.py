@@ -86,3 +86,20 @@ def test_run_checks_the_requests_in_flight():
     assert RunConfig().outstanding == 2
     with pytest.raises(ParameterError, match="outstanding=3 must be 1 or 2"):
         RunConfig(outstanding=3)
+
+
+@pytest.mark.parametrize("argv, command", [(["run", "--json", "--K", "0"], "run"),
+                                           (["drive", "--frames", "0", "--json"], "drive"),
+                                           (["info", "--json", "--bogus", "x"], "info")])
+def test_an_argument_error_with_json_prints_the_error_object_and_names_its_command(argv, command, cli):
+    """As every other failure with ``--json``: one line on stderr naming the command (an option
+    the top parser found unknown too: ``qradar info: error: unrecognized arguments``), and the
+    error object on stdout, status 2."""
+    import json
+
+    code, out, err = cli(*argv)
+    assert code == 2 and err.startswith(f"qradar {command}: error: ") and len(err.strip().splitlines()) == 1, err
+    obj = json.loads(out)
+    assert obj["exit_code"] == 2 and obj["command"] == command and obj["error"] in err
+    code, out, err = cli(*[a for a in argv if a != "--json"])
+    assert code == 2 and out == "" and err.startswith(f"qradar {command}: error: ")

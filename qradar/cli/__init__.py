@@ -54,12 +54,26 @@ class VersionAction(argparse.Action):
         parser.exit()
 
 
+class UsageError(SystemExit):
+    """An argument error, said on stderr already (status 2); ``message`` for ``--json``."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+
 class CommandParser(argparse.ArgumentParser):
     """argparse's parser, whose argument errors are one line and the ``--help`` hint (not
-    the usage block first)."""
+    the usage block first), naming the command (``qradar run: error: ...``) even for an
+    option the top parser found unknown."""
+
+    #: the command of the top parser's arguments (:func:`build_parser`), for its errors
+    command: str | None = None
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+        prog = f"{self.prog} {self.command}" if self.command and self.prog == "qradar" else self.prog
+        self._print_message(f"{prog}: error: {message} (see `{prog} --help`)\n", sys.stderr)
+        raise UsageError(message)
 
 
 #: The functions that add the commands to the parser, as (module, function), in the order of
@@ -98,6 +112,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action=VersionAction)
     sub = parser.add_subparsers(dest="command", required=True)
     known = any(command in names for names in ADDERS.values())
+    parser.command = command if known else None
     for (module, adder), names in ADDERS.items():
         if not known or command in names:
             getattr(importlib.import_module(f".{module}", __name__), adder)(sub)
@@ -155,8 +170,14 @@ def _end_process(code: int) -> None:
 
 def _main(argv: list[str] | None) -> int:
     limit_malloc_arenas()
-    parser = build_parser(command_of(argv))
-    args = parser.parse_args(argv)
+    command = command_of(argv)
+    parser = build_parser(command)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:  # said on stderr; with --json the error object on stdout too
+        if "--json" in (sys.argv[1:] if argv is None else argv):
+            print(json.dumps({"error": exc.message, "exit_code": 2, "command": command}), flush=True)
+        return 2
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     threading.excepthook = _thread_failed
