@@ -45,7 +45,7 @@ def load_kernels(common: bool = False, on_step=None, kinds: tuple | None = None,
     :data:`KINDS` alone): about 1 s from numba's cache, a first compile a minute or more;
     nothing without numba. The decodes loaded: K given, in a range gate with a return outside
     it, always; with a count test (``count``, ``--K auto``) and from a warm start (``warm``)
-    when asked (a node with K given and no warm start: 0.14 s less CPU at its start; ``make``
+    when asked (a node with K given and no warm start: 0.3 s less CPU at its start; ``make``
     compiles them all). A caller that cannot wait runs it in a thread of its own (a frame
     of a kind not loaded yet meanwhile waits for numba's lock). ``on_step(i, bits,
     likelihood, seconds)`` before each kind (seconds None) and after it."""
