@@ -58,6 +58,7 @@ def check_prefix(prefix: str, what: str = "key prefix") -> str:
         raise ParameterError(f"{what} {prefix!r} must be a plain key expression like 'radar' or 'lab/radar'")
     return prefix
 
+
 @dataclass(frozen=True)
 class BusConfig:
     """mode: "peer", "client" or "router". prefix: the first key chunk (default radar)."""
