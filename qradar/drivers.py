@@ -244,6 +244,8 @@ class SupervisedDriver:
         self.gone = threading.Event()
         self.restarts = 0
         self.exits: list[str] = []  # why each driver died, in order
+        self.quick_deaths = 0  # deaths in a row, each within healthy_s of its start
+        self.started_at = time.monotonic()  # the current driver's start
         self.state = "starting"
         self.current = None
         self._counters: dict[str, int] = {}  # counters of earlier drivers that ended with them
@@ -284,6 +286,7 @@ class SupervisedDriver:
             if lived_s >= self.healthy_s:
                 quick_deaths, backoff = 0, self.backoff_s
             quick_deaths += 1
+            self.quick_deaths = quick_deaths
             with self._lock:
                 self.exits.append(why)
             if quick_deaths > self.max_restarts:
@@ -306,9 +309,17 @@ class SupervisedDriver:
             except Exception as exc:  # could not even start: counts as one more death
                 self.current = _Failed(exc)
                 continue
-            started = time.monotonic()
+            started = self.started_at = time.monotonic()
             self.state = "running"
             self._tell("running", f"{self.what} started again (restart {self.restarts})")
+
+    @property
+    def failing(self) -> bool:
+        """Its node died and has not stayed up since: given up, waiting to start again, or
+        started again less than ``healthy_s`` ago after a quick death (a sensor that never works
+        is failing whenever it is asked)."""
+        return self.quick_deaths > 0 and (self.state != "running"
+                                          or time.monotonic() - self.started_at < self.healthy_s)
 
     def _tell(self, state: str, detail: str) -> None:
         if self.on_event is not None:

@@ -247,10 +247,10 @@ def cmd_up(args) -> int:
         finally:
             ready.close()
     print(json.dumps({"up": {"host": host, "nodes": {s.sensor_id: report(s) for s in supervised}}}), flush=True)
-    # as run: a set-up whose node ended dead (given up, or waiting to restart after a failure) is no success
-    failed = [s for s in supervised if s.state in ("gone", "restarting") and s.exits]
+    # as run: a set-up whose node ended failing (given up, or dying again at each start) is no success
+    failed = [s for s in supervised if s.failing and s.exits]
     if failed and signals.interrupted is None:
-        why = "; ".join(f"{s.sensor_id} ({s.state} after {s.restarts} restart(s)): {s.exits[-1]}" for s in failed)
+        why = "; ".join(f"{s.sensor_id} (died {len(s.exits)} time(s), {s.state}): {s.exits[-1]}" for s in failed)
         print(f"qradar up: error: {why} (check the sensor, its url and profile in the lab file, and the lines "
               "above)", file=sys.stderr, flush=True)
         return 1
