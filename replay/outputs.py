@@ -44,7 +44,7 @@ def check_not_input(path: str | Path, inputs: Iterable[str | Path | None], what:
     for src in inputs:
         if src is None or not os.path.lexists(src) or not os.path.lexists(path):
             continue
-        if Path(src).resolve() == Path(path).resolve() or os.path.samefile(src, path):
+        if os.path.samefile(src, path):  # by any name: a link, a relative path
             raise ReplayError(f"{what} {path} is also this command's input {src}: give the output another name "
                               "(--force replaces an earlier output, never an input)")
 

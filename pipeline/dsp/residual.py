@@ -67,7 +67,9 @@ def product_floor_db(alpha) -> tuple[np.ndarray, np.ndarray]:
     known = np.isfinite(a)
     x = np.clip(a[known], 0.0, 1.0) / ALPHA_STEP
     lo, hi = np.floor(x + 1e-9).astype(np.int64), np.ceil(x - 1e-9).astype(np.int64)
-    levels = np.array([_product_levels_db(int(i)) for i in range(int(hi.max(initial=0)) + 1)]).reshape(-1, 2)
+    steps = np.unique(np.concatenate([lo, hi]))  # the grid points these frames need (each ~3 ms, once)
+    levels = np.array([_product_levels_db(int(i)) for i in steps]).reshape(-1, 2)
+    lo, hi = np.searchsorted(steps, lo), np.searchsorted(steps, hi)
     if known.any():
         single[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 0], levels[hi, 0]))
         mixed[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 1], levels[hi, 1]))
@@ -207,8 +209,13 @@ def kept_tones(nu: np.ndarray, active: np.ndarray | None, n: int) -> tuple[np.nd
     freq = nu @ combos.T
     keep = separated(freq, n)
     if active is not None:
-        keep &= ~((np.abs(combos) > 0)[None] & ~active[:, None, :]).any(axis=2)
+        keep &= made_of(combos, active)
     return freq, keep
+
+
+def made_of(combos: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """Which tones ``combos`` (P, J) are made of a frame's ``active`` (B, J) targets alone: (B, P)."""
+    return ~((np.abs(combos) > 0)[None] & ~active[:, None, :]).any(axis=2)
 
 
 def fitted_inside(nu: np.ndarray, active: np.ndarray | None, n: int, inside: np.ndarray) -> np.ndarray:
@@ -322,7 +329,7 @@ def merged_near(nu: np.ndarray, active: np.ndarray, n: int) -> np.ndarray:
     into a lower order one (:func:`separated`): what is left of it there is the model's residue."""
     combos = tone_combinations(nu.shape[1])
     freq = nu @ combos.T  # (B, P)
-    made = ~((np.abs(combos) > 0)[None] & ~active[:, None, :]).any(axis=2)  # of the frame's targets alone
+    made = made_of(combos, active)
     frame, tone = np.nonzero(made & ~separated(np.where(made, freq, np.nan), n))  # the merged tones
     at = freq[frame, tone]
     out = np.zeros((nu.shape[0], n), dtype=bool)

@@ -248,7 +248,7 @@ def cmd_up(args) -> int:
             ready.close()
     print(json.dumps({"up": {"host": host, "nodes": {s.sensor_id: report(s) for s in supervised}}}), flush=True)
     # as run: a set-up whose node ended failing (given up, or dying again at each start) is no success
-    failed = [s for s in supervised if s.failing and s.exits]
+    failed = [s for s in supervised if s.failing]
     if failed and signals.interrupted is None:
         why = "; ".join(f"{s.sensor_id} (died {len(s.exits)} time(s), {s.state}): {s.exits[-1]}" for s in failed)
         print(f"qradar up: error: {why} (check the sensor, its url and profile in the lab file, and the lines "
