@@ -7,7 +7,7 @@ from __future__ import annotations
 import subprocess
 
 from pipeline.bus.session import ALONE_AFTER_S
-from zenoh_helpers import QRADAR, interrupt, qradar
+from zenoh_helpers import QRADAR, interrupt, qradar, RUNTIME_DECODER
 
 WARNING = "no zenoh peer or router reached"
 
@@ -25,7 +25,8 @@ def test_a_command_alone_says_so_once_with_the_fix():
 def test_a_connect_endpoint_that_answers_nothing_is_named(free_port):
     """The warning waited for (a line of stderr), then Ctrl-C: the node kept running."""
     ep = f"tcp/127.0.0.1:{free_port}"
-    proc = subprocess.Popen([*QRADAR, "localize", "--connect", ep, "--duration", "60"], stdin=subprocess.DEVNULL,
+    proc = subprocess.Popen([*QRADAR, "localize", *RUNTIME_DECODER, "--connect", ep, "--duration", "60"],
+                            stdin=subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         for _ in range(40):  # bounded: its first lines, and EOF when it ends
@@ -41,6 +42,6 @@ def test_a_connect_endpoint_that_answers_nothing_is_named(free_port):
 
 
 def test_the_main_job_alone_on_purpose_does_not_warn():
-    out = qradar("run", "--duration", str(ALONE_AFTER_S + 2), "--no-record")
+    out = qradar("run", *RUNTIME_DECODER, "--duration", str(ALONE_AFTER_S + 2), "--no-record")
     assert out.returncode == 0, out.stderr[-2000:]
     assert WARNING not in out.stderr and WARNING not in out.stdout

@@ -24,7 +24,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError
 from pipeline.bus.security import SecureConfig
 from test_security import pki, qradar  # noqa: F401 -- the module's fixture: the lab's CA and another
-from zenoh_helpers import QRADAR, Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until, RUNTIME_DECODER
 
 ROOT = Path(__file__).resolve().parents[1]
 ACL = "zenoh::net::routing::interceptor::access_control"
@@ -344,8 +344,8 @@ def test_run_counts_denials_in_health_and_its_summary(pki, free_port, connect_wh
     on stdout) too."""
     lab, _ = pki
     ep = f"tls/127.0.0.1:{free_port}"
-    run = qradar("run", "--secure", lab, "--listen", ep, "--scene", "single", "--K", "1", "--frames", "60",
-                 "--no-record", "--json")
+    run = qradar("run", *RUNTIME_DECODER, "--secure", lab, "--listen", ep, "--scene", "single", "--K", "1",
+                 "--frames", "60", "--no-record", "--json")
     out, err = Lines(run.stdout), Lines(run.stderr)
     attacker = None
     puts = 9

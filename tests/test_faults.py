@@ -29,7 +29,7 @@ from qradar.view import FoxgloveView, ViewConfig
 from replay.recorder import RecorderNode
 from test_hardening import raw
 from test_orphans import alive, drivers_of, kill_all, wait_for
-from zenoh_helpers import QRADAR, free_port, wait_until
+from zenoh_helpers import QRADAR, free_port, wait_until, RUNTIME_DECODER
 
 #: what an attacker puts on a targets or health key: nested far deeper than any reader takes
 DEEP = b'{"version":1,"type":"targets","x":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
@@ -112,8 +112,9 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
     a raw frame of kmd2-1 with seq 2^63: implausible at every stage, nothing missing."""
     port = free_port()
     record = tmp_path / "run.mcap"
-    proc = subprocess.Popen([*QRADAR, "run", "--sensors", "2", "--duration", "60", "--record", str(record), "--json",
-                             "--listen", f"tcp/127.0.0.1:{port}", "--scene", "single", "--K", "1"],
+    proc = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--sensors", "2", "--duration", "60", "--record",
+                             str(record), "--json", "--listen", f"tcp/127.0.0.1:{port}", "--scene", "single",
+                             "--K", "1"],
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "TMPDIR": short_tmp})
     drivers, attacker = [], None

@@ -18,7 +18,7 @@ from radar_driver.scene import SimScene, SimTarget, load_scene, resolve_scene, s
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import QRADAR, wait_until
+from zenoh_helpers import QRADAR, wait_until, RUNTIME_DECODER
 
 C = 3e8
 LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q
@@ -331,7 +331,7 @@ def test_cli_sim_empty_serves_frames_without_targets(tmp_path):
 
 
 def test_cli_run_empty_reports_no_truth(tmp_path):
-    proc = subprocess.run([*QRADAR, "run", "--empty", "--frames", "10", "--no-record",
+    proc = subprocess.run([*QRADAR, "run", *RUNTIME_DECODER, "--empty", "--frames", "10", "--no-record",
                            "--json", "--driver-in-process"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout.strip().splitlines()[-1])

@@ -25,7 +25,7 @@ from pipeline.nodes.runtime import PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import QRADAR, Collector, wait_port, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_port, wait_until, RUNTIME_DECODER
 
 SCENE = resolve_scene("single")
 CONFIG_ID = SCENE.radar.config_id()
@@ -318,7 +318,7 @@ def test_a_restarted_node_shows_up_as_missing_frames_downstream(free_port, conne
     procs = {"router": _qradar("router", "--listen", ep, "--duration", "90")}
     try:
         session = connect_when_ready(ep, timeout_s=20, mode="client")
-        procs["localize"] = _qradar("localize", "--K", "1", "--duration", "90", *client)
+        procs["localize"] = _qradar("localize", *RUNTIME_DECODER, "--K", "1", "--duration", "90", *client)
         procs["quantize"] = _qradar("quantize", "--duration", "90", *client)
         health = Collector(session, "radar/r0/health")
         targets = Collector(session, "radar/r0/targets")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenoh_helpers import QRADAR, free_port, qradar, read_lines
+from zenoh_helpers import QRADAR, free_port, qradar, read_lines, RUNTIME_DECODER
 from zenoh_helpers import interrupt as stop
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -164,7 +164,8 @@ def test_3_frames_that_never_assemble_end_the_run_in_one_line_naming_the_profile
     sim = start_sim(tmp_path / "kmd2", "--profile", "kmd2-cube256")
     try:
         t0 = time.monotonic()
-        out = qradar("run", "--sensor", f"{tmp_path / 'kmd2'},id=lab1", "--frames", 20, "--no-record", timeout_s=90)
+        out = qradar("run", *RUNTIME_DECODER, "--sensor", f"{tmp_path / 'kmd2'},id=lab1", "--frames", 20, "--no-record",
+                     timeout_s=90)
         took = time.monotonic() - t0
     finally:
         stop(sim)
@@ -212,8 +213,8 @@ def test_3_a_sensor_that_never_answers_ends_the_run_with_a_non_zero_status(tmp_p
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     try:
-        out = qradar("run", "--sensor", f"socket://127.0.0.1:{port},id=silent", "--duration", 6, "--no-record",
-                     "--json", timeout_s=90)
+        out = qradar("run", *RUNTIME_DECODER, "--sensor", f"socket://127.0.0.1:{port},id=silent", "--duration", 6,
+                     "--no-record", "--json", timeout_s=90)
     finally:
         stop_serving.set()
         thread.join(5)
@@ -232,7 +233,7 @@ def test_4_a_calibration_of_another_config_id_is_refused_at_the_first_frame(tmp_
     cal["entries"][0]["config_id"] = 12345
     other = tmp_path / "other-config.json"
     other.write_text(json.dumps(cal))
-    out = qradar("run", "--frames", 40, "--no-record", "--calibration", other)
+    out = qradar("run", *RUNTIME_DECODER, "--frames", 40, "--no-record", "--calibration", other)
     assert out.returncode == 2
     line = one_line(out.stderr)
     assert line.startswith(f"qradar run: error: calibration {other} does not fit the frames of sensor 'kmd2-0'")
@@ -243,8 +244,8 @@ def test_4_frames_that_are_every_one_refused_end_the_run(tmp_path):
     """20 ramps a frame: frames the nodes announce no configuration for (at most 16)."""
     sim = start_sim(tmp_path / "kmd2", "--rate", 0)
     try:
-        out = qradar("run", "--sensor", f"{tmp_path / 'kmd2'},id=lab1,ramps=20", "--duration", 30, "--no-record",
-                     timeout_s=90)
+        out = qradar("run", *RUNTIME_DECODER, "--sensor", f"{tmp_path / 'kmd2'},id=lab1,ramps=20", "--duration", 30,
+                     "--no-record", timeout_s=90)
     finally:
         stop(sim)
     assert out.returncode == 2, out.stderr[-2000:]
@@ -314,7 +315,7 @@ def test_6_quantize_and_localize_say_where_they_listen_and_report_every_few_seco
 
 
 def test_6_quiet_nodes_and_the_sims_summary_on_ctrl_c(tmp_path):
-    out = qradar("localize", "--duration", 0.5, "--quiet")
+    out = qradar("localize", *RUNTIME_DECODER, "--duration", 0.5, "--quiet")
     assert out.returncode == 0 and "qradar localize: zenoh" not in out.stderr
     from radar_driver.scene import packaged_scenes
     listed = " ".join(qradar("sim", "--help").stdout.split())
@@ -426,8 +427,9 @@ def test_9_the_human_summary_is_text_with_meaningful_digits():
 
 # -- 10. a signal delivered twice within milliseconds is one -------------------------------------------
 def test_10_two_sigints_a_few_milliseconds_apart_are_one_and_the_run_ends_with_its_summary(tmp_path):
-    proc = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json"], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    proc = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", "--json"],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
     try:
         for _ in range(80):  # bounded: up to the first live line
             line = proc.stderr.readline()

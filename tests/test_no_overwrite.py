@@ -21,7 +21,7 @@ from radar_driver.simulator import PtyLink, SimulatorServer
 from replay.errors import ReplayError
 from replay.mcapio import McapFile
 from replay.recorder import RecorderNode, default_recording_path
-from zenoh_helpers import QRADAR, wait_until
+from zenoh_helpers import QRADAR, wait_until, RUNTIME_DECODER
 
 
 
@@ -119,7 +119,7 @@ def test_a_taken_default_name_and_a_taken_split_name_are_skipped(tmp_path, bus, 
 
 
 def test_two_runs_started_together_write_two_whole_recordings(tmp_path):
-    cmd = [*QRADAR, "run", "--frames", "30", "--json"]
+    cmd = [*QRADAR, "run", *RUNTIME_DECODER, "--frames", "30", "--json"]
     procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                               stdin=subprocess.DEVNULL) for _ in range(2)]
     try:

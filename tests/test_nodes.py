@@ -29,7 +29,7 @@ from pipeline.wire import (
 from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import QRADAR, Collector, alive_nodes, run_until, wait_until
+from zenoh_helpers import QRADAR, Collector, alive_nodes, run_until, wait_until, RUNTIME_DECODER
 
 
 def truth_error(scene, targets_msgs):
@@ -341,7 +341,7 @@ def _socket_inodes(pid: int) -> set[str]:
 
 
 def test_qradar_run_listens_on_no_port_and_its_driver_is_another_process():
-    proc = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json"],
+    proc = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         def children() -> list[int]:

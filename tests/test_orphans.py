@@ -18,7 +18,7 @@ import pytest
 
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import QRADAR
+from zenoh_helpers import QRADAR, RUNTIME_DECODER
 
 
 
@@ -90,7 +90,8 @@ def kill_all(pids) -> None:
 @pytest.mark.parametrize("how", ["process", "group"])
 def test_a_killed_run_leaves_no_driver_behind(how, tmp_path):
     tmp = tempfile.mkdtemp(prefix="qro-", dir="/tmp")  # its run directory there (short: a unix socket's path)
-    run = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json", "--sensors", "2"],
+    run = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", "--json",
+                            "--sensors", "2"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                            start_new_session=True, cwd=tmp_path, env={**os.environ, "TMPDIR": tmp})
     drivers: list[int] = []
@@ -138,8 +139,9 @@ def test_the_next_run_removes_the_directory_of_a_sigkilled_one():
     legacy_dir.mkdir()
     lock = os.open(live_dir / "owner.lock", os.O_CREAT | os.O_RDWR, 0o600)
     fcntl.flock(lock, fcntl.LOCK_EX)
-    run = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--json"], stdin=subprocess.DEVNULL,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
+    run = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", "--json"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           start_new_session=True, env=env)
     drivers: list[int] = []
     try:
         drivers = wait_for(lambda: drivers_of(run.pid), 30.0)
@@ -149,7 +151,8 @@ def test_the_next_run_removes_the_directory_of_a_sigkilled_one():
         run.wait(10)
         assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0)
         assert mine[0].is_dir()  # nothing could remove it
-        nxt = subprocess.run([*QRADAR, "run", "--frames", "3", "--no-record", "--json"], stdin=subprocess.DEVNULL,
+        nxt = subprocess.run([*QRADAR, "run", *RUNTIME_DECODER, "--frames", "3", "--no-record", "--json"],
+                             stdin=subprocess.DEVNULL,
                              capture_output=True, text=True, timeout=120, env=env)
         assert nxt.returncode == 0, nxt.stderr[-2000:]
         assert sorted(p.name for p in Path(tmp).iterdir()) == ["qradar-run-legacy", "qradar-run-live"]

@@ -21,7 +21,7 @@ from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, recover
 from replay.recorder import RecorderNode, RecordingState
-from zenoh_helpers import QRADAR, Collector, read_lines, wait_until
+from zenoh_helpers import QRADAR, Collector, read_lines, wait_until, RUNTIME_DECODER
 
 ROOT = Path(__file__).resolve().parents[1]
 CHUNK = 64 * 1024
@@ -232,7 +232,7 @@ def test_qradar_run_goes_on_through_a_full_disk_and_records_again_when_space_ret
                 filler.unlink()
                 freed.set()
 
-        code, lines, out = run_to_event([*QRADAR, "run", "--duration", "60", "--json", "--record",
+        code, lines, out = run_to_event([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--json", "--record",
                                       str(path), "--write-retry", "0.5"], "recording resumed", on_line)
         assert code == 0, "".join(lines[-20:])
         assert freed.is_set(), "the recording never paused: " + "".join(lines[-20:])
@@ -271,8 +271,9 @@ def qradar_with_fsize_limit(limit_bytes: int, *args: str) -> list[str]:
 def test_qradar_run_with_stop_ends_the_recording_on_efbig_and_runs_on(tmp_path):
     path = tmp_path / "run.mcap"
     limit = 300_000
-    code, lines, out = run_to_event(qradar_with_fsize_limit(limit, "run", "--duration", "60", "--json", "--record",
-                                                         str(path), "--on-write-error", "stop"), "recording stopped")
+    cmd = qradar_with_fsize_limit(limit, "run", *RUNTIME_DECODER, "--duration", "60", "--json", "--record", str(path),
+                                  "--on-write-error", "stop")
+    code, lines, out = run_to_event(cmd, "recording stopped")
     assert code == 0, "".join(lines[-20:])
     stopped = [ln for ln in lines if "recording stopped" in ln]
     assert len(stopped) == 1 and "File too large (EFBIG)" in stopped[0] and str(path) in stopped[0]

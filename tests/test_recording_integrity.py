@@ -39,7 +39,7 @@ from replay.mcapio import DERIVED, McapFile, McapSink, topic_of
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw
-from zenoh_helpers import Collector, QRADAR, rss_mb, wait_until
+from zenoh_helpers import Collector, QRADAR, rss_mb, wait_until, RUNTIME_DECODER
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
@@ -436,9 +436,9 @@ def run_with_forged_health(tmp_path: Path, run_args: list[str], connect, n: int,
     health messages put on kmd2-0's health key from the session ``connect()`` opens, once
     frames flow; returns the run's JSON summary after checking its recording."""
     path = tmp_path / "rec.mcap"
-    run = subprocess.Popen([*QRADAR, "run", *run_args, "--record", str(path), "--frames", str(RUN_FRAMES), "--scene",
-                            "single", "--K", "1", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                           cwd=tmp_path)
+    run = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, *run_args, "--record", str(path), "--frames",
+                            str(RUN_FRAMES), "--scene", "single", "--K", "1", "--json"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     try:
         session = connect()
         col = Collector(session, "radar/kmd2-0/raw")

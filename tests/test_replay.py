@@ -27,7 +27,7 @@ from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
-from zenoh_helpers import QRADAR, Collector, wait_until
+from zenoh_helpers import QRADAR, Collector, wait_until, RUNTIME_DECODER
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
@@ -331,7 +331,7 @@ def test_cli_reprocess_writes_plots_results_and_mcap(tmp_path):
 
 def test_qradar_run_leaves_a_recording_that_replays(tmp_path):
     path = tmp_path / "run.mcap"
-    proc = subprocess.run([*QRADAR, "run", "--duration", "3", "--json", "--record",
+    proc = subprocess.run([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "3", "--json", "--record",
                            str(path)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     s = json.loads(proc.stdout)

@@ -33,7 +33,7 @@ from radar_driver.simulator import SimulatorServer
 from replay.mcapio import McapFile
 from ser2net_helpers import ser2net_for
 from test_orphans import alive, drivers_of, kill_all, wait_for
-from zenoh_helpers import QRADAR, qradar
+from zenoh_helpers import QRADAR, qradar, RUNTIME_DECODER
 
 FRAMES = 30
 #: a run of FRAMES frames at 20 a second ends well within this (start-up included)
@@ -152,7 +152,7 @@ def test_without_truth_a_real_sensor_has_targets_rates_and_drops_but_no_error(tm
     (--driver-in-process), each with its own id; K is the chamber's 2."""
     links = [tmp_path / "a", tmp_path / "b"]
     with simulator(links[0]), simulator(links[1]):
-        proc = qradar("run", "--no-record", "--frames", "30", "--driver-in-process",
+        proc = qradar("run", *RUNTIME_DECODER, "--no-record", "--frames", "30", "--driver-in-process",
                       "--sensor", f"{links[0]},id=left", "--sensor", f"{links[1]},id=right,profile=kmd2-blocks",
                       cwd=tmp_path, timeout_s=RUN_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -296,7 +296,8 @@ def test_a_device_held_by_another_process_is_refused_naming_it(tmp_path):
 def test_a_killed_run_leaves_no_driver_of_a_real_sensor_behind(tmp_path):
     link = tmp_path / "kmd2"
     with simulator(link) as sim:
-        run = subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", "--sensor", f"{link},id=lab1"],
+        run = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", "--sensor",
+                                f"{link},id=lab1"],
                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                cwd=tmp_path)
         drivers: list[int] = []

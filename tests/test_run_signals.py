@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 
 from test_orphans import alive, child_config, drivers_of, kill_all, wait_for
-from zenoh_helpers import QRADAR
+from zenoh_helpers import QRADAR, RUNTIME_DECODER
 
 
 def start_run(tmp_path, *extra) -> subprocess.Popen:
-    return subprocess.Popen([*QRADAR, "run", "--duration", "60", "--no-record", *extra],
+    return subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--duration", "60", "--no-record", *extra],
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=tmp_path)
 

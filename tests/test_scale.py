@@ -20,7 +20,7 @@ from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import QRADAR, Collector, stop_when, wait_until
+from zenoh_helpers import QRADAR, Collector, stop_when, wait_until, RUNTIME_DECODER
 
 CHAMBER = resolve_scene("chamber")
 QUANT = QuantizerConfig(alpha=1.0, dither_seed=9)
@@ -241,8 +241,8 @@ def test_edge_source_and_two_sharded_localizers_across_processes(free_port, conn
     locs = []
     try:
         session = connect_when_ready(ep, mode="client")
-        locs = [cli("localize", "--mode", "client", "--connect", ep, "--shard", f"{i}/2", "--duration", "30")
-                for i in range(2)]
+        locs = [cli("localize", *RUNTIME_DECODER, "--mode", "client", "--connect", ep, "--shard", f"{i}/2",
+                    "--duration", "30") for i in range(2)]
         col = Collector(session, "radar/*/targets")
         quant = Collector(session, "radar/*/quantized")
         wait_until(lambda: sum(1 for r in session.liveliness().get("radar/alive/localize/**", timeout=1.0)

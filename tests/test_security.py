@@ -30,7 +30,8 @@ from pipeline.wire import (
 from qradar.cli import main
 from radar_driver.scene import resolve_scene
 from test_nodes import truth_error
-from zenoh_helpers import QRADAR, Collector, alive_nodes, free_port, listening_sockets, wait_port, wait_until
+from zenoh_helpers import (QRADAR, RUNTIME_DECODER, Collector, alive_nodes, free_port, listening_sockets, wait_port,
+                           wait_until)
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/net/tcp").exists() or shutil.which("openssl") is None,
                                 reason="reads listening sockets from /proc; makes certificates with openssl")
@@ -95,7 +96,7 @@ def test_nodes_listen_on_nothing_unless_asked(tmp_path, free_port, connect_when_
     try:
         session = connect_when_ready(ep, timeout_s=30, mode="client")  # a client needs its router up
         nodes += [qradar("quantize", "--connect", ep, "--duration", "40"),  # a peer, as the README used to say
-                  qradar("localize", "--mode", "client", "--connect", ep, "--duration", "40"),
+                  qradar("localize", *RUNTIME_DECODER, "--mode", "client", "--connect", ep, "--duration", "40"),
                   qradar("record", "--connect", ep, "-o", tmp_path / "r.mcap", "--topics", "radar/*/targets",
                          "--duration", "40"),
                   qradar("source", "--connect", ep, "--listen", f"tcp/127.0.0.1:{asked}", "--rate", "1",
@@ -268,7 +269,7 @@ def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free
     try:
         viewer = connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer"))
         procs += [qradar("quantize", "--secure", lab, "--connect", ep, "--alpha", "0.5", "--duration", "60"),  # peer
-                  qradar("localize", "--secure", lab, "--mode", "client", "--connect", ep, "--K", "1",
+                  qradar("localize", *RUNTIME_DECODER, "--secure", lab, "--mode", "client", "--connect", ep, "--K", "1",
                          "--duration", "60")]
         col = Collector(viewer, "radar/**")
         wait_until(lambda: {"quantize", "localize"} <= set(alive_nodes(viewer)), 30, "quantize and localize alive")
@@ -336,8 +337,8 @@ def test_run_secure_serves_other_nodes_over_tls_only(pki, free_port, connect_whe
     publish, a viewer on TLS reads, a sensor of another id cannot inject."""
     lab, _ = pki
     ep = f"tls/127.0.0.1:{free_port}"
-    run = qradar("run", "--secure", lab, "--listen", ep, "--scene", "single", "--K", "1", "--frames", "100",
-                 "--no-record", "--json")
+    run = qradar("run", *RUNTIME_DECODER, "--secure", lab, "--listen", ep, "--scene", "single", "--K", "1",
+                 "--frames", "100", "--no-record", "--json")
     attacker = None
     try:
         viewer = connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer"))
@@ -373,7 +374,8 @@ def test_only_the_router_is_the_router(pki, free_port):
     impostor = qradar("router", "--secure", lab, "--identity", "viewer", "--listen", ep, "--duration", "60")
     try:
         wait_port(free_port)
-        nodes = [("localize", "--secure", lab, "--mode", "client", "--connect", ep, "--duration", "5"),
+        nodes = [("localize", *RUNTIME_DECODER, "--secure", lab, "--mode", "client", "--connect", ep,
+                  "--duration", "5"),
                  ("quantize", "--secure", lab, "--mode", "client", "--connect", ep, "--duration", "5"),
                  ("source", "--secure", lab, "--mode", "client", "--connect", ep, "--id-prefix", "s",
                   "--frames", "3")]

@@ -17,7 +17,7 @@ import pytest
 from qradar.cli.up import plan_nodes, read_lab
 from replay.mcapio import McapFile
 from test_orphans import alive, child_config, children_of, kill_all, wait_for
-from zenoh_helpers import QRADAR
+from zenoh_helpers import QRADAR, RUNTIME_DECODER
 
 STARTED = re.compile(r"qradar up: (.+?): started \(pid (\d+)\) on (\S+)")
 
@@ -51,11 +51,14 @@ def recorded(path: Path) -> list[str]:
         return []
 
 
+#: the lab file's decoder of these tests of the supervision, not of the decoder (zenoh_helpers.RUNTIME_DECODER)
+DECODER = f'[decoder]\nalgo = "{RUNTIME_DECODER[1]}"\n\n'
+
 SIMULATED = """\
 scene = "chamber-ideal"
 rate = 20.0
 
-[recording]
+""" + DECODER + """[recording]
 record = "up.mcap"
 """
 
@@ -209,7 +212,7 @@ def test_a_set_up_whose_driver_never_works_ends_with_a_non_zero_status(tmp_path)
     while it waits to start again or has just started again. As ``run`` with no frame, ``up``
     ends with status 1 and one line naming the sensor and why (it ended with 0, the driver
     marked in its JSON only)."""
-    text = f'[[sensor]]\nurl = "{tmp_path / "no-such-port"}"\nid = "lab1"\n\n[recording]\nno-record = true\n'
+    text = f'[[sensor]]\nurl = "{tmp_path / "no-such-port"}"\nid = "lab1"\n\n{DECODER}[recording]\nno-record = true\n'
     proc = start_up(tmp_path, text, "--duration", "5")
     try:
         out, err = proc.communicate(timeout=90)

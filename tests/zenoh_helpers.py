@@ -17,6 +17,13 @@ import pytest
 
 #: the command line that starts ``qradar`` with this interpreter
 QRADAR = [sys.executable, "-m", "qradar"]
+#: the decoder of the tests of the runtime (signals, supervision, recording, security, the bus,
+#: exit statuses), not of the decoder: PBP. A cml localizer's start loads numba and its kernels,
+#: about 1.2 s of CPU a process (`qradar run --frames 20`: 2.1 s of CPU with cml, 0.9 s with PBP,
+#: 2026-11-30), and some 30 such processes were a tenth of the suite's CPU. The decoder's tests,
+#: the README's recipes, the runs whose accuracy or count test is asserted and `make run` keep
+#: cml, the default.
+RUNTIME_DECODER = ("--algo", "pbp")
 
 
 def qradar(*args, timeout_s: float = 120, cwd=None, env=None) -> subprocess.CompletedProcess:
