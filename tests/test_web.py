@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from setuptools import find_packages
 
 from chromium import Chromium, require_chromium
 from pipeline.dsp.quantize import QuantizerConfig
@@ -474,7 +475,7 @@ def test_the_page_ships_in_the_package_with_its_plotting_library():
     version (its README names it, its integrity and the Makefile step), with its licence;
     nothing on the page comes from elsewhere."""
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert "qradar.web" in data["packages"]
+    assert "qradar.web" in find_packages(where=str(ROOT), include=data["packages"]["find"]["include"])
     globs = data["package-data"]["qradar.web"]
     files = [p.relative_to(STATIC.parent).as_posix() for p in STATIC.rglob("*") if p.is_file()]
     assert files and all(any(fnmatch(f, g) for g in globs) for f in files), files
