@@ -7,7 +7,7 @@ from __future__ import annotations
 import subprocess
 
 from pipeline.bus.session import ALONE_AFTER_S
-from zenoh_helpers import QRADAR, interrupt, qradar, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, interrupt, qradar
 
 WARNING = "no zenoh peer or router reached"
 

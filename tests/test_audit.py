@@ -24,7 +24,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.errors import BusError
 from pipeline.bus.security import SecureConfig
 from test_security import pki, qradar  # noqa: F401 -- the module's fixture: the lab's CA and another
-from zenoh_helpers import QRADAR, Collector, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 ACL = "zenoh::net::routing::interceptor::access_control"

@@ -29,7 +29,7 @@ from qradar.view import FoxgloveView, ViewConfig
 from replay.recorder import RecorderNode
 from test_hardening import raw
 from test_orphans import alive, drivers_of, kill_all, wait_for
-from zenoh_helpers import QRADAR, free_port, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, free_port, wait_until
 
 #: what an attacker puts on a targets or health key: nested far deeper than any reader takes
 DEEP = b'{"version":1,"type":"targets","x":' + b"[" * 100_000 + b"]" * 100_000 + b"}"

@@ -18,7 +18,7 @@ from radar_driver.scene import SimScene, SimTarget, load_scene, resolve_scene, s
 from radar_driver.session import SensorSession, SessionConfig
 from radar_driver.simulator import SimulatorServer
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import QRADAR, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, wait_until
 
 C = 3e8
 LSB = np.sqrt(2) * 0.5 / 2048 * 1.001  # half an ADC step on I and Q

@@ -25,7 +25,7 @@ from pipeline.nodes.runtime import PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
-from zenoh_helpers import QRADAR, Collector, wait_port, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, wait_port, wait_until
 
 SCENE = resolve_scene("single")
 CONFIG_ID = SCENE.radar.config_id()

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenoh_helpers import QRADAR, free_port, qradar, read_lines, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, free_port, qradar, read_lines
 from zenoh_helpers import interrupt as stop
 
 ROOT = Path(__file__).resolve().parents[1]

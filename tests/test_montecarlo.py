@@ -32,8 +32,9 @@ def k1_paper():
     true mean of about 4 m with a spread of the same size), so the cell claims need it. The
     claims are of the cells within 60 deg (26 of the 40 angle columns), so the runs are
     drawn there alone: 26/40 of the paper's, the same count a cell."""
-    return run_montecarlo(MonteCarloConfig(ks=(1,), runs=320_000 * 26 // 40, schemes=("nodither_m512", "dither_m512"),
-                                           seed=1, scene=SceneSpec(max_angle_deg=60.0)), progress=False)
+    runs = 320_000 * int(within_60_columns().sum()) // GRID_CELLS
+    return run_montecarlo(MonteCarloConfig(ks=(1,), runs=runs, schemes=("nodither_m512", "dither_m512"), seed=1,
+                                           scene=SceneSpec(max_angle_deg=60.0)), progress=False)
 
 
 @pytest.fixture(scope="module")

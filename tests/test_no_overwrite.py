@@ -21,7 +21,7 @@ from radar_driver.simulator import PtyLink, SimulatorServer
 from replay.errors import ReplayError
 from replay.mcapio import McapFile
 from replay.recorder import RecorderNode, default_recording_path
-from zenoh_helpers import QRADAR, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, wait_until
 
 
 

@@ -29,7 +29,7 @@ from pipeline.wire import (
 from radar_driver.model import RadarConfig
 from radar_driver.scene import resolve_scene
 from radar_driver.simulator import SimulatorServer
-from zenoh_helpers import QRADAR, Collector, alive_nodes, run_until, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, alive_nodes, run_until, wait_until
 
 
 def truth_error(scene, targets_msgs):

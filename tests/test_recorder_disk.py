@@ -21,7 +21,7 @@ from pipeline.wire import RawFrameMsg, encode_raw
 from radar_driver.model import RadarConfig
 from replay.mcapio import McapFile, recover
 from replay.recorder import RecorderNode, RecordingState
-from zenoh_helpers import QRADAR, Collector, read_lines, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, read_lines, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHUNK = 64 * 1024

@@ -39,7 +39,7 @@ from replay.mcapio import DERIVED, McapFile, McapSink, topic_of
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw
-from zenoh_helpers import Collector, QRADAR, rss_mb, wait_until, RUNTIME_DECODER
+from zenoh_helpers import Collector, QRADAR, RUNTIME_DECODER, rss_mb, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"

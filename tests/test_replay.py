@@ -27,7 +27,7 @@ from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
-from zenoh_helpers import QRADAR, Collector, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"

@@ -33,7 +33,7 @@ from radar_driver.simulator import SimulatorServer
 from replay.mcapio import McapFile
 from ser2net_helpers import ser2net_for
 from test_orphans import alive, drivers_of, kill_all, wait_for
-from zenoh_helpers import QRADAR, qradar, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, qradar
 
 FRAMES = 30
 #: a run of FRAMES frames at 20 a second ends well within this (start-up included)

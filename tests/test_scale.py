@@ -20,7 +20,7 @@ from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
 from radar_driver.scene import resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
-from zenoh_helpers import QRADAR, Collector, stop_when, wait_until, RUNTIME_DECODER
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, stop_when, wait_until
 
 CHAMBER = resolve_scene("chamber")
 QUANT = QuantizerConfig(alpha=1.0, dither_seed=9)

@@ -21,8 +21,9 @@ QRADAR = [sys.executable, "-m", "qradar"]
 #: exit statuses), not of the decoder: PBP. A cml localizer's start loads numba and its kernels,
 #: about 1.2 s of CPU a process (`qradar run --frames 20`: 2.1 s of CPU with cml, 0.9 s with PBP,
 #: 2026-11-30), and some 30 such processes were a tenth of the suite's CPU. The decoder's tests,
-#: the README's recipes, the runs whose accuracy or count test is asserted and `make run` keep
-#: cml, the default.
+#: the README's recipes, the runs whose cml accuracy, uncertainty, tracks or count test is asserted
+#: and `make run` keep cml, the default (the security runs' sanity bounds on the on-grid `single`
+#: scene hold for PBP too).
 RUNTIME_DECODER = ("--algo", "pbp")
 
 
