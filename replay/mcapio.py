@@ -47,7 +47,7 @@ from pipeline.wire.fields import HEALTH, PROFILE, TARGETS, TRACKS, json_schema
 from pipeline.wire.foxglove import POINTCLOUD_SCHEMA, SCENE_UPDATE_SCHEMA, pointcloud_json, profile_json, scene_json
 
 from .errors import RecordingExists, ReplayError, UnwritableMessage
-from .outputs import own_folder
+from .outputs import check_not_input, own_folder
 from .mcapcheck import MAGIC, METADATA_CRC_KEY, metadata_crc, read_summary, written_counts
 from .mcapread import DamagedChunk, McapFile, check_mcap
 
@@ -430,8 +430,7 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict:
     message that reads back, never one of a damaged chunk (each named, with its messages
     counted lost, in the result and in the new file's ``qradar.recovery`` metadata).
     A new file unless ``overwrite``. Returns :meth:`McapFile.report` (``messages``: those copied)."""
-    if Path(src).resolve() == Path(dst).resolve():
-        raise ReplayError(f"recover reads {src} and writes a new file: give another output than the file itself")
+    check_not_input(dst, (src,), "recover's output")  # by any name: a link too
     check_mcap(src)  # a missing, empty or foreign file: refused before an output exists
     f = McapFile(src)
     sink = McapSink(Path(dst), overwrite=overwrite)

@@ -472,11 +472,10 @@ class Decoder:
             return res.detections(radar).with_uncertainty(unc.sigma_range_m, unc.sigma_angle_deg, unc.cov_range_angle,
                                                           p_value=p)
         gate = None if cfg.gate is None else cfg.gate.check(radar)
-        if cfg.algo == Algo.PBP:
+        unfit = xi is None or bits is None or indices is not None  # not for cml or qiht: PBP as fallback, or an error
+        if cfg.algo == Algo.PBP or (unfit and cfg.fallback_pbp):
             return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits))
-        if xi is None or bits is None or indices is not None:
-            if cfg.fallback_pbp:
-                return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits))
+        if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
             needs = ("frames of whole ramps" if cfg.algo == Algo.CML else
