@@ -26,6 +26,61 @@ def shared_error_scale_m(maps: list[np.ndarray]) -> tuple[float, float]:
     return ERROR_SCALE_MIN_M, float(10 ** np.ceil(np.log10(top)))
 
 
+class PolarErrorMaps:
+    """Polar heat maps of (n_range, n_angle) mean-error maps (m) sharing one shape, range and
+    colour scale: the figure (axes, grid, colour bar, layout) is built once and each map only
+    swaps its cells and title before it is written (a run's maps: ~3x less CPU than a figure
+    each, most of which was the layout).
+
+    Cells span ranges [0, max_range_m] and angles [-90, 90] deg; boresight points up,
+    positive angles to the right (antenna 2's side). ``scale_m`` = (vmin, vmax) of the
+    logarithmic colour scale; smaller errors get the lowest colour. Empty cells stay white."""
+
+    def __init__(self, shape: tuple[int, int], max_range_m: float, scale_m: tuple[float, float]):
+        self._plt = plt = pyplot()
+        from matplotlib.colors import LogNorm
+
+        n_r, n_a = shape
+        self.shape = shape
+        theta_edges = np.deg2rad(np.linspace(-90.0, 90.0, n_a + 1))
+        r_edges = np.linspace(0.0, max_range_m, n_r + 1)
+        self.fig = fig = plt.figure(figsize=(6.4, 3.9), dpi=110)
+        ax = fig.add_subplot(projection="polar")
+        ax.set_theta_zero_location("N")
+        ax.set_theta_direction(-1)  # positive angles clockwise from boresight: to the right
+        ax.set_thetamin(-90)
+        ax.set_thetamax(90)
+        self._vmin, vmax = scale_m
+        empty = np.ma.masked_all(shape)
+        self._mesh = ax.pcolormesh(theta_edges, r_edges, empty, cmap="viridis", norm=LogNorm(self._vmin, vmax),
+                                   shading="flat")
+        self._title = ax.set_title(self._title_text(""), fontsize=9, pad=14)
+        ax.set_thetagrids(np.arange(-90, 91, 30), [f"{a}°" for a in range(-90, 91, 30)])
+        ax.set_rlabel_position(-90)
+        ax.text(np.deg2rad(-90), max_range_m * 1.02, "range R (m)", ha="center", va="top", fontsize=8)
+        ax.tick_params(labelsize=7)
+        cbar = fig.colorbar(self._mesh, ax=ax, shrink=0.75, pad=0.08, extend="both")
+        cbar.set_label("mean position error (m, log scale)")
+        fig.tight_layout()  # once: the title's two lines are the same height for every map
+
+    @staticmethod
+    def _title_text(title: str) -> str:
+        return f"{title}\nangle θ (deg) around, range R (m) outwards"
+
+    def write(self, path: Path, error_map_m: np.ndarray, title: str) -> Path:
+        """Write the map ``error_map_m`` (n_range, n_angle), m, titled ``title``, to ``path`` (PNG)."""
+        if error_map_m.shape != self.shape:
+            raise ValueError(f"an error map of shape {error_map_m.shape} in maps of shape {self.shape}")
+        self._mesh.set_array(np.ma.masked_invalid(np.clip(error_map_m, self._vmin, None)))
+        self._title.set_text(self._title_text(title))
+        path = Path(path)
+        self.fig.savefig(path)
+        return path
+
+    def close(self) -> None:
+        self._plt.close(self.fig)
+
+
 def polar_error_map(
     path: Path,
     error_map_m: np.ndarray,
@@ -33,39 +88,13 @@ def polar_error_map(
     title: str,
     scale_m: tuple[float, float],
 ) -> Path:
-    """Write a polar heat map of a (n_range, n_angle) mean-error map (m) to ``path``.
-
-    Cells span ranges [0, max_range_m] and angles [-90, 90] deg; boresight points up,
-    positive angles to the right (antenna 2's side). ``scale_m`` = (vmin, vmax) of the
-    logarithmic colour scale; smaller errors get the lowest colour. Empty cells stay white.
-    """
-    plt = pyplot()
-    from matplotlib.colors import LogNorm
-
-    n_r, n_a = error_map_m.shape
-    theta_edges = np.deg2rad(np.linspace(-90.0, 90.0, n_a + 1))
-    r_edges = np.linspace(0.0, max_range_m, n_r + 1)
-    fig = plt.figure(figsize=(6.4, 3.9), dpi=110)
-    ax = fig.add_subplot(projection="polar")
-    ax.set_theta_zero_location("N")
-    ax.set_theta_direction(-1)  # positive angles clockwise from boresight: to the right
-    ax.set_thetamin(-90)
-    ax.set_thetamax(90)
-    vmin, vmax = scale_m
-    data = np.ma.masked_invalid(np.clip(error_map_m, vmin, None))
-    mesh = ax.pcolormesh(theta_edges, r_edges, data, cmap="viridis", norm=LogNorm(vmin, vmax), shading="flat")
-    ax.set_title(f"{title}\nangle θ (deg) around, range R (m) outwards", fontsize=9, pad=14)
-    ax.set_thetagrids(np.arange(-90, 91, 30), [f"{a}°" for a in range(-90, 91, 30)])
-    ax.set_rlabel_position(-90)
-    ax.text(np.deg2rad(-90), max_range_m * 1.02, "range R (m)", ha="center", va="top", fontsize=8)
-    ax.tick_params(labelsize=7)
-    cbar = fig.colorbar(mesh, ax=ax, shrink=0.75, pad=0.08, extend="both")
-    cbar.set_label("mean position error (m, log scale)")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    """Write a polar heat map of a (n_range, n_angle) mean-error map (m) to ``path``
+    (:class:`PolarErrorMaps` of one map)."""
+    maps = PolarErrorMaps(error_map_m.shape, max_range_m, scale_m)
+    try:
+        return maps.write(path, error_map_m, title)
+    finally:
+        maps.close()
 
 
 def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray], max_range_m: float) -> list[Path]:
@@ -84,9 +113,17 @@ def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray]
                 wanted.append((f"{base}_weak", f"{scheme}, K = {k}: weakest target"))
     scale = shared_error_scale_m([maps[key] for key, _ in wanted])
     paths = []
-    for key, title in wanted:
-        name = key[: -len("_all")] if key.endswith("_all") else key
-        paths.append(polar_error_map(Path(out_dir) / f"{name}.png", maps[key], max_range_m, title, scale))
+    figures: dict[tuple[int, int], PolarErrorMaps] = {}  # one figure a shape of map
+    try:
+        for key, title in wanted:
+            name = key[: -len("_all")] if key.endswith("_all") else key
+            shape = maps[key].shape
+            if shape not in figures:
+                figures[shape] = PolarErrorMaps(shape, max_range_m, scale)
+            paths.append(figures[shape].write(Path(out_dir) / f"{name}.png", maps[key], title))
+    finally:
+        for figure in figures.values():
+            figure.close()
     return paths
 
 
