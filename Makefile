@@ -71,8 +71,8 @@ docs-figures: $(KERNEL_STAMP)
 # The whole suite, slow tests included (CI runs this).
 # docs/lab.md's tables of the lab file's keys, from the options' definitions (tests/test_lab.py checks them).
 docs-lab: $(KERNEL_STAMP)
-	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, stream; \
-	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", stream.RUN_PARTS))'
+	$(PY) -c 'from pathlib import Path; from qradar.cli import lab, schema, run_command; \
+	  lab.update_docs(Path("docs/lab.md"), schema.Schema("run", run_command.RUN_PARTS))'
 
 # four pytest-xdist workers on this 2-core machine: the process tests wait on their children much
 # of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (327-385 s), four 1.68

@@ -16,7 +16,7 @@ from pipeline.nodes.stream import LocalizerConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from qradar.cli import build_parser
 from qradar.cli.parts import edge_quantizer, quantizer_of as quantizer_config
-from qradar.cli.stream import run_alpha
+from qradar.cli.run_command import run_alpha
 from qradar.run import RunConfig
 from replay import reprocess
 from replay.reprocess import ReprocessConfig, load_raw, parse_alphas, radar_for, sweep, truth_scene

@@ -19,7 +19,7 @@ from qradar.cli import build_parser, main, with_config
 from qradar.cli import lab
 from qradar.cli.schema import LabError, Schema, read_table
 from qradar.cli.sensor import DRIVE_PARTS
-from qradar.cli.stream import RUN_PARTS, run_config
+from qradar.cli.run_command import RUN_PARTS, run_config
 from qradar.drivers import DriverProcess
 from qradar.sensors import SensorSpec
 from radar_driver.session import SessionConfig

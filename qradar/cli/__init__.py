@@ -1,7 +1,8 @@
 """The ``qradar`` command: one entry point, subcommands in four groups.
 
 - :mod:`.sensor`: ``sim``, ``drive``
-- :mod:`.stream`: ``quantize``, ``localize``, ``source``, ``router``, ``run``
+- :mod:`.stream`: ``quantize``, ``localize``, ``source``, ``router``
+- :mod:`.run_command`: ``run`` (the main job)
 - :mod:`.record`: ``record``, ``recover``, ``replay``, ``info``
 - :mod:`.analysis`: ``montecarlo``, ``montecarlo-time``, ``reprocess``
 - :mod:`.view`: ``view`` (the live stream in Foxglove)
@@ -82,7 +83,8 @@ ADDERS: dict[tuple[str, str], tuple[str, ...]] = {
     ("analysis", "add_montecarlo"): ("montecarlo",),
     ("analysis", "add_montecarlo_time"): ("montecarlo-time",),
     ("sensor", "add_commands"): ("sim", "drive"),
-    ("stream", "add_commands"): ("quantize", "localize", "source", "router", "run"),
+    ("stream", "add_commands"): ("quantize", "localize", "source", "router"),
+    ("run_command", "add_commands"): ("run",),
     ("up", "add_commands"): ("up",),
     ("record", "add_commands"): ("record", "recover", "replay", "info"),
     ("analysis", "add_reprocess"): ("reprocess",),

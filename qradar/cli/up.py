@@ -55,7 +55,8 @@ from .parts import LOCALHOST
 from .record import RECORD_PARTS
 from .schema import Part, Schema, add_command
 from .sensor import DRIVE_PARTS, drive_values
-from .stream import LOCALIZE_PARTS, QUANTIZE_PARTS, ROUTER_PARTS, RUN_PARTS, SOURCE_PARTS
+from .run_command import RUN_PARTS
+from .stream import LOCALIZE_PARTS, QUANTIZE_PARTS, ROUTER_PARTS, SOURCE_PARTS
 from .view import VIEW_PARTS
 from ..view import parse_endpoint
 
