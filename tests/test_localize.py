@@ -62,6 +62,27 @@ def test_dense_path_with_per_frame_subsets(cfg, rng):
     assert_allclose(position_error_m(r, a, det.range_m, det.angle_deg), 0.0, atol=1e-6)
 
 
+@pytest.mark.parametrize("f0_hz", [24e9, 24.1e9], ids=["carrier-1", "carrier-not-1"])
+def test_per_frame_subsets_back_project_as_the_explicit_matrix(rng, f0_hz):
+    """Per-frame subsets (B, M) go through one inverse FFT of the samples put at their
+    frequencies: the explicit Phi^H Z / M of the sensing matrix, to its rounding (the dense
+    phases are ~1e5 rad, 1e-11 relative), a frequency twice in a frame summed; indices out of
+    [0, N) and a shape that does not match are refused as before."""
+    from radar_driver.errors import InputError
+    from radar_driver.model import sensing_matrix
+
+    cfg = RadarConfig(f0_hz=f0_hz)
+    for m in (16, 100, 600):  # 600 > N: frequencies taken twice
+        k = rng.integers(0, cfg.samples_per_ramp, (7, m))
+        z = rng.standard_normal((7, m, 2)) + 1j * rng.standard_normal((7, m, 2))
+        want = np.einsum("bmn,bmp->bnp", np.conj(sensing_matrix(cfg, k)), z) / m
+        assert np.abs(back_project_dense(z, cfg, k) - want).max() <= 1e-9 * np.abs(want).max()
+    with pytest.raises(InputError, match=r"lie in \[0, 256\)"):
+        back_project_dense(np.zeros((1, 2, 2), complex), cfg, np.array([[0, 256]]))
+    with pytest.raises(ParameterError, match="does not match"):
+        back_project_dense(np.zeros((2, 3, 2), complex), cfg, np.zeros((2, 4), dtype=int))
+
+
 def test_plus_minus_30_degrees_come_back_with_their_sign(cfg):
     g = simulate_frames([[30.0, 90.0]], [[30.0, -30.0]], [[1.0, 0.8]], cfg)
     for z in (g, quantize_frames(g, QuantizerConfig(dither_seed=9), [0]).values()):
