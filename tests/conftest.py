@@ -35,9 +35,10 @@ from zenoh_helpers import QRADAR  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-#: the modules that call cml's inner kernels on their own (``coarse_ratio``, ``peak``, ...): numba
-#: compiles each on its first call in a process, ~30 s of CPU in all on a fresh clone (a node
-#: uses them only inlined in the entry kernels that ``make`` compiles), so they share a worker
+#: the modules that call cml's inner kernels on their own (``coarse_ratio``, ``peak``, ...): a node
+#: uses them only inlined in the entry kernels that ``make`` compiles; ``make test``'s set-up
+#: compiles them as these tests call them (tests/inner_kernels.py, ~45 s of CPU once); they share a
+#: worker, so that a signature it misses is compiled once, not on each worker
 INNER_KERNEL_TESTS = {"test_cml_count", "test_cml_detect", "test_cml_kernels"}
 
 
