@@ -17,9 +17,10 @@ CASES = [AlarmCase(1, 0.0, frames=1500, seed=1), AlarmCase(1, 0.01, frames=1500,
 #: (residual.product_floor_db), what is left of a tone the fit merged into another not a target
 #: (residual.merged_near): 0-2.2x its pfa at alpha 0, 0.45 and 1, noise 0-0.3, beside 0-2
 #: targets (5000 frames a case), where without dither it made 1100-3000x (3 false targets a
-#: frame) and beside two at alpha 0.45 up to 2.7x; unquantized frames beside two, their bins
-#: refined together (residual.refine_jointly): 0.55-0.6x at noise 0-0.03, 2.4x at 0.1-0.3
-#: (20 000 frames), where each bin refined alone made 27-35x
+#: frame) and beside two at alpha 0.45 up to 2.7x; unquantized frames beside two, the targets'
+#: tones alone in the model, their bins refined together (residual.refine_jointly): 0x at noise
+#: 0-0.03, 1.45x at 0.1-0.3 (20 000 frames), where the 1-bit model with each bin refined alone
+#: made 27-35x
 PBP_CASES = [(AlarmCase(1, 0.1, frames=1500, seed=8, algo="pbp"), 0.003),
              (AlarmCase(1, 0.03, alpha=1.0, frames=1500, seed=9, algo="pbp"), 0.003),
              (AlarmCase(1, 0.1, bits=None, frames=1500, seed=10, algo="pbp"), 0.003),
@@ -29,7 +30,8 @@ PBP_CASES = [(AlarmCase(1, 0.1, frames=1500, seed=8, algo="pbp"), 0.003),
              (AlarmCase(1, 0.01, alpha=0.0, frames=1000, seed=14, algo="pbp"), 0.002),
              (AlarmCase(2, 0.03, alpha=0.0, frames=1000, seed=15, algo="pbp"), 0.002),
              (AlarmCase(2, 0.0, bits=None, frames=1000, seed=16, algo="pbp"), 0.002),
-             (AlarmCase(2, 0.03, bits=None, frames=1000, seed=17, algo="pbp"), 0.002)]
+             (AlarmCase(2, 0.03, bits=None, frames=1000, seed=17, algo="pbp"), 0.002),
+             (AlarmCase(2, 0.1, bits=None, frames=1500, seed=18, algo="pbp"), 0.003)]
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"K{c.k}-a{c.alpha:g}-s{c.sigma:g}-{'1bit' if c.bits else 'unq'}")

@@ -502,14 +502,15 @@ class Decoder:
 def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
     """The dither scale of 1-bit frames for PBP's count test (:func:`pipeline.dsp.residual.product_floor_db`):
     ``alpha`` (scalar or (B,)) when given, else read off their dither ``xi`` (B, M, 2) (uniform
-    over ``alpha delta``: twice its largest real part over ``delta``); None for frames of more
-    bits, unquantized ones, or 1-bit frames whose dither is not known."""
+    over ``alpha delta``: twice its largest real part over ``delta``); NaN for 1-bit frames whose
+    dither is not known (the count test's model keeps the quantizer's tones); None for frames of
+    more bits or unquantized ones (the targets' tones alone)."""
     if bits != 1:
         return None
     if alpha is not None:
         return alpha
     if xi is None or delta is None:
-        return None
+        return np.nan
     x = np.asarray(xi).reshape(len(xi), -1)
     return 2.0 * np.maximum(np.abs(x.real).max(axis=1), np.abs(x.imag).max(axis=1)) / np.asarray(delta, dtype=float)
 
@@ -551,7 +552,7 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that).
     ``init_range_m`` (B, J), NaN for none: cml's warm start (see :func:`pipeline.dsp.cml.cml`);
     the others ignore it. ``alpha``: the dither scale of 1-bit frames (scalar or (B,); None:
-    read off ``xi``, not known without it), for PBP's count test (:func:`dither_alpha`). One
+    read off ``xi``, NaN without it), for PBP's count test (:func:`dither_alpha`). One
     call, one :class:`Decoder` (where calls follow one another, hold one: it keeps cml's tables)."""
     return Decoder(decoder).decode(z, xi, delta, bits, config, k, indices, noise_sigma, init_range_m, alpha)
 

@@ -99,13 +99,18 @@ def _product_levels_db(step: int, points: int = 256) -> tuple[float, float]:
                 float(-20.0 * np.log10(mixed / two[1, 0])) if mixed > 0 else np.inf)
 
 
-@lru_cache(maxsize=16)
-def tone_combinations(k: int) -> np.ndarray:
+@lru_cache(maxsize=32)
+def tone_combinations(k: int, one_bit: bool = True) -> np.ndarray:
     """The integer combinations ``c`` (P, k) of ``k`` tones whose frequency ``c @ nu`` a
     1-bit quantizer of I and Q makes of them and the model keeps: ``sum |c|`` odd,
     ``sum c = 1 (mod 4)``; up to ORDER_SINGLE for one tone alone, ORDER_MIXED when several
-    mix. The fundamentals first (the k unit vectors)."""
+    mix. The fundamentals first (the k unit vectors); ``one_bit`` False (frames that are not
+    1-bit: no hard limiter's products), the fundamentals alone."""
     out = [tuple(int(i == t) for i in range(k)) for t in range(k)]
+    if not one_bit:
+        combos = np.array(out, dtype=float).reshape(-1, k)
+        combos.flags.writeable = False
+        return combos
     span = range(-ORDER_SINGLE, ORDER_SINGLE + 1)
     for t, h in product(range(k), span):
         if h != 1 and abs(h) % 2 == 1 and h % 4 == 1:
@@ -214,7 +219,7 @@ def _joint_power(y: np.ndarray, nu: np.ndarray, n: int) -> np.ndarray:
     return np.square(np.abs(proj)).sum(axis=-1)
 
 
-def fit_residual(y: np.ndarray, nu: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+def fit_residual(y: np.ndarray, nu: np.ndarray, active: np.ndarray | None = None, one_bit: bool = True) -> np.ndarray:
     """``y`` (B, N, 2) less its fit by the tones of the targets at bins ``nu`` (B, J)
     (:func:`tone_combinations`, one complex amplitude a tone and antenna): (B, N, 2).
     ``active`` (B, J) bool: the targets a frame has (None: all); a tone made of one a frame
@@ -224,8 +229,8 @@ def fit_residual(y: np.ndarray, nu: np.ndarray, active: np.ndarray | None = None
     strongest target's), so that a high order aliased onto another target does not take it;
     of tones within TONE_SEPARATION_BINS of each other the fit keeps the lowest order (:func:`separated`)."""
     n, j = y.shape[1], nu.shape[1]
-    combos = tone_combinations(j)
-    freq, keep = kept_tones(nu, active, n)
+    combos = tone_combinations(j, one_bit)
+    freq, keep = kept_tones(nu, active, n, one_bit)
     order = np.abs(combos).sum(axis=1)  # (P,)
     involved = np.abs(combos) > 0  # (P, J)
     a = combination_tones(nu, combos, n) * keep[:, None, :]  # (B, N, P)
@@ -241,11 +246,12 @@ def fit_residual(y: np.ndarray, nu: np.ndarray, active: np.ndarray | None = None
     return y - a @ amp
 
 
-def kept_tones(nu: np.ndarray, active: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+def kept_tones(nu: np.ndarray, active: np.ndarray | None, n: int, one_bit: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The bins (B, P) of the model's tones of the targets at bins ``nu`` (B, J)
     (:func:`tone_combinations`) and which of them :func:`fit_residual` fits (B, P) bool:
     those :func:`separated` from a lower order, made only of targets ``active`` (B, J) (None: all)."""
-    combos = tone_combinations(nu.shape[1])
+    combos = tone_combinations(nu.shape[1], one_bit)
     freq = nu @ combos.T
     keep = separated(freq, n)
     if active is not None:
@@ -258,7 +264,8 @@ def made_of(combos: np.ndarray, active: np.ndarray) -> np.ndarray:
     return ~((np.abs(combos) > 0)[None] & ~active[:, None, :]).any(axis=2)
 
 
-def fitted_inside(nu: np.ndarray, active: np.ndarray | None, n: int, inside: np.ndarray) -> np.ndarray:
+def fitted_inside(nu: np.ndarray, active: np.ndarray | None, n: int, inside: np.ndarray,
+                  one_bit: bool = True) -> np.ndarray:
     """How many of the residual's degrees of freedom (B,) inside the gate ``inside`` (N,) bool
     the tone fit of :func:`fit_residual` took: its tones whose bin is inside. A least-squares
     fit of P tones takes P of the N bins' worth of noise (the projection's trace is its rank,
@@ -269,7 +276,7 @@ def fitted_inside(nu: np.ndarray, active: np.ndarray | None, n: int, inside: np.
     false-alarm rate promised, 1.7-2.7 with it on two seeds; more tones in the model made it worse)."""
     if nu.shape[1] == 0:
         return np.zeros(nu.shape[0], dtype=np.int64)
-    freq, keep = kept_tones(nu, active, n)
+    freq, keep = kept_tones(nu, active, n, one_bit)
     return (keep & inside[np.rint(freq).astype(np.int64) % n]).sum(axis=1)
 
 
@@ -301,11 +308,12 @@ def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside
                      threshold: float, alpha=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
     batch, the tables small enough to stay in cache); ``alpha``: the 1-bit frames' dither scale
-    (scalar or (B,); None or NaN: not known, or not 1-bit frames), the floor under the strongest
-    return the quantizer's products the model leaves (:func:`product_floor_db`)."""
+    (scalar or (B,); NaN: not known), the floor under the strongest return the quantizer's
+    products the model leaves (:func:`product_floor_db`); None: frames that are not 1-bit, whose
+    model holds the targets' tones alone."""
     b = y.shape[0]
     floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,))), axis=1)
-    joint = alpha is None  # not 1-bit frames: the targets' tones alone, their bins refined together
+    joint = alpha is None  # not 1-bit frames (NaN: 1-bit, dither not known): the targets' tones alone, refined together
     if b <= CHUNK_FRAMES:
         return residual_support_of(y, energy, pick, inside, k, threshold, floors, joint)
     parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold,
@@ -327,16 +335,18 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
     slots repeat that pick and statistic (the caller masks them); the fits are made for the
     frames still being tested only. ``floors`` (B, 2): the floor (dB under the strongest
     return) with one return in the model and with two or more (:func:`product_floor_db`; None:
-    DYNAMIC_RANGE_DB). ``joint``: the targets' bins refined together after each one found
-    (:func:`refine_jointly`; frames whose tones are the targets', not 1-bit ones)."""
+    DYNAMIC_RANGE_DB). ``joint``: frames that are not 1-bit: the model holds the targets'
+    tones alone (no quantizer's products: fitted to noise, they took a target's neighbour
+    bins), their bins refined together after each one found (:func:`refine_jointly`)."""
     b, n, _ = y.shape
     floors = np.full((b, 2), DYNAMIC_RANGE_DB) if floors is None else floors
     cells = max(int(inside.sum()), 2)
     support = np.zeros((b, k), dtype=np.int64)
     stat = np.zeros((b, k))
     idx, blocked = np.arange(b), pick < 0
-    energy, nu, active, strongest = outside_returns(y, energy, inside, threshold)
-    fitted = fitted_inside(nu, active, n, inside)
+    one_bit = not joint  # the quantizer's tones in the model: 1-bit frames only
+    energy, nu, active, strongest = outside_returns(y, energy, inside, threshold, one_bit)
+    fitted = fitted_inside(nu, active, n, inside, one_bit)
     residual = y
     for t in range(k):
         choice = np.where(blocked, -1.0, energy)
@@ -362,17 +372,17 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
         active = np.concatenate([active[go], np.ones((idx.size, 1), dtype=bool)], axis=1)
         if joint:
             nu = refine_jointly(y[idx], nu, active)
-        residual = fit_residual(y[idx], nu, active)
+        residual = fit_residual(y[idx], nu, active, one_bit)
         energy = _bin_energy(residual)
-        fitted = fitted_inside(nu, active, n, inside)
-        blocked = blocked | merged_near(nu, active, n)
+        fitted = fitted_inside(nu, active, n, inside, one_bit)
+        blocked = blocked | merged_near(nu, active, n, one_bit)
     return support, stat
 
 
-def merged_near(nu: np.ndarray, active: np.ndarray, n: int) -> np.ndarray:
+def merged_near(nu: np.ndarray, active: np.ndarray, n: int, one_bit: bool = True) -> np.ndarray:
     """The bins (B, N) bool within RESOLUTION_BINS of a tone of the model that the fit merged
     into a lower order one (:func:`separated`): what is left of it there is the model's residue."""
-    combos = tone_combinations(nu.shape[1])
+    combos = tone_combinations(nu.shape[1], one_bit)
     freq = nu @ combos.T  # (B, P)
     made = made_of(combos, active)
     frame, tone = np.nonzero(made & ~separated(np.where(made, freq, np.nan), n))  # the merged tones
@@ -389,7 +399,7 @@ def merged_near(nu: np.ndarray, active: np.ndarray, n: int) -> np.ndarray:
 OUTSIDE_RETURNS = 2
 
 
-def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, threshold: float
+def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, threshold: float, one_bit: bool = True
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The returns beyond the range gate strong enough to be targets (their bin's energy over
     the gate's mean reaches ``threshold``), fitted as tones, unreported, before the gate is
@@ -411,7 +421,7 @@ def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, thres
         beyond = np.where((taken & active[:, :, None]).any(axis=1), -1.0, beyond)
         q = beyond.argmax(axis=1)
         # over the gate's degrees of freedom the returns fitted so far left it (:func:`fitted_inside`)
-        dof = np.maximum(cells - fitted_inside(nu, active, n, inside), 1)
+        dof = np.maximum(cells - fitted_inside(nu, active, n, inside, one_bit), 1)
         mean = np.where(inside[None, :], current, 0.0).sum(axis=1) / dof
         strong = current[rows, q] >= threshold * mean
         if not strong.any():
@@ -419,7 +429,7 @@ def outside_returns(y: np.ndarray, energy: np.ndarray, inside: np.ndarray, thres
         strongest = np.maximum(strongest, np.where(strong, current[rows, q], 0.0))
         nu = np.concatenate([nu, refine_bins(residual, q)[:, None]], axis=1)
         active = np.concatenate([active, strong[:, None]], axis=1)
-        residual = fit_residual(y, nu, active)  # the next return is refined on it
+        residual = fit_residual(y, nu, active, one_bit)  # the next return is refined on it
         current = np.where(active.any(axis=1)[:, None], _bin_energy(residual), energy)
     return current, nu, active, strongest
 
