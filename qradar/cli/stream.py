@@ -20,8 +20,8 @@ from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 
 from .common import bus_from_args, install_sigterm, intake_budget, load_calibration, watch_parent
-from .parts import (CALIBRATION, GATE, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts, edge_quantizer,
-                    node_part, quantizer_of, quantizer_part, tracker_of, zenoh_parts)
+from .parts import (CALIBRATION, GATE, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts,
+                    edge_quantizer, node_part, quantizer_of, quantizer_part, tracker_of, zenoh_parts)
 from .schema import Part, add_command
 
 NODE_HELP = {
