@@ -44,10 +44,10 @@ def compile_all() -> None:
     lik.softplus(np.float32(np.inf))
     cfg = RadarConfig()
     (r, amp, xs), _ = test_cml_kernels.off_grid(3, 2, 42)
-    for bits in (1, 3):  # codes_arrays, from values and from codes
+    for bits in (1, 3):  # codes_arrays, from values and from codes (uint8, and int64 as a test passes them)
         q = quantize_frames(simulate_frames(r, amp, xs, cfg), QuantizerConfig(bits=bits, alpha=1.0), np.arange(3))
         delta = np.broadcast_to(q.delta, (3,)).astype(float)
-        for z in (q.values(), q.codes):
+        for z in (q.values(), q.codes, q.codes.astype(np.int64)):
             for motion in (True, False):
                 test_cml_kernels.block_codes(test_cml_kernels.check_frames(z, q.dither(), delta, bits, cfg, 1, None),
                                              cfg.samples_per_ramp, "logistic", motion)
