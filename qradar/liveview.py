@@ -30,6 +30,7 @@ from pipeline.dsp.profile import PROFILE_FLOOR, to_db  # noqa: F401 (the views' 
 from pipeline.dsp.quantize import dequantize
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.budget import IntakeBudget
+from pipeline.nodes.counters import UNKNOWN_SENSOR
 from pipeline.nodes.intake import ProcessingNode, QueuedFrame
 from pipeline.nodes.transport import Transport
 from pipeline.wire import (
@@ -270,7 +271,7 @@ class LiveView(ProcessingNode):
         """Range profiles are rate-limited here, before the payload is copied."""
         key = str(sample.key_expr)
         if key.endswith("/quantized"):
-            sensor = self.bus.sensor_of(key) or "_unknown"
+            sensor = self.bus.sensor_of(key) or UNKNOWN_SENSOR
             now = time.monotonic()
             with self._lock:
                 last = self._last_profile.get(sensor)
@@ -350,7 +351,11 @@ class LiveView(ProcessingNode):
             return {"profiles_skipped": self._profiles_skipped.get(sensor_id, 0)}
 
     def summary(self) -> dict:
-        """The view's totals: counters, profiles skipped, sensors shown."""
+        """The view's totals: counters, profiles skipped, sensors shown (the nodes' health of
+        senders they could not put on a sensor yet, UNKNOWN_SENSOR, is shown as health, not
+        listed as a sensor: on a busy host a sensor's first health can reach a node before its
+        frames do)."""
         with self._lock:
             skipped = sum(self._profiles_skipped.values())
-        return {**self.totals(), "profiles_skipped": skipped, "sensors": sorted(self._shown)}
+        return {**self.totals(), "profiles_skipped": skipped,
+                "sensors": sorted(s for s in self._shown if s != UNKNOWN_SENSOR)}

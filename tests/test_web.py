@@ -359,6 +359,24 @@ def test_qradar_replay_into_a_live_web_view_shows_the_recording(bus, zenoh_sessi
     assert view.summary()["sensors"] == ["kmd2-0"] and view.summary()["decode_errors"] == 0
 
 
+def test_the_nodes_health_of_unknown_senders_is_health_not_a_sensor(bus, zenoh_session):
+    """A node publishes its health of senders it could not put on a sensor yet as sensor
+    ``_unknown`` (on a busy host a sensor's health can reach it before its frames): the view
+    shows that health and lists only real sensors in its summary (``qradar run --json``'s
+    ``web.sensors``)."""
+    from pipeline.wire import HealthMsg
+
+    view = WebView(bus, WebConfig(port=0), session=zenoh_session).start()
+    try:
+        for sid in (UNKNOWN_SENSOR, "kmd2-0"):
+            zenoh_session.put(bus.key(sid, "health"), HealthMsg("localize", sid, time.time_ns()).to_json())
+        wait_until(lambda: view.summary()["frames_out"] >= 2, 10, "both health messages shown")
+    finally:
+        view.stop()
+    summary = view.summary()
+    assert summary["sensors"] == ["kmd2-0"] and summary["decode_errors"] == 0, summary
+
+
 def test_control_refuses_what_it_does_not_know(bus, zenoh_session):
     """Control of a recording takes JSON play, pause or seek to a number (else 400); a
     live view has none (409); a form post from another site is refused (415)."""
