@@ -167,16 +167,17 @@ def test_bins_refined_together_are_the_tones_bins_where_each_alone_is_pulled_by_
     assert off[0, 1] == 100.0 and abs(off[0, 0] - 40.27) < 1e-6
 
 
-def test_frames_that_are_not_1_bit_hold_the_targets_tones_alone():
+def test_unquantized_frames_hold_the_targets_tones_alone():
     """The quantizer's tones (-3 nu, 5 nu, 2 nu_1 - nu_2, ...) are in the count test's model of
-    1-bit frames only: fitted to unquantized frames' noise they took a target's neighbour bins,
+    quantized frames only: fitted to unquantized frames' noise they took a target's neighbour bins,
     and a false target stood 1-3 bins beside a true one. PBP's decode says which frames are
-    which: None (not 1-bit), NaN (1-bit, the dither not known: the quantizer's tones kept)."""
+    which: None (unquantized), NaN (1-bit of unknown dither, or more bits: the quantizer's tones
+    kept; 3-bit frames without them made 1 800 times the false-alarm rate beside two targets)."""
     from pipeline.dsp.decode import dither_alpha
 
     assert tone_combinations(2, one_bit=False).tolist() == [[1.0, 0.0], [0.0, 1.0]]
     assert len(tone_combinations(2)) > 2
     nu, active, inside = np.array([[40.3, 80.6]]), np.ones((1, 2), dtype=bool), np.ones(N, dtype=bool)
     assert fitted_inside(nu, active, N, inside, one_bit=False)[0] == 2 < fitted_inside(nu, active, N, inside)[0]
-    assert dither_alpha(None, None, None, None) is None and dither_alpha(None, None, None, 3) is None
+    assert dither_alpha(None, None, None, None) is None and np.isnan(dither_alpha(None, None, None, 3))
     assert np.isnan(dither_alpha(None, None, None, 1)) and dither_alpha(0.45, None, None, 1) == 0.45

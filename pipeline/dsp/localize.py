@@ -380,8 +380,8 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     ``pfa`` and whole ramps, each target after the first is tested on the residual of the ones
     before it (:func:`pipeline.dsp.residual.residual_support`; ``alpha``: the dither scale of
     1-bit frames (scalar or (B,)), whose quantizer's products set the floor of that test and are
-    in its model; NaN: 1-bit frames whose dither is not known; None: frames that are not 1-bit,
-    whose model holds the targets' tones alone). Each target's ``p_value``:
+    in its model; NaN: 1-bit frames whose dither is not known, or frames of more bits; None:
+    unquantized frames, whose model holds the targets' tones alone). Each target's ``p_value``:
     :func:`cfar_p_value` of its statistic."""
     mask = None if check_gate(gate) is None else gate.check(config).bin_mask(config)
     u = back_project(z, config, indices)

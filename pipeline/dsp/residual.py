@@ -104,8 +104,8 @@ def tone_combinations(k: int, one_bit: bool = True) -> np.ndarray:
     """The integer combinations ``c`` (P, k) of ``k`` tones whose frequency ``c @ nu`` a
     1-bit quantizer of I and Q makes of them and the model keeps: ``sum |c|`` odd,
     ``sum c = 1 (mod 4)``; up to ORDER_SINGLE for one tone alone, ORDER_MIXED when several
-    mix. The fundamentals first (the k unit vectors); ``one_bit`` False (frames that are not
-    1-bit: no hard limiter's products), the fundamentals alone."""
+    mix. The fundamentals first (the k unit vectors); ``one_bit`` False (unquantized frames: no
+    quantizer's products), the fundamentals alone."""
     out = [tuple(int(i == t) for i in range(k)) for t in range(k)]
     if not one_bit:
         combos = np.array(out, dtype=float).reshape(-1, k)
@@ -308,12 +308,12 @@ def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside
                      threshold: float, alpha=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
     batch, the tables small enough to stay in cache); ``alpha``: the 1-bit frames' dither scale
-    (scalar or (B,); NaN: not known), the floor under the strongest return the quantizer's
-    products the model leaves (:func:`product_floor_db`); None: frames that are not 1-bit, whose
-    model holds the targets' tones alone."""
+    (scalar or (B,); NaN: not known, or frames of more bits), the floor under the strongest return
+    the quantizer's products the model leaves (:func:`product_floor_db`); None: unquantized frames,
+    whose model holds the targets' tones alone."""
     b = y.shape[0]
     floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,))), axis=1)
-    joint = alpha is None  # not 1-bit frames (NaN: 1-bit, dither not known): the targets' tones alone, refined together
+    joint = alpha is None  # unquantized frames (NaN: quantized, alpha not known): the targets' tones alone, refined
     if b <= CHUNK_FRAMES:
         return residual_support_of(y, energy, pick, inside, k, threshold, floors, joint)
     parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold,
@@ -335,9 +335,9 @@ def residual_support_of(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, ins
     slots repeat that pick and statistic (the caller masks them); the fits are made for the
     frames still being tested only. ``floors`` (B, 2): the floor (dB under the strongest
     return) with one return in the model and with two or more (:func:`product_floor_db`; None:
-    DYNAMIC_RANGE_DB). ``joint``: frames that are not 1-bit: the model holds the targets'
-    tones alone (no quantizer's products: fitted to noise, they took a target's neighbour
-    bins), their bins refined together after each one found (:func:`refine_jointly`)."""
+    DYNAMIC_RANGE_DB). ``joint``: unquantized frames: the model holds the targets' tones alone
+    (no quantizer's products: fitted to noise, they took a target's neighbour bins), their bins
+    refined together after each one found (:func:`refine_jointly`)."""
     b, n, _ = y.shape
     floors = np.full((b, 2), DYNAMIC_RANGE_DB) if floors is None else floors
     cells = max(int(inside.sum()), 2)
