@@ -169,15 +169,24 @@ def test_bins_refined_together_are_the_tones_bins_where_each_alone_is_pulled_by_
 
 def test_unquantized_frames_hold_the_targets_tones_alone():
     """The quantizer's tones (-3 nu, 5 nu, 2 nu_1 - nu_2, ...) are in the count test's model of
-    quantized frames only: fitted to unquantized frames' noise they took a target's neighbour bins,
-    and a false target stood 1-3 bins beside a true one. PBP's decode says which frames are
-    which: None (unquantized), NaN (1-bit of unknown dither, or more bits: the quantizer's tones
-    kept; 3-bit frames without them made 1 800 times the false-alarm rate beside two targets)."""
-    from pipeline.dsp.decode import dither_alpha
+    quantized frames only (``quantized``; PBP's decode passes it: frames of 2-16 bits keep them,
+    without which 3-bit frames beside two targets made 1 800 times the false-alarm rate): fitted
+    to unquantized frames' noise they took a target's neighbour bins, and a false target stood
+    1-3 bins beside a true one. The same 300 unquantized frames beside two targets (sigma 0.03):
+    false targets with the quantizer's model, none without."""
+    from experiments.false_alarms import AlarmCase, case_frames
+    from pipeline.dsp.localize import localize
 
     assert tone_combinations(2, one_bit=False).tolist() == [[1.0, 0.0], [0.0, 1.0]]
     assert len(tone_combinations(2)) > 2
     nu, active, inside = np.array([[40.3, 80.6]]), np.ones((1, 2), dtype=bool), np.ones(N, dtype=bool)
     assert fitted_inside(nu, active, N, inside, one_bit=False)[0] == 2 < fitted_inside(nu, active, N, inside)[0]
-    assert dither_alpha(None, None, None, None) is None and np.isnan(dither_alpha(None, None, None, 3))
-    assert np.isnan(dither_alpha(None, None, None, 1)) and dither_alpha(0.45, None, None, 1) == 0.45
+    cfg = RadarConfig()
+    r, _, g = case_frames(AlarmCase(2, 0.03, bits=None, frames=300, seed=20), cfg)
+
+    def false_targets(quantized):
+        det = localize(g, cfg, 4, pfa=1e-3, quantized=quantized)
+        far = np.abs(det.range_m[:, :, None] - r[:, None, :]).min(axis=2) > cfg.range_resolution_m
+        return int((det.present & far).sum())
+
+    assert false_targets(True) >= 3 and false_targets(False) == 0

@@ -474,7 +474,8 @@ class Decoder:
         gate = None if cfg.gate is None else cfg.gate.check(radar)
         unfit = xi is None or bits is None or indices is not None  # not for cml or qiht: PBP as fallback, or an error
         if cfg.algo == Algo.PBP or (unfit and cfg.fallback_pbp):
-            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits))
+            # unquantized frames: the count test's model holds the targets' tones, not a quantizer's
+            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits), bits is not None)
         if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
@@ -502,18 +503,14 @@ class Decoder:
 def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
     """The dither scale of 1-bit frames for PBP's count test (:func:`pipeline.dsp.residual.product_floor_db`):
     ``alpha`` (scalar or (B,)) when given, else read off their dither ``xi`` (B, M, 2) (uniform
-    over ``alpha delta``: twice its largest real part over ``delta``); NaN for 1-bit frames whose
-    dither is not known and for frames of more bits (the count test's model keeps the quantizer's
-    tones: 3-bit frames without them made 1 700-1 800 times its false-alarm rate beside two
-    targets); None for unquantized frames (the targets' tones alone)."""
-    if bits is None:
-        return None
+    over ``alpha delta``: twice its largest real part over ``delta``); None for frames of more
+    bits, unquantized ones, or 1-bit frames whose dither is not known."""
     if bits != 1:
-        return np.nan
+        return None
     if alpha is not None:
         return alpha
     if xi is None or delta is None:
-        return np.nan
+        return None
     x = np.asarray(xi).reshape(len(xi), -1)
     return 2.0 * np.maximum(np.abs(x.real).max(axis=1), np.abs(x.imag).max(axis=1)) / np.asarray(delta, dtype=float)
 
@@ -555,7 +552,7 @@ def decode(z: np.ndarray, xi: np.ndarray | None, delta, bits: int | None, config
     sensor noise, scalar or (B,), in place of ``decoder.noise_sigma`` (None: that).
     ``init_range_m`` (B, J), NaN for none: cml's warm start (see :func:`pipeline.dsp.cml.cml`);
     the others ignore it. ``alpha``: the dither scale of 1-bit frames (scalar or (B,); None:
-    read off ``xi``, NaN without it), for PBP's count test (:func:`dither_alpha`). One
+    read off ``xi``, not known without it), for PBP's count test (:func:`dither_alpha`). One
     call, one :class:`Decoder` (where calls follow one another, hold one: it keeps cml's tables)."""
     return Decoder(decoder).decode(z, xi, delta, bits, config, k, indices, noise_sigma, init_range_m, alpha)
 

@@ -305,15 +305,15 @@ CHUNK_FRAMES = 128
 
 
 def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
-                     threshold: float, alpha=None) -> tuple[np.ndarray, np.ndarray]:
+                     threshold: float, alpha=None, quantized: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
     batch, the tables small enough to stay in cache); ``alpha``: the 1-bit frames' dither scale
-    (scalar or (B,); NaN: not known, or frames of more bits), the floor under the strongest return
-    the quantizer's products the model leaves (:func:`product_floor_db`); None: unquantized frames,
-    whose model holds the targets' tones alone."""
+    (scalar or (B,); None or NaN: not known, or not 1-bit frames), the floor under the strongest
+    return the quantizer's products the model leaves (:func:`product_floor_db`). ``quantized``
+    False: unquantized frames, whose model holds the targets' tones alone, refined together."""
     b = y.shape[0]
     floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,))), axis=1)
-    joint = alpha is None  # unquantized frames (NaN: quantized, alpha not known): the targets' tones alone, refined
+    joint = not quantized  # unquantized frames: the targets' tones alone, their bins refined together
     if b <= CHUNK_FRAMES:
         return residual_support_of(y, energy, pick, inside, k, threshold, floors, joint)
     parts = [residual_support_of(*(a[i:i + CHUNK_FRAMES] for a in (y, energy, pick)), inside, k, threshold,
