@@ -20,6 +20,7 @@ and the number of runs, not on the number of worker processes.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import re
 import time
@@ -344,12 +345,9 @@ def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, con
     of I and Q of white noise added to Gamma before quantization, drawn from ``noise_rng``
     (so that the dither does not depend on it)."""
     n = config.samples_per_ramp
-    if scheme.ramps(config):
-        indices = None
-        gamma = gamma_fn(None)
-    else:
-        indices = np.sort(np.argsort(rng.random((n_runs, n)), axis=1)[:, : scheme.n_measurements], axis=1)
-        gamma = gamma_fn(indices)
+    indices = None if scheme.ramps(config) else np.sort(
+        np.argsort(rng.random((n_runs, n)), axis=1)[:, : scheme.n_measurements], axis=1)
+    gamma = gamma_fn(indices)
     if noise_sigma > 0:
         gamma = gamma + noise_sigma * (noise_rng.standard_normal(gamma.shape) + 1j * noise_rng.standard_normal(gamma.shape))
     sigma_hat = estimate_noise_sigma(gamma, n) if (estimate or scheme.adaptive) and indices is None else None
@@ -567,7 +565,9 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                                         cfg.gate, cfg.decoder_noise))
                 bar.update(job[3] * len(schemes))
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            # spawned, not forked: a fork of a process with threads (zenoh's runtime, a caller's) copies
+            # the locks they held, and its workers hung on them (in a test process that had run zenoh)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
                                              cfg.fallback_pbp, cfg.count, cfg.gate, cfg.decoder_noise))
                            for job in jobs]

@@ -2,6 +2,7 @@
 
 import json
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -296,3 +297,25 @@ def test_targets_that_move_between_ramps():
     with pytest.raises(ParameterError, match="whole ramps"):
         run_montecarlo(MonteCarloConfig(ks=(1,), runs=10, seed=3, workers=1, schemes=("dither_m64",),
                                         scene=SceneSpec(speeds=(0.0, 1.0))), progress=False)
+
+
+def test_the_worker_processes_are_spawned_not_forked(monkeypatch):
+    """A fork of a process with threads (a zenoh session's runtime: a test process that ran zenoh
+    tests, a notebook) copies the locks they held; two pool workers hung on them for good in a
+    fresh clone's suite. The pool starts its workers fresh (spawn), and they give the same
+    figures as one process."""
+    import experiments.montecarlo as mc
+
+    contexts = []
+
+    class Recording(mc.ProcessPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            contexts.append(kwargs.get("mp_context"))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(mc, "ProcessPoolExecutor", Recording)
+    cfg = MonteCarloConfig(ks=(1,), runs=600, schemes=("dither_m512",), seed=5)
+    pooled = run_montecarlo(replace(cfg, workers=2), progress=False)
+    alone = run_montecarlo(replace(cfg, workers=1), progress=False)
+    assert [c.get_start_method() for c in contexts] == ["spawn"]
+    assert pooled.summary["K1"] == alone.summary["K1"]
