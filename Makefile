@@ -34,7 +34,7 @@ $(KERNEL_STAMP): $(STAMP) $(KERNEL_SOURCES)
 TEST_KERNEL_STAMP := $(VENV)/.test-kernels-stamp
 $(TEST_KERNEL_STAMP): $(KERNEL_STAMP) $(KERNEL_SOURCES) tests/inner_kernels.py
 	@echo "compiling the inner kernels the tests call on their own into numba's cache: ~1 min, once"
-	@cd tests && ../$(PY) inner_kernels.py
+	@$(PY) tests/inner_kernels.py
 	@touch $(TEST_KERNEL_STAMP)
 
 # The Foxglove test client's node packages (tests/test_foxglove.py), from the committed lock file.

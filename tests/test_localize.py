@@ -81,6 +81,12 @@ def test_per_frame_subsets_back_project_as_the_explicit_matrix(rng, f0_hz):
         back_project_dense(np.zeros((1, 2, 2), complex), cfg, np.array([[0, 256]]))
     with pytest.raises(ParameterError, match="does not match"):
         back_project_dense(np.zeros((2, 3, 2), complex), cfg, np.zeros((2, 4), dtype=int))
+    with pytest.raises(ParameterError, match="no frequency"):
+        back_project_dense(np.zeros((2, 0, 2), complex), cfg, np.zeros((2, 0), dtype=int))
+    k = rng.integers(0, cfg.samples_per_ramp, (3, 16))
+    z = rng.standard_normal((3, 16, 2)) + 1j * rng.standard_normal((3, 16, 2))
+    for dtype in (np.uint8, np.uint64, np.int16):  # any integer indices, as the dense path took
+        np.testing.assert_array_equal(back_project_dense(z, cfg, k.astype(dtype)), back_project_dense(z, cfg, k))
 
 
 def test_plus_minus_30_degrees_come_back_with_their_sign(cfg):

@@ -163,6 +163,9 @@ def test_bins_refined_together_are_the_tones_bins_where_each_alone_is_pulled_by_
     got = refine_jointly(y, nu + [[0.3, -0.3]], np.ones((1, 2), dtype=bool))
     np.testing.assert_allclose(got, nu, atol=1e-6)
     assert np.abs(fit_residual(y, got)).max() < 1e-6 * np.abs(y).max()
+    for scale in (1e-8, 1e6):  # frames in any unit
+        np.testing.assert_allclose(refine_jointly(scale * y, nu + [[0.3, -0.3]], np.ones((1, 2), dtype=bool)), nu,
+                                   atol=1e-6)
     off = refine_jointly(tone(40.27), np.array([[40.0, 100.0]]), np.array([[True, False]]))
     assert off[0, 1] == 100.0 and abs(off[0, 0] - 40.27) < 1e-6
 

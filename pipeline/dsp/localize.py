@@ -103,6 +103,9 @@ def _back_project_subsets(z: np.ndarray, config: RadarConfig, indices: np.ndarra
     if k.shape != (b, m):
         raise ParameterError(f"Z {z.shape} does not match the frequencies {k.shape}")
     config.frequencies_hz(k)  # integers in [0, N), or the error the dense matrix gave
+    if m == 0:
+        raise ParameterError(f"Z {z.shape}: frames of no frequency")
+    k = k.astype(np.int64, copy=False)  # (unsigned 64-bit indices would mix into floats)
     n = config.samples_per_ramp
     spectrum = np.zeros((b * n, 2), dtype=np.complex128)
     np.add.at(spectrum, (np.arange(b)[:, None] * n + k).ravel(), z.reshape(b * m, 2))

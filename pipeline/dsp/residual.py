@@ -205,7 +205,8 @@ def refine_jointly(y: np.ndarray, nu: np.ndarray, active: np.ndarray, steps: int
         flat = flat - e @ np.linalg.solve(gram, eh @ flat)
         jt = np.ascontiguousarray(flat.reshape(b, n, j, 2).transpose(0, 2, 1, 3)).reshape(b, j, 2 * n)
         normal = np.real(np.conj(jt) @ jt.transpose(0, 2, 1))
-        ridge = 1e-12 + 1e-9 * normal.diagonal(axis1=1, axis2=2).max(axis=1)  # a target of no amplitude: no step
+        # relative (frames in any unit); a target of no amplitude takes no step
+        ridge = 1e-9 * normal.diagonal(axis1=1, axis2=2).max(axis=1) + np.finfo(float).tiny
         normal += (ridge[:, None] + (1.0 - on))[:, :, None] * eye
         grad = np.real(np.conj(jt) @ r.reshape(b, 2 * n, 1))[..., 0]  # (B, J)
         step = np.linalg.solve(normal, grad[..., None])[..., 0]
