@@ -31,6 +31,7 @@ from functools import partial
 
 import numpy as np
 
+from radar_driver.lifetime import watch_parent
 from radar_driver.model import RadarConfig, simulate_frames, snap_to_range_grid
 from radar_driver.options import finite_float, nonneg_float, nonneg_int, option, pos_int
 
@@ -39,8 +40,7 @@ from pipeline.errors import ParameterError
 from pipeline.dsp.decode import ALGOS, Algo, DecoderConfig, decode
 from pipeline.dsp.gate import RangeGate, check_gate
 from pipeline.dsp.localize import DEFAULT_PFA, Detections, check_pfa, match_detections, position_error_m
-from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames
-from pipeline.dsp.score import summarize as summarize_scores
+from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames, summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
 from replay.progress import Progress
 from experiments.speeds import draw_speeds, parse_speeds
@@ -565,9 +565,9 @@ def run_montecarlo(cfg: MonteCarloConfig, progress: bool = True) -> MonteCarloRe
                                         cfg.gate, cfg.decoder_noise))
                 bar.update(job[3] * len(schemes))
         else:
-            # spawned, not forked: a fork of a process with threads (zenoh's runtime, a caller's) copies
-            # the locks they held, and its workers hung on them (in a test process that had run zenoh)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            # spawned (a fork of a process with threads hung on the locks they held); each ends with us
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=watch_parent, initargs=(os.getpid(), "montecarlo worker")) as pool:
                 futures = [(job, pool.submit(run_chunk, *job, cfg.seed, cfg.scene, cfg.radar, algos,
                                              cfg.fallback_pbp, cfg.count, cfg.gate, cfg.decoder_noise))
                            for job in jobs]

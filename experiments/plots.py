@@ -81,22 +81,6 @@ class PolarErrorMaps:
         self._plt.close(self.fig)
 
 
-def polar_error_map(
-    path: Path,
-    error_map_m: np.ndarray,
-    max_range_m: float,
-    title: str,
-    scale_m: tuple[float, float],
-) -> Path:
-    """Write a polar heat map of a (n_range, n_angle) mean-error map (m) to ``path``
-    (:class:`PolarErrorMaps` of one map)."""
-    maps = PolarErrorMaps(error_map_m.shape, max_range_m, scale_m)
-    try:
-        return maps.write(path, error_map_m, title)
-    finally:
-        maps.close()
-
-
 def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray], max_range_m: float) -> list[Path]:
     """Polar maps for every scheme and K (all targets), and for K >= 2 the strongest and
     the weakest target separately, on one shared colour scale. Returns the PNG paths."""

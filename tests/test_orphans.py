@@ -194,3 +194,29 @@ def test_a_driver_whose_parent_dies_says_gbye_and_exits(tmp_path):
         kill_all([parent.pid] + ([drive_pid] if drive_pid else []))
         parent.wait(5)
         sim.stop()
+
+
+def test_a_killed_monte_carlo_leaves_no_worker_behind(tmp_path):
+    """``qradar montecarlo``'s worker processes (spawned by its pool) end once it is SIGKILLed:
+    each watches its parent (radar_driver.lifetime.watch_parent), where they waited for work for good."""
+    proc = subprocess.Popen([*QRADAR, "montecarlo", "--K", "1", "--runs", "400000", "--workers", "2", "--no-plots",
+                             "--quiet", "--out", str(tmp_path / "mc")], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        workers: list[int] = []
+        deadline = time.monotonic() + 60
+        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            workers = [p for p in (int(e) for e in os.listdir("/proc") if e.isdigit())
+                       if parent_of(p) == proc.pid and any("spawn_main" in a for a in cmdline(p))]
+            time.sleep(0.1)
+        assert len(workers) == 2, "the Monte Carlo's two workers did not start"
+        proc.kill()
+        proc.wait(10)
+        deadline = time.monotonic() + 15
+        while any(cmdline(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p in workers if cmdline(p)], "a Monte Carlo worker outlived its parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
