@@ -69,6 +69,17 @@ def remap(key: str, recorded_prefix: str, prefix: str | None) -> str:
     return prefix + key[len(recorded_prefix):]
 
 
+def nothing_selected(path, cfg: PlayConfig, channels: dict) -> str:
+    """The one line that says why ``cfg`` plays nothing of a recording with qradar
+    ``channels``: its ``topics`` match none of them (named), or its window holds no message."""
+    topics = sorted({c.topic for c in qradar_channels(channels).values()})
+    if cfg.topics and not any(zenoh.KeyExpr(cfg.topics).intersects(t) for t in topics):
+        return f"--topics {cfg.topics!r} matches none of the channels of {path}: {', '.join(topics)}"
+    window = " ".join(f"{flag} {v:g}" for flag, v in (("--start", cfg.start_s), ("--end", cfg.end_s)) if v is not None)
+    return (f"{path} has no message {'of --topics ' + repr(cfg.topics) + ' ' if cfg.topics else ''}"
+            f"within {window or 'the file'} (s from its first message; `qradar info {path}` gives its length)")
+
+
 def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = None,
          stop: threading.Event | None = None) -> PlayResult:
     """Publish the qradar channels of ``path``; returns what was done."""
@@ -109,6 +120,8 @@ def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = 
                 raise NoQradarChannelsError(
                     f"{path} has no qradar channels (<prefix>/<sensor>/raw|quantized|targets|health); "
                     f"its topics: {sorted({c.topic for c in f.channels.values()}) or 'none'}")
+            if result.published == 0 and result.loops == 0 and not stop.is_set() and f.intact:
+                raise ReplayError(nothing_selected(path, cfg, f.channels))
             result.loops += 1
             if not cfg.loop or stop.is_set():
                 break

@@ -234,6 +234,27 @@ def test_bad_files_give_clear_errors(tmp_path):
             parse_alphas(bad)
 
 
+def test_a_replay_that_selects_nothing_says_why_and_fails(bus, zenoh_session):
+    """``--topics`` matching none of a recording's channels, or a window past its end: one line
+    naming them and status 2, not "published 0" with status 0 (with ``--loop``, a loop over
+    nothing until Ctrl-C)."""
+    with pytest.raises(ReplayError, match=r"--topics 'radar/\*\*/nothing' matches none of the channels of "
+                                          r".*chamber\.mcap: radar/kmd2-0/health, radar/kmd2-0/quantized"):
+        play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/**/nothing"), session=zenoh_session)
+    with pytest.raises(ReplayError, match=r"chamber\.mcap has no message within --start 9999 \(s from its first"):
+        play(CHAMBER, bus, PlayConfig(fast=True, loop=True, start_s=9999), session=zenoh_session)
+    with pytest.raises(ReplayError, match=r"no message of --topics 'radar/\*/health' within --start 1 --end 1\.01"):
+        play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/*/health", start_s=1, end_s=1.01), session=zenoh_session)
+    assert play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/*/targets", end_s=0.5),
+                session=zenoh_session).published > 0
+    proc = subprocess.run([*QRADAR, "replay", str(CHAMBER), "--fast", "--topics", "radar/*/tracks"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and proc.stdout == "", proc
+    assert proc.stderr.strip().splitlines() == [
+        f"qradar replay: error: --topics 'radar/*/tracks' matches none of the channels of {CHAMBER}: "
+        "radar/kmd2-0/health, radar/kmd2-0/quantized, radar/kmd2-0/raw, radar/kmd2-0/targets"]
+
+
 def test_committed_recording_and_foxglove_channel():
     assert CHAMBER.stat().st_size <= 5 * 1024 * 1024
     f = McapFile(CHAMBER)
