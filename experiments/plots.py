@@ -81,30 +81,37 @@ class PolarErrorMaps:
         self._plt.close(self.fig)
 
 
-def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray], max_range_m: float) -> list[Path]:
-    """Polar maps for every scheme and K (all targets), and for K >= 2 the strongest and
-    the weakest target separately, on one shared colour scale. Returns the PNG paths."""
-    wanted: list[tuple[str, str]] = []  # (map key, title)
+def map_figures(summary: dict) -> list[tuple[str, str, str]]:
+    """The polar maps of a Monte Carlo ``summary``: (map key, PNG file name, title) for every
+    scheme and K (all targets), and for K >= 2 the strongest and the weakest target."""
+    wanted: list[tuple[str, str, str]] = []
     for kkey, block in summary.items():
-        if not (kkey.startswith("K") and isinstance(block, dict)):
+        if not (kkey.startswith("K") and kkey[1:].isdigit() and isinstance(block, dict)):
             continue
         k = int(kkey[1:])
         for scheme in block:
             base = f"{kkey}_{scheme}"
-            wanted.append((f"{base}_all", f"{scheme}, K = {k}" + (": all targets" if k > 1 else "")))
+            wanted.append((f"{base}_all", f"{base}.png", f"{scheme}, K = {k}" + (": all targets" if k > 1 else "")))
             if k > 1:
-                wanted.append((f"{base}_strong", f"{scheme}, K = {k}: strongest target"))
-                wanted.append((f"{base}_weak", f"{scheme}, K = {k}: weakest target"))
-    scale = shared_error_scale_m([maps[key] for key, _ in wanted])
+                wanted.append((f"{base}_strong", f"{base}_strong.png", f"{scheme}, K = {k}: strongest target"))
+                wanted.append((f"{base}_weak", f"{base}_weak.png", f"{scheme}, K = {k}: weakest target"))
+    return wanted
+
+
+def montecarlo_figures(out_dir: Path, summary: dict, maps: dict[str, np.ndarray], max_range_m: float) -> list[Path]:
+    """Polar maps for every scheme and K (all targets), and for K >= 2 the strongest and
+    the weakest target separately, on one shared colour scale (:func:`map_figures`).
+    Returns the PNG paths."""
+    wanted = map_figures(summary)
+    scale = shared_error_scale_m([maps[key] for key, _, _ in wanted])
     paths = []
     figures: dict[tuple[int, int], PolarErrorMaps] = {}  # one figure a shape of map
     try:
-        for key, title in wanted:
-            name = key[: -len("_all")] if key.endswith("_all") else key
+        for key, name, title in wanted:
             shape = maps[key].shape
             if shape not in figures:
                 figures[shape] = PolarErrorMaps(shape, max_range_m, scale)
-            paths.append(figures[shape].write(Path(out_dir) / f"{name}.png", maps[key], title))
+            paths.append(figures[shape].write(Path(out_dir) / name, maps[key], title))
     finally:
         for figure in figures.values():
             figure.close()

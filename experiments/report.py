@@ -22,13 +22,35 @@ def prepare_out_dir(out_dir: Path, names: tuple[str, ...] = OUTPUT_FILES, force:
     return check_output_folder(out_dir, names, force)
 
 
+#: the files a Monte Carlo run writes as its options ask, besides OUTPUT_FILES and the maps
+OPTIONAL_FILES = ("detection.png", "error_vs_m.json", "error_vs_m.png")
+
+
+def earlier_outputs(out_dir: Path) -> set[str]:
+    """The files of ``out_dir`` that an earlier Monte Carlo run wrote there, by its
+    summary.json (none: no summary, or not one of a Monte Carlo)."""
+    from experiments.plots import map_figures
+
+    try:
+        summary = json.loads((Path(out_dir) / "summary.json").read_text())
+    except (OSError, ValueError):
+        return set()
+    if not isinstance(summary, dict):
+        return set()
+    names = {name for _, name, _ in map_figures(summary)} | set(OPTIONAL_FILES)
+    return {n for n in names if (Path(out_dir) / n).is_file()}
+
+
 def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, plots: bool = True) -> list[str]:
     """Write summary.json, config.json, maps.npz, the polar error maps (PNG, unless
     ``plots`` is False) and, when the schemes span several M, error_vs_m.json/.png to
-    ``out_dir``. Returns the report lines (the table, the slopes, what was written)."""
+    ``out_dir``; then remove what an earlier run wrote there that this one did not (a
+    folder taken over with ``--force``: no map of another run left beside these results).
+    Returns the report lines (the table, the slopes, what was written and removed)."""
     from experiments.plots import detection_figure, error_vs_m, error_vs_m_figure, montecarlo_figures
 
     out_dir = Path(out_dir)
+    earlier = earlier_outputs(out_dir)
     try:
         (out_dir / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
         (out_dir / "config.json").write_text(json.dumps(result.run_config, indent=2) + "\n")
@@ -42,6 +64,9 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
             (out_dir / "error_vs_m.json").write_text(json.dumps(slopes, indent=2) + "\n")
             if plots:
                 pngs.append(error_vs_m_figure(out_dir / "error_vs_m.png", slopes))
+        stale = sorted(earlier - {Path(p).name for p in pngs} - ({"error_vs_m.json"} if slopes else set()))
+        for name in stale:
+            (out_dir / name).unlink(missing_ok=True)
     except OSError as exc:
         raise PipelineError(f"cannot write the Monte Carlo results to {out_dir}: {exc.strerror or exc}") from None
     lines = [f"{label}: median error {s['error_m']} m at M = {s['M']}: slope {s['slope']:+.2f}"
@@ -51,6 +76,8 @@ def write_outputs(result: MonteCarloResult, out_dir: Path, max_range_m: float, p
               f"{sum(rc['runs_per_k'].values()) * len(rc['schemes'])} runs (x {len(rc['algos'])} decoders) in "
               f"{result.summary['seconds']:.1f} s; wrote {out_dir}/summary.json, maps.npz"
               + (f" and {len(pngs)} PNG maps" if pngs else "")]
+    if stale:
+        lines.append(f"removed an earlier run's {', '.join(stale)} from {out_dir}")
     return lines
 
 

@@ -359,6 +359,28 @@ def test_7_montecarlo_reprocess_and_recover_refuse_an_existing_output_unless_for
     assert qradar(*rec).returncode == 2 and qradar(*rec, "--force").returncode == 0
 
 
+def test_7_a_monte_carlo_forced_over_an_earlier_one_leaves_none_of_its_maps(tmp_path):
+    """``--force`` takes a folder over: the earlier run's maps (K 1 and 2 here) that this run
+    (K 1, no plots) does not write are removed, not left beside results they do not show; a
+    file the runs never write stays."""
+    from experiments.montecarlo import MonteCarloConfig, run_montecarlo
+    from experiments.report import write_outputs
+
+    def run(ks):
+        return run_montecarlo(MonteCarloConfig(ks=ks, runs=40, schemes=("dither_m512",), algos=("pbp",), workers=1),
+                              progress=False)
+
+    write_outputs(run((1, 2)), tmp_path, 90.0)
+    (tmp_path / "notes.png").write_bytes(b"the user's")
+    maps = {"K1_dither_m512.png", "K2_dither_m512.png", "K2_dither_m512_strong.png", "K2_dither_m512_weak.png"}
+    assert maps <= {p.name for p in tmp_path.iterdir()}
+    lines = write_outputs(run((1,)), tmp_path, 90.0, plots=False)
+    assert {p.name for p in tmp_path.iterdir()} == {"summary.json", "config.json", "maps.npz", "notes.png"}
+    assert lines[-1] == f"removed an earlier run's {', '.join(sorted(maps))} from {tmp_path}"
+    write_outputs(run((1,)), tmp_path, 90.0)  # a map this run writes again is its own
+    assert (tmp_path / "K1_dither_m512.png").is_file() and not (tmp_path / "K2_dither_m512.png").exists()
+
+
 def test_7_no_command_makes_folders_above_its_outputs_own(tmp_path):
     deep = tmp_path / "no" / "such" / "x.mcap"
     out = qradar("run", "--frames", 5, "--record", deep)
