@@ -12,7 +12,7 @@ from experiments.coverage import CASES, EXPECTED, coverage
 from pipeline.dsp.cml import cml
 from pipeline.dsp.decode import Decoder, DecoderConfig
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
-from pipeline.dsp.uncertainty import fitted_noise, model_jacobian
+from pipeline.dsp.uncertainty import fitted_noise, model_jacobian, target_uncertainty
 from pipeline.wire.frames import FrameHeaders
 from pipeline.wire.messages import decode_targets, encode_targets_batch
 from radar_driver.model import RadarConfig, simulate_frames
@@ -95,3 +95,20 @@ def test_frames_are_grouped_by_the_slots_they_use_with_the_same_figures(bits):
         want[::3, :1] = getattr(one, name)
         assert np.isnan(got[:, 2:]).all()
         np.testing.assert_allclose(got[:, :2], want, rtol=1e-7, atol=1e-12, err_msg=name)
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_1_bit_frames_with_no_sample_near_the_threshold_get_no_uncertainty_not_an_error(moving):
+    """A fit whose noise is ~0 (cml told K = 32 of a two-target frame fits it so) leaves no
+    1-bit sample within reach of the threshold: the codes hold no information on the targets,
+    so their sigmas are NaN (not known), where a reshape of the empty Jacobian raised and a
+    localizer lost the frame's targets."""
+    b, k = 2, 2
+    rng = np.random.default_rng(0)
+    shape = (b, CFG.n_measurements, 2)
+    dither = rng.uniform(-0.5, 0.5, shape) + 1j * rng.uniform(-0.5, 0.5, shape)
+    for estimated in (True, False):
+        u = target_uncertainty(np.array([[4.87, 9.23]] * b), np.full((b, k, 2), 1.0 + 0j), np.ones((b, k), bool), CFG,
+                               np.full(b, 1e-9), dither, 0.3, 1, estimated=estimated,
+                               phase_step_rad=np.zeros((b, k)) if moving else None)
+        assert np.isnan(u.sigma_range_m).all() and np.isnan(u.sigma_angle_deg).all()

@@ -183,7 +183,7 @@ def _jacobian_rows(steer: np.ndarray, kr: np.ndarray, amplitudes: np.ndarray, ro
     d[..., 1], d[..., 2] = np.where(first, re, 0.0), np.where(first, im, 0.0)
     d[..., 3], d[..., 4] = np.where(first, 0.0, re), np.where(first, 0.0, im)
     out = np.zeros((b, rows[0].shape[1], k * per))
-    out[fb, slot] = d.reshape(fb.size, -1)
+    out[fb, slot] = d.reshape(fb.size, k * per)  # (no sample near the threshold: none)
     return out
 
 
