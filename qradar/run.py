@@ -27,6 +27,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.wire.shared import DecodedOnce
 from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
+from pipeline.dsp.gate import RangeGate
 from pipeline.errors import ParameterError, RunSetupError
 from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
@@ -203,6 +204,26 @@ class Plan:
     localizer: LocalizerConfig
 
 
+def localizer_of(cfg: RunConfig, k: int, radar: RadarConfig) -> LocalizerConfig:
+    """The localizer's config of a run of ``k`` targets a frame on ``radar`` (checked: K, the
+    range gate, the decoder)."""
+    return LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
+                           auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m, max_range_m=cfg.max_range_m)
+
+
+def check_offline(cfg: RunConfig) -> None:
+    """What :func:`plan` checks of the localizer without opening a port or a file (``--print-config``
+    prints only a config that runs): against the simulated scene's radar; with real sensors,
+    whose radar their profiles give once their ports open, the range gate's ends against
+    each other."""
+    if cfg.real:
+        if cfg.min_range_m is not None and cfg.max_range_m is not None:
+            RangeGate(cfg.min_range_m, cfg.max_range_m)
+        return
+    scene = resolve_scene(cfg.scene)
+    localizer_of(cfg, cfg.k or max(1, len(scene.targets)), scene.radar)
+
+
 def plan(cfg: RunConfig) -> Plan:
     """Everything a run checks before it starts anything: the scene or the sensors' specs
     (each port opened once), the truth, the calibration against the sensors, the
@@ -218,9 +239,7 @@ def plan(cfg: RunConfig) -> Plan:
         k = cfg.k or max(1, len(scene.targets))
     else:
         k = cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
-    localizer = LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
-                                auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
-                                max_range_m=cfg.max_range_m)  # checked before anything starts
+    localizer = localizer_of(cfg, k, radar)  # checked before anything starts
     # a truth file holds the world's positions: each sensor with a pose sees them from there
     truths = {s.sensor_id: seen_from(truth, s.pose, s.sensor_id) for s in cfg.sensor_specs
               if s.pose is not None and cfg.truth is not None}

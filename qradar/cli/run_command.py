@@ -17,7 +17,7 @@ from pipeline.errors import ParameterError
 from radar_driver.options import option
 from replay.recorder import default_recording_path
 
-from ..run import RunConfig, print_json, remove_run_dirs, run
+from ..run import RunConfig, check_offline, print_json, remove_run_dirs, run
 from ..view import ViewConfig, parse_endpoint
 from . import lab
 from .common import StopOnSignals, bus_from_args
@@ -103,6 +103,7 @@ def run_config(args) -> RunConfig:
 def cmd_run(args) -> int:
     cfg = run_config(args)  # checked before it is printed
     if args.print_config:
+        check_offline(cfg)
         print(lab.dumps(args.schema.mapping(values_of(args, args.schema)),
                         "the effective lab file of `qradar run` (docs/lab.md); `qradar run FILE` runs it"), end="")
         return 0
