@@ -86,7 +86,8 @@ docs-lab: $(KERNEL_STAMP)
 # four pytest-xdist workers on this 2-core machine: the process tests wait on their children much
 # of the time, so two kept 1.4 cores busy (612-749 s), three 1.5-1.66 (327-385 s), four 1.68
 # (264-304 s five times in a row on a fresh clone, 404 s under two busy loops, 2026-11-29, once the
-# tests waited on events instead of fixed durations); the tests that measure time or memory (marked `measure`)
+# tests waited on events instead of fixed durations), five no more (334 s against four's 339 s back to
+# back, 2026-11-30); the tests that measure time or memory (marked `measure`)
 # share one worker, the tests sharing a module's fixture another (--dist loadgroup,
 # tests/conftest.py); `make test TEST_WORKERS=0`: one process
 TEST_WORKERS ?= 4
