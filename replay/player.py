@@ -76,8 +76,11 @@ def nothing_selected(path, cfg: PlayConfig, channels: dict) -> str:
     if cfg.topics and not any(zenoh.KeyExpr(cfg.topics).intersects(t) for t in topics):
         return f"--topics {cfg.topics!r} matches none of the channels of {path}: {', '.join(topics)}"
     window = " ".join(f"{flag} {v:g}" for flag, v in (("--start", cfg.start_s), ("--end", cfg.end_s)) if v is not None)
+    if not window:
+        return f"{path} holds no message on its qradar channels ({', '.join(topics)})" + (
+            f" that --topics {cfg.topics!r} selects" if cfg.topics else "")
     return (f"{path} has no message {'of --topics ' + repr(cfg.topics) + ' ' if cfg.topics else ''}"
-            f"within {window or 'the file'} (s from its first message; `qradar info {path}` gives its length)")
+            f"within {window} (s from its first message; `qradar info {path}` gives its length)")
 
 
 def play(path, bus: BusConfig, cfg: PlayConfig, session: zenoh.Session | None = None,

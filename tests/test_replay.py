@@ -234,10 +234,10 @@ def test_bad_files_give_clear_errors(tmp_path):
             parse_alphas(bad)
 
 
-def test_a_replay_that_selects_nothing_says_why_and_fails(bus, zenoh_session):
+def test_a_replay_that_selects_nothing_says_why_and_fails(tmp_path, bus, zenoh_session):
     """``--topics`` matching none of a recording's channels, or a window past its end: one line
     naming them and status 2, not "published 0" with status 0 (with ``--loop``, a loop over
-    nothing until Ctrl-C)."""
+    nothing until Ctrl-C); so does a recording of no message."""
     with pytest.raises(ReplayError, match=r"--topics 'radar/\*\*/nothing' matches none of the channels of "
                                           r".*chamber\.mcap: radar/kmd2-0/health, radar/kmd2-0/quantized"):
         play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/**/nothing"), session=zenoh_session)
@@ -247,6 +247,14 @@ def test_a_replay_that_selects_nothing_says_why_and_fails(bus, zenoh_session):
         play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/*/health", start_s=1, end_s=1.01), session=zenoh_session)
     assert play(CHAMBER, bus, PlayConfig(fast=True, topics="radar/*/targets", end_s=0.5),
                 session=zenoh_session).published > 0
+    empty = tmp_path / "empty.mcap"  # a recording stopped before its first message
+    with open(empty, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        w.register_channel("radar/s0/health", "json", w.register_schema("qradar.health", "jsonschema", b"{}"))
+        w.finish()
+    with pytest.raises(ReplayError, match=r"empty\.mcap holds no message on its qradar channels \(radar/s0/health\)$"):
+        play(empty, bus, PlayConfig(fast=True), session=zenoh_session)
     proc = subprocess.run([*QRADAR, "replay", str(CHAMBER), "--fast", "--topics", "radar/*/tracks"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and proc.stdout == "", proc
