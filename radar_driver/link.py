@@ -95,8 +95,25 @@ def open_failure(url: str, exc: BaseException) -> LinkError:
     return kind(open_error(url, exc))
 
 
+def address_problem(url: str) -> str | None:
+    """What is wrong with the ``HOST:PORT`` of a ``socket://`` or ``rfc2217://`` URL (pyserial
+    says it in its own words: "'debug|info|warning|error'" for a port that is not a number),
+    or None."""
+    scheme, sep, rest = url.partition("://")
+    if not sep or scheme.lower() not in ("socket", "rfc2217"):
+        return None
+    host, colon, port = rest.split("?", 1)[0].rstrip("/").rpartition(":")
+    if colon and port.isdigit() and 0 < int(port) < 65536:
+        return None
+    return (f"{scheme}:// takes HOST:PORT with PORT a number in 1-65535 (e.g. {scheme}://192.168.0.50:4001), "
+            f"not {rest!r}")
+
+
 def open_error(url: str, exc: BaseException) -> str:
     """One line for a port that would not open, with what to check."""
+    problem = address_problem(url)
+    if problem is not None:
+        return f"cannot open {url}: {problem}"
     code = error_code(exc)
     if isinstance(exc, ConnectionRefusedError) or code == errno.ECONNREFUSED or "refused" in str(exc).lower():
         return f"cannot connect to {url}: connection refused (is the sensor, ser2net or `qradar sim --tcp` listening there?)"

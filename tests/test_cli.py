@@ -74,6 +74,23 @@ def test_permission_denied_names_the_dialout_group():
                    "`sudo usermod -aG dialout $USER`, then log in again)")
 
 
+@pytest.mark.parametrize("url, address", [("socket://127.0.0.1:notaport", "'127.0.0.1:notaport'"),
+                                          ("socket://127.0.0.1:99999", "'127.0.0.1:99999'"),
+                                          ("rfc2217://sensor-host", "'sensor-host'")])
+def test_a_network_url_without_a_port_number_says_so_not_pyserials_words(url, address):
+    """pyserial says "'debug|info|warning|error'" for socket://HOST:notaport (its URL
+    options' parser); the line says what the URL needs."""
+    import serial
+
+    from radar_driver.session import open_error
+
+    scheme = url.split("://")[0]
+    exc = serial.SerialException("expected a number, logging level, timeout, 'debug|info|warning|error'")
+    assert open_error(url, exc) == (f"cannot open {url}: {scheme}:// takes HOST:PORT with PORT a number in 1-65535 "
+                                    f"(e.g. {scheme}://192.168.0.50:4001), not {address}")
+    assert "connection refused" in open_error("socket://127.0.0.1:1", ConnectionRefusedError())
+
+
 @pytest.mark.parametrize("command, defaults", [
     ("drive", ["--ramps RAMPS         ramps per frame (M = 256 x ramps) (default: 2)", "default 2000000",
                "(default: 0.5)", "(default: kmd2-blocks)", "(default: kmd2)"]),
