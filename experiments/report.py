@@ -10,16 +10,18 @@ import numpy as np
 
 from pipeline.errors import PipelineError
 from experiments.montecarlo import PD_AMPLITUDE, MonteCarloResult
-from replay.outputs import check_output_folder
+from replay.outputs import output_folder
 
 #: the files a Monte Carlo run writes whatever its options (a folder holding one is refused unless --force)
 OUTPUT_FILES = ("summary.json", "config.json", "maps.npz")
 
 
-def prepare_out_dir(out_dir: Path, names: tuple[str, ...] = OUTPUT_FILES, force: bool = False) -> Path:
-    """Check the output folder before a long run, so that a bad path or an earlier run's
-    outputs (unless ``force``) fail at once; make it (its own folder only: replay.outputs)."""
-    return check_output_folder(out_dir, names, force)
+def prepare_out_dir(out_dir: Path, names: tuple[str, ...] = OUTPUT_FILES, force: bool = False):
+    """The output folder checked before a long run, so that a bad path or an earlier run's
+    outputs (unless ``force``) fail at once; made (its own folder only) for the ``with``
+    block's work, and removed again if that fails before writing into it
+    (:func:`replay.outputs.output_folder`)."""
+    return output_folder(out_dir, names, force)
 
 
 #: the files a Monte Carlo run writes as its options ask, besides OUTPUT_FILES and the maps

@@ -7,8 +7,9 @@ into, when that folder's parent exists (``--record out/lab.mcap`` makes ``out/``
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from .errors import OutputExists, ReplayError
 
@@ -79,6 +80,25 @@ def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = 
             raise OutputExists(f"{folder} holds {', '.join(taken)} already: qradar replaces no output unless told "
                                f"({FORCE_HINT}, or choose another --out)")
     return own_folder(folder)
+
+
+@contextmanager
+def output_folder(folder: str | Path, names: Iterable[str], force: bool = False,
+                  inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
+    """:func:`check_output_folder`'s folder for the work of the ``with`` block: a folder it made
+    is removed again when the work fails before writing into it (a wrong sensor, a recording
+    without raw frames: no empty ``--out`` left behind); one holding a file stays."""
+    existed = os.path.lexists(folder)
+    made = check_output_folder(folder, names, force, inputs)
+    try:
+        yield made
+    except BaseException:
+        if not existed:
+            try:
+                made.rmdir()  # only when empty
+            except OSError:
+                pass
+        raise
 
 
 def pyplot():

@@ -33,7 +33,7 @@ from radar_driver.options import nonneg_int, option
 from radar_driver.scene import SimScene, load_scene, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
-from .outputs import check_new_file, check_output_folder, pyplot
+from .outputs import check_new_file, output_folder, pyplot
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
@@ -489,7 +489,12 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
     the files written, notes for the user (warnings) and the report lines. Existing outputs
     are refused before any work unless ``cfg.force`` (:mod:`replay.outputs`)."""
     inputs = (cfg.file, cfg.calibration, cfg.truth)
-    check_output_folder(cfg.out, OUTPUT_FILES, cfg.force, inputs)
+    with output_folder(cfg.out, OUTPUT_FILES, cfg.force, inputs):  # made, and removed again if the work fails
+        return _run(cfg, inputs)
+
+
+def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
+    """:func:`run` once its output folder is there."""
     if cfg.mcap is not None:
         check_new_file(cfg.mcap, cfg.force, "--mcap", inputs)
     rec = load_raw(cfg.file, cfg.sensor)

@@ -381,6 +381,26 @@ def test_7_a_monte_carlo_forced_over_an_earlier_one_leaves_none_of_its_maps(tmp_
     assert (tmp_path / "K1_dither_m512.png").is_file() and not (tmp_path / "K2_dither_m512.png").exists()
 
 
+def test_7_a_reprocess_that_fails_leaves_no_empty_out_folder_behind(tmp_path):
+    """The --out folder a failing reprocess made (a sensor the recording does not hold) is
+    removed again; a folder that was there stays, and so does one holding a file."""
+    from replay.errors import ReplayError
+    from replay.reprocess import ReprocessConfig, run
+
+    chamber = ROOT / "recordings" / "chamber.mcap"
+    for out, there in ((tmp_path / "new", False), (tmp_path / "old", True)):
+        if there:
+            out.mkdir()
+        with pytest.raises(ReplayError, match="has no raw frames of sensor 'nosuch'"):
+            run(ReprocessConfig(file=chamber, alphas=(0.5,), algos=("pbp",), sensor="nosuch", out=out, progress=False))
+        assert out.is_dir() == there
+    (tmp_path / "new").mkdir()
+    with pytest.raises(ReplayError, match="--mcap"):  # --mcap its own input: refused once "kept" is made
+        run(ReprocessConfig(file=chamber, alphas=(0.5,), algos=("pbp",), out=tmp_path / "new" / "kept",
+                            mcap=chamber, force=True, progress=False))
+    assert not (tmp_path / "new" / "kept").exists() and (tmp_path / "new").is_dir()
+
+
 def test_7_no_command_makes_folders_above_its_outputs_own(tmp_path):
     deep = tmp_path / "no" / "such" / "x.mcap"
     out = qradar("run", "--frames", 5, "--record", deep)

@@ -97,8 +97,8 @@ def add_montecarlo_time(sub) -> None:
 
 
 def cmd_montecarlo_time(args) -> int:
-    prepare_out_dir(args.out, ("time.json", "time.png"), args.force)  # before the work: a bad --out is one line
-    results = [time_monte_carlo(args.runs, tuple(args.frames), s, args.alpha, args.seed) for s in args.noise_sigma]
+    with prepare_out_dir(args.out, ("time.json", "time.png"), args.force):  # before the work: a bad --out is one line
+        results = [time_monte_carlo(args.runs, tuple(args.frames), s, args.alpha, args.seed) for s in args.noise_sigma]
     (args.out / "time.json").write_text(json.dumps(results, indent=2) + "\n")
     error_vs_frames_figure(args.out / "time.png", results)
     for r in results:
@@ -127,8 +127,8 @@ def cmd_montecarlo(args) -> int:
         gate=None if args.min_range_m is None and args.max_range_m is None else RangeGate(
             0.0 if args.min_range_m is None else args.min_range_m,
             RadarConfig().max_range_m if args.max_range_m is None else args.max_range_m))
-    prepare_out_dir(args.out, force=args.force)
-    result = run_montecarlo(cfg, progress=not args.quiet)
+    with prepare_out_dir(args.out, force=args.force):
+        result = run_montecarlo(cfg, progress=not args.quiet)
     print("\n".join(write_outputs(result, args.out, cfg.radar.max_range_m, plots=not args.no_plots)))
     return 0
 
