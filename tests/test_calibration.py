@@ -4,6 +4,7 @@ its refusal paths."""
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -135,6 +136,17 @@ def test_estimates_refuse_impossible_inputs():
         estimate_front_end(empty, refl[:, :10], CFG, range_m=3.0)
     with pytest.raises(CalibrationError, match="background"):
         FrontEndCorrection("s", 1, np.zeros((4, 3)))
+    # the empty scene's frames given as the reflector's (a simulator repeats its frames): said so, where a
+    # division by a zero amplitude warned and an "implausible I/Q map" was the error
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(CalibrationError, match=r"the reflector's frames hold nothing beside the empty scene's"):
+            estimate_front_end(empty, empty.copy(), CFG, range_m=3.0)
+    # another recording of the empty scene (its own noise) given as the reflector's: the same
+    noise = 0.01 * (rng.standard_normal(empty.shape) + 1j * rng.standard_normal(empty.shape))
+    with pytest.raises(CalibrationError, match=r"hold nothing beside the empty scene's .* under 10 dB\): is the "):
+        estimate_front_end(empty, empty[::-1] + noise, CFG, range_m=3.0)
+    estimate_front_end(empty, refl, CFG, range_m=3.0)  # the reflector's own recording passes
 
 
 # -- on the simulated sensor's own frames (noise, 12-bit ADC, the [frontend] chain) ------------------

@@ -56,6 +56,10 @@ RANGE_SEARCH_BINS = 1.5
 #: clean reflector in the simulated chamber, +2 dB with --range-m 7 for a reflector at 3.1 m)
 #: says the inputs are wrong
 MAX_RESIDUAL_DB = -15.0
+#: the reflector's return (its recording's mean frame less the empty scene's) must stand this
+#: much over the two means' noise, dB: below it the recording holds no reflector (a fit of it
+#: would leave a residual far above MAX_RESIDUAL_DB)
+RETURN_OVER_NOISE_DB = 10.0
 #: the fitted range may move at most this many range bins from the given one (a tape's error)
 MAX_RANGE_SHIFT_BINS = 1.0
 #: an empty recording whose strongest return beyond its first and last EMPTY_SKIP_BINS range bins
@@ -211,6 +215,13 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
     if not -90 < angle_deg < 90:
         raise CalibrationError(f"the reflector's angle {angle_deg!r} deg must be within (-90, 90)")
     z = reflector.mean(axis=0) - background  # (M, 2)
+    power, floor = float(np.mean(np.abs(z) ** 2)), _return_floor(empty, reflector, background)
+    if not power > floor:
+        how = ("is the empty one's" if power == 0 else f"differs from the empty one's by "
+               f"{10 * math.log10(power * 10 ** (RETURN_OVER_NOISE_DB / 10) / floor):+.1f} dB over the two means' "
+               f"noise, under {RETURN_OVER_NOISE_DB:g} dB")
+        raise CalibrationError(f"the reflector's frames hold nothing beside the empty scene's (their mean frame "
+                               f"{how}): is the reflector in its recording, or is that the empty scene's again?")
     r_fit = fit_reflector_range(z, config, range_m)
     t = _template(config, np.array([r_fit]), z.shape[0])[0]  # (M,)
     c, resid_i = _fit_i(z.real, t[None])
@@ -231,6 +242,18 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
                  "fit_residual_db": round(10 * math.log10(max(resid, 1e-300) / max(signal, 1e-300)), 2)})
     info.update(_empty_return(beyond, _range_profile(z, config).max(), "reflector's return", config))
     return FrontEndCorrection(sensor_id, cid, background, float(alpha), float(beta), rx2, info)
+
+
+def _return_floor(empty: np.ndarray, reflector: np.ndarray, background: np.ndarray) -> float:
+    """The least mean power a sample of the reflector's return (its mean frame less the empty
+    one's) must have: :data:`RETURN_OVER_NOISE_DB` over the two means' noise (each frames'
+    spread about their mean over their count), and above the rounding of the background."""
+    def noise(frames: np.ndarray) -> float:
+        frames = np.asarray(frames)
+        return float(np.mean(np.abs(frames - frames.mean(axis=0)) ** 2)) / frames.shape[0]
+
+    rounding = 1e-24 * float(np.mean(np.abs(background) ** 2)) + 1e-300
+    return 10 ** (RETURN_OVER_NOISE_DB / 10) * (noise(empty) + noise(reflector)) + rounding
 
 
 def _range_profile(frame: np.ndarray, config: RadarConfig) -> np.ndarray:
