@@ -221,7 +221,15 @@ def check_offline(cfg: RunConfig) -> None:
             RangeGate(cfg.min_range_m, cfg.max_range_m)
         return
     scene = resolve_scene(cfg.scene)
-    localizer_of(cfg, cfg.k or max(1, len(scene.targets)), scene.radar)
+    localizer_of(cfg, targets_a_frame(cfg, scene, None), scene.radar)
+
+
+def targets_a_frame(cfg: RunConfig, scene: SimScene | None, truth) -> int:
+    """The run's K: ``--K``, else the simulated scene's targets, else the truth's, else
+    REAL_SENSOR_K."""
+    if scene is not None:
+        return cfg.k or max(1, len(scene.targets))
+    return cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
 
 
 def plan(cfg: RunConfig) -> Plan:
@@ -235,10 +243,7 @@ def plan(cfg: RunConfig) -> Plan:
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
     calibration = check_calibration(cfg)
     check_record(cfg)
-    if scene is not None:
-        k = cfg.k or max(1, len(scene.targets))
-    else:
-        k = cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)
+    k = targets_a_frame(cfg, scene, truth)
     localizer = localizer_of(cfg, k, radar)  # checked before anything starts
     # a truth file holds the world's positions: each sensor with a pose sees them from there
     truths = {s.sensor_id: seen_from(truth, s.pose, s.sensor_id) for s in cfg.sensor_specs

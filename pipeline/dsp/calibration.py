@@ -214,8 +214,9 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
                                f"{config.range_grid_m()[-1]:.2f}) m")
     if not -90 < angle_deg < 90:
         raise CalibrationError(f"the reflector's angle {angle_deg!r} deg must be within (-90, 90)")
-    z = reflector.mean(axis=0) - background  # (M, 2)
-    power, floor = float(np.mean(np.abs(z) ** 2)), _return_floor(empty, reflector, background)
+    mean = reflector.mean(axis=0)
+    z = mean - background  # (M, 2)
+    power, floor = float(np.mean(np.abs(z) ** 2)), _return_floor((empty, background), (reflector, mean))
     if not power > floor:
         how = ("is the empty one's" if power == 0 else f"differs from the empty one's by "
                f"{10 * math.log10(power * 10 ** (RETURN_OVER_NOISE_DB / 10) / floor):+.1f} dB over the two means' "
@@ -244,16 +245,14 @@ def estimate_front_end(empty: np.ndarray, reflector: np.ndarray | None, config: 
     return FrontEndCorrection(sensor_id, cid, background, float(alpha), float(beta), rx2, info)
 
 
-def _return_floor(empty: np.ndarray, reflector: np.ndarray, background: np.ndarray) -> float:
+def _return_floor(*recordings: tuple[np.ndarray, np.ndarray]) -> float:
     """The least mean power a sample of the reflector's return (its mean frame less the empty
-    one's) must have: :data:`RETURN_OVER_NOISE_DB` over the two means' noise (each frames'
-    spread about their mean over their count), and above the rounding of the background."""
-    def noise(frames: np.ndarray) -> float:
-        frames = np.asarray(frames)
-        return float(np.mean(np.abs(frames - frames.mean(axis=0)) ** 2)) / frames.shape[0]
-
-    rounding = 1e-24 * float(np.mean(np.abs(background) ** 2)) + 1e-300
-    return 10 ** (RETURN_OVER_NOISE_DB / 10) * (noise(empty) + noise(reflector)) + rounding
+    one's) must have: :data:`RETURN_OVER_NOISE_DB` over the two means' noise (each of the
+    ``recordings``' frames (B, M, 2) spread about their mean frame (M, 2), over B), and above
+    the rounding of the empty scene's mean (the first)."""
+    noise = sum(float(np.mean(np.abs(np.asarray(frames) - mean) ** 2)) / len(frames) for frames, mean in recordings)
+    rounding = 1e-24 * float(np.mean(np.abs(recordings[0][1]) ** 2)) + 1e-300
+    return 10 ** (RETURN_OVER_NOISE_DB / 10) * noise + rounding
 
 
 def _range_profile(frame: np.ndarray, config: RadarConfig) -> np.ndarray:

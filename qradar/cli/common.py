@@ -19,7 +19,6 @@ from pipeline.bus.session import BusConfig
 from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration_file
 from pipeline.errors import ParameterError
-from radar_driver.lifetime import watch_parent  # noqa: F401 (the commands import it from here)
 from pipeline.nodes.budget import IntakeBudget
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from pipeline.bus import audit
 from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import run_nodes
+from radar_driver.lifetime import watch_parent
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
 from replay.mcapinfo import describe, format_info
@@ -22,7 +23,7 @@ from replay.recorder import RecorderNode, RecordingState
 from radar_driver.options import META, option, pos_float
 
 from ..run import RunConfig
-from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, watch_parent
+from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget
 from .parts import INTAKE, force_help, node_part, switches, zenoh_parts
 from .schema import Part, add_command
 

@@ -16,6 +16,7 @@ import numpy as np
 from pipeline.errors import ParameterError
 from pipeline.nodes.stream import SourceNode
 from pipeline.wire import check_sensor_id
+from radar_driver.lifetime import watch_parent
 from radar_driver.options import like, nonneg_float, nonneg_int, option, pos_int
 from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, packaged_scenes, resolve_scene
 from radar_driver.session import SensorSession, SessionConfig, save_frames_npz
@@ -23,7 +24,7 @@ from radar_driver.simulator import SimFaults, SimulatorServer
 from radar_driver.profile import resolve_profile
 from replay.outputs import check_new_file
 
-from .common import bus_from_args, install_sigterm, load_calibration, watch_parent
+from .common import bus_from_args, install_sigterm, load_calibration
 from .parts import edge_parts, edge_quantizer, force_help, node_part, switches, zenoh_parts
 from .schema import Part, Schema, add_command
 

@@ -15,11 +15,12 @@ from pipeline.nodes.intake import QueueConfig, ServeConfig
 from pipeline.nodes.status import StatusLines
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
+from radar_driver.lifetime import watch_parent
 from radar_driver.options import nonneg_float, option
 from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 
-from .common import bus_from_args, install_sigterm, intake_budget, load_calibration, watch_parent
+from .common import bus_from_args, install_sigterm, intake_budget, load_calibration
 from .parts import (CALIBRATION, GATE, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts,
                     edge_quantizer, node_part, quantizer_of, quantizer_part, tracker_of, zenoh_parts)
 from .schema import Part, add_command

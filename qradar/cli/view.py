@@ -12,10 +12,11 @@ from pathlib import Path
 
 from pipeline.bus import audit
 from pipeline.errors import ParameterError, PipelineError
+from radar_driver.lifetime import watch_parent
 from radar_driver.options import nonneg_float, option
 
 from ..view import FoxgloveView, ViewConfig, load_poses, parse_endpoint
-from .common import bus_from_args, install_sigterm, intake_budget, watch_parent
+from .common import bus_from_args, install_sigterm, intake_budget
 from .parts import INTAKE, node_part, zenoh_parts
 from .schema import Part, add_command
 
