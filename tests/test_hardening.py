@@ -428,7 +428,7 @@ def test_the_recorder_does_not_record_frames_of_impossible_lengths(bus, mem, tmp
             mem.put(f"radar/junk{i}/raw", b"x")
         mem.put("radar/s6/raw", raw("s6", 0))
         wait_until(lambda: rec.totals()["frames_out"] == 1 and rec.totals()["invalid_frames"] == 50, 10,
-                   "one frame recorded, 50 refused")
+                   lambda: f"one frame recorded, 50 refused (totals: {rec.totals()})")
     finally:
         rec.stop()
     with open(tmp_path / "r.mcap", "rb") as f:

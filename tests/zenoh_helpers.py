@@ -70,10 +70,16 @@ def free_port(host: str = "127.0.0.1") -> int:
     pytest.fail("no free port found among 2000 candidates", pytrace=False)
 
 
+#: the least a wait gives its event before the test fails, s: a bound says when the event is
+#: lost, not how fast it comes (four workers on two busy cores stall a thread for seconds)
+WAIT_FLOOR_S = 30.0
+
+
 def wait_until(pred, timeout_s=20.0, what="condition", poll_s=0.05):
-    """Poll ``pred`` every ``poll_s`` s until it is true; fail the test once ``timeout_s`` has
-    passed or after ``timeout_s / poll_s + 1`` polls, whichever comes first. ``what`` may be a
-    callable, asked then (to say how far it got)."""
+    """Poll ``pred`` every ``poll_s`` s until it is true; fail the test once
+    max(``timeout_s``, WAIT_FLOOR_S) has passed or after as many polls as fit in it, whichever
+    comes first. ``what`` may be a callable, asked then (to say how far it got)."""
+    timeout_s = max(timeout_s, WAIT_FLOOR_S)
     deadline = time.monotonic() + timeout_s
     for _ in range(int(timeout_s / poll_s) + 1):
         if pred():
