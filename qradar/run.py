@@ -39,7 +39,7 @@ from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, resolve_sce
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
-from replay.outputs import check_new_file
+from replay.outputs import check_file_kind, check_new_file
 from radar_driver.options import option, pos_float, pos_int
 from replay.recorder import OnWriteError, RecorderNode
 
@@ -268,6 +268,7 @@ def check_record(cfg: RunConfig) -> None:
     """A recording's file given by name: refused if it exists (unless ``record_overwrite``)
     or its folder cannot be made (one level at most)."""
     if cfg.record is not None and not cfg.record_new_name_if_taken:
+        check_file_kind(cfg.record, "recording")  # a folder or a link: said as such, --force or not
         if os.path.lexists(cfg.record) and not cfg.record_overwrite:
             raise RecordingExists.at(cfg.record)
         check_new_file(cfg.record, cfg.record_overwrite, "recording")

@@ -29,6 +29,7 @@ MCAP without an index; ``qradar recover`` indexes it).
 from __future__ import annotations
 
 import errno
+import itertools
 import json
 import os
 from collections import Counter
@@ -47,7 +48,7 @@ from pipeline.wire.fields import HEALTH, PROFILE, TARGETS, TRACKS, json_schema
 from pipeline.wire.foxglove import POINTCLOUD_SCHEMA, SCENE_UPDATE_SCHEMA, pointcloud_json, profile_json, scene_json
 
 from .errors import RecordingExists, ReplayError, UnwritableMessage
-from .outputs import check_not_input, own_folder
+from .outputs import check_file_kind, check_not_input, own_folder
 from .mcapcheck import MAGIC, METADATA_CRC_KEY, metadata_crc, read_summary, written_counts
 from .mcapread import DamagedChunk, McapFile, check_mcap
 
@@ -109,7 +110,8 @@ class _RecordFile:
     can be cut back to a record boundary with nothing left behind in a buffer."""
 
     def __init__(self, path: Path, overwrite: bool = False):
-        mode = os.O_TRUNC if overwrite else os.O_EXCL  # exclusive: FileExistsError if the path exists
+        # exclusive: FileExistsError if the path exists; replacing: never through a link (ELOOP)
+        mode = os.O_TRUNC | os.O_NOFOLLOW if overwrite else os.O_EXCL
         self.fd = os.open(path, os.O_RDWR | os.O_CREAT | mode | os.O_CLOEXEC, 0o644)
         self.pos = 0
 
@@ -431,11 +433,17 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict:
     counted lost, in the result and in the new file's ``qradar.recovery`` metadata).
     A new file unless ``overwrite``. Returns :meth:`McapFile.report` (``messages``: those copied)."""
     check_not_input(dst, (src,), "recover's output")  # by any name: a link too
+    check_file_kind(dst, "recover's output")  # a folder or a link (to another file): said as such
     check_mcap(src)  # a missing, empty or foreign file: refused before an output exists
     f = McapFile(src)
+    messages = f.messages()
+    first = next(messages, None)
+    if first is None:  # nothing that reads back: no output that looks like a recovery
+        raise ReplayError(f"{src} holds no complete message to recover ({os.path.getsize(src)} bytes); "
+                          f"{dst} not written")
     sink = McapSink(Path(dst), overwrite=overwrite)
     try:
-        for ch, msg in f.messages():
+        for ch, msg in itertools.chain((first,), messages):
             sink.write(ch.topic, msg.data, msg.log_time, msg.publish_time, msg.sequence)
         for md in f.metadata:
             sink.metadata(md.name, dict(md.metadata))

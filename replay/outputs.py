@@ -50,15 +50,27 @@ def check_not_input(path: str | Path, inputs: Iterable[str | Path | None], what:
                               "(--force replaces an earlier output, never an input)")
 
 
+def check_file_kind(path: str | Path, what: str = "output") -> Path:
+    """A ReplayError when the output ``path`` is a folder, or a symbolic link (``--force`` or
+    not: writing through it would replace the file it points to, which qradar did not make)."""
+    path = Path(path)
+    if path.is_symlink():
+        raise ReplayError(f"{what} {path} is a symbolic link (to {os.readlink(path)}): qradar writes no output "
+                          "through a link, which would replace the file it points to; remove the link or choose "
+                          "another name")
+    if path.is_dir():
+        raise ReplayError(f"{what} {path} is a folder, not a file")
+    return path
+
+
 def check_new_file(path: str | Path, force: bool = False, what: str = "output",
                    inputs: Iterable[str | Path | None] = ()) -> Path:
     """A file about to be written: an existing one is refused unless ``force`` (an
-    OutputExists naming it), a folder always, one of the command's ``inputs`` even with
-    ``force`` (:func:`check_not_input`); its own folder made (:func:`own_folder`)."""
-    path = Path(path)
-    if path.is_dir():
-        raise ReplayError(f"{what} {path} is a folder, not a file")
-    check_not_input(path, inputs, what)
+    OutputExists naming it), a folder or a link always (:func:`check_file_kind`), one of the
+    command's ``inputs`` even with ``force`` (:func:`check_not_input`); its own folder made
+    (:func:`own_folder`)."""
+    check_not_input(path, inputs, what)  # first: a link to an input is named as the input
+    path = check_file_kind(path, what)
     if os.path.lexists(path) and not force:
         raise OutputExists(f"{what} {path} exists: qradar replaces no output unless told ({FORCE_HINT})")
     own_folder(path.parent, path)
@@ -74,6 +86,8 @@ def check_output_folder(folder: str | Path, names: Iterable[str], force: bool = 
     names, inputs = list(names), list(inputs)
     for n in names:
         check_not_input(folder / n, inputs)
+    for n in names:
+        check_file_kind(folder / n)
     if folder.is_dir():
         taken = [n for n in names if os.path.lexists(folder / n)]
         if taken and not force:

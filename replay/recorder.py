@@ -55,6 +55,7 @@ from pipeline.wire.shared import DecodedOnce
 
 from .derived import DerivedConfig, Derivations
 from .mcapio import DERIVED, MAX_FILE_CHANNELS, FlushCheck, McapSink, describe_os_error, topic_of
+from .outputs import check_file_kind
 
 log = logging.getLogger("qradar.record")
 
@@ -150,6 +151,8 @@ class RecordingFiles(ProcessingNode):
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
             raise ReplayError(f"recording path {self.base_path} must end in .mcap")
+        if not new_name_if_taken:
+            check_file_kind(self.base_path, "recording")  # a folder or a link, --force or not
         if not (new_name_if_taken or overwrite) and os.path.lexists(self.base_path):
             raise RecordingExists.at(self.base_path)  # at once (and again, exclusively, at the start)
         if split_size_mb is not None and not split_size_mb > 0:

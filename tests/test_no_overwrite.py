@@ -188,3 +188,40 @@ def test_a_replay_prefix_that_is_no_key_is_one_line(prefix, cli):
     code, _, err = cli("replay", Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap",
                        "--replay-prefix", prefix, "--fast")
     assert code == 2 and "--replay-prefix" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_force_never_writes_through_a_link_and_a_folder_is_named_as_one(tmp_path, cli):
+    """An output path that is a symbolic link is refused, ``--force`` or not, in one line naming
+    the link: writing through it would replace the file it points to, which qradar did not
+    make (``run --record``, ``recover -o``, ``calibrate --out``, ``reprocess`` into a folder
+    holding one of its names as a link); an output path that is a folder is said to be one."""
+    rec = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    notes = tmp_path / "notes.md"
+    notes.write_text("the lab's notes\n")
+    (tmp_path / "link.mcap").symlink_to(notes)
+    (tmp_path / "rp").mkdir()
+    (tmp_path / "rp" / "results.json").symlink_to(notes)
+    (tmp_path / "dir.mcap").mkdir()
+    for argv in (["run", "--frames", "5", "--record", tmp_path / "link.mcap"],
+                 ["recover", rec, "-o", tmp_path / "link.mcap"],
+                 ["calibrate", "--empty", rec, "--out", tmp_path / "link.mcap"],
+                 ["reprocess", rec, "--algos", "pbp", "--alpha", "0.5", "--out", tmp_path / "rp"]):
+        for force in ((), ("--force",)):
+            code, _, err = cli(*argv, *force)
+            assert code == 2 and len(err.strip().splitlines()) == 1, (argv, err)
+            assert "is a symbolic link (to " in err and "remove the link or choose another name" in err, err
+    assert notes.read_text() == "the lab's notes\n"
+    for argv in (["run", "--frames", "5", "--record", tmp_path / "dir.mcap", "--force"],
+                 ["recover", rec, "-o", tmp_path / "dir.mcap"]):
+        code, _, err = cli(*argv)
+        assert code == 2 and err.strip().endswith(f"{tmp_path / 'dir.mcap'} is a folder, not a file"), err
+
+
+def test_a_recover_of_a_file_with_no_whole_message_writes_nothing(tmp_path, cli):
+    """The first bytes of a recording (its magic and no whole record): nothing to recover, said
+    in one line with status 2, and no "recovered" file of no message left to be mistaken for one."""
+    rec = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    (tmp_path / "cut.mcap").write_bytes(rec.read_bytes()[:10])
+    code, _, err = cli("recover", tmp_path / "cut.mcap", "-o", tmp_path / "fixed.mcap")
+    assert code == 2 and "holds no complete message to recover (10 bytes)" in err, err
+    assert not (tmp_path / "fixed.mcap").exists()
