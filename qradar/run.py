@@ -16,7 +16,6 @@ import os
 import sys
 import threading
 import time
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
@@ -33,9 +32,8 @@ from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
-from radar_driver.errors import ConfigError
 from radar_driver.model import RadarConfig
-from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, resolve_scene, scene_from_dict
+from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, load_truth, resolve_scene
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
 from replay.errors import RecordingExists
@@ -500,32 +498,6 @@ def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: 
             sid, 0), on_event=report, backoff_s=cfg.driver_backoff_s, max_restarts=cfg.driver_restarts))
     return drivers
 
-
-def load_truth(name_or_path: str | Path) -> SimScene:
-    """The true positions of ``--truth``: a scene file as :mod:`radar_driver.scene` reads
-    (or a packaged scene's name), of which only the targets' ranges and angles (and a
-    velocity, from the run's start) count, so a target's ``amplitude`` may be left out.
-    ConfigError naming ``--truth`` and the file, also for a file without a target."""
-    path = Path(name_or_path)
-    try:
-        if not path.exists() and path.suffix == "" and len(path.parts) == 1:
-            scene = resolve_scene(path.name)  # a packaged scene
-        else:
-            try:
-                data = tomllib.loads(path.read_text())
-            except OSError as exc:
-                raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
-            except tomllib.TOMLDecodeError as exc:
-                raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-            targets = data.get("target")
-            if isinstance(targets, list):
-                data["target"] = [{"amplitude": 1.0, **t} if isinstance(t, dict) else t for t in targets]
-            scene = scene_from_dict(data, str(path))
-    except ConfigError as exc:
-        raise ConfigError(f"--truth: {exc}") from None
-    if not scene.targets:
-        raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to compare with")
-    return scene
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,

@@ -234,6 +234,33 @@ def load_scene(path: str | Path) -> SimScene:
     return scene_from_dict(data, str(path))
 
 
+def load_truth(name_or_path: str | Path) -> SimScene:
+    """The true positions of ``--truth``: a scene file as :mod:`radar_driver.scene` reads
+    (or a packaged scene's name), of which only the targets' ranges and angles (and a
+    velocity, from the run's start) count, so a target's ``amplitude`` may be left out.
+    ConfigError naming ``--truth`` and the file, also for a file without a target."""
+    path = Path(name_or_path)
+    try:
+        if not path.exists() and path.suffix == "" and len(path.parts) == 1:
+            scene = resolve_scene(path.name)  # a packaged scene
+        else:
+            try:
+                data = tomllib.loads(path.read_text())
+            except OSError as exc:
+                raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+            except tomllib.TOMLDecodeError as exc:
+                raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+            targets = data.get("target")
+            if isinstance(targets, list):
+                data["target"] = [{"amplitude": 1.0, **t} if isinstance(t, dict) else t for t in targets]
+            scene = scene_from_dict(data, str(path))
+    except ConfigError as exc:
+        raise ConfigError(f"--truth: {exc}") from None
+    if not scene.targets:
+        raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to compare with")
+    return scene
+
+
 #: time base of the ramps (ramps/s) of a sensor that is polled as fast as it answers
 NOMINAL_RAMP_RATE_HZ = 40.0
 #: the scene of a simulated sensor unless told (a packaged scene's name)

@@ -30,7 +30,7 @@ from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks, encode_targets_batch
 from radar_driver.model import RadarConfig, polar_to_xy
 from radar_driver.options import nonneg_int, option
-from radar_driver.scene import SimScene, load_scene, scene_from_dict
+from radar_driver.scene import SimScene, load_truth, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
 from .outputs import check_new_file, output_folder, pyplot
@@ -125,8 +125,11 @@ def calibrated(rec: RawRecording, calibration: Calibration) -> RawRecording:
 
 
 def truth_scene(rec: RawRecording, truth_file: str | Path | None) -> SimScene:
+    """The true positions: ``truth_file`` (``--truth``, as ``run`` reads it: a scene file whose
+    targets' amplitudes may be left out, :func:`radar_driver.scene.load_truth`), else the
+    recording's own simulated scene."""
     if truth_file is not None:
-        return load_scene(truth_file)
+        return load_truth(truth_file)
     md = rec.metadata.get("qradar.scene")
     if md is None or "scene" not in md:
         raise ReplayError("the recording holds no ground truth (no qradar.scene metadata: not simulated?); "

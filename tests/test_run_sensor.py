@@ -25,7 +25,8 @@ from pipeline.bus.session import BusConfig
 from pipeline.errors import ParameterError
 from pipeline.wire import HealthMsg, TargetsMsg, decode_raw, decode_targets
 from qradar.monitor import Monitor
-from qradar.run import RunConfig, format_summary, load_truth
+from qradar.run import RunConfig, format_summary
+from radar_driver.scene import load_truth
 from qradar.sensors import SensorSpec
 from radar_driver.errors import ConfigError
 from radar_driver.scene import resolve_scene
@@ -242,6 +243,18 @@ def test_the_defaults_follow_the_kind_of_sensor():
     assert spec.session_config().line_baud == 115_200  # a socket stays at the start-up speed
     assert RunConfig(sensor_specs=(spec,), outstanding=2).outstanding == 2
 
+
+def test_reprocess_reads_the_same_truth_file_as_run(tmp_path, cli):
+    """docs/chamber.md's measured.toml (ranges and angles, no amplitude) is ``reprocess
+    --truth``'s too, as it is ``run``'s: the errors are against it."""
+    truth = tmp_path / "measured.toml"
+    truth.write_text("[[target]]\nrange_m = 5.87\nangle_deg = -20.0\n\n[[target]]\nrange_m = 10.23\nangle_deg = 15.0\n")
+    chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    code, out, err = cli("reprocess", chamber, "--algos", "pbp", "--alpha", "0.5", "--truth", truth,
+                         "--out", tmp_path / "rp", "--quiet")
+    assert code == 0, err
+    result = json.loads((tmp_path / "rp" / "results.json").read_text())
+    assert [(t["range_m"], t["angle_deg"]) for t in result["truth"]] == [(5.87, -20.0), (10.23, 15.0)]
 
 def test_a_truth_file_without_targets_or_unreadable_is_refused(tmp_path):
     empty = tmp_path / "empty.toml"

@@ -45,7 +45,9 @@ from radar_driver.scene import DEFAULT_SCENE, resolve_scene
 from replay.recorder import default_recording_path
 
 from ..drivers import NodeProcess, SupervisedDriver
-from ..run import REAL_SENSOR_K, load_truth
+from radar_driver.scene import load_truth
+
+from ..run import REAL_SENSOR_K
 from ..sensors import check_sensor_specs
 from ..rundir import remove_run_dirs, run_directory
 from . import lab

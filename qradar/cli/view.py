@@ -157,7 +157,7 @@ def cmd_view(args) -> int:
 
 def web_view(args):
     """``view --web``: of the live stream (its bus, the --truth scene), or of --recording."""
-    from ..run import load_truth
+    from radar_driver.scene import load_truth
     from ..web import WebView
 
     cfg = replace(web_config(args, args.host), queue_size=args.queue_size)
