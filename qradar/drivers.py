@@ -208,6 +208,9 @@ class DriverProcess(NodeProcess):
         return {self.sensor_id: dict(self.counters)}
 
 
+#: the driver counters that are a state (the current driver's), not a count (summed over its drivers)
+STATES = ("link_down",)
+
 #: a driver that dies is started again after RESTART_BACKOFF_S, doubled after each death
 #: that came within HEALTHY_S of its start, up to MAX_BACKOFF_S; after MAX_RESTARTS such
 #: deaths in a row its sensor is given up (gone)
@@ -331,7 +334,8 @@ class SupervisedDriver:
     def _keep_counters(self, driver) -> None:
         for counters in _driver_stats(driver).values():
             for k, v in counters.items():
-                self._counters[k] = self._counters.get(k, 0) + v
+                if k not in STATES:
+                    self._counters[k] = self._counters.get(k, 0) + v
 
     def stop(self) -> None:
         with self._lock:
@@ -347,7 +351,7 @@ class SupervisedDriver:
         out = dict(self._counters)
         for counters in _driver_stats(self.current).values():
             for k, v in counters.items():
-                out[k] = out.get(k, 0) + v
+                out[k] = v if k in STATES else out.get(k, 0) + v
         return {self.sensor_id: {**out, "restarts": self.restarts}}
 
 

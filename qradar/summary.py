@@ -100,6 +100,11 @@ class RunSummary:
         return format_summary(self)
 
     @property
+    def sensors_lost(self) -> list[str]:
+        """The sensors whose link was lost and not back at the end of the run."""
+        return sorted(sid for sid, c in self.driver.items() if c.get("link_down"))
+
+    @property
     def produced_nothing(self) -> bool:
         """Not one targets message, whether raw frames came or none did (a sensor that never
         answered, given up): the run's result is empty (its command ends with a non-zero status
@@ -123,6 +128,21 @@ def localizer_warning(raw: int, targets: int) -> str | None:
     return (f"the localizer published targets for {targets} of {raw} raw frames: it fell behind or failed (see drops "
             "and processing errors) or spent the run loading its kernels (`make` compiles them at set-up; a pip "
             "install compiles them on first use, for minutes)")
+
+
+def link_warnings(driver_stats: dict[str, dict[str, int]]) -> list[str]:
+    """What a run whose sensors lost their link says, one line a sensor: how often, for how
+    long, whether it was back at the end, and reconnects refused for another device."""
+    out = []
+    for sid, c in sorted(driver_stats.items()):
+        if not c.get("link_losses"):
+            continue
+        wrong = c.get("wrong_device", 0)
+        out.append(f"sensor {sid}'s link was lost {c['link_losses']} time(s), {c.get('down_ms', 0) / 1e3:.1f} s "
+                   f"without it in all" + (", and not back at the end of the run" if c.get("link_down") else "")
+                   + (f"; {wrong} reconnect attempt(s) found another device on its port, not opened"
+                      if wrong else "") + ": its frames of that time are missing")
+    return out
 
 
 def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, seconds: float,
@@ -189,7 +209,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
             "file": calibration.source, "made": calibration.meta.get("created_utc"),
             "sensor_ids": sorted(calibration.sensors)},
         front_end={sid: dict(st) for sid, st in sorted(monitor.front_end.items())},
-        warnings=[*monitor.warnings.values(), *filter(None, [localizer_warning(cnt["raw"], cnt["targets"])])],
+        warnings=[*monitor.warnings.values(), *link_warnings(driver_stats),
+                  *filter(None, [localizer_warning(cnt["raw"], cnt["targets"])])],
         driver=driver_stats,
         driver_process=cfg.driver_process,
         driver_restarts={d.sensor_id: d.restarts for d in drivers if hasattr(d, "restarts")},

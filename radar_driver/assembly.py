@@ -36,7 +36,10 @@ class DriverCounters:
     ``discarded_ramps``: RADCs thrown away with a partial frame; ``timeouts``: GNFDs sent
     again after ``timeout_s`` of silence; ``repeated``: answers with the last counter
     again (not a new measurement: skipped); ``wrong_device``: reconnect attempts refused
-    because the port's path now names another device than the one first opened."""
+    because the port's path now names another device than the one first opened;
+    ``link_losses``: times the link was lost (a reconnect began); ``down_ms``: time without
+    a link, from each loss to its reconnect (or to the stop); ``link_down``: 1 while it is
+    lost (at the end: the sensor was not back)."""
 
     frames: int = 0
     ramps: int = 0
@@ -52,6 +55,9 @@ class DriverCounters:
     resp_errors: int = 0
     repeated: int = 0
     wrong_device: int = 0
+    link_losses: int = 0
+    down_ms: int = 0
+    link_down: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

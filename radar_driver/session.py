@@ -372,32 +372,36 @@ class SensorSession:
                 self._queue.put(frame)
 
     def _reconnect(self) -> bool:
-        """Connect again with backoff; one warning per attempt with the time since the
-        last frame. True once connected, False at a stop; LinkError once
-        reconnect_timeout_s is spent."""
-        cfg = self.config
-        delay = cfg.backoff_s
-        start = time.monotonic()
-        attempt = 0
-        while True:
-            if self._stop.is_set():
-                return False
-            attempt += 1
-            try:
-                self._connect()
-                if attempt > 1:
-                    log.warning("%s: reconnected after %d attempts", cfg.url, attempt)
-                return True
-            except SensorError as exc:
-                if cfg.reconnect_timeout_s is not None and time.monotonic() - start > cfg.reconnect_timeout_s:
-                    raise LinkError(f"could not reconnect to {cfg.url} within {cfg.reconnect_timeout_s} s: {exc}") from exc
-                since = ("no frame yet" if self._last_frame_mono is None
-                         else f"{time.monotonic() - self._last_frame_mono:.1f} s since the last frame")
-                log.warning("%s is down (%s); reconnect attempt %d, %s; next in %.2f s", cfg.url, exc, attempt,
-                            since, delay)
-                if self._stop.wait(delay):
-                    return False
-                delay = min(delay * 2, cfg.max_backoff_s)
+        """Connect again with backoff (a warning per attempt, with the time since the last frame;
+        counted: link_losses, down_ms and, while it lasts, link_down). True once connected,
+        False at a stop; LinkError once reconnect_timeout_s is spent."""
+        cfg, c = self.config, self.counters
+        delay, start, attempt = cfg.backoff_s, time.monotonic(), 0
+        c.link_losses, c.link_down = c.link_losses + 1, 1
+        try:
+            while not self._stop.is_set():
+                attempt += 1
+                try:
+                    self._connect()
+                    c.link_down = 0
+                    if attempt > 1:
+                        log.warning("%s: reconnected after %d attempts, %.1f s without a link", cfg.url, attempt,
+                                    time.monotonic() - start)
+                    return True
+                except SensorError as exc:
+                    if cfg.reconnect_timeout_s is not None and time.monotonic() - start > cfg.reconnect_timeout_s:
+                        raise LinkError(f"could not reconnect to {cfg.url} within {cfg.reconnect_timeout_s} s: "
+                                        f"{exc}") from exc
+                    since = ("no frame yet" if self._last_frame_mono is None
+                             else f"{time.monotonic() - self._last_frame_mono:.1f} s since the last frame")
+                    log.warning("%s is down (%s); reconnect attempt %d, %s; next in %.2f s", cfg.url, exc, attempt,
+                                since, delay)
+                    if self._stop.wait(delay):
+                        break
+                    delay = min(delay * 2, cfg.max_backoff_s)
+            return False
+        finally:
+            c.down_ms += round((time.monotonic() - start) * 1e3)
 
     # -- the consumer side ------------------------------------------------------------------------
     def frames(self, limit: int | None = None) -> Iterator[RawFrame]:

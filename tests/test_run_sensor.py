@@ -269,6 +269,47 @@ def test_a_truth_file_without_targets_or_unreadable_is_refused(tmp_path):
         load_truth(bad)
 
 
+def test_a_sensor_lost_mid_run_is_named_and_the_run_fails(tmp_path):
+    """The K-MD2 unplugged mid-run (its simulator stopped, its pty gone): the summary warns,
+    naming the sensor, the time without its link and that it was not back; the JSON's driver
+    counters say so (link_losses 1, link_down 1); the run ends with status 1 and one error
+    line, not 0 beside a summary of a clean run."""
+    link = tmp_path / "kmd2"
+    sim = simulator(link).start()
+    proc = subprocess.Popen([*QRADAR, "run", "--json", "--no-record", "--duration", "15", "--sensor",
+                             f"{link},id=kmd2-0"], cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:  # its live lines (stderr under --json): the first frame's targets
+            if line.startswith("kmd2-0 #"):
+                break
+        sim.stop()  # unplugged
+        out, err = proc.communicate(timeout=60)
+    finally:
+        sim.stop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    s = json.loads(out)
+    c = s["driver"]["kmd2-0"]
+    assert c["link_losses"] == 1 and c["link_down"] == 1 and c["down_ms"] > 0, c
+    assert any(w.startswith("sensor kmd2-0's link was lost 1 time(s), ") and "not back at the end" in w
+               for w in s["warnings"]), s["warnings"]
+    assert proc.returncode == 1 and err.strip().splitlines()[-1] == (
+        "qradar run: error: kmd2-0 lost and not back at the end of the run: its frames stop there (the warning above "
+        "says for how long it was without its link)"), err[-2000:]
+
+
+def test_a_link_lost_and_back_is_a_warning_and_another_device_on_the_port_is_named():
+    from qradar.summary import link_warnings
+
+    assert link_warnings({"a": {"link_losses": 0}, "b": {"frames": 3}}) == []
+    assert link_warnings({"a": {"link_losses": 2, "down_ms": 1234, "link_down": 0},
+                          "b": {"link_losses": 1, "down_ms": 5000, "link_down": 1, "wrong_device": 3}}) == [
+        "sensor a's link was lost 2 time(s), 1.2 s without it in all: its frames of that time are missing",
+        "sensor b's link was lost 1 time(s), 5.0 s without it in all, and not back at the end of the run; 3 reconnect "
+        "attempt(s) found another device on its port, not opened: its frames of that time are missing"]
+
 def test_a_port_that_cannot_be_opened_names_the_sensor_before_anything_starts(tmp_path):
     rec = tmp_path / "never.mcap"
     proc = qradar("run", "--record", str(rec), "--json", "--sensor", "/dev/qradar-no-such-port,id=lab1",
