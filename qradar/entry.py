@@ -3,7 +3,9 @@ what a process must set before numpy loads, then :func:`qradar.cli.main`."""
 
 from __future__ import annotations
 
+import json
 import os
+import sys
 
 #: BLAS threads a qradar process runs with unless the environment says otherwise
 #: (``OPENBLAS_NUM_THREADS``): one. qradar scales by processes (nodes, zenoh shards), and its
@@ -20,8 +22,23 @@ def prepare_process() -> None:
 
 
 def main() -> int:
-    """The ``qradar`` command (:func:`qradar.cli.main`) in a prepared process."""
+    """The ``qradar`` command (:func:`qradar.cli.main`) in a prepared process. Ctrl-C before
+    the command handles it (while its modules load, its options are read): one line and
+    status 130, with ``--json`` the error object on stdout, as after (no traceback)."""
     prepare_process()
-    from qradar.cli import main as cli_main
+    try:
+        from qradar.cli import main as cli_main
 
-    return cli_main()
+        return cli_main()
+    except KeyboardInterrupt:
+        return interrupted(sys.argv[1:])
+
+
+def interrupted(argv: list[str]) -> int:
+    """What a command interrupted before it could say so itself prints (``argv``: its
+    arguments); 130."""
+    command = next((a for a in argv if not a.startswith("-")), "")
+    print(f"qradar {command}: interrupted" if command else "qradar: interrupted", file=sys.stderr, flush=True)
+    if "--json" in argv:
+        print(json.dumps({"error": "interrupted", "exit_code": 130, "command": command}), flush=True)
+    return 130

@@ -53,3 +53,28 @@ def test_both_ways_of_starting_qradar_go_through_the_entry():
 def test_the_tests_run_as_a_qradar_process_does():
     """tests/conftest.py prepares the test processes before numpy loads."""
     assert openblas_threads() == int(os.environ["OPENBLAS_NUM_THREADS"])
+
+
+#: a child whose command is interrupted (a real SIGINT) before it installs its own handling, as
+#: Ctrl-C in the first half second of `qradar run` is (its modules still loading)
+EARLY_SIGINT = """
+import os, signal, sys, time, types
+cli = types.ModuleType("qradar.cli")
+def main():
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(10)
+cli.main = main
+sys.modules["qradar.cli"] = cli
+sys.argv = ["qradar", *sys.argv[1:]]
+from qradar.entry import main as entry
+sys.exit(entry())
+"""
+
+
+def test_ctrl_c_while_the_command_loads_is_one_line_not_a_traceback():
+    for argv, out in ((["run", "--duration", "10"], ""),
+                      (["run", "--json"], '{"error": "interrupted", "exit_code": 130, "command": "run"}\n')):
+        proc = subprocess.run([sys.executable, "-c", EARLY_SIGINT, *argv], capture_output=True, text=True,
+                              timeout=60, cwd=ROOT)
+        assert proc.returncode == 130 and proc.stderr == "qradar run: interrupted\n", proc.stderr
+        assert proc.stdout == out
