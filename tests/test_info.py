@@ -147,8 +147,11 @@ def test_a_damaged_recording_names_its_chunk_with_check(tmp_path):
     assert info["messages"] == 447 and losses["messages_read"] == 363 and losses["lost"] == 84
     assert losses["lost_by_topic"]["radar/kmd2-0/raw"] == 20
     assert len(losses["damage"]) == 1 and f"chunk at byte {ci.chunk_start_offset}" in losses["damage"][0]
-    out = qradar("info", "--check", bad)
-    assert out.returncode == 0 and "363 messages read, 84 lost" in out.stdout and "CRC mismatch" in out.stdout
+    out = qradar("info", "--check", bad, CHAMBER)  # as record --verify: status 1, the damaged file named
+    assert out.returncode == 1 and "363 messages read, 84 lost" in out.stdout and "CRC mismatch" in out.stdout
+    assert out.stderr == (f"qradar info --check: not intact: {bad} (84 messages lost); qradar recover writes what "
+                          "reads back\n")
+    assert qradar("info", "--check", CHAMBER).returncode == 0 and qradar("info", bad).returncode == 0
     # a damaged summary: the file is read whole instead, and says why
     data = bytearray(CHAMBER.read_bytes())
     data[-40] ^= 1  # inside the summary section, before the footer

@@ -73,7 +73,7 @@ class Info:
     """``qradar info``'s check."""
 
     check: bool = option(False, "also read every chunk, its CRC checked, and report the damage found (as `qradar "
-                         "record --verify`; takes as long as reading the file)")
+                         "record --verify`, status 1 when a file is not intact; takes as long as reading the file)")
 
 
 def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
@@ -167,12 +167,21 @@ def cmd_recover(args) -> int:
 
 
 def cmd_info(args) -> int:
+    damaged = []
     for i, path in enumerate(args.file):
         info = describe(path, check=args.check)
         if args.json:
             print(json.dumps(info), flush=True)
         else:
             print(("\n" if i else "") + format_info(info), flush=True)
+        losses = info["losses"]
+        if args.check and (info["truncated"] or losses["damage"] or losses["lost"]):
+            damaged.append(f"{path} ({losses['lost'] or 0} messages lost" + (", cut short" if info["truncated"]
+                                                                              else "") + ")")
+    if damaged:  # as record --verify
+        print(f"qradar info --check: not intact: {', '.join(damaged)}; qradar recover writes what reads back",
+              file=sys.stderr, flush=True)
+        return 1
     return 0
 
 
