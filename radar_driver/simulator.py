@@ -50,7 +50,7 @@ from .protocol import (
     StreamDecoder,
     encode,
 )
-from .scene import SIM_RATE_HZ, SimScene, frame_ramp_times_s
+from .scene import SIM_RATE_HZ, SimScene, check_sim_rate, frame_ramp_times_s
 from .simlinks import PtyLink, TcpLink
 
 log = logging.getLogger("qradar.sim")
@@ -156,8 +156,7 @@ class SimulatedKMD2:
     EVENTS_KEPT = 1024
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.rate_hz) and self.rate_hz >= 0):
-            raise ConfigError(f"rate_hz={self.rate_hz!r} must be >= 0 (0 = as fast as polled)")
+        check_sim_rate(self.rate_hz, zero="0 = as fast as polled")
         lay, radar = self.profile.radc, self.scene.radar
         if lay.samples != radar.samples_per_ramp:
             raise ConfigError(f"profile {self.profile.name} has {lay.samples} samples a chirp; "

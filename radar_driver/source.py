@@ -28,7 +28,7 @@ from .errors import ConfigError
 from .options import nonneg_int, option, pos_int
 from .limits import check_sensor_id
 from .profile import DEFAULT_PROFILE
-from .scene import SIM_RATE_HZ, SimScene, frame_ramp_times_s
+from .scene import SIM_RATE_HZ, SimScene, check_sim_rate, frame_ramp_times_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,8 +148,7 @@ class SimSourceConfig:
             raise ConfigError(f"send={self.send!r} must be one of {list(SEND_MODES)}")
         if not (isinstance(self.sensors, int) and 1 <= self.sensors <= 4096):
             raise ConfigError(f"sensors={self.sensors!r} must be an integer in [1, 4096]")
-        if not (np.isfinite(self.rate_hz) and self.rate_hz >= 0):
-            raise ConfigError(f"rate_hz={self.rate_hz!r} must be >= 0 (0 = as fast as read)")
+        check_sim_rate(self.rate_hz, zero="0 = as fast as read")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed={self.seed!r} must be an integer >= 0")
         if self.frames is not None and not (isinstance(self.frames, int) and self.frames >= 1):

@@ -124,3 +124,23 @@ def test_a_busy_tcp_port_is_a_one_line_error(free_port):
         s.listen(1)
         proc = qradar("sim", "--tcp", str(free_port))
     assert proc.returncode == 2 and f"127.0.0.1:{free_port}" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_simulated_rate_beyond_any_sensor_is_refused_in_one_line(cli):
+    """``--rate 1e9`` made a run count 12 billion frames dropped and end with status 0; a
+    simulated sensor's rate is at most MAX_SIM_RATE_HZ, said with what a K-MD2 makes."""
+    from radar_driver.scene import MAX_SIM_RATE_HZ
+
+    for argv in (["run", "--rate", "1e9", "--frames", "5", "--no-record"], ["sim", "--rate", "5000", "--link", "x"]):
+        code, _, err = cli(*argv)
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f", {MAX_SIM_RATE_HZ:g}] frames/s" in err and "a K-MD2 makes about 20 a second" in err, err
+
+
+def test_sensor_poses_without_a_view_is_refused_not_ignored(cli, tmp_path):
+    """``--sensor-poses`` places the sensors in the views; a run with none ignored the file,
+    even a missing one, with status 0: now one line says it would do nothing."""
+    code, _, err = cli("run", "--sensor-poses", tmp_path / "nope.toml", "--frames", "5", "--no-record")
+    assert code == 2 and err.strip().splitlines() == [
+        f"qradar run: error: --sensor-poses {tmp_path / 'nope.toml'} places each sensor in a view (--web, --foxglove); "
+        "this run has none, so it would do nothing: give a view or leave it out"], err

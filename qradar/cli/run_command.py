@@ -89,6 +89,9 @@ def run_config(args) -> RunConfig:
         raise ParameterError("qradar run --secure runs as a peer (its drivers join it over a private unix socket); "
                              "drop --mode client, and give --listen tls/... to serve other nodes")
     k, auto = count_of(args)
+    if args.sensor_poses is not None and args.foxglove is None and args.web is None:
+        raise ParameterError(f"--sensor-poses {args.sensor_poses} places each sensor in a view (--web, --foxglove); "
+                             "this run has none, so it would do nothing: give a view or leave it out")
     foxglove = None
     if args.foxglove is not None:
         host, port = parse_endpoint(args.foxglove)
