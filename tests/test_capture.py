@@ -289,7 +289,9 @@ def test_layouts_of_the_same_length_are_told_apart_by_images_and_the_known_angle
     report = inspect_capture(cap, ["kmd2-blocks"] + decoys)
     by = {s.name: s for s in report.scores}
     assert report.best == "kmd2-blocks" and report.ambiguous == ["swapped"]
-    assert by["interleaved"].radcs == 12 and not by["interleaved"].fits
+    # the same RADCs read in another order (6 frames of 2: 12, and 14 once when a GNFD was sent again on a
+    # loaded host and answered twice)
+    assert by["interleaved"].radcs == by["kmd2-blocks"].radcs >= 12 and not by["interleaved"].fits
     assert by["interleaved"].purity_db < MIN_PURITY_DB and "images" in by["interleaved"].why
     assert by["swapped"].fits and by["swapped"].angle_deg == pytest.approx(-by["kmd2-blocks"].angle_deg)
     assert "--angle-deg" in report.verdict

@@ -370,6 +370,7 @@ def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_
     n_ids, rounds = 1_500, 4
     msgs = [bench_expiry.frames([f"r{r}i{i}" for i in range(n_ids)]) for r in range(rounds)]
     heaps, rss, sent = [], [], 0
+    started = time.monotonic()
     try:
         for r in range(rounds):
             if r == 1:
@@ -398,8 +399,12 @@ def test_the_recorders_memory_is_flat_with_short_lived_ids(tmp_path, bus, zenoh_
     assert max(heaps) - min(heaps) < 2 * 2**20, mb
     by_topic = Counter(ch.topic.rsplit("/", 1)[-1] for p in rec.paths for ch, _ in McapFile(p).messages())
     assert by_topic["quantized"] == sent and rec.summary()["lost"] == 0
-    # a range profile of an id's first frame while the recorder's budget of them allows (replay.derived), no more
-    assert set(by_topic) == {"quantized", "profile"} and 0 < by_topic["profile"] < sent / 2
+    # a range profile of an id's first frame while the recorder's budget of them allows (replay.derived), no more:
+    # at most the bucket's one second plus its rate over the run (on a loaded host the rounds last longer and the
+    # budget lets more through: 3022 of 6000 once, so no fixed share)
+    budget = rec.derivations.config.profile_budget_hz
+    assert set(by_topic) == {"quantized", "profile"}
+    assert 0 < by_topic["profile"] <= budget * (time.monotonic() - started + 1), (by_topic, budget)
     assert by_topic["profile"] + rec.derivations.profiles_skipped == sent
 
 
