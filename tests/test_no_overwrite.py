@@ -183,7 +183,7 @@ def test_a_recover_of_what_is_no_recording_leaves_no_output(tmp_path, cli):
     assert code == 0 and json.loads(out)["messages"] > 0
 
 
-@pytest.mark.parametrize("prefix", ["", "x/", "/x", "a*"])
+@pytest.mark.parametrize("prefix", ["", "x/", "/x", "a*", "a//b"])
 def test_a_replay_prefix_that_is_no_key_is_one_line(prefix, cli):
     code, _, err = cli("replay", Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap",
                        "--replay-prefix", prefix, "--fast")
@@ -225,3 +225,12 @@ def test_a_recover_of_a_file_with_no_whole_message_writes_nothing(tmp_path, cli)
     code, _, err = cli("recover", tmp_path / "cut.mcap", "-o", tmp_path / "fixed.mcap")
     assert code == 2 and "holds no complete message to recover (10 bytes)" in err, err
     assert not (tmp_path / "fixed.mcap").exists()
+
+
+@pytest.mark.parametrize("argv", [["run", "--frames", "5", "--no-record"], ["localize"], ["quantize"], ["source"],
+                                  ["record", "-o", "x.mcap"], ["view", "--web", "0"]])
+def test_a_prefix_with_an_empty_chunk_is_one_line_in_every_command(argv, cli):
+    """``--prefix a//b`` (zenoh forbids empty chunks) ended six commands in a traceback."""
+    code, _, err = cli(*argv, "--prefix", "a//b")
+    assert code == 2 and err.strip().splitlines() == [
+        f"qradar {argv[0]}: error: key prefix 'a//b' must be a plain key expression like 'radar' or 'lab/radar'"], err

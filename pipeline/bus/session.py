@@ -53,8 +53,8 @@ _DEFAULT_ENDPOINTS = {key: zenoh.Config().get_json(key) for key in ("listen/endp
 
 def check_prefix(prefix: str, what: str = "key prefix") -> str:
     """``prefix``, a plain key expression (``radar``, ``lab/radar``: no wildcard, no leading or
-    trailing ``/``); a ParameterError naming ``what`` otherwise."""
-    if not prefix or any(c in prefix for c in "*$?#@ ") or prefix.startswith("/") or prefix.endswith("/"):
+    trailing ``/``, no empty chunk ``//``); a ParameterError naming ``what`` otherwise."""
+    if not prefix or any(c in prefix for c in "*$?#@ ") or "" in prefix.split("/"):
         raise ParameterError(f"{what} {prefix!r} must be a plain key expression like 'radar' or 'lab/radar'")
     return prefix
 
