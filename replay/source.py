@@ -32,6 +32,7 @@ from mcap.records import Channel, Message
 
 from .errors import ReplayError
 from .mcapio import McapFile, qradar_channels
+from .mcapread import check_mcap
 
 log = logging.getLogger("qradar.replay")
 
@@ -97,8 +98,7 @@ class RecordingSource(StoppableSource):
         self._stats: dict[str, _RecordedSensorStats] = {}
 
     def __enter__(self) -> "RecordingSource":
-        if not self.path.is_file():
-            raise ReplayError(f"cannot open {self.path}: no such file")
+        check_mcap(self.path)  # missing, a folder, empty, not MCAP: one line saying which
         return self
 
     def stats(self) -> dict[str, dict[str, int]]:

@@ -234,3 +234,12 @@ def test_a_prefix_with_an_empty_chunk_is_one_line_in_every_command(argv, cli):
     code, _, err = cli(*argv, "--prefix", "a//b")
     assert code == 2 and err.strip().splitlines() == [
         f"qradar {argv[0]}: error: key prefix 'a//b' must be a plain key expression like 'radar' or 'lab/radar'"], err
+
+
+def test_a_recording_that_is_a_folder_is_said_to_be_one(tmp_path, cli):
+    """``view --recording``, ``reprocess`` and ``calibrate`` said "no such file" of a folder."""
+    (tmp_path / "rp").mkdir()
+    for argv in (["view", "--web", "0", "--recording", tmp_path / "rp"], ["reprocess", tmp_path / "rp", "--out",
+                 tmp_path / "x"], ["calibrate", "--empty", tmp_path / "rp", "--out", tmp_path / "c.json"]):
+        code, _, err = cli(*argv)
+        assert code == 2 and err.strip().endswith(f"cannot open {tmp_path / 'rp'}: Is a directory"), err

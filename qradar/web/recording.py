@@ -23,6 +23,7 @@ from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene
 from replay.errors import NoQradarChannelsError, ReplayError
 from replay.mcapio import McapFile
+from replay.mcapread import check_mcap
 from replay.source import recorded_messages
 
 log = logging.getLogger("qradar.web")
@@ -51,8 +52,7 @@ class RecordingPlayer:
 
         self.path, self.transport, self.bus = Path(path), transport, bus
         self.on_state, self.on_seek = on_state, on_seek
-        if not self.path.is_file():
-            raise ReplayError(f"cannot open {self.path}: no such file")
+        check_mcap(self.path)  # missing, a folder, empty, not MCAP: one line saying which
         f = McapFile(self.path)
         first = last = None
         for ch, msg in recorded_messages(f, None, threading.Event(), topic=_shown):
