@@ -43,6 +43,7 @@ from pipeline.dsp.localize import DEFAULT_PFA, Detections, check_pfa, match_dete
 from pipeline.dsp.score import DETECTION_DISTANCE_M, FrameScores, score_frames, summarize as summarize_scores
 from pipeline.dsp.noise import auto_alpha, estimate_noise_sigma
 from replay.progress import Progress
+from experiments.placement import separated_ranges
 from experiments.speeds import draw_speeds, parse_speeds
 from pipeline.dsp.quantize import auto_delta, batch_unit_dither, dequantize, quantize
 
@@ -102,6 +103,11 @@ class Scheme:
 RANGE_PLACEMENTS = ("grid", "cells", "continuous")
 
 
+#: the scene's fields that only ``ranges="continuous"`` reads, and their options
+CONTINUOUS_ONLY = (("range_min_m", "--range-interval"), ("range_max_m", "--range-interval"),
+                   ("min_separation_m", "--min-separation-m"))
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     """How the Monte Carlo places targets and what the sensor adds.
@@ -151,6 +157,11 @@ class SceneSpec:
             raise ParameterError(f"min_amplitude={self.min_amplitude!r} must be in [0, 1]")
         if not self.range_min_m < self.range_max_m:
             raise ParameterError(f"the range interval [{self.range_min_m}, {self.range_max_m}] m is empty")
+        given = [f"{name}={getattr(self, name)!r} ({flag})" for name, flag in CONTINUOUS_ONLY
+                 if self.ranges != "continuous" and getattr(self, name) != SceneSpec.__dataclass_fields__[name].default]
+        if given:
+            raise ParameterError(f"{', '.join(given)} place targets with --ranges continuous only; these ranges are "
+                                 f"{self.ranges!r} (range cells' centres): give --ranges continuous, or leave them out")
 
     def check(self, config: RadarConfig, k_max: int) -> None:
         """Errors for a scene that cannot be drawn with this radar and up to ``k_max`` targets."""
@@ -301,7 +312,7 @@ def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConf
     scene = scene or SceneSpec(ranges="cells" if off_grid else "grid")
     r_centres, a_centres = cell_centres(config, scene.ranges != "grid")
     if scene.ranges == "continuous":
-        range_m = _separated_ranges(n_runs, k, rng, scene)
+        range_m = separated_ranges(n_runs, k, rng, scene.range_min_m, scene.range_max_m, scene.min_separation_m)
         angle_deg = rng.uniform(-scene.max_angle_deg, scene.max_angle_deg, (n_runs, k))
         range_cell = np.clip((range_m / (config.max_range_m / GRID_CELLS)).astype(int), 0, GRID_CELLS - 1)
         angle_cell = np.clip(((angle_deg + 90.0) / ANGLE_CELL_DEG).astype(int), 0, GRID_CELLS - 1)
@@ -317,22 +328,6 @@ def draw_scenes(n_runs: int, k: int, rng: np.random.Generator, config: RadarConf
     mag[:, 1:] = scene.min_amplitude + (1.0 - scene.min_amplitude) * rng.random((n_runs, k - 1))
     amplitude = mag * np.exp(2j * np.pi * rng.random((n_runs, k)))
     return range_cell, angle_cell, range_m, angle_deg, amplitude
-
-
-def _separated_ranges(n_runs: int, k: int, rng: np.random.Generator, scene: SceneSpec,
-                      max_rounds: int = 200) -> np.ndarray:
-    """(n_runs, K) ranges uniform in the scene's interval, every pair at least
-    ``min_separation_m`` apart: runs that break it are drawn again (bounded)."""
-    lo, hi = scene.range_min_m, scene.range_max_m
-    r = rng.uniform(lo, hi, (n_runs, k))
-    for _ in range(max_rounds):
-        gaps = np.diff(np.sort(r, axis=1), axis=1)
-        bad = np.flatnonzero((gaps < scene.min_separation_m).any(axis=1)) if k > 1 else np.array([], int)
-        if bad.size == 0:
-            return r
-        r[bad] = rng.uniform(lo, hi, (bad.size, k))
-    raise ParameterError(f"could not place {k} targets {scene.min_separation_m} m apart in [{lo}, {hi}] m "
-                         f"in {max_rounds} rounds")
 
 
 def measure(scheme: Scheme, gamma_fn, n_runs: int, rng: np.random.Generator, config: RadarConfig,

@@ -236,6 +236,10 @@ def test_scene_options_reach_the_results_and_noise_costs_accuracy():
     (dict(min_amplitude=1.5), "min_amplitude"),
     (dict(noise_sigma=-1.0), "noise_sigma"),
     (dict(range_min_m=50.0, range_max_m=10.0), "empty"),
+    # what only continuous ranges read, given with cell centres: refused, not ignored and written in summary.json
+    (dict(range_min_m=10.0, range_max_m=20.0), r"^range_min_m=10.0 \(--range-interval\), range_max_m=20.0 "
+                                                r"\(--range-interval\) place targets with --ranges continuous only"),
+    (dict(ranges="cells", min_separation_m=5.0), "min_separation_m=5.0 .* these ranges are 'cells'"),
 ])
 def test_bad_scene_options(kwargs, fragment):
     with pytest.raises(ParameterError, match=fragment):
