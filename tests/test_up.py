@@ -172,6 +172,8 @@ def test_the_nodes_are_placed_by_host(tmp_path):
     (HOSTS.replace('host = "bench2"', 'host = "bench1"'), "bench1", "is the port of sensor kmd2-0 too"),
     ("empty = true\n", "localhost", "empty = true (the empty chamber) is for `qradar run`"),
     ("[quantizer]\nbits = 0\n", "localhost", "lab.toml:2: [quantizer] bits = 0: must be >= 1"),
+    # what run checks before it starts (its localizer), before a node starts: a localizer failed it twice
+    ("[decoder]\nK = 300\n", "localhost", "K=300 must be an integer in [1, N = 256]"),
 ])
 def test_a_set_up_up_cannot_start_is_one_line_and_starts_nothing(tmp_path, text, host, words):
     proc = start_up(tmp_path, text, "--host", host)
@@ -180,6 +182,23 @@ def test_a_set_up_up_cannot_start_is_one_line_and_starts_nothing(tmp_path, text,
     assert proc.returncode == 2 and len(lines) == 1 and words in lines[0], err
     assert "started" not in err
 
+
+def test_a_router_endpoint_another_set_up_listens_on_is_refused_before_any_node_starts(tmp_path):
+    """A second ``up`` of the same file: its router could not bind, and its nodes, started all
+    the same, joined the first set-up's router and sent a second kmd2-0 into it."""
+    import socket
+
+    with socket.socket() as other:  # the first set-up's router, as far as a connection can tell
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        proc = start_up(tmp_path, f'frames = 40\n[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+        out, err = proc.communicate(timeout=60)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and lines == [
+        f"qradar up: error: tcp/127.0.0.1:{port} already has a listener (another `qradar up` or router?): "
+        "this set-up's router cannot listen there, and its nodes would join the other set-up; stop that one, or "
+        "give [zenoh] listen another endpoint"], err
 
 def test_readiness_counts_tokens_by_kind_and_holds_a_bounded_number():
     """``up`` sees its nodes' liveliness tokens come and go (a subscriber's samples); a peer

@@ -47,7 +47,7 @@ from replay.recorder import default_recording_path
 from ..drivers import NodeProcess, SupervisedDriver
 from radar_driver.scene import load_truth
 
-from ..run import REAL_SENSOR_K
+from ..run import REAL_SENSOR_K, check_offline
 from ..sensors import check_sensor_specs
 from ..rundir import remove_run_dirs, run_directory
 from . import lab
@@ -57,7 +57,7 @@ from .parts import LOCALHOST
 from .record import RECORD_PARTS
 from .schema import Part, Schema, add_command
 from .sensor import DRIVE_PARTS, drive_values
-from .run_command import RUN_PARTS
+from .run_command import RUN_PARTS, run_config
 from .stream import LOCALIZE_PARTS, QUANTIZE_PARTS, ROUTER_PARTS, SOURCE_PARTS
 from .view import VIEW_PARTS
 from ..view import parse_endpoint
@@ -122,7 +122,10 @@ def read_lab(path: Path):
     explicit = lab.read_file(path, Schema("run", RUN_PARTS))
     parser = build_parser("run")
     argv = ["run", str(path)]
-    return with_config(parser, parser.parse_args(argv), argv), explicit
+    args = with_config(parser, parser.parse_args(argv), argv)
+    if not args.sensor_specs:  # simulated sensors: what run checks of its localizer (K, the gate, the decoder)
+        check_offline(run_config(args))  # (with real ones on several hosts a port may repeat: run refuses that)
+    return args, explicit
 
 
 def hosts_of(args) -> dict[str, str]:
@@ -236,6 +239,8 @@ def cmd_up(args) -> int:
         check_reachable(run_args, nodes, host)
         check_sensors(run_args)
         router = next(n for n in nodes if n.name == "router")
+        if router.host == host:
+            check_free(router.values["listen"])
         connect = tuple(next(n for n in nodes if n is not router).values["connect"])
         ready = Readiness(None if run_args.secure is not None or router.host != host else BusConfig(
             mode="client", connect=connect, prefix=run_args.prefix))
@@ -379,24 +384,41 @@ class Readiness:
             self.session = None
 
 
+def listening(ep: str) -> bool | None:
+    """Whether something takes a connection at the endpoint ``ep`` (a unix socket's path
+    exists, a TCP port accepts); None: no way to look."""
+    kind, _, where = ep.partition("/")
+    if kind == "unixsock-stream":
+        return os.path.exists(where)
+    if kind not in ("tcp", "tls"):
+        return None
+    host, _, port = where.rpartition(":")
+    try:
+        with socket.create_connection((LOOPBACK.get(host, host.strip("[]")), int(port)), 0.2):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def check_free(endpoints: list[str]) -> None:
+    """A ParameterError when one of the router's ``endpoints`` has a listener already (another
+    set-up's router): its nodes would join that one and mix their sensors into it."""
+    for ep in endpoints:
+        if listening(ep):
+            raise ParameterError(f"{ep} already has a listener (another `qradar up` or router?): this "
+                                 "set-up's router cannot listen there, and its nodes would join the other set-up; "
+                                 "stop that one, or give [zenoh] listen another endpoint")
+
+
 def wait_listening(endpoints: list[str], proc: NodeProcess, timeout_s: float = ROUTER_READY_S) -> bool:
     """Until each of ``endpoints`` (a unix socket's path, a TCP port) takes a connection,
     ``proc`` ends, or ``timeout_s``; whether they all do."""
     deadline = time.monotonic() + timeout_s
     for ep in endpoints:
-        kind, _, where = ep.partition("/")
         while time.monotonic() < deadline and proc.returncode is None:
-            if kind == "unixsock-stream" and os.path.exists(where):
+            up = listening(ep)
+            if up or up is None:  # None: no way to look (the nodes retry)
                 break
-            if kind in ("tcp", "tls"):
-                host, _, port = where.rpartition(":")
-                try:
-                    with socket.create_connection((LOOPBACK.get(host, host.strip("[]")), int(port)), 0.2):
-                        break
-                except (OSError, ValueError):
-                    pass
-            elif kind != "unixsock-stream":
-                break  # no way to look: the nodes retry
             time.sleep(0.05)
         else:
             return False
