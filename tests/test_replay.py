@@ -27,7 +27,7 @@ from replay.mcapio import McapFile
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode
 from replay.reprocess import load_raw, parse_alphas, radar_for, sweep, truth_scene
-from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, wait_until
+from zenoh_helpers import QRADAR, RUNTIME_DECODER, Collector, qradar, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAMBER = ROOT / "recordings" / "chamber.mcap"
@@ -370,3 +370,15 @@ def test_qradar_run_leaves_a_recording_that_replays(tmp_path):
     assert rp.returncode == 0, rp.stderr
     out = json.loads(rp.stdout.strip().splitlines()[-1])
     assert out["published"] >= 3 * s["frames_raw"] and not out["truncated"]
+
+
+def test_a_recorder_that_records_nothing_says_so_and_fails(tmp_path):
+    """A recorder on another prefix than the nodes' (or with no router in common) wrote a file
+    of no message and ended with status 0: now one line says nothing came, and status 1 at the
+    end of its --duration (stopped by a signal before anything came: the same line, a warning)."""
+    path = tmp_path / "nothing.mcap"
+    proc = qradar("record", "-o", path, "--prefix", "lab2", "--duration", "1", "--quiet")
+    assert proc.returncode == 1 and proc.stderr.strip().splitlines()[-1] == (
+        f"qradar record: error: nothing came on lab2/**: {path} holds no message (are the nodes up, on this "
+        "--prefix, and joined to the same router as this recorder?)"), proc.stderr
+    assert json.loads(proc.stdout)["frames_in"] == 0

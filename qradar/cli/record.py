@@ -144,15 +144,22 @@ def cmd_record(args) -> int:
     if args.parent_pid is not None:
         watch_parent(args.parent_pid, "record")
     status = StatusLines(node, quiet=args.quiet, announce=False).start()
+    interrupted = False
     try:
         run_nodes([node], args.duration_s, node.recording_ended)  # ends early when recording stops for good
     except KeyboardInterrupt:
-        pass
+        interrupted = True
     finally:
         status.stop()
-    print(json.dumps({"node": node.name, **node.totals(), **node.summary(), **audit.finish()}), flush=True)
+    totals = node.totals()
+    print(json.dumps({"node": node.name, **totals, **node.summary(), **audit.finish()}), flush=True)
     if node.state is RecordingState.STOPPED:
         raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
+    if not totals["frames_in"]:  # a recording of nothing: most often another prefix, or no router in common
+        print(f"qradar record: {'warning' if interrupted else 'error'}: nothing came on {node.topics}: {args.output} "
+              "holds no message (are the nodes up, on this --prefix, and joined to the same router as this "
+              "recorder?)", file=sys.stderr, flush=True)
+        return 0 if interrupted else 1  # stopped (Ctrl-C, SIGTERM) before anything came: said, not a failure
     return 0
 
 
