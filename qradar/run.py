@@ -504,6 +504,19 @@ def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: 
 
 
 
+def setup_metadata(cfg: RunConfig) -> dict[str, dict[str, str]]:
+    """:func:`run_metadata` of ``cfg`` from the config alone, no port opened (the radar of
+    real sensors from their profiles), each value as text: what ``qradar up`` hands its
+    recorder, so its files say the set-up as a run's do."""
+    scene = None if cfg.real else resolve_scene(cfg.scene)
+    truth = load_truth(cfg.truth) if cfg.truth is not None else scene
+    radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
+    localizer = localizer_of(cfg, targets_a_frame(cfg, scene, truth), radar)
+    meta = run_metadata(cfg, scene, truth, radar, localizer.k, check_calibration(cfg), localizer.gate)
+    return {name: {k: v if isinstance(v, str) else json.dumps(v) for k, v in record.items()}
+            for name, record in meta.items()}
+
+
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
                  k: int, calibration: Calibration | None = None, gate=None) -> dict[str, dict]:
     """MCAP metadata of a run: radar config, node configs (the localizer's range

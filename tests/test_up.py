@@ -15,6 +15,9 @@ from pathlib import Path
 import pytest
 
 from qradar.cli.up import plan_nodes, read_lab
+from pipeline.dsp.decode import default_alpha
+from radar_driver.model import RadarConfig
+from replay.mcapinfo import describe
 from replay.mcapio import McapFile
 from test_orphans import alive, child_config, children_of, kill_all, wait_for
 from zenoh_helpers import QRADAR, RUNTIME_DECODER
@@ -94,6 +97,11 @@ def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
     assert not any(alive(p) for p in pids.values()) and not socket_dir.exists()
     topics = recorded(tmp_path / "up.mcap")
     assert all(topics.count(f"radar/kmd2-0/{t}") >= 30 for t in ("raw", "quantized", "targets")), len(topics)
+    # the file says the set-up as a run's does (it said "quantizer none, decoder none, uncalibrated")
+    info = describe(tmp_path / "up.mcap")
+    assert info["radar"]["config_id"] == RadarConfig().config_id() and info["quantizer"]["alpha"] == default_alpha(RUNTIME_DECODER[1])
+    assert info["decoder"]["algo"] == RUNTIME_DECODER[1] and info["decoder"]["K"] == 2 and info["truth"]["name"] \
+        == "chamber-ideal"
 
 
 def test_a_killed_up_leaves_no_node_behind(tmp_path):

@@ -43,6 +43,9 @@ class Record:
     split_duration_s: float | None = option(None, "new file every S seconds", flag="--split-duration", metavar="S",
                                             parse=pos_float)
     scene: str | None = option(None, "ground-truth scene to store in the metadata (simulated sensor)")
+    setup: Path | None = option(None, "a JSON file of metadata records ({name: {key: text}}) to write into each "
+                                "file: the set-up's radar, quantizer, decoder, calibration, sensors and truth "
+                                "(`qradar up` writes it for its recorder)", metavar="FILE.json")
 
 
 @dataclass(frozen=True)
@@ -84,7 +87,7 @@ def write_error_part(on_stop: str, table: str | None = "recording") -> Part:
 
 
 RECORD_PARTS = [
-    Part(Record, only=("output", "verify", "topics", "split_size_mb", "split_duration_s", "scene")),
+    Part(Record, only=("output", "verify", "topics", "split_size_mb", "split_duration_s", "scene", "setup")),
     node_part("duration_s"), write_error_part("exit with status 2 (a recorder with nothing left to record ends)"),
     switches(force=force_help("the -o file")),
     node_part("quiet", "parent_pid", quiet="no status line every few seconds on stderr"), INTAKE, *zenoh_parts()]
@@ -126,6 +129,21 @@ def cmd_verify(paths: list[Path]) -> int:
     return 1 if bad else 0
 
 
+def read_setup(path: Path) -> dict[str, dict[str, str]]:
+    """``--setup``'s metadata records: a JSON object of objects of strings; a ReplayError
+    naming the file otherwise."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ReplayError(f"--setup {path}: cannot read it: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ReplayError(f"--setup {path}: not JSON: {exc}") from None
+    if not (isinstance(data, dict) and all(isinstance(v, dict) and all(isinstance(x, str) for x in v.values())
+                                           for v in data.values())):
+        raise ReplayError(f"--setup {path}: must be a JSON object of metadata records, {{name: {{key: text}}}}")
+    return data
+
+
 def cmd_record(args) -> int:
     if args.verify is not None:
         if args.output is not None:
@@ -136,6 +154,8 @@ def cmd_record(args) -> int:
     meta = {}
     if args.scene:
         meta["qradar.scene"] = {"scene": json.dumps(resolve_scene(args.scene).to_dict()), "simulated": "true"}
+    if args.setup is not None:
+        meta.update(read_setup(args.setup))
     node = RecorderNode(bus_from_args(args), args.output, topics=args.topics, split_size_mb=args.split_size_mb,
                         split_duration_s=args.split_duration_s, metadata=meta, on_write_error=args.record_on_error,
                         retry_s=args.record_retry_s, intake=intake_budget(args), overwrite=args.force)

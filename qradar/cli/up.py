@@ -47,7 +47,7 @@ from replay.recorder import default_recording_path
 from ..drivers import NodeProcess, SupervisedDriver
 from radar_driver.scene import load_truth
 
-from ..run import REAL_SENSOR_K, check_offline
+from ..run import REAL_SENSOR_K, check_offline, setup_metadata
 from ..sensors import check_sensor_specs
 from ..rundir import remove_run_dirs, run_directory
 from . import lab
@@ -150,7 +150,7 @@ def plan_nodes(args, tmp: Path) -> list[Node]:
     base = {**bus_values(args, connect), "quiet": True, "parent_pid": os.getpid()}
     nodes = [Node("router", "router", {**base, "connect": [], "listen": listen}, hosts["router"])]
     if not args.no_record:
-        nodes.append(Node("record", "record", {**base, **record_values(args)}, hosts["record"]))
+        nodes.append(Node("record", "record", {**base, **record_values(args, tmp)}, hosts["record"]))
     for name, kind, endpoint in (("view", "foxglove", args.foxglove), ("web", "web", args.web)):
         if endpoint is not None:
             nodes.append(Node(name, "view", {**base, **view_values(args, kind, endpoint, tmp)}, hosts["view"]))
@@ -182,10 +182,20 @@ def lab_k(args) -> int | str:
     return max(1, len(resolve_scene(args.scene or DEFAULT_SCENE).targets))
 
 
-def record_values(args) -> dict:
+def record_values(args, tmp: Path) -> dict:
+    """The recorder's options; its files' set-up (radar, quantizer, decoder, calibration, sensors,
+    truth: what a run's recording says, :func:`qradar.run.setup_metadata`) in ``tmp``."""
     output = args.record or default_recording_path(args.folder)
+    try:
+        cfg = run_config(args)
+    except ParameterError:  # sensors of several hosts on one port path: no one run's config (the scene alone)
+        cfg = None
+    setup = None
+    if cfg is not None:
+        setup = tmp / "setup.json"
+        setup.write_text(json.dumps(setup_metadata(cfg)))
     return {"output": output, "split_size_mb": args.record_split_mb, "record_on_error": args.record_on_error,
-            "record_retry_s": args.record_retry_s, "force": args.force,
+            "record_retry_s": args.record_retry_s, "force": args.force, "setup": setup,
             "scene": args.scene or DEFAULT_SCENE if not args.sensor_specs and args.truth is None else None}
 
 
