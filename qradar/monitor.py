@@ -16,46 +16,19 @@ import zenoh
 
 from pipeline.bus.session import BusConfig
 from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, SeqTrack, judge_seq
+from pipeline.nodes.front_end import front_end_warning, leakage_shown
 from pipeline.nodes.histogram import LogHistogram
 from pipeline.nodes.transport import as_transport
-from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.score import DETECTION_DISTANCE_M, Score, score_frames
 from pipeline.wire import TOPICS, WireError
 from pipeline.wire.shared import DecodedOnce, decoder
-from radar_driver.model import RadarConfig, polar_to_xy
+from radar_driver.model import polar_to_xy
 from radar_driver.scene import SimScene
 
-from .figures import percent
 
 
 #: topics the monitor counts by name (``other`` for the rest)
 MONITORED_TOPICS = frozenset(TOPICS)
-#: a sensor's front end shows (a warning) once this many of its frames were checked and more
-#: than LEAKAGE_SHARE of them had their strongest return in the first range bins
-LEAKAGE_MIN_CHECKED = 10
-LEAKAGE_SHARE = 0.5
-#: where a warning about the front end sends the user
-CALIBRATE_HINT = "`qradar calibrate` (docs/chamber.md, section 7)"
-
-
-def leakage_shown(front: dict) -> bool:
-    """Whether a sensor's front-end state (``checked``, ``leakage`` frames) shows its front end."""
-    return front.get("checked", 0) >= LEAKAGE_MIN_CHECKED and front.get("leakage", 0) > LEAKAGE_SHARE * front["checked"]
-
-
-def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = None) -> str:
-    """The one warning of a sensor whose frames show its front end (:func:`leakage_shown`)."""
-    near = LEAKAGE_BINS * (radar or RadarConfig()).range_resolution_m
-    seen = (f"its strongest return lies within the first {near:g} m (DC offset, TX-to-RX leakage) in "
-            f"{percent(front['leakage'] / front['checked'])} of {front['checked']} frames checked")
-    if front.get("calibrated"):
-        return (f"{sensor_id}: calibrated with {front['calibrated']}, yet {seen}: the calibration does not fit this "
-                f"sensor's front end (made on another sensor, radome or configuration?); make its own with "
-                f"{CALIBRATE_HINT}")
-    return (f"{sensor_id}: uncalibrated: {seen}; targets at the range gate's ends are that leakage and angles "
-            f"carry the receivers' mismatch: run {CALIBRATE_HINT} and give --calibration")
-
-
 class Monitor:
     """Watches ``<prefix>/**``: counts and sizes per topic, latency and position error of
     the targets against the true positions (``truth``: a scene whose targets are where

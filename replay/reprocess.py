@@ -20,7 +20,8 @@ from pipeline.dsp.calibration import load as load_calibration
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
 from pipeline.errors import ParameterError
 from pipeline.dsp.gate import RangeGate, check_range_m
-from pipeline.dsp.localize import DEFAULT_PFA, Detections, match_detections, nearest_estimates
+from pipeline.dsp.localize import DEFAULT_PFA, Detections, leakage_return, match_detections, nearest_estimates
+from pipeline.nodes.front_end import front_end_warning, leakage_shown
 from pipeline.dsp.score import FrameScores, score_frames, score_text
 from pipeline.dsp.score import summarize as summarize_scores
 from replay.progress import Progress
@@ -512,6 +513,12 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
     except ParameterError as exc:
         raise ReplayError(f"{cfg.file}: {exc}") from None
     notes = []
+    # as a run's localizer: frames whose strongest return sits in the first range bins show the front end, which
+    # no calibration removed or another sensor's did (a calibration that does not fit: said, as run says it)
+    front = {"checked": int(rec.frames.shape[0]), "leakage": int(leakage_return(rec.frames, radar).sum()),
+             "calibrated": None if calibration is None else calibration.source}
+    if leakage_shown(front):
+        notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
     if any(t.velocity_m_s for t in scene.targets):
         notes.append("note: moving targets; the truth is taken at the first frame")
     results: dict[str, SweepResult] = {}
@@ -530,6 +537,7 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
                      f"({len(rec.damaged)} damaged chunk(s) or problem(s), in results.json's \"damage\")")
     if calibration is not None:
         summary["calibration"] = calibration.summary()
+    summary["front_end"] = front
     if len(results) > 1:
         summary["by_algo"] = {a: {key: s[key] for key in PER_ALGO} for a, s in summaries.items()}
     best_algo = min(summaries, key=lambda a: np.inf if summaries[a]["error_at_best_m"] is None

@@ -219,6 +219,14 @@ def test_calibrate_from_two_short_recordings_then_run_with_it(tmp_path):
     assert meta["file"] == str(cal) and json.loads(meta["summary"])["entries"][0]["sensor_id"] == "kmd2-0"
     other = qradar("run", "--frames", 5, "--sensors", 2, "--calibration", cal, "--no-record")
     assert other.returncode == 2 and "not 'kmd2-1'" in other.stderr and "\n" not in other.stderr.strip()
+    # reprocess says of a recording's front end what run says: uncalibrated, its leakage is the strongest return
+    for extra, warned in (((), True), (("--calibration", cal), False)):
+        rp = qradar("reprocess", ref, "--algos", "pbp", "--alpha", "0.5", "--out", tmp_path / f"rp{len(extra)}",
+                    "--quiet", *extra)
+        assert rp.returncode == 0 and ("warning: kmd2-0: uncalibrated: its strongest return lies within the first "
+                                       "1.2 m" in rp.stdout + rp.stderr) == warned, rp.stdout + rp.stderr
+        front = json.loads((tmp_path / f"rp{len(extra)}" / "results.json").read_text())["front_end"]
+        assert front["checked"] == 40 and (front["leakage"] > 20) == warned, front
 
 
 def test_the_committed_chamber_calibration_is_the_chamber_scenes():

@@ -12,6 +12,7 @@ import numpy as np
 
 from radar_driver.model import RadarConfig
 
+from pipeline.dsp.gate import LEAKAGE_BINS
 from pipeline.dsp.localize import leakage_return
 from pipeline.dsp.quantize import QuantizedFrames
 
@@ -19,6 +20,32 @@ from pipeline.dsp.quantize import QuantizedFrames
 #: (a back projection each: negligible beside a decoder)
 FRONT_END_FIRST = 20
 FRONT_END_EVERY = 20
+
+
+#: a sensor's front end shows (a warning) once this many of its frames were checked and more
+#: than LEAKAGE_SHARE of them had their strongest return in the first range bins
+LEAKAGE_MIN_CHECKED = 10
+LEAKAGE_SHARE = 0.5
+#: where a warning about the front end sends the user
+CALIBRATE_HINT = "`qradar calibrate` (docs/chamber.md, section 7)"
+
+
+def leakage_shown(front: dict) -> bool:
+    """Whether a sensor's front-end state (``checked``, ``leakage`` frames) shows its front end."""
+    return front.get("checked", 0) >= LEAKAGE_MIN_CHECKED and front.get("leakage", 0) > LEAKAGE_SHARE * front["checked"]
+
+
+def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = None) -> str:
+    """The one warning of a sensor whose frames show its front end (:func:`leakage_shown`)."""
+    near = LEAKAGE_BINS * (radar or RadarConfig()).range_resolution_m
+    seen = (f"its strongest return lies within the first {near:g} m (DC offset, TX-to-RX leakage) in "
+            f"{100 * front['leakage'] / front['checked']:.1f} % of {front['checked']} frames checked")
+    if front.get("calibrated"):
+        return (f"{sensor_id}: calibrated with {front['calibrated']}, yet {seen}: the calibration does not fit this "
+                f"sensor's front end (made on another sensor, radome or configuration?); make its own with "
+                f"{CALIBRATE_HINT}")
+    return (f"{sensor_id}: uncalibrated: {seen}; targets at the range gate's ends are that leakage and angles "
+            f"carry the receivers' mismatch: run {CALIBRATE_HINT} and give --calibration")
 
 
 class FrontEndCheck:
