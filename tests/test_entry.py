@@ -59,6 +59,7 @@ def test_the_tests_run_as_a_qradar_process_does():
 #: Ctrl-C in the first half second of `qradar run` is (its modules still loading)
 EARLY_SIGINT = """
 import os, signal, sys, time, types
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal (a test worker's children ignore it)
 cli = types.ModuleType("qradar.cli")
 def main():
     os.kill(os.getpid(), signal.SIGINT)

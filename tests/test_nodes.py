@@ -258,11 +258,11 @@ def test_router_joins_clients(free_port, connect_when_ready):
     assert banner.startswith("zenoh router"), banner + out
 
 
-def test_qradar_run_end_to_end_json():
+def test_qradar_run_end_to_end_json(tmp_path):
     # the ideal chamber: the pipeline's accuracy on the paper's model (the real front end's, uncalibrated, is
-    # in docs/chamber.md)
+    # in docs/chamber.md); recorded by default into recordings/ of its working directory (not the repository's)
     proc = subprocess.run([*QRADAR, "run", "--duration", "5", "--json",
-                           "--scene", "chamber-ideal"], capture_output=True, text=True, timeout=120)
+                           "--scene", "chamber-ideal"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == 1  # exactly one JSON object
@@ -288,6 +288,8 @@ def test_qradar_run_end_to_end_json():
     assert s["driver_process"] is True
     assert s["driver"]["kmd2-0"]["frames"] == s["frames_raw"] and s["driver"]["kmd2-0"]["timeouts"] == 0
     assert "[driver kmd2-0]" in proc.stderr and "connected to" in proc.stderr
+    (path,) = (tmp_path / "recordings").glob("run-*.mcap")
+    assert s["recording"]["files"] == [str(Path("recordings") / path.name)], s["recording"]
 
 
 def test_drive_keeps_its_zenoh_session_until_the_parent_has_its_frames(tmp_path):
