@@ -90,7 +90,10 @@ def format_table(summary: dict) -> str:
             "strong_mean_m", "weak_mean_m"]
     heads = ["mean", "median", "p90", "med|θ|<60", "cells>5m", "strong", "weak"]
     pd_cols = ["pd_strong", "pd_weak", f"pd_weak_amp_ge_{PD_AMPLITUDE}", "false_targets_per_frame"]
-    pd_heads = ["Pd strong", "Pd weak", f"Pd w≥{PD_AMPLITUDE}", "false/fr"]
+    # Pd: a detection within --gate-m of a target's range finds it, the unclaimed are false (in range alone);
+    # the score's: within 1 m in the plane (pipeline.dsp.score). Two counts of false targets, two names (FA: false
+    # alarms, in range).
+    pd_heads = ["Pd strong", "Pd weak", f"Pd w≥{PD_AMPLITUDE}", "Pd FA/fr"]
     auto = bool(summary.get("count", {}).get("auto"))
     score_heads = ["found str", "found weak", "false/fr"]  # the honest score: within 1 m in the plane
     lines = [f"{'K':<3} {'scheme':<22}" + "".join(f"{h:>11}" for h in heads + (pd_heads if auto else [])

@@ -323,3 +323,13 @@ def test_the_worker_processes_are_spawned_not_forked(monkeypatch):
     alone = run_montecarlo(replace(cfg, workers=1), progress=False)
     assert [c.get_start_method() for c in contexts] == ["spawn"]
     assert pooled.summary["K1"] == alone.summary["K1"]
+
+
+def test_the_table_names_its_two_counts_of_false_targets_apart():
+    """With --count auto the table had two columns headed false/fr (0.075 and 0.900 once): the
+    Pd's false alarms (in range, within --gate-m) and the score's (in the plane, within 1 m)."""
+    from experiments.report import format_table
+
+    head = format_table({"count": {"auto": True}})
+    assert head.count("false/fr") == 1 and head.count("Pd FA/fr") == 1, head
+    assert "Pd FA/fr" not in format_table({"count": {"auto": False}})
