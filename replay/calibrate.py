@@ -44,6 +44,9 @@ class CalibrateConfig:
             raise ReplayError("--reflector needs --range-m (the reflector's measured range, m)")
         if self.reflector is None and self.range_m is not None:
             raise ReplayError("--range-m is the reflector's range: give --reflector REF.mcap too")
+        if self.reflector is None and self.angle_deg != 0.0:
+            raise ReplayError(f"--angle-deg {self.angle_deg:g} is the reflector's angle: give --reflector REF.mcap "
+                              "and --range-m too")
         check_new_file(self.out, self.force, "calibration", inputs=(self.empty, self.reflector))
 
 

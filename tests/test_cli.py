@@ -3,6 +3,7 @@ exits 2, and shows a traceback only under -v."""
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 from zenoh_helpers import qradar
@@ -144,3 +145,16 @@ def test_sensor_poses_without_a_view_is_refused_not_ignored(cli, tmp_path):
     assert code == 2 and err.strip().splitlines() == [
         f"qradar run: error: --sensor-poses {tmp_path / 'nope.toml'} places each sensor in a view (--web, --foxglove); "
         "this run has none, so it would do nothing: give a view or leave it out"], err
+
+
+def test_an_option_the_command_would_ignore_is_refused_in_one_line(cli, tmp_path):
+    """``view --web P --port Q`` dropped Foxglove's port, ``calibrate --angle-deg`` without a
+    reflector dropped the angle; each with status 0 before."""
+    chamber = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    for argv, words in ((["view", "--web", "0", "--port", "18084"], "--port 18084 is Foxglove's port, and --web "
+                         "serves the web page instead of Foxglove's server"),
+                        (["calibrate", "--empty", chamber, "--angle-deg", "100", "--out", tmp_path / "c.json"],
+                         "--angle-deg 100 is the reflector's angle: give --reflector REF.mcap and --range-m too")):
+        code, _, err = cli(*argv)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+    assert not (tmp_path / "c.json").exists()

@@ -134,6 +134,9 @@ def cmd_view(args) -> int:
         hint = (f"Foxglove WebSocket server on {{url}}; in Foxglove: Open connection -> Foxglove WebSocket -> "
                 f"{{url}}, then load the layout {LAYOUT}")
     else:
+        if args.port != ViewConfig.__dataclass_fields__["port"].default:
+            raise ParameterError(f"--port {args.port} is Foxglove's port, and --web serves the web page instead of "
+                                 "Foxglove's server: give one (both views: two `qradar view` commands)")
         view = web_view(args)
         hint = "web page on {url} (open it in a browser)"
     install_sigterm("view")
