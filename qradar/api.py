@@ -72,6 +72,9 @@ def decode(frames: Quantized | QuantizedFrames | Frames | np.ndarray, radar: Rad
     stream's): quantized frames (their dither regenerated from their seeds) or
     full-resolution ones. ``k``: the targets to find (with ``auto_k`` the most). Returns
     :class:`Detections`, (F, K) arrays strongest first."""
+    if not isinstance(radar, RadarConfig):
+        raise ReplayError(f"radar must be a RadarConfig (a recording's rec.radar, or RadarConfig() for the default "
+                          f"K-MD2), not {type(radar).__name__}")
     if decoder is None:
         decoder = DecoderConfig(auto_k=auto_k, **({} if algo is None else {"algo": algo}))
     if isinstance(frames, Quantized):

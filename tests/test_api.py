@@ -63,6 +63,10 @@ def test_errors_are_one_line(rec):
         qradar.quantize(rec.raw(), alpha=2.0)
     with pytest.raises(ReplayError, match="not whole ramps"):
         qradar.decode(np.zeros((1, 300, 2), complex), rec.radar, k=1)
+    with pytest.raises(ReplayError, match=r"^radar must be a RadarConfig .*, not NoneType$"):
+        qradar.decode(rec.raw().data, None, k=1)  # (was numpy's AttributeError)
+    with pytest.raises(ParameterError, match=r"of the same B; got \(2, 1\), \(2, 1\), \(3, 2\), \(3, 2\)$"):
+        qradar.position_error_m(np.ones((2, 1)), np.zeros((2, 1)), np.ones((3, 2)), np.zeros((3, 2)))
     with pytest.raises(AttributeError):
         qradar.not_a_name  # noqa: B018
 

@@ -457,6 +457,11 @@ def position_error_m(
 ) -> np.ndarray:
     """Error of each true target: ``min_k |R e^{i theta} - R_hat_k e^{i theta_hat_k}|``, m.
 
-    true_* : (B, K); est_* : (B, L). Returns (B, K).
+    true_* : (B, K); est_* : (B, L). Returns (B, K). Other shapes: a ParameterError naming them.
     """
+    shapes = [np.shape(a) for a in (true_range_m, true_angle_deg, est_range_m, est_angle_deg)]
+    if any(len(s) != 2 for s in shapes) or shapes[0] != shapes[1] or shapes[2] != shapes[3] \
+            or shapes[0][0] != shapes[2][0]:
+        raise ParameterError(f"position_error_m takes true ranges and angles (B, K) and estimates (B, L) of the "
+                             f"same B; got {', '.join(map(str, shapes))}")
     return nearest_estimates(true_range_m, true_angle_deg, est_range_m, est_angle_deg)[0]
