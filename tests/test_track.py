@@ -795,6 +795,7 @@ def test_time_monte_carlo_error_falls_with_the_frames():
     r = time_monte_carlo(24, (1, 4, 16), 0.0, seed=3)
     assert r["T"] == [1, 4, 16] and r["runs"] == 24
     assert r["median_m"][2] < 0.25 * r["median_m"][0] and r["slope"] < -0.6
+    assert time_monte_carlo(24, (16, 1, 4, 4), 0.0, seed=3) == r  # T in order, once each: the same curve
     with pytest.raises(ParameterError, match="noise_sigma"):
         time_monte_carlo(2, (1,), float("nan"))
     with pytest.raises(ParameterError, match="runs"):

@@ -124,6 +124,7 @@ def time_monte_carlo(runs: int, frames_t: tuple[int, ...], noise_sigma: float = 
         raise ParameterError(f"time Monte Carlo: runs={runs!r} and frames {frames_t!r} must be >= 1")
     if not (np.isfinite(noise_sigma) and noise_sigma >= 0):
         raise ParameterError(f"time Monte Carlo: noise_sigma={noise_sigma!r} must be a finite number >= 0")
+    frames_t = tuple(sorted(set(frames_t)))  # a curve against T: in order, once each (4 1 2 2 drew a zigzag)
     rng = np.random.default_rng(seed)
     tmax = max(frames_t)
     r = rng.uniform(3.0, 150.0, runs)
