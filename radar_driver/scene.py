@@ -257,7 +257,8 @@ def load_truth(name_or_path: str | Path) -> SimScene:
     except ConfigError as exc:
         raise ConfigError(f"--truth: {exc}") from None
     if not scene.targets:
-        raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to compare with")
+        raise ConfigError(f"--truth: {name_or_path} has no [[target]] (range_m, angle_deg): no position to "
+                          "compare with")
     return scene
 
 

@@ -99,7 +99,8 @@ def test_up_starts_its_nodes_and_stops_them_with_nothing_left_behind(tmp_path):
     assert all(topics.count(f"radar/kmd2-0/{t}") >= 30 for t in ("raw", "quantized", "targets")), len(topics)
     # the file says the set-up as a run's does (it said "quantizer none, decoder none, uncalibrated")
     info = describe(tmp_path / "up.mcap")
-    assert info["radar"]["config_id"] == RadarConfig().config_id() and info["quantizer"]["alpha"] == default_alpha(RUNTIME_DECODER[1])
+    assert info["radar"]["config_id"] == RadarConfig().config_id()
+    assert info["quantizer"]["alpha"] == default_alpha(RUNTIME_DECODER[1])
     assert info["decoder"]["algo"] == RUNTIME_DECODER[1] and info["decoder"]["K"] == 2 and info["truth"]["name"] \
         == "chamber-ideal"
 
