@@ -504,17 +504,28 @@ def supervised_drivers(cfg: RunConfig, specs, bus: BusConfig, session, monitor: 
 
 
 
-def setup_metadata(cfg: RunConfig) -> dict[str, dict[str, str]]:
+def setup_metadata(cfg: RunConfig, specs: tuple[SensorSpec, ...] = ()) -> dict[str, dict[str, str]]:
     """:func:`run_metadata` of ``cfg`` from the config alone, no port opened (the radar of
     real sensors from their profiles), each value as text: what ``qradar up`` hands its
-    recorder, so its files say the set-up as a run's do."""
+    recorder, so its files say the set-up as a run's do. ``specs``: every sensor of the set-up
+    when ``cfg`` holds some of them (up's hosts may share a port path)."""
     scene = None if cfg.real else resolve_scene(cfg.scene)
     truth = load_truth(cfg.truth) if cfg.truth is not None else scene
     radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
     localizer = localizer_of(cfg, targets_a_frame(cfg, scene, truth), radar)
     meta = run_metadata(cfg, scene, truth, radar, localizer.k, check_calibration(cfg), localizer.gate)
+    if specs:
+        meta["qradar.sensors"] = sensors_metadata(specs)
+        if "sensors" in meta.get("qradar.scene", {}):
+            meta["qradar.scene"]["sensors"] = str(len(specs))
     return {name: {k: v if isinstance(v, str) else json.dumps(v) for k, v in record.items()}
             for name, record in meta.items()}
+
+
+def sensors_metadata(specs: tuple[SensorSpec, ...]) -> dict[str, str]:
+    """A recording's ``qradar.sensors`` record: each sensor's URL, profile and link settings (JSON)."""
+    return {s.sensor_id: json.dumps({"url": s.url, "profile": s.profile_name, "baud": s.baud, "ramps": s.ramps,
+                                     "chirp_select": s.chirp_select}) for s in specs}
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
@@ -532,9 +543,7 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
                              **({} if gate is None else gate.to_dict())},
     }
     if cfg.real:
-        meta["qradar.sensors"] = {s.sensor_id: json.dumps({"url": s.url, "profile": s.profile_name, "baud": s.baud,
-                                                           "ramps": s.ramps, "chirp_select": s.chirp_select})
-                                  for s in cfg.sensor_specs}
+        meta["qradar.sensors"] = sensors_metadata(cfg.sensor_specs)
     if calibration is not None:  # what the quantize node removed: a recording can be calibrated again later
         meta["qradar.calibration"] = {"file": calibration.source, "summary": json.dumps(calibration.summary())}
     if scene is not None and truth is scene:

@@ -101,8 +101,9 @@ class RunSummary:
 
     @property
     def sensors_lost(self) -> list[str]:
-        """The sensors whose link was lost and not back at the end of the run."""
-        return sorted(sid for sid, c in self.driver.items() if c.get("link_down"))
+        """The sensors without frames at the end of the run: their link lost and not back, or
+        their driver given up after restarts."""
+        return sorted({sid for sid, c in self.driver.items() if c.get("link_down")} | set(self.sensors_gone))
 
     @property
     def produced_nothing(self) -> bool:
@@ -131,15 +132,17 @@ def localizer_warning(raw: int, targets: int) -> str | None:
 
 
 def link_warnings(driver_stats: dict[str, dict[str, int]]) -> list[str]:
-    """What a run whose sensors lost their link says, one line a sensor: how often, for how
-    long, whether it was back at the end, and reconnects refused for another device."""
+    """What a run whose sensors were reconnected (a link lost, a sensor that stopped answering)
+    says, one line a sensor: how often, for how long, whether it was back at the end, and
+    reconnects refused for another device."""
     out = []
     for sid, c in sorted(driver_stats.items()):
         if not c.get("link_losses"):
             continue
         wrong = c.get("wrong_device", 0)
-        out.append(f"sensor {sid}'s link was lost {c['link_losses']} time(s), {c.get('down_ms', 0) / 1e3:.1f} s "
-                   f"without it in all" + (", and not back at the end of the run" if c.get("link_down") else "")
+        out.append(f"sensor {sid} was reconnected {c['link_losses']} time(s) (its link lost, or it stopped "
+                   f"answering), {c.get('down_ms', 0) / 1e3:.1f} s without frames in all"
+                   + (", and not back at the end of the run" if c.get("link_down") else "")
                    + (f"; {wrong} reconnect attempt(s) found another device on its port, not opened"
                       if wrong else "") + ": its frames of that time are missing")
     return out

@@ -276,13 +276,16 @@ def test_a_sensor_lost_mid_run_is_named_and_the_run_fails(tmp_path):
     line, not 0 beside a summary of a clean run."""
     link = tmp_path / "kmd2"
     sim = simulator(link).start()
-    proc = subprocess.Popen([*QRADAR, "run", "--json", "--no-record", "--duration", "15", "--sensor",
+    proc = subprocess.Popen([*QRADAR, "run", "--json", "--no-record", "--duration", "25", "--sensor",
                              f"{link},id=kmd2-0"], cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    seen = []
     try:
         for line in proc.stderr:  # its live lines (stderr under --json): the first frame's targets
+            seen.append(line)
             if line.startswith("kmd2-0 #"):
                 break
+        assert seen and seen[-1].startswith("kmd2-0 #"), "".join(seen)[-2000:]  # (it ended before a frame)
         sim.stop()  # unplugged
         out, err = proc.communicate(timeout=60)
     finally:
@@ -293,11 +296,11 @@ def test_a_sensor_lost_mid_run_is_named_and_the_run_fails(tmp_path):
     s = json.loads(out)
     c = s["driver"]["kmd2-0"]
     assert c["link_losses"] == 1 and c["link_down"] == 1 and c["down_ms"] > 0, c
-    assert any(w.startswith("sensor kmd2-0's link was lost 1 time(s), ") and "not back at the end" in w
-               for w in s["warnings"]), s["warnings"]
+    assert any(w.startswith("sensor kmd2-0 was reconnected 1 time(s) (its link lost, or it stopped answering), ")
+               and "not back at the end" in w for w in s["warnings"]), s["warnings"]
     assert proc.returncode == 1 and err.strip().splitlines()[-1] == (
-        "qradar run: error: kmd2-0 lost and not back at the end of the run: its frames stop there (the warning above "
-        "says for how long it was without its link)"), err[-2000:]
+        "qradar run: error: kmd2-0 lost and not back at the end of the run: its frames stop there (the lines above "
+        "say since when and why)"), err[-2000:]
 
 
 def test_a_link_lost_and_back_is_a_warning_and_another_device_on_the_port_is_named():
@@ -306,9 +309,11 @@ def test_a_link_lost_and_back_is_a_warning_and_another_device_on_the_port_is_nam
     assert link_warnings({"a": {"link_losses": 0}, "b": {"frames": 3}}) == []
     assert link_warnings({"a": {"link_losses": 2, "down_ms": 1234, "link_down": 0},
                           "b": {"link_losses": 1, "down_ms": 5000, "link_down": 1, "wrong_device": 3}}) == [
-        "sensor a's link was lost 2 time(s), 1.2 s without it in all: its frames of that time are missing",
-        "sensor b's link was lost 1 time(s), 5.0 s without it in all, and not back at the end of the run; 3 reconnect "
-        "attempt(s) found another device on its port, not opened: its frames of that time are missing"]
+        "sensor a was reconnected 2 time(s) (its link lost, or it stopped answering), 1.2 s without frames in all: "
+        "its frames of that time are missing",
+        "sensor b was reconnected 1 time(s) (its link lost, or it stopped answering), 5.0 s without frames in all, and "
+        "not back at the end of the run; 3 reconnect attempt(s) found another device on its port, not opened: its "
+        "frames of that time are missing"]
 
 def test_a_port_that_cannot_be_opened_names_the_sensor_before_anything_starts(tmp_path):
     rec = tmp_path / "never.mcap"

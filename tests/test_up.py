@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from qradar.cli.up import plan_nodes, read_lab
+from qradar.cli.up import plan_nodes, read_lab, setup_file
 from pipeline.dsp.decode import default_alpha
 from radar_driver.model import RadarConfig
 from replay.mcapinfo import describe
@@ -172,6 +172,10 @@ def test_the_nodes_are_placed_by_host(tmp_path):
     assert drive["zenoh"]["mode"] == "client" and drive["parent-pid"] > 0
     assert nodes["router"].config()["zenoh"]["listen"] == ["tcp/0.0.0.0:7447"]
     assert nodes["localize"].config()["decoder"]["K"] == 2  # a real sensor without a truth: 2
+    # the hub's recorder gets the set-up's metadata though the benches' sensors share a port path
+    meta = json.loads(setup_file(args, tmp_path).read_text())
+    assert sorted(meta["qradar.sensors"]) == ["kmd2-0", "kmd2-1"] and json.loads(meta["qradar.localizer"]["K"]) == 2
+    assert json.loads(meta["qradar.quantizer"]["bits"]) == 1 and "qradar.radar" in meta
 
 
 @pytest.mark.parametrize("text, host, words", [

@@ -125,7 +125,6 @@ def cmd_run(args) -> int:
         return 1
     if summary.sensors_lost and not summary.interrupted:  # the run's data end where its sensor went
         print(f"qradar run: error: {', '.join(summary.sensors_lost)} lost and not back at the end of the run: its "
-              "frames stop there (the warning above says for how long it was without its link)", file=sys.stderr,
-              flush=True)
+              "frames stop there (the lines above say since when and why)", file=sys.stderr, flush=True)
         return 1
     return 0

@@ -25,6 +25,7 @@ object: each node's restarts, exits and last summary."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import socket
@@ -38,10 +39,12 @@ import zenoh
 
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.decode import default_alpha
-from pipeline.errors import ParameterError
+from pipeline.errors import ParameterError, PipelineError
 from pipeline.nodes.runtime import run_nodes
+from radar_driver.errors import RadarError
 from radar_driver.options import nonneg_float, option
 from radar_driver.scene import DEFAULT_SCENE, resolve_scene
+from replay.errors import ReplayError
 from replay.recorder import default_recording_path
 
 from ..drivers import NodeProcess, SupervisedDriver
@@ -150,7 +153,7 @@ def plan_nodes(args, tmp: Path) -> list[Node]:
     base = {**bus_values(args, connect), "quiet": True, "parent_pid": os.getpid()}
     nodes = [Node("router", "router", {**base, "connect": [], "listen": listen}, hosts["router"])]
     if not args.no_record:
-        nodes.append(Node("record", "record", {**base, **record_values(args, tmp)}, hosts["record"]))
+        nodes.append(Node("record", "record", {**base, **record_values(args)}, hosts["record"]))
     for name, kind, endpoint in (("view", "foxglove", args.foxglove), ("web", "web", args.web)):
         if endpoint is not None:
             nodes.append(Node(name, "view", {**base, **view_values(args, kind, endpoint, tmp)}, hosts["view"]))
@@ -172,31 +175,38 @@ def copied(args, parts: list, dests: tuple[str, ...]) -> dict:
 
 
 def lab_k(args) -> int | str:
-    """The localizer's K: the file's, else the truth's count or the simulated scene's, as ``run``'s."""
+    """The localizer's K: the file's, else the simulated scene's count or the truth's, as ``run``'s
+    (:func:`qradar.run.targets_a_frame`: a simulated scene's frames hold its targets)."""
     if args.k is not None:
         return args.k
+    if not args.sensor_specs:
+        return max(1, len(resolve_scene(args.scene or DEFAULT_SCENE).targets))
     if args.truth is not None:
         return len(load_truth(args.truth).targets)
-    if args.sensor_specs:
-        return REAL_SENSOR_K
-    return max(1, len(resolve_scene(args.scene or DEFAULT_SCENE).targets))
+    return REAL_SENSOR_K
 
 
-def record_values(args, tmp: Path) -> dict:
-    """The recorder's options; its files' set-up (radar, quantizer, decoder, calibration, sensors,
-    truth: what a run's recording says, :func:`qradar.run.setup_metadata`) in ``tmp``."""
+def record_values(args) -> dict:
     output = args.record or default_recording_path(args.folder)
-    try:
-        cfg = run_config(args)
-    except ParameterError:  # sensors of several hosts on one port path: no one run's config (the scene alone)
-        cfg = None
-    setup = None
-    if cfg is not None:
-        setup = tmp / "setup.json"
-        setup.write_text(json.dumps(setup_metadata(cfg)))
     return {"output": output, "split_size_mb": args.record_split_mb, "record_on_error": args.record_on_error,
-            "record_retry_s": args.record_retry_s, "force": args.force, "setup": setup,
+            "record_retry_s": args.record_retry_s, "force": args.force,
             "scene": args.scene or DEFAULT_SCENE if not args.sensor_specs and args.truth is None else None}
+
+
+def setup_file(args, tmp: Path) -> Path:
+    """The set-up's metadata for the recorder of this host (``record --setup``) in ``tmp``: what a
+    run's recording says (:func:`qradar.run.setup_metadata`). Sensors of several hosts may share a
+    port path (up checks the ports of each host, :func:`check_sensors`): run's config is made of
+    one sensor of each port, and the metadata then names every sensor."""
+    seen, specs = set(), []
+    for s in args.sensor_specs:
+        if s.port_key() not in seen:
+            seen.add(s.port_key())
+            specs.append(s)
+    cfg = run_config(argparse.Namespace(**{**vars(args), "sensor_specs": tuple(specs)}))
+    path = tmp / "setup.json"
+    path.write_text(json.dumps(setup_metadata(cfg, args.sensor_specs)))
+    return path
 
 
 def view_values(args, kind: str, endpoint: str, tmp: Path) -> dict:
@@ -248,6 +258,13 @@ def cmd_up(args) -> int:
                                  f"{', '.join(places)} ([hosts] in docs/lab.md)")
         check_reachable(run_args, nodes, host)
         check_sensors(run_args)
+        for n in mine:
+            if n.command == "record":  # this host records: its files say the set-up
+                try:
+                    n.values["setup"] = setup_file(run_args, Path(tmp))
+                except (PipelineError, RadarError, ReplayError) as exc:  # e.g. the calibration file is elsewhere
+                    say("record", "setup", f"its files will not say the set-up's quantizer, decoder and calibration: "
+                                           f"{exc}")
         router = next(n for n in nodes if n.name == "router")
         if router.host == host:
             check_free(router.values["listen"])
@@ -398,8 +415,13 @@ def listening(ep: str) -> bool | None:
     """Whether something takes a connection at the endpoint ``ep`` (a unix socket's path
     exists, a TCP port accepts); None: no way to look."""
     kind, _, where = ep.partition("/")
-    if kind == "unixsock-stream":
-        return os.path.exists(where)
+    if kind == "unixsock-stream":  # a socket file left by a killed router takes no connection
+        with socket.socket(socket.AF_UNIX) as s:
+            try:
+                s.connect(where)
+                return True
+            except OSError:
+                return False
     if kind not in ("tcp", "tls"):
         return None
     host, _, port = where.rpartition(":")
