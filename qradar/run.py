@@ -227,8 +227,8 @@ def check_offline(cfg: RunConfig) -> None:
 
 
 def targets_a_frame(cfg: RunConfig, scene: SimScene | None, truth) -> int:
-    """The run's K: ``--K``, else the simulated scene's targets, else the truth's, else
-    REAL_SENSOR_K."""
+    """The run's K: ``--K`` (``cfg.k``: a RunConfig's, or up's parsed lab options'), else the
+    simulated scene's targets, else the truth's, else REAL_SENSOR_K."""
     if scene is not None:
         return cfg.k or max(1, len(scene.targets))
     return cfg.k or (len(truth.targets) if truth is not None and truth.targets else REAL_SENSOR_K)

@@ -50,7 +50,7 @@ from replay.recorder import default_recording_path
 from ..drivers import NodeProcess, SupervisedDriver
 from radar_driver.scene import load_truth
 
-from ..run import REAL_SENSOR_K, check_offline, setup_metadata
+from ..run import check_offline, setup_metadata, targets_a_frame
 from ..sensors import check_sensor_specs
 from ..rundir import remove_run_dirs, run_directory
 from . import lab
@@ -175,15 +175,11 @@ def copied(args, parts: list, dests: tuple[str, ...]) -> dict:
 
 
 def lab_k(args) -> int | str:
-    """The localizer's K: the file's, else the simulated scene's count or the truth's, as ``run``'s
-    (:func:`qradar.run.targets_a_frame`: a simulated scene's frames hold its targets)."""
-    if args.k is not None:
-        return args.k
-    if not args.sensor_specs:
-        return max(1, len(resolve_scene(args.scene or DEFAULT_SCENE).targets))
-    if args.truth is not None:
-        return len(load_truth(args.truth).targets)
-    return REAL_SENSOR_K
+    """The localizer's K, as ``run``'s (:func:`qradar.run.targets_a_frame`): the file's, else the
+    simulated scene's count, else the truth's, else a real sensor's default."""
+    scene = None if args.sensor_specs else resolve_scene(args.scene or DEFAULT_SCENE)
+    truth = load_truth(args.truth) if args.truth is not None else None
+    return targets_a_frame(args, scene, truth)
 
 
 def record_values(args) -> dict:
