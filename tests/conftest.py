@@ -93,7 +93,7 @@ def zenoh_session(bus):
 
 @pytest.fixture(scope="session")
 def track_recording(tmp_path_factory) -> list[Path]:
-    """The files of a real ``qradar run --track --record`` of 3 s (one simulated sensor, PBP,
+    """The files of a real ``qradar run --track --record`` of 60 frames (one simulated sensor, PBP,
     calibrated with recordings/chamber-cal.json), split every 0.1 MB: ``run.mcap``,
     ``run_0001.mcap``, ... (at least two), in order; read only. Made once for the whole
     session: under pytest-xdist the first worker to need it makes it in the workers'
@@ -120,7 +120,7 @@ def _record_track_run(folder: Path) -> None:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir()
     calibration = Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json"
-    proc = subprocess.run([*QRADAR, "run", "--duration", "3", "--track", "--algo", "pbp",
+    proc = subprocess.run([*QRADAR, "run", "--frames", "60", "--duration", "120", "--track", "--algo", "pbp",
                            "--calibration", str(calibration), "--split-size", "0.1",
                            "--record", str(folder / "run.mcap"), "--json"],
                           capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)

@@ -76,7 +76,8 @@ def test_the_paper_runs_table_holds_on_a_reduced_run(tmp_path):
 
 def test_the_speed_table_is_what_its_command_gives():
     """docs/design.md's table of found rate and error against radial speed
-    (``python -m experiments.speeds``, seeded: the same digits)."""
+    (``python -m experiments.speeds``, seeded: the same digits, but for a last digit another
+    CPU's floating point moves: 74.9 m against 75 m on a Xeon without AVX-512)."""
     from experiments.speeds import table
 
     text = (ROOT / "docs" / "design.md").read_text()
@@ -85,12 +86,29 @@ def test_the_speed_table_is_what_its_command_gives():
     head = got.splitlines()[0]
     assert head in text, "docs/design.md no longer has the speed table"
     written = text[text.index(head):].split("\n\n")[0]
-    assert written == got
+    assert same_table(written, got), f"docs/design.md:\n{written}\nthe command:\n{got}"
+
+
+def same_table(written: str, got: str) -> bool:
+    """Two Markdown tables of the same rows and cells, a cell's number within 1 %, a unit of its
+    last digit, or 0.2 of a percentage (one frame of 600 is 0.17 %) of the other's."""
+    a, b = ([[c.strip() for c in line.split("|")] for line in t.splitlines()] for t in (written, got))
+    if [len(r) for r in a] != [len(r) for r in b]:
+        return False
+    for x, y in ((x, y) for ra, rb in zip(a, b) for x, y in zip(ra, rb) if x != y):
+        mx, my = (re.fullmatch(r"(-?[0-9.]+) ?(.*)", c) for c in (x, y))
+        if not (mx and my and mx.group(2) == my.group(2)):
+            return False
+        u, v = float(mx.group(1)), float(my.group(1))
+        digit = 10.0 ** -len(mx.group(1).partition(".")[2])
+        if abs(u - v) > max(0.01 * abs(v), 1.01 * digit, 0.2 if mx.group(2) == "%" else 0.0):
+            return False
+    return True
 
 
 def test_the_static_and_moving_pair_table_is_what_its_command_gives():
     """docs/design.md's table of one static and one moving target a frame (issue: both
-    found in >= 95 % of frames by cml with K = 2 and K auto), seeded: the same digits."""
+    found in >= 95 % of frames by cml with K = 2 and K auto), seeded: as :func:`same_table`."""
     from experiments.speeds import pair_table
 
     text = (ROOT / "docs" / "design.md").read_text()
@@ -98,7 +116,8 @@ def test_the_static_and_moving_pair_table_is_what_its_command_gives():
     got = pair_table(300, 1)
     head = got.splitlines()[0]
     assert head in text, "docs/design.md no longer has the pair table"
-    assert text[text.index(head):].split("\n\n")[0] == got
+    written = text[text.index(head):].split("\n\n")[0]
+    assert same_table(written, got), f"docs/design.md:\n{written}\nthe command:\n{got}"
     for line in got.splitlines()[2:4]:  # cml, K = 2 and K auto: both found
         cells = [c.strip() for c in line.strip(" |").split("|")][1:]
         assert all(float(c.split(" / ")[2].rstrip(" %")) >= 95.0 for c in cells), line
