@@ -513,8 +513,8 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
     except ParameterError as exc:
         raise ReplayError(f"{cfg.file}: {exc}") from None
     notes = []
-    # as a run's localizer: frames whose strongest return sits in the first range bins show the front end, which
-    # no calibration removed or another sensor's did (a calibration that does not fit: said, as run says it)
+    # as a run's localizer: frames with a return in the first range bins within 10 dB of their strongest show
+    # the front end, which no calibration removed or another sensor's did (a calibration that does not fit: said, as run says it)
     front = {"checked": int(rec.frames.shape[0]), "leakage": int(leakage_return(rec.frames, radar).sum()),
              "calibrated": None if calibration is None else calibration.source}
     if leakage_shown(front):

@@ -107,6 +107,21 @@ def test_1_the_localizer_sees_a_front_end_in_most_frames_only_when_it_is_there()
     assert share("chamber-ideal", False) < 0.1 and share("chamber-ideal", True) > 0.9  # another front end's
 
 
+def test_1_a_calibration_of_another_front_end_is_seen_though_a_target_outshines_its_leakage():
+    """The committed recording has no front end, and the chamber's calibration subtracts one from
+    it: a leakage of its own at 0.9 of the strong reflector's power, never the strongest return
+    (was: no warning, the error 1.25 against 0.23 m). Seen in every frame; none uncalibrated."""
+    from pipeline.dsp.calibration import load
+    from pipeline.dsp.localize import leakage_return
+    from radar_driver.model import RadarConfig
+    from replay.reprocess import calibrated, load_raw, radar_for
+
+    rec = load_raw(ROOT / "recordings" / "chamber.mcap")
+    radar = radar_for(rec, RadarConfig())
+    assert not leakage_return(rec.frames, radar).any()
+    assert leakage_return(calibrated(rec, load(CAL)).frames, radar).all()
+
+
 # -- 2. the score counts false targets and missed ones ------------------------------------------------
 def test_2_ghosts_and_a_missed_target_cost_what_they_should():
     from pipeline.dsp.score import score, score_frames

@@ -139,15 +139,31 @@ def joint_energy(u: np.ndarray) -> np.ndarray:
     return (p[..., 0] + p[..., 1]) + (p[..., 2] + p[..., 3])
 
 
+#: a frame shows a front end when its strongest return in the first or last LEAKAGE_BINS range
+#: bins has at least this share of the power of its strongest return anywhere (-10 dB):
+#: uncalibrated, the leakage is the strongest (1); calibrated by another front end's file, its
+#: background subtracted from frames without one is a leakage of its own (0.23-1 measured, the
+#: committed chamber recording 0.91); a fitting calibration leaves noise (0.001-0.025, 90th
+#: percentile, 1-bit or not)
+LEAKAGE_POWER_SHARE = 0.1
+#: ... and stands this many times above the frame's median bin (its noise floor, about): a
+#: frame of noise alone (the empty chamber, calibrated) has its strongest bin anywhere, and
+#: near bins within 10 dB of it. Measured, 1-bit or not: a front end 120-60 000 times the
+#: median (1st percentile 120), a fitting calibration's near bins 0.7-20 times (99th percentile)
+LEAKAGE_OVER_FLOOR = 30.0
+
+
 def leakage_return(z: np.ndarray, config: RadarConfig, bins: int = LEAKAGE_BINS) -> np.ndarray:
-    """Whether the strongest return of each frame Z (B, M, 2) of whole ramps (quantized or
-    not) lies in the first or last ``bins`` range bins of the circular range axis, where a
-    real front end's DC offset and TX-to-RX leakage sit (docs/design.md): (B,) bool. In
-    most frames of a sensor, its front end is not removed (no calibration, or one of
+    """Whether each frame Z (B, M, 2) of whole ramps (quantized or not) has a return in the
+    first or last ``bins`` range bins of the circular range axis, where a real front end's
+    DC offset and TX-to-RX leakage sit (docs/design.md), within LEAKAGE_POWER_SHARE of the
+    power of its strongest return and LEAKAGE_OVER_FLOOR times its median bin: (B,) bool.
+    In most frames of a sensor, its front end is not removed (no calibration, or one of
     another front end); 0-5 % of the frames of a calibrated one (the simulated chamber)."""
     n = config.samples_per_ramp
-    strongest = joint_energy(back_project_ramps(z, config)).argmax(axis=1)
-    return (strongest < bins) | (strongest >= n - bins)
+    energy = joint_energy(back_project_ramps(z, config))
+    near = np.maximum(energy[:, :bins].max(axis=1), energy[:, n - bins:].max(axis=1))
+    return (near >= LEAKAGE_POWER_SHARE * energy.max(axis=1)) & (near >= LEAKAGE_OVER_FLOOR * np.median(energy, axis=1))
 
 
 def joint_support(u: np.ndarray, k: int, energy: np.ndarray | None = None) -> np.ndarray:

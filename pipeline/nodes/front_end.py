@@ -1,7 +1,7 @@
 """What a node knows of its sensors' front ends: the localizer looks, in a sample of each
-sensor's frames, for the strongest return in the first range bins (DC, TX-to-RX leakage:
-:func:`pipeline.dsp.localize.leakage_return`), and publishes the counts in the sensor's
-health (``front_end``: ``checked``, ``leakage``). In most frames: the sensor's frames are
+sensor's frames, for a return in the first range bins (DC, TX-to-RX leakage) within 10 dB of
+the frame's strongest (:func:`pipeline.dsp.localize.leakage_return`), and publishes the counts
+in the sensor's health (``front_end``: ``checked``, ``leakage``). In most frames: the sensor's frames are
 not calibrated, or by a calibration of another front end (docs/chamber.md, section 7)."""
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ FRONT_END_EVERY = 20
 
 
 #: a sensor's front end shows (a warning) once this many of its frames were checked and more
-#: than LEAKAGE_SHARE of them had their strongest return in the first range bins
+#: than LEAKAGE_SHARE of them had a return in the first range bins within 10 dB of their strongest
+#: (:func:`~pipeline.dsp.localize.leakage_return`)
 LEAKAGE_MIN_CHECKED = 10
 LEAKAGE_SHARE = 0.5
 #: where a warning about the front end sends the user
@@ -38,8 +39,8 @@ def leakage_shown(front: dict) -> bool:
 def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = None) -> str:
     """The one warning of a sensor whose frames show its front end (:func:`leakage_shown`)."""
     near = LEAKAGE_BINS * (radar or RadarConfig()).range_resolution_m
-    seen = (f"its strongest return lies within the first {near:g} m (DC offset, TX-to-RX leakage) in "
-            f"{100 * front['leakage'] / front['checked']:.1f} % of {front['checked']} frames checked")
+    seen = (f"a return within the first {near:g} m (DC offset, TX-to-RX leakage), 10 dB or less below its "
+            f"strongest, in {100 * front['leakage'] / front['checked']:.1f} % of {front['checked']} frames checked")
     if front.get("calibrated"):
         return (f"{sensor_id}: calibrated with {front['calibrated']}, yet {seen}: the calibration does not fit this "
                 f"sensor's front end (made on another sensor, radome or configuration?); make its own with "
@@ -49,8 +50,8 @@ def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = N
 
 
 class FrontEndCheck:
-    """Per sensor: frames seen, frames checked, frames whose strongest return was in the
-    first (or last) range bins. Thread-safe; bounded by the caller's :meth:`forget`."""
+    """Per sensor: frames seen, frames checked, frames with a return in the first (or last)
+    range bins within 10 dB of their strongest. Thread-safe; bounded by the caller's :meth:`forget`."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
