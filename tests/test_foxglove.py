@@ -373,7 +373,7 @@ def test_a_run_recording_shows_itself_in_foxglove(node, tmp_path):
         t: v["errors"] for t, v in topics.items() if v["errors"]}
     frames = summary["frames_targets"]
     # the scene: a message per tracks message and one per targets message (cml's targets carry their ellipses)
-    assert topics["radar/kmd2-0/pointcloud"]["messages"] == frames >= 75  # a busy host may lose (and count) some
+    assert topics["radar/kmd2-0/pointcloud"]["messages"] == frames >= 20  # a busy host may lose (and count) some
     assert topics["radar/kmd2-0/scene"]["messages"] == 2 * frames
     assert 4 <= topics["radar/kmd2-0/profile"]["messages"] <= 2 * 4.0 + 3  # at most 2 a second of sensor time
     for p, got in out["paths"].items():  # every panel's topic decodes, and its paths give what the panel plots
