@@ -126,6 +126,41 @@ class ZenohTransport:
         self.session.close()
 
 
+class Audience:
+    """Whether any subscriber, anywhere, matched one of ``keys`` at some time since this was
+    made (zenoh's matching status of a publisher that never puts, on each key; a
+    :class:`MemoryTransport`: its subscribers when asked): a producer's way to tell "my
+    messages went to nobody" (another --prefix, no router in common) from a quiet consumer.
+    :meth:`close` undeclares its publishers."""
+
+    def __init__(self, transport: "Transport", keys: list[str]):
+        self.heard = threading.Event()
+        self._transport, self._keys, self._declared = transport, keys, []
+        session = getattr(transport, "session", None)
+        if session is None:
+            return
+        for key in keys:
+            pub = session.declare_publisher(key)
+            self._declared += [pub.declare_matching_listener(self._status), pub]
+            if pub.matching_status.matching:
+                self.heard.set()
+
+    def _status(self, status) -> None:
+        if status.matching:
+            self.heard.set()
+
+    def matched(self) -> bool:
+        if not self.heard.is_set() and isinstance(self._transport, MemoryTransport):
+            if self._transport.subscribed(self._keys):
+                self.heard.set()
+        return self.heard.is_set()
+
+    def close(self) -> None:
+        for d in self._declared:
+            d.undeclare()
+        self._declared = []
+
+
 class DrainingSubscriber:
     """A zenoh subscriber with a Python callback, which zenoh runs on a callback thread of its
     own, fed by a queue: a message put before :meth:`undeclare` may still wait there when
@@ -257,6 +292,12 @@ class MemoryTransport:
             if d in self._subscribers:
                 self._subscribers.remove(d)
                 self._matches.clear()
+
+    def subscribed(self, keys: list[str]) -> bool:
+        """Whether a subscriber of this transport matches one of ``keys`` now."""
+        exprs = [zenoh.KeyExpr(k) for k in keys]
+        with self._lock:
+            return any(sub.expr.intersects(e) for sub in self._subscribers for e in exprs)
 
     def declare_token(self, key: str) -> Declared:
         return self._declare(_Declaration(self, key))

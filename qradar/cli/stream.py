@@ -13,6 +13,7 @@ from pathlib import Path
 from pipeline.bus import audit
 from pipeline.nodes.intake import QueueConfig, ServeConfig
 from pipeline.nodes.status import StatusLines
+from pipeline.nodes.transport import Audience
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.wire import check_sensor_id
 from radar_driver.lifetime import watch_parent
@@ -141,17 +142,28 @@ def cmd_source(args) -> int:
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
     install_sigterm("source")
     watch(args, "source")
+    keys = [node.bus.wildcard(t) for t, on in (("raw", node.raw_every), ("quantized", quantizer)) if on]
+    audience = Audience(node.transport, keys)  # whether any node subscribed to what it publishes
     status = StatusLines(node, quiet=args.quiet).start()
+    interrupted = False
     try:
         run_nodes([node], args.duration_s, stop)
     except KeyboardInterrupt:
-        pass
+        interrupted = True
     finally:
         status.stop()
+        heard = audience.matched()
+        audience.close()
     extra = {"late_ticks": source.late_ticks, "elapsed_s": round(source.elapsed_s, 3)} \
         if isinstance(source, SimulatedSource) else {"source": source.stats()}
-    print(json.dumps({"node": node.name, **extra, **node.totals(), **noise_summary(node), **audit.finish()}),
-          flush=True)
+    totals = node.totals()
+    print(json.dumps({"node": node.name, **extra, **totals, "subscribed": heard, **noise_summary(node),
+                      **audit.finish()}), flush=True)
+    if totals["frames_out"] and not heard:  # frames to nobody: another --prefix, or no router in common
+        print(f"qradar source: {'warning' if interrupted else 'error'}: nothing subscribed to {' or '.join(keys)}: "
+              f"its {totals['frames_out']} frames reached no node (are the nodes up, on this --prefix, and joined "
+              "to the same router as this source?)", file=sys.stderr, flush=True)
+        return 0 if interrupted else 1  # stopped (Ctrl-C, SIGTERM) before a node came: said, not a failure
     return 0
 
 
