@@ -13,7 +13,8 @@ ratio to PBP, how many 20-frames/s sensors one core decodes with cml, and the co
 default model (a phase step between ramps) over its static one (``cml_static``,
 ``cml_static_auto``: ``DecoderConfig(motion=False)``, taking turns with the others) and what
 the targets' uncertainty and p-values cost (``cml_positions``, ``cml_positions_auto``:
-``DecoderConfig(uncertainty=False)``, positions only, what cml computed before them).
+``DecoderConfig(uncertainty=False)``, positions only, what cml computed before them), and
+the motion model's cost with positions only (``cml_static_positions``, ``..._auto``).
 """
 
 from __future__ import annotations
@@ -55,7 +56,11 @@ def main() -> None:
              "cml_static_auto": (DecoderConfig(algo="cml", auto_k=True, motion=False), args.max_targets)}
     # positions only (no uncertainty, no p-values): what they cost
     runs |= {"cml_positions": (DecoderConfig(algo="cml", uncertainty=False), args.K),
-             "cml_positions_auto": (DecoderConfig(algo="cml", auto_k=True, uncertainty=False), args.max_targets)}
+             "cml_positions_auto": (DecoderConfig(algo="cml", auto_k=True, uncertainty=False), args.max_targets),
+             # ... and the motion model's cost with positions only
+             "cml_static_positions": (DecoderConfig(algo="cml", motion=False, uncertainty=False), args.K),
+             "cml_static_positions_auto": (DecoderConfig(algo="cml", auto_k=True, motion=False, uncertainty=False),
+                                           args.max_targets)}
     # each decoder held across calls, as the localizer node holds it (its tables built once)
     calls = {label: partial(Decoder(decoder).decode, z, xi, q.delta, 1, cfg, k) for label, (decoder, k) in runs.items()}
     times = take_turns(calls, args.seconds, "bench_cml", clock=time.process_time, warmup=1)
@@ -68,7 +73,10 @@ def main() -> None:
         "cml_sensors_per_core_at_20_fps": int(1000.0 / ms["cml"] / 20.0),
         "cml_auto_sensors_per_core_at_20_fps": int(1000.0 / ms["cml_auto"] / 20.0),
         "motion_over_static": {"cml": round(ms["cml"] / ms["cml_static"], 3),
-                               "cml_auto": round(ms["cml_auto"] / ms["cml_static_auto"], 3)},
+                               "cml_auto": round(ms["cml_auto"] / ms["cml_static_auto"], 3),
+                               "cml_positions": round(ms["cml_positions"] / ms["cml_static_positions"], 3),
+                               "cml_positions_auto": round(ms["cml_positions_auto"] / ms["cml_static_positions_auto"],
+                                                           3)},
         "uncertainty_share": {"cml": round(1 - ms["cml_positions"] / ms["cml"], 3),
                               "cml_auto": round(1 - ms["cml_positions_auto"] / ms["cml_auto"], 3)},
     }, indent=1)
