@@ -31,7 +31,7 @@ import zenoh_helpers  # noqa: E402
 from pipeline.bus.session import BusConfig  # noqa: E402
 from pipeline.errors import PipelineError  # noqa: E402
 from radar_driver.model import RadarConfig  # noqa: E402
-from zenoh_helpers import QRADAR  # noqa: E402
+from zenoh_helpers import QRADAR, WAIT_FLOOR_S  # noqa: E402
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -181,7 +181,7 @@ def _joined(session, timeout_s: float) -> bool:
 
 @pytest.fixture
 def connect_when_ready():
-    """``connect_when_ready(endpoint, timeout_s=20, mode="peer", secure=None)``: a zenoh session
+    """``connect_when_ready(endpoint, timeout_s=WAIT_FLOOR_S, mode="peer", secure=None)``: a zenoh session
     connected to ``endpoint`` (with ``secure``, a pipeline.bus.security.SecureConfig, over mTLS),
     whose listener is in another process that may not be up yet.
 
@@ -193,7 +193,8 @@ def connect_when_ready():
     are closed when the test ends (closing one earlier in the test is fine too)."""
     opened = []
 
-    def connect(endpoint: str, timeout_s: float = 20.0, mode: str = "peer", secure=None):
+    def connect(endpoint: str, timeout_s: float = WAIT_FLOOR_S, mode: str = "peer", secure=None):
+        timeout_s = max(timeout_s, WAIT_FLOOR_S)  # a bound says when the listener is lost, not how fast it comes
         bus = BusConfig(mode=mode, connect=(endpoint,), secure=secure)
         deadline = time.monotonic() + timeout_s
         max_attempts = int(timeout_s / CONNECT_RETRY_S) + 1

@@ -39,8 +39,8 @@ from zenoh_helpers import free_port
 
 REQUIRE_ENV = "QRADAR_REQUIRE_SER2NET"
 HOST = "127.0.0.1"
-#: how long ser2net may take to listen after it starts, s
-START_TIMEOUT_S = 5.0
+#: how long ser2net may take to listen after it starts, s (a bound on an event: the wait ends when it listens)
+START_TIMEOUT_S = 30.0
 #: how long ser2net may take to exit after SIGTERM before it gets SIGKILL, s
 STOP_TIMEOUT_S = 3.0
 #: ports tried when the one picked was taken in the meantime

@@ -42,6 +42,10 @@ def test_a_connect_endpoint_that_answers_nothing_is_named(free_port):
 
 
 def test_the_main_job_alone_on_purpose_does_not_warn():
-    out = qradar("run", *RUNTIME_DECODER, "--duration", str(ALONE_AFTER_S + 2), "--no-record")
+    # frames, not a duration (a run without a frame fails, and a loaded host may start its driver late): at 20
+    # a second of the simulated sensor's clock, which a busy host only slows, they span ALONE_AFTER_S + 2 s
+    frames = int((ALONE_AFTER_S + 2) * 20)
+    out = qradar("run", *RUNTIME_DECODER, "--rate", "20", "--frames", frames, "--duration", "120", "--no-record",
+                 timeout_s=180)
     assert out.returncode == 0, out.stderr[-2000:]
     assert WARNING not in out.stderr and WARNING not in out.stdout

@@ -70,10 +70,10 @@ def run_cli(capsys, *argv) -> tuple[int, str, str]:
 
 def capture_sim(tmp_path: Path, sim_profile: SensorProfile, *argv, rate_hz: float = 20.0) -> Path:
     """``qradar capture`` (in process) of the simulated K-MD2 speaking ``sim_profile`` on a
-    pty, at most 8 s: the file."""
+    pty, at most 60 s (a cap: the callers' captures end at their --frames): the file."""
     link, out = tmp_path / f"kmd2-{sim_profile.name}", tmp_path / f"{sim_profile.name}-{len(argv)}.bin"
     with SimulatorServer(SCENE, link_path=link, rate_hz=rate_hz, profile=sim_profile) as sim:
-        rc = main(["capture", "--port", str(link), "-o", str(out), "--seconds", "8", *map(str, argv)])
+        rc = main(["capture", "--port", str(link), "-o", str(out), "--seconds", "60", *map(str, argv)])
     assert rc == 0 and not sim.errors
     return out
 
@@ -257,7 +257,7 @@ def test_a_capture_with_the_wrong_profile_still_records_and_inspect_finds_the_ri
     t0 = time.monotonic()
     path = capture_sim(tmp_path, resolve_profile(sim_name), "--profile", asked, "--frames", 6)
     out = capsys.readouterr().out
-    assert time.monotonic() - t0 < 8
+    assert time.monotonic() - t0 < 60  # ended by its frames, not by its seconds
     assert f"0 frames decoded with {asked} (the driver stopped:" in out and "raw poller: 12 GNFD answers" in out
     cap = Capture.read(path)
     assert cap.header.profile == asked and sum(r.kind == Kind.OPEN for r in cap.records) == 2
@@ -323,21 +323,21 @@ def test_capture_as_a_process_ends_cleanly_on_sigint(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with SimulatorServer(SCENE, link_path=link, rate_hz=20) as sim:
         proc = subprocess.Popen([*QRADAR, "capture", "--port", str(link), "-o", str(out),
-                                 "--seconds", "30", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 "--seconds", "120", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True, cwd=ROOT, env=env)
         try:
-            deadline = time.monotonic() + 15
-            while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 20_000):
-                time.sleep(0.05)
+            wait_until(lambda: (out.exists() and out.stat().st_size >= 20_000) or proc.poll() is not None, 60,
+                       "20 kB captured")
             proc.send_signal(signal.SIGINT)
-            stdout, stderr = proc.communicate(timeout=10)
+            stdout, stderr = proc.communicate(timeout=30)
         finally:
             proc.kill()
         assert not sim.errors
         assert sim.devices[0].events[-1][0] == "GBYE"
     assert proc.returncode == 0, stderr
     summary = json.loads(stdout)
-    assert summary["frames"] >= 1 and summary["seconds"] < 15 and summary["session_error"] == ""
+    # ended by the signal, before its --seconds
+    assert summary["frames"] >= 1 and summary["seconds"] < 120 and summary["session_error"] == ""
     cap = Capture.read(out)
     assert cap.truncated is None and cap.byte_count(Kind.RX) == summary["bytes_rx"]
     assert cap.records[-1].kind == Kind.CLOSE
@@ -355,15 +355,18 @@ def test_a_capture_of_no_sensor_is_a_one_line_error_and_a_whole_file(tmp_path, c
 
 def test_the_raw_poller_polls_again_until_its_seconds_are_spent(tmp_path):
     """A sensor that refuses every GNFD (its RADC bit is not the profile's): no DONE ever
-    comes; the raw poller asks again after each timeout until the seconds are spent."""
+    comes; the raw poller asks again after each timeout until the seconds are spent (2 s of
+    0.2-s timeouts: a host stalled for most of them still times out, and asks again, once)."""
     link = tmp_path / "kmd2"
     wrong_bit = SensorProfile("bit4", gnfd_bits={"RADC": 0x10})
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim:
         t0 = time.monotonic()
-        summary = run_capture(CaptureConfig(str(link), profile=wrong_bit, seconds=1.0, mode="raw", timeout_s=0.2),
+        summary = run_capture(CaptureConfig(str(link), profile=wrong_bit, seconds=2.0, mode="raw", timeout_s=0.2),
                               tmp_path / "c.bin")
         took = time.monotonic() - t0
-    assert not sim.errors and 1.0 <= took < 3.0
-    assert summary.raw.answers == 0 and summary.raw.timeouts >= 3 and summary.raw.polls >= 4
+    assert not sim.errors and 2.0 <= took < 30.0  # its seconds spent, then it stopped
+    # each poll timed out and was sent again, but the last, which the end may cut short
+    assert summary.raw.answers == 0 and summary.raw.timeouts >= 1 and summary.raw.polls >= 2
+    assert summary.raw.polls - summary.raw.timeouts in (0, 1), summary.raw
     split = inspect_capture(Capture.read(tmp_path / "c.bin")).sensor
     assert split.headers["RESP"].count == summary.raw.polls + 2  # INIT, the GNFDs (refused), GBYE

@@ -112,7 +112,8 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
     a raw frame of kmd2-1 with seq 2^63: implausible at every stage, nothing missing."""
     port = free_port()
     record = tmp_path / "run.mcap"
-    proc = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--sensors", "2", "--duration", "60", "--record",
+    # (--duration: a cap beyond the test's waits, which end it with a Ctrl-C)
+    proc = subprocess.Popen([*QRADAR, "run", *RUNTIME_DECODER, "--sensors", "2", "--duration", "300", "--record",
                              str(record), "--json", "--listen", f"tcp/127.0.0.1:{port}", "--scene", "single",
                              "--K", "1"],
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -139,7 +140,7 @@ def test_a_dead_driver_is_restarted_and_the_other_sensor_goes_on(tmp_path, short
             attacker.put("radar/kmd2-1/targets", DEEP, congestion_control=BLOCK)
             attacker.put("radar/kmd2-1/health", DEEP_HEALTH, congestion_control=BLOCK)
         attacker.put("radar/kmd2-1/raw", raw("kmd2-1", 2**63), congestion_control=BLOCK)  # one forged sequence number
-        again = wait_for(lambda: [p for p in drivers_of(proc.pid) if p not in drivers], 15.0)
+        again = wait_for(lambda: [p for p in drivers_of(proc.pid) if p not in drivers], 30.0)
         assert again, "kmd2-0's driver was not started again"
         before = seen.get("kmd2-0", 0)
         wait_until(lambda: seen.get("kmd2-0", 0) >= before + 10, 60,
@@ -180,20 +181,20 @@ def test_a_run_whose_every_sensor_is_gone_ends_with_its_summary():
     sensor is given up, and the run, having no sensor left, ends at once with its summary
     (not at its duration)."""
     result = {}
-    cfg = RunConfig(scene="single", sensors=1, duration_s=60.0, driver_backoff_s=0.2, driver_restarts=2)
+    cfg = RunConfig(scene="single", sensors=1, duration_s=300.0, driver_backoff_s=0.2, driver_restarts=2)
     t = threading.Thread(target=lambda: result.setdefault("summary", run(cfg, live=None)), daemon=True)
     t0 = time.monotonic()
     t.start()
     killed = set()
-    while t.is_alive() and time.monotonic() - t0 < 50:
+    while t.is_alive() and time.monotonic() - t0 < 240:  # (until the run ends: at once, on a fast host)
         for pid in drivers_of(os.getpid()):
             if pid not in killed and alive(pid):
                 os.kill(pid, signal.SIGKILL)
                 killed.add(pid)
         time.sleep(0.05)
-    t.join(20)
+    t.join(60)
     assert not t.is_alive(), "the run did not end once its sensor was gone"
     s = result["summary"]
     assert s["sensors_gone"] == ["kmd2-0"] and s["driver_restarts"] == {"kmd2-0": 2} and len(killed) == 3
-    assert len(s["driver_exits"]["kmd2-0"]) == 3 and s["seconds"] < 30
+    assert len(s["driver_exits"]["kmd2-0"]) == 3 and s["seconds"] < cfg.duration_s  # not ended by its duration
     assert "then given up" in format_summary(s)

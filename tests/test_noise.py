@@ -135,7 +135,7 @@ def test_qradar_quantize_alpha_auto_publishes_the_noise_and_quantizes_with_its_a
     ep = f"tcp/127.0.0.1:{free_port}"
     proc = _spawn(["quantize", "--listen", ep, "--alpha", "auto", "--duration", "60"])
     try:
-        session = connect_when_ready(ep, timeout_s=20, mode="client")
+        session = connect_when_ready(ep, timeout_s=30, mode="client")
         col = Collector(session, "radar/**")
         wait_until(lambda: any(r.ok is not None for r in session.liveliness().get("radar/alive/quantize/**",
                                                                                     timeout=1.0)),

@@ -295,7 +295,7 @@ def test_qradar_record_with_stop_exits_cleanly_on_efbig(tmp_path, free_port, con
                             cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
-        session = connect_when_ready(ep, timeout_s=20)
+        session = connect_when_ready(ep, timeout_s=30)
         wait_until(lambda: any(r.ok is not None for r in session.liveliness().get("radar/alive/record/**",
                                                                                   timeout=1.0)), 20, "recorder alive")
         pub = session.declare_publisher("radar/ef/raw")

@@ -55,7 +55,7 @@ def test_publisher_restarts_do_not_grow_the_router_or_the_subscriber(connect_whe
         # cml kernels: 1.5 s idle, 3.5 s on a busy host), then declares its liveliness token. Frames published
         # before are lost, and the localizer's first decodes (~12 MB once: its worker's first frame, its first
         # batches) came after the baseline, read as growth
-        session = connect_when_ready(f"tcp/127.0.0.1:{port}", mode="client")
+        session = connect_when_ready(f"tcp/127.0.0.1:{port}", timeout_s=30, mode="client")
         wait_until(lambda: {"quantize", "localize"} <= set(alive_nodes(session)), 60, "the quantize and localize nodes up")
         targets = Collector(session, "radar/*/targets")
         for _ in range(3):  # the first sessions warm every cache up

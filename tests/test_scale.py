@@ -31,7 +31,7 @@ def sim(sensors=4, frames=6, rate=50.0, prefix="e", send="burst", seed=3):
                                            seed=seed, send=send))
 
 
-def run_until_done(nodes, done, timeout_s=20.0):
+def run_until_done(nodes, done, timeout_s=30.0):
     """``run_nodes(nodes)`` until ``done()`` (every frame the source sent is accounted for
     downstream), at most ``timeout_s``."""
     stop = threading.Event()
@@ -186,12 +186,18 @@ def test_health_of_many_sensors_comes_in_slices_once_a_period(bus, zenoh_session
         src.stop()
         loc.stop()
     assert set(per_sensor) == {f"h{i}" for i in range(30)}
-    # once a period each: the mean spacing of a sensor's health about the period (a late one is
-    # followed by an early one: the loop keeps its schedule)
+    # once a period each: the mean spacing of a sensor's health no less than about the period (the
+    # loop's waits never end early) ...
     spacing = {k: (v[-1] - v[0]) / (len(v) - 1) / 1e9 for k, v in per_sensor.items()}
-    assert all(0.75 * period <= t <= 1.5 * period for t in spacing.values()), spacing
+    assert all(0.75 * period <= t for t in spacing.values()), spacing
+    # ... and every HEALTH_SLICES ticks of the health loop (a slice of the period each; every tick publishes
+    # the health of some sensors, all with the tick's one timestamp): however late a busy host's ticks
+    # (which only delay, so no upper bound on the spacing in seconds)
+    tick = {t: i for i, t in enumerate(sorted({t for v in per_sensor.values() for t in v}))}
+    ticks = {k: [tick[t] for t in sorted(v)] for k, v in per_sensor.items()}
+    assert all(np.diff(v).tolist() == [HEALTH_SLICES] * (len(v) - 1) for v in ticks.values()), ticks
     # the 30 sensors are spread over the slices of the period, not published at one instant
-    assert len({round(t[0] / 1e6 / (period * 1e3 / HEALTH_SLICES)) for t in per_sensor.values()}) >= 5
+    assert len({v[0] % HEALTH_SLICES for v in ticks.values()}) >= 5, ticks
     assert all(h.frames_out == 2 and h.latency_ms["p99"] is not None for h in mine)
 
 
@@ -237,12 +243,13 @@ def test_the_input_mode_is_checked(bus):
 
 def test_edge_source_and_two_sharded_localizers_across_processes(free_port, connect_when_ready):
     ep = f"tcp/127.0.0.1:{free_port}"
-    router = cli("router", "--listen", ep, "--duration", "40")
+    # (caps: the test ends them; the waits below may add up to more than a minute on a loaded host)
+    router = cli("router", "--listen", ep, "--duration", "180")
     locs = []
     try:
-        session = connect_when_ready(ep, mode="client")
+        session = connect_when_ready(ep, timeout_s=30, mode="client")
         locs = [cli("localize", *RUNTIME_DECODER, "--mode", "client", "--connect", ep, "--shard", f"{i}/2",
-                    "--duration", "30") for i in range(2)]
+                    "--duration", "180") for i in range(2)]
         col = Collector(session, "radar/*/targets")
         quant = Collector(session, "radar/*/quantized")
         wait_until(lambda: sum(1 for r in session.liveliness().get("radar/alive/localize/**", timeout=1.0)

@@ -91,16 +91,17 @@ def test_a_session_has_no_implicit_listener(tmp_path):
 def test_nodes_listen_on_nothing_unless_asked(tmp_path, free_port, connect_when_ready):
     ep = f"tcp/127.0.0.1:{free_port}"
     asked = free_port_other(free_port)
-    router = qradar("router", "--listen", ep, "--duration", "40")
+    # (--duration: caps, beyond the test's own waits; stop() ends them all, normally)
+    router = qradar("router", "--listen", ep, "--duration", "120")
     nodes = []
     try:
         session = connect_when_ready(ep, timeout_s=30, mode="client")  # a client needs its router up
-        nodes += [qradar("quantize", "--connect", ep, "--duration", "40"),  # a peer, as the README used to say
-                  qradar("localize", *RUNTIME_DECODER, "--mode", "client", "--connect", ep, "--duration", "40"),
+        nodes += [qradar("quantize", "--connect", ep, "--duration", "120"),  # a peer, as the README used to say
+                  qradar("localize", *RUNTIME_DECODER, "--mode", "client", "--connect", ep, "--duration", "120"),
                   qradar("record", "--connect", ep, "-o", tmp_path / "r.mcap", "--topics", "radar/*/targets",
-                         "--duration", "40"),
+                         "--duration", "120"),
                   qradar("source", "--connect", ep, "--listen", f"tcp/127.0.0.1:{asked}", "--rate", "1",
-                         "--duration", "40")]
+                         "--duration", "120")]
         seen = []
         wait_until(lambda: {"quantize", "localize", "record", "source"} <= set(seen.append(alive_nodes(session))
                                                                               or seen[-1]), 30,
@@ -125,10 +126,10 @@ def free_port_other(port: int) -> int:
 def test_router_listens_where_its_config_file_says(tmp_path, free_port, connect_when_ready):
     conf = tmp_path / "router.json5"
     conf.write_text(f'{{ listen: {{ endpoints: ["tcp/127.0.0.1:{free_port}"] }} }}')
-    router = qradar("router", "--zenoh-config", conf, "--duration", "30")
+    router = qradar("router", "--zenoh-config", conf, "--duration", "120")  # a cap: stop() ends it
     try:
         assert f"listening on ['tcp/127.0.0.1:{free_port}']" in first_line(router, 30)
-        connect_when_ready(f"tcp/127.0.0.1:{free_port}", timeout_s=20, mode="client")
+        connect_when_ready(f"tcp/127.0.0.1:{free_port}", timeout_s=30, mode="client")
         assert listening_sockets(router.pid) == {("tcp", LOOPBACK4, free_port)}  # not tcp/0.0.0.0:7447 instead
     finally:
         [(_, err)] = stop([router])
@@ -264,13 +265,14 @@ def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free
     routers = tmp_path / "router-pki"  # the router's copy, where the recorder has been withdrawn
     shutil.copytree(lab, routers)
     assert main(["security", "remove", str(routers), "recorder"]) == 0
-    router = qradar("router", "--secure", routers, "--listen", ep, "--duration", "60")
+    # (--duration: caps, beyond the test's own waits, which add up to more than a minute; stop() ends them)
+    router = qradar("router", "--secure", routers, "--listen", ep, "--duration", "180")
     procs, attackers = [router], {}
     try:
         viewer = connect_when_ready(ep, timeout_s=30, mode="client", secure=SecureConfig(lab, "viewer"))
-        procs += [qradar("quantize", "--secure", lab, "--connect", ep, "--alpha", "0.5", "--duration", "60"),  # peer
+        procs += [qradar("quantize", "--secure", lab, "--connect", ep, "--alpha", "0.5", "--duration", "180"),  # peer
                   qradar("localize", *RUNTIME_DECODER, "--secure", lab, "--mode", "client", "--connect", ep, "--K", "1",
-                         "--duration", "60")]
+                         "--duration", "180")]
         col = Collector(viewer, "radar/**")
         wait_until(lambda: {"quantize", "localize"} <= set(alive_nodes(viewer)), 30, "quantize and localize alive")
 
@@ -299,7 +301,7 @@ def test_secure_pipeline_keeps_out_strangers_and_wrong_roles(pki, tmp_path, free
         attacker = threading.Thread(target=attack, args=(attackers, forgeries(scene), stop_evt), daemon=True)
         attacker.start()
         source = qradar("source", "--secure", lab, "--mode", "client", "--connect", ep, "--scene", "single",
-                        "--id-prefix", "s", "--frames", frames, "--duration", "30")
+                        "--id-prefix", "s", "--frames", frames, "--duration", "120")
         procs.append(source)
         wait_until(lambda: len(col.of("s0/targets")) >= frames, 40, f"{frames} targets of s0")
         attacker.join(10)

@@ -23,8 +23,8 @@ from test_session import LSB, SCENE, expected_frame
 from zenoh_helpers import QRADAR
 
 ROOT = Path(__file__).resolve().parents[1]
-#: every test here ends well within this (each takes about a second)
-BOUND_S = 15.0
+#: every test here ends well within this (each takes about a second; a loaded host's bound, not a speed)
+BOUND_S = 60.0
 
 
 @pytest.fixture
@@ -92,7 +92,7 @@ def test_rfc2217_switches_the_pty_to_2M_and_says_gbye_on_close(link):
 def test_the_driver_reconnects_after_ser2net_restarts(link, kind):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, ser2net_for(link, kind, workdir=link.parent) as s2n:
         frames = []
-        with session(s2n.url, reconnect_timeout_s=10.0) as s:  # the default options
+        with session(s2n.url, reconnect_timeout_s=BOUND_S) as s:  # the default options
             for f in s.frames(12):
                 frames.append(f)
                 if len(frames) == 5:
@@ -140,7 +140,7 @@ def test_raw_tcp_with_an_explicit_fast_baud_stays_at_115200(link, caplog):
     with SimulatorServer(SCENE, link_path=link, rate_hz=0) as sim, \
             ser2net_for(link, "raw", workdir=link.parent) as s2n:
         with caplog.at_level("WARNING", logger="qradar.driver"), \
-                session(s2n.url, baud=2_000_000, reconnect=False, timeout_s=0.5) as s:
+                session(s2n.url, baud=2_000_000, reconnect=False, timeout_s=5.0) as s:
             frames = list(s.frames(3))
     check_frames(frames, 3)
     assert "baud 2000000 ignored, staying at 115200" in caplog.text

@@ -114,7 +114,7 @@ def test_a_killed_up_leaves_no_node_behind(tmp_path):
         assert all(alive(p) for p in pids.values())
         proc.kill()
         proc.communicate(timeout=20)
-        assert wait_for(lambda: not any(alive(p) for p in pids.values()), 15.0), \
+        assert wait_for(lambda: not any(alive(p) for p in pids.values()), 30.0), \
             [p for p in pids.values() if alive(p)]
     finally:
         kill_all([proc.pid, *pids.values()])

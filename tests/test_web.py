@@ -54,7 +54,7 @@ def stats(page) -> dict:
     return page.evaluate("window.qradarView.stats()")
 
 
-def first_event(url: str, kind: str, timeout_s: float = 20.0) -> dict:
+def first_event(url: str, kind: str, timeout_s: float = 30.0) -> dict:
     """Read the event stream at ``url`` (retrying while nothing listens yet) until its first
     ``kind`` event; its data."""
     deadline = time.monotonic() + timeout_s
@@ -341,7 +341,7 @@ def test_qradar_replay_into_a_live_web_view_shows_the_recording(bus, zenoh_sessi
         # 106 frames: each targets message shown, each quantized frame's profile shown or skipped (beyond 20 Hz)
         wait_until(lambda: (lambda t: t["frames_out"] + t["profiles_skipped"])(view.summary()) >= 106 * 2, 10,
                    "the recording's targets and profiles")
-        got = first_event(f"http://127.0.0.1:{view.port}/events", "targets", 10.0)
+        got = first_event(f"http://127.0.0.1:{view.port}/events", "targets", 30.0)
     finally:
         view.stop()
     assert result.published > 0 and got["s"] == "kmd2-0" and len(got["targets"]) == 2

@@ -177,8 +177,10 @@ def listening_sockets(pid: int) -> set[tuple[str, str, int]]:
     return out
 
 
-def wait_port(port: int, timeout_s: float = 20) -> None:
-    """Until something accepts TCP connections on 127.0.0.1:port (AssertionError after timeout_s)."""
+def wait_port(port: int, timeout_s: float = WAIT_FLOOR_S) -> None:
+    """Until something accepts TCP connections on 127.0.0.1:port (AssertionError after
+    max(timeout_s, WAIT_FLOOR_S))."""
+    timeout_s = max(timeout_s, WAIT_FLOOR_S)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         with socket.socket() as s:
