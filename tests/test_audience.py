@@ -6,6 +6,7 @@ zenoh's matching status (:class:`pipeline.nodes.transport.Audience`)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 
 from pipeline.bus.session import BusConfig
@@ -45,8 +46,26 @@ def test_a_source_that_nobody_hears_says_so_and_fails():
     assert out.returncode == 1, out.stderr[-2000:]
     assert json.loads(out.stdout)["subscribed"] is False
     assert out.stderr.strip().splitlines()[-1] == (
-        "qradar source: error: nothing subscribed to radar/*/raw: its 10 frames reached no node (are the nodes up, "
-        "on this --prefix, and joined to the same router as this source?)")
+        "qradar source: error: nothing subscribed to radar/<sensor>/raw: its 10 frames reached no node (are the nodes "
+        "up, on this --prefix, and joined to the same router as this source?)")
+
+
+def test_a_node_of_other_sensors_is_no_audience_and_a_child_of_up_only_warns(tmp_path):
+    """A subscriber of another sensor's frames (a node's --sensors pattern that leaves this
+    source's ids out) hears none of them: status 1. Under ``--parent-pid`` (a node of ``qradar
+    up``, which would restart a node that ends with 1 and send its frames again): a warning, 0."""
+    sock = tmp_path / "zenoh.sock"
+    session = BusConfig(listen=(f"unixsock-stream/{sock}",)).open()
+    try:
+        col = Collector(session, "radar/lab9/raw")
+        z = ["--mode", "client", "--connect", f"unixsock-stream/{sock}", "--frames", "10", "--quiet"]
+        alone = qradar("source", *z)
+        assert alone.returncode == 1 and "error: nothing subscribed" in alone.stderr, alone.stderr[-2000:]
+        child = qradar("source", *z, "--parent-pid", os.getpid())
+        assert child.returncode == 0 and "warning: nothing subscribed" in child.stderr, child.stderr[-2000:]
+        assert col.of("/raw") == []
+    finally:
+        session.close()
 
 
 def test_a_source_heard_by_a_node_ends_with_status_0(tmp_path):

@@ -187,9 +187,9 @@ def test_health_of_many_sensors_comes_in_slices_once_a_period(bus, zenoh_session
         loc.stop()
     assert set(per_sensor) == {f"h{i}" for i in range(30)}
     # once a period each: the mean spacing of a sensor's health no less than about the period (the
-    # loop's waits never end early) ...
+    # loop's waits never end early), and not several periods (a loose bound: a busy host delays ticks) ...
     spacing = {k: (v[-1] - v[0]) / (len(v) - 1) / 1e9 for k, v in per_sensor.items()}
-    assert all(0.75 * period <= t for t in spacing.values()), spacing
+    assert all(0.75 * period <= t <= 4 * period for t in spacing.values()), spacing
     # ... and every HEALTH_SLICES ticks of the health loop (a slice of the period each; every tick publishes
     # the health of some sensors, all with the tick's one timestamp): however late a busy host's ticks
     # (which only delay, so no upper bound on the spacing in seconds)

@@ -151,19 +151,27 @@ LEAKAGE_POWER_SHARE = 0.1
 #: near bins within 10 dB of it. Measured, 1-bit or not: a front end 120-60 000 times the
 #: median (1st percentile 120), a fitting calibration's near bins 0.7-20 times (99th percentile)
 LEAKAGE_OVER_FLOOR = 30.0
+#: ... and is a peak of its own: this many times the bins just beyond the near ones (bin
+#: ``bins`` and bin ``N - bins - 1``). A leakage or DC peaks in bin 0 (its neighbours beyond:
+#: -15 dB and less); a target just beyond them (1.5 m: between bins 2 and 3) puts a sidelobe
+#: into bin 1 within 10 dB of its peak, but its peak lies beyond
+LEAKAGE_OVER_NEIGHBOUR = 2.0
 
 
 def leakage_return(z: np.ndarray, config: RadarConfig, bins: int = LEAKAGE_BINS) -> np.ndarray:
     """Whether each frame Z (B, M, 2) of whole ramps (quantized or not) has a return in the
     first or last ``bins`` range bins of the circular range axis, where a real front end's
-    DC offset and TX-to-RX leakage sit (docs/design.md), within LEAKAGE_POWER_SHARE of the
-    power of its strongest return and LEAKAGE_OVER_FLOOR times its median bin: (B,) bool.
-    In most frames of a sensor, its front end is not removed (no calibration, or one of
-    another front end); 0-5 % of the frames of a calibrated one (the simulated chamber)."""
+    DC offset and TX-to-RX leakage sit (docs/design.md): a peak there within
+    LEAKAGE_POWER_SHARE of the power of the frame's strongest return, LEAKAGE_OVER_FLOOR times
+    its median bin and LEAKAGE_OVER_NEIGHBOUR times the bins just beyond: (B,) bool. In most
+    frames of a sensor, its front end is not removed (no calibration, or one of another front
+    end); 0-5 % of the frames of a calibrated one (the simulated chamber)."""
     n = config.samples_per_ramp
     energy = joint_energy(back_project_ramps(z, config))
     near = np.maximum(energy[:, :bins].max(axis=1), energy[:, n - bins:].max(axis=1))
-    return (near >= LEAKAGE_POWER_SHARE * energy.max(axis=1)) & (near >= LEAKAGE_OVER_FLOOR * np.median(energy, axis=1))
+    beyond = np.maximum(energy[:, bins], energy[:, n - bins - 1])
+    return ((near >= LEAKAGE_POWER_SHARE * energy.max(axis=1))
+            & (near >= LEAKAGE_OVER_FLOOR * np.median(energy, axis=1)) & (near >= LEAKAGE_OVER_NEIGHBOUR * beyond))
 
 
 def joint_support(u: np.ndarray, k: int, energy: np.ndarray | None = None) -> np.ndarray:

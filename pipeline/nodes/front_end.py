@@ -6,6 +6,7 @@ not calibrated, or by a calibration of another front end (docs/chamber.md, secti
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -13,7 +14,7 @@ import numpy as np
 from radar_driver.model import RadarConfig
 
 from pipeline.dsp.gate import LEAKAGE_BINS
-from pipeline.dsp.localize import leakage_return
+from pipeline.dsp.localize import LEAKAGE_POWER_SHARE, leakage_return
 from pipeline.dsp.quantize import QuantizedFrames
 
 #: each sensor's first FRONT_END_FIRST frames are checked, then one of every FRONT_END_EVERY
@@ -27,6 +28,8 @@ FRONT_END_EVERY = 20
 #: (:func:`~pipeline.dsp.localize.leakage_return`)
 LEAKAGE_MIN_CHECKED = 10
 LEAKAGE_SHARE = 0.5
+#: how far below a frame's strongest return a leakage is seen (dB), as the warning says it
+LEAKAGE_DB = round(-10.0 * math.log10(LEAKAGE_POWER_SHARE), 1)
 #: where a warning about the front end sends the user
 CALIBRATE_HINT = "`qradar calibrate` (docs/chamber.md, section 7)"
 
@@ -39,8 +42,8 @@ def leakage_shown(front: dict) -> bool:
 def front_end_warning(sensor_id: str, front: dict, radar: RadarConfig | None = None) -> str:
     """The one warning of a sensor whose frames show its front end (:func:`leakage_shown`)."""
     near = LEAKAGE_BINS * (radar or RadarConfig()).range_resolution_m
-    seen = (f"a return within the first {near:g} m (DC offset, TX-to-RX leakage), 10 dB or less below its "
-            f"strongest, in {100 * front['leakage'] / front['checked']:.1f} % of {front['checked']} frames checked")
+    seen = (f"a return within the first {near:g} m (DC offset, TX-to-RX leakage), {LEAKAGE_DB:g} dB or less below "
+            f"its strongest, in {100 * front['leakage'] / front['checked']:.1f} % of {front['checked']} frames checked")
     if front.get("calibrated"):
         return (f"{sensor_id}: calibrated with {front['calibrated']}, yet {seen}: the calibration does not fit this "
                 f"sensor's front end (made on another sensor, radome or configuration?); make its own with "

@@ -131,11 +131,11 @@ class Audience:
     made (zenoh's matching status of a publisher that never puts, on each key; a
     :class:`MemoryTransport`: its subscribers when asked): a producer's way to tell "my
     messages went to nobody" (another --prefix, no router in common) from a quiet consumer.
-    :meth:`close` undeclares its publishers."""
+    :meth:`close` undeclares its publishers (a session's close has done it too)."""
 
     def __init__(self, transport: "Transport", keys: list[str]):
-        self.heard = threading.Event()
-        self._transport, self._keys, self._declared = transport, keys, []
+        self.heard, self.keys = threading.Event(), keys
+        self._transport, self._declared = transport, []
         session = getattr(transport, "session", None)
         if session is None:
             return
@@ -151,7 +151,7 @@ class Audience:
 
     def matched(self) -> bool:
         if not self.heard.is_set() and isinstance(self._transport, MemoryTransport):
-            if self._transport.subscribed(self._keys):
+            if self._transport.subscribed(self.keys):
                 self.heard.set()
         return self.heard.is_set()
 

@@ -142,8 +142,8 @@ def cmd_source(args) -> int:
     threading.Thread(target=lambda: (node.done.wait(), stop.set()), daemon=True).start()
     install_sigterm("source")
     watch(args, "source")
-    keys = [node.bus.wildcard(t) for t, on in (("raw", node.raw_every), ("quantized", quantizer)) if on]
-    audience = Audience(node.transport, keys)  # whether any node subscribed to what it publishes
+    audience = Audience(node.transport, source_keys(node, None if args.recording is not None else cfg.sensor_ids))
+    child = args.parent_pid is not None  # of `qradar up`, which reads a node that ends with 1 as one to restart
     status = StatusLines(node, quiet=args.quiet).start()
     interrupted = False
     try:
@@ -160,11 +160,28 @@ def cmd_source(args) -> int:
     print(json.dumps({"node": node.name, **extra, **totals, "subscribed": heard, **noise_summary(node),
                       **audit.finish()}), flush=True)
     if totals["frames_out"] and not heard:  # frames to nobody: another --prefix, or no router in common
-        print(f"qradar source: {'warning' if interrupted else 'error'}: nothing subscribed to {' or '.join(keys)}: "
-              f"its {totals['frames_out']} frames reached no node (are the nodes up, on this --prefix, and joined "
-              "to the same router as this source?)", file=sys.stderr, flush=True)
-        return 0 if interrupted else 1  # stopped (Ctrl-C, SIGTERM) before a node came: said, not a failure
+        keys = sorted({k.rsplit("/", 1)[-1] for k in audience.keys})
+        print(f"qradar source: {'warning' if interrupted or child else 'error'}: nothing subscribed to "
+              f"{node.bus.prefix}/<sensor>/{' or '.join(keys)}: its {totals['frames_out']} frames reached no node "
+              "(are the nodes up, on this --prefix, and joined to the same router as this source?)",
+              file=sys.stderr, flush=True)
+        return 0 if interrupted or child else 1  # stopped (Ctrl-C, SIGTERM) before a node came: said, not a failure
     return 0
+
+
+#: a source of at most this many sensors is heard on its own keys (a node's --sensors pattern
+#: may leave its ids out); more, or a recording's (its ids met as it is read): on the prefix's
+#: wildcard, where any node of the prefix counts
+AUDIENCE_KEYS_MAX = 64
+
+
+def source_keys(node: SourceNode, sensor_ids: list[str] | None) -> list[str]:
+    """The keys a source's audience is looked for on: each topic it publishes (raw, quantized)
+    of each of its ``sensor_ids`` (None: not known ahead), or of any sensor."""
+    topics = [t for t, on in (("raw", node.raw_every), ("quantized", node.quantizer is not None)) if on]
+    if sensor_ids is None or len(sensor_ids) > AUDIENCE_KEYS_MAX:
+        return [node.bus.wildcard(t) for t in topics]
+    return [node.bus.key(sid, t) for sid in sensor_ids for t in topics]
 
 
 ROUTER_LISTEN = "tcp/0.0.0.0:7447"
