@@ -58,6 +58,26 @@ log = logging.getLogger("qradar.driver")
 DEFAULT_FAST_BAUD = 2_000_000
 
 
+#: a link that stays down: a warning for each of its first DOWN_LINES_FIRST failed reconnect
+#: attempts, then one every DOWN_LINE_EVERY_S (a sensor unplugged for an hour: 35 lines, not 1 800)
+DOWN_LINES_FIRST = 6
+DOWN_LINE_EVERY_S = 120.0
+
+
+def say_down(url: str, exc: Exception, attempt: int, last_frame_mono: float | None, delay_s: float,
+             said: float | None) -> float | None:
+    """The warning of failed reconnect ``attempt`` to ``url`` when due (the first
+    DOWN_LINES_FIRST, then one every DOWN_LINE_EVERY_S); returns when one was last said
+    (monotonic s, ``said`` when none is now)."""
+    now = time.monotonic()
+    if attempt > DOWN_LINES_FIRST and said is not None and now - said < DOWN_LINE_EVERY_S:
+        return said
+    since = "no frame yet" if last_frame_mono is None else f"{now - last_frame_mono:.1f} s since the last frame"
+    then = f" (then a line every {DOWN_LINE_EVERY_S:g} s while it stays down)" if attempt == DOWN_LINES_FIRST else ""
+    log.warning("%s is down (%s); reconnect attempt %d, %s; next in %.2f s%s", url, exc, attempt, since, delay_s, then)
+    return now
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """url: any pyserial URL. baud: rate after INIT (one of the profile's baud codes);
@@ -372,11 +392,11 @@ class SensorSession:
                 self._queue.put(frame)
 
     def _reconnect(self) -> bool:
-        """Connect again with backoff (a warning per attempt, with the time since the last frame;
+        """Connect again with backoff (warnings with the time since the last frame, :func:`say_down`;
         counted: link_losses, down_ms and, while it lasts, link_down). True once connected,
         False at a stop; LinkError once reconnect_timeout_s is spent."""
         cfg, c = self.config, self.counters
-        delay, start, attempt = cfg.backoff_s, time.monotonic(), 0
+        delay, start, attempt, said = cfg.backoff_s, time.monotonic(), 0, None
         c.link_losses, c.link_down = c.link_losses + 1, 1
         try:
             while not self._stop.is_set():
@@ -392,10 +412,7 @@ class SensorSession:
                     if cfg.reconnect_timeout_s is not None and time.monotonic() - start > cfg.reconnect_timeout_s:
                         raise LinkError(f"could not reconnect to {cfg.url} within {cfg.reconnect_timeout_s} s: "
                                         f"{exc}") from exc
-                    since = ("no frame yet" if self._last_frame_mono is None
-                             else f"{time.monotonic() - self._last_frame_mono:.1f} s since the last frame")
-                    log.warning("%s is down (%s); reconnect attempt %d, %s; next in %.2f s", cfg.url, exc, attempt,
-                                since, delay)
+                    said = say_down(cfg.url, exc, attempt, self._last_frame_mono, delay, said)
                     if self._stop.wait(delay):
                         break
                     delay = min(delay * 2, cfg.max_backoff_s)

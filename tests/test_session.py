@@ -260,7 +260,7 @@ def test_an_error_without_reconnect_says_goodbye_first(link):
         assert events[-1] == ("GBYE", 921_600) and sim.devices[0].baud == 115_200
 
 
-def test_one_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(link, caplog):
+def test_a_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(link, caplog):
     faults = SimFaults(disconnect_after_frames=3, reconnect_after_s=1.0)
     with SimulatorServer(SCENE, link_path=link, rate_hz=0, faults=faults):
         with caplog.at_level("WARNING", logger="qradar.driver"), session(link, backoff_s=0.1, max_backoff_s=0.2) as s:
@@ -270,6 +270,26 @@ def test_one_warning_per_reconnect_attempt_with_the_time_since_the_last_frame(li
     assert 2 <= len(attempts) <= 15, attempts
     assert all(" s since the last frame" in a and str(link) in a for a in attempts)
     assert any("reconnected after" in r.getMessage() for r in caplog.records)
+
+
+def test_a_link_that_stays_down_is_said_a_few_times_then_every_two_minutes(monkeypatch, caplog):
+    """A sensor unplugged for an hour, its driver retrying every 2 s: a warning for each of the
+    first 6 attempts (the last says what follows), then one every 120 s, not 1 800 lines."""
+    import types
+
+    import radar_driver.session as session_mod
+
+    clock = [1000.0]
+    monkeypatch.setattr(session_mod, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    said = None
+    with caplog.at_level("WARNING", logger="qradar.driver"):
+        for attempt in range(1, 1801):
+            said = session_mod.say_down("/dev/ttyUSB0", OSError("gone"), attempt, 990.0, 2.0, said)
+            clock[0] += 2.0
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 6 + 29, len(lines)  # then one every 120 s of the hour's 3 588 s left
+    assert "reconnect attempt 6, 20.0 s since the last frame; next in 2.00 s (then a line every 120 s" in lines[5]
+    assert "reconnect attempt 7," not in "".join(lines) and "reconnect attempt 66, 140.0 s since" in lines[6]
 
 
 def test_the_simulated_line_takes_as_long_as_a_real_one(link):
