@@ -61,6 +61,10 @@ def test_run_refuses_a_bad_k_before_starting_anything():
 def test_the_limits_on_k_say_why():
     assert "distinct range cells" in qradar("montecarlo", "--K", "41", "--runs", "10").stderr
     assert "two samples a tone" in qradar("run", "--K", "200", "--algo", "cml", "--no-record").stderr
+    # more targets than a live cml keeps up with (it was accepted, and took seconds a frame)
+    for argv in (("--K", "17"), ("--K", "auto", "--max-targets", "99")):
+        out = qradar("run", *argv, "--algo", "cml", "--no-record")
+        assert out.returncode == 2 and "is more than cml decodes live: at most 16" in out.stderr, out.stderr
 
 
 @pytest.mark.parametrize("args", [

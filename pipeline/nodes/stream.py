@@ -325,6 +325,12 @@ class QuantizeNode(FrameNode):
             self.noise.forget(sensor_id)
 
 
+#: the most targets a frame a live cml localizer is set to find (K, or --max-targets with K
+#: auto): its cost grows faster than K^2 (1-bit, one core, 2026-11-30: 2.1 ms a frame at K = 2,
+#: 13.6 at 8, 49 at 16, 2 700 at 32), and at 16 one sensor at 20 frames/s takes a whole core
+CML_LIVE_MAX_K = 16
+
+
 @dataclass(frozen=True)
 class LocalizerConfig:
     """k: targets per frame. algo: the decoder (:class:`~pipeline.dsp.decode.Algo`; default
@@ -373,6 +379,10 @@ class LocalizerConfig:
             raise ParameterError(f"K={self.k} (or --max-targets) must be at most N/2 = "
                                  f"{self.radar.samples_per_ramp // 2} for cml: its fit of K tones to N samples a "
                                  f"ramp needs at least two samples a tone")
+        if self.algo == Algo.CML and self.k > CML_LIVE_MAX_K:
+            raise ParameterError(f"K={self.k} (or --max-targets) is more than cml decodes live: at most "
+                                 f"{CML_LIVE_MAX_K} (a 1-bit frame took 2 ms at K = 2, 49 ms at 16, 2.7 s at 32 on one "
+                                 "core); pbp decodes more, or decode offline with the API")
         if self.source not in ("quantized", "raw"):
             raise ParameterError(f"source={self.source!r} must be quantized or raw")
         if self.source == "raw" and self.algo == Algo.QIHT:
