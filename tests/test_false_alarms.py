@@ -32,7 +32,11 @@ PBP_CASES = [(AlarmCase(1, 0.1, frames=1500, seed=8, algo="pbp"), 0.003),
              (AlarmCase(2, 0.0, bits=None, frames=1000, seed=16, algo="pbp"), 0.002),
              (AlarmCase(2, 0.03, bits=None, frames=1000, seed=17, algo="pbp"), 0.002),
              (AlarmCase(2, 0.1, bits=None, frames=1500, seed=18, algo="pbp"), 0.003),
-             (AlarmCase(2, 0.03, bits=3, frames=1000, seed=19, algo="pbp"), 0.003)]
+             (AlarmCase(2, 0.03, bits=3, frames=1000, seed=19, algo="pbp"), 0.003),
+             # 2- and 4-bit frames at their own step (delta auto at b bits: the staircase's products
+             # are the floor; with the 1-bit floor, 1.57 and 0.12 false targets a frame at 2 and 3 bits)
+             (AlarmCase(2, 0.03, bits=2, frames=1000, seed=20, algo="pbp"), 0.003),
+             (AlarmCase(1, 0.01, bits=4, frames=1000, seed=21, algo="pbp"), 0.003)]
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"K{c.k}-a{c.alpha:g}-s{c.sigma:g}-{'1bit' if c.bits else 'unq'}")

@@ -331,3 +331,22 @@ def test_a_step_beyond_what_a_frame_may_carry_is_refused_at_the_config():
     assert QuantizerConfig(delta=MAX_DELTA).delta == MAX_DELTA
     with pytest.raises(ParameterError, match="at most 1000"):
         QuantizerConfig(delta=2 * MAX_DELTA)
+
+
+def test_auto_delta_at_more_bits_uses_their_levels():
+    """``delta auto`` was the 1-bit step at every bit count: the codes of 8-bit frames took 2
+    of 256 levels and carried one bit (6.6 times the bytes). Now the step of b bits holds
+    the frame and its dither in 2^b levels: the codes use them, and the error falls with b."""
+    from pipeline.dsp.quantize import QuantizerConfig, auto_delta, quantize_frames
+    from radar_driver.scene import resolve_scene
+
+    rng = np.random.default_rng(0)
+    scene = resolve_scene("chamber-ideal")
+    frames = np.stack([scene.ramps(np.array([i * 0.05, i * 0.05 + 0.025]), rng).reshape(-1, 2) for i in range(20)])
+    assert np.allclose(auto_delta(frames, bits=4), auto_delta(frames) / 15)  # 1 bit: the paper's 2 max|Re, Im|
+    errors = []
+    for bits in (1, 2, 4, 8):
+        q = quantize_frames(frames, QuantizerConfig(bits=bits, alpha=0.45), np.arange(20))
+        assert np.unique(q.codes).size > 0.9 * 2 ** bits, bits
+        errors.append(float(np.sqrt(np.mean(np.abs(q.values() - frames) ** 2))))
+    assert all(e2 < e1 / 3 for e1, e2 in zip(errors, errors[1:])), errors

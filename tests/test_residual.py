@@ -193,3 +193,21 @@ def test_unquantized_frames_hold_the_targets_tones_alone():
         return int((det.present & far).sum())
 
     assert false_targets(True) >= 3 and false_targets(False) == 0
+
+
+@pytest.mark.parametrize("bits, alpha", [(1, 0.45), (2, 0.0), (2, 0.45), (3, 1.0), (4, 0.3)])
+def test_the_mean_code_is_the_dithered_quantizers_mean(bits, alpha):
+    """residual.mean_code against the quantizer itself: the mean of b-bit codes (in steps from
+    the middle) of values over the frame's peak at the step of delta auto, dithered uniformly
+    over alpha steps (2 000 draws a value)."""
+    from pipeline.dsp.quantize import auto_delta, dequantize, quantize
+    from pipeline.dsp.residual import mean_code
+
+    rng = np.random.default_rng(bits)
+    x = np.linspace(-1.0, 1.0, 41)
+    frames = np.repeat((x + 0j)[None, :, None], 2, axis=2).repeat(2000, axis=0)  # (2000, 41, 2), peak 1
+    delta = auto_delta(frames, bits=bits)
+    dither = alpha * delta[:, None, None] * (rng.random(frames.shape) - 0.5)
+    codes = dequantize(quantize(frames, delta, bits, dither), delta, bits).real / delta[:, None, None]
+    scale = 0.5 if bits == 1 else 1.0  # one bit: mean_code is in half steps (+-1 at the two levels)
+    assert np.allclose(codes[:, :, 0].mean(axis=0) / scale, mean_code(x, alpha, bits), atol=0.04)

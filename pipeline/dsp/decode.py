@@ -475,7 +475,8 @@ class Decoder:
         unfit = xi is None or bits is None or indices is not None  # not for cml or qiht: PBP as fallback, or an error
         if cfg.algo == Algo.PBP or (unfit and cfg.fallback_pbp):
             # unquantized frames: the count test's model holds the targets' tones, not a quantizer's
-            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits), bits is not None)
+            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits), bits is not None,
+                            bits or 1)
         if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
@@ -501,11 +502,11 @@ class Decoder:
 
 
 def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
-    """The dither scale of 1-bit frames for PBP's count test (:func:`pipeline.dsp.residual.product_floor_db`):
+    """The dither scale of quantized frames for PBP's count test (:func:`pipeline.dsp.residual.product_floor_db`):
     ``alpha`` (scalar or (B,)) when given, else read off their dither ``xi`` (B, M, 2) (uniform
-    over ``alpha delta``: twice its largest real part over ``delta``); None for frames of more
-    bits, unquantized ones, or 1-bit frames whose dither is not known."""
-    if bits != 1:
+    over ``alpha delta``: twice its largest real part over ``delta``); None for unquantized
+    frames, or frames whose dither is not known."""
+    if bits is None:
         return None
     if alpha is not None:
         return alpha

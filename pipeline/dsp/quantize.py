@@ -168,17 +168,21 @@ def quantize_real(lam: np.ndarray, delta) -> np.ndarray:
     return d * np.floor(lam / d) + d / 2.0
 
 
-def auto_delta(frames: np.ndarray, margin: float = 0.0) -> np.ndarray:
-    """Smallest 1-bit step per frame, ``2 max(|Re Gamma|, |Im Gamma|) (1 + margin)``.
+def auto_delta(frames: np.ndarray, margin: float = 0.0, bits: int = 1) -> np.ndarray:
+    """Smallest step per frame whose ``2^bits`` levels hold the frame and a dither of up to
+    one step, ``2 max(|Re Gamma|, |Im Gamma|) (1 + margin) / (2^bits - 1)``: one bit, the
+    paper's ``2 max`` (the levels' half-width ``2^(bits-1) delta`` is the peak plus half a
+    step; the same ``delta`` at more bits left all but the middle two levels unused).
 
     ``frames``: (B, M, 2). Returns (B,). An all-zero frame gets the smallest positive
     float (its codes then carry only the dither).
     """
     f = check_frames(frames)
+    bits = check_bits(bits)
     if not (np.isfinite(margin) and margin >= 0):
         raise ParameterError(f"margin={margin!r} must be finite and >= 0")
     peak = np.maximum(np.abs(f.real).max(axis=(1, 2)), np.abs(f.imag).max(axis=(1, 2)))
-    return np.maximum(2.0 * peak * (1.0 + margin), np.finfo(float).tiny)
+    return np.maximum(2.0 * peak * (1.0 + margin) / ((1 << bits) - 1), np.finfo(float).tiny)
 
 
 def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = None) -> np.ndarray:
@@ -368,8 +372,8 @@ class QuantizerConfig:
     alpha : dither scale in [0, 1] (0 = no dither, 1 = the paper's full dither), or
         ``"auto"`` (:data:`AUTO_ALPHA`: per frame from the sensor's noise,
         :func:`pipeline.dsp.noise.auto_alpha`); default :data:`pipeline.defaults.DEFAULT_ALPHA`.
-    delta : quantizer step (same units as the frames) or ``"auto"`` = the smallest 1-bit
-        step of each frame times ``1 + delta_margin``.
+    delta : quantizer step (same units as the frames) or ``"auto"`` = the smallest step of
+        each frame at ``bits`` (:func:`auto_delta`) times ``1 + delta_margin``.
     dither_seed : seed from which, with the frame sequence number, the dither is drawn.
     """
 
@@ -498,7 +502,7 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
     else:
         seed = int(check_uint64(seed, "dither_seed")[0])
     if config.delta == "auto":
-        delta = auto_delta(f, config.delta_margin)
+        delta = auto_delta(f, config.delta_margin, config.bits)
     else:
         delta = np.full(f.shape[0], float(config.delta))
     delta = np.maximum(delta.astype(np.float32), np.finfo(np.float32).tiny).astype(float)

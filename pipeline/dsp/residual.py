@@ -49,11 +49,13 @@ ALPHA_STEP = 0.05
 RIDGE = 1e-9
 
 
-def product_floor_db(alpha) -> tuple[np.ndarray, np.ndarray]:
-    """The residual's floor (dB under the strongest return) of 1-bit frames dithered at
+def product_floor_db(alpha, bits: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The residual's floor (dB under the strongest return) of ``bits``-bit frames dithered at
     ``alpha`` (scalar or (B,), in [0, 1]; NaN: not known): the strongest product of the
     quantizer that the tone model leaves out, (with one target in the model, with two or more)
-    each (B,), at most DYNAMIC_RANGE_DB (NaN alpha: DYNAMIC_RANGE_DB).
+    each (B,), at most DYNAMIC_RANGE_DB (NaN alpha: DYNAMIC_RANGE_DB). More bits: the
+    staircase of 2^bits levels over the frame's peak (the step of
+    :func:`pipeline.dsp.quantize.auto_delta`), smoothed by the dither (:func:`mean_code`).
 
     The quantizer's mean output at a sample is a line of slope 1 / alpha clipped at +-1 (the
     uniform dither of width alpha delta, the step delta twice the frame's peak): without dither
@@ -68,7 +70,7 @@ def product_floor_db(alpha) -> tuple[np.ndarray, np.ndarray]:
     x = np.clip(a[known], 0.0, 1.0) / ALPHA_STEP
     lo, hi = np.floor(x + 1e-9).astype(np.int64), np.ceil(x - 1e-9).astype(np.int64)
     steps = np.unique(np.concatenate([lo, hi]))  # the grid points these frames need (each ~3 ms, once)
-    levels = np.array([_product_levels_db(int(i)) for i in steps]).reshape(-1, 2)
+    levels = np.array([_product_levels_db(int(i), int(bits)) for i in steps]).reshape(-1, 2)
     lo, hi = np.searchsorted(steps, lo), np.searchsorted(steps, hi)
     if known.any():
         single[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 0], levels[hi, 0]))
@@ -76,22 +78,41 @@ def product_floor_db(alpha) -> tuple[np.ndarray, np.ndarray]:
     return single, mixed
 
 
+def mean_code(x: np.ndarray, alpha: float, bits: int = 1) -> np.ndarray:
+    """The quantizer's mean output (its codes' mean, in steps from the middle) at values ``x``
+    in [-1, 1] of the frame's peak, dithered uniformly over ``alpha`` steps: one bit, the line
+    of slope 1 / alpha clipped at +-1 (a hard limiter at alpha 0); more, the staircase of
+    2^bits levels spanning the peak and half a step, its risers ``alpha`` steps wide."""
+    if bits == 1:
+        return np.sign(x) if alpha == 0.0 else np.clip(x / alpha, -1.0, 1.0)
+    y = np.asarray(x) * ((1 << bits) - 1) / 2.0  # in steps: the peak at 2^(bits-1) - 1/2
+    if alpha == 0.0:
+        return np.floor(y) + 0.5
+
+    def integral(t):  # of floor(s) ds from 0 to t
+        f = np.floor(t)
+        return f * t - f * (f + 1.0) / 2.0
+
+    return (integral(y + alpha / 2.0) - integral(y - alpha / 2.0)) / alpha + 0.5
+
+
 @lru_cache(maxsize=32)
-def _product_levels_db(step: int, points: int = 256) -> tuple[float, float]:
+def _product_levels_db(step: int, bits: int = 1, points: int = 256) -> tuple[float, float]:
     """(:func:`product_floor_db` of one target, of two equal ones) at alpha = step ALPHA_STEP:
-    the strongest harmonic above ORDER_SINGLE of a tone through the clipped line, the strongest
-    product above ORDER_MIXED of two equal tones, each in dB under a tone's fundamental."""
+    the strongest harmonic above ORDER_SINGLE of a tone through the quantizer's mean output
+    (:func:`mean_code`), the strongest product above ORDER_MIXED of two equal tones, each in
+    dB under a tone's fundamental."""
     alpha = step * ALPHA_STEP
     t = 2.0 * np.pi * np.arange(points) / points
 
-    def mean_code(x):
-        return np.sign(x) if alpha == 0.0 else np.clip(x / alpha, -1.0, 1.0)
+    def code(x):
+        return mean_code(x, alpha, bits)
 
-    one = np.abs(np.fft.fft(mean_code(np.cos(t))))
+    one = np.abs(np.fft.fft(code(np.cos(t))))
     m = np.arange(points)
     order = np.minimum(m, points - m)
     high = one[(order > ORDER_SINGLE) & (order < points // 4)].max()
-    two = np.abs(np.fft.fft2(mean_code(0.5 * (np.cos(t)[:, None] + np.cos(t)[None, :]))))
+    two = np.abs(np.fft.fft2(code(0.5 * (np.cos(t)[:, None] + np.cos(t)[None, :]))))
     o1, o2 = order[:, None], order[None, :]
     mixed = two[(o1 > 0) & (o2 > 0) & (o1 + o2 > ORDER_MIXED) & (o1 + o2 < points // 4)].max()
     with np.errstate(divide="ignore"):
@@ -306,14 +327,15 @@ CHUNK_FRAMES = 128
 
 
 def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
-                     threshold: float, alpha=None, quantized: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     threshold: float, alpha=None, quantized: bool = True,
+                     bits: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
-    batch, the tables small enough to stay in cache); ``alpha``: the 1-bit frames' dither scale
-    (scalar or (B,); None or NaN: not known, or not 1-bit frames), the floor under the strongest
-    return the quantizer's products the model leaves (:func:`product_floor_db`). ``quantized``
+    batch, the tables small enough to stay in cache); ``alpha``: the ``bits``-bit frames' dither
+    scale (scalar or (B,); None or NaN: not known), the floor under the strongest return the
+    quantizer's products the model leaves (:func:`product_floor_db`). ``quantized``
     False: unquantized frames, whose model holds the targets' tones alone, refined together."""
     b = y.shape[0]
-    floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,))), axis=1)
+    floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,)), bits), axis=1)
     joint = not quantized  # unquantized frames: the targets' tones alone, their bins refined together
     if b <= CHUNK_FRAMES:
         return residual_support_of(y, energy, pick, inside, k, threshold, floors, joint)

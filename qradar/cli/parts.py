@@ -82,7 +82,8 @@ ALPHA_AUTO = "; 'auto': per sensor from the noise estimated in its frames (publi
 QUANTIZER = {
     "bits": Option(BITS_HELP, parse=pos_int),
     "alpha": Option(ALPHA_HELP + ALPHA_AUTO, parse=alpha),
-    "delta": Option("'auto' (smallest 1-bit step per frame) or a step in full-scale units", parse=delta),
+    "delta": Option("'auto' (per frame the smallest step whose 2^bits levels hold the frame and its dither) or a "
+                    "step in full-scale units", parse=delta),
     "delta_margin": Option("auto delta x (1 + margin)", parse=nonneg_float),
     "dither_seed": Option("dither seed (per sensor: seed * 2^32 + crc32(id))", flag="--dither-seed",
                           aliases=("--seed",), parse=nonneg_int),
