@@ -399,6 +399,8 @@ class RunNodes:
                         v.stop()
         finally:
             self.session.close()
+        if not self.refused:  # a short run (fewer frames than REFUSED_AFTER) whose every frame was refused
+            self.refused += [e for e in [refusal(self.monitor, self.quantizer, self.localizer, 1)] if e is not None]
         if self.refused:
             raise self.refused[0]
 
@@ -421,20 +423,28 @@ def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event
     """Until ``stop`` or ``ended``: once REFUSED_AFTER raw frames (or more) have arrived and every
     one was refused (none reached the targets), a RunSetupError into ``out`` and ``stop`` set."""
     while not (stop.is_set() or ended.wait(0.5)):
-        raw, targets = monitor.count["raw"], monitor.count["targets"]
-        if raw < REFUSED_AFTER or targets:
-            continue
-        q, lo = quantizer.totals(), localizer.totals()
-        kinds = ("invalid_frames", "decode_errors", "processing_errors")
-        n_q, n_l = sum(q[k] for k in kinds), sum(lo[k] for k in kinds)
-        if n_q + n_l < raw:
-            continue
-        node = quantizer if n_q else localizer
-        why = next((node.last_reason[k] for k in kinds if k in node.last_reason), "no reason logged")
-        out.append(RunSetupError(f"{raw} raw frames arrived and every one was refused, none decoded (quantize "
-                                 f"refused {n_q}, localize {n_l}); the last reason: {why}"))
-        stop.set()
-        return
+        error = refusal(monitor, quantizer, localizer, REFUSED_AFTER)
+        if error is not None:
+            out.append(error)
+            stop.set()
+            return
+
+
+def refusal(monitor: Monitor, quantizer, localizer, at_least: int) -> RunSetupError | None:
+    """The RunSetupError of a run whose ``at_least`` raw frames or more have arrived and were
+    every one refused by its nodes (none reached the targets); None otherwise."""
+    raw, targets = monitor.count["raw"], monitor.count["targets"]
+    if raw < max(at_least, 1) or targets:
+        return None
+    q, lo = quantizer.totals(), localizer.totals()
+    kinds = ("invalid_frames", "decode_errors", "processing_errors")
+    n_q, n_l = sum(q[k] for k in kinds), sum(lo[k] for k in kinds)
+    if n_q + n_l < raw:
+        return None
+    node = quantizer if n_q else localizer
+    why = next((node.last_reason[k] for k in kinds if k in node.last_reason), "no reason logged")
+    return RunSetupError(f"{raw} raw frames arrived and every one was refused, none decoded (quantize "
+                         f"refused {n_q}, localize {n_l}); the last reason: {why}")
 
 
 def run_header(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, localizer: LocalizerConfig,

@@ -278,16 +278,20 @@ def test_4_a_calibration_of_another_config_id_is_refused_at_the_first_frame(tmp_
 
 
 def test_4_frames_that_are_every_one_refused_end_the_run(tmp_path):
-    """20 ramps a frame: frames the nodes announce no configuration for (at most 16)."""
+    """20 ramps a frame: frames the nodes announce no configuration for (at most 16). A long
+    run ends at its 10th; a run of 5 frames says the same at its end (it said the localizer
+    fell behind or was loading its kernels)."""
     sim = start_sim(tmp_path / "kmd2", "--rate", 0)
     try:
-        out = qradar("run", *RUNTIME_DECODER, "--sensor", f"{tmp_path / 'kmd2'},id=lab1,ramps=20", "--duration", 30,
-                     "--no-record", timeout_s=90)
+        runs = [qradar("run", *RUNTIME_DECODER, "--sensor", f"{tmp_path / 'kmd2'},id=lab1,ramps=20", *length,
+                       "--no-record", timeout_s=90) for length in (("--duration", 30), ("--frames", 5))]
     finally:
         stop(sim)
-    assert out.returncode == 2, out.stderr[-2000:]
-    line = one_line(out.stderr.replace("no calibration", ""))
-    assert "raw frames arrived and every one was refused, none decoded" in line and "bytes, a length no" in line
+    for out in runs:
+        assert out.returncode == 2, out.stderr[-2000:]
+        line = one_line(out.stderr.replace("no calibration", ""))
+        assert "raw frames arrived and every one was refused, none decoded" in line and "bytes, a length no" in line
+    assert "qradar run: error: 5 raw frames arrived" in runs[1].stderr
 
 
 def test_4_a_run_whose_localizer_publishes_nothing_says_so_and_fails(monkeypatch, cli):
