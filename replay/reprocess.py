@@ -517,7 +517,11 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
     # the front end, which no calibration removed or another sensor's did (a calibration that does not fit: said, as run says it)
     front = {"checked": int(rec.frames.shape[0]), "leakage": int(leakage_return(rec.frames, radar).sum()),
              "calibrated": None if calibration is None else calibration.source}
-    if leakage_shown(front):
+    live = rec.metadata.get("qradar.calibration", {}).get("file")
+    if calibration is None and live:  # raw frames keep the front end; the live run removed it where it quantized
+        notes.append(f"warning: {cfg.file} was recorded by a run calibrated with {live}, and its raw frames keep the "
+                     f"front end: give --calibration {live} to decode them as that run did")
+    elif leakage_shown(front):
         notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
     if any(t.velocity_m_s for t in scene.targets):
         notes.append("note: moving targets; the truth is taken at the first frame")

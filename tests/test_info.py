@@ -171,3 +171,18 @@ def test_inspect_sends_an_mcap_file_to_info_and_info_refuses_what_is_not_mcap(tm
     assert out.returncode == 2
     (line,) = out.stderr.strip().splitlines()
     assert "is not an MCAP file" in line
+
+
+def test_reprocess_of_a_calibrated_run_names_its_calibration(track_recording, tmp_path):
+    """A recording of a calibrated run keeps the front end in its raw frames: reprocess without
+    --calibration names the run's file (it told the user to calibrate again, as for a sensor
+    never calibrated); with it, no warning."""
+    cal = str(Path(__file__).resolve().parents[1] / "recordings" / "chamber-cal.json")
+    for extra, warned in (((), True), (("--calibration", cal), False)):
+        out = qradar("reprocess", track_recording[0], "--algos", "pbp", "--alpha", "0.5", "--quiet",
+                     "--out", tmp_path / f"rp{len(extra)}", *extra)
+        assert out.returncode == 0, out.stderr[-2000:]
+        said = out.stdout + out.stderr
+        assert (f"was recorded by a run calibrated with {cal}, and its raw frames keep the front end: give "
+                f"--calibration {cal}" in said) == warned, said
+        assert "uncalibrated" not in said, said
