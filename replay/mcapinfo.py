@@ -68,6 +68,19 @@ def split_files(path: Path) -> list[str]:
     return [str(p) for p in files] if len(files) > 1 or path not in files else [str(path)]
 
 
+def split_note(path: str | Path, command: str) -> str | None:
+    """One line when ``path`` is one file of a split recording (:func:`split_files`): which, of
+    how many, and that ``command`` reads it alone; None for a file that is not split."""
+    path = Path(path)
+    files = split_files(path)
+    if len(files) < 2:
+        return None
+    names = [Path(f).name for f in files]
+    at = names.index(path.name) + 1 if path.name in names else "?"
+    return (f"note: {path} is file {at} of the {len(files)} of a split recording ({', '.join(names)}); {command} "
+            "reads this file alone (each file of the set is a complete recording)")
+
+
 def glob_escape(text: str) -> str:
     return re.sub(r"([*?\[])", r"[\1]", text)
 

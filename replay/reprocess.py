@@ -35,6 +35,7 @@ from radar_driver.scene import SimScene, load_truth, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
 from .outputs import check_new_file, output_folder, pyplot
+from .mcapinfo import split_note
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
@@ -523,6 +524,9 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
                      f"front end: give --calibration {live} to decode them as that run did")
     elif leakage_shown(front):
         notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
+    split = split_note(cfg.file, "reprocess")
+    if split is not None:
+        notes.append(split)
     if any(t.velocity_m_s for t in scene.targets):
         notes.append("note: moving targets; the truth is taken at the first frame")
     results: dict[str, SweepResult] = {}

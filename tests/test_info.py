@@ -186,3 +186,6 @@ def test_reprocess_of_a_calibrated_run_names_its_calibration(track_recording, tm
         assert (f"was recorded by a run calibrated with {cal}, and its raw frames keep the front end: give "
                 f"--calibration {cal}" in said) == warned, said
         assert "uncalibrated" not in said, said
+        # the first file of a split set, read alone: said
+        assert (f"note: {track_recording[0]} is file 1 of the {len(track_recording)} of a split recording (run.mcap, "
+                "run_0001.mcap") in said and "reprocess reads this file alone" in said, said

@@ -16,7 +16,7 @@ from pipeline.nodes.stream import run_nodes
 from radar_driver.lifetime import watch_parent
 from radar_driver.scene import resolve_scene
 from replay.errors import ReplayError
-from replay.mcapinfo import describe, format_info
+from replay.mcapinfo import describe, format_info, split_note
 from replay.mcapio import McapFile, recover
 from replay.player import PlayConfig, play
 from replay.recorder import RecorderNode, RecordingState
@@ -216,6 +216,9 @@ def cmd_replay(args) -> int:
     cfg = args.schema.build(PlayConfig, args)
     stop = threading.Event()
     signals = StopOnSignals(stop, "replay")  # Ctrl-C ends the replay, which still says what it published
+    split = split_note(args.file, "replay")
+    if split is not None:
+        print(f"qradar replay: {split}", file=sys.stderr, flush=True)
     result = play(args.file, bus_from_args(args), cfg, stop=stop)
     print(json.dumps({"published": result.published, "loops": result.loops, "truncated": result.truncated,
                       "lost": result.lost, "damaged_chunks": result.damaged,
