@@ -26,7 +26,7 @@ from pipeline.bus.session import BusConfig
 from pipeline.wire.shared import DecodedOnce
 from pipeline.wire import HealthMsg
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig
-from pipeline.dsp.gate import RangeGate
+from pipeline.dsp.gate import RangeGate, gate_warning
 from pipeline.errors import ParameterError, RunSetupError
 from pipeline.dsp.localize import DEFAULT_PFA
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
@@ -459,6 +459,9 @@ def run_header(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, l
     lines = [f"qradar run: {where}; {cfg.algo} {k} in {gate.min_range_m:g}-{gate.max_range_m:g} m, {q.bits}-bit "
              f"alpha {q.alpha}; truth: " + ("none (no position error)" if truth is None else
                                             "the simulated scene" if truth is scene else str(cfg.truth))]
+    outside = gate_warning(truth, gate)
+    if outside is not None:
+        lines.append(f"  warning: {outside}")
     if calibration is not None:
         made = calibration.meta.get("created_utc", "at an unknown time")
         lines.append(f"  calibration {calibration.source} (made {made}, for {', '.join(sorted(calibration.sensors))}); "

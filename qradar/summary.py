@@ -11,6 +11,7 @@ from typing import TextIO
 
 from pipeline.bus.audit import format_counts
 from pipeline.dsp.calibration import Calibration
+from pipeline.dsp.gate import gate_warning
 from pipeline.dsp.score import score_text
 from radar_driver.scene import SimScene
 from radar_driver.simulator import SimulatorServer
@@ -213,7 +214,8 @@ def summarize(cfg, scene, monitor: Monitor, localizer, quantizer, drivers, secon
             "sensor_ids": sorted(calibration.sensors)},
         front_end={sid: dict(st) for sid, st in sorted(monitor.front_end.items())},
         warnings=[*monitor.warnings.values(), *link_warnings(driver_stats),
-                  *filter(None, [localizer_warning(cnt["raw"], cnt["targets"])])],
+                  *filter(None, [localizer_warning(cnt["raw"], cnt["targets"]),
+                                 gate_warning(truth, localizer.config.gate)])],
         driver=driver_stats,
         driver_process=cfg.driver_process,
         driver_restarts={d.sensor_id: d.restarts for d in drivers if hasattr(d, "restarts")},

@@ -19,7 +19,7 @@ from pipeline.dsp.calibration import Calibration
 from pipeline.dsp.calibration import load as load_calibration
 from pipeline.dsp.decode import DEFAULT_ALGO, Algo, DecoderConfig, decode_batch
 from pipeline.errors import ParameterError
-from pipeline.dsp.gate import RangeGate, check_range_m
+from pipeline.dsp.gate import RangeGate, check_range_m, gate_warning
 from pipeline.dsp.localize import DEFAULT_PFA, Detections, leakage_return, match_detections, nearest_estimates
 from pipeline.nodes.front_end import front_end_warning, leakage_shown
 from pipeline.dsp.score import FrameScores, score_frames, score_text
@@ -524,6 +524,9 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
                      f"front end: give --calibration {live} to decode them as that run did")
     elif leakage_shown(front):
         notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
+    outside = gate_warning(scene, gate)
+    if outside is not None:
+        notes.append(f"warning: {outside}")
     split = split_note(cfg.file, "reprocess")
     if split is not None:
         notes.append(split)

@@ -3,6 +3,7 @@ a strong return outside it (TX-to-RX leakage at a few tens of centimetres) never
 target, a target inside is unaffected, and the options are checked on load."""
 
 import json
+from dataclasses import replace
 import re
 from pathlib import Path
 
@@ -290,3 +291,25 @@ def test_the_monte_carlo_keeps_the_whole_range_axis_and_the_default_gate_would_m
                           for key in ("mean_m", "weak_mean_m")}, moved
     for want, got in moved.values():
         assert abs(got - want) < 1e-3 * want
+
+
+def test_true_targets_outside_the_gate_are_said(tmp_path):
+    """A gate that leaves out the true targets (the chamber's 4.87 and 9.23 m behind
+    --min-range-m 6): the run and the re-processing say which ones cannot be found (their
+    score counted them missed without a word); moving targets, whose range changes, are not
+    named."""
+    from pipeline.dsp.gate import RangeGate, gate_warning
+    from radar_driver.scene import SimTarget, resolve_scene
+
+    chamber, gate = resolve_scene("chamber"), RangeGate.resolve(6.0, None, RadarConfig())
+    assert gate_warning(chamber, gate) == (
+        "true target(s) at 4.87 m outside the range gate [6, 152.4] m: the localizer cannot find them, and the score "
+        "counts them missed (--min-range-m, --max-range-m)")
+    assert gate_warning(chamber, RangeGate.default(RadarConfig())) is None and gate_warning(None, gate) is None
+    walker = replace(chamber, targets=[SimTarget(3.0, 0.0, 1.0, velocity_m_s=1.5)])
+    assert gate_warning(walker, gate) is None
+    rec = Path(__file__).resolve().parents[1] / "recordings" / "chamber.mcap"
+    out = qradar("reprocess", rec, "--algos", "pbp", "--alpha", "0.5", "--min-range-m", "6", "--quiet",
+                 "--out", tmp_path / "rp")
+    assert out.returncode == 0 and "warning: true target(s) at 4.87 m outside the range gate [6, " in out.stdout + \
+        out.stderr, out.stdout + out.stderr

@@ -173,3 +173,16 @@ def boundary_skirts(energy: np.ndarray, mask: np.ndarray, ends_bins: tuple[float
         falling = np.concatenate([outer[:, None], ends[:, 1:] <= ends[:, :-1]], axis=1)
         out[:, order] |= np.cumprod(falling, axis=1).astype(bool)
     return out
+
+
+def gate_warning(truth, gate) -> str | None:
+    """What a run or a re-processing says of true targets (``truth``: a SimScene, or None) that
+    stand still outside its range gate (``gate``: ``min_range_m``, ``max_range_m``): they cannot
+    be found, and the score counts them missed; None when there is none."""
+    out = [t.range_m for t in (truth.targets if truth is not None else [])
+           if not t.velocity_m_s and not gate.min_range_m <= t.range_m <= gate.max_range_m]
+    if not out:
+        return None
+    return (f"true target(s) at {', '.join(f'{r:g} m' for r in out)} outside the range gate "
+            f"[{gate.min_range_m:g}, {gate.max_range_m:g}] m: the localizer cannot find them, and the score counts "
+            "them missed (--min-range-m, --max-range-m)")
