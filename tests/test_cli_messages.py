@@ -60,6 +60,11 @@ def test_run_refuses_a_bad_k_before_starting_anything():
 
 def test_the_limits_on_k_say_why():
     assert "distinct range cells" in qradar("montecarlo", "--K", "41", "--runs", "10").stderr
+    # count options where each decoder is told K: they were ignored (and written into summary.json)
+    out = qradar("montecarlo", "--K", "1", "--runs", "10", "--pfa", "0.1", "--max-targets", "3", "--no-plots")
+    assert out.returncode == 2 and out.stderr.strip().splitlines()[-1] == (
+        "qradar montecarlo: error: max_targets=3 (--max-targets), pfa=0.1 (--pfa) act with --count auto only (the "
+        "decoders decide the count); here each is told the scene's K: give --count auto, or leave them out")
     assert "two samples a tone" in qradar("run", "--K", "200", "--algo", "cml", "--no-record").stderr
     # more targets than a live cml keeps up with (it was accepted, and took seconds a frame)
     for argv in (("--K", "17"), ("--K", "auto", "--max-targets", "99")):
