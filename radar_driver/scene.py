@@ -147,12 +147,20 @@ class SimScene:
                         "amplitude": tg.amplitude, "radial_velocity_mps": v})
         return out
 
-    def arrays(self, t_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(range_m, angle_deg, complex amplitude), each (1, K), at ``t_s``: the scene as
-        the batch-of-one arrays :func:`~.model.simulate_frames` takes."""
-        return (np.array([[float(tg.range_at(t_s)) for tg in self.targets]]),
-                np.array([[tg.angle_deg for tg in self.targets]], dtype=float),
-                np.array([[tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets]]))
+    def arrays(self, t_s=0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(range_m, angle_deg, complex amplitude), each (T, K), at the times ``t_s`` (s; a
+        number: T = 1; (T,), e.g. a recording's ``t_s``): the scene as the batch arrays
+        :func:`~.model.simulate_frames` takes."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        if t.ndim != 1 or not np.all(np.isfinite(t)):
+            raise ConfigError(f"SimScene.arrays: t_s must be a number or (T,) finite seconds, got shape {t.shape}")
+        k = len(self.targets)
+        ranges = np.stack([np.broadcast_to(tg.range_at(t), t.shape) for tg in self.targets], axis=1) if k else \
+            np.zeros((t.size, 0))
+        return (ranges.astype(float),
+                np.tile(np.array([tg.angle_deg for tg in self.targets], dtype=float), (t.size, 1)),
+                np.tile(np.array([tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets],
+                                 dtype=complex), (t.size, 1)))
 
     def to_dict(self) -> dict[str, Any]:
         return {

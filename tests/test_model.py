@@ -118,3 +118,19 @@ def test_bad_scene_arrays(cfg):
         simulate_frames([[-1.0]], [[0.0]], [[1.0]], cfg)
     with pytest.raises(InputError, match="frequency indices"):
         simulate_frames([[1.0]], [[0.0]], [[1.0]], cfg, indices=np.array([0, 256]))
+
+
+def test_a_scene_gives_its_arrays_at_many_times_in_one_batch():
+    """``SimScene.arrays`` of a recording's ``t_s`` (T,): one batch (T, K), each row the
+    scene at that time (a (T,) array raised numpy's TypeError); anything else one line."""
+    from radar_driver.errors import ConfigError
+    from radar_driver.scene import resolve_scene
+
+    walker, t = resolve_scene("walker"), np.array([0.0, 0.5, 2.0])
+    batch = walker.arrays(t)
+    rows = [walker.arrays(float(x)) for x in t]
+    for i, part in enumerate(batch):
+        assert part.shape == (3, len(walker.targets))
+        assert np.array_equal(part, np.concatenate([r[i] for r in rows]))
+    with pytest.raises(ConfigError, match=r"t_s must be a number or \(T,\) finite seconds, got shape \(2, 2\)"):
+        walker.arrays(np.zeros((2, 2)))
