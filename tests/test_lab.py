@@ -170,6 +170,8 @@ def test_print_config_prints_only_a_config_that_runs(capsys, argv, words):
 
 @pytest.mark.parametrize("text, where, words", [
     ("duration = 3\nbogus = 1\n", 2, "unknown key bogus; known: sensor, calibration"),
+    ("frames = 20\nno-record = true\n", 2, "no-record is not a key here: write it under [recording] (no-record = "),
+    ("[recording]\nframes = 20\n", 2, "[recording] frames is not a key here: write it at the top level, before any"),
     ("duration = 3\n[quantiser]\nbits = 1\n", 2, "unknown table [quantiser]; tables: quantizer"),
     ("duration = 3\n[quantizer]\nbitz = 1\n", 3, "unknown key [quantizer] bitz; known: bits, alpha"),
     ("duration = 3\n[quantizer]\nbits = \"1\"\n", 3, "[quantizer] bits = '1': must be an integer, not a string"),
