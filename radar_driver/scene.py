@@ -4,8 +4,8 @@
 name = "chamber"
 noise_std = 0.02          # complex white noise, std of each of I and Q, full-scale units
 
-[radar]                   # optional RadarConfig overrides
-ramps_per_frame = 2
+[radar]                   # optional RadarConfig overrides (a simulated K-MD2 refuses those
+ramps_per_frame = 2       # it does not measure: f0, bandwidth, antenna spacing are its own)
 
 [[target]]
 range_m = 4.8

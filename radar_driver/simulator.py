@@ -56,6 +56,12 @@ from .simlinks import PtyLink, TcpLink
 log = logging.getLogger("qradar.sim")
 
 
+#: the radar fields a simulated K-MD2 takes from the sensor (its profile and the K-MD2's
+#: RadarConfig defaults), which a scene's [radar] may not change: its frames carry that radar's
+#: config id (samples a ramp, ramps and their spacing are checked against the profile apart)
+SENSOR_RADAR_FIELDS = ("f0_hz", "bandwidth_hz", "c_m_s", "antenna_spacing_m")
+
+
 @dataclass(frozen=True)
 class SimFaults:
     """Fault injection. Probabilities are per message (garbage: a burst of 1 to
@@ -170,6 +176,14 @@ class SimulatedKMD2:
                               f"profile {self.profile.name}'s chirps {lay.chirp_interval_s:g} s (chirp_interval_s): "
                               "the simulated sensor measures on its profile's, the decoder's velocities on the "
                               "scene's; make them agree")
+        sensor = self.profile.radar(rpf)
+        other = [f"{name} = {getattr(radar, name)!r}" for name in SENSOR_RADAR_FIELDS
+                 if getattr(radar, name) != getattr(sensor, name)]
+        if other:  # its frames would carry the K-MD2's radar config id, their physics not
+            raise ConfigError(f"the scene's [radar] {', '.join(other)} is not what a simulated K-MD2 measures "
+                              f"(profile {self.profile.name}: " + ", ".join(
+                                  f"{n} = {getattr(sensor, n)!r}" for n in SENSOR_RADAR_FIELDS
+                                  if getattr(radar, n) != getattr(sensor, n)) + "); leave it out of the scene")
         self.decoder = StreamDecoder(self.profile)
         self.baud = self.profile.startup_baud
         self.counter = -1  # frame counter of the last RADC sent

@@ -69,3 +69,21 @@ def test_cli_sim_rejects_a_bad_scene(tmp_path):
                            str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "qradar sim: error:" in proc.stderr and "range_m: -3 is outside" in proc.stderr
+
+
+def test_a_scene_that_changes_what_a_k_md2_measures_is_refused_by_its_simulator(tmp_path):
+    """A scene's [radar] bandwidth_hz: the simulated K-MD2 sent frames of that bandwidth under
+    the K-MD2's radar config id, and every one was refused downstream for an unknown id. Now
+    the simulator refuses the scene in one line naming the field and the sensor's value."""
+    from dataclasses import replace
+
+    from radar_driver.errors import ConfigError
+    from radar_driver.scene import resolve_scene
+    from radar_driver.simulator import SimulatorServer
+
+    chamber = resolve_scene("chamber-ideal")
+    for field, value in (("bandwidth_hz", 500e6), ("f0_hz", 77e9)):
+        scene = replace(chamber, radar=replace(chamber.radar, **{field: value}))
+        with pytest.raises(ConfigError, match=rf"the scene's \[radar\] {field} = .* is not what a simulated K-MD2 "
+                                              rf"measures \(profile kmd2-blocks: {field} = "):
+            SimulatorServer(scene, link_path=tmp_path / "kmd2")
