@@ -207,18 +207,14 @@ class CountSpec:
         if isinstance(self.gate_m, bool) or not isinstance(self.gate_m, (int, float)) or not (
                 np.isfinite(self.gate_m) and self.gate_m > 0):
             raise ParameterError(f"gate_m={self.gate_m!r} must be a finite number > 0")
-        given = [f"{name}={getattr(self, name)!r} (--{name.replace('_', '-')})" for name in AUTO_ONLY
-                 if not self.auto and getattr(self, name) != CountSpec.__dataclass_fields__[name].default]
-        if given:
+        given = [f"{name}={getattr(self, name)!r} (--{name.replace('_', '-')})" for name in ("max_targets", "pfa",
+                 "gate_m") if not self.auto and getattr(self, name) != CountSpec.__dataclass_fields__[name].default]
+        if given:  # they act only when the decoders decide the count
             raise ParameterError(f"{', '.join(given)} act with --count auto only (the decoders decide the count); "
                                  "here each is told the scene's K: give --count auto, or leave them out")
 
     def to_dict(self) -> dict:
         return dict(vars(self))
-
-
-#: the count options that act only when the decoders decide the count (``CountSpec.auto``)
-AUTO_ONLY = ("max_targets", "pfa", "gate_m")
 
 
 #: amplitude of the weaker target from which K auto must find it (the issue's goal)

@@ -178,9 +178,13 @@ def auto_delta(frames: np.ndarray, margin: float = 0.0, bits: int = 1) -> np.nda
     float (its codes then carry only the dither).
     """
     f = check_frames(frames)
-    bits = check_bits(bits)
     if not (np.isfinite(margin) and margin >= 0):
         raise ParameterError(f"margin={margin!r} must be finite and >= 0")
+    return _auto_delta(f, margin, check_bits(bits))
+
+
+def _auto_delta(f: np.ndarray, margin: float, bits: int) -> np.ndarray:
+    """:func:`auto_delta` of checked arguments (a configured quantizer's: checked once, at its edge)."""
     peak = np.maximum(np.abs(f.real).max(axis=(1, 2)), np.abs(f.imag).max(axis=(1, 2)))
     return np.maximum(2.0 * peak * (1.0 + margin) / ((1 << bits) - 1), np.finfo(float).tiny)
 
@@ -502,7 +506,7 @@ def quantize_frames(frames: np.ndarray, config: QuantizerConfig, seq, dither_see
     else:
         seed = int(check_uint64(seed, "dither_seed")[0])
     if config.delta == "auto":
-        delta = auto_delta(f, config.delta_margin, config.bits)
+        delta = _auto_delta(f, config.delta_margin, config.bits)
     else:
         delta = np.full(f.shape[0], float(config.delta))
     delta = np.maximum(delta.astype(np.float32), np.finfo(np.float32).tiny).astype(float)
