@@ -189,6 +189,8 @@ def scene_from_dict(data: dict[str, Any], source: str = "<scene>") -> SimScene:
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise ConfigError(f"{source}: unknown keys {unknown}; known: {sorted(_TOP_KEYS)}")
+    if not data:  # an empty room is a scene without [[target]] tables, its noise given (noise_std = 0.0 for none)
+        raise ConfigError(f"{source}: holds no scene (no key of {sorted(_TOP_KEYS)}): an empty file, or the wrong one")
     radar_data = data.get("radar", {})
     if not isinstance(radar_data, dict):
         raise ConfigError(f"{source}: [radar] must be a table")
@@ -218,6 +220,11 @@ def scene_from_dict(data: dict[str, Any], source: str = "<scene>") -> SimScene:
             phase_deg=_number(t.get("phase_deg", 0.0), f"{where}: phase_deg"),
             velocity_m_s=_number(t.get("velocity_m_s", 0.0), f"{where}: velocity_m_s", -1000.0, 1000.0),
         ))
+    same = [(i + 1, j + 1) for j, b in enumerate(targets) for i, a in enumerate(targets[:j])
+            if (a.range_m, a.angle_deg, a.velocity_m_s) == (b.range_m, b.angle_deg, b.velocity_m_s)]
+    if same:  # one reflector of their amplitudes summed, which no localizer reports as two
+        raise ConfigError(f"{source}: targets {same[0][0]} and {same[0][1]} stand at the same range and angle "
+                          "(one reflector to the radar): give one, with their amplitudes summed")
     front_end = FrontEnd.from_dict(data.get("frontend", {}), f"{source}: [frontend]")
     if front_end.leakage_range_m >= radar.max_range_m:
         raise ConfigError(f"{source}: [frontend]: leakage_range_m: {front_end.leakage_range_m!r} is outside "

@@ -87,3 +87,19 @@ def test_a_scene_that_changes_what_a_k_md2_measures_is_refused_by_its_simulator(
         with pytest.raises(ConfigError, match=rf"the scene's \[radar\] {field} = .* is not what a simulated K-MD2 "
                                               rf"measures \(profile kmd2-blocks: {field} = "):
             SimulatorServer(scene, link_path=tmp_path / "kmd2")
+
+
+def test_an_empty_scene_file_and_a_target_given_twice_are_refused(tmp_path):
+    """An empty file as --scene ran a scene of nothing (no noise either) under the file's name;
+    two targets at one range and angle ran as one reflector of twice the amplitude, scored as a
+    miss and a false target. Each is one line now; a room without targets is still a scene."""
+    empty, twice, room = tmp_path / "empty.toml", tmp_path / "twice.toml", tmp_path / "room.toml"
+    empty.write_text("")
+    target = "[[target]]\nrange_m = 5.0\nangle_deg = 10.0\namplitude = 0.5\n"
+    twice.write_text(target + "\n" + target)
+    room.write_text("noise_std = 0.01\n")
+    with pytest.raises(ConfigError, match="empty.toml: holds no scene"):
+        load_scene(empty)
+    with pytest.raises(ConfigError, match="twice.toml: targets 1 and 2 stand at the same range and angle"):
+        load_scene(twice)
+    assert load_scene(room).targets == ()
