@@ -65,17 +65,18 @@ DOWN_LINE_EVERY_S = 120.0
 
 
 def say_down(url: str, exc: Exception, attempt: int, last_frame_mono: float | None, delay_s: float,
-             said: float | None) -> float | None:
+             said: tuple[float, str] | None) -> tuple[float, str] | None:
     """The warning of failed reconnect ``attempt`` to ``url`` when due (the first
-    DOWN_LINES_FIRST, then one every DOWN_LINE_EVERY_S); returns when one was last said
-    (monotonic s, ``said`` when none is now)."""
+    DOWN_LINES_FIRST, then one every DOWN_LINE_EVERY_S or when the error changes); returns
+    when one was last said and its error (monotonic s; ``said`` when none is now)."""
     now = time.monotonic()
-    if attempt > DOWN_LINES_FIRST and said is not None and now - said < DOWN_LINE_EVERY_S:
+    if (attempt > DOWN_LINES_FIRST and said is not None and now - said[0] < DOWN_LINE_EVERY_S
+            and str(exc) == said[1]):
         return said
     since = "no frame yet" if last_frame_mono is None else f"{now - last_frame_mono:.1f} s since the last frame"
     then = f" (then a line every {DOWN_LINE_EVERY_S:g} s while it stays down)" if attempt == DOWN_LINES_FIRST else ""
     log.warning("%s is down (%s); reconnect attempt %d, %s; next in %.2f s%s", url, exc, attempt, since, delay_s, then)
-    return now
+    return now, str(exc)
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ log = logging.getLogger("qradar.sim")
 #: the radar fields a simulated K-MD2 takes from the sensor (its profile and the K-MD2's
 #: RadarConfig defaults), which a scene's [radar] may not change: its frames carry that radar's
 #: config id (samples a ramp, ramps and their spacing are checked against the profile apart)
-SENSOR_RADAR_FIELDS = ("f0_hz", "bandwidth_hz", "c_m_s", "antenna_spacing_m")
+SENSOR_RADAR_FIELDS = ("f0_hz", "bandwidth_hz", "c_m_s", "d_m")
 
 
 @dataclass(frozen=True)
@@ -177,13 +177,14 @@ class SimulatedKMD2:
                               "the simulated sensor measures on its profile's, the decoder's velocities on the "
                               "scene's; make them agree")
         sensor = self.profile.radar(rpf)
-        other = [f"{name} = {getattr(radar, name)!r}" for name in SENSOR_RADAR_FIELDS
-                 if getattr(radar, name) != getattr(sensor, name)]
-        if other:  # its frames would carry the K-MD2's radar config id, their physics not
-            raise ConfigError(f"the scene's [radar] {', '.join(other)} is not what a simulated K-MD2 measures "
-                              f"(profile {self.profile.name}: " + ", ".join(
-                                  f"{n} = {getattr(sensor, n)!r}" for n in SENSOR_RADAR_FIELDS
-                                  if getattr(radar, n) != getattr(sensor, n)) + "); leave it out of the scene")
+        differ = [n for n in SENSOR_RADAR_FIELDS if not math.isclose(getattr(radar, n), getattr(sensor, n),
+                                                                     rel_tol=1e-9)]
+        if differ:  # its frames would carry the K-MD2's radar config id, their physics not
+            said = {"d_m": "antenna_spacing_m"}
+            scene_has = ", ".join(f"{said.get(n, n)} = {getattr(radar, n)!r}" for n in differ)
+            raise ConfigError(f"the scene's [radar] {scene_has} is not what a simulated K-MD2 measures (profile "
+                              f"{self.profile.name}: " + ", ".join(f"{said.get(n, n)} = {getattr(sensor, n)!r}"
+                                                                   for n in differ) + "); leave it out of the scene")
         self.decoder = StreamDecoder(self.profile)
         self.baud = self.profile.startup_baud
         self.counter = -1  # frame counter of the last RADC sent

@@ -36,7 +36,11 @@ PBP_CASES = [(AlarmCase(1, 0.1, frames=1500, seed=8, algo="pbp"), 0.003),
              # 2- and 4-bit frames at their own step (delta auto at b bits: the staircase's products
              # are the floor; with the 1-bit floor, 1.57 and 0.12 false targets a frame at 2 and 3 bits)
              (AlarmCase(2, 0.03, bits=2, frames=1000, seed=20, algo="pbp"), 0.003),
-             (AlarmCase(1, 0.01, bits=4, frames=1000, seed=21, algo="pbp"), 0.003)]
+             (AlarmCase(1, 0.01, bits=4, frames=1000, seed=21, algo="pbp"), 0.003),
+             # ... and from 4 bits fitted as unquantized frames are (residual.FINE_BITS: beside two
+             # targets the quantizer's tones fitted apart let 0.04-0.05 a frame through)
+             (AlarmCase(2, 0.03, bits=4, frames=1000, seed=22, algo="pbp"), 0.003),
+             (AlarmCase(2, 0.03, bits=8, frames=1000, seed=23, algo="pbp"), 0.003)]
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"K{c.k}-a{c.alpha:g}-s{c.sigma:g}-{'1bit' if c.bits else 'unq'}")

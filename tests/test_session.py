@@ -290,6 +290,11 @@ def test_a_link_that_stays_down_is_said_a_few_times_then_every_two_minutes(monke
     assert len(lines) == 6 + 29, len(lines)  # then one every 120 s of the hour's 3 588 s left
     assert "reconnect attempt 6, 20.0 s since the last frame; next in 2.00 s (then a line every 120 s" in lines[5]
     assert "reconnect attempt 7," not in "".join(lines) and "reconnect attempt 66, 140.0 s since" in lines[6]
+    # a new error (the port back, another's: permission denied) is said at once
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="qradar.driver"):
+        said = session_mod.say_down("/dev/ttyUSB0", OSError("permission denied"), 1801, 990.0, 2.0, said)
+    assert [r.getMessage() for r in caplog.records][0].startswith("/dev/ttyUSB0 is down (permission denied)")
 
 
 def test_the_simulated_line_takes_as_long_as_a_real_one(link):

@@ -43,6 +43,7 @@ from pipeline.errors import DitherUnavailable, ParameterError
 from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
+from pipeline.dsp.residual import FINE_BITS
 from pipeline.dsp.significance import target_p_values
 from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlOptions
@@ -475,8 +476,8 @@ class Decoder:
         unfit = xi is None or bits is None or indices is not None  # not for cml or qiht: PBP as fallback, or an error
         if cfg.algo == Algo.PBP or (unfit and cfg.fallback_pbp):
             # unquantized frames: the count test's model holds the targets' tones, not a quantizer's
-            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits), bits is not None,
-                            bits or 1)
+            return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits),
+                            bits is not None and bits < FINE_BITS, bits or 1, level_reach(z, delta, bits))
         if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
@@ -499,6 +500,17 @@ class Decoder:
             return self.decode(z, xi, frames.delta, frames.bits, radar, k, init_range_m=init_range_m)
         return self.decode(np.asarray(frames, dtype=np.complex128), None, None, None, radar, k,
                            init_range_m=init_range_m)
+
+
+def level_reach(z: np.ndarray, delta, bits: int | None):
+    """How many steps from the middle the levels of ``bits``-bit frames' values ``z`` (B, M, 2)
+    reach (B,): their largest real or imaginary part over ``delta`` (the top level's value is
+    its index and a half steps); None for 1-bit or unquantized frames, or no ``delta``."""
+    if bits is None or bits == 1 or delta is None:
+        return None
+    z = np.asarray(z)
+    peak = np.maximum(np.abs(z.real).max(axis=(1, 2)), np.abs(z.imag).max(axis=(1, 2)))
+    return peak / np.asarray(delta, dtype=float)
 
 
 def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):

@@ -180,7 +180,8 @@ def gate_warning(truth, gate) -> str | None:
     stand still outside its range gate (``gate``: ``min_range_m``, ``max_range_m``): they cannot
     be found, and the score counts them missed; None when there is none."""
     out = [t.range_m for t in (truth.targets if truth is not None else [])
-           if not t.velocity_m_s and not gate.min_range_m <= t.range_m <= gate.max_range_m]
+           if not t.velocity_m_s and not gate.min_range_m - EDGE_TOLERANCE_M <= t.range_m
+           <= gate.max_range_m + EDGE_TOLERANCE_M]
     if not out:
         return None
     return (f"true target(s) at {', '.join(f'{r:g} m' for r in out)} outside the range gate "

@@ -399,7 +399,7 @@ def gated_energy(energy: np.ndarray, mask: np.ndarray | None, k: int,
 
 def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | None = None,
              pfa: float | None = None, gate: RangeGate | None = None, alpha=None, quantized: bool = True,
-             bits: int = 1) -> Detections:
+             bits: int = 1, reach=None) -> Detections:
     """PBP targets of a batch of frames Z (B, M, 2) (quantized or not), each with its
     cell-averaging statistic (:func:`grid_statistic_db`). ``pfa``: decide the count (at
     most ``k``) by a sequential CFAR test with this false-alarm probability per frame
@@ -408,7 +408,8 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     (the statistic and the test then over those bins); None: the whole range axis. With
     ``pfa`` and whole ramps, each target after the first is tested on the residual of the ones
     before it (:func:`pipeline.dsp.residual.residual_support`; ``alpha``: the dither scale of
-    ``bits``-bit frames (scalar or (B,)), whose quantizer's products set the floor of that test;
+    ``bits``-bit frames (scalar or (B,)), whose quantizer's products set the floor of that test
+    (``reach``: the steps their levels reach, :func:`pipeline.dsp.residual.product_floor_db`);
     None: not known; ``quantized`` False: unquantized frames, whose test's model holds the
     targets' tones alone, not the quantizer's). Each target's ``p_value``:
     :func:`cfar_p_value` of its statistic."""
@@ -419,7 +420,7 @@ def localize(z: np.ndarray, config: RadarConfig, k: int, indices: np.ndarray | N
     if pfa is not None and indices is None:  # whole ramps: each test on the residual of the targets before it
         inside = np.ones(u.shape[1], dtype=bool) if mask is None else mask
         support, statistic = residual_support(fold_ramps(z, config), energy, pick, inside, k,
-                                              cfar_threshold(pfa, cells), alpha, quantized, bits)
+                                              cfar_threshold(pfa, cells), alpha, quantized, bits, reach)
     else:
         support = joint_support(u, k, pick)
         statistic = grid_statistic_db(u, support, stat, cells)

@@ -45,17 +45,23 @@ DYNAMIC_RANGE_DB = 45.0
 #: the dither scales :func:`product_floor_db` is computed at (a frame's alpha between two of
 #: them takes the lower floor of the two: the products rise and fall with alpha)
 ALPHA_STEP = 0.05
+#: frames of this many bits or more are fitted as unquantized ones are (the targets' tones alone,
+#: refined together): their staircase's products lie under the floor, and what the fit leaves of
+#: two targets refined apart passed the test (4-8 bits beside two targets, noise 0.03, alpha
+#: 0.45: 0.04-0.05 false targets a frame with the quantizer's tones; 0.003 and 0 without)
+FINE_BITS = 4
 #: the ridge of the tone fit, relative to the samples (N): coinciding tones stay solvable
 RIDGE = 1e-9
 
 
-def product_floor_db(alpha, bits: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def product_floor_db(alpha, bits: int = 1, reach=None) -> tuple[np.ndarray, np.ndarray]:
     """The residual's floor (dB under the strongest return) of ``bits``-bit frames dithered at
     ``alpha`` (scalar or (B,), in [0, 1]; NaN: not known): the strongest product of the
     quantizer that the tone model leaves out, (with one target in the model, with two or more)
     each (B,), at most DYNAMIC_RANGE_DB (NaN alpha: DYNAMIC_RANGE_DB). More bits: the
-    staircase of 2^bits levels over the frame's peak (the step of
-    :func:`pipeline.dsp.quantize.auto_delta`), smoothed by the dither (:func:`mean_code`).
+    staircase of the levels the frame reaches, ``reach`` (scalar or (B,)) steps from the middle
+    at its peak (None: the step of :func:`pipeline.dsp.quantize.auto_delta`, 2^(bits-1) - 1/2;
+    a margin or a fixed step reaches fewer), smoothed by the dither (:func:`mean_code`).
 
     The quantizer's mean output at a sample is a line of slope 1 / alpha clipped at +-1 (the
     uniform dither of width alpha delta, the step delta twice the frame's peak): without dither
@@ -67,25 +73,34 @@ def product_floor_db(alpha, bits: int = 1) -> tuple[np.ndarray, np.ndarray]:
     a = np.atleast_1d(np.asarray(alpha, dtype=float))
     single, mixed = np.full(a.shape, DYNAMIC_RANGE_DB), np.full(a.shape, DYNAMIC_RANGE_DB)
     known = np.isfinite(a)
+    if not known.any():
+        return single, mixed
     x = np.clip(a[known], 0.0, 1.0) / ALPHA_STEP
     lo, hi = np.floor(x + 1e-9).astype(np.int64), np.ceil(x - 1e-9).astype(np.int64)
-    steps = np.unique(np.concatenate([lo, hi]))  # the grid points these frames need (each ~3 ms, once)
-    levels = np.array([_product_levels_db(int(i), int(bits)) for i in steps]).reshape(-1, 2)
-    lo, hi = np.searchsorted(steps, lo), np.searchsorted(steps, hi)
-    if known.any():
-        single[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 0], levels[hi, 0]))
-        mixed[known] = np.minimum(DYNAMIC_RANGE_DB, np.minimum(levels[lo, 1], levels[hi, 1]))
+    if bits == 1 or reach is None:  # (twice the reach in steps: the cache's key, an odd integer at delta auto)
+        twice = np.full(lo.shape, (1 << bits) - 1)
+    else:  # the values' top level reaches r steps; the peak under it, between r - 1/2 and r: the lower floor of both
+        twice = np.maximum(np.rint(2.0 * np.broadcast_to(np.asarray(reach, dtype=float), a.shape)[known]), 2)
+    shifts = (0,) if bits == 1 or reach is None else (0, -1)
+    pairs = [(s, t + d) for s in (lo, hi) for d in shifts for t in (twice,)]
+    keys = sorted({(int(i), int(j)) for s, t in pairs for i, j in zip(s, t)})
+    levels = {key: _product_levels_db(key[0], bits, key[1]) for key in keys}  # each ~3 ms, once
+    floor = np.min([np.array([levels[(int(i), int(j))] for i, j in zip(s, t)]).reshape(-1, 2) for s, t in pairs],
+                   axis=0)
+    single[known] = np.minimum(DYNAMIC_RANGE_DB, floor[:, 0])
+    mixed[known] = np.minimum(DYNAMIC_RANGE_DB, floor[:, 1])
     return single, mixed
 
 
-def mean_code(x: np.ndarray, alpha: float, bits: int = 1) -> np.ndarray:
-    """The quantizer's mean output (its codes' mean, in steps from the middle) at values ``x``
-    in [-1, 1] of the frame's peak, dithered uniformly over ``alpha`` steps: one bit, the line
-    of slope 1 / alpha clipped at +-1 (a hard limiter at alpha 0); more, the staircase of
-    2^bits levels spanning the peak and half a step, its risers ``alpha`` steps wide."""
+def mean_code(x: np.ndarray, alpha: float, bits: int = 1, reach: float | None = None) -> np.ndarray:
+    """The quantizer's mean output at values ``x`` in [-1, 1] of the frame's peak, dithered
+    uniformly over ``alpha`` steps: one bit, the line of slope 1 / alpha clipped at +-1 (a hard
+    limiter at alpha 0; in half steps); more, in steps from the middle, the staircase whose
+    levels reach ``reach`` steps at the peak (None: delta auto's 2^(bits-1) - 1/2), its risers
+    ``alpha`` steps wide."""
     if bits == 1:
         return np.sign(x) if alpha == 0.0 else np.clip(x / alpha, -1.0, 1.0)
-    y = np.asarray(x) * ((1 << bits) - 1) / 2.0  # in steps: the peak at 2^(bits-1) - 1/2
+    y = np.asarray(x) * (((1 << bits) - 1) / 2.0 if reach is None else reach)  # in steps
     if alpha == 0.0:
         return np.floor(y) + 0.5
 
@@ -96,8 +111,9 @@ def mean_code(x: np.ndarray, alpha: float, bits: int = 1) -> np.ndarray:
     return (integral(y + alpha / 2.0) - integral(y - alpha / 2.0)) / alpha + 0.5
 
 
-@lru_cache(maxsize=32)
-def _product_levels_db(step: int, bits: int = 1, points: int = 256) -> tuple[float, float]:
+@lru_cache(maxsize=1024)
+def _product_levels_db(step: int, bits: int = 1, twice_reach: int | None = None,
+                       points: int = 256) -> tuple[float, float]:
     """(:func:`product_floor_db` of one target, of two equal ones) at alpha = step ALPHA_STEP:
     the strongest harmonic above ORDER_SINGLE of a tone through the quantizer's mean output
     (:func:`mean_code`), the strongest product above ORDER_MIXED of two equal tones, each in
@@ -106,7 +122,7 @@ def _product_levels_db(step: int, bits: int = 1, points: int = 256) -> tuple[flo
     t = 2.0 * np.pi * np.arange(points) / points
 
     def code(x):
-        return mean_code(x, alpha, bits)
+        return mean_code(x, alpha, bits, None if twice_reach is None else twice_reach / 2.0)
 
     one = np.abs(np.fft.fft(code(np.cos(t))))
     m = np.arange(points)
@@ -328,14 +344,15 @@ CHUNK_FRAMES = 128
 
 def residual_support(y: np.ndarray, energy: np.ndarray, pick: np.ndarray, inside: np.ndarray, k: int,
                      threshold: float, alpha=None, quantized: bool = True,
-                     bits: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                     bits: int = 1, reach=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`residual_support_of` CHUNK_FRAMES frames at a time (memory bounded whatever the
     batch, the tables small enough to stay in cache); ``alpha``: the ``bits``-bit frames' dither
-    scale (scalar or (B,); None or NaN: not known), the floor under the strongest return the
-    quantizer's products the model leaves (:func:`product_floor_db`). ``quantized``
+    scale (scalar or (B,); None or NaN: not known) and ``reach`` their levels' (in steps), the
+    floor under the strongest return the quantizer's products the model leaves (:func:`product_floor_db`). ``quantized``
     False: unquantized frames, whose model holds the targets' tones alone, refined together."""
     b = y.shape[0]
-    floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,)), bits), axis=1)
+    floors = np.stack(product_floor_db(np.broadcast_to(np.nan if alpha is None else alpha, (b,)), bits, reach),
+                      axis=1)
     joint = not quantized  # unquantized frames: the targets' tones alone, their bins refined together
     if b <= CHUNK_FRAMES:
         return residual_support_of(y, energy, pick, inside, k, threshold, floors, joint)

@@ -322,7 +322,8 @@ class Schema:
             what = f"[{table}] {path[-1]}" if table else path[-1]
             home = [x.table for x in self.entries if x.key == path[-1] and x.table != table]
             if home:  # a key of another table (or of the top level) given here: say where it goes
-                place = "at the top level, before any table" if home[0] is None else f"under [{home[0]}]"
+                place = " or ".join("at the top level, before any table" if h is None else f"under [{h}]"
+                                    for h in dict.fromkeys(home))
                 raise LabError(f"{where(path)}: {what} is not a key here: write it {place} ({path[-1]} = ...)")
             tables = f"; tables: {', '.join(self.tables)}" if table is None and self.tables else ""
             raise LabError(f"{where(path)}: unknown key {what}; known: {', '.join(known)}{tables}")
