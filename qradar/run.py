@@ -33,7 +33,6 @@ from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, S
 from pipeline.dsp.track import TrackerConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from radar_driver.model import RadarConfig
-from radar_driver.errors import ConfigError
 from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, SimScene, check_sim_rate, load_truth, resolve_scene
 from radar_driver.session import SensorSession
 from radar_driver.simulator import SimulatorServer
@@ -161,10 +160,7 @@ class RunConfig:
         if self.duration_s is not None and not self.duration_s > 0:
             raise ParameterError(f"duration={self.duration_s!r} must be > 0")
         if not specs:
-            try:
-                check_sim_rate(self.rate_hz, "rate")
-            except ConfigError as exc:
-                raise ParameterError(str(exc)) from None
+            check_sim_rate(self.rate_hz, "rate", error=ParameterError)
         if self.record_on_error not in tuple(OnWriteError) or not self.record_retry_s > 0:
             raise ParameterError(f"record_on_error={self.record_on_error!r} must be one of "
                                  f"{[m.value for m in OnWriteError]} and record_retry_s={self.record_retry_s!r} > 0")

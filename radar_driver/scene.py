@@ -288,13 +288,16 @@ SIM_RATE_HZ = 20.0
 MAX_SIM_RATE_HZ = 1000.0
 
 
-def check_sim_rate(rate_hz: float, what: str = "rate_hz", zero: str | None = None) -> None:
-    """A ConfigError unless ``rate_hz`` is a number in (0, MAX_SIM_RATE_HZ] frames/s, or 0
+def check_sim_rate(rate_hz: float, what: str = "rate_hz", zero: str | None = None,
+                   error: type[Exception] = ConfigError) -> None:
+    """An ``error`` unless ``rate_hz`` is a number in (0, MAX_SIM_RATE_HZ] frames/s, or 0
     when ``zero`` says what 0 means."""
     low_ok = rate_hz >= 0 if zero else rate_hz > 0
     if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float)) and low_ok and rate_hz <= MAX_SIM_RATE_HZ):
-        raise ConfigError(f"{what}={rate_hz!r} must be a number in {'[0' if zero else '(0'}, {MAX_SIM_RATE_HZ:g}] "
+        raise error(f"{what}={rate_hz!r} must be a number in {'[0' if zero else '(0'}, {MAX_SIM_RATE_HZ:g}] "
                           f"frames/s{f' ({zero})' if zero else ''}: a K-MD2 makes about 20 a second")
+
+
 #: time base of the frames (frames/s) of a sensor that is polled as fast as it answers
 NOMINAL_FRAME_RATE_HZ = 20.0
 

@@ -48,7 +48,7 @@ from pipeline.dsp.significance import target_p_values
 from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlOptions
 from pipeline.dsp.cml.engine import resolve as resolve_engine
-from pipeline.dsp.quantize import QuantizedFrames, check_bits
+from pipeline.dsp.quantize import QuantizedFrames, check_bits, frame_peak
 
 if TYPE_CHECKING:
     from pipeline.dsp.cml.decoder import CmlDecoder
@@ -476,8 +476,9 @@ class Decoder:
         unfit = xi is None or bits is None or indices is not None  # not for cml or qiht: PBP as fallback, or an error
         if cfg.algo == Algo.PBP or (unfit and cfg.fallback_pbp):
             # unquantized frames: the count test's model holds the targets' tones, not a quantizer's
+            reach = None if pfa is None else level_reach(z, delta, bits)  # (what the count test's floor reads)
             return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits),
-                            bits is not None and bits < FINE_BITS, bits or 1, level_reach(z, delta, bits))
+                            bits is not None and bits < FINE_BITS, bits or 1, reach)
         if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")
@@ -508,9 +509,7 @@ def level_reach(z: np.ndarray, delta, bits: int | None):
     its index and a half steps); None for 1-bit or unquantized frames, or no ``delta``."""
     if bits is None or bits == 1 or delta is None:
         return None
-    z = np.asarray(z)
-    peak = np.maximum(np.abs(z.real).max(axis=(1, 2)), np.abs(z.imag).max(axis=(1, 2)))
-    return peak / np.asarray(delta, dtype=float)
+    return frame_peak(z) / np.asarray(delta, dtype=float)
 
 
 def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
@@ -524,8 +523,7 @@ def dither_alpha(alpha, xi: np.ndarray | None, delta, bits: int | None):
         return alpha
     if xi is None or delta is None:
         return None
-    x = np.asarray(xi).reshape(len(xi), -1)
-    return 2.0 * np.maximum(np.abs(x.real).max(axis=1), np.abs(x.imag).max(axis=1)) / np.asarray(delta, dtype=float)
+    return 2.0 * frame_peak(xi) / np.asarray(delta, dtype=float)
 
 
 def _qiht_ml(z: np.ndarray, xi: np.ndarray, delta, bits: int, config: RadarConfig, k: int, decoder: DecoderConfig,

@@ -185,8 +185,14 @@ def auto_delta(frames: np.ndarray, margin: float = 0.0, bits: int = 1) -> np.nda
 
 def _auto_delta(f: np.ndarray, margin: float, bits: int) -> np.ndarray:
     """:func:`auto_delta` of checked arguments (a configured quantizer's: checked once, at its edge)."""
-    peak = np.maximum(np.abs(f.real).max(axis=(1, 2)), np.abs(f.imag).max(axis=(1, 2)))
-    return np.maximum(2.0 * peak * (1.0 + margin) / ((1 << bits) - 1), np.finfo(float).tiny)
+    return np.maximum(2.0 * frame_peak(f) * (1.0 + margin) / ((1 << bits) - 1), np.finfo(float).tiny)
+
+
+def frame_peak(f: np.ndarray) -> np.ndarray:
+    """The largest real or imaginary part of each frame of ``f`` (B, ...) complex: (B,)."""
+    f = np.asarray(f)
+    axes = tuple(range(1, f.ndim))
+    return np.maximum(np.abs(f.real).max(axis=axes), np.abs(f.imag).max(axis=axes))
 
 
 def quantize(frames: np.ndarray, delta, bits: int, dither: np.ndarray | None = None) -> np.ndarray:

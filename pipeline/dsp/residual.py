@@ -79,14 +79,15 @@ def product_floor_db(alpha, bits: int = 1, reach=None) -> tuple[np.ndarray, np.n
     lo, hi = np.floor(x + 1e-9).astype(np.int64), np.ceil(x - 1e-9).astype(np.int64)
     if bits == 1 or reach is None:  # (twice the reach in steps: the cache's key, an odd integer at delta auto)
         twice = np.full(lo.shape, (1 << bits) - 1)
+        shifts = (0,)
     else:  # the values' top level reaches r steps; the peak under it, between r - 1/2 and r: the lower floor of both
         twice = np.maximum(np.rint(2.0 * np.broadcast_to(np.asarray(reach, dtype=float), a.shape)[known]), 2)
-    shifts = (0,) if bits == 1 or reach is None else (0, -1)
-    pairs = [(s, t + d) for s in (lo, hi) for d in shifts for t in (twice,)]
-    keys = sorted({(int(i), int(j)) for s, t in pairs for i, j in zip(s, t)})
-    levels = {key: _product_levels_db(key[0], bits, key[1]) for key in keys}  # each ~3 ms, once
-    floor = np.min([np.array([levels[(int(i), int(j))] for i, j in zip(s, t)]).reshape(-1, 2) for s, t in pairs],
-                   axis=0)
+        shifts = (0, -1)
+    pairs = np.stack([np.concatenate([s for s in (lo, hi) for _ in shifts]),
+                      np.concatenate([twice + d for _ in (lo, hi) for d in shifts])], axis=1).astype(np.int64)
+    keys, where = np.unique(pairs, axis=0, return_inverse=True)  # the grid points these frames need
+    levels = np.array([_product_levels_db(int(i), bits, int(j)) for i, j in keys])  # each ~3 ms, once
+    floor = levels[where.ravel()].reshape(-1, lo.size, 2).min(axis=0)
     single[known] = np.minimum(DYNAMIC_RANGE_DB, floor[:, 0])
     mixed[known] = np.minimum(DYNAMIC_RANGE_DB, floor[:, 1])
     return single, mixed
@@ -112,8 +113,7 @@ def mean_code(x: np.ndarray, alpha: float, bits: int = 1, reach: float | None = 
 
 
 @lru_cache(maxsize=1024)
-def _product_levels_db(step: int, bits: int = 1, twice_reach: int | None = None,
-                       points: int = 256) -> tuple[float, float]:
+def _product_levels_db(step: int, bits: int, twice_reach: int, points: int = 256) -> tuple[float, float]:
     """(:func:`product_floor_db` of one target, of two equal ones) at alpha = step ALPHA_STEP:
     the strongest harmonic above ORDER_SINGLE of a tone through the quantizer's mean output
     (:func:`mean_code`), the strongest product above ORDER_MIXED of two equal tones, each in
@@ -122,7 +122,7 @@ def _product_levels_db(step: int, bits: int = 1, twice_reach: int | None = None,
     t = 2.0 * np.pi * np.arange(points) / points
 
     def code(x):
-        return mean_code(x, alpha, bits, None if twice_reach is None else twice_reach / 2.0)
+        return mean_code(x, alpha, bits, twice_reach / 2.0)
 
     one = np.abs(np.fft.fft(code(np.cos(t))))
     m = np.arange(points)

@@ -192,3 +192,12 @@ def load_calibration(path: Path | None, sensor_ids: list[str] | tuple[str, ...] 
 def intake_budget(args) -> IntakeBudget:
     """The IntakeBudget of the parsed options (:data:`.parts.INTAKE`)."""
     return args.schema.build(IntakeBudget, args)
+
+
+def nothing_heard(command: str, said: str, role: str, warn_only: bool) -> int:
+    """A node that sent or received nothing of its peers (another --prefix, no router in
+    common): one line, ``said`` and the hint, on stderr; its status: 1, or 0 as a warning
+    (``warn_only``: stopped by a signal before a node came, or a node of ``qradar up``)."""
+    print(f"qradar {command}: {'warning' if warn_only else 'error'}: {said} (are the nodes up, on this --prefix, and "
+          f"joined to the same router as this {role}?)", file=sys.stderr, flush=True)
+    return 0 if warn_only else 1

@@ -23,7 +23,7 @@ from replay.recorder import RecorderNode, RecordingState
 from radar_driver.options import META, option, pos_float
 
 from ..run import RunConfig
-from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget
+from .common import StopOnSignals, bus_from_args, install_sigterm, intake_budget, nothing_heard
 from .parts import INTAKE, force_help, node_part, switches, zenoh_parts
 from .schema import Part, add_command
 
@@ -176,10 +176,8 @@ def cmd_record(args) -> int:
     if node.state is RecordingState.STOPPED:
         raise ReplayError(f"recording stopped after a write error: {node.error} (--on-write-error stop)")
     if not totals["frames_in"]:  # a recording of nothing: most often another prefix, or no router in common
-        print(f"qradar record: {'warning' if interrupted else 'error'}: nothing came on {node.topics}: {args.output} "
-              "holds no message (are the nodes up, on this --prefix, and joined to the same router as this "
-              "recorder?)", file=sys.stderr, flush=True)
-        return 0 if interrupted else 1  # stopped (Ctrl-C, SIGTERM) before anything came: said, not a failure
+        return nothing_heard("record", f"nothing came on {node.topics}: {args.output} holds no message", "recorder",
+                             interrupted)  # stopped (Ctrl-C, SIGTERM) before anything came: said, not a failure
     return 0
 
 

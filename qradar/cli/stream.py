@@ -21,7 +21,7 @@ from radar_driver.options import nonneg_float, option
 from radar_driver.scene import DEFAULT_SCENE, SIM_RATE_HZ, resolve_scene
 from radar_driver.source import SimSourceConfig, SimulatedSource
 
-from .common import bus_from_args, install_sigterm, intake_budget, load_calibration
+from .common import bus_from_args, install_sigterm, intake_budget, load_calibration, nothing_heard
 from .parts import (CALIBRATION, GATE, INTAKE, QUEUE, SERVE, TRACKS, count_of, decoder_parts, edge_parts,
                     edge_quantizer, node_part, quantizer_of, quantizer_part, tracker_of, zenoh_parts)
 from .schema import Part, add_command
@@ -160,12 +160,9 @@ def cmd_source(args) -> int:
     print(json.dumps({"node": node.name, **extra, **totals, "subscribed": heard, **noise_summary(node),
                       **audit.finish()}), flush=True)
     if totals["frames_out"] and not heard:  # frames to nobody: another --prefix, or no router in common
-        keys = sorted({k.rsplit("/", 1)[-1] for k in audience.keys})
-        print(f"qradar source: {'warning' if interrupted or child else 'error'}: nothing subscribed to "
-              f"{node.bus.prefix}/<sensor>/{' or '.join(keys)}: its {totals['frames_out']} frames reached no node "
-              "(are the nodes up, on this --prefix, and joined to the same router as this source?)",
-              file=sys.stderr, flush=True)
-        return 0 if interrupted or child else 1  # stopped (Ctrl-C, SIGTERM) before a node came: said, not a failure
+        topics = " or ".join(source_topics(node))
+        return nothing_heard("source", f"nothing subscribed to {node.bus.prefix}/<sensor>/{topics}: its "
+                             f"{totals['frames_out']} frames reached no node", "source", interrupted or child)
     return 0
 
 
@@ -175,10 +172,15 @@ def cmd_source(args) -> int:
 AUDIENCE_KEYS_MAX = 64
 
 
+def source_topics(node: SourceNode) -> list[str]:
+    """The topics a source publishes: raw (``raw_every``), quantized (edge quantization)."""
+    return [t for t, on in (("raw", node.raw_every), ("quantized", node.quantizer is not None)) if on]
+
+
 def source_keys(node: SourceNode, sensor_ids: list[str] | None) -> list[str]:
     """The keys a source's audience is looked for on: each topic it publishes (raw, quantized)
     of each of its ``sensor_ids`` (None: not known ahead), or of any sensor."""
-    topics = [t for t, on in (("raw", node.raw_every), ("quantized", node.quantizer is not None)) if on]
+    topics = source_topics(node)
     if sensor_ids is None or len(sensor_ids) > AUDIENCE_KEYS_MAX:
         return [node.bus.wildcard(t) for t in topics]
     return [node.bus.key(sid, t) for sid in sensor_ids for t in topics]
