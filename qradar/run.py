@@ -204,9 +204,15 @@ class Plan:
 
 def localizer_of(cfg: RunConfig, k: int, radar: RadarConfig) -> LocalizerConfig:
     """The localizer's config of a run of ``k`` targets a frame on ``radar`` (checked: K, the
-    range gate, the decoder)."""
-    return LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
-                           auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m, max_range_m=cfg.max_range_m)
+    range gate, the decoder; a K the user did not give is named as the scene's or the truth's)."""
+    try:
+        return LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
+                               auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
+                               max_range_m=cfg.max_range_m)
+    except ParameterError as e:
+        if cfg.k or f"K={k}" not in str(e):
+            raise
+        raise ParameterError(f"no --K given, so K={k}, the scene's (or --truth's) targets: {e}") from None
 
 
 def check_offline(cfg: RunConfig) -> None:
@@ -234,11 +240,7 @@ def plan(cfg: RunConfig) -> Plan:
     """Everything a run checks before it starts anything: the scene or the sensors' specs
     (each port opened once), the truth, the calibration against the sensors, the
     recording's file, the localizer's config; a wrong one is one line."""
-    scene = None if cfg.real else resolve_scene(cfg.scene)
-    if cfg.empty and scene is not None:
-        scene = scene.without_targets()
-    truth = load_truth(cfg.truth) if cfg.truth is not None else scene
-    radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
+    scene, truth, radar = world(cfg)
     calibration = check_calibration(cfg)
     check_record(cfg)
     k = targets_a_frame(cfg, scene, truth)
@@ -250,6 +252,16 @@ def plan(cfg: RunConfig) -> Plan:
         cfg = replace(cfg, sensor_specs=resolve_auto(cfg.sensor_specs))  # --sensor auto: the one K-MD2 found
         probe_sensors(cfg.sensor_specs)  # each port opens (and is nobody else's), before anything starts
     return Plan(cfg, scene, truth, truths, radar, calibration, localizer)
+
+
+def world(cfg: RunConfig) -> tuple[SimScene | None, SimScene | None, RadarConfig]:
+    """A run's scene (None with real sensors; ``--empty``: without its targets), its truth
+    (``--truth``'s, else the scene) and its radar (real sensors': from their profiles)."""
+    scene = None if cfg.real else resolve_scene(cfg.scene)
+    if cfg.empty and scene is not None:
+        scene = scene.without_targets()
+    truth = load_truth(cfg.truth) if cfg.truth is not None else scene
+    return scene, truth, check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
 
 
 def check_calibration(cfg: RunConfig) -> Calibration | None:
@@ -518,9 +530,7 @@ def setup_metadata(cfg: RunConfig, specs: tuple[SensorSpec, ...] = ()) -> dict[s
     real sensors from their profiles), each value as text: what ``qradar up`` hands its
     recorder, so its files say the set-up as a run's do. ``specs``: every sensor of the set-up
     when ``cfg`` holds some of them (up's hosts may share a port path)."""
-    scene = None if cfg.real else resolve_scene(cfg.scene)
-    truth = load_truth(cfg.truth) if cfg.truth is not None else scene
-    radar = check_sensor_specs(cfg.sensor_specs) if cfg.real else scene.radar
+    scene, truth, radar = world(cfg)
     localizer = localizer_of(cfg, targets_a_frame(cfg, scene, truth), radar)
     meta = run_metadata(cfg, scene, truth, radar, localizer.k, check_calibration(cfg), localizer.gate)
     if specs:

@@ -72,6 +72,16 @@ def test_the_limits_on_k_say_why():
         assert out.returncode == 2 and "is more than cml decodes live: at most 16" in out.stderr, out.stderr
 
 
+def test_a_k_taken_from_the_scene_is_named_so(tmp_path):
+    scene = tmp_path / "crowd.toml"
+    scene.write_text('name = "crowd"\n' + "".join(f"[[target]]\nrange_m = {5 + 4 * i}\nangle_deg = 0\namplitude = 0.5\n"
+                                                   for i in range(17)))
+    out = qradar("run", "--scene", str(scene), "--algo", "cml", "--no-record")
+    last = out.stderr.strip().splitlines()[-1]
+    assert out.returncode == 2 and last.startswith("qradar run: error: no --K given, so K=17, the scene's"), last
+    assert "is more than cml decodes live: at most 16" in last
+
+
 @pytest.mark.parametrize("args", [
     ("localize", "--listen", "tcp/127.0.0.1:99999", "--duration", "1"),
     ("localize", "--mode", "client", "--connect", "tcp/127.0.0.1:1", "--duration", "1"),
@@ -112,3 +122,10 @@ def test_an_argument_error_with_json_prints_the_error_object_and_names_its_comma
     assert obj["exit_code"] == 2 and obj["command"] == command and obj["error"] in err
     code, out, err = cli(*[a for a in argv if a != "--json"])
     assert code == 2 and out == "" and err.startswith(f"qradar {command}: error: ")
+
+
+def test_a_noise_level_given_twice_is_refused(tmp_path):
+    out = qradar("montecarlo-time", "--noise-sigma", "0.1", "0", "0.1", "--runs", "2", "--out", str(tmp_path / "t"))
+    assert out.returncode == 2 and out.stderr.strip().splitlines()[-1] == (
+        "qradar montecarlo-time: error: --noise-sigma 0.1 0 0.1: 0.1 given twice; give each noise level once")
+    assert not (tmp_path / "t").exists()  # refused before any work
