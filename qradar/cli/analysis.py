@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.dsp.gate import RangeGate
+from pipeline.errors import ParameterError
 from pipeline.dsp.integrate import time_monte_carlo
 from pipeline.dsp.quantize import QuantizerConfig
 from experiments.montecarlo import CountSpec, MonteCarloConfig, SceneSpec, run_montecarlo
@@ -97,6 +98,10 @@ def add_montecarlo_time(sub) -> None:
 
 
 def cmd_montecarlo_time(args) -> int:
+    twice = sorted({s for s in args.noise_sigma if args.noise_sigma.count(s) > 1})
+    if twice:  # one curve each: a level given twice drew two identical curves
+        raise ParameterError(f"--noise-sigma {' '.join(f'{s:g}' for s in args.noise_sigma)}: "
+                             f"{', '.join(f'{s:g}' for s in twice)} given twice; give each noise level once")
     with prepare_out_dir(args.out, ("time.json", "time.png"), args.force):  # before the work: a bad --out is one line
         results = [time_monte_carlo(args.runs, tuple(args.frames), s, args.alpha, args.seed) for s in args.noise_sigma]
     (args.out / "time.json").write_text(json.dumps(results, indent=2) + "\n")
