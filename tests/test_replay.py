@@ -106,7 +106,9 @@ def test_player_keeps_the_original_timing_scaled(tmp_path, bus, zenoh_session):
     t0 = time.monotonic()
     r = play(tmp_path / "t.mcap", bus, PlayConfig(rate=2.0), session=session)
     elapsed = time.monotonic() - t0
-    assert r.published == 6 and 0.2 <= elapsed < 5  # 0.5 s of traffic at twice the speed
+    # 0.5 s of traffic at twice the speed: never faster than that (a busy host may make it slower, so no
+    # upper bound)
+    assert r.published == 6 and elapsed >= 0.2
     r = play(tmp_path / "t.mcap", bus, PlayConfig(fast=True, start_s=0.25), session=session)
     assert 2 <= r.published <= 4
     # looped: stopped once a third pass has begun (its messages seen), not after a time a busy host stretches
