@@ -342,6 +342,8 @@ def score_profile(segs: Sequence[Segment], profile: SensorProfile, ramps_per_fra
         score.why = f"the reflector comes out at {score.range_m:.2f} m, not {reflector.range_m:g} m"
     elif reflector.angle_deg is not None and abs(score.angle_deg - reflector.angle_deg) > reflector.angle_tol_deg:
         score.why = f"the reflector comes out at {score.angle_deg:+.1f} deg, not {reflector.angle_deg:+g} deg"
+        if abs(score.angle_deg + reflector.angle_deg) <= reflector.angle_tol_deg:
+            score.why += f" ({SIGN_FLIPPED}: the profile's azimuth pair in the other order, azimuth = [1, 0] for [0, 1])"
     else:
         score.fits = True
         score.why = (f"one sharp range peak ({fs.sharpness_db:.1f} dB over the median, {fs.purity_db:.1f} dB over "
@@ -383,6 +385,9 @@ def _thousands(n: int) -> str:
     return f"{n:,}".replace(",", " ")
 
 
+#: what a score's ``why`` says when only the angle's sign keeps it from fitting (swapped receivers)
+SIGN_FLIPPED = "the sign flipped"
+
 #: two fits whose purity and sharpness differ by less than this read the capture as well, dB
 TIE_DB = 1.0
 
@@ -406,6 +411,12 @@ def verdict(scores: Sequence[ProfileScore], sensor: Split, tried: str = "shipped
         text += (" The angle's sign says the azimuth pair's order: with the reflector on antenna 2's side it must "
                  "come out positive.")
         return best.name, [s.name for s in tied], text
+    flipped = [s for s in scores if SIGN_FLIPPED in s.why]
+    if flipped:  # everything fits but the angle's sign: not a payload or layout to blame
+        return None, [], (f"no {tried} fits, but {', '.join(s.name for s in flipped)} "
+                          f"{'reads' if len(flipped) == 1 else 'read'} the reflector with "
+                          f"the angle's sign flipped ({flipped[0].why.split(' (')[0]}): the receivers of the azimuth "
+                          "pair are swapped; give a profile with the pair the other way round (docs/sensor.md).")
     radc = sensor.headers.get("RADC")
     if radc is None:
         seen = ", ".join(sensor.headers) or "no message"

@@ -298,6 +298,12 @@ def test_layouts_of_the_same_length_are_told_apart_by_images_and_the_known_angle
     report = inspect_capture(cap, ["kmd2-blocks"] + decoys, reflector=Reflector(12.3, 20.0))
     assert report.best == "kmd2-blocks" and report.ambiguous == []
     assert "not +20 deg" in {s.name: s for s in report.scores}["swapped"].why
+    # only the swapped pair: the verdict names the swap, not the payload's size
+    report = inspect_capture(cap, [decoys[1]], reflector=Reflector(12.3, 20.0))
+    assert report.best is None and "the sign flipped" in report.scores[0].why
+    assert report.verdict.startswith("no profile tried fits, but swapped reads the reflector with the angle's "
+                                     "sign flipped (the reflector comes out at -20."), report.verdict
+    assert "azimuth pair are swapped" in report.verdict and "expects" not in report.verdict
 
 
 def test_a_capture_with_garbage_and_cut_messages_is_still_identified(tmp_path):
