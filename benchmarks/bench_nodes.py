@@ -28,6 +28,7 @@ import numpy as np
 
 from harness import emit
 from pipeline.bus.session import BusConfig
+from pipeline.nodes.intake import QueueConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode
 from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dither_seeds
 from pipeline.wire import FrameHeaders, encode_quantized_batch, encode_raw_batch
@@ -112,7 +113,7 @@ def main() -> None:
     bus = BusConfig()
     session = bus.open()
     rows = []
-    big = dict(queue_size=1 << 17, sensor_queue_size=1 << 12, queue_bytes=1 << 31)
+    big = dict(queue=QueueConfig(queue_size=1 << 17, sensor_queue_size=1 << 12, queue_bytes=1 << 31))
     try:
         for what in ["quantize"] + [f"localize-{a}" for a in args.algos]:
             topic = "raw" if what == "quantize" else "quantized"

@@ -31,7 +31,7 @@ from pipeline.dsp.quantize import dequantize
 from pipeline.errors import ParameterError, PipelineError, WireError
 from pipeline.nodes.budget import IntakeBudget
 from pipeline.nodes.counters import UNKNOWN_SENSOR
-from pipeline.nodes.intake import ProcessingNode, QueuedFrame
+from pipeline.nodes.intake import ProcessingNode, QueueConfig, QueuedFrame
 from pipeline.nodes.transport import Transport
 from pipeline.wire import (
     HEADER_LEN,
@@ -228,8 +228,8 @@ class LiveView(ProcessingNode):
 
     def __init__(self, bus: BusConfig, config: ViewConfig, session: zenoh.Session | Transport | None = None,
                  health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
-        super().__init__(bus, session, queue_size=config.queue_size, batch_max=64, health_period_s=health_period_s,
-                         intake=intake)
+        super().__init__(bus, session, queue=QueueConfig(queue_size=config.queue_size), batch_max=64,
+                         health_period_s=health_period_s, intake=intake)
         self._decode = decoder(decoded)  # the process's JSON messages decoded once (pipeline.wire.shared)
         self.config = config
         self._configs = config.known_configs()

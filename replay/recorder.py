@@ -24,7 +24,7 @@ A write error (a full disk, EFBIG, EIO, a removed folder) never stops the node: 
 file is cut back to its last flushed chunk and closed (:meth:`McapSink.abort`), the
 error is logged once (then at most once a second) and shown in health, and by the
 ``on_write_error`` policy the recorder either pauses — counting every message it cannot
-write, by topic — and every ``retry_s`` probes for space (at least ``resume_free_mb``
+write, by topic — and every ``retry_s`` probes for space (at least ``RESUME_FREE_BYTES``
 free), resuming into the next file (``name_0001.mcap``, ...), or stops recording for
 good. Only the first file is different: a recording that cannot even begin is an error
 at start (ReplayError), before anything runs.
@@ -45,7 +45,7 @@ import zenoh
 
 from pipeline.bus.session import BusConfig, zenoh_reason
 from pipeline.nodes.counters import NO_SENSOR, UNKNOWN_SENSOR
-from pipeline.nodes.intake import ProcessingNode, QueuedFrame
+from pipeline.nodes.intake import ProcessingNode, QueueConfig, QueuedFrame
 from pipeline.nodes.transport import Transport
 from radar_driver.model import RadarConfig
 
@@ -72,6 +72,8 @@ FLUSH_PERIOD_S = 1.0
 
 #: at most one log line per this many seconds while recording is paused
 PAUSED_LOG_PERIOD_S = 1.0
+#: a paused recording resumes once this many bytes are free on its disk
+RESUME_FREE_BYTES = 1_000_000
 #: file names listed in health and summaries (the newest); ``files_written`` counts them all
 LISTED_FILES = 8
 #: senders named in the summary's ``refused_by_sensor`` (the most refused; the rest summed)
@@ -138,15 +140,17 @@ class RecordingFiles(ProcessingNode):
     back from the files; ``pending``: since the last flush; ``verify_errors``: read-backs
     that disagreed with what was written); after a write error closed up to its last
     flushed chunk, then paused (probing for space every ``retry_s``, for at least
-    ``resume_free_mb``, resuming into the next file) or stopped, by ``on_write_error``
+    :attr:`resume_free_bytes`, resuming into the next file) or stopped, by ``on_write_error``
     (``recording_ended`` is set). ``metadata``: name -> {key: value} records written at
     the start of every file. Messages lost (write errors, read-backs) are counted by topic."""
+
+    #: the free bytes a paused recording waits for before it resumes into the next file
+    resume_free_bytes: int = RESUME_FREE_BYTES
 
     def __init__(self, bus: BusConfig, path: str | Path, session: zenoh.Session | Transport | None = None,
                  split_size_mb: float | None = None, split_duration_s: float | None = None,
                  metadata: dict[str, dict] | None = None, on_write_error: OnWriteError | str = OnWriteError.RESUME,
-                 retry_s: float = 5.0, resume_free_mb: float = 1.0, new_name_if_taken: bool = False,
-                 overwrite: bool = False, **kw):
+                 retry_s: float = 5.0, new_name_if_taken: bool = False, overwrite: bool = False, **kw):
         super().__init__(bus, session, **kw)
         self.base_path = Path(path)
         if self.base_path.suffix != ".mcap":
@@ -166,13 +170,10 @@ class RecordingFiles(ProcessingNode):
                               f"{[p.value for p in OnWriteError]}") from None
         if not retry_s > 0:
             raise ReplayError(f"write-error retry period {retry_s!r} s must be > 0")
-        if not resume_free_mb >= 0:
-            raise ReplayError(f"resume_free_mb={resume_free_mb!r} must be >= 0")
         self.split_size = None if split_size_mb is None else int(split_size_mb * 1e6)
         self.split_duration_s = split_duration_s
         self.extra_metadata = metadata or {}
         self.retry_s = float(retry_s)
-        self.resume_free_bytes = int(resume_free_mb * 1e6)
         self.paths: list[Path] = []
         self.new_name_if_taken, self.overwrite = new_name_if_taken, overwrite and not new_name_if_taken
         self._part = 0  # the number of the next split file (names taken by others are skipped)
@@ -409,7 +410,7 @@ class RecordingFiles(ProcessingNode):
 class RecorderNode(RecordingFiles):
     """Subscribes ``topics`` (default ``<prefix>/**``) and writes MCAP files
     (:class:`RecordingFiles`: ``split_size_mb``, ``split_duration_s``, ``metadata``,
-    ``on_write_error``, ``retry_s``, ``resume_free_mb``, ``new_name_if_taken``). ``radar``
+    ``on_write_error``, ``retry_s``, ``new_name_if_taken``). ``radar``
     and ``max_ramps``: the announced configurations frames must have (the nodes'
     defaults); ``max_dead_channels``: see the module docstring; ``derived``: the channels
     written beside a sensor's messages (:mod:`replay.derived`: point clouds, scenes, range
@@ -424,8 +425,9 @@ class RecorderNode(RecordingFiles):
                  session: zenoh.Session | Transport | None = None, queue_size: int = 20000,
                  radar: RadarConfig | None = None, max_ramps: int = 16, max_dead_channels: int = DEAD_CHANNELS_MAX,
                  derived: DerivedConfig = DerivedConfig(), decoded: DecodedOnce | None = None, **kw):
-        kw.setdefault("sensor_queue_size", queue_size)  # fair, but one busy sensor may fill the queue
-        super().__init__(bus, path, session, queue_size=queue_size, batch_max=512, **kw)
+        # fair, but one busy sensor may fill the queue
+        super().__init__(bus, path, session, queue=QueueConfig(queue_size=queue_size, sensor_queue_size=queue_size),
+                         batch_max=512, **kw)
         if not (isinstance(max_dead_channels, int) and max_dead_channels >= 1):
             raise ReplayError(f"max_dead_channels={max_dead_channels!r} must be an integer >= 1")
         self.admission = Admission(radar, max_ramps, decoded)

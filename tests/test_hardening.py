@@ -19,6 +19,7 @@ from pipeline.nodes.budget import IntakeBudget
 from pipeline.nodes.counters import DEFAULT_SEQ_RATE_HZ, NO_SENSOR, SEQ_AHEAD_S, UNKNOWN_SENSOR
 from pipeline.errors import ParameterError
 from pipeline.nodes.fairqueue import FairQueue
+from pipeline.nodes.intake import QueueConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
 from pipeline.nodes.runtime import PUBLISHER_AFTER
@@ -159,7 +160,7 @@ def test_the_same_nodes_give_the_same_outputs_over_zenoh_and_in_memory(bus, zeno
 
     def run(transport):
         col = Collector(transport, "radar/**")
-        q, loc = chain(bus, transport, input_mode=input_mode)
+        q, loc = chain(bus, transport, queue=QueueConfig(input_mode=input_mode))
         try:
             for key, payload in msgs:
                 transport.put(key, payload)
@@ -189,7 +190,7 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, mem, intake)
             super().process(batch)
 
     col = Collector(mem, "radar/*/quantized")
-    q = Slow(bus, QuantizerConfig(), session=mem, queue_size=64, sensor_queue_size=16,
+    q = Slow(bus, QuantizerConfig(), session=mem, queue=QueueConfig(queue_size=64, sensor_queue_size=16),
              batch_max=8, intake=IntakeBudget() if intake == "default" else IntakeBudget.unlimited()).start()
     try:
         evil = mem.declare_publisher("radar/evil/raw")

@@ -15,6 +15,7 @@ import zenoh
 
 from pipeline.bus.session import BusConfig
 from pipeline.dsp.localize import position_error_m
+from pipeline.nodes.intake import QueueConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode
 from radar_driver.source import SimSourceConfig, SimulatedSource
 from pipeline.dsp.quantize import QuantizerConfig, unit_dither
@@ -140,8 +141,8 @@ def test_a_full_queue_drops_are_counted_never_silent(bus, zenoh_session, input_m
             time.sleep(0.01)
             super().process(batch)
 
-    q = SlowQuantize(bus, QuantizerConfig(), session=session, queue_size=2, batch_max=1,
-                     input_mode=input_mode).start()
+    q = SlowQuantize(bus, QuantizerConfig(), session=session, queue=QueueConfig(queue_size=2, input_mode=input_mode),
+                     batch_max=1).start()
     frame = np.zeros((512, 2), np.complex64)
     pub = session.declare_publisher("radar/fl/raw", congestion_control=zenoh.CongestionControl.BLOCK)
     for i in range(100):

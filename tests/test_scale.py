@@ -15,6 +15,7 @@ from pipeline.bus.session import BusConfig, Shard
 from pipeline.dsp.decode import DEFAULT_ALPHA
 from pipeline.errors import ParameterError
 from pipeline.nodes.counters import HEALTH_SLICES
+from pipeline.nodes.intake import QueueConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, SourceNode, run_nodes
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.wire import decode_health, decode_quantized, decode_raw, decode_targets
@@ -214,7 +215,7 @@ def test_pulled_and_callback_input_give_the_same_targets(zenoh_session):
     col = Collector(session, "*/*/targets")
     cfg = LocalizerConfig(k=2, radar=CHAMBER.radar)
     buses = {mode: BusConfig(prefix=mode) for mode in ("pull", "callback")}
-    locs = {mode: LocalizeNode(bus, cfg, session=session, input_mode=mode) for mode, bus in buses.items()}
+    locs = {mode: LocalizeNode(bus, cfg, session=session, queue=QueueConfig(input_mode=mode)) for mode, bus in buses.items()}
     srcs = {mode: SourceNode(bus, sim(sensors=5, frames=8, prefix="m", send="spread"), session=session,
                              quantizer=QUANT) for mode, bus in buses.items()}
     run_until_done(list(locs.values()) + list(srcs.values()),
@@ -235,7 +236,7 @@ def test_pulled_and_callback_input_give_the_same_targets(zenoh_session):
 
 def test_the_input_mode_is_checked(bus):
     with pytest.raises(ParameterError, match="input mode 'push' must be one of"):
-        LocalizeNode(bus, LocalizerConfig(), session=object(), input_mode="push")
+        LocalizeNode(bus, LocalizerConfig(), session=object(), queue=QueueConfig(input_mode="push"))
     r = subprocess.run([*QRADAR, "localize", "--input", "push"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 2 and "--input: invalid choice: 'push'" in r.stderr.strip().splitlines()[-1]

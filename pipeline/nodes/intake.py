@@ -93,10 +93,8 @@ class QueueConfig:
                              "zenoh wait: for a node with its process to itself", flag="--input", choices=INPUT_MODES)
 
     def node_kwargs(self) -> dict:
-        """The keyword arguments of a ProcessingNode (a sensor's queue at most the whole)."""
-        return {"queue_size": self.queue_size, "sensor_queue_size": min(self.sensor_queue_size, self.queue_size),
-                "queue_bytes": int(self.queue_bytes), "sensor_expiry_s": self.sensor_expiry_s,
-                "batch_linger_s": self.batch_linger_s, "input_mode": self.input_mode}
+        """The keyword arguments of a ProcessingNode: this queue, and its sensor expiry."""
+        return {"queue": self, "sensor_expiry_s": self.sensor_expiry_s}
 
 
 @dataclass(frozen=True)
@@ -131,8 +129,11 @@ class ProcessingNode(Node):
     """Subscribes ``<prefix>/<sensors>/<in_topic>``; callback -> fair queue -> batches ->
     :meth:`process`.
 
-    queue_size: frames waiting in all; sensor_queue_size: of one sensor (default
-    min(queue_size, 128)); queue_bytes: payload bytes waiting in all. ``sensors``: the
+    ``queue``: a :class:`QueueConfig`, its frames waiting in all (``queue_size``), of one
+    sensor (``sensor_queue_size``, at most the whole), payload bytes waiting in all
+    (``queue_bytes``), the batch's linger (None: the node's) and the input mode (its
+    ``sensor_expiry_s`` is the node's ``sensor_expiry_s``, which :meth:`QueueConfig.node_kwargs`
+    hands over; None: never). ``batch_max``: frames a batch at most. ``sensors``: the
     sensors served, a key chunk with ``*`` wildcards (zenoh filters the others before they
     reach this process); ``shard``: serve only the sensors of this :class:`~pipeline.bus.session.Shard`
     (the others' frames are counted in ``foreign_frames`` and dropped on arrival, before
@@ -153,31 +154,32 @@ class ProcessingNode(Node):
     #: a lull this long without a new frame ends the wait for a full batch (s)
     batch_lull_s: float = 0.001
 
-    def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None, queue_size: int = DEFAULT_QUEUE_SIZE,
-                 batch_max: int = 64, health_period_s: float = 1.0, sensor_queue_size: int | None = None,
-                 queue_bytes: int = DEFAULT_QUEUE_BYTES, sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S,
-                 sensors: str = "*", shard: Shard | None = None, batch_linger_s: float | None = None,
-                 input_mode: str = "callback", intake: IntakeBudget | None = None):
+    def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None,
+                 queue: QueueConfig | None = None, batch_max: int = 64, health_period_s: float = 1.0,
+                 sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S, sensors: str = "*", shard: Shard | None = None,
+                 intake: IntakeBudget | None = None):
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
+        queue = QueueConfig() if queue is None else queue
         self.intake = IntakeBudget() if intake is None else intake
         self._new_ids = (TokenBucket(self.intake.new_sensors_per_s, self.intake.new_sensors_burst, time.monotonic())
                          if self.intake.new_sensors_per_s else None)
-        if input_mode not in INPUT_MODES:
-            raise ParameterError(f"input mode {input_mode!r} must be one of {INPUT_MODES}")
-        self.input_mode = input_mode
+        if queue.input_mode not in INPUT_MODES:
+            raise ParameterError(f"input mode {queue.input_mode!r} must be one of {INPUT_MODES}")
+        self.input_mode = queue.input_mode
         self._input: PullSubscriber | None = None  # pull: the subscriber's FIFO, drained by the worker
-        if batch_linger_s is not None:
-            if not 0 <= batch_linger_s <= 1.0:
-                raise ParameterError(f"batch linger {batch_linger_s!r} s must be in [0, 1]")
-            self.batch_linger_s = batch_linger_s
+        if queue.batch_linger_s is not None:
+            if not 0 <= queue.batch_linger_s <= 1.0:
+                raise ParameterError(f"batch linger {queue.batch_linger_s!r} s must be in [0, 1]")
+            self.batch_linger_s = queue.batch_linger_s
         self.sensors = check_sensor_pattern(sensors)
         self.shard = shard
         self.foreign_frames = 0
         self._key_info: dict[str, tuple[str, bool]] = {}  # key -> (sensor or NO_SENSOR, served)
-        if queue_size < 1 or batch_max < 1:
-            raise ParameterError(f"queue_size={queue_size} and batch_max={batch_max} must be >= 1")
-        per_sensor = min(queue_size, DEFAULT_SENSOR_QUEUE) if sensor_queue_size is None else sensor_queue_size
-        self._queue = FairQueue(queue_size, per_sensor, queue_bytes)
+        if queue.queue_size < 1 or queue.sensor_queue_size < 1 or batch_max < 1:
+            raise ParameterError(f"queue_size={queue.queue_size}, sensor_queue_size={queue.sensor_queue_size} and "
+                                 f"batch_max={batch_max} must be >= 1")
+        self._queue = FairQueue(queue.queue_size, min(queue.sensor_queue_size, queue.queue_size),
+                                int(queue.queue_bytes))
         self.batch_max = batch_max
         self._subscriber = None
         self._ended = False  # the node stopped and its workers ended (_workers_ended)
