@@ -29,12 +29,13 @@ from pipeline.dsp.quantize import QuantizerConfig, quantize_frames, sensor_dithe
 from pipeline.dsp.track import TrackerConfig
 from pipeline.nodes.tracker import Integration, Tracker, track_batch
 from pipeline.wire import FrameHeaders, TargetsMsg, decode_tracks, encode_targets_batch
-from radar_driver.model import RadarConfig, polar_to_xy
+from radar_driver.model import RadarConfig
 from radar_driver.options import nonneg_int, option
 from radar_driver.scene import SimScene, load_truth, scene_from_dict
 
 from .errors import NoQradarChannelsError, ReplayError
-from .outputs import check_new_file, output_folder, pyplot
+from .outputs import check_new_file, output_folder
+from .reprocess_figures import plot_alpha_sweep, plot_reconstructions
 from .mcapinfo import split_note
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
@@ -160,19 +161,27 @@ class AlphaResult:
     scores: FrameScores | None = None  # the honest score of each frame (pipeline.dsp.score)
 
 
-def run_alpha(rec: RawRecording, radar: RadarConfig, truth: list[dict], alpha: float, bits: int, k: int,
-              seed: int, algo: Algo = DEFAULT_ALGO, auto_k: bool = False, pfa: float = DEFAULT_PFA,
-              gate: RangeGate | None = None) -> AlphaResult:
+def truth_positions(rec: RawRecording, scene: SimScene) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of the ``scene``'s targets is in each frame of ``rec``: (F, T) ranges (m)
+    and angles (deg), a moving target's at the frame's time since the recording's first
+    frame (the live run's clock for a simulated sensor: its first frame; a later file of a
+    split recording starts its own)."""
+    r, a, _ = scene.arrays((rec.timestamp_ns - rec.timestamp_ns[0]) / 1e9)
+    return r, a
+
+
+def run_alpha(rec: RawRecording, radar: RadarConfig, positions: tuple[np.ndarray, np.ndarray], alpha: float,
+              bits: int, k: int, seed: int, algo: Algo = DEFAULT_ALGO, auto_k: bool = False,
+              pfa: float = DEFAULT_PFA, gate: RangeGate | None = None) -> AlphaResult:
     """One alpha: quantize every frame, decode (``auto_k``: at most ``k`` targets, counted
     with false-alarm probability ``pfa``; only inside ``gate``, None: the whole range
-    axis) and measure each true target's error."""
+    axis) and measure each true target's error, the targets at ``positions`` ((F, T) ranges
+    (m) and angles (deg), :func:`truth_positions`)."""
     q = quantize_frames(rec.frames, QuantizerConfig(bits=bits, alpha=float(alpha)), rec.seq,
                         dither_seed=sensor_dither_seed(seed, rec.sensor_id))
     # alpha = 0 has no dither to use: qiht falls back to PBP there (cml decodes it without dither)
     det = decode_batch(q, radar, k, DecoderConfig(algo=algo, fallback_pbp=True, auto_k=auto_k, pfa=pfa, gate=gate))
-    f = rec.frames.shape[0]
-    tr = np.broadcast_to(np.array([[t["range_m"] for t in truth]]), (f, len(truth)))
-    ta = np.broadcast_to(np.array([[t["angle_deg"] for t in truth]]), (f, len(truth)))
+    tr, ta = positions
     err, pos = nearest_estimates(tr, ta, det.range_m, det.angle_deg)
     return AlphaResult(float(alpha), err, np.stack([pos.real, pos.imag], axis=-1), det,
                        score_frames(tr, ta, det.range_m, det.angle_deg))
@@ -185,6 +194,11 @@ class SweepResult:
     truth: list[dict]
     rec: RawRecording
     params: dict = field(default_factory=dict)
+    positions: tuple[np.ndarray, np.ndarray] | None = None  # (F, T) true ranges (m), angles (deg): truth_positions
+
+    def moving(self, i: int) -> bool:
+        """Whether true target ``i`` moves over the frames."""
+        return self.positions is not None and bool(np.ptp(self.positions[0][:, i]) > 0)
 
     @property
     def mean_error_m(self) -> np.ndarray:
@@ -239,115 +253,24 @@ class SweepResult:
         }
 
 
-def sweep(rec: RawRecording, radar: RadarConfig, truth: list[dict], alphas: np.ndarray, bits: int = 1,
-          k: int | None = None, seed: int = 0, progress: bool = True, algo: Algo = DEFAULT_ALGO,
-          auto_k: bool = False, pfa: float = DEFAULT_PFA, bar: Progress | None = None,
-          gate: RangeGate | None = None) -> SweepResult:
+def sweep(rec: RawRecording, radar: RadarConfig, scene: SimScene, alphas: np.ndarray, bits: int = 1,
+          k: int | None = None, seed: int = 0, algo: Algo = DEFAULT_ALGO, auto_k: bool = False,
+          pfa: float = DEFAULT_PFA, bar: Progress | bool = True, gate: RangeGate | None = None) -> SweepResult:
     """Every alpha of ``alphas`` with one decoder, searching inside ``gate`` (None: the
-    whole range axis). ``bar``: a progress bar of the caller's to advance (else one of
-    its own, shown if ``progress``)."""
+    whole range axis), each frame scored against where the ``scene``'s targets are at its
+    time (:func:`truth_positions`; the result's ``truth``: at the first frame). ``bar``: a
+    progress bar of the caller's to advance, or whether to show one of its own."""
+    truth, positions = scene.truth(0.0), truth_positions(rec, scene)
     k = k or len(truth)
     out = []
-    own = Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=progress)
-    with own if bar is None else nullcontext(bar) as bar:
+    own = Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=bar is True)
+    with own if isinstance(bar, bool) else nullcontext(bar) as bar:
         for a in alphas:
-            out.append(run_alpha(rec, radar, truth, float(a), bits, k, seed, algo, auto_k, pfa, gate))
+            out.append(run_alpha(rec, radar, positions, float(a), bits, k, seed, algo, auto_k, pfa, gate))
             bar.update(rec.frames.shape[0])
     return SweepResult(np.asarray(alphas, float), out, truth, rec,
                        {"bits": bits, "K": k, "K_auto": auto_k, "algo": str(algo), "seed": seed,
-                        **({} if gate is None else gate.to_dict())})
-
-
-# -- figures ---------------------------------------------------------------------------------
-def plot_alpha_sweep(results: dict[str, SweepResult], path: Path) -> Path:
-    """Fig. 5a: mean position error against alpha. One decoder: a curve per target and
-    their mean; several: the mean of the targets, one curve per decoder (each target's
-    curve dotted, in the decoder's colour), each decoder's best alpha marked."""
-    plt = pyplot()
-    first = next(iter(results.values()))
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
-    if len(results) == 1:
-        me = first.mean_error_m
-        for i, t in enumerate(first.truth):
-            ax.plot(first.alphas, me[:, i], marker="o", ms=3,
-                    label=f"target {i + 1}: {t['range_m']:.2f} m, {t['angle_deg']:+.0f}°")
-        ax.plot(first.alphas, me.mean(axis=1), "k--", lw=1, label="mean of targets")
-    for n, (algo, result) in enumerate(results.items()):
-        me = result.mean_error_m
-        best = result.best_index
-        color = "grey" if len(results) == 1 else f"C{n}"
-        if len(results) > 1:
-            ax.plot(result.alphas, me.mean(axis=1), "-", marker="o", ms=3, color=color,
-                    label=f"{algo}, mean of targets: best α = {result.alphas[best]:.2f}, {me[best].mean():.3f} m")
-            for i in range(me.shape[1]):
-                ax.plot(result.alphas, me[:, i], ":", lw=0.8, color=color)
-        else:
-            ax.annotate(f"best α = {result.alphas[best]:.2f}", (result.alphas[best], me.mean(axis=1)[best]),
-                        textcoords="offset points", xytext=(8, 12), fontsize=8)
-        ax.axvline(result.alphas[best], color=color, lw=0.8, ls=":")
-    if len(results) > 1 and any(np.any(np.isfinite(r.mean_error_m) & (r.mean_error_m > 0))
-                                for r in results.values()):
-        ax.set_yscale("log")
-        ax.plot([], [], ":", color="0.4", lw=0.8, label="each target")
-    ax.set_xlabel("dither scale α")
-    ax.set_ylabel("mean position error (m)")
-    p = first.params
-    ax.set_title(f"{first.rec.sensor_id}: {first.rec.frames.shape[0]} frames, {p['bits']}-bit, "
-                 f"{', '.join(a.upper() for a in results)}, K = {'auto, at most ' if p['K_auto'] else ''}{p['K']}",
-                 fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="best", framealpha=0.9)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
-
-
-def _ellipse(ax, mean_xy, cov, color, ls):
-    vals, vecs = np.linalg.eigh(cov)
-    vals = np.maximum(vals, 0)
-    t = np.linspace(0, 2 * np.pi, 100)
-    circle = np.stack([np.cos(t), np.sin(t)])
-    pts = (vecs @ (2 * np.sqrt(vals)[:, None] * circle)).T + mean_xy  # 2 sigma
-    ax.plot(pts[:, 1], pts[:, 0], color=color, ls=ls, lw=1)
-
-
-def plot_reconstructions(result: SweepResult, path: Path) -> Path:
-    """Mean estimated position of each target with its 2-sigma ellipse over the frames,
-    alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. Lateral
-    y (m) across, boresight x (m) up; the radar at (0, 0)."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
-    first = int(np.argmin(result.alphas))
-    cases = [(result.best_index, "tab:blue", "-", "o"), (first, "tab:red", "--", "s")]
-    for idx, color, ls, marker in cases:
-        r = result.results[idx]
-        for i in range(len(result.truth)):
-            xy = r.nearest_xy[:, i]
-            xy = xy[np.all(np.isfinite(xy), axis=1)]  # frames without any target (K auto) have no estimate
-            if not xy.shape[0]:
-                continue
-            mean = xy.mean(axis=0)
-            cov = np.cov(xy.T) if xy.shape[0] > 1 else np.zeros((2, 2))
-            ax.scatter(xy[:, 1], xy[:, 0], s=4, color=color, alpha=0.25)
-            ax.plot(mean[1], mean[0], marker, color=color, ms=6, mfc="none" if marker == "s" else color,
-                    label=f"α = {r.alpha:.2f}" if i == 0 else None)
-            _ellipse(ax, mean, cov, color, ls)
-    for i, t in enumerate(result.truth):
-        x, y = polar_to_xy(t["range_m"], np.deg2rad(t["angle_deg"]))
-        ax.plot(y, x, "kx", ms=9, mew=2, label="truth" if i == 0 else None)
-    ax.plot(0, 0, "k^", ms=8, label="radar")
-    ax.set_xlabel("y (m), across boresight (+ = antenna 2 side)")
-    ax.set_ylabel("x (m), along boresight")
-    ax.set_title(f"{result.params['algo'].upper()}, {result.rec.frames.shape[0]} frames: mean of the estimate "
-                 "nearest each target, 2σ ellipses", fontsize=9)
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+                        **({} if gate is None else gate.to_dict())}, positions)
 
 
 def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path: Path,
@@ -498,6 +421,32 @@ def run(cfg: ReprocessConfig) -> ReprocessResult:
         return _run(cfg, inputs)
 
 
+def _notes(cfg: ReprocessConfig, rec: RawRecording, front: dict, scene: SimScene, radar: RadarConfig,
+           gate: RangeGate) -> list[str]:
+    """What a re-processing says besides its figures: a calibration the live run had and this
+    one has not, a front end no calibration removed (``front``: the frames checked and
+    flagged), targets outside the range ``gate``, one file of a split set, moving targets."""
+    notes = []
+    live = rec.metadata.get("qradar.calibration", {}).get("file")
+    if front["calibrated"] is None and live:  # raw frames keep the front end; the live run removed it where it quantized
+        notes.append(f"warning: {cfg.file} was recorded by a run calibrated with {live}, and its raw frames keep the "
+                     f"front end: give --calibration {live} to decode them as that run did")
+    elif leakage_shown(front):
+        notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
+    outside = gate_warning(scene, gate)
+    if outside is not None:
+        notes.append(f"warning: {outside}")
+    split = split_note(cfg.file, "reprocess")
+    if split is not None:
+        notes.append(split)
+    if any(t.velocity_m_s for t in scene.targets):
+        notes.append("note: moving targets: each frame is scored where they are at its time since this file's first "
+                     "frame" + (" (a file of a split set: its clock starts at its own first frame, not the "
+                                "recording's, so the truth of its moving targets is early by the files before it)"
+                                if split is not None and not split.startswith(f"note: {cfg.file} is file 1 ") else ""))
+    return notes
+
+
 def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
     """:func:`run` once its output folder is there."""
     if cfg.mcap is not None:
@@ -513,30 +462,16 @@ def _run(cfg: ReprocessConfig, inputs: tuple) -> ReprocessResult:
         gate = RangeGate.resolve(cfg.min_range_m, cfg.max_range_m, radar)
     except ParameterError as exc:
         raise ReplayError(f"{cfg.file}: {exc}") from None
-    notes = []
     # as a run's localizer: frames with a return in the first range bins within 10 dB of their strongest show
     # the front end, which no calibration removed or another sensor's did (a calibration that does not fit: said, as run says it)
     front = {"checked": int(rec.frames.shape[0]), "leakage": int(leakage_return(rec.frames, radar).sum()),
              "calibrated": None if calibration is None else calibration.source}
-    live = rec.metadata.get("qradar.calibration", {}).get("file")
-    if calibration is None and live:  # raw frames keep the front end; the live run removed it where it quantized
-        notes.append(f"warning: {cfg.file} was recorded by a run calibrated with {live}, and its raw frames keep the "
-                     f"front end: give --calibration {live} to decode them as that run did")
-    elif leakage_shown(front):
-        notes.append(f"warning: {front_end_warning(rec.sensor_id, front, radar)}")
-    outside = gate_warning(scene, gate)
-    if outside is not None:
-        notes.append(f"warning: {outside}")
-    split = split_note(cfg.file, "reprocess")
-    if split is not None:
-        notes.append(split)
-    if any(t.velocity_m_s for t in scene.targets):
-        notes.append("note: moving targets; the truth is taken at the first frame")
+    notes = _notes(cfg, rec, front, scene, radar, gate)
     results: dict[str, SweepResult] = {}
     with Progress(len(cfg.alphas) * rec.frames.shape[0] * len(cfg.algos), "reprocess", unit="frames",
                   enabled=cfg.progress) as bar:
         for algo in cfg.algos:
-            results[str(algo)] = sweep(rec, radar, scene.truth(0.0), np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k,
+            results[str(algo)] = sweep(rec, radar, scene, np.asarray(cfg.alphas), bits=cfg.bits, k=cfg.k,
                                        seed=cfg.seed, algo=algo, auto_k=cfg.auto_k, pfa=cfg.pfa, bar=bar, gate=gate)
     first = next(iter(results.values()))
     summaries = {a: r.summary() for a, r in results.items()}

@@ -76,7 +76,7 @@ def test_the_default_alpha_is_the_best_of_a_sweep_on_the_committed_recording():
     radar = radar_for(rec, scene.radar)
     step = 0.1
     alphas = np.round(np.clip(DEFAULT_ALPHA + step * np.arange(-2, 3), 0.0, 1.0), 10)
-    errors = np.mean([sweep(rec, radar, scene.truth(0.0), alphas, seed=seed, algo=DEFAULT_ALGO, progress=False,
+    errors = np.mean([sweep(rec, radar, scene, alphas, seed=seed, algo=DEFAULT_ALGO, bar=False,
                             gate=RangeGate.default(radar)).mean_error_m.mean(axis=1) for seed in range(5)], axis=0)
     best = alphas[int(np.argmin(errors))]
     assert abs(best - DEFAULT_ALPHA) <= step + 1e-9, dict(zip(alphas.tolist(), np.round(errors, 4).tolist()))
