@@ -443,17 +443,9 @@ class McapFile(ReadFindings, Selection):
             if rec is None or not plausible_opcode(rec[0]):
                 if pending is not None:
                     self._damage(*pending)
-                    pending = None
-                nxt = resync(buf, pos + 1, size)
-                if nxt is None and buf[size - len(MAGIC):size] != MAGIC:
-                    self.truncated = True
-                    self.truncation_reason = (f"cut short at byte {pos} of {size}: " +
-                                              ("its last record is half written" if rec is None else
-                                               f"opcode {rec[0]:#04x} is no record's"))
+                nxt, pending = self._unframed(buf, pos, size, rec)
+                if pending is None:  # cut short there
                     return
-                stop = size if nxt is None else nxt
-                why = "the records there do not frame" + ("; nothing after them reads" if nxt is None else "")
-                pending = (DamagedChunk(pos, stop - pos, None, None, Counter(), False, why), Counter())
                 after_chunk = True  # message index records right after it count what it held
                 if nxt is None:
                     break
@@ -497,28 +489,9 @@ class McapFile(ReadFindings, Selection):
                         pass
                     pending = (damage, read)
             elif opcode == Opcode.MESSAGE:
-                if len(body) >= MESSAGE_HEAD.size:
-                    cid, seq, log_ns, pub_ns = MESSAGE_HEAD.unpack_from(body)
-                    msg = Message(channel_id=cid, sequence=seq, log_time=log_ns, publish_time=pub_ns,
-                                  data=body[MESSAGE_HEAD.size:])
-                    verdict = self._verdict(cid, log_ns)
-                    if verdict == "lost":
-                        self.lost_by_channel[cid] += 1
-                    elif verdict == "take":
-                        yield from self._yield([(self.channels[cid], msg)])
+                yield from self._message_record(body)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA):
-                cls = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}[opcode]
-                try:
-                    r = parse_record(cls, body, f"the {cls.__name__.lower()} record at byte {pos}")
-                except Damage as exc:
-                    self.problems.append(str(exc))
-                else:
-                    if opcode == Opcode.SCHEMA:
-                        self.schemas[r.id] = r
-                    elif opcode == Opcode.CHANNEL:
-                        self.channels[r.id] = r
-                    else:
-                        self._metadata(r)
+                self._info_record(opcode, body, pos)
             elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary (if any) follows: read apart
                 if buf[size - len(MAGIC):size] != MAGIC:
                     self.truncated = True
@@ -531,6 +504,48 @@ class McapFile(ReadFindings, Selection):
         if pos >= size:  # records up to the end, no footer
             self.truncated = True
             self.truncation_reason = f"no footer: it ends after its last whole record (byte {pos})"
+
+    def _unframed(self, buf, pos: int, size: int, rec) -> tuple[int | None, tuple[DamagedChunk, Counter] | None]:
+        """Records at ``pos`` that do not frame (``rec``: the record there, None: half
+        written): the next record that provably starts one (None: none) and the damage there,
+        whose message indexes may follow; (None, None) when the file is cut short there."""
+        nxt = resync(buf, pos + 1, size)
+        if nxt is None and buf[size - len(MAGIC):size] != MAGIC:
+            self.truncated = True
+            self.truncation_reason = (f"cut short at byte {pos} of {size}: " +
+                                      ("its last record is half written" if rec is None else
+                                       f"opcode {rec[0]:#04x} is no record's"))
+            return None, None
+        stop = size if nxt is None else nxt
+        why = "the records there do not frame" + ("; nothing after them reads" if nxt is None else "")
+        return nxt, (DamagedChunk(pos, stop - pos, None, None, Counter(), False, why), Counter())
+
+    def _message_record(self, body) -> Iterator[tuple[Channel, Message]]:
+        """A message record outside any chunk: taken, counted lost, or passed over by its verdict."""
+        if len(body) >= MESSAGE_HEAD.size:
+            cid, seq, log_ns, pub_ns = MESSAGE_HEAD.unpack_from(body)
+            msg = Message(channel_id=cid, sequence=seq, log_time=log_ns, publish_time=pub_ns,
+                          data=body[MESSAGE_HEAD.size:])
+            verdict = self._verdict(cid, log_ns)
+            if verdict == "lost":
+                self.lost_by_channel[cid] += 1
+            elif verdict == "take":
+                yield from self._yield([(self.channels[cid], msg)])
+
+    def _info_record(self, opcode: int, body, pos: int) -> None:
+        """A schema, channel or metadata record at byte ``pos``, kept; a damaged one is a problem."""
+        cls = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}[opcode]
+        try:
+            r = parse_record(cls, body, f"the {cls.__name__.lower()} record at byte {pos}")
+        except Damage as exc:
+            self.problems.append(str(exc))
+            return
+        if opcode == Opcode.SCHEMA:
+            self.schemas[r.id] = r
+        elif opcode == Opcode.CHANNEL:
+            self.channels[r.id] = r
+        else:
+            self._metadata(r)
 
     def _metadata(self, md: Metadata) -> None:
         why = check_metadata(md)
