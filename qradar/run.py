@@ -212,7 +212,7 @@ def localizer_of(cfg: RunConfig, k: int, radar: RadarConfig) -> LocalizerConfig:
     except ParameterError as e:
         if cfg.k or f"K={k}" not in str(e):
             raise
-        raise ParameterError(f"no --K given, so K={k}, the scene's (or --truth's) targets: {e}") from None
+        raise ParameterError(f"no --K given: K={k} from the scene's (or --truth's) targets; {e}") from None
 
 
 def check_offline(cfg: RunConfig) -> None:

@@ -158,7 +158,7 @@ def test_the_default_run_prints_a_complete_file(capsys):
     (("--min-range-m", "100", "--max-range-m", "10"), "range gate: min_range_m=100 must be below max_range_m=10"),
     (("--sensor", "/dev/ttyUSB9,id=a", "--min-range-m", "100", "--max-range-m", "10"), "min_range_m=100 must be below"),
     (("--min-range-m", "160"), "min_range_m=160 is beyond the radar's unambiguous range"),
-    (("--algo", "cml", "--K", "200"), "K=200 (or --max-targets) must be at most N/2 = 128 for cml")])
+    (("--algo", "cml", "--K", "200"), "K=200 must be at most N/2 = 128 for cml")])
 def test_print_config_prints_only_a_config_that_runs(capsys, argv, words):
     """The localizer's checks a run makes before it starts, made before the file is printed
     (a real sensor's radar is known once its port opens: there, the gate's ends)."""

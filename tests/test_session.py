@@ -116,7 +116,9 @@ def test_paced_at_the_frame_rate(link):
         t0 = time.monotonic()
         list(s.frames(6))
         elapsed = time.monotonic() - t0
-    assert 0.2 < elapsed < 10  # about 0.3 s at 20 frames/s; no hard timing on a shared machine
+    # 6 frames at 20 frames/s are 0.25 s apart at the least: paced, never faster (a busy host may be slower,
+    # so no upper bound)
+    assert elapsed > 0.2
 
 
 def test_typed_errors(tmp_path):

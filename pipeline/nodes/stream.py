@@ -375,12 +375,13 @@ class LocalizerConfig:
             raise ParameterError(f"K={self.k} targets do not fit in the range gate [{gate.min_range_m:g}, "
                                  f"{gate.max_range_m:g}] m: it holds {cells} range bins")
         object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
+        most = f"--max-targets={self.k}" if self.auto_k else f"K={self.k}"  # K auto: the most a frame has
         if self.algo == Algo.CML and self.k > self.radar.samples_per_ramp // 2:
-            raise ParameterError(f"K={self.k} (or --max-targets) must be at most N/2 = "
+            raise ParameterError(f"{most} must be at most N/2 = "
                                  f"{self.radar.samples_per_ramp // 2} for cml: its fit of K tones to N samples a "
                                  f"ramp needs at least two samples a tone")
         if self.algo == Algo.CML and self.k > CML_LIVE_MAX_K:
-            raise ParameterError(f"K={self.k} (or --max-targets) is more than cml decodes live: at most "
+            raise ParameterError(f"{most} is more than cml decodes live: at most "
                                  f"{CML_LIVE_MAX_K} (a 1-bit frame took 2 ms at K = 2, 49 ms at 16, 2.7 s at 32 on one "
                                  "core); pbp decodes more, or decode offline with the API")
         if self.source not in ("quantized", "raw"):
