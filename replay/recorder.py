@@ -72,6 +72,8 @@ FLUSH_PERIOD_S = 1.0
 
 #: at most one log line per this many seconds while recording is paused
 PAUSED_LOG_PERIOD_S = 1.0
+#: the sensors whose first raw frame later files of a split set name (``first_raw_ns``), at most
+MAX_CLOCKS = 4096
 #: a paused recording resumes once this many bytes are free on its disk
 RESUME_FREE_BYTES = 1_000_000
 #: file names listed in health and summaries (the newest); ``files_written`` counts them all
@@ -437,6 +439,7 @@ class RecorderNode(RecordingFiles):
         self._recheck_channels = False  # sensors expired: count the file's dead channels again
         self.refusals = RefusalCounts()  # by live sensor (or NO_SENSOR) and kind, under _lock
         self._health_summary: tuple[float, dict] | None = None  # (when, summary) for health_extra
+        self.first_raw_ns: dict[str, int] = {}  # each sensor's first raw frame (its timestamp): the truth's clock
         self.topics = topics or f"{bus.prefix}/**"
         try:
             zenoh.KeyExpr(self.topics)
@@ -477,9 +480,10 @@ class RecorderNode(RecordingFiles):
         return self.topics
 
     def _file_metadata(self) -> dict[str, dict]:
-        return {"qradar.versions": versions(),
-                "qradar.recorder": {"topics": self.topics, "prefix": self.bus.prefix, "part": str(len(self.paths))},
-                **self.extra_metadata}
+        recorder = {"topics": self.topics, "prefix": self.bus.prefix, "part": str(len(self.paths))}
+        if self.first_raw_ns:  # a later file of a split set: where each sensor's clock began (replay.reprocess)
+            recorder["first_raw_ns"] = json.dumps(self.first_raw_ns)
+        return {"qradar.versions": versions(), "qradar.recorder": recorder, **self.extra_metadata}
 
     def _final_counters(self) -> dict[str, str]:
         return {kind: str(n) for kind, n in self.refused().items()}
@@ -494,6 +498,8 @@ class RecorderNode(RecordingFiles):
         for a in admitted:
             item = batch[a.index]
             topic = topic_of(item.key) or "other"
+            if topic == "raw" and len(self.first_raw_ns) < MAX_CLOCKS:
+                self.first_raw_ns.setdefault(sensors[a.index], a.publish_ns)
             self._split_if_due()
             if self._sink is not None and self._sink.n_channels >= min(self._dead_check_at, FILE_CHANNELS_MAX):
                 self._check_channels()

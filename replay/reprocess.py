@@ -161,12 +161,21 @@ class AlphaResult:
     scores: FrameScores | None = None  # the honest score of each frame (pipeline.dsp.score)
 
 
+def clock_start_ns(rec: RawRecording) -> tuple[int, bool]:
+    """When the truth's clock of ``rec``'s sensor began (ns) and whether the recording says so:
+    its first raw frame, which a later file of a split set names (``qradar.recorder``'s
+    ``first_raw_ns``), else this file's first frame (False)."""
+    try:
+        return int(json.loads(rec.metadata["qradar.recorder"]["first_raw_ns"])[rec.sensor_id]), True
+    except (KeyError, TypeError, ValueError):
+        return int(rec.timestamp_ns[0]), False
+
+
 def truth_positions(rec: RawRecording, scene: SimScene) -> tuple[np.ndarray, np.ndarray]:
     """Where each of the ``scene``'s targets is in each frame of ``rec``: (F, T) ranges (m)
-    and angles (deg), a moving target's at the frame's time since the recording's first
-    frame (the live run's clock for a simulated sensor: its first frame; a later file of a
-    split recording starts its own)."""
-    r, a, _ = scene.arrays((rec.timestamp_ns - rec.timestamp_ns[0]) / 1e9)
+    and angles (deg), a moving target's at the frame's time since the sensor's first frame
+    (:func:`clock_start_ns`: the live run's clock for a simulated sensor)."""
+    r, a, _ = scene.arrays(np.maximum(rec.timestamp_ns - clock_start_ns(rec)[0], 0) / 1e9)
     return r, a
 
 
@@ -440,10 +449,11 @@ def _notes(cfg: ReprocessConfig, rec: RawRecording, front: dict, scene: SimScene
     if split is not None:
         notes.append(split)
     if any(t.velocity_m_s for t in scene.targets):
-        notes.append("note: moving targets: each frame is scored where they are at its time since this file's first "
-                     "frame" + (" (a file of a split set: its clock starts at its own first frame, not the "
-                                "recording's, so the truth of its moving targets is early by the files before it)"
-                                if split is not None and not split.startswith(f"note: {cfg.file} is file 1 ") else ""))
+        known = clock_start_ns(rec)[1] or split is None or split.startswith(f"note: {cfg.file} is file 1 ")
+        notes.append("note: moving targets: each frame is scored where they are at its time since the sensor's first "
+                     "frame" + ("" if known else " (taken as this file's first: a file of a split set whose "
+                                "recorder did not name the sensor's first frame, so its moving targets' truth "
+                                "is early by the files before it)"))
     return notes
 
 

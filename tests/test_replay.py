@@ -389,27 +389,34 @@ def test_a_recorder_that_records_nothing_says_so_and_fails(tmp_path):
 
 
 def test_a_moving_target_is_scored_where_it_is_in_each_frame(tmp_path):
-    """A recording of the walker (3 m at 1.5 m/s beside a static reflector) re-processed: each
-    frame is scored against where the walker is at its time, as the live run scores it. It was
-    scored against its place at the first frame: 4.5 m behind by the sixtieth."""
-    from replay.reprocess import truth_positions
+    """A recording of the walker (3 m at 1.5 m/s beside a static reflector), split in two files,
+    re-processed: each frame is scored against where the walker is at its time since
+    the sensor's first frame, as the live run scores it, a later file too (its recorder names
+    that frame). It was scored against its place at the file's first frame: metres behind."""
+    from replay.reprocess import clock_start_ns, truth_positions
 
     path = tmp_path / "walk.mcap"
     proc = subprocess.run([*QRADAR, "run", "--scene", "walker", "--frames", "60", "--duration", "120",
-                           "--record", str(path), "--json"], capture_output=True, text=True, timeout=180,
-                          stdin=subprocess.DEVNULL)
+                           "--split-size", "0.2", "--record", str(path), "--json"], capture_output=True, text=True,
+                          timeout=180, stdin=subprocess.DEVNULL)
     assert proc.returncode == 0, proc.stderr[-2000:]
     live = json.loads(proc.stdout)["score"]
-    rec = load_raw(path)
-    scene = truth_scene(rec, None)
-    ranges, angles = truth_positions(rec, scene)
-    t_s = (rec.timestamp_ns - rec.timestamp_ns[0]) / 1e9
-    np.testing.assert_allclose(ranges[:, 0], 3.0 + 1.5 * t_s)  # the walker, frame by frame
-    np.testing.assert_allclose(ranges[:, 1], 20.0) and np.testing.assert_allclose(angles, [[-10.0, 35.0]] * len(t_s))
-    assert t_s[-1] > 2.0  # the walker moved 3 m or more
-    res = sweep(rec, radar_for(rec, scene.radar), scene, np.array([0.45]), bar=False)
-    walker = np.nanmedian(res.results[0].errors_m[:, 0])
-    # as the live run scored it (its frames quantized alike); scored at t = 0 it was about 2.2 m
-    assert walker < 0.3 and walker < 3 * live["targets"][0]["median_error_m"] + 0.05, (walker, live)
-    out = qradar("reprocess", str(path), "--alpha", "0.45", "--out", str(tmp_path / "rp"), "--quiet")
-    assert out.returncode == 0 and "each frame is scored where they are at its time" in out.stderr, out.stderr
+    first, later = load_raw(path), load_raw(tmp_path / "walk_0001.mcap")
+    assert clock_start_ns(first) == (first.timestamp_ns[0], False)  # the first file: its own first frame
+    assert clock_start_ns(later) == (first.timestamp_ns[0], True)  # a later one: named by its recorder
+    for rec in (first, later):
+        scene = truth_scene(rec, None)
+        ranges, angles = truth_positions(rec, scene)
+        t_s = (rec.timestamp_ns - first.timestamp_ns[0]) / 1e9
+        np.testing.assert_allclose(ranges[:, 0], 3.0 + 1.5 * t_s)  # the walker, frame by frame
+        np.testing.assert_allclose(ranges[:, 1], 20.0)
+        np.testing.assert_allclose(angles, [[-10.0, 35.0]] * len(t_s))
+        res = sweep(rec, radar_for(rec, scene.radar), scene, np.array([0.45]), bar=False)
+        walker = np.nanmedian(res.results[0].errors_m[:, 0])
+        # as the live run scored it (its frames quantized alike); scored at the file's first frame it was metres
+        assert walker < 0.3 and walker < 3 * live["targets"][0]["median_error_m"] + 0.05, (walker, live)
+    assert (later.timestamp_ns[0] - first.timestamp_ns[0]) / 1e9 > 1.0  # the later file starts a second or more on
+    out = qradar("reprocess", str(tmp_path / "walk_0001.mcap"), "--alpha", "0.45", "--out", str(tmp_path / "rp"),
+                 "--quiet")
+    assert out.returncode == 0 and "each frame is scored where they are at its time since the sensor's first " \
+        "frame\n" in out.stderr, out.stderr
