@@ -202,9 +202,11 @@ class Plan:
     localizer: LocalizerConfig
 
 
-def localizer_of(cfg: RunConfig, k: int, radar: RadarConfig) -> LocalizerConfig:
-    """The localizer's config of a run of ``k`` targets a frame on ``radar`` (checked: K, the
-    range gate, the decoder; a K the user did not give is named as the scene's or the truth's)."""
+def localizer_of(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
+                 radar: RadarConfig) -> LocalizerConfig:
+    """The localizer's config of a run on ``radar`` (checked: K, the range gate, the decoder),
+    its K :func:`targets_a_frame`'s; a K the user did not give is named with where it came from."""
+    k = targets_a_frame(cfg, scene, truth)
     try:
         return LocalizerConfig(k=k, algo=cfg.algo, radar=radar, fallback_pbp=cfg.quantizer.alpha == 0,
                                auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
@@ -212,7 +214,9 @@ def localizer_of(cfg: RunConfig, k: int, radar: RadarConfig) -> LocalizerConfig:
     except ParameterError as e:
         if cfg.k or f"K={k}" not in str(e):
             raise
-        raise ParameterError(f"no --K given: K={k} from the scene's (or --truth's) targets; {e}") from None
+        origin = ("the scene's targets" if scene is not None else "--truth's targets"
+                  if truth is not None and truth.targets else "a real sensor's default without --truth")
+        raise ParameterError(f"no --K given: K={k}, {origin}; {e}") from None
 
 
 def check_offline(cfg: RunConfig) -> None:
@@ -225,7 +229,7 @@ def check_offline(cfg: RunConfig) -> None:
             RangeGate(cfg.min_range_m, cfg.max_range_m)
         return
     scene = resolve_scene(cfg.scene)
-    localizer_of(cfg, targets_a_frame(cfg, scene, None), scene.radar)
+    localizer_of(cfg, scene, None, scene.radar)
 
 
 def targets_a_frame(cfg: RunConfig, scene: SimScene | None, truth) -> int:
@@ -243,8 +247,7 @@ def plan(cfg: RunConfig) -> Plan:
     scene, truth, radar = world(cfg)
     calibration = check_calibration(cfg)
     check_record(cfg)
-    k = targets_a_frame(cfg, scene, truth)
-    localizer = localizer_of(cfg, k, radar)  # checked before anything starts
+    localizer = localizer_of(cfg, scene, truth, radar)  # checked before anything starts
     # a truth file holds the world's positions: each sensor with a pose sees them from there
     truths = {s.sensor_id: seen_from(truth, s.pose, s.sensor_id) for s in cfg.sensor_specs
               if s.pose is not None and cfg.truth is not None}
@@ -531,7 +534,7 @@ def setup_metadata(cfg: RunConfig, specs: tuple[SensorSpec, ...] = ()) -> dict[s
     recorder, so its files say the set-up as a run's do. ``specs``: every sensor of the set-up
     when ``cfg`` holds some of them (up's hosts may share a port path)."""
     scene, truth, radar = world(cfg)
-    localizer = localizer_of(cfg, targets_a_frame(cfg, scene, truth), radar)
+    localizer = localizer_of(cfg, scene, truth, radar)
     meta = run_metadata(cfg, scene, truth, radar, localizer.k, check_calibration(cfg), localizer.gate)
     if specs:
         meta["qradar.sensors"] = sensors_metadata(specs)

@@ -297,8 +297,12 @@ def format_info(info: dict) -> str:
         lines.append("  recovered     no")
     if len(info["split"]) > 1:
         lines.append(f"  split         {len(info['split'])} files: {', '.join(Path(p).name for p in info['split'])}")
-    if info["recorder"]:
-        lines.append(f"  recorded      {_dict(info['recorder'])}")
+    if info["recorder"]:  # each sensor's first frame (a later file of a split set): counted, not listed
+        recorder = {k: v for k, v in info["recorder"].items() if k != "first_raw_ns"}
+        if "first_raw_ns" in info["recorder"]:
+            named = info["recorder"]["first_raw_ns"]
+            recorder["first frames of"] = f"{len(named) if isinstance(named, dict) else '?'} sensor(s)"
+        lines.append(f"  recorded      {_dict(recorder)}")
     if info["versions"]:
         lines.append(f"  versions      {_dict(info['versions'])}")
     if info["other_metadata"]:

@@ -162,13 +162,20 @@ class AlphaResult:
 
 
 def clock_start_ns(rec: RawRecording) -> tuple[int, bool]:
-    """When the truth's clock of ``rec``'s sensor began (ns) and whether the recording says so:
-    its first raw frame, which a later file of a split set names (``qradar.recorder``'s
-    ``first_raw_ns``), else this file's first frame (False)."""
+    """When the truth's clock of ``rec``'s sensor began (ns) and whether that is known: its
+    first raw frame, which a later file of a split set names (``qradar.recorder``'s
+    ``first_raw_ns``; a sensor it does not name began in this file), else this file's first
+    frame (False: a later file that names none). A value that is no time at or before this
+    file's first frame is not taken."""
+    first = int(rec.timestamp_ns[0])
     try:
-        return int(json.loads(rec.metadata["qradar.recorder"]["first_raw_ns"])[rec.sensor_id]), True
-    except (KeyError, TypeError, ValueError):
-        return int(rec.timestamp_ns[0]), False
+        named = json.loads(rec.metadata["qradar.recorder"]["first_raw_ns"])
+        start = named.get(rec.sensor_id, first)
+        if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first:
+            return start, True
+    except (KeyError, TypeError, ValueError, AttributeError, RecursionError):
+        pass
+    return first, False
 
 
 def truth_positions(rec: RawRecording, scene: SimScene) -> tuple[np.ndarray, np.ndarray]:
@@ -241,7 +248,8 @@ class SweepResult:
 
         detection = {}
         if self.params.get("K_auto"):  # found: a detection within one range bin (0.6 m) of the true range
-            true_r = np.broadcast_to(np.array([[t["range_m"] for t in self.truth]]), self.results[0].errors_m.shape)
+            true_r = (np.broadcast_to(np.array([[t["range_m"] for t in self.truth]]), self.results[0].errors_m.shape)
+                      if self.positions is None else self.positions[0])
             found, false = zip(*(match_detections(true_r, r.detections.range_m, 0.6) for r in self.results))
             detection = {"detected": {lab: [round(float(f[:, i].mean()), 4) for f in found]
                                       for i, lab in enumerate(labels)},
@@ -267,9 +275,10 @@ def sweep(rec: RawRecording, radar: RadarConfig, scene: SimScene, alphas: np.nda
           pfa: float = DEFAULT_PFA, bar: Progress | bool = True, gate: RangeGate | None = None) -> SweepResult:
     """Every alpha of ``alphas`` with one decoder, searching inside ``gate`` (None: the
     whole range axis), each frame scored against where the ``scene``'s targets are at its
-    time (:func:`truth_positions`; the result's ``truth``: at the first frame). ``bar``: a
+    time (:func:`truth_positions`; the result's ``truth``: at the file's first frame). ``bar``: a
     progress bar of the caller's to advance, or whether to show one of its own."""
-    truth, positions = scene.truth(0.0), truth_positions(rec, scene)
+    positions = truth_positions(rec, scene)
+    truth = scene.truth(float(rec.timestamp_ns[0] - clock_start_ns(rec)[0]) / 1e9)  # at this file's first frame
     k = k or len(truth)
     out = []
     own = Progress(len(alphas) * rec.frames.shape[0], "reprocess", unit="frames", enabled=bar is True)
@@ -326,7 +335,7 @@ def track_recording(result: SweepResult, index: int, radar: RadarConfig, trackin
     payloads = track_batch(tracker, headers, r.detections, q if q.dithered else None, radar)
     msgs = [decode_tracks(p) for p in payloads]
     ids = sorted({t["track_id"] for m in msgs for t in m.tracks})
-    static_truth = [t for t in result.truth if not t.get("velocity_m_s")]
+    static_truth = [t for i, t in enumerate(result.truth) if not result.moving(i)]
     settled = (rec.timestamp_ns - rec.timestamp_ns[0]) >= (tracking.integrate_s + 0.5) * 1e9
     errors, target_errors = [], []
     for i in np.flatnonzero(settled).tolist():

@@ -69,37 +69,33 @@ def _ellipse(ax, mean_xy, cov, color, ls):
 def plot_reconstructions(result, path: Path) -> Path:
     """Mean estimated position of each target with its 2-sigma ellipse over the frames,
     alpha = 0 (or the smallest alpha) against the best alpha; truth as crosses. A moving
-    target: its estimates alone, and its true path from the cross at the first frame. Lateral
-    y (m) across, boresight x (m) up; the radar at (0, 0)."""
+    target: its estimates alone, and its true path from the cross (at the file's first
+    frame). Lateral y (m) across, boresight x (m) up; the radar at (0, 0)."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.6, 5.6), dpi=110)
     first = int(np.argmin(result.alphas))
     cases = [(result.best_index, "tab:blue", "-", "o"), (first, "tab:red", "--", "s")]
     for idx, color, ls, marker in cases:
         r = result.results[idx]
-        label = f"α = {r.alpha:.2f}"  # on the case's first mean, else (moving targets alone) its first estimates
+        ax.plot([], [], marker, color=color, ms=6, mfc="none" if marker == "s" else color, label=f"α = {r.alpha:.2f}")
         for i in range(len(result.truth)):
             xy = r.nearest_xy[:, i]
             xy = xy[np.all(np.isfinite(xy), axis=1)]  # frames without any target (K auto) have no estimate
             if not xy.shape[0]:
                 continue
-            last = i == len(result.truth) - 1 or all(result.moving(j) for j in range(i + 1, len(result.truth)))
-            if result.moving(i):  # a mean over a path says nothing: the estimates alone
-                ax.scatter(xy[:, 1], xy[:, 0], s=4, color=color, alpha=0.25, label=label if last else None)
-                label = None if last else label
-                continue
             ax.scatter(xy[:, 1], xy[:, 0], s=4, color=color, alpha=0.25)
+            if result.moving(i):  # a mean over a path says nothing: the estimates alone
+                continue
             mean = xy.mean(axis=0)
             cov = np.cov(xy.T) if xy.shape[0] > 1 else np.zeros((2, 2))
-            ax.plot(mean[1], mean[0], marker, color=color, ms=6, mfc="none" if marker == "s" else color, label=label)
-            label = None
+            ax.plot(mean[1], mean[0], marker, color=color, ms=6, mfc="none" if marker == "s" else color)
             _ellipse(ax, mean, cov, color, ls)
     for i, t in enumerate(result.truth):
         x, y = polar_to_xy(t["range_m"], np.deg2rad(t["angle_deg"]))
         ax.plot(y, x, "kx", ms=9, mew=2, label="truth" if i == 0 else None)
         if result.moving(i):
             px, py = polar_to_xy(result.positions[0][:, i], np.deg2rad(result.positions[1][:, i]))
-            ax.plot(py, px, "k-", lw=1, label="true path")
+            ax.plot(py, px, "k-", lw=1, label=None if any(map(result.moving, range(i))) else "true path")
     ax.plot(0, 0, "k^", ms=8, label="radar")
     ax.set_xlabel("y (m), across boresight (+ = antenna 2 side)")
     ax.set_ylabel("x (m), along boresight")

@@ -416,7 +416,29 @@ def test_a_moving_target_is_scored_where_it_is_in_each_frame(tmp_path):
         # as the live run scored it (its frames quantized alike); scored at the file's first frame it was metres
         assert walker < 0.3 and walker < 3 * live["targets"][0]["median_error_m"] + 0.05, (walker, live)
     assert (later.timestamp_ns[0] - first.timestamp_ns[0]) / 1e9 > 1.0  # the later file starts a second or more on
+    # --K auto's detections too, and the labels at the file's first frame (the walker 1.5 m or more on)
+    res = sweep(later, radar_for(later, scene.radar), scene, np.array([0.45]), bar=False, auto_k=True, k=4)
+    summary = res.summary()
+    assert res.truth[0]["range_m"] == pytest.approx(ranges[0, 0]) and ranges[0, 0] > 4.5
+    assert min(v[0] for v in summary["detected"].values()) > 0.9, summary["detected"]
+    assert summary["false_targets_per_frame"][0] < 0.1, summary
     out = qradar("reprocess", str(tmp_path / "walk_0001.mcap"), "--alpha", "0.45", "--out", str(tmp_path / "rp"),
                  "--quiet")
     assert out.returncode == 0 and "each frame is scored where they are at its time since the sensor's first " \
         "frame\n" in out.stderr, out.stderr
+
+
+@pytest.mark.parametrize("named, start", [
+    ('{"s": 1000}', (1000, True)), ('{"other": 1000}', (5000, True)),  # a sensor it does not name began here
+    ('{"s": 9000}', (5000, False)), ('{"s": -5}', (5000, False)), ('{"s": 1e30}', (5000, False)),
+    ('{"s": Infinity}', (5000, False)), ('{"s": true}', (5000, False)), ('[1, 2]', (5000, False)),
+    ("[" * 100000, (5000, False)), ("not json", (5000, False)), (None, (5000, False))])
+def test_the_truth_clock_of_a_later_file_is_taken_only_when_it_is_a_time_before_its_frames(named, start):
+    """``first_raw_ns`` of a crafted file: a time at or before the file's first frame, else the
+    file's own first frame, never a traceback (the metadata's CRC guards against damage, not craft)."""
+    from replay.reprocess import RawRecording, clock_start_ns
+
+    recorder = {"part": "1"} if named is None else {"part": "1", "first_raw_ns": named}
+    rec = RawRecording("s", np.zeros((2, 512, 2), complex), np.arange(2), np.array([5000, 55000]), 0,
+                       {"qradar.recorder": recorder}, ["s"], False)
+    assert clock_start_ns(rec) == start
