@@ -351,7 +351,11 @@ class RunNodes:
 
     def _build(self, specs) -> None:
         p, cfg, session = self.p, self.p.cfg, self.session
-        self.monitor = Monitor(cfg.bus, session, p.truth, time.time_ns(), self.live, clock_per_sensor=not cfg.real,
+        # the truth's clock: real sensors' starts now, for the monitor, the web page and the recording alike
+        # (each simulated sensor's: its first frame)
+        self.truth_t0_ns = time.time_ns() if cfg.real else None
+        self.monitor = Monitor(cfg.bus, session, p.truth, self.truth_t0_ns or time.time_ns(), self.live,
+                               clock_per_sensor=not cfg.real,
                                calibration=None if p.calibration is None else p.calibration.source,
                                truths=p.truths, decoded=self.decoded).start()
         self.localizer = LocalizeNode(cfg.bus, p.localizer, session=session, tracking=cfg.tracking,
@@ -369,7 +373,7 @@ class RunNodes:
             self.recorder = [RecorderNode(
                 cfg.bus, cfg.record, session=session, radar=p.radar, on_write_error=cfg.record_on_error,
                 metadata=run_metadata(cfg, p.scene, p.truth, p.radar, p.localizer.k, p.calibration,
-                                      p.localizer.gate),
+                                      p.localizer.gate, self.truth_t0_ns),
                 retry_s=cfg.record_retry_s, split_size_mb=cfg.record_split_mb,
                 new_name_if_taken=cfg.record_new_name_if_taken, overwrite=cfg.record_overwrite, decoded=self.decoded)]
 
@@ -381,10 +385,10 @@ class RunNodes:
             self.view = FoxgloveView(cfg.bus, replace(cfg.foxglove, radar=p.radar), session=self.session,
                                      decoded=self.decoded).start()
             self._say(f"foxglove: WebSocket server on {self.view.url}")
-        if cfg.web is not None:  # the truth's clock: each simulated sensor's first frame, as the monitor's
+        if cfg.web is not None:  # the truth's clock: the monitor's (_build)
             try:
                 self.web = WebView(cfg.bus, replace(cfg.web, radar=p.radar), session=self.session, truth=p.truth,
-                                   truth_t0_ns=time.time_ns() if cfg.real else None, decoded=self.decoded).start()
+                                   truth_t0_ns=self.truth_t0_ns, decoded=self.decoded).start()
             except BaseException:
                 if self.view is not None:
                     self.view.stop()
@@ -551,11 +555,13 @@ def sensors_metadata(specs: tuple[SensorSpec, ...]) -> dict[str, str]:
 
 
 def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None, radar: RadarConfig,
-                 k: int, calibration: Calibration | None = None, gate=None) -> dict[str, dict]:
+                 k: int, calibration: Calibration | None = None, gate=None,
+                 truth_t0_ns: int | None = None) -> dict[str, dict]:
     """MCAP metadata of a run: radar config, node configs (the localizer's range
     ``gate``), the sensors and the true
     positions (``qradar.scene``, which ``qradar reprocess`` takes for its truth): the
-    simulated scene, or the ``--truth`` file's (with real sensors: ``simulated`` false)."""
+    simulated scene, or the ``--truth`` file's (with real sensors: ``simulated`` false, and
+    ``truth_t0_ns``, when the truth's time began: the run's start)."""
     from dataclasses import asdict
 
     meta = {
@@ -574,6 +580,8 @@ def run_metadata(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
     elif truth is not None:  # measured positions (a real sensor), or a truth other than the simulated scene
         meta["qradar.scene"] = {"scene": json.dumps(truth.to_dict()), "simulated": "false",
                                 "truth_file": str(cfg.truth), "sensors": str(cfg.n_sensors)}
+        if truth_t0_ns is not None:  # when the truth's time began (real sensors: the run's start, host clock ns)
+            meta["qradar.scene"]["truth_t0_ns"] = str(truth_t0_ns)
         if scene is not None:
             meta["qradar.simulated_scene"] = {"scene": json.dumps(scene.to_dict()), "rate_hz": str(cfg.rate_hz)}
     return meta

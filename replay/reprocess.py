@@ -162,19 +162,21 @@ class AlphaResult:
 
 
 def clock_start_ns(rec: RawRecording) -> tuple[int, bool]:
-    """When the truth's clock of ``rec``'s sensor began (ns) and whether that is known: its
-    first raw frame, which a later file of a split set names (``qradar.recorder``'s
-    ``first_raw_ns``; a sensor it does not name began in this file), else this file's first
-    frame (False: a later file that names none). A value that is no time at or before this
-    file's first frame is not taken."""
+    """When the truth's clock of ``rec``'s sensor began (ns) and whether that is known, as the
+    live run's monitor took it: a real sensor's run names its start (``qradar.scene``'s
+    ``truth_t0_ns``); else the sensor's first raw frame, which a later file of a split set
+    names (``qradar.recorder``'s ``first_raw_ns``; a sensor it does not name began in this
+    file); else this file's first frame (False: a later file that names none). A value that
+    is no time at or before this file's first frame is not taken."""
     first = int(rec.timestamp_ns[0])
-    try:
-        named = json.loads(rec.metadata["qradar.recorder"]["first_raw_ns"])
-        start = named.get(rec.sensor_id, first)
+    for name, key in (("qradar.scene", "truth_t0_ns"), ("qradar.recorder", "first_raw_ns")):
+        try:
+            named = json.loads(rec.metadata[name][key])
+            start = named.get(rec.sensor_id, first) if isinstance(named, dict) else named
+        except (KeyError, TypeError, ValueError, RecursionError):
+            continue
         if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first:
             return start, True
-    except (KeyError, TypeError, ValueError, AttributeError, RecursionError):
-        pass
     return first, False
 
 
@@ -459,10 +461,12 @@ def _notes(cfg: ReprocessConfig, rec: RawRecording, front: dict, scene: SimScene
         notes.append(split)
     if any(t.velocity_m_s for t in scene.targets):
         known = clock_start_ns(rec)[1] or split is None or split.startswith(f"note: {cfg.file} is file 1 ")
-        notes.append("note: moving targets: each frame is scored where they are at its time since the sensor's first "
-                     "frame" + ("" if known else " (taken as this file's first: a file of a split set whose "
-                                "recorder did not name the sensor's first frame, so its moving targets' truth "
-                                "is early by the files before it)"))
+        since = ("the run's start (a real sensor's run: the live run's clock)"
+                 if "truth_t0_ns" in rec.metadata.get("qradar.scene", {}) else "the sensor's first frame")
+        notes.append(f"note: moving targets: each frame is scored where they are at its time since {since}"
+                     + ("" if known else " (taken as this file's first: a file of a split set whose "
+                                          "recorder did not name the sensor's first frame, so its moving targets' "
+                                          "truth is early by the files before it)"))
     return notes
 
 

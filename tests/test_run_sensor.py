@@ -257,6 +257,32 @@ def test_reprocess_reads_the_same_truth_file_as_run(tmp_path, cli):
     result = json.loads((tmp_path / "rp" / "results.json").read_text())
     assert [(t["range_m"], t["angle_deg"]) for t in result["truth"]] == [(5.87, -20.0), (10.23, 15.0)]
 
+def test_a_moving_truth_of_a_real_sensor_is_reprocessed_on_the_live_runs_clock(tmp_path):
+    """A real sensor (a pty) with ``--truth`` of a target walking at 0.125 m/s: the recording
+    names when the truth's time began (the run's start, as the live monitor takes it), and
+    ``reprocess`` scores each frame where the target was then, as the live run did."""
+    from replay.reprocess import clock_start_ns, load_raw, radar_for, sweep, truth_scene
+
+    scene = tmp_path / "walk.toml"
+    scene.write_text('name = "walk-slow"\nnoise_std = 0.03\n[[target]]\nrange_m = 7.13\nangle_deg = 12\n'
+                     'amplitude = 0.4\nvelocity_m_s = 0.125\n[[target]]\nrange_m = 20.3\nangle_deg = -30\n'
+                     'amplitude = 0.2\n')
+    link = tmp_path / "kmd2"
+    with SimulatorServer(resolve_scene(scene), link_path=link, rate_hz=20, seed=0, hold_clock_when_late=True):
+        s, _, (_, _, meta) = run_json(tmp_path, "walk", "--sensor", f"{link},id=kmd2-0", "--truth", str(scene))
+    t0 = int(meta["qradar.scene"]["truth_t0_ns"])
+    rec = load_raw(tmp_path / "walk.mcap")
+    assert clock_start_ns(rec) == (t0, True) and t0 < rec.timestamp_ns[0]
+    truth = truth_scene(rec, None)
+    res = sweep(rec, radar_for(rec, truth.radar), truth, np.array([0.45]), bar=False)
+    walker = float(np.nanmedian(res.results[0].errors_m[:, 0]))
+    live = s["score"]["targets"][0]["median_error_m"]
+    assert walker == pytest.approx(live, abs=0.02), (walker, live)  # the same codes, the same clock
+    assert res.truth[0]["range_m"] > 7.13  # at the file's first frame the walker had moved on
+    out = qradar("reprocess", str(tmp_path / "walk.mcap"), "--alpha", "0.45", "--out", str(tmp_path / "rp"), "--quiet")
+    assert out.returncode == 0 and "at its time since the run's start" in out.stderr, out.stderr
+
+
 def test_a_truth_file_without_targets_or_unreadable_is_refused(tmp_path):
     empty = tmp_path / "empty.toml"
     empty.write_text("name = 'empty'\n")
