@@ -414,10 +414,10 @@ class RunNodes:
                         v.stop()
         finally:
             self.session.close()
-        if not self.refused:  # a short run (fewer frames than REFUSED_AFTER) whose every frame was refused
-            self.refused += [e for e in [refusal(self.monitor, self.quantizer, self.localizer, 1)] if e is not None]
-        if self.refused:
-            raise self.refused[0]
+        # else a short run (fewer frames than REFUSED_AFTER) whose every frame was refused
+        error = self.refused[0] if self.refused else refusal(self.monitor, self.quantizer, self.localizer, 1)
+        if error is not None:
+            raise error
 
     def summary(self, seconds: float, sims: list[SimulatorServer]) -> RunSummary:
         p = self.p
@@ -446,10 +446,10 @@ def watch_refusals(monitor: Monitor, quantizer, localizer, stop: threading.Event
 
 
 def refusal(monitor: Monitor, quantizer, localizer, at_least: int) -> RunSetupError | None:
-    """The RunSetupError of a run whose ``at_least`` raw frames or more have arrived and were
+    """The RunSetupError of a run whose ``at_least`` (>= 1) raw frames or more have arrived and were
     every one refused by its nodes (none reached the targets); None otherwise."""
     raw, targets = monitor.count["raw"], monitor.count["targets"]
-    if raw < max(at_least, 1) or targets:
+    if raw < at_least or targets:
         return None
     q, lo = quantizer.totals(), localizer.totals()
     kinds = ("invalid_frames", "decode_errors", "processing_errors")

@@ -88,14 +88,9 @@ class SimScene:
         """The targets' ramps (R, N, 2), full-scale units, at times ``t_s`` (R,) s: the
         paper's model (eq. 2) for the targets where they are at each time, before the
         front end."""
-        t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if not self.targets:
-            return np.zeros((t.size, self.radar.samples_per_ramp, 2), complex)
-        r = np.stack([tg.range_at(t) for tg in self.targets], axis=1)  # (R, K)
-        a = np.broadcast_to(np.array([tg.angle_deg for tg in self.targets], dtype=float), r.shape)
-        x = np.broadcast_to(np.array([tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg))
-                                      for tg in self.targets]), r.shape)
-        return simulate_frames(r, a, x, self.radar, ramps=1)
+            return np.zeros((np.size(t_s), self.radar.samples_per_ramp, 2), complex)
+        return simulate_frames(*self.arrays(t_s), self.radar, ramps=1)
 
     def clean_ramps(self, t_s) -> np.ndarray:
         """Noiseless ramps (R, N, 2) at the ADC's input, full-scale units, at times ``t_s``
@@ -155,9 +150,8 @@ class SimScene:
         if t.ndim != 1 or not np.all(np.isfinite(t)):
             raise ConfigError(f"SimScene.arrays: t_s must be a number or (T,) finite seconds, got shape {t.shape}")
         k = len(self.targets)
-        ranges = np.stack([np.broadcast_to(tg.range_at(t), t.shape) for tg in self.targets], axis=1) if k else \
-            np.zeros((t.size, 0))
-        return (ranges.astype(float),
+        ranges = np.stack([tg.range_at(t) for tg in self.targets], axis=1) if k else np.zeros((t.size, 0))
+        return (ranges,
                 np.tile(np.array([tg.angle_deg for tg in self.targets], dtype=float), (t.size, 1)),
                 np.tile(np.array([tg.amplitude * np.exp(1j * np.deg2rad(tg.phase_deg)) for tg in self.targets],
                                  dtype=complex), (t.size, 1)))

@@ -43,7 +43,6 @@ from pipeline.errors import DitherUnavailable, ParameterError
 from pipeline.dsp.gate import RangeGate, boundary_skirts, check_gate
 from pipeline.dsp.localize import (DEFAULT_PFA, Detections, back_project_ramps, check_pfa, detections_from_support,
                        gated_energy, grid_statistic_db, joint_energy, joint_support, localize)
-from pipeline.dsp.residual import FINE_BITS
 from pipeline.dsp.significance import target_p_values
 from pipeline.dsp.uncertainty import target_uncertainty
 from pipeline.dsp.cml import DEFAULT_LIKELIHOOD, ENGINES, LIKELIHOODS, CmlOptions
@@ -478,7 +477,7 @@ class Decoder:
             # unquantized frames: the count test's model holds the targets' tones, not a quantizer's
             reach = None if pfa is None else level_reach(z, delta, bits)  # (what the count test's floor reads)
             return localize(z, radar, k, indices, pfa, gate, dither_alpha(alpha, xi, delta, bits),
-                            bits is not None and bits < FINE_BITS, bits or 1, reach)
+                            bits is not None, bits or 1, reach)
         if unfit:
             what = ("frames are a frequency subset" if indices is not None else "frames are not quantized"
                     if bits is None else "frame is not dithered")

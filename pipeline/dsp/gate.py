@@ -122,11 +122,16 @@ class RangeGate:
     def to_dict(self) -> dict[str, float]:
         return {"min_range_m": self.min_range_m, "max_range_m": self.max_range_m}
 
+    def holds(self, range_m):
+        """Whether ranges ``range_m`` (m, scalar or array) lie inside the gate (its ends
+        EDGE_TOLERANCE_M wider)."""
+        return (range_m >= self.min_range_m - EDGE_TOLERANCE_M) & (range_m <= self.max_range_m + EDGE_TOLERANCE_M)
+
 
 @lru_cache(maxsize=64)
 def _bin_mask(gate: RangeGate, radar: RadarConfig) -> np.ndarray:
     r = radar.range_grid_m()
-    mask = (r >= gate.min_range_m - EDGE_TOLERANCE_M) & (r <= gate.max_range_m + EDGE_TOLERANCE_M)
+    mask = gate.holds(r)
     mask.flags.writeable = False
     return mask
 
@@ -177,11 +182,10 @@ def boundary_skirts(energy: np.ndarray, mask: np.ndarray, ends_bins: tuple[float
 
 def gate_warning(truth, gate) -> str | None:
     """What a run or a re-processing says of true targets (``truth``: a SimScene, or None) that
-    stand still outside its range gate (``gate``: ``min_range_m``, ``max_range_m``): they cannot
-    be found, and the score counts them missed; None when there is none."""
+    stand still outside its range gate (a :class:`RangeGate`): they cannot be found, and the
+    score counts them missed; None when there is none."""
     out = [t.range_m for t in (truth.targets if truth is not None else [])
-           if not t.velocity_m_s and not gate.min_range_m - EDGE_TOLERANCE_M <= t.range_m
-           <= gate.max_range_m + EDGE_TOLERANCE_M]
+           if not t.velocity_m_s and not gate.holds(t.range_m)]
     if not out:
         return None
     return (f"true target(s) at {', '.join(f'{r:g} m' for r in out)} outside the range gate "

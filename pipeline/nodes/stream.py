@@ -87,6 +87,12 @@ class SourceNode(Node):
         self._source_stats: dict[str, dict[str, int]] = {}
         self.done = threading.Event()
 
+    @property
+    def topics(self) -> list[str]:
+        """The topics it publishes (:meth:`_publish_batch`): raw (``raw_every``), quantized (edge
+        quantization)."""
+        return [t for t, on in (("raw", self.raw_every), ("quantized", self.quantizer is not None)) if on]
+
     def _start(self) -> None:
         self._spawn(self._read_loop, "reader", after=self.done.set)  # done once an error is recorded
 

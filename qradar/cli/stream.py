@@ -160,7 +160,7 @@ def cmd_source(args) -> int:
     print(json.dumps({"node": node.name, **extra, **totals, "subscribed": heard, **noise_summary(node),
                       **audit.finish()}), flush=True)
     if totals["frames_out"] and not heard:  # frames to nobody: another --prefix, or no router in common
-        topics = " or ".join(source_topics(node))
+        topics = " or ".join(node.topics)
         return nothing_heard("source", f"nothing subscribed to {node.bus.prefix}/<sensor>/{topics}: its "
                              f"{totals['frames_out']} frames reached no node", "source", interrupted or child)
     return 0
@@ -172,15 +172,10 @@ def cmd_source(args) -> int:
 AUDIENCE_KEYS_MAX = 64
 
 
-def source_topics(node: SourceNode) -> list[str]:
-    """The topics a source publishes: raw (``raw_every``), quantized (edge quantization)."""
-    return [t for t, on in (("raw", node.raw_every), ("quantized", node.quantizer is not None)) if on]
-
-
 def source_keys(node: SourceNode, sensor_ids: list[str] | None) -> list[str]:
     """The keys a source's audience is looked for on: each topic it publishes (raw, quantized)
     of each of its ``sensor_ids`` (None: not known ahead), or of any sensor."""
-    topics = source_topics(node)
+    topics = node.topics
     if sensor_ids is None or len(sensor_ids) > AUDIENCE_KEYS_MAX:
         return [node.bus.wildcard(t) for t in topics]
     return [node.bus.key(sid, t) for sid in sensor_ids for t in topics]
