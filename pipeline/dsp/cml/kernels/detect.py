@@ -140,7 +140,8 @@ def scratch(n, size, lc, table, rm):
     return Scratch(np.empty(size), known, np.empty(size, dtype=np.bool_), seen, np.empty(lc), np.empty(lc),
                    np.empty(lc), np.empty(lc, dtype=np.bool_), offsets, np.empty((4, n)), np.empty(2 * half),
                    np.empty((rm, 2), dtype=np.complex128), np.empty(0 if lc else size), np.empty(lc),
-                   np.empty((1, 2, n), dtype=np.complex128), np.full(1, np.nan), np.empty(rm, dtype=np.complex128))
+                   np.empty((1, 2, n), dtype=np.complex128), np.full(1, np.nan), np.empty(rm, dtype=np.complex128),
+                   np.empty((2, lc if rm == 2 else 0)))
 
 
 @njit(**JIT)

@@ -95,9 +95,11 @@ def doppler_phase(vals, rm) -> float:
 
 
 @njit(**FAST)
-def two_ramps(uc, sc, coarse, peaks):
+def two_ramps(uc, sc, coarse, peaks, cross):
     """:func:`doppler` of two ramps at every coarse point of ``uc`` (2, 2, Lc) times ``sc``:
-    totals into ``coarse``, peaks into ``peaks`` (Lc,), one vectorized pass."""
+    totals into ``coarse``, peaks into ``peaks`` (Lc,), and the cross term ``sum_p conj(U_0p)
+    U_1p`` into ``cross`` (2, Lc) (its real and imaginary parts: the energy at a phase step
+    phi is ``coarse + 2 (Re cross cos phi + Im cross sin phi)``), one vectorized pass."""
     s2 = sc * sc
     u0, u1, v0, v1 = uc[0, 0], uc[0, 1], uc[1, 0], uc[1, 1]
     for c in range(coarse.shape[0]):
@@ -108,6 +110,8 @@ def two_ramps(uc, sc, coarse, peaks):
         xi = a0.real * b0.imag - a0.imag * b0.real + a1.real * b1.imag - a1.imag * b1.real
         coarse[c] = total * s2
         peaks[c] = (total + 2.0 * math.sqrt(xr * xr + xi * xi)) * s2
+        cross[0, c] = xr * s2
+        cross[1, c] = xi * s2
 
 
 @njit(cache=True, nogil=True, inline="always")

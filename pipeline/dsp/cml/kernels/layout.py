@@ -79,6 +79,7 @@ Targets = namedtuple("Targets", ["range_m", "amp", "stat", "present", "phi"])
 #: complex (one point's back projection per ramp and antenna), ``totals`` (L,) the fine
 #: grid's totals (without a coarse grid; else empty), ``chan`` (Lc,), ``steered`` (1, 2, N)
 #: complex, ``phis`` (1,), ``turns`` (Rm,) complex (the steered channel and its ramps' factors,
-#: :func:`~pipeline.dsp.cml.kernels.search.steer`)
+#: :func:`~pipeline.dsp.cml.kernels.search.steer`), ``cross`` (2, Lc) two ramps' cross term at each coarse
+#: point (:func:`~pipeline.dsp.cml.kernels.doppler.two_ramps`)
 Scratch = namedtuple("Scratch", ["energy", "known", "near", "seen", "coarse", "peaks", "span", "edge", "offsets",
-                                 "turned", "cell", "vals", "totals", "chan", "steered", "phis", "turns"])
+                                 "turned", "cell", "vals", "totals", "chan", "steered", "phis", "turns", "cross"])

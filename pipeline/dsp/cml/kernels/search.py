@@ -183,7 +183,7 @@ def coarse_energies(uc, size, s) -> float:
             known[c * ratio] = True
         return _sum(coarse)
     if rm == 2:
-        two_ramps(uc, sc, coarse, peaks)
+        two_ramps(uc, sc, coarse, peaks, s.cross)
     else:
         for c in range(lc):
             for r in range(rm):
@@ -199,7 +199,9 @@ def steer(uc, x, n, gate, s):
     with more, the residual ``x`` (Rm, 2, >= N) steered to the phase step phi* of the best
     coarse point not masked (``s.peaks``, the guard ``s.near``, beyond the gate -1; the
     first of equal ones) into ``s.steered`` (1, 2, N), its coarse energies from ``uc`` (Rm,
-    2, Lc) into ``s.chan`` and ``s.energy`` at the coarse points (``s.known``), phi* into
+    2, Lc) (two ramps: from the cross term ``s.cross`` of
+    :func:`~pipeline.dsp.cml.kernels.doppler.two_ramps`, no pass over ``uc``) into ``s.chan``
+    and ``s.energy`` at the coarse points (``s.known``), phi* into
     ``s.phis[0]``; kept as they are when phi* is the one already steered to. phi* is 0 (the
     static channel) unless the peak over the phase step there beats the static energy by
     more than :data:`~pipeline.dsp.cml.kernels.doppler.STEER_GAIN` times the mean total of
@@ -231,6 +233,17 @@ def steer(uc, x, n, gate, s):
     for r in range(rm):
         c = r - (rm - 1) / 2.0
         turns[r] = complex(math.cos(c * phi), -math.sin(c * phi))
+    known[:] = False
+    if rm == 2:  # one pass; the energies from the cross term two_ramps kept: E_phi = total + 2 Re(cross e^-i phi)
+        t0, t1 = turns[0], turns[1]
+        for p in range(2):
+            for i in range(n):
+                out[0, p, i] = t0 * x[0, p, i] + t1 * x[1, p, i]
+        _two_ramp_channel(s.coarse, s.cross, math.cos(phi), math.sin(phi), chan)
+        for c in range(lc):
+            energy[c * ratio] = chan[c]
+            known[c * ratio] = True
+        return out
     for p in range(2):
         for i in range(n):
             out[0, p, i] = 0.0
@@ -239,7 +252,6 @@ def steer(uc, x, n, gate, s):
         for p in range(2):
             for i in range(n):
                 out[0, p, i] += back * x[r, p, i]
-    known[:] = False
     for c in range(lc):
         e = 0.0
         for p in range(2):
@@ -252,6 +264,15 @@ def steer(uc, x, n, gate, s):
         energy[c * ratio] = e
         known[c * ratio] = True
     return out
+
+
+@njit(**FAST)
+def _two_ramp_channel(coarse, cross, cs, sn, chan):
+    """Two ramps' energy at the phase step of ``cos``, ``sin`` = ``cs``, ``sn`` at every coarse
+    point into ``chan`` (Lc,): ``coarse + 2 (cross[0] cs + cross[1] sn)`` (:func:`two_ramps`)."""
+    xr, xi = cross[0], cross[1]
+    for c in range(chan.shape[0]):
+        chan[c] = coarse[c] + 2.0 * (xr[c] * cs + xi[c] * sn)
 
 
 @njit(**FAST)
