@@ -22,7 +22,7 @@ from pipeline.nodes.fairqueue import FairQueue
 from pipeline.nodes.intake import QueueConfig
 from pipeline.dsp.quantize import QuantizerConfig
 from pipeline.nodes.stream import LocalizeNode, LocalizerConfig, QuantizeNode, isolate
-from pipeline.nodes.runtime import PUBLISHER_AFTER
+from pipeline.nodes.runtime import DEFAULT_SENSOR_EXPIRY_S, PUBLISHER_AFTER
 from pipeline.nodes.transport import MemoryTransport
 from pipeline.wire import RawFrameMsg, decode_health, decode_targets, encode_raw
 from radar_driver.scene import resolve_scene
@@ -210,10 +210,13 @@ def test_a_flooding_sensor_loses_its_own_frames_not_the_others(bus, mem, intake)
         q.stop()
 
 
-def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, mem):
+@pytest.mark.parametrize("expiry", [{"sensor_expiry_s": 0.5}, {"queue": QueueConfig(sensor_expiry_s=0.5)}],
+                         ids=["node", "queue"])
+def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, mem, expiry):
+    """A silent sensor is forgotten after the node's expiry, or its queue's when the node's is
+    not given (``qradar localize --sensor-expiry``'s path)."""
     health = Collector(mem, "radar/*/health")
-    q = QuantizeNode(bus, QuantizerConfig(), session=mem, health_period_s=0.1,
-                     sensor_expiry_s=0.5).start()
+    q = QuantizeNode(bus, QuantizerConfig(), session=mem, health_period_s=0.1, **expiry).start()
     try:
         for i in range(1000):  # one-byte puts to distinct keys
             mem.put(f"radar/k{i}/raw", b"x")
@@ -233,6 +236,16 @@ def test_silent_sensors_expire_and_garbage_keys_get_no_state(bus, mem):
         assert {k.split("/")[1] for k, _ in health.items} <= {"_unknown"} | {f"v{i}" for i in range(20)}
     finally:
         q.stop()
+
+
+def test_the_nodes_sensor_expiry_wins_over_its_queues(bus, mem):
+    queue = QueueConfig(sensor_expiry_s=7.0)
+    assert QuantizeNode(bus, QuantizerConfig(), session=mem, queue=queue).sensor_expiry_s == 7.0
+    assert QuantizeNode(bus, QuantizerConfig(), session=mem, queue=queue, sensor_expiry_s=3.0).sensor_expiry_s == 3.0
+    assert QuantizeNode(bus, QuantizerConfig(), session=mem, queue=queue, sensor_expiry_s=None).sensor_expiry_s is None
+    assert QuantizeNode(bus, QuantizerConfig(), session=mem).sensor_expiry_s == DEFAULT_SENSOR_EXPIRY_S
+    with pytest.raises(ParameterError, match=r"sensor expiry -1\.0 s must be > 0"):
+        QuantizeNode(bus, QuantizerConfig(), session=mem, queue=QueueConfig(sensor_expiry_s=-1.0))
 
 
 def test_a_wildcard_key_never_becomes_a_published_key(bus, zenoh_session):

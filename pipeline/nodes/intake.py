@@ -93,8 +93,12 @@ class QueueConfig:
                              "zenoh wait: for a node with its process to itself", flag="--input", choices=INPUT_MODES)
 
     def node_kwargs(self) -> dict:
-        """The keyword arguments of a ProcessingNode: this queue, and its sensor expiry."""
-        return {"queue": self, "sensor_expiry_s": self.sensor_expiry_s}
+        """The keyword arguments of a ProcessingNode: this queue (its sensor expiry with it)."""
+        return {"queue": self}
+
+
+#: a ProcessingNode's ``sensor_expiry_s`` when not given: its queue's (:class:`QueueConfig`)
+QUEUES_EXPIRY = "queue's"
 
 
 @dataclass(frozen=True)
@@ -131,9 +135,9 @@ class ProcessingNode(Node):
 
     ``queue``: a :class:`QueueConfig`, its frames waiting in all (``queue_size``), of one
     sensor (``sensor_queue_size``, at most the whole), payload bytes waiting in all
-    (``queue_bytes``), the batch's linger (None: the node's) and the input mode (its
-    ``sensor_expiry_s`` is the node's ``sensor_expiry_s``, which :meth:`QueueConfig.node_kwargs`
-    hands over; None: never). ``batch_max``: frames a batch at most. ``sensors``: the
+    (``queue_bytes``), the batch's linger (None: the node's), the input mode and how long a
+    silent sensor is remembered (``sensor_expiry_s``, unless the node's ``sensor_expiry_s`` is
+    given: that one; None: never). ``batch_max``: frames a batch at most. ``sensors``: the
     sensors served, a key chunk with ``*`` wildcards (zenoh filters the others before they
     reach this process); ``shard``: serve only the sensors of this :class:`~pipeline.bus.session.Shard`
     (the others' frames are counted in ``foreign_frames`` and dropped on arrival, before
@@ -156,10 +160,12 @@ class ProcessingNode(Node):
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None,
                  queue: QueueConfig | None = None, batch_max: int = 64, health_period_s: float = 1.0,
-                 sensor_expiry_s: float | None = DEFAULT_SENSOR_EXPIRY_S, sensors: str = "*", shard: Shard | None = None,
+                 sensor_expiry_s: float | None | str = QUEUES_EXPIRY, sensors: str = "*", shard: Shard | None = None,
                  intake: IntakeBudget | None = None):
-        super().__init__(bus, session, health_period_s, sensor_expiry_s)
         queue = QueueConfig() if queue is None else queue
+        if isinstance(sensor_expiry_s, str) and sensor_expiry_s == QUEUES_EXPIRY:
+            sensor_expiry_s = queue.sensor_expiry_s
+        super().__init__(bus, session, health_period_s, sensor_expiry_s)
         self.intake = IntakeBudget() if intake is None else intake
         self._new_ids = (TokenBucket(self.intake.new_sensors_per_s, self.intake.new_sensors_burst, time.monotonic())
                          if self.intake.new_sensors_per_s else None)
