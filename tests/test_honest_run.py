@@ -122,6 +122,41 @@ def test_1_a_calibration_of_another_front_end_is_seen_though_a_target_outshines_
     assert leakage_return(calibrated(rec, load(CAL)).frames, radar).all()
 
 
+def test_1_the_harmonic_of_1_bit_codes_without_dither_is_not_a_front_end():
+    """1-bit codes without a dither (α 0) of a target at N/3 or 2N/3 bins (51.2, 102.4 m) hold
+    its quantizer's harmonic at -3 times its range, in bin 0, 9.5 dB under it: that was taken
+    for a leakage in every frame (the run warned to calibrate an ideal sensor); it is not, while
+    a real leakage beside a target elsewhere still is, and dithered codes are checked as before.
+    The localizer's check hands the flag over from the codes (bits 1, alpha 0). (A leakage
+    weaker than a target at those ranges is then missed in its frames: its bins are the
+    harmonic's.)"""
+    from pipeline.dsp.localize import leakage_return
+    from pipeline.dsp.quantize import QuantizerConfig, quantize_frames
+    from pipeline.nodes.front_end import FrontEndCheck
+    from radar_driver.model import RadarConfig, simulate_frames
+
+    rng = np.random.default_rng(8)
+    radar, b = RadarConfig(), 60
+    n = radar.samples_per_ramp
+    for range_m in (n / 3 * radar.range_resolution_m, 2 * n / 3 * radar.range_resolution_m, 51.2, 102.4):
+        x = simulate_frames(np.full((b, 1), range_m), rng.uniform(-40, 40, (b, 1)), np.full((b, 1), 0.5), radar)
+        x = x + 0.03 * (rng.standard_normal(x.shape) + 1j * rng.standard_normal(x.shape))
+        q = quantize_frames(x, QuantizerConfig(bits=1, alpha=0.0), np.arange(b))
+        assert leakage_return(q.values(), radar).mean() > 0.9, range_m  # the harmonic, read as a rule of power
+        assert leakage_return(q.values(), radar, sign_codes=True).mean() < 0.05, range_m
+        check = FrontEndCheck()
+        check.check(radar, ["s"] * b, q)
+        front = check.health("s")["front_end"]
+        assert front["checked"] >= 20 and front["leakage"] == 0, (range_m, front)
+        leak = simulate_frames(np.full((b, 1), 0.2), np.zeros((b, 1)), np.full((b, 1), 1.0), radar)
+        other = simulate_frames(np.full((b, 1), 30.0), np.zeros((b, 1)), np.full((b, 1), 0.5), radar)
+        for z in (x + leak, other + leak):
+            q = quantize_frames(z, QuantizerConfig(bits=1, alpha=0.0), np.arange(b))
+            assert leakage_return(q.values(), radar, sign_codes=True).mean() > 0.95, range_m
+        q = quantize_frames(x, QuantizerConfig(bits=1, alpha=0.45), np.arange(b))
+        assert leakage_return(q.values(), radar).mean() < 0.05, range_m
+
+
 def test_1_a_target_just_beyond_the_leakage_bins_is_not_a_leakage():
     """A reflector at 1.45-1.8 m (between bins 2 and 3) puts a sidelobe into bin 1 within 10 dB
     of its peak: no front end for a sensor without one, nor for a calibrated one (a rule of

@@ -156,21 +156,40 @@ LEAKAGE_OVER_FLOOR = 30.0
 #: -15 dB and less); a target just beyond them (1.5 m: between bins 2 and 3) puts a sidelobe
 #: into bin 1 within 10 dB of its peak, but its peak lies beyond
 LEAKAGE_OVER_NEIGHBOUR = 2.0
+#: 1-bit codes without a dither: a tone's complex sign ``sign(cos) + i sign(sin)`` holds
+#: ``-1/3`` of it at minus three times its frequency (-9.5 dB, within LEAKAGE_POWER_SHARE): a
+#: target at N/3 or 2N/3 bins (51.2 or 102.4 m on the paper's radar) puts that harmonic into
+#: the near bins. The bins within this many of ``-3`` times the strongest return's bin (modulo
+#: N; the bin's rounding and a 0.5-bin offset make 1.5) are not taken for a front end there
+SIGN_HARMONIC_REACH = 2
 
 
-def leakage_return(z: np.ndarray, config: RadarConfig, bins: int = LEAKAGE_BINS) -> np.ndarray:
+def leakage_return(z: np.ndarray, config: RadarConfig, bins: int = LEAKAGE_BINS,
+                   sign_codes: bool | np.ndarray = False) -> np.ndarray:
     """Whether each frame Z (B, M, 2) of whole ramps (quantized or not) has a return in the
     first or last ``bins`` range bins of the circular range axis, where a real front end's
     DC offset and TX-to-RX leakage sit (docs/design.md): a peak there within
     LEAKAGE_POWER_SHARE of the power of the frame's strongest return, LEAKAGE_OVER_FLOOR times
     its median bin and LEAKAGE_OVER_NEIGHBOUR times the bins just beyond: (B,) bool. In most
     frames of a sensor, its front end is not removed (no calibration, or one of another front
-    end); 0-5 % of the frames of a calibrated one (the simulated chamber)."""
+    end); 0-5 % of the frames of a calibrated one (the simulated chamber). ``sign_codes``
+    (one for all, or (B,) bool): frames of 1-bit codes without a dither, whose quantizer's
+    harmonic of a strongest return beyond the near bins is not taken for a front end
+    (:data:`SIGN_HARMONIC_REACH`)."""
     n = config.samples_per_ramp
     energy = joint_energy(back_project_ramps(z, config))
+    strongest = energy.max(axis=1)
+    sign_codes = np.broadcast_to(np.asarray(sign_codes, dtype=bool), energy.shape[:1])
+    if sign_codes.any():
+        top = energy.argmax(axis=1)
+        harmonic = sign_codes & (top >= bins) & (top < n - bins)  # the strongest is not itself near
+        if harmonic.any():
+            rows = np.flatnonzero(harmonic)
+            cols = (-3 * top[rows, None] + np.arange(-SIGN_HARMONIC_REACH, SIGN_HARMONIC_REACH + 1)) % n
+            energy[rows[:, None], cols] = 0.0
     near = np.maximum(energy[:, :bins].max(axis=1), energy[:, n - bins:].max(axis=1))
     beyond = np.maximum(energy[:, bins], energy[:, n - bins - 1])
-    return ((near >= LEAKAGE_POWER_SHARE * energy.max(axis=1))
+    return ((near >= LEAKAGE_POWER_SHARE * strongest)
             & (near >= LEAKAGE_OVER_FLOOR * np.median(energy, axis=1)) & (near >= LEAKAGE_OVER_NEIGHBOUR * beyond))
 
 

@@ -77,8 +77,13 @@ class FrontEndCheck:
         if not due or radar.n_measurements % radar.samples_per_ramp:
             return
         idx = np.array(due)
-        values = frames.take(idx).values() if isinstance(frames, QuantizedFrames) else np.asarray(frames)[idx]
-        seen = leakage_return(values, radar).tolist()
+        sign_codes: bool | np.ndarray = False  # 1-bit codes without a dither: their quantizer's harmonic
+        if isinstance(frames, QuantizedFrames):
+            sub = frames.take(idx)
+            values, sign_codes = sub.values(), (sub.bits == 1) & (np.asarray(sub.alpha) == 0.0)
+        else:
+            values = np.asarray(frames)[idx]
+        seen = leakage_return(values, radar, sign_codes=sign_codes).tolist()
         with self._lock:
             for i, hit in zip(due, seen):
                 st = self._state.get(sensors[i])
