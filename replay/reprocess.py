@@ -169,15 +169,24 @@ def clock_start_ns(rec: RawRecording) -> tuple[int, bool]:
     file); else this file's first frame (False: a later file that names none). A value that
     is no time at or before this file's first frame is not taken."""
     first = int(rec.timestamp_ns[0])
+    named = named_clock_ns(rec.metadata, rec.sensor_id, first)
+    return (first, False) if named is None else (named, True)
+
+
+def named_clock_ns(metadata: dict[str, dict[str, str]], sensor_id: str, first_ns: int) -> int | None:
+    """When the truth's clock of ``sensor_id`` began (ns), as a recording's ``metadata`` names
+    it (:func:`clock_start_ns`), its first frame in the file at ``first_ns``: ``first_ns`` for a
+    later file's sensor its recorder does not name (it began in that file); None: not named,
+    or no time at or before ``first_ns``."""
     for name, key in (("qradar.scene", "truth_t0_ns"), ("qradar.recorder", "first_raw_ns")):
         try:
-            named = json.loads(rec.metadata[name][key])
-            start = named.get(rec.sensor_id, first) if isinstance(named, dict) else named
+            named = json.loads(metadata[name][key])
+            start = named.get(sensor_id, first_ns) if isinstance(named, dict) else named
         except (KeyError, TypeError, ValueError, RecursionError):
             continue
-        if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first:
-            return start, True
-    return first, False
+        if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first_ns:
+            return start
+    return None
 
 
 def truth_positions(rec: RawRecording, scene: SimScene) -> tuple[np.ndarray, np.ndarray]:

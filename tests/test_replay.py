@@ -426,6 +426,17 @@ def test_a_moving_target_is_scored_where_it_is_in_each_frame(tmp_path):
                  "--quiet")
     assert out.returncode == 0 and "each frame is scored where they are at its time since the sensor's first " \
         "frame\n" in out.stderr, out.stderr
+    # the web page's view of each file draws the truth on the same clock (it drew a later file's from its start)
+    from qradar.web.node import WebView
+
+    for rec, file in ((first, path), (later, tmp_path / "walk_0001.mcap")):
+        view = WebView.of_recording(file)  # not started: no server, no player's thread, an in-memory transport
+        assert set(view.player.truth_t0_ns) == {rec.sensor_id}
+        t0 = view.player.truth_t0_ns[rec.sensor_id]
+        assert t0 == (view.player.first_log_ns if rec is first else first.timestamp_ns[0])
+        shown = view._truth_at(rec.sensor_id, int(rec.timestamp_ns[-1]))
+        want = 3.0 + 1.5 * (rec.timestamp_ns[-1] - first.timestamp_ns[0]) / 1e9
+        assert shown[0]["range_m"] == pytest.approx(want, abs=0.1), (shown, want)  # the first log time: ms after
 
 
 @pytest.mark.parametrize("named, start", [

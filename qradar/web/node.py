@@ -63,12 +63,13 @@ class WebView(LiveView):
     """zenoh ``<prefix>/*/{targets,tracks,quantized,health}`` -> the pages of a web server
     on ``config.host:config.port`` (:meth:`start`; ``url`` then says where). ``truth``:
     the true targets to show beside the estimates (a scene), its time 0 at ``truth_t0_ns``
-    (None: each sensor's first frame). ``recording``: a :class:`RecordingPlayer` whose
+    (ns; a dict: each sensor's, a recording's; None, or a sensor the dict does not name: its
+    first frame). ``recording``: a :class:`RecordingPlayer` whose
     transport is this view's (see :meth:`of_recording`)."""
 
     def __init__(self, bus: BusConfig, config: WebConfig = WebConfig(),
                  session: zenoh.Session | Transport | None = None, truth: SimScene | None = None,
-                 truth_t0_ns: int | None = None, recording: RecordingPlayer | None = None,
+                 truth_t0_ns: int | dict[str, int] | None = None, recording: RecordingPlayer | None = None,
                  health_period_s: float = 1.0, intake: IntakeBudget | None = None, decoded: DecodedOnce | None = None):
         super().__init__(bus, config, session, health_period_s=health_period_s, intake=intake, decoded=decoded)
         self.hub = EventHub(config.max_clients, config.client_events, config.client_bytes)
@@ -93,7 +94,7 @@ class WebView(LiveView):
 
         player = RecordingPlayer(path, transport, bus, on_state=state, on_seek=lambda s: view.hub.reset(s))
         view = cls(bus, replace(config, radar=player.radar), session=transport, truth=player.truth,
-                   truth_t0_ns=player.first_log_ns, recording=player, health_period_s=health_period_s)
+                   truth_t0_ns=player.truth_t0_ns, recording=player, health_period_s=health_period_s)
         return view
 
     @property
@@ -147,6 +148,8 @@ class WebView(LiveView):
         if self.truth is None:
             return None
         t0 = self.truth_t0_ns
+        if isinstance(t0, dict):  # a recording's: each sensor's
+            t0 = t0.get(sensor)
         if t0 is None:
             with self._lock:
                 t0 = self._t0_by_sensor.setdefault(sensor, timestamp_ns)

@@ -55,15 +55,21 @@ class RecordingPlayer:
         check_mcap(self.path)  # missing, a folder, empty, not MCAP: one line saying which
         f = McapFile(self.path)
         first = last = None
+        sensors: dict[str, int] = {}  # each sensor's first log time
         for ch, msg in recorded_messages(f, None, threading.Event(), topic=_shown):
             first = msg.log_time if first is None else first
             last = msg.log_time
+            sensors.setdefault(ch.topic.rsplit("/", 2)[-2], msg.log_time)
         if first is None:
             raise NoQradarChannelsError(f"{self.path} holds no targets, tracks, quantized frames or health to show")
         self.first_log_ns = first
         self.duration_s = (last - first) / 1e9
         self.truncated = f.truncated
-        info = Recording(self.path, f.metadata_dict(), [], f.truncated)
+        metadata = f.metadata_dict()
+        #: when each sensor's truth clock began (ns), as re-processing takes it (the live run's
+        #: start, or a later file's first raw frame its recorder names; else the file's start)
+        self.truth_t0_ns = {sid: self._clock(metadata, sid, at) for sid, at in sensors.items()}
+        info = Recording(self.path, metadata, [], f.truncated)
         self.radar: RadarConfig = info.radar
         try:
             self.truth: SimScene | None = info.scene()
@@ -78,6 +84,13 @@ class RecordingPlayer:
         self._interrupt = threading.Event()
         self._thread: threading.Thread | None = None
         self.published = 0
+
+    def _clock(self, metadata: dict, sensor_id: str, first_ns: int) -> int:
+        """A sensor's truth clock (:func:`replay.reprocess.named_clock_ns`), else the file's start."""
+        from replay.reprocess import named_clock_ns
+
+        named = named_clock_ns(metadata, sensor_id, first_ns)
+        return self.first_log_ns if named is None else named
 
     def state(self) -> dict:
         with self._cond:
