@@ -343,7 +343,8 @@ def score_profile(segs: Sequence[Segment], profile: SensorProfile, ramps_per_fra
     elif reflector.angle_deg is not None and abs(score.angle_deg - reflector.angle_deg) > reflector.angle_tol_deg:
         score.why = f"the reflector comes out at {score.angle_deg:+.1f} deg, not {reflector.angle_deg:+g} deg"
         if abs(reflector.angle_deg) > reflector.angle_tol_deg >= abs(score.angle_deg + reflector.angle_deg):
-            score.why += f" ({SIGN_FLIPPED}: the profile's azimuth pair in the other order, azimuth = [1, 0] for [0, 1])"
+            score.why += (f" ({SIGN_FLIPPED}: the profile's azimuth pair in the other order, "
+                          "azimuth = [1, 0] for [0, 1])")
     else:
         score.fits = True
         score.why = (f"one sharp range peak ({fs.sharpness_db:.1f} dB over the median, {fs.purity_db:.1f} dB over "

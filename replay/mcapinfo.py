@@ -34,6 +34,35 @@ KNOWN_METADATA = ("qradar.versions", "qradar.recorder", "qradar.radar", "qradar.
                   "qradar.recorder_counters", "qradar.recovery")
 
 
+#: where a recording names when its truth's clock began: a real sensor's run its start (one
+#: time), a split set's later file each sensor's first raw frame (by sensor), in that order
+TRUTH_CLOCK_KEYS = (("qradar.scene", "truth_t0_ns"), ("qradar.recorder", "first_raw_ns"))
+
+
+def truth_clocks(metadata: dict[str, dict[str, str]]) -> tuple:
+    """The values of :data:`TRUTH_CLOCK_KEYS` in a recording's ``metadata``, each parsed once
+    (None: absent or not JSON), for :func:`named_clock_ns`."""
+    out = []
+    for name, key in TRUTH_CLOCK_KEYS:
+        try:
+            out.append(json.loads(metadata[name][key]))
+        except (KeyError, TypeError, ValueError, RecursionError):
+            out.append(None)
+    return tuple(out)
+
+
+def named_clock_ns(clocks: tuple, sensor_id: str, first_ns: int) -> int | None:
+    """When the truth's clock of ``sensor_id`` began (ns), as a recording's :func:`truth_clocks`
+    name it, its first frame in the file at ``first_ns``: ``first_ns`` for a later file's sensor
+    its recorder does not name (it began in that file); None: not named, or no time at or
+    before ``first_ns``."""
+    for named in clocks:
+        start = named.get(sensor_id, first_ns) if isinstance(named, dict) else named
+        if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first_ns:
+            return start
+    return None
+
+
 def _value(text: str):
     """A metadata value: JSON when it is (numbers, lists, objects, true/false, null), else the text."""
     try:

@@ -24,7 +24,7 @@ A write error (a full disk, EFBIG, EIO, a removed folder) never stops the node: 
 file is cut back to its last flushed chunk and closed (:meth:`McapSink.abort`), the
 error is logged once (then at most once a second) and shown in health, and by the
 ``on_write_error`` policy the recorder either pauses — counting every message it cannot
-write, by topic — and every ``retry_s`` probes for space (at least ``RESUME_FREE_BYTES``
+write, by topic — and every ``retry_s`` probes for space (at least ``resume_free_bytes``
 free), resuming into the next file (``name_0001.mcap``, ...), or stops recording for
 good. Only the first file is different: a recording that cannot even begin is an error
 at start (ReplayError), before anything runs.
@@ -74,8 +74,6 @@ FLUSH_PERIOD_S = 1.0
 PAUSED_LOG_PERIOD_S = 1.0
 #: the sensors whose first raw frame later files of a split set name (``first_raw_ns``), at most
 MAX_CLOCKS = 4096
-#: a paused recording resumes once this many bytes are free on its disk
-RESUME_FREE_BYTES = 1_000_000
 #: file names listed in health and summaries (the newest); ``files_written`` counts them all
 LISTED_FILES = 8
 #: senders named in the summary's ``refused_by_sensor`` (the most refused; the rest summed)
@@ -147,7 +145,7 @@ class RecordingFiles(ProcessingNode):
     the start of every file. Messages lost (write errors, read-backs) are counted by topic."""
 
     #: the free bytes a paused recording waits for before it resumes into the next file
-    resume_free_bytes: int = RESUME_FREE_BYTES
+    resume_free_bytes: int = 1_000_000
 
     def __init__(self, bus: BusConfig, path: str | Path, session: zenoh.Session | Transport | None = None,
                  split_size_mb: float | None = None, split_duration_s: float | None = None,

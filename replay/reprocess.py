@@ -36,7 +36,7 @@ from radar_driver.scene import SimScene, load_truth, scene_from_dict
 from .errors import NoQradarChannelsError, ReplayError
 from .outputs import check_new_file, output_folder
 from .reprocess_figures import plot_alpha_sweep, plot_reconstructions
-from .mcapinfo import split_note
+from .mcapinfo import named_clock_ns, split_note, truth_clocks
 from .mcapio import McapSink, pointcloud_json
 from .source import RecordingSource
 
@@ -169,24 +169,8 @@ def clock_start_ns(rec: RawRecording) -> tuple[int, bool]:
     file); else this file's first frame (False: a later file that names none). A value that
     is no time at or before this file's first frame is not taken."""
     first = int(rec.timestamp_ns[0])
-    named = named_clock_ns(rec.metadata, rec.sensor_id, first)
+    named = named_clock_ns(truth_clocks(rec.metadata), rec.sensor_id, first)
     return (first, False) if named is None else (named, True)
-
-
-def named_clock_ns(metadata: dict[str, dict[str, str]], sensor_id: str, first_ns: int) -> int | None:
-    """When the truth's clock of ``sensor_id`` began (ns), as a recording's ``metadata`` names
-    it (:func:`clock_start_ns`), its first frame in the file at ``first_ns``: ``first_ns`` for a
-    later file's sensor its recorder does not name (it began in that file); None: not named,
-    or no time at or before ``first_ns``."""
-    for name, key in (("qradar.scene", "truth_t0_ns"), ("qradar.recorder", "first_raw_ns")):
-        try:
-            named = json.loads(metadata[name][key])
-            start = named.get(sensor_id, first_ns) if isinstance(named, dict) else named
-        except (KeyError, TypeError, ValueError, RecursionError):
-            continue
-        if isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= first_ns:
-            return start
-    return None
 
 
 def truth_positions(rec: RawRecording, scene: SimScene) -> tuple[np.ndarray, np.ndarray]:
@@ -220,12 +204,12 @@ class SweepResult:
     results: list[AlphaResult]
     truth: list[dict]
     rec: RawRecording
+    positions: tuple[np.ndarray, np.ndarray]  # (F, T) true ranges (m), angles (deg): truth_positions
     params: dict = field(default_factory=dict)
-    positions: tuple[np.ndarray, np.ndarray] | None = None  # (F, T) true ranges (m), angles (deg): truth_positions
 
     def moving(self, i: int) -> bool:
         """Whether true target ``i`` moves over the frames."""
-        return self.positions is not None and bool(np.ptp(self.positions[0][:, i]) > 0)
+        return bool(np.ptp(self.positions[0][:, i]) > 0)
 
     @property
     def mean_error_m(self) -> np.ndarray:
@@ -259,9 +243,7 @@ class SweepResult:
 
         detection = {}
         if self.params.get("K_auto"):  # found: a detection within one range bin (0.6 m) of the true range
-            true_r = (np.broadcast_to(np.array([[t["range_m"] for t in self.truth]]), self.results[0].errors_m.shape)
-                      if self.positions is None else self.positions[0])
-            found, false = zip(*(match_detections(true_r, r.detections.range_m, 0.6) for r in self.results))
+            found, false = zip(*(match_detections(self.positions[0], r.detections.range_m, 0.6) for r in self.results))
             detection = {"detected": {lab: [round(float(f[:, i].mean()), 4) for f in found]
                                       for i, lab in enumerate(labels)},
                          "false_targets_per_frame": [round(float(x.mean()), 4) for x in false]}
@@ -297,9 +279,9 @@ def sweep(rec: RawRecording, radar: RadarConfig, scene: SimScene, alphas: np.nda
         for a in alphas:
             out.append(run_alpha(rec, radar, positions, float(a), bits, k, seed, algo, auto_k, pfa, gate))
             bar.update(rec.frames.shape[0])
-    return SweepResult(np.asarray(alphas, float), out, truth, rec,
+    return SweepResult(np.asarray(alphas, float), out, truth, rec, positions,
                        {"bits": bits, "K": k, "K_auto": auto_k, "algo": str(algo), "seed": seed,
-                        **({} if gate is None else gate.to_dict())}, positions)
+                        **({} if gate is None else gate.to_dict())})
 
 
 def write_targets_mcap(result: SweepResult, index: int, radar: RadarConfig, path: Path,
@@ -457,7 +439,8 @@ def _notes(cfg: ReprocessConfig, rec: RawRecording, front: dict, scene: SimScene
     flagged), targets outside the range ``gate``, one file of a split set, moving targets."""
     notes = []
     live = rec.metadata.get("qradar.calibration", {}).get("file")
-    if front["calibrated"] is None and live:  # raw frames keep the front end; the live run removed it where it quantized
+    # raw frames keep the front end; the live run removed it where it quantized
+    if front["calibrated"] is None and live:
         notes.append(f"warning: {cfg.file} was recorded by a run calibrated with {live}, and its raw frames keep the "
                      f"front end: give --calibration {live} to decode them as that run did")
     elif leakage_shown(front):

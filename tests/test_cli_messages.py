@@ -78,7 +78,8 @@ def test_a_k_taken_from_the_scene_is_named_so(tmp_path):
                                                    for i in range(17)))
     out = qradar("run", "--scene", str(scene), "--algo", "cml", "--no-record")
     last = out.stderr.strip().splitlines()[-1]
-    assert out.returncode == 2 and last.startswith("qradar run: error: no --K given: K=17, the scene's targets; K=17 is more"), last
+    assert out.returncode == 2 and last.startswith(
+        "qradar run: error: no --K given: K=17, the scene's targets; K=17 is more"), last
     assert "is more than cml decodes live: at most 16" in last
 
 

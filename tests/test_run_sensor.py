@@ -257,6 +257,7 @@ def test_reprocess_reads_the_same_truth_file_as_run(tmp_path, cli):
     result = json.loads((tmp_path / "rp" / "results.json").read_text())
     assert [(t["range_m"], t["angle_deg"]) for t in result["truth"]] == [(5.87, -20.0), (10.23, 15.0)]
 
+
 def test_a_moving_truth_of_a_real_sensor_is_reprocessed_on_the_live_runs_clock(tmp_path):
     """A real sensor (a pty) with ``--truth`` of a target walking at 0.125 m/s: the recording
     names when the truth's time began (the run's start, as the live monitor takes it), and

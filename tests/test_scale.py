@@ -215,7 +215,8 @@ def test_pulled_and_callback_input_give_the_same_targets(zenoh_session):
     col = Collector(session, "*/*/targets")
     cfg = LocalizerConfig(k=2, radar=CHAMBER.radar)
     buses = {mode: BusConfig(prefix=mode) for mode in ("pull", "callback")}
-    locs = {mode: LocalizeNode(bus, cfg, session=session, queue=QueueConfig(input_mode=mode)) for mode, bus in buses.items()}
+    locs = {mode: LocalizeNode(bus, cfg, session=session, queue=QueueConfig(input_mode=mode))
+            for mode, bus in buses.items()}
     srcs = {mode: SourceNode(bus, sim(sensors=5, frames=8, prefix="m", send="spread"), session=session,
                              quantizer=QUANT) for mode, bus in buses.items()}
     run_until_done(list(locs.values()) + list(srcs.values()),

@@ -46,7 +46,7 @@ DYNAMIC_RANGE_DB = 45.0
 #: them takes the lower floor of the two: the products rise and fall with alpha)
 ALPHA_STEP = 0.05
 #: more than the steps of alpha's grid (0 .. 1 / ALPHA_STEP): a grid point's key is step + _STEP_KEYS * twice
-_STEP_KEYS = 64
+_STEP_KEYS = round(1.0 / ALPHA_STEP) + 1
 #: frames of this many bits or more are fitted as unquantized ones are (the targets' tones alone,
 #: refined together): their staircase's products lie under the floor, and what the fit leaves of
 #: two targets refined apart passed the test (4-8 bits beside two targets, noise 0.03, alpha

@@ -70,8 +70,8 @@ IDLE_S = 0.1
 
 @dataclass(frozen=True)
 class QueueConfig:
-    """A processing node's input queue and per-sensor state (the keyword arguments of
-    :class:`ProcessingNode`, :meth:`node_kwargs`): frames and bytes waiting, of one
+    """A processing node's input queue and per-sensor state (its ``queue``,
+    :meth:`node_kwargs`): frames and bytes waiting, of one
     sensor and in all, how long a silent sensor is remembered, how long a worker waits
     for a full batch, and how its input arrives."""
 
@@ -98,7 +98,7 @@ class QueueConfig:
 
 
 #: a ProcessingNode's ``sensor_expiry_s`` when not given: its queue's (:class:`QueueConfig`)
-QUEUES_EXPIRY = "queue's"
+_QUEUES_EXPIRY = object()
 
 
 @dataclass(frozen=True)
@@ -160,10 +160,11 @@ class ProcessingNode(Node):
 
     def __init__(self, bus: BusConfig, session: zenoh.Session | Transport | None = None,
                  queue: QueueConfig | None = None, batch_max: int = 64, health_period_s: float = 1.0,
-                 sensor_expiry_s: float | None | str = QUEUES_EXPIRY, sensors: str = "*", shard: Shard | None = None,
+                 sensor_expiry_s: float | None = _QUEUES_EXPIRY,  # type: ignore[assignment]
+                 sensors: str = "*", shard: Shard | None = None,
                  intake: IntakeBudget | None = None):
         queue = QueueConfig() if queue is None else queue
-        if isinstance(sensor_expiry_s, str) and sensor_expiry_s == QUEUES_EXPIRY:
+        if sensor_expiry_s is _QUEUES_EXPIRY:
             sensor_expiry_s = queue.sensor_expiry_s
         super().__init__(bus, session, health_period_s, sensor_expiry_s)
         self.intake = IntakeBudget() if intake is None else intake

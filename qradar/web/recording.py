@@ -22,6 +22,7 @@ from pipeline.nodes.transport import Transport
 from radar_driver.model import RadarConfig
 from radar_driver.scene import SimScene
 from replay.errors import NoQradarChannelsError, ReplayError
+from replay.mcapinfo import named_clock_ns, truth_clocks
 from replay.mcapio import McapFile
 from replay.mcapread import check_mcap
 from replay.source import recorded_messages
@@ -66,9 +67,11 @@ class RecordingPlayer:
         self.duration_s = (last - first) / 1e9
         self.truncated = f.truncated
         metadata = f.metadata_dict()
-        #: when each sensor's truth clock began (ns), as re-processing takes it (the live run's
-        #: start, or a later file's first raw frame its recorder names; else the file's start)
-        self.truth_t0_ns = {sid: self._clock(metadata, sid, at) for sid, at in sensors.items()}
+        #: when each sensor's truth clock began (ns): the one the file names, as re-processing reads
+        #: it (the live run's start, or a later file's first raw frame); else the file's start
+        clocks = truth_clocks(metadata)
+        self.truth_t0_ns = {sid: self.first_log_ns if (t0 := named_clock_ns(clocks, sid, at)) is None else t0
+                            for sid, at in sensors.items()}
         info = Recording(self.path, metadata, [], f.truncated)
         self.radar: RadarConfig = info.radar
         try:
@@ -84,13 +87,6 @@ class RecordingPlayer:
         self._interrupt = threading.Event()
         self._thread: threading.Thread | None = None
         self.published = 0
-
-    def _clock(self, metadata: dict, sensor_id: str, first_ns: int) -> int:
-        """A sensor's truth clock (:func:`replay.reprocess.named_clock_ns`), else the file's start."""
-        from replay.reprocess import named_clock_ns
-
-        named = named_clock_ns(metadata, sensor_id, first_ns)
-        return self.first_log_ns if named is None else named
 
     def state(self) -> dict:
         with self._cond:

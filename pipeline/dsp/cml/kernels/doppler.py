@@ -98,8 +98,9 @@ def doppler_phase(vals, rm) -> float:
 def two_ramps(uc, sc, coarse, peaks, cross):
     """:func:`doppler` of two ramps at every coarse point of ``uc`` (2, 2, Lc) times ``sc``:
     totals into ``coarse``, peaks into ``peaks`` (Lc,), and the cross term ``sum_p conj(U_0p)
-    U_1p`` into ``cross`` (2, Lc) (its real and imaginary parts: the energy at a phase step
-    phi is ``coarse + 2 (Re cross cos phi + Im cross sin phi)``), one vectorized pass."""
+    U_1p`` into ``cross`` (2, Lc) (its real and imaginary parts, all three times ``sc^2``: the
+    energy at a phase step phi is ``coarse + 2 (Re cross cos phi + Im cross sin phi)``), one
+    vectorized pass."""
     s2 = sc * sc
     u0, u1, v0, v1 = uc[0, 0], uc[0, 1], uc[1, 0], uc[1, 1]
     for c in range(coarse.shape[0]):

@@ -24,7 +24,8 @@ the residual itself. The work arrays of a search are a
 guard of the targets found, ``s.energy`` (L,) the channel's fine energies found
 (``s.known``), ``s.coarse`` (Lc,) the coarse totals, ``s.peaks`` (Lc,) the coarse peaks over
 phi, ``s.chan`` (Lc,) the channel's coarse energies, ``s.steered`` (1, 2, N) the steered
-residual and ``s.phis`` (1,) its phase step (NaN: none yet); ``gate.outside`` (L,) bool:
+residual and ``s.phis`` (1,) its phase step (NaN: none yet), ``s.cross`` (2, Lc) two ramps'
+cross term (:func:`two_ramps`, the channel's energies from it); ``gate.outside`` (L,) bool:
 beyond the range gate."""
 
 from __future__ import annotations
@@ -239,10 +240,7 @@ def steer(uc, x, n, gate, s):
         for p in range(2):
             for i in range(n):
                 out[0, p, i] = t0 * x[0, p, i] + t1 * x[1, p, i]
-        _two_ramp_channel(s.coarse, s.cross, math.cos(phi), math.sin(phi), chan)
-        for c in range(lc):
-            energy[c * ratio] = chan[c]
-            known[c * ratio] = True
+        _two_ramp_channel(s.coarse, s.cross, math.cos(phi), math.sin(phi), chan, energy, known)
         return out
     for p in range(2):
         for i in range(n):
@@ -267,12 +265,17 @@ def steer(uc, x, n, gate, s):
 
 
 @njit(**FAST)
-def _two_ramp_channel(coarse, cross, cs, sn, chan):
+def _two_ramp_channel(coarse, cross, cs, sn, chan, energy, known):
     """Two ramps' energy at the phase step of ``cos``, ``sin`` = ``cs``, ``sn`` at every coarse
-    point into ``chan`` (Lc,): ``coarse + 2 (cross[0] cs + cross[1] sn)`` (:func:`two_ramps`)."""
+    point into ``chan`` (Lc,): ``coarse + 2 (cross[0] cs + cross[1] sn)`` (:func:`two_ramps`),
+    and into ``energy`` (L,) at the fine points the coarse ones sample (``known`` there True)."""
     xr, xi = cross[0], cross[1]
+    ratio = energy.shape[0] // chan.shape[0]
     for c in range(chan.shape[0]):
-        chan[c] = coarse[c] + 2.0 * (xr[c] * cs + xi[c] * sn)
+        e = coarse[c] + 2.0 * (xr[c] * cs + xi[c] * sn)
+        chan[c] = e
+        energy[c * ratio] = e
+        known[c * ratio] = True
 
 
 @njit(**FAST)
