@@ -212,11 +212,13 @@ def localizer_of(cfg: RunConfig, scene: SimScene | None, truth: SimScene | None,
                                auto_k=cfg.auto_k, pfa=cfg.pfa, min_range_m=cfg.min_range_m,
                                max_range_m=cfg.max_range_m)
     except ParameterError as e:
-        if cfg.k or f"K={k}" not in str(e):
+        named = f"--max-targets={k}" if cfg.auto_k else f"K={k}"  # as LocalizerConfig names the K it refuses
+        if cfg.k or named not in str(e):
             raise
         origin = ("the scene's targets" if scene is not None else "--truth's targets"
                   if truth is not None and truth.targets else "a real sensor's default without --truth")
-        raise ParameterError(f"no --K given: K={k}, {origin}; {e}") from None
+        given = f"no --max-targets given: at most {k} targets a frame" if cfg.auto_k else f"no --K given: K={k}"
+        raise ParameterError(f"{given}, {origin}; {e}") from None
 
 
 def check_offline(cfg: RunConfig) -> None:

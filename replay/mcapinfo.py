@@ -67,7 +67,7 @@ def _value(text: str):
     """A metadata value: JSON when it is (numbers, lists, objects, true/false, null), else the text."""
     try:
         return json.loads(text)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, RecursionError):  # RecursionError: a crafted value nested beyond the parser
         return text
 
 

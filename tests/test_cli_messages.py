@@ -9,6 +9,7 @@ import argparse
 import pytest
 
 from pipeline.bus.session import zenoh_reason
+from pipeline.errors import ParameterError
 from qradar.cli import build_parser
 from replay.errors import ReplayError
 from replay.reprocess import parse_alphas
@@ -130,3 +131,33 @@ def test_a_noise_level_given_twice_is_refused(tmp_path):
     assert out.returncode == 2 and out.stderr.strip().splitlines()[-1] == (
         "qradar montecarlo-time: error: --noise-sigma 0.1 0 0.1: 0.1 given twice; give each noise level once")
     assert not (tmp_path / "t").exists()  # refused before any work
+
+
+def test_a_k_auto_refusal_names_the_most_targets_and_where_they_came_from(tmp_path):
+    """With K auto the localizer refuses the most targets a frame, named as ``--max-targets``, in
+    each of its refusals; a run whose most came from its scene says so (it named a flag not given)."""
+    from pipeline.dsp.decode import Algo
+    from pipeline.nodes.stream import LocalizerConfig
+    from qradar.run import RunConfig, plan
+
+    with pytest.raises(ParameterError, match=r"^--max-targets=10 targets do not fit in the range gate \[2, 5\] m"):
+        LocalizerConfig(k=10, auto_k=True, min_range_m=2.0, max_range_m=5.0)
+    with pytest.raises(ParameterError, match=r"^--max-targets=0 must be an integer in \[1, N = 256\]"):
+        LocalizerConfig(k=0, auto_k=True)
+    with pytest.raises(ParameterError, match=r"^K=0 must be an integer in \[1, N = 256\]"):
+        LocalizerConfig(k=0)
+    scene = tmp_path / "crowd.toml"
+    scene.write_text('name = "crowd"\n' + "".join(f"[[target]]\nrange_m = {5 + 4 * i}\nangle_deg = 0\namplitude = 0.5\n"
+                                                   for i in range(17)))
+    with pytest.raises(ParameterError, match=r"^no --max-targets given: at most 17 targets a frame, the scene's "
+                                             r"targets; --max-targets=17 is more than cml decodes live"):
+        plan(RunConfig(scene=str(scene), algo=Algo.CML, auto_k=True, record=None))
+
+
+def test_info_reads_a_crafted_deeply_nested_metadata_value_as_text():
+    """A metadata value nested beyond the JSON parser (crafted: the CRC guards against damage,
+    not craft) is shown as its text, not a traceback (re-processing took it as no clock already)."""
+    from replay.mcapinfo import _values
+
+    deep = "[" * 100000
+    assert _values({"first_raw_ns": deep, "part": "1"}) == {"first_raw_ns": deep, "part": 1}

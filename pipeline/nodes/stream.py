@@ -369,8 +369,9 @@ class LocalizerConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.full_search_every, int) and self.full_search_every >= 1):
             raise ParameterError(f"full_search_every={self.full_search_every!r} must be an integer >= 1")
+        most = f"--max-targets={self.k!r}" if self.auto_k else f"K={self.k!r}"  # K auto: the most a frame has
         if not (isinstance(self.k, int) and 1 <= self.k <= self.radar.samples_per_ramp):
-            raise ParameterError(f"K={self.k!r} must be an integer in [1, N = {self.radar.samples_per_ramp}]: a "
+            raise ParameterError(f"{most} must be an integer in [1, N = {self.radar.samples_per_ramp}]: a "
                                  f"frame has N range bins a ramp and a target takes one")
         gate = RangeGate.resolve(self.min_range_m, self.max_range_m, self.radar)
         object.__setattr__(self, "min_range_m", gate.min_range_m)
@@ -378,10 +379,9 @@ class LocalizerConfig:
         mask = gate.bin_mask(self.radar)
         cells = self.radar.samples_per_ramp if mask is None else int(mask.sum())
         if self.k > cells:
-            raise ParameterError(f"K={self.k} targets do not fit in the range gate [{gate.min_range_m:g}, "
+            raise ParameterError(f"{most} targets do not fit in the range gate [{gate.min_range_m:g}, "
                                  f"{gate.max_range_m:g}] m: it holds {cells} range bins")
         object.__setattr__(self, "algo", self.decoder().algo)  # validates the name, K auto and pfa
-        most = f"--max-targets={self.k}" if self.auto_k else f"K={self.k}"  # K auto: the most a frame has
         if self.algo == Algo.CML and self.k > self.radar.samples_per_ramp // 2:
             raise ParameterError(f"{most} must be at most N/2 = "
                                  f"{self.radar.samples_per_ramp // 2} for cml: its fit of K tones to N samples a "
